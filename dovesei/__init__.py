@@ -1,0 +1,1 @@
+"""dovesei: open-vocabulary safe landing for UAVs (CLI and orchestration)."""

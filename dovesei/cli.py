@@ -1,0 +1,34 @@
+"""The user-facing `dovesei` command: one subcommand per job, each in its own module.
+
+Subcommands are imported only when chosen, so `dovesei up --help` never loads torch and the
+onboard image (no torch) can run everything but the CLIPSeg backend.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+
+# name -> (module, help). Each module has main(argv) -> int.
+COMMANDS: dict[str, tuple[str, str]] = {
+    "smoke": ("dovesei.smoke", "check the install: codec round trip and a loopback Zenoh session"),
+}
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if not argv or argv[0] in ("-h", "--help"):
+        print("usage: dovesei <command> [options]\n\ncommands:")
+        for name, (_, text) in COMMANDS.items():
+            print(f"  {name:<18} {text}")
+        return 0 if argv else 2
+    name, rest = argv[0], argv[1:]
+    if name not in COMMANDS:
+        print(f"dovesei: unknown command {name!r}; choose one of {', '.join(COMMANDS)}", file=sys.stderr)
+        return 2
+    module = importlib.import_module(COMMANDS[name][0])
+    return int(module.main(rest) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""Controller service: landing policies, the fixed-rate loop, vehicle adapters."""

@@ -1,0 +1,1 @@
+"""Landing policies: pure objects, heatmap and altitude in, command and status out."""

@@ -1,0 +1,1 @@
+"""Segmenter service: frames in, per-pixel safe-to-land probabilities out."""

@@ -1,0 +1,1 @@
+"""Simulator service: worlds, downward camera, vehicle dynamics, judge."""

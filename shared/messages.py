@@ -1,0 +1,386 @@
+"""Wire messages: frozen dataclasses with a schema name, a version and checked fields.
+
+Data flows frame -> heatmap -> command:
+
+    CameraFrame (sim or camera) --> SafetyHeatmap (segmenter) --> VelocityCommand (controller)
+    VehicleState (sim or autopilot) ----------------------------^        ControllerStatus (controller)
+    PromptSet (operator) --> segmenter            EpisodeResult (sim judge)
+
+Every message carries a `Stamp` whose clock is named (sim time in simulation, the vehicle's clock
+in flight, wall time otherwise) and the camera frame's sequence number travels downstream so
+latency and staleness are measurable end to end. `sent_wall_s` is wall time at publication and is
+used only to measure transport latency, never to decide anything.
+
+Every field is checked when a message is built, by our code or by the codec, so a malformed
+message cannot exist: types follow the annotations, floats are finite, arrays match an
+`ArraySpec`. Units and frames are in the field names: FRD = body forward/right/down, NED =
+north/east/down. Image up = body forward, image right = body right.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import types
+import typing
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import numpy as np
+
+CLOCKS = ("sim", "wall", "vehicle")
+MAX_STR_CHARS = 4096
+MAX_SEQ_ITEMS = 256
+MAX_IMAGE_SIDE_PX = 8192
+
+
+class FieldError(ValueError):
+    """A field of a message is missing, mistyped or out of range (the codec names the schema)."""
+
+
+@dataclass(frozen=True)
+class ArraySpec:
+    """What an array field may hold: dtypes, number of dimensions, optional fixed channel count."""
+
+    dtypes: tuple[str, ...]
+    ndim: int
+    channels: int | None = None  # required size of the last axis
+    unit_range: bool = False  # float values must lie in [0, 1]
+    image: bool = False  # may travel JPEG-compressed
+
+    def check(self, name: str, arr: Any) -> None:
+        if not isinstance(arr, np.ndarray):
+            raise FieldError(f"field {name!r}: expected a numpy array, got {type(arr).__name__}")
+        if arr.dtype.name not in self.dtypes:
+            raise FieldError(f"field {name!r}: dtype {arr.dtype.name} not in {self.dtypes}")
+        if arr.ndim != self.ndim:
+            raise FieldError(f"field {name!r}: {arr.ndim} dimensions, expected {self.ndim}")
+        if self.channels is not None and arr.shape[-1] != self.channels:
+            raise FieldError(f"field {name!r}: last axis {arr.shape[-1]}, expected {self.channels}")
+        if any(s < 1 or s > MAX_IMAGE_SIDE_PX for s in arr.shape[:2]):
+            raise FieldError(f"field {name!r}: shape {arr.shape} outside 1..{MAX_IMAGE_SIDE_PX} px")
+        if arr.dtype.kind == "f":
+            # One pass over the array: NaN/inf fail both comparisons.
+            lo, hi = (0.0, 1.0) if self.unit_range else (-np.inf, np.inf)
+            with np.errstate(invalid="ignore"):
+                ok = bool(np.all((arr >= lo) & (arr <= hi))) if self.unit_range else bool(np.isfinite(arr).all())
+            if not ok:
+                raise FieldError(f"field {name!r}: values must be finite" + (" and in [0, 1]" if self.unit_range else ""))
+
+
+def _check_value(name: str, value: Any, hint: Any, owner: type) -> None:
+    """Check one value against its annotation; raise FieldError naming the field."""
+    origin = typing.get_origin(hint)
+    if origin in (typing.Union, types.UnionType):
+        args = typing.get_args(hint)
+        if value is None and type(None) in args:
+            return
+        (inner,) = [a for a in args if a is not type(None)]
+        _check_value(name, value, inner, owner)
+        return
+    if hint is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise FieldError(f"field {name!r}: expected a number, got {type(value).__name__}")
+        if not math.isfinite(value):
+            raise FieldError(f"field {name!r}: {value} is not finite")
+        return
+    if hint is int:
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+            raise FieldError(f"field {name!r}: expected an integer, got {type(value).__name__}")
+        if not -(2**63) <= int(value) < 2**63:
+            raise FieldError(f"field {name!r}: integer {value} out of int64 range")
+        return
+    if hint is bool:
+        if not isinstance(value, bool):
+            raise FieldError(f"field {name!r}: expected a boolean, got {type(value).__name__}")
+        return
+    if hint is str:
+        if not isinstance(value, str):
+            raise FieldError(f"field {name!r}: expected a string, got {type(value).__name__}")
+        if len(value) > MAX_STR_CHARS:
+            raise FieldError(f"field {name!r}: string longer than {MAX_STR_CHARS} characters")
+        return
+    if hint is np.ndarray:
+        owner.ARRAYS[name].check(name, value)
+        return
+    if origin is tuple:
+        args = typing.get_args(hint)
+        if not isinstance(value, tuple):
+            raise FieldError(f"field {name!r}: expected a tuple, got {type(value).__name__}")
+        if len(args) == 2 and args[1] is Ellipsis:
+            if len(value) > MAX_SEQ_ITEMS:
+                raise FieldError(f"field {name!r}: more than {MAX_SEQ_ITEMS} items")
+            item_hints = [args[0]] * len(value)
+        else:
+            if len(value) != len(args):
+                raise FieldError(f"field {name!r}: {len(value)} items, expected {len(args)}")
+            item_hints = list(args)
+        for i, (item, item_hint) in enumerate(zip(value, item_hints)):
+            _check_value(f"{name}[{i}]", item, item_hint, owner)
+        return
+    if dataclasses.is_dataclass(hint):
+        if not isinstance(value, hint):
+            raise FieldError(f"field {name!r}: expected {hint.__name__}, got {type(value).__name__}")
+        return  # nested records check themselves when built
+    raise TypeError(f"{owner.__name__}.{name}: unsupported annotation {hint!r}")  # a bug in this module
+
+
+_HINTS: dict[type, dict[str, Any]] = {}
+
+
+def field_hints(cls: type) -> dict[str, Any]:
+    """Resolved annotations of a record's fields (cached: this runs for every message built)."""
+    hints = _HINTS.get(cls)
+    if hints is None:
+        resolved = typing.get_type_hints(cls)
+        hints = {f.name: resolved[f.name] for f in dataclasses.fields(cls)}
+        _HINTS[cls] = hints
+    return hints
+
+
+class Record:
+    """Base of every wire record: checks all fields against their annotations when built."""
+
+    ARRAYS: ClassVar[dict[str, ArraySpec]] = {}
+
+    def __post_init__(self) -> None:
+        for name, hint in field_hints(type(self)).items():
+            _check_value(name, getattr(self, name), hint, type(self))
+        self._check()
+
+    def _check(self) -> None:
+        """Cross-field checks of a record; override where there are any."""
+
+
+# Registry of top-level messages by schema name; the codec dispatches on it.
+SCHEMAS: dict[str, type[Message]] = {}
+
+
+class Message(Record):
+    SCHEMA: ClassVar[str]
+    VERSION: ClassVar[int]
+
+
+def message(schema: str, version: int):
+    """Class decorator: a frozen dataclass registered under `schema` at `version`."""
+
+    def wrap(cls: type) -> type:
+        cls = dataclass(frozen=True)(cls)
+        cls.SCHEMA, cls.VERSION = schema, version
+        if schema in SCHEMAS:
+            raise TypeError(f"schema {schema!r} registered twice")
+        SCHEMAS[schema] = cls
+        return cls
+
+    return wrap
+
+
+@dataclass(frozen=True)
+class Stamp(Record):
+    """A time on a named clock: 'sim' (simulation seconds), 'vehicle' (autopilot boot), 'wall'."""
+
+    t_s: float
+    clock: str
+
+    def _check(self) -> None:
+        if self.clock not in CLOCKS:
+            raise FieldError(f"field 'clock': {self.clock!r} is not one of {CLOCKS}")
+
+
+@dataclass(frozen=True)
+class ClassEntry(Record):
+    """One class of a world's label map."""
+
+    id: int
+    name: str
+    safe: bool
+
+    def _check(self) -> None:
+        if not 0 <= self.id <= 254:
+            raise FieldError(f"field 'id': class id {self.id} outside 0..254 (255 marks outside the world)")
+
+
+@dataclass(frozen=True)
+class GroundTruth(Record):
+    """Sim-only: the world's labels seen through the same camera (255 = outside the world)."""
+
+    ARRAYS: ClassVar[dict[str, ArraySpec]] = {"labels": ArraySpec(("uint8",), 2)}
+    labels: np.ndarray
+    classes: tuple[ClassEntry, ...]
+
+
+@message("dovesei.camera_frame", 1)
+class CameraFrame(Message):
+    """A nadir camera image with the vehicle's altitude and attitude at capture time."""
+
+    ARRAYS: ClassVar[dict[str, ArraySpec]] = {"image_rgb": ArraySpec(("uint8",), 3, channels=3, image=True)}
+    vehicle_id: str
+    seq: int
+    stamp: Stamp
+    image_rgb: np.ndarray  # (H, W, 3) RGB; image up = body forward
+    hfov_rad: float
+    alt_agl_m: float
+    roll_rad: float = 0.0
+    pitch_rad: float = 0.0
+    yaw_rad: float = 0.0
+    sent_wall_s: float = 0.0
+    truth: GroundTruth | None = None  # sim only; a real camera never has it
+
+    def _check(self) -> None:
+        if not 0.0 < self.hfov_rad < math.pi:
+            raise FieldError(f"field 'hfov_rad': {self.hfov_rad} outside (0, pi)")
+        if self.truth is not None and self.truth.labels.shape != self.image_rgb.shape[:2]:
+            raise FieldError(
+                f"field 'truth': labels {self.truth.labels.shape} differ from image {self.image_rgb.shape[:2]}"
+            )
+
+
+@message("dovesei.vehicle_state", 1)
+class VehicleState(Message):
+    """What the controller knows of the vehicle: altitude, velocity, attitude, mode."""
+
+    vehicle_id: str
+    seq: int
+    stamp: Stamp
+    alt_agl_m: float
+    vel_body_frd_m_s: tuple[float, float, float]
+    roll_rad: float = 0.0
+    pitch_rad: float = 0.0
+    yaw_rad: float = 0.0
+    armed: bool = True
+    mode: str = ""
+    pos_valid: bool = False  # the local position below is meaningful only when True
+    pos_local_ned_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    # Lockstep only: the controller must hold the heatmap of this frame before it decides this
+    # tick (-1: nothing awaited). It is what makes a lockstep run independent of host speed.
+    await_frame_seq: int = -1
+    sent_wall_s: float = 0.0
+
+
+@message("dovesei.safety_heatmap", 1)
+class SafetyHeatmap(Message):
+    """Per-pixel P(safe to land) for one camera frame; `seq` and `stamp` are the frame's."""
+
+    ARRAYS: ClassVar[dict[str, ArraySpec]] = {"prob_safe": ArraySpec(("uint8", "float16", "float32"), 2, unit_range=True)}
+    vehicle_id: str
+    seq: int
+    stamp: Stamp
+    prob_safe: np.ndarray  # uint8 means P * 255; float16/float32 are P itself
+    alt_agl_m: float  # altitude when the frame was captured (the policy uses it, not the current one)
+    hfov_rad: float
+    backend: str  # "clipseg" or "simulated"
+    simulated: bool
+    prompt_set_id: str
+    fusion: str
+    inference_s: float
+    frame_to_segmenter_s: float = 0.0
+    sent_wall_s: float = 0.0
+
+    def probability(self) -> np.ndarray:
+        """P(safe) as float32 in [0, 1] whatever the wire dtype."""
+        if self.prob_safe.dtype == np.uint8:
+            return self.prob_safe.astype(np.float32) * np.float32(1.0 / 255.0)
+        return self.prob_safe.astype(np.float32, copy=False)
+
+
+@dataclass(frozen=True)
+class StageLatency(Record):
+    """Wall-clock seconds spent in each stage for the frame a command answers."""
+
+    frame_to_segmenter_s: float
+    inference_s: float
+    heatmap_to_controller_s: float
+    policy_s: float
+
+
+@message("dovesei.velocity_command", 1)
+class VelocityCommand(Message):
+    """Body-frame FRD velocity and yaw rate: maps one-to-one onto MAVLink body-frame setpoints."""
+
+    vehicle_id: str
+    seq: int
+    stamp: Stamp
+    vel_body_frd_m_s: tuple[float, float, float]
+    yaw_rate_rad_s: float = 0.0
+    state_seq: int = -1  # the VehicleState tick this answers (lockstep pairs them)
+    frame_seq: int = -1  # the frame whose heatmap produced it (-1: none yet)
+    sent_wall_s: float = 0.0
+    latency: StageLatency | None = None
+
+
+@message("dovesei.controller_status", 1)
+class ControllerStatus(Message):
+    """The controller's state for operators and reports; one per tick."""
+
+    vehicle_id: str
+    seq: int
+    stamp: Stamp
+    policy: str
+    state: str
+    watchdog: str  # "ok", "hold" (heatmap stale), "climb" (heatmap very stale), "state_stale"
+    reason: str
+    frame_seq: int
+    heatmap_age_s: float  # -1 before the first heatmap
+    focus_radius_px: float
+    target_valid: bool = False
+    target_row_px: float = 0.0
+    target_col_px: float = 0.0
+    threshold_valid: bool = False
+    threshold: float = 0.0
+    vel_body_frd_m_s: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    alt_agl_m: float = 0.0
+
+
+@message("dovesei.prompt_set", 1)
+class PromptSetMsg(Message):
+    """Replace the segmenter's prompts at run time (what 'open vocabulary' buys an operator)."""
+
+    stamp: Stamp
+    positive: tuple[str, ...]
+    negative: tuple[str, ...]
+    template: str = "{}"
+
+    def _check(self) -> None:
+        if not self.positive or not self.negative:
+            raise FieldError("fields 'positive' and 'negative' must each hold at least one prompt")
+        if any(not p.strip() for p in self.positive + self.negative):
+            raise FieldError("prompts must not be empty strings")
+        if "{}" not in self.template:
+            raise FieldError(f"field 'template': {self.template!r} has no '{{}}' placeholder")
+
+
+OUTCOMES = ("safe", "unsafe", "timeout", "out_of_world", "error")
+
+
+@message("dovesei.episode_result", 1)
+class EpisodeResult(Message):
+    """The judge's verdict on one simulated episode."""
+
+    vehicle_id: str
+    stamp: Stamp
+    outcome: str
+    sim_time_s: float
+    path_length_m: float
+    final_x_m: float
+    final_y_m: float
+    final_alt_m: float
+    classes_found: tuple[str, ...] = ()
+    closest_unsafe_valid: bool = False
+    closest_unsafe_m: float = 0.0
+    detail: str = ""
+
+    def _check(self) -> None:
+        if self.outcome not in OUTCOMES:
+            raise FieldError(f"field 'outcome': {self.outcome!r} is not one of {OUTCOMES}")
+
+
+def replace(msg: Record, **changes: Any) -> Any:
+    """A copy of a record with some fields changed (checked again)."""
+    return dataclasses.replace(msg, **changes)
+
+
+__all__ = [
+    "ArraySpec", "CameraFrame", "ClassEntry", "ControllerStatus", "EpisodeResult", "FieldError",
+    "GroundTruth", "Message", "OUTCOMES", "PromptSetMsg", "Record", "SCHEMAS", "SafetyHeatmap",
+    "StageLatency", "Stamp", "VehicleState", "VelocityCommand", "replace",
+]

@@ -1,0 +1,40 @@
+"""Test tiers share these: offline transformers, a free loopback port, paired Zenoh sessions."""
+
+from __future__ import annotations
+
+import os
+import socket
+from collections.abc import Iterator
+
+import pytest
+
+# Nothing in the tests may reach for the network (a failed hub lookup hangs ~30 s).
+os.environ.setdefault("HF_HUB_OFFLINE", "1")
+os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
+
+
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that nothing listens on right now."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture
+def zenoh_pair() -> Iterator[tuple[object, object]]:
+    """Two in-process peers on loopback (multicast off): one listens, the other connects to it."""
+    import zenoh
+
+    from dovesei.shared.lifecycle import wait_until
+    from dovesei.shared.zconfig import loopback_config
+
+    port = free_port()
+    a = zenoh.open(loopback_config(listen_port=port))
+    b = zenoh.open(loopback_config(connect_ports=[port]))
+    try:
+        # Connected when each sees the other as a peer.
+        assert wait_until(lambda: any(True for _ in a.info.peers_zid()), 10.0), "peers did not connect"
+        yield a, b
+    finally:
+        b.close()
+        a.close()
