@@ -127,3 +127,16 @@ def test_construction_checks_fields_too() -> None:
 def test_uint8_heatmap_probability_scale() -> None:
     hm = dataclasses.replace(HEATMAP, prob_safe=np.array([[0, 255]], np.uint8))
     assert np.allclose(hm.probability(), [[0.0, 1.0]])
+
+
+@pytest.mark.parametrize("dtype", ["float16", "float32"])
+@pytest.mark.parametrize("bad", [-0.25, 1.0001, float("inf"), float("-inf"), float("nan")])
+def test_probability_range_check_catches_every_bad_float(dtype: str, bad: float) -> None:
+    arr = np.full((3, 3), 0.5, dtype)
+    arr[1, 2] = bad
+    if dtype == "float16" and bad == 1.0001:
+        arr[1, 2] = np.float16(1.001)  # 1.0001 rounds to 1.0 in half precision
+    with pytest.raises(FieldError, match="in \\[0, 1\\]"):
+        SafetyHeatmap("uav1", 1, Stamp(0.0, "sim"), arr, 10.0, 1.0, "simulated", True, "x", "grouped", 0.0)
+    arr[1, 2] = 1.0
+    SafetyHeatmap("uav1", 1, Stamp(0.0, "sim"), arr, 10.0, 1.0, "simulated", True, "x", "grouped", 0.0)
