@@ -12,6 +12,7 @@ import sys
 # name -> (module, help). Each module has main(argv) -> int.
 COMMANDS: dict[str, tuple[str, str]] = {
     "smoke": ("dovesei.smoke", "check the install: codec round trip and a loopback Zenoh session"),
+    "health": ("dovesei.health", "exit 0 when a service's liveliness token is visible"),
     "bench-codec": ("dovesei.bench_codec", "encode/decode time of a 352x352 frame and heatmap"),
 }
 
