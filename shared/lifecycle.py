@@ -92,13 +92,18 @@ class Inbox(Generic[M]):
 
     def poll(self) -> M | None:
         """The next valid message if one is waiting, else None (never blocks)."""
+        got = self.poll_keyed()
+        return None if got is None else got[0]
+
+    def poll_keyed(self) -> tuple[M, str] | None:
+        """Like `poll`, with the concrete key it arrived on (whose frame, on a wildcard subscription)."""
         while True:
             sample = self._sub.try_recv()
             if sample is None:
                 return None
             msg = self._decode(sample)
             if msg is not None:
-                return msg
+                return msg, str(sample.key_expr)
 
     def recv(self, timeout_s: float, stop: threading.Event | None = None) -> M | None:
         """Wait up to `timeout_s` for the next valid message."""

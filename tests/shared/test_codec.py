@@ -14,7 +14,7 @@ from dovesei.shared.messages import (
     SCHEMAS, CameraFrame, FieldError, SafetyHeatmap, Stamp, VehicleState, VelocityCommand,
 )
 
-from samples import sample_messages  # noqa: E402  (tests/shared is on sys.path via rootdir)
+from tests.shared.samples import sample_messages
 
 
 def _assert_same(a, b) -> None:

@@ -10,7 +10,7 @@ from dovesei.shared.codec import decode, encode
 from dovesei.shared.errors import ProtocolError
 from dovesei.shared.messages import SCHEMAS
 
-from samples import sample_messages
+from tests.shared.samples import sample_messages
 
 VALID = [encode(m) for m in sample_messages(8)]
 TYPES = [None, *SCHEMAS.values()]

@@ -13,7 +13,7 @@ from dovesei.shared.codec import decode, encode
 from dovesei.shared.lifecycle import Inbox, declare_alive, is_alive, wait_until
 from dovesei.shared.messages import CameraFrame, SafetyHeatmap, Stamp, VehicleState
 
-from samples import sample_messages
+from tests.shared.samples import sample_messages
 
 
 def test_pub_sub_round_trip_of_every_message(zenoh_pair) -> None:

@@ -1,0 +1,93 @@
+"""What every landing policy takes and returns, and the factory that builds one by name.
+
+Data flow: the controller loop turns the newest heatmap and vehicle state into an `Observation`,
+calls `Policy.step` once per loop tick and sends the `Decision`'s body-frame FRD velocity. A
+policy is pure: no Zenoh, MAVLink or wall clock inside, every time comes from `Observation.t_s`
+(the data clock), so the same observations give the same decisions on any host.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+
+from dovesei.shared.errors import DoveseiError
+
+
+class PolicyInputError(DoveseiError, ValueError):
+    """An observation a policy cannot use (wrong shape, NaN heatmap, time running backwards...)."""
+
+
+@dataclass(frozen=True)
+class Observation:
+    """One look at the world, on the data clock."""
+
+    t_s: float  # data clock (sim or vehicle), seconds
+    # Altitude when the heatmap's frame was captured (the reference samples it at request time).
+    alt_agl_m: float
+    prob_safe: np.ndarray | None  # (H, W) float32 P(safe) in [0, 1]; None = no new heatmap this tick
+    hfov_rad: float = math.radians(73.0)
+
+
+@dataclass(frozen=True)
+class Decision:
+    """What to do until the next decision, and why (for logs and the status key)."""
+
+    vel_body_frd_m_s: tuple[float, float, float]  # forward, right, down (+down)
+    yaw_rate_rad_s: float
+    state: str
+    target_px: tuple[float, float] | None  # (row, col) in the observation's heatmap pixels
+    focus_radius_px: float
+    threshold: float | None  # dynamic segmentation threshold used (None when it failed)
+    info: Mapping[str, float] = field(default_factory=dict)
+
+
+class Policy(Protocol):
+    """A landing policy: one `step` per controller tick."""
+
+    name: str
+
+    def step(self, obs: Observation) -> Decision: ...
+
+    def reset(self) -> None: ...
+
+
+def _build_dovesei(config: Any) -> Policy:
+    from dovesei.controller.policies.dovesei import DoveseiPolicy
+
+    return DoveseiPolicy(config, name="dovesei")
+
+
+def _build_dovesei_nofocus(config: Any) -> Policy:
+    from dovesei.controller.policies.dovesei import DoveseiPolicy
+
+    return DoveseiPolicy(config, name="dovesei-nofocus", dynamic_focus=False)
+
+
+# Name -> factory. Imports stay inside the factories so importing this module stays cheap.
+_FACTORIES: dict[str, Callable[[Any], Policy]] = {
+    "dovesei": _build_dovesei,
+    "dovesei-nofocus": _build_dovesei_nofocus,
+}
+
+
+def policy_names() -> list[str]:
+    """Every name `make_policy` accepts."""
+    return sorted(_FACTORIES)
+
+
+def make_policy(name: str, config: Any = None) -> Policy:
+    """Build the policy called `name`.
+
+    `config` is policy-specific: for `dovesei*` a `DoveseiConfig`, a timing preset name
+    ("reference" or "real") or None (the `real` preset).
+    """
+    try:
+        factory = _FACTORIES[name]
+    except KeyError:
+        raise ValueError(f"unknown policy {name!r}; known: {', '.join(policy_names())}") from None
+    return factory(config)

@@ -1,0 +1,176 @@
+"""The simulator's core: one episode stepped in fixed sim-time steps, no transport inside.
+
+Each step k (t = k * dt) produces, in this order:
+
+1. a `CameraFrame` when one is due (every `frame_period_s` of sim time), rendered at the
+   vehicle's pose, with the ground-truth labels attached (sim only: the simulated perception
+   needs them, a real camera never has them);
+2. the `VehicleState` of step k, whose `await_frame_seq` names the frame whose heatmap becomes
+   available at this step (captured `latency_s` earlier; -1 when none does);
+3. the `EpisodeResult` once the judge ends the episode (hand-over altitude, time limit, or the
+   vehicle leaving the world).
+
+`step(cmd)` applies the controller's answer to step k for dt and returns step k+1. The Zenoh
+service publishes these in lockstep or real time; the bench calls them directly. Timing presets
+(`reference`, `real`) set the perception rate and latency; see REFERENCE.md "Time in the
+reference".
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, field
+
+from dovesei.shared.clock import wall_time_s
+from dovesei.shared.errors import ConfigError
+from dovesei.shared.messages import (
+    CameraFrame, ClassEntry, EpisodeResult, GroundTruth, Stamp, VehicleState, VelocityCommand,
+)
+from dovesei.sim.camera import CameraModel, render
+from dovesei.sim.dynamics import Vehicle, VehicleParams
+from dovesei.sim.dynamics import VehicleState as Pose
+from dovesei.sim.judge import EpisodeJudge
+from dovesei.sim.starts import Start
+from dovesei.sim.world import World
+
+# timing preset -> (frame period, perception latency), sim seconds. `reference`: a heatmap every
+# controller tick, one tick old when used (~20 decisions per sim second, as the reference's
+# UAV experienced); `real`: what a real CLIPSeg achieves on a ground station (2 Hz, 0.4 s).
+TIMING_PRESETS: dict[str, tuple[float, float]] = {"reference": (0.05, 0.05), "real": (0.5, 0.4)}
+_EPS_S = 1e-9  # float slack when comparing accumulated sim times
+
+
+@dataclass(frozen=True)
+class SimConfig:
+    """Everything the sim needs besides the world and the start; units in the names."""
+
+    vehicle_id: str = "uav1"
+    timing: str = "reference"
+    dt_s: float = 0.05  # one step = one controller tick (20 Hz)
+    frame_period_s: float | None = None  # None: the timing preset's
+    latency_s: float | None = None  # None: the timing preset's
+    camera: CameraModel = field(default_factory=CameraModel)
+    vehicle: VehicleParams = field(default_factory=VehicleParams)
+    handover_alt_m: float = 20.0
+    time_limit_s: float = 1200.0
+    safety_radius_m: float = 2.0
+    seed: int = 0
+    attach_truth: bool = True
+
+    def __post_init__(self) -> None:
+        if self.timing not in TIMING_PRESETS:
+            raise ConfigError(f"timing {self.timing!r}: choose one of {sorted(TIMING_PRESETS)}")
+        for name in ("dt_s", "time_limit_s", "safety_radius_m"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ConfigError(f"sim {name} must be a finite number > 0, got {v!r}")
+        if not (math.isfinite(self.handover_alt_m) and self.handover_alt_m >= 0):
+            raise ConfigError(f"sim handover_alt_m must be >= 0, got {self.handover_alt_m!r}")
+        if self.period_s < self.dt_s - _EPS_S:
+            raise ConfigError(f"frame period {self.period_s} s is shorter than the step {self.dt_s} s")
+        if not 0.0 <= self.delay_s <= 10.0:
+            raise ConfigError(f"perception latency {self.delay_s} s outside 0..10 s")
+
+    @property
+    def period_s(self) -> float:
+        return TIMING_PRESETS[self.timing][0] if self.frame_period_s is None else self.frame_period_s
+
+    @property
+    def delay_s(self) -> float:
+        return TIMING_PRESETS[self.timing][1] if self.latency_s is None else self.latency_s
+
+
+@dataclass(frozen=True)
+class StepOut:
+    state: VehicleState
+    frame: CameraFrame | None
+    result: EpisodeResult | None
+
+
+class SimCore:
+    """One episode on one world from one start; deterministic for a given config."""
+
+    def __init__(self, world: World, start: Start, config: SimConfig = SimConfig()) -> None:
+        self.world, self.start, self.config = world, start, config
+        self._classes = tuple(ClassEntry(int(i), c.name, bool(c.safe)) for i, c in sorted(world.classes.items()))
+        self.judge: EpisodeJudge | None = None
+        self.vehicle: Vehicle | None = None
+
+    def reset(self) -> StepOut:
+        cfg = self.config
+        self.vehicle = Vehicle(Pose(self.start.x_m, self.start.y_m, self.start.alt_m, yaw_rad=self.start.yaw_rad),
+                               cfg.vehicle, seed=cfg.seed)
+        self.judge = EpisodeJudge(self.world, handover_alt_m=cfg.handover_alt_m, time_limit_s=cfg.time_limit_s,
+                                  safety_radius_m=cfg.safety_radius_m)
+        self._k = 0
+        self._frame_seq = -1
+        self._next_frame_t_s = 0.0
+        self._in_flight: deque[tuple[int, float]] = deque()  # (frame seq, sim time its heatmap is due)
+        self._last_cmd: VelocityCommand | None = None
+        self._result: EpisodeResult | None = None
+        return self._emit()
+
+    @property
+    def t_s(self) -> float:
+        return self.vehicle.state.t_s
+
+    def position_m(self) -> tuple[float, float]:
+        """Ground truth world position (x east, y north): for reports, never sent to the controller."""
+        st = self.vehicle.state
+        return st.x_m, st.y_m
+
+    def step(self, cmd: VelocityCommand | None) -> StepOut:
+        """Apply the newest command for one step (None: keep the last one; it times out in the vehicle)."""
+        if self.vehicle is None:
+            raise RuntimeError("SimCore.step() before reset()")
+        if self._result is not None:
+            raise RuntimeError("the episode has ended; reset() to fly another")
+        if cmd is not None:
+            self._last_cmd = cmd
+        c = self._last_cmd
+        self.vehicle.step(self.config.dt_s, c.vel_body_frd_m_s if c else None, c.yaw_rate_rad_s if c else 0.0,
+                          c.stamp.t_s if c else None)
+        self._k += 1
+        return self._emit()
+
+    def _emit(self) -> StepOut:
+        cfg, pose = self.config, self.vehicle.state
+        outcome = self.judge.check(pose)
+        frame = None
+        if outcome is None and pose.t_s >= self._next_frame_t_s - _EPS_S:
+            frame = self._render(pose)
+            self._in_flight.append((frame.seq, pose.t_s + cfg.delay_s))
+            self._next_frame_t_s += cfg.period_s
+        await_seq = -1
+        # At most one heatmap becomes due per step (frame period >= step); take the newest due.
+        while self._in_flight and self._in_flight[0][1] <= pose.t_s + _EPS_S:
+            await_seq = self._in_flight.popleft()[0]
+        state = VehicleState(
+            vehicle_id=cfg.vehicle_id, seq=self._k, stamp=Stamp(pose.t_s, "sim"), alt_agl_m=pose.alt_agl_m,
+            vel_body_frd_m_s=pose.vel_body_frd_m_s(), yaw_rad=pose.yaw_rad, armed=True, mode="SIM",
+            pos_valid=True, pos_local_ned_m=(pose.y_m - self.start.y_m, pose.x_m - self.start.x_m, -pose.alt_agl_m),
+            await_frame_seq=await_seq, sent_wall_s=wall_time_s())
+        if outcome is not None:
+            self._result = self._episode_result(outcome)
+        return StepOut(state, frame, self._result)
+
+    def _render(self, pose: Pose) -> CameraFrame:
+        cfg = self.config
+        image, labels, _valid = render(self.world, pose.x_m, pose.y_m, max(pose.alt_agl_m, 0.1), pose.yaw_rad,
+                                       cfg.camera)
+        truth = GroundTruth(labels, self._classes) if cfg.attach_truth and labels is not None else None
+        self._frame_seq += 1
+        return CameraFrame(cfg.vehicle_id, self._frame_seq, Stamp(pose.t_s, "sim"), image, cfg.camera.hfov_rad,
+                           pose.alt_agl_m, yaw_rad=pose.yaw_rad, sent_wall_s=wall_time_s(), truth=truth)
+
+    def _episode_result(self, outcome: str) -> EpisodeResult:
+        j, pose = self.judge, self.vehicle.state
+        v = j.verdict
+        classes = tuple(f"{c.name}:{c.fraction:.3f}" for c in v.classes) if v else ()
+        closest = v.closest_unsafe_m if v else None
+        detail = v.reason if v else {"timeout": f"no landing within {self.config.time_limit_s:.0f} s of sim time",
+                                     "out_of_world": "the vehicle left the world"}.get(outcome, "")
+        return EpisodeResult(self.config.vehicle_id, Stamp(pose.t_s, "sim"), outcome, j.sim_time_s, j.path_length_m,
+                             pose.x_m, pose.y_m, pose.alt_agl_m, classes, closest is not None,
+                             float(closest) if closest is not None else 0.0, detail)

@@ -1,0 +1,147 @@
+"""The judge on hand-made label maps: safe, unsafe, tolerance, edge of the world, people, episodes."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from dovesei.sim.dynamics import VehicleState
+from dovesei.sim.judge import EpisodeJudge, JudgeError, closest_unsafe_m, judge_landing
+from dovesei.sim.world import ClassInfo, World
+
+GRASS, ROAD, PERSON = 1, 2, 3
+CLASSES = {GRASS: ClassInfo("grass", True), ROAD: ClassInfo("road", False), PERSON: ClassInfo("person", False)}
+
+
+def world_of(labels: np.ndarray, gsd_m: float = 0.25) -> World:
+    return World(np.zeros((*labels.shape, 3), np.uint8), labels, gsd_m, CLASSES, "hand-made")
+
+
+def grass(side_px: int = 200) -> np.ndarray:
+    return np.full((side_px, side_px), GRASS, np.uint8)
+
+
+def centre_of(world: World, row: int, col: int) -> tuple[float, float]:
+    return world.pixel_to_world(row, col)
+
+
+def test_all_safe() -> None:
+    world = world_of(grass())
+    v = judge_landing(world, 25.0, 25.0)
+    assert v.outcome == "safe" and v.unsafe_frac == 0.0
+    assert [(c.name, c.fraction) for c in v.classes] == [("grass", 1.0)]
+    assert v.closest_unsafe_m is None
+    # A 2 m radius on a 0.25 m grid: about pi * 8^2 pixel centres.
+    assert abs(v.disk_px - math.pi * 64) < 10
+
+
+def test_one_unsafe_pixel_within_tolerance_at_large_radius_but_not_small() -> None:
+    labels = grass()
+    labels[100, 103] = ROAD
+    world = world_of(labels)
+    x_m, y_m = centre_of(world, 100, 100)
+    big = judge_landing(world, x_m, y_m, safety_radius_m=4.0)  # ~800 px: 1 px is 0.12 %
+    assert big.outcome == "safe" and 0 < big.unsafe_frac <= 0.01
+    assert {c.name for c in big.classes} == {"grass", "road"}
+    small = judge_landing(world, x_m, y_m, safety_radius_m=1.0)  # ~50 px: 1 px is 2 %
+    assert small.outcome == "unsafe" and small.unsafe_frac > 0.01
+    assert small.closest_unsafe_m == pytest.approx(0.75)
+    # Just outside the disk, the pixel no longer counts.
+    assert judge_landing(world, x_m, y_m, safety_radius_m=0.7).unsafe_frac == 0.0
+
+
+def test_a_person_in_the_disk_is_unsafe_even_within_tolerance() -> None:
+    labels = grass()
+    labels[100, 104:106] = PERSON  # two pixels, 1 m from the landing point
+    world = world_of(labels)
+    x_m, y_m = centre_of(world, 100, 100)
+    v = judge_landing(world, x_m, y_m, safety_radius_m=4.0)
+    assert v.unsafe_frac < 0.01  # the tolerance alone would have let it pass
+    assert v.outcome == "unsafe" and "person" in v.reason
+    # The same two pixels as road are forgiven as anti-aliasing.
+    labels = labels.copy()  # a World freezes its arrays
+    labels[100, 104:106] = ROAD
+    assert judge_landing(world_of(labels), x_m, y_m, safety_radius_m=4.0).outcome == "safe"
+
+
+def test_edge_of_the_world_counts_as_unsafe() -> None:
+    world = world_of(grass())
+    v = judge_landing(world, 0.5, 25.0)  # 0.5 m from the west edge: part of the 2 m disk is outside
+    assert v.outcome == "unsafe"
+    outside = [c for c in v.classes if c.name == "outside the world"]
+    assert outside and 0.2 < outside[0].fraction < 0.5
+    assert v.closest_unsafe_m is None  # the edge is not a labelled obstacle
+
+
+def test_tiny_radius_still_judges_the_pixel_underneath() -> None:
+    labels = grass()
+    labels[50, 50] = ROAD
+    world = world_of(labels)
+    x_m, y_m = centre_of(world, 50, 50)
+    v = judge_landing(world, x_m + 0.1, y_m - 0.1, safety_radius_m=0.0)
+    assert v.disk_px == 1 and v.outcome == "unsafe"
+
+
+def test_closest_unsafe_distance_and_search_limit() -> None:
+    labels = grass(400)
+    labels[200, 240] = ROAD  # 40 px = 10 m east of (200, 200)
+    world = world_of(labels)
+    x_m, y_m = centre_of(world, 200, 200)
+    assert closest_unsafe_m(world, x_m, y_m, 50.0) == pytest.approx(10.0)
+    assert closest_unsafe_m(world, x_m, y_m, 9.0) is None
+
+
+def test_unlisted_label_ids_are_unsafe() -> None:
+    labels = grass()
+    labels[90:110, 90:110] = 77
+    v = judge_landing(world_of(labels), *centre_of(world_of(labels), 100, 100))
+    assert v.outcome == "unsafe" and v.classes[0].name == "unknown id 77"
+
+
+def test_world_without_labels_is_an_error() -> None:
+    world = World(np.zeros((10, 10, 3), np.uint8), None, 1.0, {}, "tiles")
+    with pytest.raises(JudgeError, match="no label map"):
+        judge_landing(world, 5.0, 5.0)
+    with pytest.raises(JudgeError):
+        EpisodeJudge(world)
+
+
+def test_episode_ends_on_handover_with_a_verdict_and_path_length() -> None:
+    world = world_of(grass())
+    judge = EpisodeJudge(world)
+    assert judge.check(VehicleState(10.0, 10.0, 100.0, t_s=0.0)) is None
+    assert judge.check(VehicleState(13.0, 14.0, 60.0, t_s=10.0)) is None
+    assert judge.check(VehicleState(13.0, 14.0, 20.0, t_s=20.0)) == "safe"
+    assert judge.path_length_m == pytest.approx(5.0)
+    assert judge.sim_time_s == 20.0 and judge.verdict is not None
+    # Once ended it stays ended and stops accumulating.
+    assert judge.check(VehicleState(40.0, 40.0, 5.0, t_s=30.0)) == "safe"
+    assert judge.path_length_m == pytest.approx(5.0)
+    summary = judge.summary()
+    assert summary["outcome"] == "safe" and summary["verdict"]["outcome"] == "safe"
+
+
+def test_episode_timeout_and_out_of_world() -> None:
+    world = world_of(grass())  # 50 m square
+    judge = EpisodeJudge(world, time_limit_s=100.0)
+    judge.check(VehicleState(25.0, 25.0, 100.0, t_s=5.0))
+    assert judge.check(VehicleState(25.0, 25.0, 90.0, t_s=104.9)) is None
+    assert judge.check(VehicleState(25.0, 25.0, 90.0, t_s=105.0)) == "timeout"
+    gone = EpisodeJudge(world)
+    gone.check(VehicleState(49.0, 25.0, 100.0))
+    assert gone.check(VehicleState(50.5, 25.0, 100.0, t_s=1.0)) == "out_of_world"
+    # Leaving the world while low is still out of world: it cannot be judged.
+    low = EpisodeJudge(world)
+    assert low.check(VehicleState(-1.0, 25.0, 10.0)) == "out_of_world"
+
+
+def test_unsafe_handover() -> None:
+    labels = grass()
+    labels[:, 100:] = ROAD
+    world = world_of(labels)
+    judge = EpisodeJudge(world)
+    x_m, y_m = centre_of(world, 100, 150)
+    assert judge.check(VehicleState(x_m, y_m, 19.0)) == "unsafe"
+    assert judge.verdict.classes[0].name == "road"
