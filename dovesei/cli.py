@@ -12,6 +12,12 @@ import sys
 # name -> (module, help). Each module has main(argv) -> int.
 COMMANDS: dict[str, tuple[str, str]] = {
     "smoke": ("dovesei.smoke", "check the install: codec round trip and a loopback Zenoh session"),
+    "up": ("dovesei.up", "fly one simulated (or real) landing with the three services as separate processes"),
+    "bench": ("dovesei.bench", "the paper's experiment: N starts x policies, judged, resumable"),
+    "bench-sim": ("dovesei.sim.bench", "simulator speed: render fps and lockstep real-time factor"),
+    "bench-segmenter": ("dovesei.segmenter.bench", "CLIPSeg reference vs fast path, and the simulated backend"),
+    "bench-policy": ("dovesei.controller.policies.bench", "policy compute time per heatmap at 352x352"),
+    "bench-loop": ("dovesei.controller.bench_loop", "controller loop jitter at 20 Hz with a 2 Hz segmenter"),
     "health": ("dovesei.health", "exit 0 when a service's liveliness token is visible"),
     "bench-codec": ("dovesei.bench_codec", "encode/decode time of a 352x352 frame and heatmap"),
 }

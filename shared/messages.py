@@ -24,6 +24,7 @@ import math
 import types
 import typing
 from dataclasses import dataclass
+from collections.abc import Callable
 from typing import Any, ClassVar
 
 import numpy as np
@@ -75,64 +76,87 @@ class ArraySpec:
                 raise FieldError(f"field {name!r}: values must be finite" + (" and in [0, 1]" if self.unit_range else ""))
 
 
-def _check_value(name: str, value: Any, hint: Any, owner: type) -> None:
-    """Check one value against its annotation; raise FieldError naming the field."""
+Checker = Callable[[str, Any], None]
+
+
+def _check_float(name: str, value: Any) -> None:
+    if type(value) is not float and (isinstance(value, bool) or not isinstance(value, (int, float))):
+        raise FieldError(f"field {name!r}: expected a number, got {type(value).__name__}")
+    if not math.isfinite(value):
+        raise FieldError(f"field {name!r}: {value} is not finite")
+
+
+def _check_int(name: str, value: Any) -> None:
+    if type(value) is not int and (isinstance(value, bool) or not isinstance(value, (int, np.integer))):
+        raise FieldError(f"field {name!r}: expected an integer, got {type(value).__name__}")
+    if not -(2**63) <= int(value) < 2**63:
+        raise FieldError(f"field {name!r}: integer {value} out of int64 range")
+
+
+def _check_bool(name: str, value: Any) -> None:
+    if not isinstance(value, bool):
+        raise FieldError(f"field {name!r}: expected a boolean, got {type(value).__name__}")
+
+
+def _check_str(name: str, value: Any) -> None:
+    if not isinstance(value, str):
+        raise FieldError(f"field {name!r}: expected a string, got {type(value).__name__}")
+    if len(value) > MAX_STR_CHARS:
+        raise FieldError(f"field {name!r}: string longer than {MAX_STR_CHARS} characters")
+
+
+_SCALARS: dict[Any, Checker] = {float: _check_float, int: _check_int, bool: _check_bool, str: _check_str}
+
+
+def _compile(hint: Any, owner: type, field_name: str) -> Checker:
+    """A checker for one annotation, built once per record class (messages are built per tick)."""
+    if hint in _SCALARS:
+        return _SCALARS[hint]
     origin = typing.get_origin(hint)
     if origin in (typing.Union, types.UnionType):
-        args = typing.get_args(hint)
-        if value is None and type(None) in args:
-            return
-        (inner,) = [a for a in args if a is not type(None)]
-        _check_value(name, value, inner, owner)
-        return
-    if hint is float:
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise FieldError(f"field {name!r}: expected a number, got {type(value).__name__}")
-        if not math.isfinite(value):
-            raise FieldError(f"field {name!r}: {value} is not finite")
-        return
-    if hint is int:
-        if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-            raise FieldError(f"field {name!r}: expected an integer, got {type(value).__name__}")
-        if not -(2**63) <= int(value) < 2**63:
-            raise FieldError(f"field {name!r}: integer {value} out of int64 range")
-        return
-    if hint is bool:
-        if not isinstance(value, bool):
-            raise FieldError(f"field {name!r}: expected a boolean, got {type(value).__name__}")
-        return
-    if hint is str:
-        if not isinstance(value, str):
-            raise FieldError(f"field {name!r}: expected a string, got {type(value).__name__}")
-        if len(value) > MAX_STR_CHARS:
-            raise FieldError(f"field {name!r}: string longer than {MAX_STR_CHARS} characters")
-        return
+        (inner,) = [a for a in typing.get_args(hint) if a is not type(None)]
+        check_inner = _compile(inner, owner, field_name)
+
+        def check_optional(name: str, value: Any) -> None:
+            if value is not None:
+                check_inner(name, value)
+        return check_optional
     if hint is np.ndarray:
-        owner.ARRAYS[name].check(name, value)
-        return
+        return owner.ARRAYS[field_name].check
     if origin is tuple:
         args = typing.get_args(hint)
-        if not isinstance(value, tuple):
-            raise FieldError(f"field {name!r}: expected a tuple, got {type(value).__name__}")
         if len(args) == 2 and args[1] is Ellipsis:
-            if len(value) > MAX_SEQ_ITEMS:
-                raise FieldError(f"field {name!r}: more than {MAX_SEQ_ITEMS} items")
-            item_hints = [args[0]] * len(value)
-        else:
-            if len(value) != len(args):
-                raise FieldError(f"field {name!r}: {len(value)} items, expected {len(args)}")
-            item_hints = list(args)
-        for i, (item, item_hint) in enumerate(zip(value, item_hints)):
-            _check_value(f"{name}[{i}]", item, item_hint, owner)
-        return
+            check_item = _compile(args[0], owner, field_name)
+
+            def check_seq(name: str, value: Any) -> None:
+                if not isinstance(value, tuple):
+                    raise FieldError(f"field {name!r}: expected a tuple, got {type(value).__name__}")
+                if len(value) > MAX_SEQ_ITEMS:
+                    raise FieldError(f"field {name!r}: more than {MAX_SEQ_ITEMS} items")
+                for i, item in enumerate(value):
+                    check_item(f"{name}[{i}]", item)
+            return check_seq
+        checks = [_compile(a, owner, field_name) for a in args]
+
+        def check_fixed(name: str, value: Any) -> None:
+            if not isinstance(value, tuple):
+                raise FieldError(f"field {name!r}: expected a tuple, got {type(value).__name__}")
+            if len(value) != len(checks):
+                raise FieldError(f"field {name!r}: {len(value)} items, expected {len(checks)}")
+            for i, (item, check) in enumerate(zip(value, checks)):
+                check(f"{name}[{i}]", item)
+        return check_fixed
     if dataclasses.is_dataclass(hint):
-        if not isinstance(value, hint):
-            raise FieldError(f"field {name!r}: expected {hint.__name__}, got {type(value).__name__}")
-        return  # nested records check themselves when built
-    raise TypeError(f"{owner.__name__}.{name}: unsupported annotation {hint!r}")  # a bug in this module
+        def check_record(name: str, value: Any) -> None:
+            if not isinstance(value, hint):
+                raise FieldError(f"field {name!r}: expected {hint.__name__}, got {type(value).__name__}")
+            # nested records checked themselves when built
+        return check_record
+    raise TypeError(f"{owner.__name__}.{field_name}: unsupported annotation {hint!r}")  # a bug in this module
 
 
 _HINTS: dict[type, dict[str, Any]] = {}
+_CHECKERS: dict[type, tuple[tuple[str, Checker], ...]] = {}
 
 
 def field_hints(cls: type) -> dict[str, Any]:
@@ -145,14 +169,22 @@ def field_hints(cls: type) -> dict[str, Any]:
     return hints
 
 
+def _checkers(cls: type) -> tuple[tuple[str, Checker], ...]:
+    checks = _CHECKERS.get(cls)
+    if checks is None:
+        checks = tuple((name, _compile(hint, cls, name)) for name, hint in field_hints(cls).items())
+        _CHECKERS[cls] = checks
+    return checks
+
+
 class Record:
     """Base of every wire record: checks all fields against their annotations when built."""
 
     ARRAYS: ClassVar[dict[str, ArraySpec]] = {}
 
     def __post_init__(self) -> None:
-        for name, hint in field_hints(type(self)).items():
-            _check_value(name, getattr(self, name), hint, type(self))
+        for name, check in _checkers(type(self)):
+            check(name, getattr(self, name))
         self._check()
 
     def _check(self) -> None:

@@ -1,0 +1,457 @@
+"""Onboard camera source for real flights: OpenCV capture -> CameraFrame on `dovesei/<vehicle>/camera`.
+
+Data flow:
+
+    capture thread: cv2.VideoCapture (device index, video file, RTSP/HTTP URL or GStreamer
+        pipeline) -> newest frame slot (BGR, capture time); older frames are overwritten unread
+    state source:  VehicleState from Zenoh (`dovesei/<vehicle>/state`, newest wins) or from the
+        autopilot over MAVLink (a read-only MavlinkVehicle: it never steers) -> short history
+    publish loop:  at `rate_hz`, the newest unpublished frame -> rotate, centre-crop to the output
+        aspect, resize -> tagged with the state received just before capture (altitude, attitude,
+        a stamp on the vehicle's clock extrapolated to the capture instant) -> encode (JPEG when
+        `jpeg_quality` is set, for a radio link to a ground-station segmenter) -> Zenoh put
+
+Newest frame wins: grabbing runs continuously so the published frame is never older than one
+capture period; a segmenter slower than the camera sees fresh frames, not a backlog. Cropping
+narrows the field of view, so the published `hfov_rad` is the cropped one (pixels stay square).
+
+Failures: a camera that delivers no new frame for `stall_timeout_s`, or a file that ends, is
+reported once at WARNING and nothing is published until frames return: the controller's heatmap
+watchdog then holds the vehicle, which is the safe reaction to blindness. Devices and streams are
+reopened while they are down; a file can loop. Frames are also withheld (reported once) while no
+vehicle state newer than `state_timeout_s` is known, since an untagged altitude would mislead the
+policy.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+import sys
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Protocol
+
+import cv2
+import numpy as np
+import zenoh
+
+from dovesei.shared import keys
+from dovesei.shared.codec import encode
+from dovesei.shared.errors import ConfigError
+from dovesei.shared.lifecycle import Inbox, declare_alive, install_stop_handlers
+from dovesei.shared.messages import CameraFrame, Stamp, VehicleState
+from dovesei.shared.zconfig import add_zenoh_args, zenoh_config_from_args
+
+log = logging.getLogger(__name__)
+
+ROTATIONS = {0: None, 90: cv2.ROTATE_90_CLOCKWISE, 180: cv2.ROTATE_180, 270: cv2.ROTATE_90_COUNTERCLOCKWISE}
+STATE_HISTORY_S = 3.0  # how far back states are kept to find the one at a frame's capture time
+REOPEN_PERIOD_S = 1.0  # a lost device or stream is reopened this often
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    """Everything the camera source needs; validated when built (ConfigError names the field)."""
+
+    source: str  # "0" (device index), a file path, rtsp://..., or a GStreamer pipeline ("... ! appsink")
+    vehicle_id: str = "uav1"
+    width_px: int = 352
+    height_px: int = 352
+    hfov_deg: float = 73.0  # the camera's horizontal field of view before cropping
+    rotate_deg: int = 0  # clockwise rotation that puts body-forward at the top of the image
+    rate_hz: float = 2.0
+    jpeg_quality: int | None = None  # None: raw RGB on the wire
+    stall_timeout_s: float = 2.0
+    state_timeout_s: float = 1.0
+    loop_file: bool = False
+    state_from: str = "zenoh"  # "zenoh" or "mavlink"
+    mavlink_url: str = ""
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.source, str) or not self.source.strip():
+            raise ConfigError("camera source must be a device index, a file, a URL or a GStreamer pipeline")
+        keys.check_vehicle_id(self.vehicle_id)
+        for name in ("width_px", "height_px"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or not 16 <= value <= 4096:
+                raise ConfigError(f"camera {name} must be an integer in 16..4096, got {value!r}")
+        if not 0.0 < self.hfov_deg < 180.0:
+            raise ConfigError(f"camera hfov_deg must be in (0, 180), got {self.hfov_deg!r}")
+        if self.rotate_deg not in ROTATIONS:
+            raise ConfigError(f"camera rotate_deg must be one of {sorted(ROTATIONS)}, got {self.rotate_deg!r}")
+        for name in ("rate_hz", "stall_timeout_s", "state_timeout_s"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ConfigError(f"camera {name} must be a positive number, got {value!r}")
+        if self.jpeg_quality is not None and not 1 <= self.jpeg_quality <= 100:
+            raise ConfigError(f"jpeg_quality must be in 1..100, got {self.jpeg_quality!r}")
+        if self.state_from not in ("zenoh", "mavlink"):
+            raise ConfigError(f"state_from {self.state_from!r}: choose 'zenoh' or 'mavlink'")
+        if self.state_from == "mavlink" and not self.mavlink_url:
+            raise ConfigError("state_from 'mavlink' needs a MAVLink URL (--mavlink udpin:0.0.0.0:14550)")
+
+
+@dataclass
+class CameraStats:
+    """What the source did; tests and operators read it (the loop is its only writer)."""
+
+    grabbed: int = 0
+    published: int = 0
+    withheld_no_state: int = 0
+    stalled: bool = False
+    ended: bool = False
+    warnings: list[str] = field(default_factory=list)
+
+
+def source_kind(source: str) -> str:
+    """'device', 'gstreamer', 'stream' or 'file', from the shape of the source string."""
+    if source.isdigit():
+        return "device"
+    if "!" in source:
+        return "gstreamer"
+    if "://" in source:
+        return "stream"
+    return "file"
+
+
+def output_hfov_rad(hfov_deg: float, src_w: int, src_h: int, out_w: int, out_h: int, rotate_deg: int) -> float:
+    """Horizontal FOV of the published image after rotation and centre crop to out_w:out_h."""
+    half_tan_w = math.tan(math.radians(hfov_deg) / 2.0)
+    if rotate_deg in (90, 270):
+        # The old vertical axis becomes horizontal: its FOV follows from square pixels.
+        half_tan_w, src_w, src_h = half_tan_w * src_h / src_w, src_h, src_w
+    crop_w = min(src_w, src_h * out_w / out_h)
+    return 2.0 * math.atan(half_tan_w * crop_w / src_w)
+
+
+def crop_resize(bgr: np.ndarray, out_w: int, out_h: int, rotate_deg: int) -> np.ndarray:
+    """Rotate, centre-crop to the output aspect and resize; returns RGB uint8 (out_h, out_w, 3)."""
+    if ROTATIONS[rotate_deg] is not None:
+        bgr = cv2.rotate(bgr, ROTATIONS[rotate_deg])
+    h, w = bgr.shape[:2]
+    crop_w, crop_h = min(w, round(h * out_w / out_h)), min(h, round(w * out_h / out_w))
+    x0, y0 = (w - crop_w) // 2, (h - crop_h) // 2
+    crop = bgr[y0:y0 + crop_h, x0:x0 + crop_w]
+    # INTER_AREA averages when shrinking (no aliasing of fine ground texture), LINEAR when growing.
+    interp = cv2.INTER_AREA if crop_w >= out_w else cv2.INTER_LINEAR
+    return cv2.cvtColor(cv2.resize(crop, (out_w, out_h), interpolation=interp), cv2.COLOR_BGR2RGB)
+
+
+def open_capture(source: str) -> cv2.VideoCapture:
+    """An opened cv2.VideoCapture for any supported source, or ConfigError saying what failed."""
+    kind = source_kind(source)
+    if kind == "file" and not Path(source).is_file():
+        raise ConfigError(f"camera source {source!r}: no such video file")
+    if kind == "gstreamer" and "GStreamer:                   YES" not in cv2.getBuildInformation():
+        raise ConfigError("camera source is a GStreamer pipeline but this OpenCV build has no GStreamer "
+                          "support (opencv-python-headless ships without it; use a system OpenCV)")
+    if kind == "device":
+        cap = cv2.VideoCapture(int(source))
+    elif kind == "gstreamer":
+        cap = cv2.VideoCapture(source, cv2.CAP_GSTREAMER)
+    else:
+        cap = cv2.VideoCapture(source)
+    if not cap.isOpened():
+        cap.release()
+        raise ConfigError(f"camera source {source!r} ({kind}) could not be opened")
+    return cap
+
+
+class Grabber:
+    """Reads frames continuously in a thread and keeps only the newest (BGR, capture time, index).
+
+    A file is paced at its own frame rate (it would otherwise be read in a blink); a device or a
+    stream is read as fast as it delivers, and reopened every REOPEN_PERIOD_S while it fails.
+    """
+
+    def __init__(self, source: str, *, loop_file: bool, clock: Callable[[], float] = time.monotonic) -> None:
+        self.source, self.kind, self.loop_file, self._clock = source, source_kind(source), loop_file, clock
+        self._cap = open_capture(source)
+        fps = self._cap.get(cv2.CAP_PROP_FPS) if self.kind == "file" else 0.0
+        self._file_period_s = 1.0 / fps if fps and math.isfinite(fps) and fps > 0 else 1.0 / 30.0
+        self._lock = threading.Lock()
+        self._slot: tuple[np.ndarray, float, int] | None = None
+        self._count = 0
+        self.ended = threading.Event()  # a file reached its end and does not loop
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="camera-grab", daemon=True)
+
+    def start(self) -> Grabber:
+        self._thread.start()
+        return self
+
+    def newest(self) -> tuple[np.ndarray, float, int] | None:
+        """(BGR frame, capture time on the clock, running index) of the newest frame, if any."""
+        with self._lock:
+            return self._slot
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout=5.0)
+        if self._cap is not None:
+            self._cap.release()
+            self._cap = None
+
+    def _run(self) -> None:
+        next_read_s = self._clock()
+        while not self._stop.is_set():
+            if self.kind == "file":
+                # Pace the file at its own frame rate (never faster), as if a camera produced it.
+                delay = next_read_s - self._clock()
+                if delay > 0 and self._stop.wait(delay):
+                    return
+                next_read_s = max(next_read_s + self._file_period_s, self._clock())
+            ok, bgr = self._cap.read() if self._cap is not None else (False, None)
+            if ok and bgr is not None and bgr.ndim == 3 and bgr.shape[2] == 3:
+                with self._lock:
+                    self._count += 1
+                    self._slot = (bgr, self._clock(), self._count)
+                continue
+            if self.kind == "file":
+                if not self.loop_file:
+                    self.ended.set()
+                    return
+                self._cap.set(cv2.CAP_PROP_POS_FRAMES, 0)
+                continue
+            # A device unplugged or a stream dropped: wait, reopen, and go on if it is back.
+            if self._stop.wait(REOPEN_PERIOD_S):
+                return
+            self._reopen()
+
+    def _reopen(self) -> None:
+        if self._cap is not None:
+            self._cap.release()
+        try:
+            self._cap = open_capture(self.source)
+        except ConfigError as exc:
+            self._cap = None
+            log.debug("camera reopen failed: %s", exc)
+
+
+class StateSource(Protocol):
+    def poll(self) -> VehicleState | None: ...
+
+    def close(self) -> None: ...
+
+
+class ZenohStateSource:
+    """The vehicle state published on Zenoh (by the MAVLink service or the sim), newest wins."""
+
+    def __init__(self, session: zenoh.Session, vehicle_id: str) -> None:
+        self._inbox = Inbox(session, keys.state(vehicle_id), VehicleState, newest_only=True)
+
+    def poll(self) -> VehicleState | None:
+        return self._inbox.poll()
+
+    def close(self) -> None:
+        self._inbox.close()
+
+
+class MavlinkStateSource:
+    """The autopilot's state read directly over MAVLink; read-only: it can never steer."""
+
+    def __init__(self, url: str, vehicle_id: str, connect_timeout_s: float = 10.0) -> None:
+        from dovesei.controller.mavlink import MAV_COMP_ID_CAMERA, MavlinkVehicle
+
+        # A component id of its own, so the autopilot tells this link from the controller's.
+        self._vehicle = MavlinkVehicle(url, vehicle_id=vehicle_id, read_only=True, source_component=MAV_COMP_ID_CAMERA)
+        self._vehicle.connect(connect_timeout_s)
+
+    def poll(self) -> VehicleState | None:
+        return self._vehicle.poll_state()
+
+    def close(self) -> None:
+        self._vehicle.close()
+
+
+class CameraPublisher:
+    """The publish loop's logic, one `tick()` at a time (run() drives it; tests may too)."""
+
+    def __init__(self, config: CameraConfig, grabber: Grabber, state_source: StateSource,
+                 put: Callable[[bytes], None], *, clock: Callable[[], float] = time.monotonic,
+                 stats: CameraStats | None = None) -> None:
+        self.config, self.grabber, self.state_source, self.put = config, grabber, state_source, put
+        self.stats = stats if stats is not None else CameraStats()
+        self._clock = clock
+        self._states: deque[tuple[float, VehicleState]] = deque()
+        self._seq = 0
+        self._last_index = 0
+        self._last_new_frame_s = clock()
+        self._no_state_reported = False
+        self._hfov_cache: tuple[tuple[int, int], float] | None = None
+
+    def poll_state(self) -> None:
+        """Drain the state source into the history (call often: receive times date the states)."""
+        now = self._clock()
+        while (state := self.state_source.poll()) is not None:
+            self._states.append((now, state))
+        while self._states and now - self._states[0][0] > STATE_HISTORY_S and len(self._states) > 1:
+            self._states.popleft()
+
+    def tick(self) -> bool:
+        """Publish the newest frame if it is new and tagged; True when a frame went out."""
+        self.poll_state()
+        now = self._clock()
+        newest = self.grabber.newest()
+        if newest is None or newest[2] == self._last_index:
+            self._check_stall(now)
+            return False
+        bgr, capture_s, index = newest
+        self.stats.grabbed = index
+        self._last_index, self._last_new_frame_s = index, now
+        if self.stats.stalled:
+            self.stats.stalled = False
+            log.info("camera delivering again: publishing resumes")
+        tagged = self._state_at(capture_s)
+        if tagged is None or capture_s - tagged[0] > self.config.state_timeout_s:
+            self.stats.withheld_no_state += 1
+            if not self._no_state_reported:
+                self._warn(f"no vehicle state newer than {self.config.state_timeout_s:.1f} s at capture: "
+                           "frames withheld until the state arrives")
+                self._no_state_reported = True
+            return False
+        if self._no_state_reported:
+            log.info("vehicle state available: publishing frames")
+            self._no_state_reported = False
+        recv_s, state = tagged
+        frame = CameraFrame(
+            vehicle_id=self.config.vehicle_id, seq=self._seq,
+            # The state's clock, moved on by the time between its arrival and the capture.
+            stamp=Stamp(state.stamp.t_s + max(0.0, capture_s - recv_s), state.stamp.clock),
+            image_rgb=crop_resize(bgr, self.config.width_px, self.config.height_px, self.config.rotate_deg),
+            hfov_rad=self._hfov(bgr.shape[1], bgr.shape[0]), alt_agl_m=state.alt_agl_m,
+            roll_rad=state.roll_rad, pitch_rad=state.pitch_rad, yaw_rad=state.yaw_rad, sent_wall_s=time.time())
+        self.put(encode(frame, jpeg_quality=self.config.jpeg_quality))
+        self._seq += 1
+        self.stats.published += 1
+        log.debug("frame %d published (alt %.1f m)", frame.seq, frame.alt_agl_m)
+        return True
+
+    def _check_stall(self, now: float) -> None:
+        if self.grabber.ended.is_set() and not self.stats.ended:
+            self.stats.ended = True
+            self._warn(f"camera source {self.config.source!r} reached its end: publishing stopped "
+                       "(the controller's watchdog holds the vehicle)")
+            return
+        silent_s = now - self._last_new_frame_s
+        if not self.stats.stalled and not self.stats.ended and silent_s > self.config.stall_timeout_s:
+            self.stats.stalled = True
+            self._warn(f"camera delivered no new frame for {silent_s:.1f} s: publishing "
+                       "stopped until frames return (the controller's watchdog holds the vehicle)")
+
+    def _state_at(self, capture_s: float) -> tuple[float, VehicleState] | None:
+        """The last state received at or before the capture (the first one if all came later)."""
+        best = None
+        for recv_s, state in self._states:
+            if recv_s > capture_s:
+                break
+            best = (recv_s, state)
+        if best is None and self._states:
+            best = self._states[0]
+        return best
+
+    def _hfov(self, src_w: int, src_h: int) -> float:
+        if self._hfov_cache is None or self._hfov_cache[0] != (src_w, src_h):
+            c = self.config
+            self._hfov_cache = ((src_w, src_h), output_hfov_rad(c.hfov_deg, src_w, src_h, c.width_px, c.height_px,
+                                                                c.rotate_deg))
+        return self._hfov_cache[1]
+
+    def _warn(self, text: str) -> None:
+        self.stats.warnings.append(text)
+        log.warning("%s", text)
+
+
+def run(session: zenoh.Session, *, config: CameraConfig, stop: threading.Event,
+        state_source: StateSource | None = None, stats: CameraStats | None = None) -> CameraStats:
+    """Capture and publish until `stop` is set; returns what happened."""
+    own_source = state_source is None
+    if state_source is None:
+        state_source = (MavlinkStateSource(config.mavlink_url, config.vehicle_id) if config.state_from == "mavlink"
+                        else ZenohStateSource(session, config.vehicle_id))
+    grabber = Grabber(config.source, loop_file=config.loop_file).start()
+    publisher = session.declare_publisher(keys.camera(config.vehicle_id))
+    loop = CameraPublisher(config, grabber, state_source, publisher.put, stats=stats)
+    log.info("camera %s (%s) -> %s at %.1f Hz, %dx%d, %s, state from %s", config.source, grabber.kind,
+             keys.camera(config.vehicle_id), config.rate_hz, config.width_px, config.height_px,
+             f"JPEG q{config.jpeg_quality}" if config.jpeg_quality else "raw RGB", config.state_from)
+    period_s, poll_s = 1.0 / config.rate_hz, 0.01
+    try:
+        next_pub_s = time.monotonic()
+        while not stop.is_set():
+            now = time.monotonic()
+            if now >= next_pub_s:
+                loop.tick()
+                next_pub_s = max(next_pub_s + period_s, now)
+            else:
+                loop.poll_state()  # keep state receive times accurate between publications
+            stop.wait(min(poll_s, max(0.0, next_pub_s - time.monotonic())))
+    finally:
+        grabber.close()
+        publisher.undeclare()
+        if own_source:
+            state_source.close()
+    return loop.stats
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="dovesei-camera", description="Publish an onboard camera as dovesei frames.")
+    p.add_argument("--source", required=True, help="device index (0), video file, rtsp:// URL or GStreamer pipeline")
+    p.add_argument("--vehicle", default="uav1", help="vehicle id in the Zenoh keys")
+    p.add_argument("--width", type=int, default=352, help="published width, pixels")
+    p.add_argument("--height", type=int, default=352, help="published height, pixels")
+    p.add_argument("--hfov-deg", type=float, default=73.0, help="camera horizontal field of view before cropping")
+    p.add_argument("--rotate", type=int, default=0, choices=sorted(ROTATIONS), help="clockwise rotation, degrees")
+    p.add_argument("--rate-hz", type=float, default=2.0, help="publication rate")
+    p.add_argument("--jpeg-quality", type=int, default=None, help="JPEG on the wire (for a remote segmenter)")
+    p.add_argument("--stall-timeout", type=float, default=2.0, help="seconds without a frame before reporting")
+    p.add_argument("--state-timeout", type=float, default=1.0, help="max age of the state used to tag a frame")
+    p.add_argument("--loop", action="store_true", help="loop a video file")
+    p.add_argument("--state-from", choices=("zenoh", "mavlink"), default=None,
+                   help="where altitude/attitude come from (default: mavlink if --mavlink is given, else zenoh)")
+    p.add_argument("--mavlink", default="", metavar="URL", help="pymavlink URL of the autopilot (read-only)")
+    p.add_argument("--log-level", default="INFO")
+    add_zenoh_args(p)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(sys.argv[1:] if argv is None else argv)
+    logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    try:
+        config = CameraConfig(source=args.source, vehicle_id=args.vehicle, width_px=args.width, height_px=args.height,
+                              hfov_deg=args.hfov_deg, rotate_deg=args.rotate, rate_hz=args.rate_hz,
+                              jpeg_quality=args.jpeg_quality, stall_timeout_s=args.stall_timeout,
+                              state_timeout_s=args.state_timeout, loop_file=args.loop,
+                              state_from=args.state_from or ("mavlink" if args.mavlink else "zenoh"),
+                              mavlink_url=args.mavlink)
+        zconf = zenoh_config_from_args(args)
+    except ConfigError as exc:
+        log.error("%s", exc)
+        return 2
+    stop = install_stop_handlers()
+    try:
+        with zenoh.open(zconf) as session:
+            token = declare_alive(session, config.vehicle_id, "camera")
+            try:
+                run(session, config=config, stop=stop)
+            finally:
+                token.undeclare()
+    except ConfigError as exc:
+        log.error("%s", exc)
+        return 2
+    except ConnectionError as exc:  # the MAVLink state source found no autopilot
+        log.error("%s", exc)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,384 @@
+"""The controller's pure core: heatmaps and vehicle states in, one velocity command per tick out.
+
+No Zenoh and no MAVLink in here: the Zenoh service (`service.py`) and the in-process bench both
+drive this class with direct calls, so one process or three give the same trajectory.
+
+Data flow per tick:
+
+    on_heatmap(hm, recv_wall_s) --> buffer (lockstep: kept by seq until due; real time: newest)
+                                          |
+    tick(state) --> adopt the due / newest heatmap --> Policy.step(Observation) once per heatmap
+                --> watchdog on the DATA clock (state time - adopted heatmap's stamp)
+                --> VelocityCommand (every tick) + ControllerStatus (every tick)
+
+Watchdog modes, highest priority first (each change is logged once at INFO with its reason):
+
+    state_stale  the vehicle state stopped advancing (real time only, wall clock) -> zero velocity
+    handover     at/below the hand-over altitude: stop commanding, short-range sensors take over
+    no_heatmap   nothing adopted yet                                             -> zero velocity
+    climb        heatmap older than `heatmap_climb_after_s`  -> climb to the search altitude, hold
+    hold         heatmap older than `heatmap_hold_after_s`   -> zero velocity (stop descending)
+    ok           the policy's newest decision is sent
+
+A stale decision is never re-sent: outside `ok` the command is built from the mode, not from the
+policy. Recovery is automatic: the next fresh heatmap is adopted, the policy steps, `ok` resumes.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections import Counter
+from dataclasses import dataclass
+from enum import Enum
+from typing import Any
+
+from dovesei.controller.policies.base import Decision, Observation, Policy, PolicyInputError, make_policy, policy_names
+from dovesei.controller.policies.config import TIMING_PRESETS
+from dovesei.shared import keys
+from dovesei.shared.errors import ConfigError, DoveseiError
+from dovesei.shared.messages import ControllerStatus, SafetyHeatmap, StageLatency, VehicleState, VelocityCommand
+
+log = logging.getLogger(__name__)
+
+HANDOVER_ACTIONS = ("hold", "land", "none")
+
+
+class ControllerInputError(DoveseiError, ValueError):
+    """A message the controller cannot use (another vehicle's, another clock's)."""
+
+
+@dataclass(frozen=True)
+class ControllerConfig:
+    """Everything the loop needs besides the policy's own constants; names carry units."""
+
+    vehicle_id: str = "uav1"
+    policy: str = "dovesei"
+    timing: str = "real"  # policy timing preset: "real" or "reference"
+    lockstep: bool = True  # True: one tick per sim state (as the sim's default); False: own 20 Hz loop
+    rate_hz: float = 20.0  # real-time loop rate on the wall clock
+    heatmap_hold_after_s: float = 1.5  # data-clock age beyond which the vehicle holds position
+    heatmap_climb_after_s: float = 10.0  # data-clock age beyond which it climbs to search_alt_m
+    state_stale_after_s: float = 0.5  # wall seconds without a newer state (real time only)
+    climb_speed_m_s: float = 2.0  # max vertical speed of the climb watchdog
+    climb_gain_per_s: float = 0.5  # climb speed = gain x altitude error (capped): no overshoot
+    search_alt_m: float | None = None  # None: the altitude at which the vehicle was first seen
+    handover_alt_m: float = 20.0  # at/below: stop commanding, report HANDOVER
+    handover_release_m: float = 2.0  # hysteresis: leave HANDOVER only above handover + this
+    handover_action: str = "hold"  # MAVLink adapter action at hand-over: hold, land or none
+    vehicle: str = "zenoh"  # "zenoh" (the sim over Zenoh) or a pymavlink connection URL
+    vehicle_connect_timeout_s: float = 30.0  # MAVLink: wait this long for the autopilot's heartbeat
+    mavlink_alt_source: str = "local"  # MAVLink altitude: "local" position or "rangefinder"
+    mavlink_allow_mode_switch: bool = False  # MAVLink: may switch to GUIDED/OFFBOARD itself
+    lockstep_heatmap_wait_s: float = 5.0  # wall deadline for an awaited heatmap (lockstep)
+    lockstep_heatmap_retry_s: float = 0.25  # shorter deadline while the segmenter seems down
+    heatmap_buffer_len: int = 64  # lockstep: early heatmaps kept by seq
+
+    def __post_init__(self) -> None:
+        keys.check_vehicle_id(self.vehicle_id)
+        if self.policy not in policy_names():
+            raise ConfigError(f"policy {self.policy!r}: choose one of {', '.join(policy_names())}")
+        if self.timing not in TIMING_PRESETS:
+            raise ConfigError(f"timing {self.timing!r}: choose one of {', '.join(sorted(TIMING_PRESETS))}")
+        positive = ("rate_hz", "heatmap_hold_after_s", "heatmap_climb_after_s", "state_stale_after_s",
+                    "climb_speed_m_s", "climb_gain_per_s", "handover_alt_m", "vehicle_connect_timeout_s",
+                    "lockstep_heatmap_wait_s",
+                    "lockstep_heatmap_retry_s")
+        for name in positive:
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
+                raise ConfigError(f"ControllerConfig.{name} must be a finite number > 0, got {value!r}")
+        if not self.handover_release_m >= 0 or not math.isfinite(self.handover_release_m):
+            raise ConfigError(f"ControllerConfig.handover_release_m must be >= 0, got {self.handover_release_m!r}")
+        if self.heatmap_climb_after_s <= self.heatmap_hold_after_s:
+            raise ConfigError(
+                f"heatmap_climb_after_s ({self.heatmap_climb_after_s} s) must exceed "
+                f"heatmap_hold_after_s ({self.heatmap_hold_after_s} s): hold first, then climb"
+            )
+        if self.search_alt_m is not None and not (math.isfinite(self.search_alt_m)
+                                                  and self.search_alt_m > self.handover_alt_m):
+            raise ConfigError(
+                f"search_alt_m {self.search_alt_m!r} must be above the hand-over altitude {self.handover_alt_m} m"
+            )
+        if self.handover_action not in HANDOVER_ACTIONS:
+            raise ConfigError(f"handover_action {self.handover_action!r}: choose one of {HANDOVER_ACTIONS}")
+        if self.heatmap_buffer_len < 1:
+            raise ConfigError(f"heatmap_buffer_len must be >= 1, got {self.heatmap_buffer_len}")
+        if self.lockstep and self.vehicle != "zenoh":
+            raise ConfigError("lockstep needs the simulator (--vehicle zenoh); a real vehicle runs in real time")
+
+    @property
+    def period_s(self) -> float:
+        return 1.0 / self.rate_hz
+
+
+class Mode(str, Enum):
+    """The loop's safety mode (see the module docstring for priorities)."""
+
+    OK = "ok"
+    NO_HEATMAP = "no_heatmap"
+    HOLD = "hold"
+    CLIMB = "climb"
+    STATE_STALE = "state_stale"
+    HANDOVER = "handover"
+
+    @property
+    def watchdog(self) -> str:
+        """The status key's `watchdog` field: ok, hold, climb or state_stale."""
+        if self is Mode.NO_HEATMAP:
+            return "hold"
+        if self is Mode.HANDOVER:
+            return "ok"  # not a fault: the status `state` says HANDOVER
+        return self.value
+
+
+@dataclass(frozen=True)
+class _Adopted:
+    """The heatmap the current decision was computed from, and what it cost."""
+
+    hm: SafetyHeatmap
+    latency: StageLatency
+
+
+class ControllerCore:
+    """Policy + heatmap buffer + watchdog; `tick` returns a command and a status every time."""
+
+    def __init__(self, config: ControllerConfig, policy: Policy | None = None) -> None:
+        self.config = config
+        # The real wiring always goes through the factory; tests may hand in a double.
+        self.policy = policy if policy is not None else make_policy(config.policy, config.timing)
+        self.rejected: Counter[str] = Counter()  # reason -> count (heatmaps and states refused)
+        self.adopted_count = 0
+        self._tick_seq = 0
+        self._reset_episode()
+
+    # ---- episode bookkeeping -------------------------------------------------------------
+
+    def _reset_episode(self) -> None:
+        self._buffer: dict[int, tuple[SafetyHeatmap, float]] = {}  # lockstep: seq -> (hm, recv wall s)
+        self._pending: tuple[SafetyHeatmap, float] | None = None  # real time: newest not yet adopted
+        self._adopted: _Adopted | None = None
+        self._decision: Decision | None = None
+        self._last_state_t_s: float | None = None
+        self._state_advanced_wall_s: float | None = None
+        self._first_alt_m: float | None = None
+        self._in_handover = False
+        self._mode: Mode | None = None
+
+    def _maybe_new_episode(self, state: VehicleState) -> None:
+        """Data time running backwards means the sim started a new episode: start afresh."""
+        if self._last_state_t_s is not None and state.stamp.t_s < self._last_state_t_s:
+            log.info("controller %s: data clock went back from %.3f s to %.3f s: new episode, policy reset",
+                     self.config.vehicle_id, self._last_state_t_s, state.stamp.t_s)
+            buffered = self._buffer
+            self._reset_episode()
+            self.policy.reset()
+            # Heatmaps of the new episode may already be buffered; older episodes' are in the future.
+            self._buffer = {seq: item for seq, item in buffered.items() if item[0].stamp.t_s <= state.stamp.t_s}
+
+    # ---- inputs --------------------------------------------------------------------------
+
+    def on_heatmap(self, hm: SafetyHeatmap, recv_wall_s: float) -> bool:
+        """Buffer a heatmap (never used before it is due); False when refused (counted, logged)."""
+        if hm.vehicle_id != self.config.vehicle_id:
+            return self._refuse("other vehicle", "heatmap for vehicle %r ignored (this is %r)",
+                                hm.vehicle_id, self.config.vehicle_id)
+        if self.config.lockstep:
+            # Everything is kept by seq: the tick decides what is due (a new episode's seq 0 too).
+            self._buffer[hm.seq] = (hm, recv_wall_s)
+            while len(self._buffer) > self.config.heatmap_buffer_len:
+                dropped = min(self._buffer)
+                del self._buffer[dropped]
+                log.debug("heatmap buffer full: dropped seq %d", dropped)
+            return True
+        # Real time: "newest" is the latest capture time, whatever order the network delivers.
+        newest_t_s = self._adopted.hm.stamp.t_s if self._adopted is not None else -math.inf
+        if self._pending is not None:
+            newest_t_s = max(newest_t_s, self._pending[0].stamp.t_s)
+        if hm.stamp.t_s <= newest_t_s:
+            return self._refuse("old heatmap", "heatmap %d (t=%.3f s) ignored: a newer one is held",
+                                hm.seq, hm.stamp.t_s, level=logging.DEBUG)
+        self._pending = (hm, recv_wall_s)
+        return True
+
+    def has_heatmap(self, seq: int) -> bool:
+        """Lockstep: is the heatmap of frame `seq` buffered (so a tick awaiting it can decide)?"""
+        return seq in self._buffer
+
+    def _refuse(self, reason: str, fmt: str, *args: Any, level: int = logging.WARNING) -> bool:
+        """Count a refusal; warn on the first of its kind and every 100th (a misconfiguration
+        repeats with every heatmap: the log must not drown the transitions)."""
+        self.rejected[reason] += 1
+        count = self.rejected[reason]
+        loud = count == 1 or count % 100 == 0
+        log.log(level if loud else logging.DEBUG, fmt + " [%d so far]", *args, count)
+        return False
+
+    # ---- the tick ------------------------------------------------------------------------
+
+    def tick(self, state: VehicleState, wall_s: float | None = None) -> tuple[VelocityCommand, ControllerStatus]:
+        """One control tick on `state`'s data clock.
+
+        `wall_s` is the real-time loop's monotonic wall time (None in lockstep): it only serves to
+        notice that the vehicle state stopped advancing, which data time alone cannot show.
+        Raises ControllerInputError for another vehicle's state.
+        """
+        cfg = self.config
+        if state.vehicle_id != cfg.vehicle_id:
+            self.rejected["other vehicle"] += 1
+            raise ControllerInputError(f"state for vehicle {state.vehicle_id!r} sent to controller {cfg.vehicle_id!r}")
+        self._maybe_new_episode(state)
+        now_s = state.stamp.t_s
+        if self._last_state_t_s is None or now_s > self._last_state_t_s or self._state_advanced_wall_s is None:
+            self._state_advanced_wall_s = wall_s
+        self._last_state_t_s = now_s
+        if self._first_alt_m is None:
+            self._first_alt_m = state.alt_agl_m
+
+        self._adopt_due(state)
+        mode, reason = self._judge(state, wall_s)
+        if mode is not self._mode:
+            log.info("controller %s: watchdog %s -> %s at t=%.3f s (alt %.1f m): %s", cfg.vehicle_id,
+                     self._mode.value if self._mode else "start", mode.value, now_s, state.alt_agl_m, reason)
+            self._mode = mode
+
+        vel, yaw_rate = self._velocity(mode, state)
+        self._tick_seq += 1
+        adopted = self._adopted
+        frame_seq = adopted.hm.seq if adopted is not None else -1
+        cmd = VelocityCommand(
+            vehicle_id=cfg.vehicle_id, seq=self._tick_seq, stamp=state.stamp, vel_body_frd_m_s=vel,
+            yaw_rate_rad_s=yaw_rate, state_seq=state.seq, frame_seq=frame_seq,
+            latency=adopted.latency if adopted is not None else None,
+        )
+        return cmd, self._status(mode, reason, state, vel)
+
+    def _adopt_due(self, state: VehicleState) -> None:
+        """Lockstep: adopt exactly the awaited seq; real time: the newest pending heatmap."""
+        if self.config.lockstep:
+            seq = state.await_frame_seq
+            if seq < 0:
+                return  # nothing becomes available this step: keep the last decision
+            item = self._buffer.pop(seq, None)
+            # Older buffered seqs can never become due any more.
+            for old in [s for s in self._buffer if s < seq]:
+                del self._buffer[old]
+            if item is None:
+                self._refuse("awaited heatmap missing",
+                             "state %d awaited heatmap %d, not received: deciding without it", state.seq, seq)
+                return
+        else:
+            item, self._pending = self._pending, None
+            if item is None:
+                return
+        hm, recv_wall_s = item
+        if hm.stamp.clock != state.stamp.clock:
+            self._refuse("clock mismatch", "heatmap %d on clock %r, vehicle state on %r: ignored",
+                         hm.seq, hm.stamp.clock, state.stamp.clock)
+            return
+        if self.config.lockstep and hm.stamp.t_s > state.stamp.t_s:
+            # A frame from the future cannot be due: another episode's leftover.
+            self._refuse("heatmap from the future", "heatmap %d stamped %.3f s after state %.3f s: ignored",
+                         hm.seq, hm.stamp.t_s, state.stamp.t_s)
+            return
+        self._run_policy(hm, recv_wall_s)
+
+    def _run_policy(self, hm: SafetyHeatmap, recv_wall_s: float) -> None:
+        obs = Observation(t_s=hm.stamp.t_s, alt_agl_m=hm.alt_agl_m, prob_safe=hm.probability(), hfov_rad=hm.hfov_rad)
+        start = time.perf_counter()
+        try:
+            decision = self.policy.step(obs)
+        except PolicyInputError as exc:
+            self._refuse("policy refused", "policy refused heatmap %d: %s", hm.seq, exc)
+            return
+        policy_s = time.perf_counter() - start
+        # Transport latency only means something when the sender stamped its wall time.
+        to_controller_s = recv_wall_s - hm.sent_wall_s if hm.sent_wall_s > 0.0 else 0.0
+        latency = StageLatency(frame_to_segmenter_s=hm.frame_to_segmenter_s, inference_s=hm.inference_s,
+                               heatmap_to_controller_s=to_controller_s, policy_s=policy_s)
+        self._adopted = _Adopted(hm, latency)
+        self._decision = decision
+        self.adopted_count += 1
+        log.debug("adopted heatmap %d: policy %.2f ms, state %s", hm.seq, policy_s * 1e3, decision.state)
+
+    # ---- watchdog ------------------------------------------------------------------------
+
+    def heatmap_age_s(self, state: VehicleState) -> float | None:
+        """Data-clock age of the adopted heatmap at this state (None before the first)."""
+        if self._adopted is None:
+            return None
+        return max(0.0, state.stamp.t_s - self._adopted.hm.stamp.t_s)
+
+    def _judge(self, state: VehicleState, wall_s: float | None) -> tuple[Mode, str]:
+        cfg = self.config
+        if wall_s is not None and self._state_advanced_wall_s is not None:
+            frozen_s = wall_s - self._state_advanced_wall_s
+            if frozen_s > cfg.state_stale_after_s:
+                return Mode.STATE_STALE, (f"vehicle state not updated for more than {cfg.state_stale_after_s:g} s: "
+                                          "zero velocity")
+        # Hysteresis so altitude noise around the hand-over altitude cannot flap the mode.
+        if self._in_handover:
+            self._in_handover = state.alt_agl_m <= cfg.handover_alt_m + cfg.handover_release_m
+        else:
+            self._in_handover = state.alt_agl_m <= cfg.handover_alt_m
+        if self._in_handover:
+            return Mode.HANDOVER, (f"at/below the hand-over altitude {cfg.handover_alt_m:g} m: "
+                                   "short-range sensors take over")
+        age_s = self.heatmap_age_s(state)
+        if age_s is None:
+            return Mode.NO_HEATMAP, "no heatmap received yet: holding position"
+        if age_s > cfg.heatmap_climb_after_s:
+            return Mode.CLIMB, (f"heatmap older than {cfg.heatmap_climb_after_s:g} s: "
+                                f"climbing to the search altitude {self.search_alt_m:.1f} m and holding")
+        if age_s > cfg.heatmap_hold_after_s:
+            return Mode.HOLD, f"heatmap older than {cfg.heatmap_hold_after_s:g} s: descent stopped, holding position"
+        return Mode.OK, "heatmaps fresh: following the policy"
+
+    @property
+    def search_alt_m(self) -> float:
+        """Where the climb watchdog goes: the configured altitude or the first one seen."""
+        if self.config.search_alt_m is not None:
+            return self.config.search_alt_m
+        return self._first_alt_m if self._first_alt_m is not None else 0.0
+
+    def _velocity(self, mode: Mode, state: VehicleState) -> tuple[tuple[float, float, float], float]:
+        if mode is Mode.OK and self._decision is not None:
+            return self._decision.vel_body_frd_m_s, self._decision.yaw_rate_rad_s
+        if mode is Mode.CLIMB:
+            error_m = self.search_alt_m - state.alt_agl_m
+            # FRD: negative down is up. Proportional near the target, never a descent.
+            up_m_s = min(self.config.climb_speed_m_s, self.config.climb_gain_per_s * error_m) if error_m > 0 else 0.0
+            return (0.0, 0.0, -up_m_s if up_m_s > 0 else 0.0), 0.0
+        return (0.0, 0.0, 0.0), 0.0
+
+    @property
+    def mode(self) -> Mode | None:
+        return self._mode
+
+    @property
+    def decision(self) -> Decision | None:
+        return self._decision
+
+    def _status(self, mode: Mode, reason: str, state: VehicleState,
+                vel: tuple[float, float, float]) -> ControllerStatus:
+        decision = self._decision
+        age_s = self.heatmap_age_s(state)
+        target = decision.target_px if decision is not None else None
+        threshold = decision.threshold if decision is not None else None
+        if mode is Mode.HANDOVER:
+            state_name = "HANDOVER"
+        else:
+            state_name = decision.state if decision is not None else "INIT"
+        return ControllerStatus(
+            vehicle_id=self.config.vehicle_id, seq=self._tick_seq, stamp=state.stamp,
+            policy=getattr(self.policy, "name", self.config.policy), state=state_name, watchdog=mode.watchdog,
+            reason=reason, frame_seq=self._adopted.hm.seq if self._adopted is not None else -1,
+            heatmap_age_s=age_s if age_s is not None else -1.0,
+            focus_radius_px=float(decision.focus_radius_px) if decision is not None else 0.0,
+            target_valid=target is not None,
+            target_row_px=float(target[0]) if target is not None else 0.0,
+            target_col_px=float(target[1]) if target is not None else 0.0,
+            threshold_valid=threshold is not None, threshold=float(threshold) if threshold is not None else 0.0,
+            vel_body_frd_m_s=vel, alt_agl_m=state.alt_agl_m,
+        )

@@ -1,0 +1,386 @@
+"""A fake ArduCopter or PX4 autopilot on a MAVLink link, for tests and end-to-end runs without SITL.
+
+It plays the autopilot's side of what `dovesei.controller.mavlink` relies on, with the real
+conventions of each flavour:
+
+    peer --SET_POSITION_TARGET_LOCAL_NED--> recorded (receive time, frame, mask, velocity, yaw rate)
+                                            and, when armed in GUIDED/OFFBOARD, flown: body velocity
+                                            rotated by the heading and integrated into a NED position
+    peer --COMMAND_LONG / SET_MODE--------> COMMAND_ACK; modes, arming, takeoff, message intervals
+    fake --HEARTBEAT (mode, armed)--------> peer, at `heartbeat_hz` (stoppable: heartbeat-loss tests)
+    fake --LOCAL_POSITION_NED, ATTITUDE, DISTANCE_SENSOR, GLOBAL_POSITION_INT--> peer, only at the
+                                            intervals asked for with MAV_CMD_SET_MESSAGE_INTERVAL
+
+Flavour rules modelled because the adapter must cope with them: PX4 accepts OFFBOARD only while
+setpoints are already streaming and falls back to LOITER when they stop for 0.5 s; ArduPilot stops
+a guided velocity that is not refreshed within 3 s. Setpoints in any frame other than the
+flavour's body frame (or LOCAL_NED) are recorded but not flown. One thread owns the socket;
+`stop()` joins it and closes the link. `main()` runs one as a process (`python -m
+dovesei.controller.fake_autopilot --url udpin:127.0.0.1:14550`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import math
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any
+
+from dovesei.controller import mavlink as mv
+
+log = logging.getLogger(__name__)
+
+FLAVOURS = ("ardupilot", "px4")
+MAV_TYPE_QUADROTOR = 2
+MAV_STATE_STANDBY = 3
+MAV_MODE_FLAG_STABILIZE_ENABLED = 16
+MAV_MODE_FLAG_GUIDED_ENABLED = 8
+MAV_RESULT_DENIED = 2
+MAV_RESULT_UNSUPPORTED = 3
+MAV_RESULT_FAILED = 4
+PX4_OFFBOARD_LOSS_S = 0.5  # PX4's COM_OF_LOSS_T default
+ARDUPILOT_GUIDED_VEL_TIMEOUT_S = 3.0  # ArduCopter stops a guided velocity after 3 s without an update
+CLIMB_RATE_M_S, LAND_RATE_M_S = 2.5, 1.0
+ORIGIN_LAT_DEG, ORIGIN_LON_DEG = 47.3977, 8.5456  # any fixed point; only GLOBAL_POSITION_INT uses it
+
+
+@dataclass(frozen=True)
+class ReceivedSetpoint:
+    """One SET_POSITION_TARGET_LOCAL_NED as the fake received it (recv_s on time.monotonic)."""
+
+    recv_s: float
+    source_system: int
+    source_component: int
+    target_system: int
+    target_component: int
+    frame: int
+    type_mask: int
+    vel_m_s: tuple[float, float, float]  # as sent (FRD for the body frames)
+    yaw_rate_rad_s: float
+
+
+@dataclass(frozen=True)
+class ReceivedHeartbeat:
+    recv_s: float
+    system: int
+    component: int
+    mav_type: int
+    autopilot: int
+
+
+@dataclass(frozen=True)
+class ReceivedCommand:
+    recv_s: float
+    command: int
+    params: tuple[float, ...]
+    result: int
+
+
+class FakeAutopilot:
+    """A simulated multirotor autopilot speaking MAVLink 2 on `url` (default: listens, udpin)."""
+
+    def __init__(self, url: str, *, flavour: str = "ardupilot", mode: str | None = None, armed: bool = True,
+                 alt_m: float = 50.0, yaw_rad: float = 0.0, terrain_height_m: float = 0.0,
+                 rangefinder_max_m: float = 40.0, heartbeat_hz: float = 1.0, physics_hz: float = 50.0,
+                 offboard_loss_s: float = PX4_OFFBOARD_LOSS_S, system: int = 1, component: int = 1) -> None:
+        if flavour not in FLAVOURS:
+            raise ValueError(f"flavour {flavour!r}: choose one of {FLAVOURS}")
+        self.url, self.flavour = url, flavour
+        self._system, self._component = system, component
+        self._heartbeat_period_s, self._physics_period_s = 1.0 / heartbeat_hz, 1.0 / physics_hz
+        self._rangefinder_max_m = rangefinder_max_m
+        self._offboard_loss_s = offboard_loss_s  # PX4 only; also the grace for starting in OFFBOARD
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._conn: Any = None
+        self._t0 = time.monotonic()
+        self._custom_mode = mv.encode_mode(flavour, mode or ("LOITER"))[0]
+        self._armed = armed
+        self._pos_ned_m = [0.0, 0.0, -float(alt_m)]  # the local origin is on the ground below the start
+        self._vel_ned_m_s = [0.0, 0.0, 0.0]
+        self._yaw_rad, self._yaw_rate_rad_s = float(yaw_rad), 0.0
+        self.terrain_height_m = float(terrain_height_m)  # ground under the vehicle above the local origin
+        self._takeoff_alt_m: float | None = None
+        self._heartbeats_on = True
+        self._intervals_s: dict[int, float] = {}
+        self._next_send_s: dict[int, float] = {}
+        self._last_setpoint: ReceivedSetpoint | None = None
+        self._started_s = time.monotonic()
+        self.setpoints: list[ReceivedSetpoint] = []
+        self.heartbeats: list[ReceivedHeartbeat] = []
+        self.commands: list[ReceivedCommand] = []
+        self.set_mode_messages: list[tuple[float, int, int]] = []  # (recv_s, base_mode, custom_mode)
+        self.peer_seen = threading.Event()
+
+    # ----------------------------------------------------------------- control from the test
+
+    def start(self) -> FakeAutopilot:
+        self._conn = mv.open_link(self.url, source_system=self._system, source_component=self._component)
+        self._thread = threading.Thread(target=self._loop, name="fake-autopilot", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+            self._thread = None
+        if self._conn is not None:
+            self._conn.close()
+            self._conn = None
+
+    def __enter__(self) -> FakeAutopilot:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def set_mode(self, name: str) -> None:
+        """What a pilot's mode switch does."""
+        with self._lock:
+            self._custom_mode = mv.encode_mode(self.flavour, name)[0]
+
+    def set_armed(self, armed: bool) -> None:
+        with self._lock:
+            self._armed = armed
+
+    def stop_heartbeats(self) -> None:
+        with self._lock:
+            self._heartbeats_on = False
+
+    def resume_heartbeats(self) -> None:
+        with self._lock:
+            self._heartbeats_on = True
+
+    @property
+    def mode(self) -> str:
+        with self._lock:
+            return mv.mode_name(self.flavour, self._custom_mode)
+
+    @property
+    def armed(self) -> bool:
+        with self._lock:
+            return self._armed
+
+    @property
+    def position_ned_m(self) -> tuple[float, float, float]:
+        with self._lock:
+            return tuple(self._pos_ned_m)  # type: ignore[return-value]
+
+    @property
+    def yaw_rad(self) -> float:
+        with self._lock:
+            return self._yaw_rad
+
+    def received(self) -> tuple[list[ReceivedSetpoint], list[ReceivedHeartbeat], list[ReceivedCommand]]:
+        """Copies of what was recorded so far (setpoints, heartbeats, commands)."""
+        with self._lock:
+            return list(self.setpoints), list(self.heartbeats), list(self.commands)
+
+    # ----------------------------------------------------------------- the autopilot's thread
+
+    def _now_s(self) -> float:
+        return time.monotonic() - self._t0
+
+    def _loop(self) -> None:
+        next_hb_s = next_phys_s = self._now_s()
+        last_phys_s = next_phys_s
+        while not self._stop.is_set():
+            now = self._now_s()
+            if now >= next_phys_s:
+                self._physics(now - last_phys_s)
+                last_phys_s, next_phys_s = now, now + self._physics_period_s
+            if now >= next_hb_s:
+                with self._lock:
+                    beat = self._heartbeats_on
+                if beat:
+                    self._send_heartbeat()
+                next_hb_s = now + self._heartbeat_period_s
+            self._send_streams(now)
+            with self._lock:
+                wake_s = min([next_hb_s, next_phys_s, *self._next_send_s.values()])
+            self._conn.select(max(0.0, min(wake_s - self._now_s(), 0.05)))
+            for _ in range(1000):
+                msg = self._conn.recv_msg()
+                if msg is None:
+                    break
+                self._handle(msg)
+
+    def _physics(self, dt_s: float) -> None:
+        with self._lock:
+            name = mv.mode_name(self.flavour, self._custom_mode)
+            vel_ned, yaw_rate = [0.0, 0.0, 0.0], 0.0
+            sp, now = self._last_setpoint, time.monotonic()
+            last_sp_s = sp.recv_s if sp is not None else self._started_s
+            if self.flavour == "px4" and name == "OFFBOARD" and now - last_sp_s > self._offboard_loss_s:
+                log.info("fake PX4: offboard setpoints lost, failsafe to LOITER")
+                self._custom_mode = mv.encode_mode("px4", "LOITER")[0]
+                name = "LOITER"
+            steering = self._armed and name == mv.STEER_MODE[self.flavour]
+            if steering and self._takeoff_alt_m is not None:
+                vel_ned[2] = -CLIMB_RATE_M_S if -self._pos_ned_m[2] < self._takeoff_alt_m else 0.0
+                if vel_ned[2] == 0.0:
+                    self._takeoff_alt_m = None
+            elif steering and sp is not None and now - sp.recv_s <= ARDUPILOT_GUIDED_VEL_TIMEOUT_S:
+                vel_ned, yaw_rate = self._setpoint_to_ned(sp)
+            elif self._armed and name == "LAND":
+                vel_ned[2] = LAND_RATE_M_S
+            self._yaw_rad = math.remainder(self._yaw_rad + yaw_rate * dt_s, 2.0 * math.pi)
+            for i in range(3):
+                self._pos_ned_m[i] += vel_ned[i] * dt_s
+            if self._pos_ned_m[2] > -self.terrain_height_m:
+                # On the ground: a landing ends with the motors disarmed, as both autopilots do.
+                self._pos_ned_m[2], vel_ned[2] = -self.terrain_height_m, 0.0
+                if name == "LAND":
+                    self._armed = False
+            self._vel_ned_m_s, self._yaw_rate_rad_s = vel_ned, yaw_rate
+
+    def _setpoint_to_ned(self, sp: ReceivedSetpoint) -> tuple[list[float], float]:
+        """What the autopilot would fly for a setpoint (caller holds the lock)."""
+        if sp.type_mask & 0x38:  # any velocity component ignored: not a velocity setpoint
+            return [0.0, 0.0, 0.0], 0.0
+        yaw_rate = 0.0 if sp.type_mask & 0x800 else sp.yaw_rate_rad_s
+        fwd, right, down = sp.vel_m_s
+        if sp.frame == mv.STEER_FRAME[self.flavour]:
+            c, s = math.cos(self._yaw_rad), math.sin(self._yaw_rad)
+            return [c * fwd - s * right, s * fwd + c * right, down], yaw_rate
+        if sp.frame == mv.MAV_FRAME_LOCAL_NED:
+            return [fwd, right, down], yaw_rate
+        return [0.0, 0.0, 0.0], 0.0
+
+    def _handle(self, msg: Any) -> None:
+        kind, recv_s = msg.get_type(), time.monotonic()
+        if kind == "BAD_DATA":
+            return
+        self.peer_seen.set()
+        if kind == "HEARTBEAT":
+            with self._lock:
+                self.heartbeats.append(ReceivedHeartbeat(recv_s, msg.get_srcSystem(), msg.get_srcComponent(),
+                                                         msg.type, msg.autopilot))
+        elif kind == "SET_POSITION_TARGET_LOCAL_NED":
+            sp = ReceivedSetpoint(recv_s, msg.get_srcSystem(), msg.get_srcComponent(), msg.target_system,
+                                  msg.target_component, msg.coordinate_frame, msg.type_mask,
+                                  (msg.vx, msg.vy, msg.vz), msg.yaw_rate)
+            with self._lock:
+                self.setpoints.append(sp)
+                if msg.target_system == self._system:
+                    self._last_setpoint = sp
+        elif kind == "SET_MODE":
+            with self._lock:
+                self.set_mode_messages.append((recv_s, msg.base_mode, msg.custom_mode))
+                if msg.target_system == self._system and self._mode_allowed(msg.custom_mode):
+                    self._custom_mode = msg.custom_mode
+        elif kind == "COMMAND_LONG" and msg.target_system == self._system:
+            params = (msg.param1, msg.param2, msg.param3, msg.param4, msg.param5, msg.param6, msg.param7)
+            with self._lock:
+                result = self._command(msg.command, params)
+                self.commands.append(ReceivedCommand(recv_s, msg.command, params, result))
+            self._conn.mav.command_ack_send(msg.command, result)
+
+    def _mode_allowed(self, custom_mode: int) -> bool:
+        """PX4 refuses OFFBOARD unless setpoints are already streaming (caller holds the lock)."""
+        if self.flavour == "px4" and mv.mode_name("px4", custom_mode) == "OFFBOARD":
+            sp = self._last_setpoint
+            return sp is not None and time.monotonic() - sp.recv_s <= self._offboard_loss_s
+        return True
+
+    def _command(self, command: int, params: tuple[float, ...]) -> int:
+        """Execute one COMMAND_LONG and return its MAV_RESULT (caller holds the lock)."""
+        if command == mv.MAV_CMD_SET_MESSAGE_INTERVAL:
+            msg_id, interval_us = int(params[0]), params[1]
+            if interval_us < 0:
+                self._intervals_s.pop(msg_id, None)
+                self._next_send_s.pop(msg_id, None)
+            else:
+                self._intervals_s[msg_id] = interval_us / 1e6 if interval_us > 0 else 0.25  # 0: our default 4 Hz
+                self._next_send_s[msg_id] = self._now_s()
+            return mv.MAV_RESULT_ACCEPTED
+        if command == mv.MAV_CMD_DO_SET_MODE:
+            if self.flavour == "px4":
+                custom = mv.px4_custom_mode(int(params[1]), int(params[2]))
+            else:
+                custom = int(params[1])
+            if not self._mode_allowed(custom):
+                return MAV_RESULT_DENIED
+            self._custom_mode = custom
+            return mv.MAV_RESULT_ACCEPTED
+        if command == mv.MAV_CMD_COMPONENT_ARM_DISARM:
+            self._armed = params[0] == 1.0
+            return mv.MAV_RESULT_ACCEPTED
+        if command == mv.MAV_CMD_NAV_TAKEOFF:
+            guided = mv.mode_name(self.flavour, self._custom_mode) == "GUIDED"
+            if self.flavour != "ardupilot" or not guided or not self._armed:
+                return MAV_RESULT_FAILED
+            self._takeoff_alt_m = float(params[6])
+            return mv.MAV_RESULT_ACCEPTED
+        return MAV_RESULT_UNSUPPORTED
+
+    # ----------------------------------------------------------------- sending
+
+    def _boot_ms(self) -> int:
+        return int(self._now_s() * 1000.0)
+
+    def _send_heartbeat(self) -> None:
+        with self._lock:
+            base = mv.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | MAV_MODE_FLAG_STABILIZE_ENABLED | MAV_MODE_FLAG_GUIDED_ENABLED
+            base |= mv.MAV_MODE_FLAG_SAFETY_ARMED if self._armed else 0
+            custom, status = self._custom_mode, mv.MAV_STATE_ACTIVE if self._armed else MAV_STATE_STANDBY
+        autopilot = mv.MAV_AUTOPILOT_ARDUPILOTMEGA if self.flavour == "ardupilot" else mv.MAV_AUTOPILOT_PX4
+        self._conn.mav.heartbeat_send(MAV_TYPE_QUADROTOR, autopilot, base, custom, status)
+
+    def _send_streams(self, now: float) -> None:
+        with self._lock:
+            due = [m for m, t in self._next_send_s.items() if now >= t]
+            for msg_id in due:
+                self._next_send_s[msg_id] = now + self._intervals_s[msg_id]
+            pos, vel, yaw = list(self._pos_ned_m), list(self._vel_ned_m_s), self._yaw_rad
+            yaw_rate, terrain_m = self._yaw_rate_rad_s, self.terrain_height_m
+        boot_ms, mav = self._boot_ms(), self._conn.mav
+        for msg_id in due:
+            if msg_id == mv.MSG_ID_LOCAL_POSITION_NED:
+                mav.local_position_ned_send(boot_ms, pos[0], pos[1], pos[2], vel[0], vel[1], vel[2])
+            elif msg_id == mv.MSG_ID_ATTITUDE:
+                mav.attitude_send(boot_ms, 0.0, 0.0, yaw, 0.0, 0.0, yaw_rate)
+            elif msg_id == mv.MSG_ID_DISTANCE_SENSOR:
+                agl_m = -pos[2] - terrain_m
+                # Out of range reads as max + 1 cm, the convention ArduPilot's driver uses.
+                max_cm = int(self._rangefinder_max_m * 100)
+                dist_cm = int(round(agl_m * 100)) if agl_m <= self._rangefinder_max_m else max_cm + 1
+                mav.distance_sensor_send(boot_ms, 20, max_cm, max(0, dist_cm), 0, 0, mv.MAV_SENSOR_ROTATION_PITCH_270,
+                                         255)
+            elif msg_id == mv.MSG_ID_GLOBAL_POSITION_INT:
+                lat = ORIGIN_LAT_DEG + pos[0] / 111_320.0
+                lon = ORIGIN_LON_DEG + pos[1] / (111_320.0 * math.cos(math.radians(ORIGIN_LAT_DEG)))
+                mav.global_position_int_send(boot_ms, int(lat * 1e7), int(lon * 1e7), int(-pos[2] * 1000),
+                                             int(-pos[2] * 1000), int(vel[0] * 100), int(vel[1] * 100),
+                                             int(vel[2] * 100), int(math.degrees(yaw) % 360 * 100))
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run a fake autopilot until SIGTERM/SIGINT (for end-to-end runs of `dovesei up --vehicle`)."""
+    from dovesei.shared.lifecycle import install_stop_handlers
+
+    p = argparse.ArgumentParser(prog="python -m dovesei.controller.fake_autopilot", description=__doc__.split("\n")[0])
+    p.add_argument("--url", default="udpin:127.0.0.1:14550", help="pymavlink URL the fake listens or sends on")
+    p.add_argument("--flavour", choices=FLAVOURS, default="ardupilot")
+    p.add_argument("--mode", default=None, help="initial mode (default LOITER); GUIDED/OFFBOARD to accept setpoints")
+    p.add_argument("--alt", type=float, default=100.0, help="initial altitude above the local origin, metres")
+    p.add_argument("--disarmed", action="store_true", help="start disarmed (on the ground if --alt 0)")
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    stop = install_stop_handlers()
+    with FakeAutopilot(args.url, flavour=args.flavour, mode=args.mode, armed=not args.disarmed, alt_m=args.alt) as fake:
+        log.info("fake %s autopilot on %s, mode %s", args.flavour, args.url, fake.mode)
+        while not stop.wait(5.0):
+            n, e, d = fake.position_ned_m
+            log.info("mode %s %s, position N %.1f E %.1f alt %.1f m", fake.mode,
+                     "armed" if fake.armed else "disarmed", n, e, -d)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,216 @@
+"""ControllerCore without Zenoh: hand-made heatmaps and states, a recording test-double policy."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from dovesei.controller.core import ControllerConfig, ControllerCore, ControllerInputError, Mode
+from dovesei.controller.policies.base import Decision, Observation, PolicyInputError
+from dovesei.shared.errors import ConfigError
+from dovesei.shared.messages import SafetyHeatmap, Stamp, VehicleState
+
+VEL_FRD = (1.0, -0.5, 2.0)  # what the double always commands: forward, left, descending
+
+
+class RecordingPolicy:
+    """Answers every heatmap with the same descending decision and remembers what it saw."""
+
+    name = "double"
+
+    def __init__(self) -> None:
+        self.observations: list[Observation] = []
+        self.resets = 0
+
+    def step(self, obs: Observation) -> Decision:
+        self.observations.append(obs)
+        return Decision(VEL_FRD, 0.1, "AIMING", (10.0, 20.0), 123.0, 0.42, {})
+
+    def reset(self) -> None:
+        self.resets += 1
+        self.observations.clear()
+
+
+def heatmap(seq: int, t_s: float, *, alt_m: float = 80.0, vehicle: str = "uav1", clock: str = "sim",
+            sent_wall_s: float = 0.0) -> SafetyHeatmap:
+    prob = np.full((16, 16), 51, np.uint8)  # 51 / 255 = 0.2
+    return SafetyHeatmap(vehicle, seq, Stamp(t_s, clock), prob, alt_m, 1.2, "simulated", True, "p", "f",
+                         inference_s=0.2, frame_to_segmenter_s=0.01, sent_wall_s=sent_wall_s)
+
+
+def state(seq: int, t_s: float, *, alt_m: float = 80.0, await_seq: int = -1, vehicle: str = "uav1") -> VehicleState:
+    return VehicleState(vehicle, seq, Stamp(t_s, "sim"), alt_m, (0.0, 0.0, 0.0), await_frame_seq=await_seq)
+
+
+def make_core(**overrides: object) -> tuple[ControllerCore, RecordingPolicy]:
+    policy = RecordingPolicy()
+    return ControllerCore(ControllerConfig(**overrides), policy=policy), policy
+
+
+def test_before_the_first_heatmap_it_holds_and_says_why() -> None:
+    core, policy = make_core(lockstep=True)
+    cmd, status = core.tick(state(0, 0.0))
+    assert cmd.vel_body_frd_m_s == (0.0, 0.0, 0.0) and cmd.frame_seq == -1 and cmd.latency is None
+    assert cmd.state_seq == 0 and cmd.stamp == Stamp(0.0, "sim")
+    assert status.watchdog == "hold" and "no heatmap" in status.reason
+    assert status.state == "INIT" and status.heatmap_age_s == -1.0 and status.frame_seq == -1
+    assert core.mode is Mode.NO_HEATMAP and not policy.observations
+
+
+def test_a_command_and_a_status_every_tick_with_increasing_seq() -> None:
+    core, _ = make_core(lockstep=True)
+    core.on_heatmap(heatmap(0, 0.0), 0.0)
+    out = [core.tick(state(k, 0.05 * k, await_seq=0 if k == 1 else -1)) for k in range(6)]
+    assert [cmd.seq for cmd, _ in out] == [1, 2, 3, 4, 5, 6]
+    assert [cmd.state_seq for cmd, _ in out] == [0, 1, 2, 3, 4, 5]
+    assert [status.seq for _, status in out] == [1, 2, 3, 4, 5, 6]
+    # From the adopting tick on, the decision is sent every tick (fresh heatmap, watchdog ok).
+    assert [cmd.vel_body_frd_m_s for cmd, _ in out[1:]] == [VEL_FRD] * 5
+
+
+def test_lockstep_adopts_exactly_the_awaited_seq_and_never_an_early_one() -> None:
+    core, policy = make_core(lockstep=True)
+    for seq in (0, 1, 2):  # all arrive early
+        assert core.on_heatmap(heatmap(seq, 0.05 * seq), 0.0)
+    cmd, _ = core.tick(state(0, 0.05))  # nothing due yet
+    assert cmd.frame_seq == -1 and not policy.observations
+    cmd, status = core.tick(state(1, 0.10, await_seq=1))
+    assert cmd.frame_seq == 1 and status.frame_seq == 1
+    assert [o.t_s for o in policy.observations] == [0.05]  # seq 1's capture time, seq 2 unused
+    assert not core.has_heatmap(0), "a seq older than the adopted one can never be due"
+    assert core.has_heatmap(2)
+    cmd, _ = core.tick(state(2, 0.15))  # await -1: keep the last decision, no policy step
+    assert cmd.frame_seq == 1 and len(policy.observations) == 1
+    cmd, _ = core.tick(state(3, 0.20, await_seq=2))
+    assert cmd.frame_seq == 2 and len(policy.observations) == 2
+
+
+def test_lockstep_missing_awaited_heatmap_is_counted_and_the_last_decision_kept() -> None:
+    core, policy = make_core(lockstep=True)
+    core.on_heatmap(heatmap(0, 0.0), 0.0)
+    core.tick(state(0, 0.05, await_seq=0))
+    cmd, _ = core.tick(state(1, 0.10, await_seq=1))  # never arrived
+    assert cmd.frame_seq == 0 and cmd.vel_body_frd_m_s == VEL_FRD  # 0.1 s old: still fresh
+    assert core.rejected["awaited heatmap missing"] == 1 and len(policy.observations) == 1
+
+
+def test_real_time_keeps_the_newest_heatmap_by_capture_time() -> None:
+    core, policy = make_core(lockstep=False)
+    assert core.on_heatmap(heatmap(3, 0.3), 0.0)
+    assert core.on_heatmap(heatmap(5, 0.5), 0.0)
+    assert not core.on_heatmap(heatmap(4, 0.4), 0.0), "reordered older heatmap must not replace a newer one"
+    cmd, _ = core.tick(state(10, 0.6), wall_s=0.0)
+    assert cmd.frame_seq == 5 and [o.t_s for o in policy.observations] == [0.5]
+    cmd, _ = core.tick(state(11, 0.65), wall_s=0.05)  # no new heatmap: no new policy step
+    assert cmd.frame_seq == 5 and len(policy.observations) == 1
+
+
+def test_observation_is_built_from_the_heatmap_not_the_current_state() -> None:
+    core, policy = make_core(lockstep=True)
+    core.on_heatmap(heatmap(0, 1.0, alt_m=93.5), 0.0)
+    core.tick(state(0, 1.05, alt_m=90.0, await_seq=0))
+    (obs,) = policy.observations
+    assert obs.t_s == 1.0 and obs.alt_agl_m == 93.5 and obs.hfov_rad == 1.2
+    assert obs.prob_safe.dtype == np.float32 and obs.prob_safe.shape == (16, 16)
+    assert np.allclose(obs.prob_safe, 0.2)
+
+
+def test_stage_latency_comes_from_the_heatmap_and_the_policy_timer() -> None:
+    core, _ = make_core(lockstep=True)
+    core.on_heatmap(heatmap(0, 0.0, sent_wall_s=1000.0), 1000.25)
+    cmd, _ = core.tick(state(0, 0.05, await_seq=0))
+    lat = cmd.latency
+    assert lat is not None
+    assert lat.inference_s == 0.2 and lat.frame_to_segmenter_s == 0.01
+    assert lat.heatmap_to_controller_s == pytest.approx(0.25)
+    assert 0.0 < lat.policy_s < 1.0
+
+
+def test_status_carries_the_decision_and_the_watchdog_fields() -> None:
+    core, _ = make_core(lockstep=True)
+    core.on_heatmap(heatmap(4, 2.0), 0.0)
+    _, status = core.tick(state(9, 2.3, alt_m=77.0, await_seq=4))
+    assert status.policy == "double" and status.state == "AIMING" and status.watchdog == "ok"
+    assert status.target_valid and (status.target_row_px, status.target_col_px) == (10.0, 20.0)
+    assert status.focus_radius_px == 123.0 and status.threshold_valid and status.threshold == 0.42
+    assert status.heatmap_age_s == pytest.approx(0.3) and status.frame_seq == 4
+    assert status.vel_body_frd_m_s == VEL_FRD and status.alt_agl_m == 77.0
+    assert status.stamp == Stamp(2.3, "sim") and status.reason
+
+
+def test_handover_stops_commanding_with_hysteresis() -> None:
+    core, _ = make_core(lockstep=True, handover_alt_m=20.0, handover_release_m=2.0)
+    core.on_heatmap(heatmap(0, 0.0), 0.0)
+    cmd, status = core.tick(state(0, 0.05, alt_m=20.5, await_seq=0))
+    assert status.state == "AIMING" and cmd.vel_body_frd_m_s == VEL_FRD
+    cmd, status = core.tick(state(1, 0.10, alt_m=20.0))
+    assert status.state == "HANDOVER" and cmd.vel_body_frd_m_s == (0.0, 0.0, 0.0)
+    assert "hand-over" in status.reason and core.mode is Mode.HANDOVER
+    _, status = core.tick(state(2, 0.15, alt_m=21.5))  # noise above 20 m: still handed over
+    assert status.state == "HANDOVER"
+    _, status = core.tick(state(3, 0.20, alt_m=22.5))  # clearly above: control resumes
+    assert status.state == "AIMING"
+
+
+def test_other_vehicles_and_other_clocks_are_refused() -> None:
+    core, policy = make_core(lockstep=False)
+    with pytest.raises(ControllerInputError, match="uav2"):
+        core.tick(state(0, 0.0, vehicle="uav2"))
+    assert not core.on_heatmap(heatmap(0, 0.0, vehicle="uav2"), 0.0)
+    assert core.on_heatmap(heatmap(1, 0.0, clock="vehicle"), 0.0)
+    cmd, _ = core.tick(state(1, 0.05), wall_s=0.0)
+    assert cmd.frame_seq == -1 and not policy.observations
+    assert core.rejected["other vehicle"] == 2 and core.rejected["clock mismatch"] == 1
+
+
+def test_a_policy_refusal_is_counted_and_the_heatmap_not_adopted() -> None:
+    class Refusing(RecordingPolicy):
+        def step(self, obs: Observation) -> Decision:
+            raise PolicyInputError("bad heatmap")
+
+    core = ControllerCore(ControllerConfig(lockstep=True), policy=Refusing())
+    core.on_heatmap(heatmap(0, 0.0), 0.0)
+    cmd, status = core.tick(state(0, 0.05, await_seq=0))
+    assert cmd.frame_seq == -1 and status.watchdog == "hold"
+    assert core.rejected["policy refused"] == 1
+
+
+def test_data_time_going_back_starts_a_new_episode() -> None:
+    core, policy = make_core(lockstep=True)
+    core.on_heatmap(heatmap(0, 0.0), 0.0)
+    core.tick(state(0, 50.0, await_seq=0))
+    core.on_heatmap(heatmap(0, 0.0), 0.0)  # the new episode's first frame, before its first state
+    cmd, status = core.tick(state(0, 0.05, await_seq=0))
+    assert policy.resets == 1
+    assert cmd.frame_seq == 0 and status.heatmap_age_s == pytest.approx(0.05)
+
+
+def test_real_wiring_builds_the_named_policy() -> None:
+    core = ControllerCore(ControllerConfig(policy="dovesei-nofocus", timing="reference", lockstep=True))
+    assert core.policy.name == "dovesei-nofocus"
+    rng = np.random.default_rng(1)
+    prob = rng.random((64, 64)).astype(np.float16)
+    hm = SafetyHeatmap("uav1", 0, Stamp(0.0, "sim"), prob, 100.0, math.radians(73), "simulated", True, "p", "f", 0.0)
+    core.on_heatmap(hm, 0.0)
+    cmd, status = core.tick(state(0, 0.05, alt_m=100.0, await_seq=0))
+    assert status.policy == "dovesei-nofocus" and status.frame_seq == 0 and status.watchdog == "ok"
+    assert status.state == "SENSOR_ERROR"  # the reference's warm-up cycles
+    assert cmd.latency is not None and cmd.latency.policy_s > 0
+
+
+@pytest.mark.parametrize("overrides, match", [
+    ({"heatmap_hold_after_s": 2.0, "heatmap_climb_after_s": 1.0}, "must exceed"),
+    ({"handover_action": "explode"}, "handover_action"),
+    ({"policy": "nope"}, "policy"),
+    ({"timing": "fast"}, "timing"),
+    ({"rate_hz": 0.0}, "rate_hz"),
+    ({"rate_hz": math.nan}, "rate_hz"),
+    ({"vehicle_id": "a/b"}, "vehicle id"),
+    ({"search_alt_m": 10.0}, "search_alt_m"),
+    ({"lockstep": True, "vehicle": "udpin:0.0.0.0:14550"}, "lockstep"),
+])
+def test_config_validation_names_the_bad_value(overrides: dict, match: str) -> None:
+    with pytest.raises(ConfigError, match=match):
+        ControllerConfig(**overrides)
