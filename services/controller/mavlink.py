@@ -359,8 +359,11 @@ class MavlinkVehicle:
     def handover(self) -> bool:
         """The configured action at the goal altitude: 'hold', 'land' (LAND mode) or 'none'."""
         if self.handover_action == "none":
-            # The user's own system takes over from here; we keep streaming what the controller sends.
-            log.info("handover: no action configured (handover='none')")
+            # The user's own system takes over from here: stop streaming, or our setpoints
+            # (zero velocity once the controller goes quiet) would fight it.
+            with self._lock:
+                self._cmd = None
+            log.info("handover: no action configured (handover='none'); setpoint stream stopped")
             return True
         if self.handover_action == "hold":
             return self.hold()
