@@ -56,10 +56,15 @@ class EpisodeRecord:
     states: list[str] = dataclasses.field(repr=False, default_factory=list)
 
 
-def build_cores(world: World, spec: EpisodeSpec) -> tuple[SimCore, SegmenterCore, ControllerCore]:
-    """The three cores exactly as the three services build them from the same options."""
+def build_cores(world: World, spec: EpisodeSpec, *, render_images: bool = False
+                ) -> tuple[SimCore, SegmenterCore, ControllerCore]:
+    """The three cores as the three services build them from the same options.
+
+    The simulated perception reads only the frames' truth labels, so by default the sim skips
+    drawing the pixels nobody looks at; the trajectory is the same either way.
+    """
     sim = SimCore(world, spec.start, SimConfig(vehicle_id=spec.vehicle_id, timing=spec.timing, seed=spec.seed,
-                                               time_limit_s=spec.time_limit_s))
+                                               time_limit_s=spec.time_limit_s, render_image=render_images))
     seg_config = SegmenterConfig(backend="sim", sim_noise=spec.noise, sim_seed=spec.seed)
     seg = SegmenterCore(make_backend(seg_config), seg_config)
     ctrl = ControllerCore(ControllerConfig(vehicle_id=spec.vehicle_id, policy=spec.policy, timing=spec.timing,

@@ -404,7 +404,7 @@ def run(session: zenoh.Session, *, config: CameraConfig, stop: threading.Event,
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="dovesei-camera", description="Publish an onboard camera as dovesei frames.")
     p.add_argument("--source", required=True, help="device index (0), video file, rtsp:// URL or GStreamer pipeline")
-    p.add_argument("--vehicle", default="uav1", help="vehicle id in the Zenoh keys")
+    p.add_argument("--vehicle-id", dest="vehicle", default="uav1", help="vehicle id in the Zenoh keys")
     p.add_argument("--width", type=int, default=352, help="published width, pixels")
     p.add_argument("--height", type=int, default=352, help="published height, pixels")
     p.add_argument("--hfov-deg", type=float, default=73.0, help="camera horizontal field of view before cropping")

@@ -75,7 +75,9 @@ class ZenohVehicle:
         self.states: Inbox[VehicleState] = Inbox(session, keys.state(vehicle_id), VehicleState,
                                                  newest_only=not lockstep)
         try:
-            self._pub = session.declare_publisher(keys.cmd(vehicle_id))
+            # Lockstep: a dropped command would stall the sim until its timeout, so block instead.
+            flow = zenoh.CongestionControl.BLOCK if lockstep else zenoh.CongestionControl.DROP
+            self._pub = session.declare_publisher(keys.cmd(vehicle_id), congestion_control=flow)
         except BaseException:
             self.states.close()
             raise

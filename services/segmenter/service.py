@@ -221,7 +221,9 @@ class SegmenterService:
         # One declared publisher per vehicle seen: cheaper per put than session.put on a new key.
         pub = self._publishers.get(vehicle)
         if pub is None:
-            pub = self.session.declare_publisher(keys.heatmap(vehicle))
+            # Lockstep: the controller waits for every heatmap, so a dropped one stalls the episode.
+            flow = zenoh.CongestionControl.BLOCK if self.config.lockstep else zenoh.CongestionControl.DROP
+            pub = self.session.declare_publisher(keys.heatmap(vehicle), congestion_control=flow)
             self._publishers[vehicle] = pub
         return pub
 
@@ -271,7 +273,7 @@ def _log_start(service: SegmenterService) -> None:
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="dovesei-segmenter",
                                 description="Camera frames in, per-pixel safe-to-land probabilities out (Zenoh).")
-    p.add_argument("--vehicle", default="uav1", help="vehicle id of the keys (default: uav1)")
+    p.add_argument("--vehicle-id", dest="vehicle", default="uav1", help="vehicle id of the keys (default: uav1)")
     p.add_argument("--all-vehicles", action="store_true", help="serve every vehicle's camera key (ground station)")
     p.add_argument("--lockstep", action="store_true", help="answer every frame in order (lockstep benchmarks)")
     p.add_argument("--backend", choices=BACKENDS, default="auto",

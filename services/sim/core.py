@@ -18,9 +18,12 @@ reference".
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections import deque
 from dataclasses import dataclass, field
+
+import numpy as np
 
 from dovesei.shared.clock import wall_time_s
 from dovesei.shared.errors import ConfigError
@@ -57,6 +60,9 @@ class SimConfig:
     safety_radius_m: float = 2.0
     seed: int = 0
     attach_truth: bool = True
+    # False: frames carry a blank image (truth labels only). For the in-process bench with the
+    # simulated perception, which reads only the labels: skips the costliest warp per frame.
+    render_image: bool = True
 
     def __post_init__(self) -> None:
         if self.timing not in TIMING_PRESETS:
@@ -105,7 +111,6 @@ class SimCore:
                                   safety_radius_m=cfg.safety_radius_m)
         self._k = 0
         self._frame_seq = -1
-        self._next_frame_t_s = 0.0
         self._in_flight: deque[tuple[int, float]] = deque()  # (frame seq, sim time its heatmap is due)
         self._last_cmd: VelocityCommand | None = None
         self._result: EpisodeResult | None = None
@@ -113,7 +118,8 @@ class SimCore:
 
     @property
     def t_s(self) -> float:
-        return self.vehicle.state.t_s
+        """Sim time of the current step (the stamps' time)."""
+        return round(self._k * self.config.dt_s, 9)
 
     def position_m(self) -> tuple[float, float]:
         """Ground truth world position (x east, y north): for reports, never sent to the controller."""
@@ -134,17 +140,38 @@ class SimCore:
         self._k += 1
         return self._emit()
 
+    @property
+    def result(self) -> EpisodeResult | None:
+        """The episode's result once it has ended (by the judge or by `abort`), else None."""
+        return self._result
+
+    def abort(self, detail: str) -> EpisodeResult:
+        """End the episode as 'error' (e.g. the controller stopped answering); `detail` says why.
+
+        The result carries the time, path and pose reached so far; an episode that already has a
+        verdict keeps it (the judge's word is final).
+        """
+        if self.vehicle is None:
+            raise RuntimeError("SimCore.abort() before reset()")
+        if self._result is None:
+            self._result = self._episode_result("error", detail)
+        return self._result
+
     def _emit(self) -> StepOut:
-        cfg, pose = self.config, self.vehicle.state
+        cfg = self.config
+        # Sim time is k * dt rounded to the nanosecond, not the vehicle's running sum: summing
+        # 0.05 s drifts (60 steps sum to 2.9999999999999996 s), which would shift frames and
+        # time limits by a step depending on float luck.
+        sched_t_s = round(self._k * cfg.dt_s, 9)
+        pose = dataclasses.replace(self.vehicle.state, t_s=sched_t_s)
         outcome = self.judge.check(pose)
         frame = None
-        if outcome is None and pose.t_s >= self._next_frame_t_s - _EPS_S:
+        if outcome is None and sched_t_s >= (self._frame_seq + 1) * cfg.period_s - _EPS_S:
             frame = self._render(pose)
-            self._in_flight.append((frame.seq, pose.t_s + cfg.delay_s))
-            self._next_frame_t_s += cfg.period_s
+            self._in_flight.append((frame.seq, sched_t_s + cfg.delay_s))
         await_seq = -1
         # At most one heatmap becomes due per step (frame period >= step); take the newest due.
-        while self._in_flight and self._in_flight[0][1] <= pose.t_s + _EPS_S:
+        while self._in_flight and self._in_flight[0][1] <= sched_t_s + _EPS_S:
             await_seq = self._in_flight.popleft()[0]
         state = VehicleState(
             vehicle_id=cfg.vehicle_id, seq=self._k, stamp=Stamp(pose.t_s, "sim"), alt_agl_m=pose.alt_agl_m,
@@ -158,19 +185,40 @@ class SimCore:
     def _render(self, pose: Pose) -> CameraFrame:
         cfg = self.config
         image, labels, _valid = render(self.world, pose.x_m, pose.y_m, max(pose.alt_agl_m, 0.1), pose.yaw_rad,
-                                       cfg.camera)
+                                       cfg.camera, with_image=cfg.render_image,
+                                       with_labels=cfg.attach_truth)  # labels unused: skip their warp
+        if image is None:
+            image = self._blank_image()
         truth = GroundTruth(labels, self._classes) if cfg.attach_truth and labels is not None else None
         self._frame_seq += 1
         return CameraFrame(cfg.vehicle_id, self._frame_seq, Stamp(pose.t_s, "sim"), image, cfg.camera.hfov_rad,
                            pose.alt_agl_m, yaw_rad=pose.yaw_rad, sent_wall_s=wall_time_s(), truth=truth)
 
-    def _episode_result(self, outcome: str) -> EpisodeResult:
-        j, pose = self.judge, self.vehicle.state
-        v = j.verdict
-        classes = tuple(f"{c.name}:{c.fraction:.3f}" for c in v.classes) if v else ()
-        closest = v.closest_unsafe_m if v else None
-        detail = v.reason if v else {"timeout": f"no landing within {self.config.time_limit_s:.0f} s of sim time",
+    def _blank_image(self):
+        if getattr(self, "_blank", None) is None:
+            cam = self.config.camera
+            self._blank = np.zeros((cam.height_px, cam.width_px, 3), np.uint8)
+            self._blank.flags.writeable = False  # shared by every frame: nobody may draw on it
+        return self._blank
+
+    def _episode_result(self, outcome: str, detail: str = "") -> EpisodeResult:
+        return judge_result(self.config.vehicle_id, self.judge, outcome, detail, clock="sim")
+
+
+def judge_result(vehicle_id: str, judge: EpisodeJudge, outcome: str, detail: str = "",
+                 clock: str = "sim") -> EpisodeResult:
+    """The wire `EpisodeResult` of an episode the judge has watched (also for 'error' endings).
+
+    Shared by `SimCore` and the service's external-pose mode, whose pose comes from an autopilot
+    and whose stamps are on the vehicle's clock.
+    """
+    pose, v = judge.last_state, judge.verdict
+    classes = tuple(f"{c.name}:{c.fraction:.3f}" for c in v.classes) if v else ()
+    closest = v.closest_unsafe_m if v else None
+    if not detail:
+        detail = v.reason if v else {"timeout": f"no landing within {judge.time_limit_s:.0f} s of {clock} time",
                                      "out_of_world": "the vehicle left the world"}.get(outcome, "")
-        return EpisodeResult(self.config.vehicle_id, Stamp(pose.t_s, "sim"), outcome, j.sim_time_s, j.path_length_m,
-                             pose.x_m, pose.y_m, pose.alt_agl_m, classes, closest is not None,
-                             float(closest) if closest is not None else 0.0, detail)
+    t_s, x_m, y_m, alt_m = (pose.t_s, pose.x_m, pose.y_m, pose.alt_agl_m) if pose else (0.0, 0.0, 0.0, 0.0)
+    return EpisodeResult(vehicle_id, Stamp(t_s, clock), outcome, judge.sim_time_s, judge.path_length_m,
+                         x_m, y_m, alt_m, classes, closest is not None,
+                         float(closest) if closest is not None else 0.0, detail)

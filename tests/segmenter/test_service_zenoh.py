@@ -249,7 +249,7 @@ def test_run_stops_cleanly_and_returns_its_counters(zenoh_pair) -> None:
 @pytest.mark.slow
 def test_entry_point_serves_and_exits_zero_on_sigterm() -> None:
     port = free_port()
-    cmd = [sys.executable, "-m", "dovesei.segmenter.service", "--backend", "sim", "--vehicle", "uav5",
+    cmd = [sys.executable, "-m", "dovesei.segmenter.service", "--backend", "sim", "--vehicle-id", "uav5",
            "--listen", f"tcp/127.0.0.1:{port}", "--no-multicast-scouting", "--log-level", "WARNING"]
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             env={**os.environ, "HF_HUB_OFFLINE": "1"}, cwd=Path(__file__).parent)

@@ -201,3 +201,13 @@ def test_bad_spec_strings() -> None:
         load_world("  ")
     with pytest.raises(WorldError, match="synthetic"):
         load_world("synthetic:seed=abc")
+
+
+def test_synthetic_spec_goes_through_the_generator(tmp_path: Path, monkeypatch) -> None:
+    monkeypatch.setenv("DOVESEI_CACHE", str(tmp_path))  # never touch the user's cache
+    world = load_world("synthetic:seed=1,size_m=200,gsd_m=0.5")
+    assert world.image_rgb.shape == (400, 400, 3) and world.gsd_m == 0.5
+    assert world.classes[13] == ClassInfo("person", False) and world.classes[8] == ClassInfo("grass", True)
+    assert set(np.unique(world.labels)) <= set(world.classes)
+    again = load_world("synthetic:seed=1,size_m=200,gsd_m=0.5")  # from the disk cache this time
+    np.testing.assert_array_equal(again.image_rgb, world.image_rgb)

@@ -1,0 +1,222 @@
+"""Vehicle dynamics: a multirotor tracking body-frame velocity commands, as an autopilot does.
+
+Data flow per `Vehicle.step(dt_s, cmd, yaw_rate, cmd_t_s)`:
+
+    command (body FRD, m/s) --stale?--> zero (brake to hover)
+        -> rotate by heading into NED -> clip to the speed limits
+        -> first-order velocity loop, its change clipped by the acceleration limits
+           (horizontal: min(accel limit, g * tan(tilt limit)))
+        -> + wind (constant + Ornstein-Uhlenbeck gusts) + drift (random walk) = ground velocity
+        -> integrate position (world frame: x_m east, y_m north, alt_agl_m up; ground at 0)
+
+The velocity the autopilot controls (`vel_own_ned_m_s`) is relative to a frame that the
+disturbances move: without GNSS the vehicle cannot see wind or estimator drift, so a hover
+command still drifts at wind + drift. The speed and acceleration limits bound the vehicle's own
+velocity; `VehicleState.vel_ned_m_s` is the ground velocity and includes the disturbances.
+
+Deterministic: the only randomness (gusts, drift) comes from one numpy Generator seeded at
+construction, so the same seed and the same sequence of steps give the same trajectory.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from dovesei.shared.errors import DoveseiError
+
+GRAVITY_M_S2 = 9.80665
+
+
+class DynamicsError(DoveseiError, ValueError):
+    """Bad vehicle parameters or a bad step (non-finite command, non-positive dt)."""
+
+
+@dataclass(frozen=True)
+class VehicleParams:
+    """Limits and disturbances of the simulated multirotor (defaults: a typical 2-5 kg quad)."""
+
+    max_speed_h_m_s: float = 15.0
+    max_speed_v_m_s: float = 5.0
+    max_accel_h_m_s2: float = 4.0
+    max_accel_v_m_s2: float = 3.0
+    max_tilt_deg: float = 35.0  # caps horizontal acceleration at g * tan(tilt)
+    max_yaw_rate_rad_s: float = math.radians(60.0)
+    vel_time_constant_s: float = 0.3  # the autopilot's velocity loop, before acceleration limits
+    cmd_timeout_s: float = 0.5  # a command older than this is dropped and the vehicle brakes
+    wind_ned_m_s: tuple[float, float, float] = (0.0, 0.0, 0.0)  # uncompensated mean drift
+    gust_sigma_m_s: float = 0.0  # stationary std of each horizontal gust component
+    gust_time_constant_s: float = 5.0
+    drift_sigma_m_s_sqrt_s: float = 0.0  # random-walk velocity disturbance, per horizontal axis
+
+    def __post_init__(self) -> None:
+        positive = ("max_speed_h_m_s", "max_speed_v_m_s", "max_accel_h_m_s2", "max_accel_v_m_s2",
+                    "max_yaw_rate_rad_s", "vel_time_constant_s", "cmd_timeout_s", "gust_time_constant_s")
+        for name in positive:
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise DynamicsError(f"VehicleParams.{name} must be finite and > 0, got {value!r}")
+        for name in ("gust_sigma_m_s", "drift_sigma_m_s_sqrt_s"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+                raise DynamicsError(f"VehicleParams.{name} must be finite and >= 0, got {value!r}")
+        if not 0.0 < self.max_tilt_deg < 90.0:
+            raise DynamicsError(f"VehicleParams.max_tilt_deg must be in (0, 90), got {self.max_tilt_deg!r}")
+        if len(self.wind_ned_m_s) != 3 or not all(math.isfinite(v) for v in self.wind_ned_m_s):
+            raise DynamicsError(f"VehicleParams.wind_ned_m_s must be 3 finite numbers, got {self.wind_ned_m_s!r}")
+
+    @property
+    def accel_limit_h_m_s2(self) -> float:
+        """The horizontal acceleration actually available: the tilt limit may be the tighter one."""
+        return min(self.max_accel_h_m_s2, GRAVITY_M_S2 * math.tan(math.radians(self.max_tilt_deg)))
+
+
+@dataclass(frozen=True)
+class VehicleState:
+    """Where the vehicle is: world frame position, ground velocity (NED), heading, sim time."""
+
+    x_m: float  # east of the world image's left edge
+    y_m: float  # north of the world image's bottom edge
+    alt_agl_m: float
+    vel_ned_m_s: tuple[float, float, float] = (0.0, 0.0, 0.0)  # ground velocity, down positive
+    yaw_rad: float = 0.0  # heading: 0 north, +pi/2 east
+    t_s: float = 0.0
+
+    def vel_body_frd_m_s(self) -> tuple[float, float, float]:
+        """Ground velocity in the body frame (forward, right, down), as a flight controller reports it."""
+        n, e, d = self.vel_ned_m_s
+        c, s = math.cos(self.yaw_rad), math.sin(self.yaw_rad)
+        return (c * n + s * e, -s * n + c * e, d)
+
+
+def body_frd_to_ned(vel_frd: tuple[float, float, float], yaw_rad: float) -> np.ndarray:
+    """Rotate a body-frame (forward, right, down) vector into NED by the heading (level flight)."""
+    f, r, d = vel_frd
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    return np.array([c * f - s * r, s * f + c * r, d], dtype=np.float64)
+
+
+def wrap_angle_rad(a: float) -> float:
+    """An angle in (-pi, pi]."""
+    w = math.remainder(a, 2.0 * math.pi)
+    return math.pi if w == -math.pi else w
+
+
+class Vehicle:
+    """A multirotor under velocity control with limits, command timeout and disturbances."""
+
+    def __init__(self, state: VehicleState, params: VehicleParams = VehicleParams(), seed: int = 0) -> None:
+        for name in ("x_m", "y_m", "alt_agl_m", "yaw_rad", "t_s"):
+            if not math.isfinite(getattr(state, name)):
+                raise DynamicsError(f"initial VehicleState.{name} must be finite, got {getattr(state, name)!r}")
+        if state.alt_agl_m < 0:
+            raise DynamicsError(f"initial alt_agl_m must be >= 0 (ground), got {state.alt_agl_m}")
+        self.params = params
+        self._rng = np.random.default_rng(seed)
+        self._gust_ned = np.zeros(3)
+        self._drift_ned = np.zeros(3)
+        wind = np.asarray(params.wind_ned_m_s, dtype=np.float64)
+        # The state's velocity is over ground; what the autopilot itself flies is that minus wind
+        # (so a vehicle hovering in the wind starts with vel_ned_m_s = wind_ned_m_s).
+        self._vel_own_ned = np.asarray(state.vel_ned_m_s, dtype=np.float64) - wind
+        self._state = replace(state, yaw_rad=wrap_angle_rad(state.yaw_rad))
+        self.last_command_stale = True  # did the last step brake because no fresh command existed?
+
+    @property
+    def state(self) -> VehicleState:
+        return self._state
+
+    @property
+    def vel_own_ned_m_s(self) -> tuple[float, float, float]:
+        """The velocity the autopilot controls (ground velocity minus wind, gusts and drift)."""
+        return tuple(float(v) for v in self._vel_own_ned)
+
+    def step(
+        self,
+        dt_s: float,
+        cmd_vel_body_frd_m_s: tuple[float, float, float] | None,
+        cmd_yaw_rate_rad_s: float = 0.0,
+        cmd_t_s: float | None = None,
+    ) -> VehicleState:
+        """Advance dt_s seconds under the newest command (issued at sim time cmd_t_s); returns the new state.
+
+        A missing command (None, or no cmd_t_s), or one older than `cmd_timeout_s` at the start of the
+        step, is replaced by zero velocity and zero yaw rate: the vehicle brakes to a hover instead
+        of flying on.
+        """
+        p = self.params
+        if not (math.isfinite(dt_s) and dt_s > 0):
+            raise DynamicsError(f"dt_s must be finite and > 0, got {dt_s!r}")
+        st = self._state
+        stale = cmd_vel_body_frd_m_s is None or cmd_t_s is None or st.t_s - cmd_t_s > p.cmd_timeout_s
+        self.last_command_stale = stale
+        if stale:
+            cmd_frd, yaw_rate = (0.0, 0.0, 0.0), 0.0
+        else:
+            cmd_frd, yaw_rate = tuple(cmd_vel_body_frd_m_s), cmd_yaw_rate_rad_s
+            if len(cmd_frd) != 3 or not all(math.isfinite(v) for v in (*cmd_frd, yaw_rate)):
+                raise DynamicsError(f"command must be 3 finite velocities and a finite yaw rate, "
+                                    f"got {cmd_vel_body_frd_m_s!r}, {cmd_yaw_rate_rad_s!r}")
+
+        yaw_rate = min(max(yaw_rate, -p.max_yaw_rate_rad_s), p.max_yaw_rate_rad_s)
+        yaw_new = wrap_angle_rad(st.yaw_rad + yaw_rate * dt_s)
+        # The command is in the body frame of the moment it is applied: use the mid-step heading.
+        target = body_frd_to_ned(cmd_frd, st.yaw_rad + 0.5 * yaw_rate * dt_s)
+        target = self._clip_velocity(target)
+
+        # First-order loop integrated exactly (stable for any dt), then the acceleration limits.
+        v0 = self._vel_own_ned.copy()
+        dv = (target - v0) * (1.0 - math.exp(-dt_s / p.vel_time_constant_s))
+        dv_h = math.hypot(dv[0], dv[1])
+        max_dv_h = p.accel_limit_h_m_s2 * dt_s
+        if dv_h > max_dv_h:
+            dv[:2] *= max_dv_h / dv_h
+        dv[2] = min(max(dv[2], -p.max_accel_v_m_s2 * dt_s), p.max_accel_v_m_s2 * dt_s)
+        v1 = v0 + dv
+
+        disturb0 = self._gust_ned + self._drift_ned
+        self._advance_disturbances(dt_s)
+        wind = np.asarray(p.wind_ned_m_s, dtype=np.float64)
+        ground0 = v0 + wind + disturb0
+        ground1 = v1 + wind + self._gust_ned + self._drift_ned
+        move = 0.5 * (ground0 + ground1) * dt_s  # trapezoid: exact for the linear velocity ramp
+
+        alt = st.alt_agl_m - move[2]
+        if alt <= 0.0:
+            # On the ground: it cannot sink further, and friction holds it where it touched down.
+            alt = 0.0
+            v1[0] = v1[1] = 0.0
+            v1[2] = min(v1[2], 0.0)  # NED: only an upward (negative down) velocity survives
+            ground1 = np.zeros(3)
+        self._vel_own_ned = v1
+        self._state = VehicleState(
+            x_m=st.x_m + move[1],
+            y_m=st.y_m + move[0],
+            alt_agl_m=alt,
+            vel_ned_m_s=(float(ground1[0]), float(ground1[1]), float(ground1[2])),
+            yaw_rad=yaw_new,
+            t_s=st.t_s + dt_s,
+        )
+        return self._state
+
+    def _clip_velocity(self, v_ned: np.ndarray) -> np.ndarray:
+        p = self.params
+        out = v_ned.copy()
+        speed_h = math.hypot(out[0], out[1])
+        if speed_h > p.max_speed_h_m_s:
+            out[:2] *= p.max_speed_h_m_s / speed_h  # keep the direction, cap the magnitude
+        out[2] = min(max(out[2], -p.max_speed_v_m_s), p.max_speed_v_m_s)
+        return out
+
+    def _advance_disturbances(self, dt_s: float) -> None:
+        p = self.params
+        # Draw both every step, even at sigma 0, so turning one on does not reshuffle the other.
+        noise = self._rng.standard_normal(4)
+        if p.gust_sigma_m_s > 0:
+            # Exact Ornstein-Uhlenbeck update: stationary std gust_sigma, correlation time tau.
+            a = math.exp(-dt_s / p.gust_time_constant_s)
+            self._gust_ned[:2] = a * self._gust_ned[:2] + p.gust_sigma_m_s * math.sqrt(1.0 - a * a) * noise[:2]
+        if p.drift_sigma_m_s_sqrt_s > 0:
+            self._drift_ned[:2] += p.drift_sigma_m_s_sqrt_s * math.sqrt(dt_s) * noise[2:]

@@ -1,0 +1,235 @@
+"""The automatic judge: decides from the world's label map whether a landing spot is safe.
+
+The paper judged landings by eye; here the label map does it. Two pieces:
+
+- `judge_landing(world, x_m, y_m)` looks at the ground disk of the safety radius under the
+  vehicle (pixels whose centre lies within the radius, at least the pixel under the vehicle):
+  `safe` when at most `tolerance_frac` of it is unsafe (label anti-aliasing along class
+  boundaries), else `unsafe`. Pixels outside the world count as unsafe: nobody vouches for them.
+  Classes named like people (`zero_tolerance_names`) get no tolerance at all: a person is 1-2
+  pixels at 0.25 m/px, under the 1 % allowance of a 2 m disk (~200 pixels), and landing on one is
+  the worst failure there is. It also reports the classes in the disk and the distance from the
+  landing point to the closest unsafe pixel (within `search_radius_m`).
+- `EpisodeJudge` watches vehicle states during an episode and ends it: `out_of_world` when the
+  vehicle leaves the image, the landing verdict when it reaches the hand-over altitude, `timeout`
+  when the sim-time limit runs out. It accumulates the horizontal path length on the way.
+
+Which classes are safe belongs to the world (`World.classes`); nothing here knows class ids.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+
+from dovesei.shared.errors import DoveseiError
+from dovesei.sim.dynamics import VehicleState
+from dovesei.sim.world import World
+
+OUTSIDE_WORLD_NAME = "outside the world"
+DEFAULT_ZERO_TOLERANCE_NAMES = ("person", "people", "pedestrian", "human")
+
+
+class JudgeError(DoveseiError, ValueError):
+    """The judge cannot decide: no label map, or bad parameters."""
+
+
+@dataclass(frozen=True)
+class ClassFraction:
+    """One class found in the landing disk and the fraction of the disk's pixels it covers."""
+
+    name: str
+    fraction: float
+    safe: bool
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """The judge's decision on one landing point."""
+
+    outcome: str  # "safe" or "unsafe"
+    x_m: float
+    y_m: float
+    safety_radius_m: float
+    disk_px: int
+    unsafe_frac: float
+    classes: tuple[ClassFraction, ...]  # largest fraction first
+    closest_unsafe_m: float | None  # None: no unsafe pixel within the search radius
+    reason: str
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def judge_landing(
+    world: World,
+    x_m: float,
+    y_m: float,
+    safety_radius_m: float = 2.0,
+    tolerance_frac: float = 0.01,
+    search_radius_m: float = 50.0,
+    zero_tolerance_names: tuple[str, ...] = DEFAULT_ZERO_TOLERANCE_NAMES,
+) -> Verdict:
+    """Judge a landing at world point (x_m, y_m) from the world's label map."""
+    if world.labels is None:
+        raise JudgeError(f"world {world.name!r} has no label map: landings on it cannot be judged")
+    if not (math.isfinite(x_m) and math.isfinite(y_m)):
+        raise JudgeError(f"landing point must be finite, got ({x_m!r}, {y_m!r})")
+    if not (math.isfinite(safety_radius_m) and safety_radius_m >= 0):
+        raise JudgeError(f"safety_radius_m must be finite and >= 0, got {safety_radius_m!r}")
+    if not 0.0 <= tolerance_frac < 1.0:
+        raise JudgeError(f"tolerance_frac must be in [0, 1), got {tolerance_frac!r}")
+
+    ids, inside = _disk_labels(world, x_m, y_m, safety_radius_m)
+    n = int(ids.size)  # never 0: the pixel under the vehicle always belongs to the disk
+    n_outside = int((~inside).sum())
+    counts = np.bincount(ids[inside], minlength=256)
+    # safe_lut already treats ids missing from the world's classes as unsafe.
+    unsafe_px = n_outside + int(counts[~world.safe_lut].sum())
+    found: list[ClassFraction] = []
+    critical: list[str] = []
+    for cid in np.flatnonzero(counts):
+        info = world.classes.get(int(cid))
+        name = info.name if info is not None else f"unknown id {int(cid)}"
+        safe = bool(world.safe_lut[cid])
+        found.append(ClassFraction(name, float(counts[cid] / n), safe))
+        # Matched by name: the world says what is unsafe, the judge only says what is never forgiven.
+        if not safe and any(word in name.lower() for word in zero_tolerance_names):
+            critical.append(name)
+    if n_outside:
+        found.append(ClassFraction(OUTSIDE_WORLD_NAME, n_outside / n, False))
+    found.sort(key=lambda c: (-c.fraction, c.name))
+
+    unsafe_frac = unsafe_px / n
+    if critical:
+        outcome, reason = "unsafe", f"{', '.join(critical)} in the disk (no tolerance for them)"
+    elif unsafe_frac > tolerance_frac:
+        outcome, reason = "unsafe", f"{unsafe_frac:.1%} of the disk is unsafe (tolerance {tolerance_frac:.1%})"
+    else:
+        outcome, reason = "safe", f"{unsafe_frac:.1%} of the disk is unsafe (tolerance {tolerance_frac:.1%})"
+    return Verdict(
+        outcome=outcome, x_m=float(x_m), y_m=float(y_m), safety_radius_m=float(safety_radius_m),
+        disk_px=n, unsafe_frac=float(unsafe_frac), classes=tuple(found),
+        closest_unsafe_m=closest_unsafe_m(world, x_m, y_m, search_radius_m), reason=reason,
+    )
+
+
+def _pixel_window(world: World, x_m: float, y_m: float, radius_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Row and column indices (possibly outside the image) of pixels within radius_m of the point."""
+    row_c, col_c = world.world_to_pixel(x_m, y_m)
+    r_px = radius_m / world.gsd_m
+    # A square of candidate pixels around the point; callers cut the disk or the image out of it.
+    rows = np.arange(math.floor(row_c - r_px), math.ceil(row_c + r_px) + 1)
+    cols = np.arange(math.floor(col_c - r_px), math.ceil(col_c + r_px) + 1)
+    return rows, cols
+
+
+def _disk_labels(world: World, x_m: float, y_m: float, radius_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Label ids of the disk's pixels (0 where outside) and which of them lie inside the world."""
+    rows, cols = _pixel_window(world, x_m, y_m, radius_m)
+    row_c, col_c = world.world_to_pixel(x_m, y_m)
+    rr, cc = np.meshgrid(rows, cols, indexing="ij")
+    in_disk = ((rr - row_c) ** 2 + (cc - col_c) ** 2) * world.gsd_m**2 <= radius_m**2
+    # The pixel under the vehicle always counts, even for a radius smaller than half a pixel.
+    centre_row, centre_col = world.pixel_index(x_m, y_m)
+    in_disk |= (rr == centre_row) & (cc == centre_col)
+    rr, cc = rr[in_disk], cc[in_disk]
+    inside = (rr >= 0) & (rr < world.height_px) & (cc >= 0) & (cc < world.width_px)
+    ids = np.zeros(rr.shape, dtype=np.uint8)  # placeholder ids where outside; `inside` tells them apart
+    ids[inside] = world.labels[rr[inside], cc[inside]]
+    return ids, inside
+
+
+def closest_unsafe_m(world: World, x_m: float, y_m: float, search_radius_m: float = 50.0) -> float | None:
+    """Distance from the point to the nearest unsafe pixel centre within the radius (None if none).
+
+    Only labelled pixels count: the world's edge is not an obstacle here.
+    """
+    if world.labels is None:
+        raise JudgeError(f"world {world.name!r} has no label map")
+    rows, cols = _pixel_window(world, x_m, y_m, search_radius_m)
+    rows = rows[(rows >= 0) & (rows < world.height_px)]
+    cols = cols[(cols >= 0) & (cols < world.width_px)]
+    if rows.size == 0 or cols.size == 0:
+        return None
+    unsafe = ~world.safe_lut[world.labels[rows[0]: rows[-1] + 1, cols[0]: cols[-1] + 1]]
+    r_idx, c_idx = np.nonzero(unsafe)
+    if r_idx.size == 0:
+        return None
+    px, py = world.pixel_to_world(rows[r_idx], cols[c_idx])
+    d2 = (px - x_m) ** 2 + (py - y_m) ** 2
+    best = float(np.sqrt(d2.min()))
+    # The window is a square: its corners reach beyond the search radius.
+    return best if best <= search_radius_m else None
+
+
+class EpisodeJudge:
+    """Ends an episode: out of world, hand-over altitude reached (judged landing) or time limit."""
+
+    def __init__(
+        self,
+        world: World,
+        handover_alt_m: float = 20.0,
+        time_limit_s: float = 1200.0,
+        safety_radius_m: float = 2.0,
+        tolerance_frac: float = 0.01,
+        search_radius_m: float = 50.0,
+    ) -> None:
+        if world.labels is None:
+            raise JudgeError(f"world {world.name!r} has no label map: episodes on it cannot be judged")
+        if not (handover_alt_m >= 0 and time_limit_s > 0):
+            raise JudgeError(f"need handover_alt_m >= 0 and time_limit_s > 0, got {handover_alt_m}, {time_limit_s}")
+        self.world = world
+        self.handover_alt_m = handover_alt_m
+        self.time_limit_s = time_limit_s
+        self.safety_radius_m = safety_radius_m
+        self.tolerance_frac = tolerance_frac
+        self.search_radius_m = search_radius_m
+        self.outcome: str | None = None  # "safe", "unsafe", "timeout", "out_of_world" once ended
+        self.verdict: Verdict | None = None  # set when the hand-over altitude was reached
+        self.path_length_m = 0.0  # horizontal, summed over the states checked
+        self.start_t_s: float | None = None
+        self.last_state: VehicleState | None = None
+
+    @property
+    def sim_time_s(self) -> float:
+        if self.last_state is None or self.start_t_s is None:
+            return 0.0
+        return self.last_state.t_s - self.start_t_s
+
+    def check(self, state: VehicleState) -> str | None:
+        """Feed the newest state; returns the outcome once the episode has ended (then always the same)."""
+        if self.outcome is not None:
+            return self.outcome
+        if self.last_state is None:
+            self.start_t_s = state.t_s
+        else:
+            self.path_length_m += math.hypot(state.x_m - self.last_state.x_m, state.y_m - self.last_state.y_m)
+        self.last_state = state
+        # Order matters: a vehicle outside the image cannot be judged, and reaching the hand-over
+        # altitude on the last tick still counts as a landing.
+        if not self.world.contains(state.x_m, state.y_m):
+            self.outcome = "out_of_world"
+        elif state.alt_agl_m <= self.handover_alt_m:
+            self.verdict = judge_landing(self.world, state.x_m, state.y_m, self.safety_radius_m,
+                                         self.tolerance_frac, self.search_radius_m)
+            self.outcome = self.verdict.outcome
+        elif self.sim_time_s >= self.time_limit_s:
+            self.outcome = "timeout"
+        return self.outcome
+
+    def summary(self) -> dict[str, Any]:
+        """JSON-ready record of the episode so far (outcome None while it runs)."""
+        st = self.last_state
+        return {
+            "outcome": self.outcome,
+            "sim_time_s": self.sim_time_s,
+            "path_length_m": self.path_length_m,
+            "final_x_m": st.x_m if st else None,
+            "final_y_m": st.y_m if st else None,
+            "final_alt_m": st.alt_agl_m if st else None,
+            "verdict": self.verdict.to_dict() if self.verdict else None,
+        }

@@ -1,0 +1,567 @@
+"""The simulator as a Zenoh service (`dovesei-sim`): `SimCore` on the wire, one episode per run.
+
+    SimCore.reset/step --CameraFrame--> camera key     (JPEG on the wire with --jpeg-quality)
+                       --VehicleState-> state key
+                       --EpisodeResult-> episode key   (once, at the end; also logged)
+    cmd key --Inbox--> VelocityCommand --> SimCore.step
+
+Three ways to run an episode, chosen by the config:
+
+- lockstep (default; deterministic on any host): at step k the frame due (if any) is published
+  before state k, then the sim waits for the command whose `state_seq == k` (FIFO inbox; older
+  answers are stale and dropped). No answer within `cmd_timeout_s` wall seconds ends the episode
+  as 'error' naming the controller. Waiting sleeps in `Inbox.recv`, it never spins.
+- real time: step k is due at t0 + k x dt / speed on the wall clock (absolute schedule, so delays
+  never accumulate); each step takes the newest command and never waits. A controller that falls
+  silent is handled by the vehicle itself: its command times out in sim time and it brakes.
+- external pose (`external_pose` = a pymavlink URL): no own dynamics. The pose of a real or SITL
+  autopilot (LOCAL_POSITION_NED + ATTITUDE, read through a read-only `MavlinkVehicle`) is placed
+  in the world with the local origin at the start (north = +y, east = +x); frames are rendered
+  there at the frame rate of the wall clock and the judge watches the same world. No
+  VehicleState is published: the controller reads the autopilot itself.
+
+`main` only parses flags, sets up logging and signals, loads the world, opens the session and
+calls `run`; `run` reads no flags or environment, so tests call it with a hand-made world.
+Exit status: 0 when the episode reached an outcome (or was stopped by a signal), 1 on 'error'.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import sys
+import threading
+import time
+from collections import deque
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import zenoh
+
+from dovesei.shared import keys
+from dovesei.shared.clock import WallClock, wall_time_s
+from dovesei.shared.codec import encode
+from dovesei.shared.errors import ConfigError, DoveseiError
+from dovesei.shared.lifecycle import Inbox, declare_alive, install_stop_handlers, is_alive
+from dovesei.shared.messages import CameraFrame, ClassEntry, EpisodeResult, GroundTruth, VehicleState, VelocityCommand
+from dovesei.shared.zconfig import add_zenoh_args, zenoh_config_from_args
+from dovesei.sim.camera import CameraModel, render
+from dovesei.sim.core import TIMING_PRESETS, SimConfig, SimCore, StepOut, judge_result
+from dovesei.sim.dynamics import VehicleState as Pose
+from dovesei.sim.judge import EpisodeJudge
+from dovesei.sim.starts import Start, generate_starts
+from dovesei.sim.world import World, WorldError, load_world
+
+log = logging.getLogger(__name__)
+
+WAITABLE = ("segmenter", "controller")  # services whose liveliness --wait-for accepts
+# Real time: when the loop falls this far behind its schedule (a stalled host), it drops the debt
+# and restarts the schedule from now instead of bursting through the missed steps.
+_MAX_BEHIND_S = 1.0
+# External pose: frames start this long after the first local position (streams run at 20 Hz).
+_POSE_WARMUP_S = 0.3
+_MAX_LATENCY_SAMPLES = 200_000  # about 3 h of commands at 20 Hz: bounded memory for any episode
+
+
+@dataclass(frozen=True)
+class SimServiceConfig:
+    """Everything `run` needs besides the session and the world; built from flags by `config_from_args`."""
+
+    sim: SimConfig = field(default_factory=SimConfig)
+    world: str = "synthetic"  # the --world spec (loaded by main; named in logs)
+    start_xy_alt_m: tuple[float, float, float] | None = None  # None: generated from start_seed
+    start_seed: int = 0
+    start_alt_m: float = 100.0  # altitude of a generated start
+    lockstep: bool = True
+    speed: float = 1.0  # real time only: sim seconds per wall second
+    jpeg_quality: int | None = None  # None: raw frames on the wire
+    external_pose: str | None = None  # pymavlink URL of an autopilot whose pose replaces the dynamics
+    wait_for: tuple[str, ...] = ()  # liveliness tokens to see before the episode starts
+    wait_timeout_s: float = 60.0
+    cmd_timeout_s: float = 10.0  # lockstep: wall wait for a command; external pose: for a new pose
+
+    def __post_init__(self) -> None:
+        for name in ("speed", "wait_timeout_s", "cmd_timeout_s", "start_alt_m"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ConfigError(f"sim service {name} must be a finite number > 0, got {value!r}")
+        if self.jpeg_quality is not None and not 1 <= self.jpeg_quality <= 100:
+            raise ConfigError(f"--jpeg-quality must be in 1..100, got {self.jpeg_quality}")
+        unknown = [s for s in self.wait_for if s not in WAITABLE]
+        if unknown:
+            raise ConfigError(f"--wait-for {','.join(unknown)}: choose among {','.join(WAITABLE)}")
+        if self.start_xy_alt_m is not None and not all(math.isfinite(v) for v in self.start_xy_alt_m):
+            raise ConfigError(f"--start must be finite numbers, got {self.start_xy_alt_m!r}")
+        if self.external_pose is not None and not self.external_pose.strip():
+            raise ConfigError("--external-pose needs a pymavlink URL, e.g. udpin:0.0.0.0:14551")
+
+
+@dataclass
+class SimStats:
+    """What one `run` did (tests and the shutdown log read it)."""
+
+    steps: int = 0
+    frames_sent: int = 0
+    states_sent: int = 0
+    commands_used: int = 0
+    commands_stale: int = 0  # lockstep: answers to an earlier state (or the controller's hold)
+    commands_foreign: int = 0  # a vehicle id other than ours on our key
+    commands_rejected: int = 0  # payloads the codec refused (counted by the inbox)
+    poses_received: int = 0  # external pose
+    overruns: int = 0  # real time: schedule restarts after falling behind
+    # Transport latency of each command used (wall: received here - sent by the controller), and
+    # of the first command made from each frame's heatmap (for `dovesei up`'s per-frame budget).
+    command_to_sim_s: deque[float] = field(default_factory=lambda: deque(maxlen=_MAX_LATENCY_SAMPLES))
+    command_to_sim_s_by_frame: dict[int, float] = field(default_factory=dict)
+
+    def on_command(self, cmd: VelocityCommand, recv_wall_s: float) -> None:
+        self.commands_used += 1
+        if cmd.sent_wall_s > 0:  # 0: a sender that does not stamp (then nothing to measure)
+            hop_s = recv_wall_s - cmd.sent_wall_s
+            self.command_to_sim_s.append(hop_s)
+            if cmd.frame_seq >= 0 and len(self.command_to_sim_s_by_frame) < _MAX_LATENCY_SAMPLES:
+                self.command_to_sim_s_by_frame.setdefault(cmd.frame_seq, hop_s)
+
+    def to_json(self) -> dict:
+        out = {k: v for k, v in vars(self).items() if isinstance(v, int)}
+        out["command_to_sim_s"] = [round(v, 6) for v in self.command_to_sim_s]
+        out["command_to_sim_s_by_frame"] = {str(k): round(v, 6) for k, v in self.command_to_sim_s_by_frame.items()}
+        return out
+
+
+def resolve_start(world: World, config: SimServiceConfig) -> Start:
+    """The start of the episode: the explicit --start, else generate_starts(seed)[0]."""
+    if config.start_xy_alt_m is not None:
+        x_m, y_m, alt_m = config.start_xy_alt_m
+        if not world.contains(x_m, y_m):
+            raise ConfigError(f"--start {x_m:g},{y_m:g} lies outside world {world.name!r} "
+                              f"({world.width_m:.0f} x {world.height_m:.0f} m, origin at its south-west corner)")
+        if alt_m <= 0:
+            raise ConfigError(f"--start altitude must be > 0 m, got {alt_m:g}")
+        return Start(x_m, y_m, alt_m)
+    return generate_starts(world, 1, config.start_seed, alt_m=config.start_alt_m, cam=config.sim.camera)[0]
+
+
+class _Wire:
+    """Publishers, the command inbox and the liveliness token of one run; closed together."""
+
+    def __init__(self, session: zenoh.Session, config: SimServiceConfig) -> None:
+        vid = config.sim.vehicle_id
+        self.jpeg_quality = config.jpeg_quality
+        self._closers: list = []
+        try:
+            # Lockstep must lose nothing (a dropped state stalls the episode): block under congestion.
+            # Real time prefers dropping an old frame to delaying the next one (Zenoh's default).
+            flow = zenoh.CongestionControl.BLOCK if config.lockstep else zenoh.CongestionControl.DROP
+            self.camera = self._keep(session.declare_publisher(keys.camera(vid), congestion_control=flow))
+            self.state = self._keep(session.declare_publisher(keys.state(vid), congestion_control=flow))
+            # The result is published once, just before the session closes: no batching delay.
+            self.episode = self._keep(session.declare_publisher(
+                keys.episode(vid), congestion_control=zenoh.CongestionControl.BLOCK, express=True))
+            self.cmds: Inbox[VelocityCommand] | None = None
+            if config.external_pose is None:
+                # Lockstep needs every answer in order; real time only ever wants the newest.
+                self.cmds = self._keep(Inbox(session, keys.cmd(vid), VelocityCommand,
+                                             newest_only=not config.lockstep))
+            # Declared last: whoever sees the token knows our subscriber is already in place.
+            self.token = self._keep(declare_alive(session, vid, "sim"))
+        except BaseException:
+            self.close()
+            raise
+
+    def _keep(self, thing):
+        self._closers.append(thing)
+        return thing
+
+    def publish(self, out: StepOut, stats: SimStats) -> None:
+        """Frame first, then state: the protocol's order for one step."""
+        if out.frame is not None:
+            self.publish_frame(out.frame, stats)
+        self.state.put(encode(out.state))
+        stats.states_sent += 1
+
+    def publish_frame(self, frame: CameraFrame, stats: SimStats) -> None:
+        self.camera.put(encode(frame, jpeg_quality=self.jpeg_quality))
+        stats.frames_sent += 1
+
+    def close(self) -> None:
+        for thing in reversed(self._closers):
+            thing.close() if isinstance(thing, Inbox) else thing.undeclare()
+        self._closers.clear()
+
+
+def run(session: zenoh.Session, *, config: SimServiceConfig, stop: threading.Event, world: World | None = None,
+        stats: SimStats | None = None) -> EpisodeResult | None:
+    """Fly one episode and publish its result; None when `stop` ended it first.
+
+    `world` defaults to loading `config.world` (main passes the world it loaded); `stats`, when
+    given, is filled in as the run goes.
+    """
+    stats = stats if stats is not None else SimStats()
+    world = world if world is not None else load_world(config.world)
+    start = resolve_start(world, config)
+    wire = _Wire(session, config)
+    try:
+        mode = ("external pose " + config.external_pose if config.external_pose
+                else "lockstep" if config.lockstep else f"real time x{config.speed:g}")
+        log.info("sim %s up: world %s (%.0f x %.0f m), start (%.1f, %.1f) m at %.0f m, %s timing "
+                 "(frame every %.2f s, latency %.2f s), %s, keys %s",
+                 config.sim.vehicle_id, world.name, world.width_m, world.height_m, start.x_m, start.y_m, start.alt_m,
+                 config.sim.timing, config.sim.period_s, config.sim.delay_s, mode, keys.camera(config.sim.vehicle_id))
+        missing = _wait_for_services(session, config, stop)
+        if stop.is_set():
+            return None
+        if missing:
+            result = _never_started(world, start, config, missing)
+        elif config.external_pose is not None:
+            result = _run_external_pose(wire, world, start, config, stop, stats)
+        else:
+            core = SimCore(world, start, config.sim)
+            if config.lockstep:
+                result = _run_lockstep(wire, core, config, stop, stats)
+            else:
+                result = _run_realtime(wire, core, config, stop, stats)
+        if wire.cmds is not None:
+            stats.commands_rejected = sum(wire.cmds.rejected.values())
+        if result is None:
+            log.info("sim %s stopped before the episode ended", config.sim.vehicle_id)
+            return None
+        log.info("episode %s: %s after %.1f s, path %.1f m, at (%.1f, %.1f) m alt %.1f m: %s",
+                 result.vehicle_id, result.outcome, result.sim_time_s, result.path_length_m, result.final_x_m,
+                 result.final_y_m, result.final_alt_m, result.detail)
+        wire.episode.put(encode(result))
+        return result
+    finally:
+        wire.close()
+
+
+def _never_started(world: World, start: Start, config: SimServiceConfig, detail: str) -> EpisodeResult:
+    """The 'error' result of an episode that could not begin, placed at the start."""
+    cfg = config.sim
+    judge = EpisodeJudge(world, handover_alt_m=cfg.handover_alt_m, time_limit_s=cfg.time_limit_s,
+                         safety_radius_m=cfg.safety_radius_m)
+    judge.check(Pose(start.x_m, start.y_m, start.alt_m, yaw_rad=start.yaw_rad))
+    return judge_result(cfg.vehicle_id, judge, "error", detail, clock="vehicle" if config.external_pose else "sim")
+
+
+def _wait_for_services(session: zenoh.Session, config: SimServiceConfig, stop: threading.Event) -> str:
+    """Wait for the liveliness tokens of `config.wait_for`; '' when all are up, else what is missing."""
+    vid = config.sim.vehicle_id
+    clock = WallClock()
+    pending = list(config.wait_for)
+    while pending and not stop.is_set():
+        # is_alive asks the network and waits for the replies: this loop never spins.
+        pending = [s for s in pending if not is_alive(session, vid, s, timeout_s=0.25)]
+        if pending and clock.now_s() >= config.wait_timeout_s:
+            return (f"{', '.join(pending)} of {vid} not alive within {config.wait_timeout_s:g} s "
+                    f"(no liveliness token on {keys.alive(vid, pending[0])})")
+        if pending:
+            stop.wait(0.05)
+    if config.wait_for and not stop.is_set():
+        log.info("services up: %s", ", ".join(config.wait_for))
+    return ""
+
+
+def _run_lockstep(wire: _Wire, core: SimCore, config: SimServiceConfig, stop: threading.Event,
+                  stats: SimStats) -> EpisodeResult | None:
+    out = core.reset()
+    while not stop.is_set():
+        wire.publish(out, stats)
+        if out.result is not None:
+            return out.result
+        cmd = _await_answer(wire.cmds, out.state.seq, config, stop, stats)
+        if cmd is None:
+            if stop.is_set():
+                return None
+            vid = config.sim.vehicle_id
+            return core.abort(f"no command from the controller of {vid} answering state {out.state.seq} "
+                              f"within {config.cmd_timeout_s:g} s (key {keys.cmd(vid)})")
+        stats.on_command(cmd, wall_time_s())
+        out = core.step(cmd)
+        stats.steps += 1
+    return None
+
+
+def _await_answer(cmds: Inbox[VelocityCommand], state_seq: int, config: SimServiceConfig, stop: threading.Event,
+                  stats: SimStats) -> VelocityCommand | None:
+    """The command answering `state_seq`, waiting at most `cmd_timeout_s` wall seconds; None if none came."""
+    clock = WallClock()
+    while True:
+        remaining_s = config.cmd_timeout_s - clock.now_s()
+        if remaining_s <= 0:
+            return None
+        cmd = cmds.recv(remaining_s, stop)
+        if cmd is None:
+            return None
+        if cmd.vehicle_id != config.sim.vehicle_id:
+            stats.commands_foreign += 1
+            log.warning("command for vehicle %r on the key of %r ignored", cmd.vehicle_id, config.sim.vehicle_id)
+            continue
+        if cmd.state_seq == state_seq:
+            return cmd
+        # Older answers (a late duplicate, the controller's hold with state_seq -1) are stale here.
+        stats.commands_stale += 1
+        log.log(logging.WARNING if cmd.state_seq > state_seq else logging.DEBUG,
+                "command %d answers state %d while waiting for %d: dropped", cmd.seq, cmd.state_seq, state_seq)
+
+
+def _run_realtime(wire: _Wire, core: SimCore, config: SimServiceConfig, stop: threading.Event,
+                  stats: SimStats) -> EpisodeResult | None:
+    period_s = config.sim.dt_s / config.speed
+    clock = WallClock()
+    out = core.reset()
+    wire.publish(out, stats)
+    due_s = clock.now_s() + period_s
+    while out.result is None and clock.sleep_until(due_s, stop):
+        cmd = _newest_command(wire.cmds, config, stats)
+        out = core.step(cmd)  # None keeps the last command, which then times out in the vehicle
+        stats.steps += 1
+        wire.publish(out, stats)
+        due_s += period_s
+        behind_s = clock.now_s() - due_s
+        if behind_s > _MAX_BEHIND_S:
+            stats.overruns += 1
+            log.warning("sim %.2f s behind real time: restarting the schedule (sim time now lags the wall)",
+                        behind_s)
+            due_s = clock.now_s() + period_s
+    return out.result
+
+
+def _newest_command(cmds: Inbox[VelocityCommand], config: SimServiceConfig, stats: SimStats) -> VelocityCommand | None:
+    """The newest valid command for our vehicle waiting in the inbox, or None."""
+    newest = None
+    while (cmd := cmds.poll()) is not None:
+        if cmd.vehicle_id != config.sim.vehicle_id:
+            stats.commands_foreign += 1
+            continue
+        newest = cmd
+    if newest is not None:
+        stats.on_command(newest, wall_time_s())
+    return newest
+
+
+class _PoseCamera:
+    """Renders `CameraFrame`s at poses given from outside (external-pose mode)."""
+
+    def __init__(self, world: World, sim: SimConfig) -> None:
+        self.world, self.sim = world, sim
+        self.classes = tuple(ClassEntry(int(i), c.name, bool(c.safe)) for i, c in sorted(world.classes.items()))
+        self.seq = -1
+
+    def frame(self, pose: Pose, state: VehicleState) -> CameraFrame:
+        cam: CameraModel = self.sim.camera
+        # A vehicle on the ground still needs a view; 0.1 m keeps the pinhole model defined.
+        image, labels, _valid = render(self.world, pose.x_m, pose.y_m, max(pose.alt_agl_m, 0.1), pose.yaw_rad, cam)
+        truth = GroundTruth(labels, self.classes) if self.sim.attach_truth and labels is not None else None
+        self.seq += 1
+        return CameraFrame(self.sim.vehicle_id, self.seq, state.stamp, image, cam.hfov_rad, pose.alt_agl_m,
+                           roll_rad=state.roll_rad, pitch_rad=state.pitch_rad, yaw_rad=pose.yaw_rad,
+                           sent_wall_s=wall_time_s(), truth=truth)
+
+
+def pose_in_world(state: VehicleState, start: Start) -> Pose:
+    """An autopilot's local NED state placed in the world: origin at the start, north +y, east +x."""
+    north_m, east_m, _down_m = state.pos_local_ned_m
+    return Pose(x_m=start.x_m + east_m, y_m=start.y_m + north_m, alt_agl_m=max(state.alt_agl_m, 0.0),
+                yaw_rad=state.yaw_rad, t_s=state.stamp.t_s)
+
+
+def _run_external_pose(wire: _Wire, world: World, start: Start, config: SimServiceConfig, stop: threading.Event,
+                       stats: SimStats) -> EpisodeResult | None:
+    from dovesei.controller.mavlink import MAV_COMP_ID_CAMERA, MavlinkVehicle  # pymavlink only in this mode
+
+    cfg = config.sim
+    judge = EpisodeJudge(world, handover_alt_m=cfg.handover_alt_m, time_limit_s=cfg.time_limit_s,
+                         safety_radius_m=cfg.safety_radius_m)
+    url = config.external_pose
+    camera = _PoseCamera(world, cfg)
+    # Read-only: it only listens (plus the companion heartbeat and stream requests), never steers.
+    autopilot = MavlinkVehicle(url, vehicle_id=cfg.vehicle_id, read_only=True, source_component=MAV_COMP_ID_CAMERA)
+    try:
+        try:
+            autopilot.connect(config.wait_timeout_s)
+        except DoveseiError as exc:
+            return _never_started(world, start, config, f"autopilot: {exc}")
+        clock = WallClock()
+        last_pose_wall_s = clock.now_s()
+        first_pose_wall_s: float | None = None
+        state: VehicleState | None = None
+        due_s = clock.now_s()
+        while clock.sleep_until(due_s, stop):
+            due_s += cfg.period_s
+            if clock.now_s() - due_s > _MAX_BEHIND_S:
+                stats.overruns += 1
+                due_s = clock.now_s() + cfg.period_s
+            while (new := autopilot.poll_state()) is not None:
+                if new.pos_valid:  # until LOCAL_POSITION_NED arrives there is no pose to render
+                    state = new
+                    stats.poses_received += 1
+                    last_pose_wall_s = clock.now_s()
+                    if first_pose_wall_s is None:
+                        first_pose_wall_s = last_pose_wall_s
+            if autopilot.lost_reason is not None:
+                return judge_result(cfg.vehicle_id, judge, "error", f"autopilot at {url}: {autopilot.lost_reason}",
+                                    clock="vehicle")
+            if clock.now_s() - last_pose_wall_s > config.cmd_timeout_s:
+                return judge_result(cfg.vehicle_id, judge, "error",
+                                    f"no local position from the autopilot at {url} for {config.cmd_timeout_s:g} s",
+                                    clock="vehicle")
+            # The position and attitude streams start independently and the adapter reports yaw 0
+            # until the first ATTITUDE: render nothing during the first moments of the streams.
+            if state is None or last_pose_wall_s - first_pose_wall_s < _POSE_WARMUP_S:
+                continue
+            pose = pose_in_world(state, start)
+            if judge.check(pose) is not None:
+                return judge_result(cfg.vehicle_id, judge, judge.outcome, clock="vehicle")
+            wire.publish_frame(camera.frame(pose, state), stats)
+            stats.steps += 1
+        return None
+    finally:
+        autopilot.close()
+
+
+# ------------------------------------------------------------------------------------------------ flags
+
+
+def _positive(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not math.isfinite(value) or value <= 0:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number > 0")
+    return value
+
+
+def _non_negative(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not math.isfinite(value) or value < 0:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number >= 0")
+    return value
+
+
+def parse_start(text: str) -> tuple[float, float, float | None]:
+    """'X_M,Y_M[,ALT_M]' in world metres (x east, y north of the world's south-west corner)."""
+    parts = [p.strip() for p in text.split(",")]
+    if len(parts) not in (2, 3):
+        raise argparse.ArgumentTypeError(f"--start {text!r}: expected X_M,Y_M or X_M,Y_M,ALT_M")
+    try:
+        values = [float(p) for p in parts]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--start {text!r}: not numbers") from None
+    if not all(math.isfinite(v) for v in values):
+        raise argparse.ArgumentTypeError(f"--start {text!r}: values must be finite")
+    return values[0], values[1], values[2] if len(values) == 3 else None
+
+
+def _wait_list(text: str) -> tuple[str, ...]:
+    names = tuple(s.strip() for s in text.split(",") if s.strip())
+    unknown = [s for s in names if s not in WAITABLE]
+    if unknown:
+        raise argparse.ArgumentTypeError(f"--wait-for {text!r}: {', '.join(unknown)} not among {', '.join(WAITABLE)}")
+    return names
+
+
+def build_parser() -> argparse.ArgumentParser:
+    d, ds = SimServiceConfig(), SimConfig()
+    p = argparse.ArgumentParser(prog="dovesei-sim", description=__doc__.splitlines()[0])
+    p.add_argument("--vehicle-id", default=ds.vehicle_id, help="vehicle id in the keys (default: uav1)")
+    p.add_argument("--world", default=d.world, help="synthetic[:seed=N,size_m=X,gsd_m=Y], tiles:<url>,... or a world folder")
+    where = p.add_mutually_exclusive_group()
+    where.add_argument("--start", type=parse_start, metavar="X_M,Y_M[,ALT_M]",
+                       help="start in world metres (x east, y north of the south-west corner); altitude default 100")
+    where.add_argument("--start-seed", type=int, default=d.start_seed,
+                       help="seed of the generated start (the first of generate_starts; default 0)")
+    p.add_argument("--timing", choices=sorted(TIMING_PRESETS), default=ds.timing,
+                   help="frame period and perception latency preset (default: reference)")
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument("--lockstep", dest="lockstep", action="store_true",
+                      help="advance only when the controller has answered each state (default; deterministic)")
+    mode.add_argument("--realtime", dest="lockstep", action="store_false",
+                      help="step on the wall clock and never wait for commands")
+    p.set_defaults(lockstep=d.lockstep)
+    p.add_argument("--speed", type=_positive, default=d.speed, help="real time: sim seconds per wall second (default 1)")
+    p.add_argument("--time-limit-s", type=_positive, default=ds.time_limit_s, help="sim-time limit of the episode")
+    p.add_argument("--handover-alt-m", type=_non_negative, default=ds.handover_alt_m,
+                   help="the episode ends (and is judged) at this altitude")
+    p.add_argument("--seed", type=int, default=ds.seed, help="seed of the vehicle's disturbances")
+    p.add_argument("--frame-period-s", type=_positive, default=None, help="override the preset's frame period")
+    p.add_argument("--latency-s", type=_non_negative, default=None, help="override the preset's perception latency")
+    p.add_argument("--jpeg-quality", type=int, default=None, metavar="Q",
+                   help="send frames JPEG-compressed at quality Q (1-100; default raw)")
+    p.add_argument("--no-truth", action="store_true", help="do not attach ground-truth labels to frames")
+    p.add_argument("--external-pose", metavar="URL", default=None,
+                   help="render at the pose of a MAVLink autopilot (pymavlink URL) instead of simulating the flight")
+    p.add_argument("--wait-for", type=_wait_list, default=(), metavar="SERVICES",
+                   help="comma list of services (segmenter,controller) whose liveliness to wait for before starting")
+    p.add_argument("--wait-timeout-s", type=_positive, default=d.wait_timeout_s,
+                   help="give up waiting for --wait-for services (or the autopilot) after this long")
+    p.add_argument("--cmd-timeout-s", type=_positive, default=d.cmd_timeout_s,
+                   help="lockstep: wall seconds to wait for each command before ending the episode as 'error'")
+    p.add_argument("--stats-out", type=Path, default=None, metavar="FILE",
+                   help="write the run's counters and command latencies as JSON when it ends")
+    p.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
+    add_zenoh_args(p)
+    return p
+
+
+def config_from_args(args: argparse.Namespace) -> SimServiceConfig:
+    start, start_alt_m = None, SimServiceConfig.start_alt_m
+    if args.start is not None:
+        x_m, y_m, alt_m = args.start
+        start = (x_m, y_m, start_alt_m if alt_m is None else alt_m)
+    sim = SimConfig(vehicle_id=keys.check_vehicle_id(args.vehicle_id), timing=args.timing,
+                    frame_period_s=args.frame_period_s, latency_s=args.latency_s, handover_alt_m=args.handover_alt_m,
+                    time_limit_s=args.time_limit_s, seed=args.seed, attach_truth=not args.no_truth)
+    return SimServiceConfig(sim=sim, world=args.world, start_xy_alt_m=start, start_seed=args.start_seed,
+                            lockstep=args.lockstep, speed=args.speed, jpeg_quality=args.jpeg_quality,
+                            external_pose=args.external_pose, wait_for=tuple(args.wait_for),
+                            wait_timeout_s=args.wait_timeout_s, cmd_timeout_s=args.cmd_timeout_s)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=args.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    try:
+        config = config_from_args(args)
+        zconf = zenoh_config_from_args(args)
+    except ConfigError as exc:
+        parser.error(str(exc))
+    stop = install_stop_handlers()
+    stats = SimStats()
+    try:
+        t0 = time.perf_counter()
+        world = load_world(config.world)  # the heavy factory: seconds for a new synthetic world
+        log.info("world %s ready in %.1f s", world.name, time.perf_counter() - t0)
+        with zenoh.open(zconf) as session:
+            result = run(session, config=config, stop=stop, world=world, stats=stats)
+    except (WorldError, DoveseiError) as exc:
+        log.error("sim stopped: %s", exc)
+        return 1
+    finally:
+        if args.stats_out is not None:
+            _write_stats(args.stats_out, stats)
+    log.info("sim done: %d steps, %d frames, %d commands used (%d stale, %d rejected payloads)",
+             stats.steps, stats.frames_sent, stats.commands_used, stats.commands_stale, stats.commands_rejected)
+    if result is None:
+        return 0  # stopped by a signal: a clean shutdown, not a failure
+    return 1 if result.outcome == "error" else 0
+
+
+def _write_stats(path: Path, stats: SimStats) -> None:
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(stats.to_json()))
+    except OSError as exc:
+        log.warning("could not write the stats to %s: %s", path, exc)  # the episode itself is unaffected
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,298 @@
+"""Worlds the simulator flies over: an orthoimage, an optional per-pixel class map and a scale.
+
+A `World` is the immutable bundle every other sim module reads: the camera samples its image and
+labels, the judge reads its labels and `safe_lut`, the start generator reads its extent.
+`load_world(spec)` is the one factory that turns a user's `--world` value into a `World`:
+
+    "synthetic[:seed=N,...]"        -> synthetic.parse_spec + synthetic.load_or_generate (cached)
+    "tiles:<url template>[,k=v...]" -> tiles.load_tile_world (web map tiles, no labels)
+    "<folder>" or ".../world.json"  -> world.json + image + labels (DESIGN.md section 8)
+
+World frame (metres, used by the whole simulator): x_m points east from the image's left edge,
+y_m points north from the image's BOTTOM edge, so the centre of pixel (row, col) is at
+x_m = (col + 0.5) * gsd_m, y_m = (H - row - 0.5) * gsd_m. The image's top is north.
+
+Label id 255 is reserved: the camera writes it where a view leaves the world. Ids a world does not
+list in `classes` count as unsafe; a world folder whose label image uses an unlisted id is
+refused at load time, because that is nearly always a mapping mistake rather than intent.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+from functools import cached_property
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from dovesei.shared.errors import DoveseiError
+
+log = logging.getLogger(__name__)
+
+OUT_OF_WORLD_LABEL = 255  # written by the camera outside the world; never a class id
+
+
+class WorldError(DoveseiError, ValueError):
+    """A world that cannot be loaded or built: names the file or field and what was wrong."""
+
+
+@dataclass(frozen=True)
+class ClassInfo:
+    """One class of a label map: its name and whether landing on it is acceptable."""
+
+    name: str
+    safe: bool
+
+
+# eq=False: field-wise equality on numpy arrays is ill-defined, and identity hashing lets the
+# camera cache image pyramids per world in a WeakKeyDictionary.
+@dataclass(frozen=True, eq=False)
+class World:
+    """An orthoimage (RGB, top = north) with optional class labels and its ground sampling distance."""
+
+    image_rgb: np.ndarray  # (H, W, 3) uint8
+    labels: np.ndarray | None  # (H, W) uint8 class ids, None when the source has no labels (tiles)
+    gsd_m: float  # metres per pixel, same along both axes
+    classes: Mapping[int, ClassInfo]
+    name: str
+
+    def __post_init__(self) -> None:
+        img = self.image_rgb
+        if not isinstance(img, np.ndarray) or img.dtype != np.uint8 or img.ndim != 3 or img.shape[2] != 3:
+            raise WorldError(f"world {self.name!r}: image_rgb must be an (H, W, 3) uint8 array, got {_describe(img)}")
+        if img.shape[0] < 1 or img.shape[1] < 1:
+            raise WorldError(f"world {self.name!r}: image_rgb is empty {img.shape}")
+        if self.labels is not None:
+            lab = self.labels
+            if not isinstance(lab, np.ndarray) or lab.dtype != np.uint8 or lab.ndim != 2:
+                raise WorldError(f"world {self.name!r}: labels must be an (H, W) uint8 array, got {_describe(lab)}")
+            if lab.shape != img.shape[:2]:
+                raise WorldError(f"world {self.name!r}: labels {lab.shape} differ in size from image {img.shape[:2]}")
+        _check_gsd(self.gsd_m, f"world {self.name!r}: gsd_m")
+        for cid, info in self.classes.items():
+            if not isinstance(cid, int) or isinstance(cid, bool) or not 0 <= cid <= 254:
+                raise WorldError(
+                    f"world {self.name!r}: class id {cid!r} must be an integer in 0..254 "
+                    f"({OUT_OF_WORLD_LABEL} marks outside the world)"
+                )
+            if not isinstance(info, ClassInfo):
+                raise WorldError(f"world {self.name!r}: class {cid} must be a ClassInfo, got {type(info).__name__}")
+        # Frozen in spirit too: the camera caches pyramids built from these arrays, so an in-place
+        # edit after construction would silently desynchronise them.
+        img.flags.writeable = False
+        if self.labels is not None:
+            self.labels.flags.writeable = False
+
+    @property
+    def height_px(self) -> int:
+        return int(self.image_rgb.shape[0])
+
+    @property
+    def width_px(self) -> int:
+        return int(self.image_rgb.shape[1])
+
+    @property
+    def width_m(self) -> float:
+        return self.width_px * self.gsd_m
+
+    @property
+    def height_m(self) -> float:
+        return self.height_px * self.gsd_m
+
+    @cached_property
+    def safe_lut(self) -> np.ndarray:
+        """256 booleans indexed by label id: True only for ids listed in `classes` as safe."""
+        lut = np.zeros(256, dtype=bool)
+        for cid, info in self.classes.items():
+            lut[cid] = info.safe
+        lut.flags.writeable = False
+        return lut
+
+    def contains(self, x_m: float, y_m: float) -> bool:
+        """True when the world point lies on the image (edges: left/bottom inclusive)."""
+        return 0.0 <= x_m < self.width_m and 0.0 <= y_m < self.height_m
+
+    def world_to_pixel(self, x_m: Any, y_m: Any) -> tuple[Any, Any]:
+        """World metres -> continuous (row, col) pixel coordinates, integers at pixel centres.
+
+        Works on scalars and numpy arrays; round to get the index of the pixel holding the point.
+        """
+        col = np.asarray(x_m, dtype=np.float64) / self.gsd_m - 0.5
+        row = self.height_px - np.asarray(y_m, dtype=np.float64) / self.gsd_m - 0.5
+        return _unwrap(row), _unwrap(col)
+
+    def pixel_to_world(self, row: Any, col: Any) -> tuple[Any, Any]:
+        """Continuous (row, col) pixel coordinates (integers at centres) -> world (x_m, y_m)."""
+        x_m = (np.asarray(col, dtype=np.float64) + 0.5) * self.gsd_m
+        y_m = (self.height_px - np.asarray(row, dtype=np.float64) - 0.5) * self.gsd_m
+        return _unwrap(x_m), _unwrap(y_m)
+
+    def pixel_index(self, x_m: float, y_m: float) -> tuple[int, int]:
+        """(row, col) of the pixel containing a world point (may lie outside the image)."""
+        return self.height_px - 1 - math.floor(y_m / self.gsd_m), math.floor(x_m / self.gsd_m)
+
+
+def _unwrap(a: np.ndarray) -> Any:
+    # Scalars in, Python floats out: callers mixing math and numpy should not get 0-d arrays.
+    return float(a) if a.ndim == 0 else a
+
+
+def _describe(a: Any) -> str:
+    if isinstance(a, np.ndarray):
+        return f"{a.dtype} array of shape {a.shape}"
+    return type(a).__name__
+
+
+def _check_gsd(gsd_m: Any, what: str) -> float:
+    if isinstance(gsd_m, bool) or not isinstance(gsd_m, (int, float)):
+        raise WorldError(f"{what} must be a number of metres per pixel, got {gsd_m!r}")
+    if not math.isfinite(gsd_m) or gsd_m <= 0:
+        raise WorldError(f"{what} must be finite and > 0, got {gsd_m!r}")
+    return float(gsd_m)
+
+
+def load_world(spec: str) -> World:
+    """Build the world a `--world` value names (see the module docstring for the forms)."""
+    spec = spec.strip()  # specs often arrive from shells and config files with stray spaces
+    if not spec:
+        raise WorldError("empty world spec: use 'synthetic[:seed=N]', 'tiles:<url>,...' or a world folder")
+    if spec == "synthetic" or spec.startswith("synthetic:"):
+        return _load_synthetic(spec)
+    if spec.startswith("tiles:"):
+        # Imported here: tiles pulls urllib and cache handling that other worlds never need.
+        from dovesei.sim.tiles import load_tile_world
+
+        return load_tile_world(spec)
+    return load_world_folder(Path(spec))
+
+
+def _load_synthetic(spec: str) -> World:
+    from dovesei.sim import synthetic
+
+    try:
+        params = synthetic.parse_spec(spec)
+    except synthetic.SyntheticWorldError as exc:
+        raise WorldError(str(exc)) from exc  # load_world callers handle one error type
+    image_rgb, labels = synthetic.load_or_generate(params)
+    classes = {int(cid): ClassInfo(name, bool(safe)) for cid, (name, safe) in synthetic.SYNTHETIC_CLASSES.items()}
+    world = World(image_rgb, labels, float(params.gsd_m), classes, name=spec)
+    _check_label_ids(world.labels, classes, f"synthetic world {spec!r}")
+    return world
+
+
+def load_world_folder(folder: Path) -> World:
+    """Load a world folder (or its world.json directly): gsd_m, image, labels, classes."""
+    folder = folder.expanduser()
+    # Accept the folder or its world.json: users tab-complete to either.
+    meta_path = folder if folder.is_file() else folder / "world.json"
+    if not meta_path.is_file():
+        if not folder.exists():
+            raise WorldError(f"world {str(folder)!r}: no such folder (nor a known world spec)")
+        raise WorldError(f"world folder {str(folder)!r}: missing world.json")
+    try:
+        meta = json.loads(meta_path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise WorldError(f"{meta_path}: not readable JSON: {exc}") from exc
+    if not isinstance(meta, dict):
+        raise WorldError(f"{meta_path}: top level must be an object, got {type(meta).__name__}")
+    if "gsd_m" not in meta:
+        raise WorldError(f"{meta_path}: field 'gsd_m' is missing (metres per pixel)")
+    gsd_m = _check_gsd(meta["gsd_m"], f"{meta_path}: field 'gsd_m'")
+    classes = _parse_classes(meta.get("classes"), meta_path)
+    base = meta_path.parent
+    # Cheap metadata checks come first so a typo is reported before seconds of image decoding.
+    image_rgb = _read_image(_file_field(meta, "image", meta_path, base))
+    labels = _read_labels(_file_field(meta, "labels", meta_path, base))
+    if labels.shape != image_rgb.shape[:2]:
+        raise WorldError(
+            f"{meta_path}: label image {meta['labels']!r} is {labels.shape[1]}x{labels.shape[0]} px "
+            f"but image {meta['image']!r} is {image_rgb.shape[1]}x{image_rgb.shape[0]} px"
+        )
+    _check_label_ids(labels, classes, f"{meta_path}: label image {meta['labels']!r}")
+    world = World(image_rgb, labels, gsd_m, classes, name=base.name)
+    log.info(
+        "world %s: %dx%d px at %.3f m/px (%.0f x %.0f m), %d classes",
+        world.name, world.width_px, world.height_px, gsd_m, world.width_m, world.height_m, len(classes),
+    )
+    return world
+
+
+def _file_field(meta: dict, key: str, meta_path: Path, base: Path) -> Path:
+    value = meta.get(key)
+    if not isinstance(value, str) or not value:
+        raise WorldError(f"{meta_path}: field {key!r} must name a file next to world.json, got {value!r}")
+    path = base / value
+    if not path.is_file():
+        raise WorldError(f"{meta_path}: field {key!r}: file {str(path)!r} does not exist")
+    return path
+
+
+def _parse_classes(raw: Any, meta_path: Path) -> dict[int, ClassInfo]:
+    if not isinstance(raw, dict) or not raw:
+        raise WorldError(f"{meta_path}: field 'classes' must be a non-empty object {{\"<id>\": {{\"name\", \"safe\"}}}}")
+    classes: dict[int, ClassInfo] = {}
+    for key, entry in raw.items():
+        where = f"{meta_path}: classes[{key!r}]"
+        try:
+            cid = int(key)
+        except ValueError:
+            raise WorldError(f"{where}: the key must be an integer class id") from None
+        if not 0 <= cid <= 254:
+            raise WorldError(f"{where}: class id must be in 0..254 ({OUT_OF_WORLD_LABEL} marks outside the world)")
+        if not isinstance(entry, dict):
+            raise WorldError(f"{where}: must be an object with 'name' and 'safe'")
+        name, safe = entry.get("name"), entry.get("safe")
+        if not isinstance(name, str) or not name.strip():
+            raise WorldError(f"{where}: 'name' must be a non-empty string, got {name!r}")
+        # A string "false" would be truthy: only real JSON booleans decide safety.
+        if not isinstance(safe, bool):
+            raise WorldError(f"{where}: 'safe' must be true or false, got {safe!r}")
+        if cid in classes:
+            raise WorldError(f"{where}: class id {cid} is listed twice")
+        classes[cid] = ClassInfo(name.strip(), safe)
+    return classes
+
+
+def _read_image(path: Path) -> np.ndarray:
+    # IMREAD_COLOR turns grey and RGBA files into 3-channel 8-bit BGR, which is what we want.
+    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise WorldError(f"image {str(path)!r}: unreadable (not an image OpenCV can decode)")
+    return np.ascontiguousarray(bgr[:, :, ::-1])
+
+
+def _read_labels(path: Path) -> np.ndarray:
+    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if raw is None:
+        raise WorldError(f"label image {str(path)!r}: unreadable (not an image OpenCV can decode)")
+    if raw.dtype != np.uint8:
+        raise WorldError(f"label image {str(path)!r}: must be 8-bit class ids, got {raw.dtype}")
+    if raw.ndim == 3:
+        # Many tools save grey masks as RGB(A); accept that only when the colour channels agree.
+        if raw.shape[2] < 3:
+            raise WorldError(f"label image {str(path)!r}: must be one channel of class ids, got {raw.shape[2]} channels")
+        colour = raw[:, :, :3]
+        if not (np.array_equal(colour[:, :, 0], colour[:, :, 1]) and np.array_equal(colour[:, :, 0], colour[:, :, 2])):
+            raise WorldError(
+                f"label image {str(path)!r}: must be one channel of class ids, got {raw.shape[2]} channels "
+                "that differ (a colour mask? map its colours to ids first)"
+            )
+        raw = np.ascontiguousarray(colour[:, :, 0])
+    return raw
+
+
+def _check_label_ids(labels: np.ndarray, classes: Mapping[int, ClassInfo], what: str) -> None:
+    # bincount over the whole map is one fast pass (~0.1 s for 6400^2); np.unique would sort it.
+    present = np.flatnonzero(np.bincount(labels.ravel(), minlength=256))
+    unknown = [int(i) for i in present if int(i) not in classes]
+    if unknown:
+        raise WorldError(
+            f"{what}: label ids {unknown} are used in the image but absent from 'classes' "
+            f"(listed: {sorted(classes)})"
+        )

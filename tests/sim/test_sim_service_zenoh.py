@@ -1,0 +1,402 @@
+"""The sim service over in-process Zenoh: a test session plays the controller.
+
+`run()` flies in a thread on one loopback peer; the test reads frames, states and the result from
+the other (one subscriber on `dovesei/<vehicle>/*`, so the arrival order across keys is visible)
+and answers with commands. Also: the external-pose mode against the fake autopilot on UDP
+loopback, and the flags. Every wait has a deadline.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import socket
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zenoh
+
+from dovesei.controller.fake_autopilot import FakeAutopilot
+from dovesei.shared import keys
+from dovesei.shared.codec import decode, encode
+from dovesei.shared.lifecycle import is_alive, wait_until
+from dovesei.shared.messages import CameraFrame, EpisodeResult, Message, VehicleState, replace
+from dovesei.sim.camera import render
+from dovesei.sim.core import SimConfig, SimCore
+from dovesei.sim.service import SimServiceConfig, SimStats, build_parser, config_from_args, main, run
+from dovesei.sim.starts import Start
+from dovesei.sim.world import World
+from tests.conftest import free_port
+from tests.sim.test_sim_core import WEST_M, MID_Y_M, command, split_world
+
+VID = "uav1"
+DEADLINE_S = 10.0
+
+
+@pytest.fixture(scope="module")
+def world() -> World:
+    return split_world()
+
+
+@dataclass
+class Recorder:
+    """Everything published under the vehicle's keys, in arrival order, decoded (own cmds excluded)."""
+
+    session: zenoh.Session
+    seen: list[tuple[str, Message]] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self._sub = self.session.declare_subscriber(f"dovesei/{VID}/*", zenoh.handlers.FifoChannel(100_000))
+        self._cmd = self.session.declare_publisher(keys.cmd(VID))
+        self._token: zenoh.LivelinessToken | None = None
+
+    def announce(self) -> None:
+        """The controller's liveliness token: the sim (--wait-for controller) starts once it sees it."""
+        self._token = self.session.liveliness().declare_token(keys.alive(VID, "controller"))
+
+    def next(self, deadline_s: float = DEADLINE_S) -> tuple[str, Message]:
+        got: list[tuple[str, Message]] = []
+
+        def arrived() -> bool:
+            while (sample := self._sub.try_recv()) is not None:
+                topic = str(sample.key_expr).rsplit("/", 1)[-1]
+                if topic != "cmd":
+                    got.append((topic, decode(sample.payload.to_bytes(), key=str(sample.key_expr))))
+                    return True
+            return False
+
+        assert wait_until(arrived, deadline_s, poll_s=0.001), f"nothing published within {deadline_s} s"
+        self.seen.append(got[0])
+        return got[0]
+
+    def until_result(self, on_state=None) -> EpisodeResult:
+        """Read until the episode result, calling `on_state(state)` for each state."""
+        while True:
+            topic, msg = self.next()
+            if topic == "episode":
+                return msg
+            if topic == "state" and on_state is not None:
+                on_state(msg)
+
+    def send(self, payload: Message | bytes) -> None:
+        self._cmd.put(payload if isinstance(payload, bytes) else encode(payload))
+
+    def of(self, topic: str) -> list:
+        return [m for t, m in self.seen if t == topic]
+
+    def close(self) -> None:
+        if self._token is not None:
+            self._token.undeclare()
+        self._cmd.undeclare()
+        self._sub.undeclare()
+
+
+class SimThread:
+    """The service's `run` in a thread, stopped and joined on exit."""
+
+    def __init__(self, session: zenoh.Session, config: SimServiceConfig, world: World) -> None:
+        self.stop, self.stats = threading.Event(), SimStats()
+        self.result: EpisodeResult | None = None
+        self.error: BaseException | None = None
+        self.wall_s = 0.0
+
+        def body() -> None:
+            t0 = time.monotonic()
+            try:
+                self.result = run(session, config=config, stop=self.stop, world=world, stats=self.stats)
+            except BaseException as exc:  # handed to the test thread by join()
+                self.error = exc
+            self.wall_s = time.monotonic() - t0
+
+        self._thread = threading.Thread(target=body, name="sim-run", daemon=True)
+
+    def __enter__(self) -> SimThread:
+        self._thread.start()
+        return self
+
+    def join(self) -> EpisodeResult | None:
+        self._thread.join(DEADLINE_S)
+        assert not self._thread.is_alive(), "run() did not return"
+        if self.error is not None:
+            raise self.error
+        return self.result
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop.set()
+        self._thread.join(DEADLINE_S)
+
+
+@pytest.fixture
+def pair(zenoh_pair) -> Iterator[tuple[zenoh.Session, Recorder]]:
+    sim_session, ctrl_session = zenoh_pair
+    rec = Recorder(ctrl_session)
+    try:
+        yield sim_session, rec
+    finally:
+        rec.close()
+
+
+def lockstep_config(**overrides) -> SimServiceConfig:
+    base = dict(sim=SimConfig(vehicle_id=VID, time_limit_s=30.0), start_xy_alt_m=(WEST_M, MID_Y_M, 30.0),
+                wait_for=("controller",), wait_timeout_s=DEADLINE_S, cmd_timeout_s=DEADLINE_S)
+    base.update(overrides)
+    return SimServiceConfig(**base)
+
+
+DESCEND = (0.5, 0.0, 4.0)  # forward 0.5 m/s, down 4 m/s: 30 m -> 20 m in about 3 s of sim time
+
+
+def in_process(world: World, config: SimServiceConfig) -> tuple[list[VehicleState], EpisodeResult]:
+    """The same episode driven by direct calls: what the service must reproduce over Zenoh."""
+    x_m, y_m, alt_m = config.start_xy_alt_m
+    core = SimCore(world, Start(x_m, y_m, alt_m), config.sim)
+    out, states = core.reset(), []
+    while True:
+        states.append(out.state)
+        if out.result is not None:
+            return states, out.result
+        out = core.step(command(out.state, DESCEND))
+
+
+def same_states(a: list[VehicleState], b: list[VehicleState]) -> bool:
+    strip = lambda s: replace(s, sent_wall_s=0.0)  # noqa: E731 - the wall time of sending differs, nothing else
+    return [strip(s) for s in a] == [strip(s) for s in b]
+
+
+def test_lockstep_frames_before_states_result_published_same_as_in_process(pair, world: World) -> None:
+    sim_session, rec = pair
+    config = lockstep_config()
+
+    def answer(state: VehicleState) -> None:
+        # Stamped like a real controller's: the sim measures the command hop from sent_wall_s.
+        rec.send(replace(command(state, DESCEND), frame_seq=state.await_frame_seq, sent_wall_s=time.time()))
+
+    with SimThread(sim_session, config, world) as sim:
+        rec.announce()
+        published = rec.until_result(answer)
+        returned = sim.join()
+    states, frames = rec.of("state"), rec.of("camera")
+    assert [s.seq for s in states] == list(range(len(states)))
+    assert [f.seq for f in frames] == list(range(len(frames))) and len(frames) == len(states) - 1
+    # Reference timing: step k publishes frame k, then state k (awaiting frame k - 1); the last
+    # step is judged and has no frame; the result comes after it.
+    topics = [t for t, _ in rec.seen]
+    assert topics == ["camera", "state"] * len(frames) + ["state", "episode"]
+    for k, (f, s) in enumerate(zip(frames, states)):
+        assert f.stamp == s.stamp and s.await_frame_seq == k - 1 and f.truth is not None
+    expected_states, expected_result = in_process(world, config)
+    assert same_states(states, expected_states)
+    assert published == returned == expected_result and published.outcome == "safe"
+    assert sim.stats.commands_used == len(states) - 1 and sim.stats.commands_stale == 0
+    hops = sim.stats.command_to_sim_s
+    assert len(hops) == sim.stats.commands_used and all(0.0 <= h < DEADLINE_S for h in hops)
+    assert sorted(sim.stats.command_to_sim_s_by_frame) == list(range(len(frames) - 1))
+
+
+def test_a_controller_that_stops_answering_ends_the_episode_as_error(pair, world: World) -> None:
+    sim_session, rec = pair
+    config = lockstep_config(cmd_timeout_s=0.3)
+
+    def answer_first_five(state: VehicleState) -> None:
+        if state.seq < 5:
+            rec.send(command(state, DESCEND))
+
+    with SimThread(sim_session, config, world) as sim:
+        rec.announce()
+        published = rec.until_result(answer_first_five)
+        returned = sim.join()
+    assert published == returned and returned.outcome == "error"
+    assert "controller" in returned.detail and "state 5" in returned.detail and keys.cmd(VID) in returned.detail
+    assert [s.seq for s in rec.of("state")] == [0, 1, 2, 3, 4, 5]
+    assert returned.sim_time_s == pytest.approx(0.25)
+
+
+def test_bad_stale_and_foreign_commands_are_counted_and_ignored(pair, world: World) -> None:
+    sim_session, rec = pair
+    config = lockstep_config()
+
+    def answer_amid_noise(state: VehicleState) -> None:
+        rec.send(b"\x93not a message")  # not msgpack of a map
+        rec.send(state)  # a valid message of the wrong schema
+        if state.seq > 0:
+            rec.send(command(replace(state, seq=state.seq - 1), DESCEND))  # a late answer to the previous state
+        rec.send(replace(command(state, (9.0, 9.0, -5.0)), vehicle_id="uav2"))  # someone else's
+        rec.send(command(state, DESCEND))
+
+    with SimThread(sim_session, config, world) as sim:
+        rec.announce()
+        published = rec.until_result(answer_amid_noise)
+        sim.join()
+    answered = len(rec.of("state")) - 1
+    assert sim.stats.commands_rejected == 2 * answered
+    assert sim.stats.commands_stale == answered - 1 and sim.stats.commands_foreign == answered
+    # The noise changed nothing: same episode as with a clean controller.
+    assert published == in_process(world, config)[1]
+
+
+def test_realtime_runs_on_the_wall_clock_and_brakes_when_commands_stop(pair, world: World) -> None:
+    sim_session, rec = pair
+    speed = 5.0
+    config = lockstep_config(lockstep=False, speed=speed, sim=SimConfig(vehicle_id=VID, time_limit_s=4.0),
+                             start_xy_alt_m=(WEST_M, MID_Y_M, 60.0))
+
+    def descend_for_one_second(state: VehicleState) -> None:
+        if state.stamp.t_s < 1.0:
+            rec.send(command(state, (0.0, 0.0, 3.0)))
+
+    with SimThread(sim_session, config, world) as sim:
+        rec.announce()
+        result = rec.until_result(descend_for_one_second)
+        sim.join()
+    assert result.outcome == "timeout" and result.sim_time_s == pytest.approx(4.0)
+    assert sim.stats.steps == 80
+    # The schedule, not the host, sets the pace: 4 s of sim time at x5 take at least ~0.8 s.
+    assert sim.wall_s >= 0.9 * 4.0 / speed
+    states = rec.of("state")
+    assert len(states) >= 72  # real time may drop under congestion; loopback should not
+    assert max(s.vel_body_frd_m_s[2] for s in states if 0.5 <= s.stamp.t_s <= 1.2) > 2.0
+    late = [s for s in states if s.stamp.t_s >= 3.2]  # last command ~0.95 s + 0.5 s timeout + ~1.5 s to stop
+    assert late and all(abs(s.vel_body_frd_m_s[2]) < 0.05 for s in late)
+    assert max(s.alt_agl_m for s in late) - min(s.alt_agl_m for s in late) < 0.05
+    assert result.final_alt_m < 58.0  # it did descend before braking
+
+
+def test_waiting_for_a_missing_service_ends_as_error_before_any_state(pair, world: World) -> None:
+    sim_session, rec = pair
+    config = lockstep_config(wait_for=("segmenter", "controller"), wait_timeout_s=0.3)
+    with SimThread(sim_session, config, world) as sim:
+        rec.announce()  # the controller is up, the segmenter never comes
+        published = rec.until_result()
+        returned = sim.join()
+    assert published == returned and returned.outcome == "error" and "segmenter" in returned.detail
+    assert "controller" not in returned.detail.split(" of ")[0]
+    assert rec.of("state") == [] and rec.of("camera") == []
+
+
+def test_stop_ends_a_lockstep_run_cleanly_without_a_result(pair, world: World) -> None:
+    sim_session, rec = pair
+    with SimThread(sim_session, lockstep_config(), world) as sim:
+        rec.announce()
+        assert rec.next()[0] == "camera" and rec.next()[0] == "state"  # waiting for our answer now
+        assert is_alive(rec.session, VID, "sim")
+        sim.stop.set()
+        assert sim.join() is None
+    assert not is_alive(rec.session, VID, "sim", timeout_s=0.5)  # the token went with the run
+
+
+def test_jpeg_frames_on_the_wire_keep_exact_truth(pair, world: World) -> None:
+    sim_session, rec = pair
+    config = lockstep_config(jpeg_quality=90, sim=SimConfig(vehicle_id=VID, time_limit_s=0.2))
+    with SimThread(sim_session, config, world) as sim:
+        rec.announce()
+        rec.until_result(lambda s: rec.send(command(s, DESCEND)))
+        sim.join()
+    x_m, y_m, alt_m = config.start_xy_alt_m
+    raw = SimCore(world, Start(x_m, y_m, alt_m), config.sim).reset().frame
+    sent = rec.of("camera")[0]
+    assert sent.image_rgb.shape == raw.image_rgb.shape and not np.array_equal(sent.image_rgb, raw.image_rgb)
+    # A noise texture is JPEG's worst case; the error stays that of lossy compression, not garbage.
+    assert np.abs(sent.image_rgb.astype(int) - raw.image_rgb).mean() < 40
+    assert np.array_equal(sent.truth.labels, raw.truth.labels)  # labels always travel raw
+
+
+def free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def teleport(fake: FakeAutopilot, north_m: float, east_m: float, alt_m: float) -> None:
+    # The fake has no public setter; moving it directly keeps the test free of a steering peer
+    # (a second MAVLink peer would steal the fake's udpin replies from the sim).
+    with fake._lock:
+        fake._pos_ned_m[:] = [north_m, east_m, -alt_m]
+
+
+def test_external_pose_frames_follow_the_autopilot_and_the_judge_ends_it(pair, world: World) -> None:
+    sim_session, rec = pair
+    port = free_udp_port()
+    config = SimServiceConfig(sim=SimConfig(vehicle_id=VID), start_xy_alt_m=(WEST_M, MID_Y_M, 100.0),
+                              external_pose=f"udpout:127.0.0.1:{port}", wait_timeout_s=5.0, cmd_timeout_s=5.0)
+
+    def shows(frame: CameraFrame, x_m: float, y_m: float) -> bool:
+        expected = render(world, x_m, y_m, frame.alt_agl_m, frame.yaw_rad)[0]
+        return np.array_equal(frame.image_rgb, expected)
+
+    def frame_at(x_m: float, y_m: float) -> CameraFrame:
+        t_end = time.monotonic() + DEADLINE_S
+        while time.monotonic() < t_end:
+            topic, msg = rec.next()
+            if topic == "camera" and shows(msg, x_m, y_m):
+                return msg
+        raise AssertionError(f"no frame rendered at ({x_m}, {y_m})")
+
+    with FakeAutopilot(f"udpin:127.0.0.1:{port}", alt_m=60.0, yaw_rad=0.3, heartbeat_hz=20) as fake:
+        with SimThread(sim_session, config, world) as sim:
+            first = frame_at(WEST_M, MID_Y_M)  # the local origin sits at the start
+            assert first.alt_agl_m == pytest.approx(60.0) and first.yaw_rad == pytest.approx(0.3, abs=1e-6)
+            assert first.stamp.clock == "vehicle" and first.truth is not None
+            teleport(fake, north_m=12.0, east_m=-7.0, alt_m=60.0)
+            moved = frame_at(WEST_M - 7.0, MID_Y_M + 12.0)  # north = +y, east = +x
+            assert moved.seq > first.seq
+            teleport(fake, north_m=12.0, east_m=-7.0, alt_m=15.0)  # below the hand-over altitude
+            result = rec.until_result()
+            assert sim.join() == result
+    assert result.outcome == "safe" and result.stamp.clock == "vehicle"
+    assert (result.final_x_m, result.final_y_m) == pytest.approx((WEST_M - 7.0, MID_Y_M + 12.0))
+    assert rec.of("state") == []  # the controller reads the autopilot, not us
+    assert sim.stats.poses_received > 0
+
+
+def test_external_pose_without_an_autopilot_is_an_error(pair, world: World) -> None:
+    sim_session, _rec = pair
+    config = SimServiceConfig(sim=SimConfig(vehicle_id=VID), start_xy_alt_m=(WEST_M, MID_Y_M, 100.0),
+                              external_pose=f"udpout:127.0.0.1:{free_udp_port()}", wait_timeout_s=0.5)
+    with SimThread(sim_session, config, world) as sim:
+        result = sim.join()
+    assert result.outcome == "error" and "autopilot" in result.detail and "heartbeat" in result.detail
+
+
+def test_flags_build_the_config() -> None:
+    args = build_parser().parse_args([
+        "--vehicle-id", "uav7", "--world", "synthetic:seed=3", "--start", "120,80.5", "--timing", "real",
+        "--realtime", "--speed", "4", "--frame-period-s", "1.0", "--latency-s", "0.2", "--jpeg-quality", "80",
+        "--no-truth", "--wait-for", "segmenter,controller", "--cmd-timeout-s", "2", "--handover-alt-m", "15"])
+    c = config_from_args(args)
+    assert c.sim.vehicle_id == "uav7" and c.world == "synthetic:seed=3" and c.start_xy_alt_m == (120.0, 80.5, 100.0)
+    assert not c.lockstep and c.speed == 4.0 and c.jpeg_quality == 80 and not c.sim.attach_truth
+    assert (c.sim.period_s, c.sim.delay_s, c.sim.handover_alt_m) == (1.0, 0.2, 15.0)
+    assert c.wait_for == ("segmenter", "controller") and c.cmd_timeout_s == 2.0
+    default = config_from_args(build_parser().parse_args([]))
+    assert default.lockstep and default.start_xy_alt_m is None and default.sim.timing == "reference"
+
+
+@pytest.mark.parametrize("argv", [["--start", "1"], ["--start", "a,b"], ["--wait-for", "camera"],
+                                  ["--speed", "0"], ["--start", "1,2", "--start-seed", "3"]])
+def test_bad_flags_are_refused(argv: list[str]) -> None:
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(argv)
+
+
+def test_main_exits_1_when_the_episode_ends_in_error(tmp_path: Path) -> None:
+    # A real world folder (the Dubai tile) and a controller that never comes: error, exit status 1.
+    dubai = Path(__file__).resolve().parents[2].parent / "shared" / "worlds" / "dubai-tile8-004"
+    if not dubai.is_dir():  # the shared folder sits beside the repository on the team's machines
+        dubai = Path("/work/shared/worlds/dubai-tile8-004")
+    argv = ["--world", str(dubai), "--wait-for", "controller", "--wait-timeout-s", "0.3", "--no-multicast-scouting",
+            "--listen", f"tcp/127.0.0.1:{free_port()}", "--log-level", "WARNING",
+            "--stats-out", str(tmp_path / "stats" / "sim.json")]
+    # main installs SIGINT/SIGTERM handlers: put pytest's back afterwards.
+    saved = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        assert main(argv) == 1
+        stats = json.loads((tmp_path / "stats" / "sim.json").read_text())
+        assert stats["steps"] == 0 and stats["states_sent"] == 0 and stats["command_to_sim_s"] == []
+    finally:
+        for sig, handler in saved.items():
+            signal.signal(sig, handler)
