@@ -1,0 +1,264 @@
+"""``dovesei bench-segmenter``: how much faster the CLIPSeg fast path is than the reference's way.
+
+One run on one machine times, on the same frame and the reference's 13 prompts:
+
+- ``reference``: the stock ``CLIPSegForImageSegmentation`` forward as the reference called it
+  (processor on 13 copies of the frame, every prompt re-tokenised and re-encoded, full vision
+  tower 13 times);
+- the fast path (``ClipSegBackend.logits``) in a few CPU configurations (decoder batch size,
+  optionally bf16 and torch.compile), keeping the fastest float32 one as ``fast``.
+
+With ``--random-weights`` the real rd64-refined architecture is built with random weights in a
+temporary directory and loaded through ``load_clipseg``, the path real weights take: the FLOPs
+are the real model's, the outputs are meaningless. Reference and fast runs are interleaved so a
+CPU shared with other jobs slows both alike; medians are reported.
+
+Human-readable lines go to stderr; with ``--json`` the last stdout line is one JSON object.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import logging
+import os
+import resource
+import statistics
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+LOG = logging.getLogger(__name__)
+
+FRAME_PX = 352
+# Decoder prompt-batch sizes tried for the fast path (None = all prompts in one batch).
+DECODER_CHUNKS: tuple[int | None, ...] = (None, 1, 4)
+
+
+def _say(message: str, *args: object) -> None:
+    print(message % args if args else message, file=sys.stderr, flush=True)
+
+
+def _peak_rss_mb() -> float:
+    # ru_maxrss is in kibibytes on Linux.
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def _test_frame(seed: int = 0) -> np.ndarray:
+    """A smooth random RGB frame (blobs, not white noise), FRAME_PX square."""
+    import cv2
+
+    small = np.random.default_rng(seed).integers(0, 256, size=(8, 8, 3), dtype=np.uint8)
+    return cv2.resize(small, (FRAME_PX, FRAME_PX), interpolation=cv2.INTER_CUBIC)
+
+
+def _time_s(fn: Callable[[], object], repeats: int) -> list[float]:
+    durations_s = []
+    for _ in range(repeats):
+        start_s = time.perf_counter()
+        fn()
+        durations_s.append(time.perf_counter() - start_s)
+    return durations_s
+
+
+def _sim_backend_hz() -> float | None:
+    """Heatmaps per second of the simulated backend, if that module provides ``bench_hz``."""
+    try:
+        simulated = importlib.import_module("dovesei.segmenter.simulated")
+    except ImportError:
+        return None
+    bench_hz = getattr(simulated, "bench_hz", None)
+    return float(bench_hz()) if callable(bench_hz) else None
+
+
+def _parse_args(argv: list[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(
+        prog="dovesei bench-segmenter",
+        description="Time the CLIPSeg fast path against the reference's stock forward (13 prompts, 1 frame).",
+    )
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument(
+        "--random-weights",
+        action="store_true",
+        help="build the rd64-refined architecture with random weights (no download needed)",
+    )
+    source.add_argument("--model", help="a local model directory or Hub id to time instead")
+    parser.add_argument("--size", choices=("rd64", "tiny"), default="rd64", help="random model size (tiny: smoke test)")
+    parser.add_argument("--json", action="store_true", help="print one JSON object on the last stdout line")
+    parser.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default: all cores)")
+    parser.add_argument("--repeats", type=int, default=5, help="timed fast-path frames per configuration")
+    parser.add_argument("--reference-repeats", type=int, default=2, help="timed reference frames (slow)")
+    parser.add_argument("--bf16", action="store_true", help="also time the fast path in bfloat16")
+    parser.add_argument("--compile", action="store_true", help="also time the fast path under torch.compile")
+    args = parser.parse_args(argv)
+    for name in ("threads", "repeats", "reference_repeats"):
+        value = getattr(args, name)
+        if value is not None and value < 1:
+            parser.error(f"--{name.replace('_', '-')} must be >= 1, got {value}")
+    return args
+
+
+def _time_variant(
+    model_dir: str,
+    dtype: str,
+    compile_graph: bool,
+    threads: int,
+    decoder_chunk: int | None,
+    frame: np.ndarray,
+    reference_logits: np.ndarray,
+    repeats: int,
+) -> dict:
+    """Load a separate backend (bf16 and/or torch.compile) and time its fast path."""
+    from .clipseg import load_clipseg
+
+    backend = load_clipseg(model_dir, dtype=dtype, compile=compile_graph, threads=threads, decoder_chunk=decoder_chunk)
+    prompts = _bench_prompts()
+    start_s = time.perf_counter()
+    logits = backend.logits(frame, prompts)  # compiles, when compiling
+    first_call_s = time.perf_counter() - start_s
+    record = {
+        "dtype": dtype,
+        "decoder_chunk": decoder_chunk,
+        "compile": compile_graph,
+        "first_call_s": first_call_s,
+        "s_per_frame": statistics.median(_time_s(lambda: backend.logits(frame, prompts), repeats)),
+        "max_abs_diff_vs_reference": float(np.abs(logits - reference_logits).max()),
+    }
+    _say(
+        "fast %s%s: %.3f s/frame (first call %.1f s), max |diff| %.3g logits",
+        dtype,
+        " + torch.compile" if compile_graph else "",
+        record["s_per_frame"],
+        first_call_s,
+        record["max_abs_diff_vs_reference"],
+    )
+    return record
+
+
+def _bench_prompts():
+    """The prompt set every figure is measured with: the reference's 13 prompts."""
+    from .prompts import REFERENCE_PROMPTS
+
+    return REFERENCE_PROMPTS
+
+
+def run(args: argparse.Namespace, model_dir: str) -> dict:
+    """Time reference and fast path on ``model_dir``; return the result record."""
+    import torch
+
+    from .clipseg import load_clipseg
+
+    prompts = _bench_prompts()
+    load_at_start = os.getloadavg()[0]
+    threads = args.threads or os.cpu_count() or 1
+    frame = _test_frame()
+    backend = load_clipseg(model_dir, dtype="float32", threads=threads)
+    _say("model %s: vision encoder %d of %d layers used", model_dir, backend.encoder_depth, backend.vision_layers)
+
+    # Fast-path candidates first, so the peak memory of the fast path alone can be read.
+    candidates = []
+    candidate_logits = []
+    for chunk in DECODER_CHUNKS:
+        backend.decoder_chunk = chunk
+        candidate_logits.append(backend.logits(frame, prompts))  # warm-up; fills the text cache
+        durations_s = _time_s(lambda: backend.logits(frame, prompts), args.repeats)
+        candidates.append(
+            {"dtype": "float32", "decoder_chunk": chunk, "compile": False, "s_per_frame": statistics.median(durations_s)}
+        )
+        _say("fast fp32 decoder_chunk=%s: %.3f s/frame", chunk, candidates[-1]["s_per_frame"])
+    peak_rss_fast_mb = _peak_rss_mb()
+    best = min(candidates, key=lambda c: c["s_per_frame"])
+    backend.decoder_chunk = best["decoder_chunk"]
+
+    _say("reference (stock forward, %d prompts x 1 frame): warm-up ...", prompts.n_prompts)
+    reference_logits = backend.reference_logits(frame, prompts)
+    logit_range = float(np.ptp(reference_logits))
+    for candidate, logits in zip(candidates, candidate_logits):
+        candidate["max_abs_diff_vs_reference"] = float(np.abs(logits - reference_logits).max())
+
+    # Interleave reference and fast frames so background load hits both alike.
+    reference_s: list[float] = []
+    fast_s: list[float] = []
+    for _ in range(args.reference_repeats):
+        reference_s += _time_s(lambda: backend.reference_logits(frame, prompts), 1)
+        fast_s += _time_s(lambda: backend.logits(frame, prompts), max(1, args.repeats // 2))
+        _say("reference %.2f s/frame, fast %.3f s/frame", reference_s[-1], fast_s[-1])
+    reference_s_per_frame = statistics.median(reference_s)
+    fast_s_per_frame = statistics.median(fast_s)
+    fast_logits = backend.logits(frame, prompts)
+
+    # Variants that need their own model copy: timed after the reference, compared with it.
+    variants = ([("float32", True)] if args.compile else []) + ([("bfloat16", False)] if args.bf16 else [])
+    for dtype, compile_graph in variants:
+        candidates.append(
+            _time_variant(model_dir, dtype, compile_graph, threads, best["decoder_chunk"], frame, reference_logits, args.repeats)
+        )
+    sim_hz = _sim_backend_hz()
+    speedup = reference_s_per_frame / fast_s_per_frame
+    result = {
+        "prompts": prompts.n_prompts,
+        "threads": threads,
+        "cpu_count": os.cpu_count(),
+        "model": "random rd64-refined architecture" if args.random_weights and args.size == "rd64" else model_dir,
+        "torch": torch.__version__,
+        "frame_px": [FRAME_PX, FRAME_PX],
+        "reference_s_per_frame": reference_s_per_frame,
+        "fast_s_per_frame": fast_s_per_frame,
+        "speedup": speedup,
+        "fast_hz": 1.0 / fast_s_per_frame,
+        "fast_config": {k: best[k] for k in ("dtype", "decoder_chunk", "compile")},
+        "max_abs_diff_vs_reference": float(np.abs(fast_logits - reference_logits).max()),
+        "reference_logit_range": logit_range,
+        "candidates": candidates,
+        "peak_rss_mb": _peak_rss_mb(),
+        "peak_rss_fast_only_mb": peak_rss_fast_mb,
+        "sim_backend_hz": sim_hz,
+        # Other jobs on a shared machine slow every figure; the load says how much to trust them.
+        "load_avg_1min": [load_at_start, os.getloadavg()[0]],
+    }
+    _say(
+        "reference %.2f s/frame, fast %.3f s/frame (%.2f Hz): speedup %.1fx, max |diff| %.2g on a logit range of %.1f",
+        reference_s_per_frame,
+        fast_s_per_frame,
+        result["fast_hz"],
+        speedup,
+        result["max_abs_diff_vs_reference"],
+        logit_range,
+    )
+    return result
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parse_args(argv)
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    from transformers.utils import logging as transformers_logging
+
+    # Progress bars for a 600 MB save/load would drown the timing lines on stderr.
+    transformers_logging.disable_progress_bar()
+    from .clipseg import ModelUnavailableError
+
+    try:
+        if args.random_weights:
+            from .random_model import build_random_clipseg
+
+            with tempfile.TemporaryDirectory(prefix="dovesei-bench-") as tmp:
+                _say("building a random-weight %s CLIPSeg in %s ...", args.size, tmp)
+                model_dir = build_random_clipseg(Path(tmp) / args.size, size=args.size, seed=0)
+                result = run(args, str(model_dir))
+        else:
+            result = run(args, args.model)
+    except ModelUnavailableError as exc:
+        _say("error: %s", exc)
+        return 2
+    if args.json:
+        print(json.dumps(result))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

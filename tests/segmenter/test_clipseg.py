@@ -1,0 +1,233 @@
+"""CLIPSeg backend against the stock transformers forward, on a tiny random model.
+
+The tiny model directory is written once per session by ``build_random_clipseg`` and opened with
+``load_clipseg``, the same call users make with the real weights. Offline: HF_HUB_OFFLINE is
+forced on for the whole module.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from dovesei.segmenter.clipseg import (
+    ClipSegBackend,
+    ImageError,
+    ModelUnavailableError,
+    load_clipseg,
+)
+from dovesei.segmenter.fusion import FusionConfig
+from dovesei.segmenter.prompts import REFERENCE_PROMPTS, PromptError, PromptSet
+from dovesei.segmenter.random_model import build_random_clipseg
+
+# fp32 fast path vs stock forward; the tiny model's logits have a spread of ~4.
+LOGIT_ATOL = 1e-4
+
+
+@pytest.fixture(autouse=True)
+def _offline(monkeypatch):
+    import huggingface_hub.constants
+
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    # huggingface_hub reads the variable once at import; patch the parsed value too.
+    monkeypatch.setattr(huggingface_hub.constants, "HF_HUB_OFFLINE", True)
+
+
+@pytest.fixture(scope="module")
+def tiny_dir(tmp_path_factory):
+    return build_random_clipseg(tmp_path_factory.mktemp("clipseg") / "tiny", size="tiny", seed=0)
+
+
+@pytest.fixture(scope="module")
+def backend(tiny_dir) -> ClipSegBackend:
+    return load_clipseg(str(tiny_dir))
+
+
+def _frame(seed: int, height_px: int = 240, width_px: int = 320) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    # Smooth blobs rather than white noise, so resizing and patches see structure.
+    small = rng.integers(0, 256, size=(6, 8, 3), dtype=np.uint8)
+    return cv2.resize(small, (width_px, height_px), interpolation=cv2.INTER_CUBIC)
+
+
+SMALL_PROMPTS = PromptSet(positive=["grass", "park"], negative=["building", "road", "water"], template="photo of {}")
+
+
+def test_fast_path_equals_stock_forward(backend):
+    image = _frame(1)
+    fast = backend.logits(image, REFERENCE_PROMPTS)
+    stock = backend.reference_logits(image, REFERENCE_PROMPTS)
+    assert fast.shape == (13, 352, 352) and fast.dtype == np.float32
+    assert np.abs(stock).max() > 1.0  # the comparison is not between two near-zero maps
+    np.testing.assert_allclose(fast, stock, atol=LOGIT_ATOL, rtol=0)
+    # Prompts do produce different maps (the comparison would be weak otherwise).
+    assert np.abs(fast[0] - fast[1]).max() > 1e-2
+
+
+def test_decoder_chunking_does_not_change_logits(backend):
+    image = _frame(2)
+    whole = backend.logits(image, REFERENCE_PROMPTS)
+    backend.decoder_chunk = 4
+    try:
+        chunked = backend.logits(image, REFERENCE_PROMPTS)
+    finally:
+        backend.decoder_chunk = None
+    np.testing.assert_allclose(chunked, whole, atol=LOGIT_ATOL, rtol=0)
+
+
+def test_vision_encoder_stops_at_the_deepest_extract_layer(backend):
+    layers = backend._model.clip.vision_model.encoder.layers
+    assert backend.extract_layers == (0, 2) and len(layers) == 4
+    calls = {"last": 0}
+    handle = layers[3].register_forward_hook(lambda *_: calls.__setitem__("last", calls["last"] + 1))
+    try:
+        backend.logits(_frame(3), SMALL_PROMPTS)
+        assert calls["last"] == 0
+        backend.reference_logits(_frame(3), SMALL_PROMPTS)
+        assert calls["last"] == 1  # the stock forward runs it, once on the batch
+    finally:
+        handle.remove()
+
+
+def test_batch_of_two_frames_equals_two_single_calls(backend):
+    frames = [_frame(4), _frame(5)]
+    batch = backend.logits_batch(frames, SMALL_PROMPTS)
+    assert batch.shape == (2, SMALL_PROMPTS.n_prompts, 352, 352)
+    for index, frame in enumerate(frames):
+        np.testing.assert_allclose(batch[index], backend.logits(frame, SMALL_PROMPTS), atol=LOGIT_ATOL, rtol=0)
+    assert np.abs(batch[0] - batch[1]).max() > 1e-2
+
+
+def test_text_cache_is_rebuilt_once_per_prompt_change(backend):
+    image = _frame(6)
+    first = backend.logits(image, SMALL_PROMPTS)
+    count = backend.text_encode_count
+    backend.logits(image, SMALL_PROMPTS)
+    backend.logits(_frame(7), SMALL_PROMPTS)
+    assert backend.text_encode_count == count  # same set: cached
+    # An equal set built anew (e.g. decoded from a message) hits the cache as well.
+    rebuilt = PromptSet(positive=["grass", "park"], negative=["building", "road", "water"], template="photo of {}")
+    backend.logits(image, rebuilt)
+    assert backend.text_encode_count == count
+
+    changed = PromptSet(positive=["grass", "park"], negative=["building", "road", "fence"], template="photo of {}")
+    second = backend.logits(image, changed)
+    assert backend.text_encode_count == count + 1
+    backend.logits(image, changed)
+    assert backend.text_encode_count == count + 1
+    # The changed negative changes its own map, the unchanged prompts keep theirs.
+    assert np.abs(second[4] - first[4]).max() > 1e-2
+    np.testing.assert_allclose(second[:4], first[:4], atol=LOGIT_ATOL, rtol=0)
+
+
+@pytest.mark.parametrize("mode", ["grouped", "dovesei"])
+def test_safe_probability_contract_at_non_model_size(backend, mode):
+    image = _frame(8, height_px=240, width_px=320)
+    prob = backend.safe_probability(image, REFERENCE_PROMPTS, FusionConfig(mode=mode))
+    assert prob.shape == (240, 320)
+    assert prob.dtype == np.float32
+    assert np.isfinite(prob).all()
+    assert prob.min() >= 0.0 and prob.max() <= 1.0
+    assert prob.max() - prob.min() > 1e-4  # not a constant map
+
+
+def test_safe_probability_at_model_size_is_not_resized(backend):
+    image = _frame(9, height_px=352, width_px=352)
+    prob = backend.safe_probability(image, SMALL_PROMPTS, "dovesei")
+    assert prob.shape == (352, 352)
+
+
+def test_bfloat16_is_close_to_float32_stock(tiny_dir, backend):
+    bf16 = load_clipseg(str(tiny_dir), dtype="bfloat16")
+    image = _frame(10)
+    stock = backend.reference_logits(image, REFERENCE_PROMPTS)
+    fast_bf16 = bf16.logits(image, REFERENCE_PROMPTS)
+    assert fast_bf16.dtype == np.float32
+    error = np.abs(fast_bf16 - stock).max()
+    # bf16 keeps 8 mantissa bits; a few percent of the logit range is expected, not more.
+    assert 0 < error < 0.1 * np.ptp(stock)
+
+
+@pytest.mark.parametrize(
+    "bad",
+    [
+        np.zeros((240, 320), np.uint8),
+        np.zeros((240, 320, 4), np.uint8),
+        np.zeros((240, 320, 3), np.float32),
+        np.zeros((4, 320, 3), np.uint8),
+        "not an image",
+    ],
+)
+def test_bad_frames_raise_image_error(backend, bad):
+    with pytest.raises(ImageError):
+        backend.logits(bad, SMALL_PROMPTS)
+
+
+def test_empty_batch_raises_image_error(backend):
+    with pytest.raises(ImageError, match="non-empty"):
+        backend.logits_batch([], SMALL_PROMPTS)
+
+
+def test_prompt_longer_than_text_encoder_raises(backend):
+    # Unknown words fall back to characters: 40 x "zq" is 80 tokens in 119 characters.
+    long_prompt = PromptSet(positive=[" ".join(["zq"] * 40)], negative=["road"], template="{}")
+    with pytest.raises(PromptError, match="77"):
+        backend.logits(_frame(11), long_prompt)
+
+
+def test_bad_options_raise_value_error(tiny_dir):
+    with pytest.raises(ValueError, match="dtype"):
+        load_clipseg(str(tiny_dir), dtype="float16")
+    with pytest.raises(ValueError, match="threads"):
+        load_clipseg(str(tiny_dir), threads=0)
+
+
+def _assert_helpful(message: str, looked_for: str) -> None:
+    assert looked_for in message
+    assert "offline" in message and "HF_HUB_OFFLINE" in message
+    assert "--model /path/to/" in message
+    assert "huggingface-cli download CIDAS/clipseg-rd64-refined --local-dir" in message
+
+
+def test_missing_local_directory_names_it_and_explains(tmp_path):
+    missing = str(tmp_path / "no-such-model")
+    with pytest.raises(ModelUnavailableError) as info:
+        load_clipseg(missing)
+    _assert_helpful(str(info.value), missing)
+
+
+def test_unknown_hub_id_offline_names_it_and_explains():
+    with pytest.raises(ModelUnavailableError) as info:
+        load_clipseg("nobody-here/no-such-clipseg-model")
+    _assert_helpful(str(info.value), "nobody-here/no-such-clipseg-model")
+
+
+def test_directory_without_weights_is_unavailable(tmp_path):
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(ModelUnavailableError, match="empty"):
+        load_clipseg(str(tmp_path / "empty"))
+
+
+
+def test_bench_smoke_prints_one_json_record(capsys):
+    import json
+
+    from dovesei.segmenter.bench import main
+
+    code = main(["--random-weights", "--size", "tiny", "--json", "--repeats", "1", "--reference-repeats", "1"])
+    assert code == 0
+    record = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    for key in ("prompts", "threads", "reference_s_per_frame", "fast_s_per_frame", "speedup", "fast_hz",
+                "max_abs_diff_vs_reference", "peak_rss_mb", "sim_backend_hz"):
+        assert key in record
+    assert record["prompts"] == 13
+    assert record["max_abs_diff_vs_reference"] < LOGIT_ATOL
+    assert record["speedup"] == pytest.approx(record["reference_s_per_frame"] / record["fast_s_per_frame"])
+
+
+def test_bench_refuses_a_missing_model_with_exit_code_2(tmp_path, capsys):
+    from dovesei.segmenter.bench import main
+
+    assert main(["--model", str(tmp_path / "absent")]) == 2
+    assert "not available" in capsys.readouterr().err
