@@ -40,7 +40,7 @@ from dovesei.shared.errors import ConfigError
 log = logging.getLogger(__name__)
 
 # Bump whenever the look or the layout changes: it is part of the cache file name.
-GENERATOR_VERSION = 1
+GENERATOR_VERSION = 2
 
 ROOF_FLAT, ROOF_PITCHED, ROAD, SIDEWALK, PLAZA, PARKING_LOT, CAR = 1, 2, 3, 4, 5, 6, 7
 GRASS, SPORTS_FIELD, TREE, WATER, BARE_SOIL, PERSON = 8, 9, 10, 11, 12, 13
@@ -724,7 +724,7 @@ class _Frame:
         return _Frame(self.x0, self.y0, self.x1, self.y1, self.along_x, not self.flip_v)
 
 
-_KIND_WEIGHTS = {"residential": 0.28, "apartments": 0.21, "commercial": 0.19, "park": 0.06,
+_KIND_WEIGHTS = {"residential": 0.27, "apartments": 0.22, "commercial": 0.21, "park": 0.055,
                  "sports": 0.025, "parking": 0.06, "plaza": 0.045, "water": 0.025,
                  "construction": 0.03}
 # Trees scattered at random are dropped where their trunk would stand in these.
@@ -1135,7 +1135,7 @@ def _parking_lot(cv: _Canvas, rng, x0, y0, x1, y1) -> None:
     fr = _Frame(x0, y0, x1, y1, along_x=(x1 - x0) >= (y1 - y0))
     bay_w, bay_d, aisle = _uni(rng, 2.4, 2.7), 5.0, _uni(rng, 6.0, 7.0)
     island = _uni(rng, 2.0, 3.0) if rng.random() < 0.5 else 0.0
-    occupancy = _uni(rng, 0.35, 0.95)
+    occupancy = _uni(rng, 0.5, 0.97)
     v = 1.5
     paint = _mix(rgb, _PAINT, 0.85)
     ang_v = fr.v_angle()
