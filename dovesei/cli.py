@@ -14,6 +14,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "smoke": ("dovesei.smoke", "check the install: codec round trip and a loopback Zenoh session"),
     "up": ("dovesei.up", "fly one simulated (or real) landing with the three services as separate processes"),
     "bench": ("dovesei.bench", "the paper's experiment: N starts x policies, judged, resumable"),
+    "calibrate": ("dovesei.calibrate", "success rates vs simulated perception noise, both timing presets"),
     "bench-sim": ("dovesei.sim.bench", "simulator speed: render fps and lockstep real-time factor"),
     "bench-segmenter": ("dovesei.segmenter.bench", "CLIPSeg reference vs fast path, and the simulated backend"),
     "bench-policy": ("dovesei.controller.policies.bench", "policy compute time per heatmap at 352x352"),

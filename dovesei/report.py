@@ -1,0 +1,436 @@
+"""Pictures of flown episodes: the trajectory over the map, the bench's paths, and the video.
+
+Everything here reads plain data (the report dict `dovesei up` writes, the bench's results and
+track files, decoded frames) and writes files; nothing talks to Zenoh or runs an episode.
+
+    report.json dict  --plot_trajectory-->  trajectory.png   world crop, path coloured by the
+                                                             controller's state, start, end, the
+                                                             footprint disk to scale + inset zoom
+    results.json dict + tracks/*.npy --plot_bench_paths-->  paths.png   one panel per start, every
+                                                             policy's path from it
+    [VideoFrame]      --write_video-->      episode.mp4      camera | heatmap, focus circle, target,
+                                                             state and altitude (MJPG .avi fallback)
+
+matplotlib is imported inside the plotting functions (it is a dev extra and slow to import);
+the video needs only OpenCV. World coordinates: x east, y north, metres (see `dovesei.sim.world`).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+# Controller states -> colour. The policy's states first, then the loop's own (INIT, HANDOVER).
+STATE_COLOURS: dict[str, str] = {
+    "SENSOR_ERROR": "#9e9e9e",
+    "INIT": "#bdbdbd",
+    "SEARCHING": "#1f77b4",
+    "AIMING": "#ff7f0e",
+    "LANDING": "#2ca02c",
+    "WAITING": "#d62728",
+    "RESTARTING": "#9467bd",
+    "CLIMBING": "#8c564b",
+    "LANDED": "#17becf",
+    "HANDOVER": "#17becf",
+    "watchdog hold": "#000000",
+    "watchdog climb": "#e6550d",
+    "watchdog state_stale": "#636363",
+}
+OTHER_STATE_COLOUR = "#e377c2"
+# The controller's watchdog overriding the policy (blind: hold, then climb): drawn instead of the state.
+WATCHDOG_COLOURS = {"hold": "#000000", "climb": "#e6550d", "state_stale": "#636363"}
+OUTCOME_COLOURS = {"safe": "#2ca02c", "unsafe": "#d62728", "timeout": "#ff7f0e", "out_of_world": "#7f7f7f",
+                   "error": "#000000"}
+POLICY_COLOURS = ("#1f77b4", "#ff7f0e", "#2ca02c", "#9467bd", "#8c564b")
+
+
+class ReportError(ValueError):
+    """The data handed to a report function is unusable (empty path, wrong shape); says what."""
+
+
+# ---------------------------------------------------------------- shared helpers
+
+
+def backend_label(backend: str, simulated: bool, noise: float | None = None) -> str:
+    """How titles and logs name the perception: a simulated run must never pass for CLIPSeg."""
+    if simulated:
+        return "simulated perception" + (f" (noise {noise:g})" if noise is not None else "")
+    return backend or "unknown backend"
+
+
+def _crop_box_m(xs: np.ndarray, ys: np.ndarray, world: Any, margin_frac: float = 0.25,
+                min_half_m: float = 25.0) -> tuple[float, float, float, float]:
+    """A square (x0, x1, y0, y1) around the points with a margin, clipped to the world."""
+    cx, cy = (float(xs.min()) + float(xs.max())) / 2.0, (float(ys.min()) + float(ys.max())) / 2.0
+    half_m = max(float(np.ptp(xs)), float(np.ptp(ys))) / 2.0
+    half_m = max(min_half_m, half_m * (1.0 + 2.0 * margin_frac))
+    x0, x1 = max(0.0, cx - half_m), min(world.width_m, cx + half_m)
+    y0, y1 = max(0.0, cy - half_m), min(world.height_m, cy + half_m)
+    return x0, x1, y0, y1
+
+
+def _world_crop(world: Any, box_m: tuple[float, float, float, float],
+                max_side_px: int = 1600) -> tuple[np.ndarray, list[float]]:
+    """The orthoimage inside a box, with the imshow extent in metres that it really covers.
+
+    Crops larger than `max_side_px` are shrunk first (area averaging): a figure is ~1000 px
+    wide, and handing matplotlib a whole 6400 px world costs seconds for nothing.
+    """
+    x0, x1, y0, y1 = box_m
+    g, h = world.gsd_m, world.height_px
+    # Image rows count from the north edge; world y counts from the south edge.
+    c0, c1 = max(0, int(math.floor(x0 / g))), min(world.width_px, int(math.ceil(x1 / g)))
+    r0, r1 = max(0, int(math.floor(h - y1 / g))), min(h, int(math.ceil(h - y0 / g)))
+    if c1 <= c0 or r1 <= r0:
+        raise ReportError(f"crop box {box_m} lies outside the world")
+    extent = [c0 * g, c1 * g, (h - r1) * g, (h - r0) * g]
+    crop = world.image_rgb[r0:r1, c0:c1]
+    scale = max_side_px / max(crop.shape[:2])
+    if scale < 1.0:
+        size = (max(1, round(crop.shape[1] * scale)), max(1, round(crop.shape[0] * scale)))
+        crop = cv2.resize(crop, size, interpolation=cv2.INTER_AREA)
+    return crop, extent
+
+
+def _labels_crop(world: Any, box_m: tuple[float, float, float, float]) -> np.ndarray | None:
+    if world.labels is None:
+        return None
+    x0, x1, y0, y1 = box_m
+    g, h = world.gsd_m, world.height_px
+    c0, c1 = max(0, int(math.floor(x0 / g))), min(world.width_px, int(math.ceil(x1 / g)))
+    r0, r1 = max(0, int(math.floor(h - y1 / g))), min(h, int(math.ceil(h - y0 / g)))
+    return world.labels[r0:r1, c0:c1]
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")  # files only: no display on servers and CI
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+# ---------------------------------------------------------------- one episode: trajectory.png
+
+
+def plot_trajectory(world: Any, report: Mapping[str, Any], out_png: Path | str) -> Path:
+    """Draw one episode of `dovesei up` over the world image; returns the PNG's path.
+
+    `report` is the report.json dict: it needs `trajectory` (columns x_m, y_m, state), `start`,
+    `final`, `outcome`, `policy`, `backend`, `simulated` and optionally `safety_radius_m`.
+    """
+    from matplotlib import patheffects
+    from matplotlib.collections import LineCollection
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Circle
+
+    plt = _pyplot()
+    traj = report.get("trajectory") or {}
+    xs = np.asarray(traj.get("x_m", []), dtype=np.float64)
+    ys = np.asarray(traj.get("y_m", []), dtype=np.float64)
+    states = list(traj.get("state", []))
+    if xs.size == 0 or xs.shape != ys.shape:
+        raise ReportError("the report holds no trajectory to plot (no vehicle state was recorded)")
+    if len(states) != xs.size:
+        states = (states + ["INIT"] * xs.size)[:xs.size]
+    watchdog = list(traj.get("watchdog", []))
+    if len(watchdog) == xs.size:
+        # A watchdog override (blind hold, climb) matters more than the policy state it overrides.
+        states = [f"watchdog {w}" if w in WATCHDOG_COLOURS and s not in ("INIT", "HANDOVER") else s
+                  for s, w in zip(states, watchdog)]
+    radius_m = float(report.get("safety_radius_m", 2.0))
+    final = report.get("final") or {"x_m": float(xs[-1]), "y_m": float(ys[-1])}
+    end_x, end_y = float(final["x_m"]), float(final["y_m"])
+    outcome = str(report.get("outcome") or "no outcome")
+
+    box = _crop_box_m(xs, ys, world)
+    crop, extent = _world_crop(world, box)
+    fig, ax = plt.subplots(figsize=(8.5, 8.0), dpi=110)
+    ax.imshow(crop, extent=extent, interpolation="bilinear")
+
+    # One polyline per run of ticks in the same state (thousands of ticks, far fewer runs),
+    # each step coloured by the state the controller was in at its start.
+    pts = np.column_stack([xs, ys])
+    segs, colours = [], []
+    run_start = 0
+    for i in range(1, len(pts)):
+        if i == len(pts) - 1 or states[i] != states[run_start]:
+            segs.append(pts[run_start:i + 1])
+            colours.append(STATE_COLOURS.get(states[run_start], OTHER_STATE_COLOUR))
+            run_start = i
+    # A white casing under the path keeps it readable over a busy city image.
+    casing = [patheffects.Stroke(linewidth=4.2, foreground="white", alpha=0.8), patheffects.Normal()]
+    ax.add_collection(LineCollection(segs, colors=colours, linewidths=2.2, zorder=3, path_effects=casing))
+    seen = list(dict.fromkeys(states))
+    handles = [Line2D([], [], color=STATE_COLOURS.get(s, OTHER_STATE_COLOUR), lw=3, label=s) for s in seen]
+    handles.append(Line2D([], [], marker="^", ls="", color="white", markeredgecolor="black", ms=11,
+                          label=f"start ({report.get('start', {}).get('alt_m', float('nan')):.0f} m)"))
+    handles.append(Line2D([], [], marker="X", ls="", color=OUTCOME_COLOURS.get(outcome, "black"),
+                          markeredgecolor="white", ms=12, label=f"end: {outcome}"))
+    ax.plot(xs[0], ys[0], marker="^", color="white", markeredgecolor="black", ms=13, zorder=5)
+    ax.plot(end_x, end_y, marker="X", color=OUTCOME_COLOURS.get(outcome, "black"), markeredgecolor="white",
+            ms=14, zorder=5)
+    # The footprint disk to scale: at this zoom it is a few pixels, hence the inset below.
+    ax.add_patch(Circle((end_x, end_y), radius_m, fill=False, ec="yellow", lw=1.2, zorder=6))
+    ax.set_xlim(extent[0], extent[1])
+    ax.set_ylim(extent[2], extent[3])
+    ax.set_xlabel("x east (m)")
+    ax.set_ylabel("y north (m)")
+    # Inset and legend go to the corners the path crosses least, so neither hides the flight.
+    corners = _free_corners(xs, ys, (end_x, end_y), extent)
+    if outcome in ("safe", "unsafe"):
+        # Only a judged landing has a footprint worth zooming on.
+        _footprint_inset(ax, world, end_x, end_y, radius_m, outcome, corners[0])
+    ax.legend(handles=handles, loc=corners[1], fontsize=8, framealpha=0.85)
+
+    perception = backend_label(str(report.get("backend", "")), bool(report.get("simulated", False)),
+                               report.get("noise") if report.get("simulated") else None)
+    final_alt = final.get("alt_m")
+    subtitle = (f"policy {report.get('policy', '?')}, {perception}, {report.get('timing', '?')} timing; "
+                f"{report.get('sim_time_s', 0.0):.1f} s sim, path {report.get('path_length_m', 0.0):.0f} m"
+                + (f", final alt {final_alt:.1f} m" if isinstance(final_alt, (int, float)) else ""))
+    detail = str(report.get("detail", ""))
+    detail = detail if len(detail) <= 90 else detail[:87] + "..."  # the full text is in report.json
+    ax.set_title(f"{outcome.upper()}: {detail}\n{subtitle}", fontsize=10)
+    out_png = Path(out_png)
+    fig.tight_layout()
+    fig.savefig(out_png)
+    plt.close(fig)
+    return out_png
+
+
+# Corner name -> the inset's [left, bottom] in axes fractions (the inset is 0.34 wide and high).
+_CORNERS = {"lower right": (0.64, 0.02), "lower left": (0.02, 0.02), "upper right": (0.64, 0.64),
+            "upper left": (0.02, 0.64)}
+
+
+def _free_corners(xs: np.ndarray, ys: np.ndarray, end_xy: tuple[float, float], extent: Sequence[float]) -> list[str]:
+    """Corners sorted by how much of the path (and the end point, weighted) they would cover."""
+    fx = (xs - extent[0]) / max(extent[1] - extent[0], 1e-9)
+    fy = (ys - extent[2]) / max(extent[3] - extent[2], 1e-9)
+    ex = (end_xy[0] - extent[0]) / max(extent[1] - extent[0], 1e-9)
+    ey = (end_xy[1] - extent[2]) / max(extent[3] - extent[2], 1e-9)
+    cost = {}
+    for name, (left, bottom) in _CORNERS.items():
+        inside = (fx >= left) & (fx <= left + 0.34) & (fy >= bottom) & (fy <= bottom + 0.34)
+        end_inside = left <= ex <= left + 0.34 and bottom <= ey <= bottom + 0.34
+        cost[name] = int(inside.sum()) + (10 * len(xs) if end_inside else 0)
+    return sorted(_CORNERS, key=lambda c: cost[c])  # stable: ties keep the order above
+
+
+def _footprint_inset(ax: Any, world: Any, x_m: float, y_m: float, radius_m: float, outcome: str,
+                     corner: str = "lower right") -> None:
+    """A zoom on the end point: the ground, unsafe classes tinted red, the footprint disk."""
+    from matplotlib.patches import Circle
+
+    half_m = max(4.0 * radius_m, 6.0)
+    box = (x_m - half_m, x_m + half_m, y_m - half_m, y_m + half_m)
+    try:
+        crop, extent = _world_crop(world, box)
+    except ReportError:
+        return  # ended outside the world: nothing to zoom on
+    ins = ax.inset_axes([*_CORNERS[corner], 0.34, 0.34])
+    ins.imshow(crop, extent=extent, interpolation="nearest")
+    labels = _labels_crop(world, box)
+    if labels is not None and labels.shape == crop.shape[:2]:
+        unsafe = ~world.safe_lut[labels]
+        overlay = np.zeros(unsafe.shape + (4,), dtype=np.float32)
+        overlay[unsafe] = (1.0, 0.0, 0.0, 0.35)
+        ins.imshow(overlay, extent=extent, interpolation="nearest")
+    ins.add_patch(Circle((x_m, y_m), radius_m, fill=False, ec=OUTCOME_COLOURS.get(outcome, "yellow"), lw=2.0))
+    ins.plot(x_m, y_m, marker="+", color="white", ms=8)
+    # The requested box, not the crop: near the world's edge the zoom stays square and to scale.
+    ins.set_xlim(box[0], box[1])
+    ins.set_ylim(box[2], box[3])
+    ins.set_xticks([])
+    ins.set_yticks([])
+    ins.set_title(f"{2 * radius_m:g} m footprint (red: unsafe)", fontsize=7, color="white",
+                  backgroundcolor="#000000a0")
+    for spine in ins.spines.values():
+        spine.set_edgecolor("yellow")
+
+
+# ---------------------------------------------------------------- the bench: paths.png
+
+
+def plot_bench_paths(world: Any, doc: Mapping[str, Any], tracks_dir: Path | str, out_png: Path | str,
+                     max_starts: int = 4) -> Path | None:
+    """Every policy's path from the same starts, one panel per start (the paper's figure of paths).
+
+    `doc` is results.json; each episode's track is `tracks_dir/<policy>-<index:04d>.npy` with
+    rows (t_s, x_m, y_m, alt_agl_m). Starts whose tracks are all missing are skipped. Returns
+    None (and writes nothing) when no track exists at all.
+    """
+    from matplotlib.lines import Line2D
+
+    plt = _pyplot()
+    tracks_dir = Path(tracks_dir)
+    episodes = list(doc.get("episodes", []))
+    policies = list(dict.fromkeys(e["policy"] for e in episodes))
+    by_start: dict[int, dict[str, tuple[dict, np.ndarray]]] = {}
+    for e in sorted(episodes, key=lambda e: e.get("index", 0)):
+        path = tracks_dir / f"{e['policy']}-{int(e.get('index', 0)):04d}.npy"
+        if not path.exists():
+            continue
+        track = np.load(path).astype(np.float64)
+        if track.ndim != 2 or track.shape[1] < 3 or len(track) == 0:
+            log.warning("track %s has shape %s, skipped", path, track.shape)
+            continue
+        by_start.setdefault(int(e.get("index", 0)), {})[e["policy"]] = (e, track)
+    chosen = sorted(by_start)[:max_starts]
+    if not chosen:
+        log.warning("no tracks in %s: no paths plot", tracks_dir)
+        return None
+
+    cols = 2 if len(chosen) > 1 else 1
+    rows = math.ceil(len(chosen) / cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(6.0 * cols, 6.0 * rows), dpi=100, squeeze=False)
+    colour = {p: POLICY_COLOURS[i % len(POLICY_COLOURS)] for i, p in enumerate(policies)}
+    for ax, index in zip(axes.flat, chosen):
+        runs = by_start[index]
+        xs = np.concatenate([t[:, 1] for _, t in runs.values()])
+        ys = np.concatenate([t[:, 2] for _, t in runs.values()])
+        crop, extent = _world_crop(world, _crop_box_m(xs, ys, world, margin_frac=0.15, min_half_m=20.0))
+        ax.imshow(crop, extent=extent, interpolation="bilinear")
+        handles = []
+        for rank, pol in enumerate(policies):
+            if pol not in runs:
+                continue
+            ep, track = runs[pol]
+            # The first policy (the one under study) on top: a long wandering path of the
+            # ablation must not bury it.
+            top = 3 + len(policies) - rank
+            ax.plot(track[:, 1], track[:, 2], color=colour[pol], lw=1.8, alpha=0.85, zorder=top)
+            ax.plot(track[-1, 1], track[-1, 2], marker="X", ms=11, color=OUTCOME_COLOURS.get(ep["outcome"], "black"),
+                    markeredgecolor=colour[pol], markeredgewidth=1.5, zorder=10 + top)
+            handles.append(Line2D([], [], color=colour[pol], lw=2,
+                                  label=f"{pol}: {ep['outcome']}, {ep.get('sim_time_s', 0):.0f} s, "
+                                        f"{ep.get('path_length_m', 0):.0f} m"))
+        first = next(iter(runs.values()))[1]
+        ax.plot(first[0, 1], first[0, 2], marker="^", ms=12, color="white", markeredgecolor="black", zorder=6)
+        ax.set_xlim(extent[0], extent[1])
+        ax.set_ylim(extent[2], extent[3])
+        ax.set_title(f"start {index} ({first[0, 1]:.0f}, {first[0, 2]:.0f}) m", fontsize=10)
+        ax.legend(handles=handles, loc="upper left", fontsize=8, framealpha=0.85)
+        ax.tick_params(labelsize=7)
+    for ax in list(axes.flat)[len(chosen):]:
+        ax.axis("off")
+    config = doc.get("config", {})
+    fig.suptitle(f"Paths from the same starts: {config.get('world', 'world')}, {config.get('timing', '?')} timing, "
+                 f"simulated perception noise {config.get('noise', '?')}\n"
+                 "triangle = start, X = end coloured by outcome (green safe, red unsafe, orange timeout, "
+                 "grey out of world)", fontsize=10)
+    fig.tight_layout()
+    out_png = Path(out_png)
+    fig.savefig(out_png)
+    plt.close(fig)
+    return out_png
+
+
+# ---------------------------------------------------------------- the video
+
+
+@dataclass(frozen=True)
+class VideoFrame:
+    """One video frame's data: the camera image, its heatmap and what the controller did with it.
+
+    `target_px` and `focus_radius_px` are in the heatmap's pixels (the controller status' units);
+    the focus circle is centred on the image centre, as the dynamic-focus mask is.
+    """
+
+    t_s: float
+    image_rgb: np.ndarray  # (H, W, 3) uint8
+    prob_safe: np.ndarray | None  # (h, w) float in [0, 1]; None when no heatmap was recorded
+    alt_agl_m: float
+    state: str = ""
+    watchdog: str = "ok"
+    focus_radius_px: float = 0.0
+    target_px: tuple[float, float] | None = None
+    perception: str = ""  # e.g. "simulated perception (noise 0)": a simulated run says so on screen
+
+
+def _safety_lut() -> np.ndarray:
+    """256 BGR colours from red (P = 0, unsafe) through yellow to green (P = 1, safe)."""
+    p = np.linspace(0.0, 1.0, 256)
+    red = np.clip(2.0 - 2.0 * p, 0.0, 1.0)
+    green = np.clip(2.0 * p, 0.0, 1.0)
+    return (np.stack([np.zeros_like(p), green, red], axis=1) * 255.0).astype(np.uint8)
+
+
+_LUT_BGR = _safety_lut()
+
+
+def _compose(frame: VideoFrame, side_px: int) -> np.ndarray:
+    """camera | heatmap side by side (BGR), with focus circle, target and a text bar."""
+    cam = cv2.resize(cv2.cvtColor(np.ascontiguousarray(frame.image_rgb), cv2.COLOR_RGB2BGR), (side_px, side_px),
+                     interpolation=cv2.INTER_AREA)
+    if frame.prob_safe is not None:
+        prob = np.asarray(frame.prob_safe, dtype=np.float32)
+        hm_h, hm_w = prob.shape
+        idx = np.clip(prob * 255.0 + 0.5, 0, 255).astype(np.uint8)
+        heat = cv2.resize(_LUT_BGR[idx], (side_px, side_px), interpolation=cv2.INTER_NEAREST)
+    else:
+        hm_h, hm_w = frame.image_rgb.shape[:2]
+        heat = np.full((side_px, side_px, 3), 40, np.uint8)
+        cv2.putText(heat, "no heatmap", (side_px // 4, side_px // 2), cv2.FONT_HERSHEY_SIMPLEX, 0.7,
+                    (200, 200, 200), 1, cv2.LINE_AA)
+    sy, sx = side_px / hm_h, side_px / hm_w
+    for panel in (cam, heat):
+        if frame.focus_radius_px > 0:
+            # The dynamic-focus circle; when it covers the whole image it is clipped to the frame.
+            radius = int(round(frame.focus_radius_px * sx))
+            cv2.circle(panel, (side_px // 2, side_px // 2), radius, (255, 255, 0), 2, cv2.LINE_AA)
+        if frame.target_px is not None:
+            row, col = frame.target_px
+            centre = (int(round((col + 0.5) * sx)), int(round((row + 0.5) * sy)))
+            cv2.drawMarker(panel, centre, (255, 0, 255), cv2.MARKER_TILTED_CROSS, 18, 3, cv2.LINE_AA)
+    bar = np.zeros((34, 2 * side_px, 3), np.uint8)
+    text = f"t {frame.t_s:7.2f} s   alt {frame.alt_agl_m:6.1f} m   {frame.state or '-'}"
+    if frame.watchdog and frame.watchdog != "ok":
+        text += f"   WATCHDOG {frame.watchdog.upper()}"
+    cv2.putText(bar, text, (8, 23), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 1, cv2.LINE_AA)
+    if frame.perception:
+        cv2.putText(heat, frame.perception, (8, side_px - 10), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1,
+                    cv2.LINE_AA)
+    cv2.putText(heat, "P(safe): red 0 .. green 1", (8, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1,
+                cv2.LINE_AA)
+    return np.vstack([np.hstack([cam, heat]), bar])
+
+
+def write_video(frames: Sequence[VideoFrame], out: Path | str, fps: float = 10.0, side_px: int = 352) -> Path:
+    """Write camera | heatmap frames as mp4 ('mp4v'); falls back to MJPG .avi. Returns the file written."""
+    if not frames:
+        raise ReportError("no frames to write: the video needs at least one camera frame")
+    if not (math.isfinite(fps) and fps > 0):
+        raise ReportError(f"fps must be > 0, got {fps!r}")
+    out = Path(out)
+    first = _compose(frames[0], side_px)
+    size = (first.shape[1], first.shape[0])
+    writer = None
+    for path, fourcc in ((out.with_suffix(".mp4"), "mp4v"), (out.with_suffix(".avi"), "MJPG")):
+        writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*fourcc), float(fps), size)
+        if writer.isOpened():
+            out = path
+            break
+        log.warning("video codec %s unavailable for %s, trying the next one", fourcc, path)
+        writer.release()
+        writer = None
+    if writer is None:
+        raise ReportError(f"OpenCV can write neither mp4v nor MJPG video next to {out}")
+    try:
+        writer.write(first)
+        for frame in frames[1:]:
+            writer.write(_compose(frame, side_px))
+    finally:
+        writer.release()
+    return out

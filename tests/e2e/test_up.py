@@ -1,0 +1,327 @@
+"""`dovesei up` end to end: three service processes on Zenoh loopback, as a user runs them.
+
+The fast tests check `up`'s own pieces (command lines, log tails, the recorder's trajectory); the
+slow ones start `python -m dovesei.cli up` on a small world with clean simulated perception and
+check (1) the report against the in-process runner, (2) a segmenter killed mid-descent, and
+(3) Ctrl-C leaving no process behind.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from dovesei.shared.codec import encode
+from dovesei.shared.messages import ControllerStatus, Stamp, VehicleState
+from dovesei.up import (
+    SERVICES, Recorder, Sample, UpOptions, build_report, child_commands, last_error_line, parse_start, zenoh_flags,
+)
+
+WORLD = "synthetic:size_m=400,seed=1"  # generated in about a second, cached on disk after
+LIMIT_S = 300.0
+REPO = Path(__file__).resolve().parents[2]
+
+
+# ---------------------------------------------------------------- fast: up's own pieces
+
+
+def test_peers_listen_on_their_own_port_and_connect_to_every_other() -> None:
+    ports = {"sim": 1001, "segmenter": 1002, "controller": 1003, "monitor": 1004}
+    flags = zenoh_flags("segmenter", ports, ())
+    assert flags[flags.index("--listen") + 1] == "tcp/127.0.0.1:1002"
+    connects = {flags[i + 1] for i, f in enumerate(flags) if f == "--connect"}
+    assert connects == {"tcp/127.0.0.1:1001", "tcp/127.0.0.1:1003", "tcp/127.0.0.1:1004"}
+    assert "--no-multicast-scouting" in flags
+    routed = zenoh_flags("sim", ports, ("tcp/10.0.0.1:7447",))
+    assert routed == ["--mode", "client", "--connect", "tcp/10.0.0.1:7447"]
+
+
+def test_child_commands_carry_the_episode_spec_exactly(tmp_path: Path) -> None:
+    opts = UpOptions(world=WORLD, segmenter="sim", policy="dovesei-nofocus", timing="real", seed=7, out=tmp_path)
+    start = (233.1457945777474, 144.28659252173492, 100.0)
+    every = {"--stats-out", "--wait-for"}
+    cmds = child_commands(opts, start, {n: 1 for n in (*SERVICES, "monitor")}, tmp_path, 0.25,
+                          flags={n: every for n in SERVICES})
+    sim, seg, ctrl = cmds["sim"], cmds["segmenter"], cmds["controller"]
+    # repr() of the floats: the sim starts at exactly the same point as the in-process runner.
+    assert sim[sim.index("--start") + 1] == "233.1457945777474,144.28659252173492,100.0"
+    assert sim[sim.index("--wait-for") + 1] == "segmenter,controller"
+    assert "--lockstep" in sim and "--lockstep" in seg and "--lockstep" in ctrl
+    assert seg[seg.index("--sim-noise") + 1] == "0.25" and seg[seg.index("--sim-seed") + 1] == "7"
+    assert ctrl[ctrl.index("--policy") + 1] == "dovesei-nofocus" and ctrl[ctrl.index("--timing") + 1] == "real"
+    assert all(c[c.index("--stats-out") + 1].endswith(f"{n}.json") for n, c in cmds.items())
+    # A flag a service does not have is never passed (it would make argparse exit).
+    bare = child_commands(opts, start, {n: 1 for n in (*SERVICES, "monitor")}, tmp_path, 0.25,
+                          flags={n: set() for n in SERVICES})
+    assert all("--stats-out" not in c and "--wait-for" not in c for c in bare.values())
+
+
+def test_a_real_vehicle_runs_in_real_time_with_the_sim_as_camera(tmp_path: Path) -> None:
+    opts = UpOptions(world=WORLD, vehicle="udpin:0.0.0.0:14550", pose_url="udpin:0.0.0.0:14551", out=tmp_path)
+    assert not opts.lockstep
+    cmds = child_commands(opts, (1.0, 2.0, 30.0), {n: 1 for n in (*SERVICES, "monitor")}, tmp_path, 0.0,
+                          flags={n: set() for n in SERVICES})
+    assert cmds["sim"][cmds["sim"].index("--external-pose") + 1] == "udpin:0.0.0.0:14551"
+    assert cmds["controller"][cmds["controller"].index("--vehicle") + 1] == "udpin:0.0.0.0:14550"
+    assert "--realtime" in cmds["controller"]
+
+
+def test_takeoff_needs_a_vehicle_and_start_is_checked() -> None:
+    from dovesei.shared.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="--takeoff"):
+        UpOptions(takeoff=True)
+    assert parse_start("10,20") == (10.0, 20.0, None)
+    with pytest.raises(ConfigError, match="--start"):
+        parse_start("10;20")
+
+
+def test_last_error_line_prefers_errors_over_the_last_line(tmp_path: Path) -> None:
+    path = tmp_path / "x.log"
+    path.write_text("a INFO up\nb ERROR sim stopped: boom\nc INFO closing\n")
+    assert last_error_line(path) == "b ERROR sim stopped: boom"
+    path.write_text("a INFO up\nc INFO closing\n")
+    assert last_error_line(path) == "c INFO closing"
+    assert last_error_line(tmp_path / "missing.log") == ""
+
+
+def test_recorder_trajectory_is_start_plus_local_ned_with_the_state_of_each_tick() -> None:
+    rec = Recorder((100.0, 200.0, 50.0), video=False)
+    for k in range(3):
+        st = VehicleState("uav1", k, Stamp(0.05 * k, "sim"), 50.0 - k, (0.0, 0.0, 0.0), pos_valid=True,
+                          pos_local_ned_m=(1.0 * k, 2.0 * k, -(50.0 - k)))
+        rec.handle(Sample("state", 1000.0 + k, encode(st)))
+    status = ControllerStatus("uav1", 1, Stamp(0.05, "sim"), "dovesei", "AIMING", "ok", "", 0, 0.0, 10.0,
+                              vel_body_frd_m_s=(0.0, 0.0, 1.5))
+    rec.handle(Sample("status", 1000.0, encode(status)))
+    rec.handle(Sample("state", 1000.0, b"not msgpack"))  # counted, never recorded
+    traj = rec.trajectory()
+    assert traj["x_m"] == [100.0, 102.0, 104.0] and traj["y_m"] == [200.0, 201.0, 202.0]
+    assert traj["state"] == ["INIT", "AIMING", "AIMING"]  # carried forward until the next status
+    assert traj["cmd_down_m_s"] == [0.0, 1.5, 1.5]
+    assert rec.rejected == 1 and len(rec.states) == 3
+
+
+@pytest.mark.parametrize("realtime", [False, True])
+def test_report_of_a_run_that_never_started_says_why(tmp_path: Path, realtime: bool) -> None:
+    opts = UpOptions(world=WORLD, segmenter="sim", realtime=realtime, out=tmp_path)
+    failure = {"child": "sim", "returncode": 1, "last_line": "boom", "message": "sim exited with code 1"}
+    report = build_report(opts, Recorder((1.0, 2.0, 100.0), video=False), (1.0, 2.0, 100.0), 0.0, {}, failure,
+                          False, 3.0)
+    assert report["outcome"] == "error" and report["detail"] == "sim exited with code 1" and not report["judged"]
+    assert report["latency_ms"]["command_to_sim"]["measured_by"] == "monitor"
+    assert report["mode"] == ("realtime" if realtime else "lockstep")
+    assert report["trajectory"]["t_s"] == [] and report["final"] is None
+    json.dumps(report)  # the report must serialise as it is
+
+
+def test_takeoff_arms_and_climbs_a_grounded_autopilot_only_when_asked(tmp_path: Path) -> None:
+    import socket
+
+    from dovesei.controller.fake_autopilot import FakeAutopilot
+    from dovesei.up import takeoff
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    fake = FakeAutopilot(f"udpin:127.0.0.1:{port}", mode="LOITER", armed=False, alt_m=0.0, heartbeat_hz=20).start()
+    try:
+        opts = UpOptions(vehicle=f"udpout:127.0.0.1:{port}", takeoff=True, out=tmp_path)
+        takeoff(opts, 2.0)
+        assert fake.armed and fake.mode == "GUIDED" and -fake.position_ned_m[2] >= 1.9
+    finally:
+        fake.stop()
+
+
+# ---------------------------------------------------------------- slow: the real processes
+
+
+class _Up:
+    """`python -m dovesei.cli up ...` with its stderr read line by line in a thread."""
+
+    def __init__(self, out: Path, *extra: str) -> None:
+        argv = [sys.executable, "-m", "dovesei.cli", "up", "--world", WORLD, "--segmenter", "sim", "--noise", "0",
+                "--start-seed", "0", "--time-limit-s", str(LIMIT_S), "--out", str(out), *extra]
+        env = {**os.environ, "PYTHONUNBUFFERED": "1", "HF_HUB_OFFLINE": "1"}
+        self.proc = subprocess.Popen(argv, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                     env=env)
+        self.lines: list[str] = []
+        self._cond = threading.Condition()
+        self._reader = threading.Thread(target=self._read, daemon=True)
+        self._reader.start()
+        self.out = out
+
+    def _read(self) -> None:
+        for line in self.proc.stderr:
+            with self._cond:
+                self.lines.append(line.rstrip())
+                self._cond.notify_all()
+        with self._cond:
+            self._cond.notify_all()
+
+    def wait_for_line(self, pattern: str, timeout_s: float) -> re.Match | None:
+        """The first stderr line matching `pattern` (None if up exits or the deadline passes first)."""
+        rx = re.compile(pattern)
+        seen = 0
+
+        def found() -> re.Match | None:
+            nonlocal seen
+            for line in self.lines[seen:]:
+                m = rx.search(line)
+                if m:
+                    return m
+            seen = len(self.lines)
+            return None
+
+        with self._cond:
+            match = None
+
+            def ready() -> bool:
+                nonlocal match
+                match = found()
+                return match is not None or self.proc.poll() is not None
+
+            self._cond.wait_for(ready, timeout=timeout_s)
+            return match
+
+    def finish(self, timeout_s: float) -> tuple[int, str, str]:
+        # Not communicate(): it would read stderr too, racing the reader thread for its lines.
+        try:
+            self.proc.wait(timeout=timeout_s)
+        except subprocess.TimeoutExpired:
+            self.kill()
+            raise
+        stdout = self.proc.stdout.read()  # one summary line: it fits the pipe, nothing blocks
+        self._reader.join(timeout=5)
+        return self.proc.returncode, stdout, "\n".join(self.lines)
+
+    def kill(self) -> None:
+        """After a failed test: stop up the way a user would, and never leave its children behind."""
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGINT)
+            try:
+                self.proc.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        pids_path = self.out / "pids.json"
+        if pids_path.exists():
+            for name, pid in _pids(self.out).items():
+                if name != "up" and not _gone(pid):
+                    os.kill(pid, signal.SIGKILL)
+
+
+def _pids(out: Path) -> dict[str, int]:
+    return json.loads((out / "pids.json").read_text())
+
+
+def _gone(pid: int) -> bool:
+    """True when no process has this pid (a zombie counts as still there: nobody reaped it)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return True
+    return False
+
+
+@pytest.mark.slow
+def test_up_flies_to_the_judge_and_matches_the_in_process_runner(tmp_path: Path) -> None:
+    from dovesei.episode import EpisodeSpec, run_episode
+    from dovesei.sim.starts import Start
+    from dovesei.sim.world import load_world
+
+    up = _Up(tmp_path / "run")
+    try:
+        code, stdout, stderr = up.finish(timeout_s=150)
+    finally:
+        up.kill()
+    assert code == 0, stderr[-3000:]
+    report = json.loads((tmp_path / "run" / "report.json").read_text())
+    assert report["outcome"] in ("safe", "unsafe", "timeout", "out_of_world") and report["judged"]
+    assert report["outcome"] in stdout
+    assert report["backend"] == "simulated" and report["simulated"] is True
+    assert report["policy"] == "dovesei" and report["timing"] == "reference" and report["mode"] == "lockstep"
+    for stage in ("frame_to_segmenter", "inference", "heatmap_to_controller", "policy", "command_to_sim"):
+        lat = report["latency_ms"][stage]
+        assert lat["n"] > 0 and 0 <= lat["p50"] <= lat["p99"], (stage, lat)
+    assert report["transport_overhead_ms"]["n"] > 0
+    counts = report["counts"]
+    assert counts["frames"] > 0 and counts["heatmaps"] > 0 and counts["commands"] > 0 and counts["rejected"] == 0
+    assert (tmp_path / "run" / "trajectory.png").stat().st_size > 10_000
+    assert (tmp_path / "run" / report["files"]["video"]).stat().st_size > 10_000
+
+    # One process or three: the same trajectory for the same spec.
+    st = report["start"]
+    spec = EpisodeSpec(policy="dovesei", start=Start(st["x_m"], st["y_m"], st["alt_m"]), timing="reference", seed=0,
+                       noise=0.0, time_limit_s=LIMIT_S)
+    rec = run_episode(load_world(WORLD), spec)
+    traj = report["trajectory"]
+    three = np.column_stack([traj["t_s"], traj["x_m"], traj["y_m"], traj["alt_m"]])
+    assert three.shape == rec.track.shape
+    np.testing.assert_allclose(three, rec.track, rtol=0, atol=1e-9)
+    assert traj["state"][:-1] == rec.states[:-1]
+    assert report["outcome"] == rec.result.outcome
+    assert report["sim_time_s"] == pytest.approx(rec.result.sim_time_s, abs=1e-9)
+
+
+@pytest.mark.slow
+def test_segmenter_killed_mid_descent_controller_holds_and_up_fails(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    # Short controller deadlines so the watchdog's hold shows within a few wall seconds.
+    up = _Up(out, "--no-video", "--heatmap-wait-s", "1", "--heatmap-hold-after-s", "0.25", "--after-failure-s", "15")
+    try:
+        # Mid-descent: the first progress line below 95 m (the start is at 100 m).
+        m = up.wait_for_line(r"alt ([2-8]\d|9[0-4])\.\d m: controller", timeout_s=90)
+        assert m is not None, "\n".join(up.lines[-30:])
+        os.kill(_pids(out)["segmenter"], signal.SIGKILL)
+        code, _stdout, stderr = up.finish(timeout_s=90)
+    finally:
+        up.kill()
+    assert code == 1, stderr[-3000:]
+    assert "segmenter" in stderr.splitlines()[-1] and "SIGKILL" in stderr.splitlines()[-1]
+    report = json.loads((out / "report.json").read_text())
+    assert report["failure"]["child"] == "segmenter" and report["outcome"] == "error"
+
+    traj = report["trajectory"]
+    t_s, alt_m = np.asarray(traj["t_s"]), np.asarray(traj["alt_m"])
+    watchdog = np.asarray(traj["watchdog"])
+    # Before its first heatmap the controller also holds: the hold we want follows the last 'ok'.
+    last_ok = int(np.flatnonzero(watchdog == "ok").max())
+    held = np.arange(last_ok + 1, len(watchdog))
+    assert held.size > 0 and np.all(watchdog[held] == "hold"), f"after losing heatmaps: {set(watchdog[held])}"
+    t_hold_s = t_s[held[0]]
+    assert alt_m[held[0]] < report["start"]["alt_m"] - 1.0, "killed before the descent began"
+    # The controller commands no descent at all while it holds...
+    assert np.all(np.asarray(traj["cmd_down_m_s"])[held] <= 0.0), "descent commanded while blind"
+    # ...and the vehicle brakes (velocity loop 0.3 s, 3 m/s^2): 1.5 s later it has stopped.
+    settled = held[t_s[held] >= t_hold_s + 1.5]
+    assert settled.size >= 10, f"too few ticks recorded while holding ({settled.size})"
+    drop_m = alt_m[settled[0]] - alt_m[settled].min()
+    assert drop_m < 0.02, f"descended {drop_m:.3f} m while blind"
+
+
+@pytest.mark.slow
+def test_ctrl_c_leaves_no_process_behind(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    up = _Up(out, "--no-video")
+    try:
+        assert up.wait_for_line(r"controller \S+ -> ", timeout_s=90) is not None, "\n".join(up.lines[-30:])
+        pids = _pids(out)
+        up.proc.send_signal(signal.SIGINT)
+        code, _stdout, stderr = up.finish(timeout_s=60)
+    finally:
+        up.kill()
+    assert code == 130, stderr[-3000:]
+    left = {name: pid for name, pid in pids.items() if name != "up" and not _gone(pid)}
+    assert not left, f"still running after Ctrl-C: {left}"
+    report = json.loads((out / "report.json").read_text())
+    assert report["interrupted"] is True and report["trajectory"]["t_s"]
