@@ -9,13 +9,16 @@ algorithm and the service keeps serving.
 
 from __future__ import annotations
 
+import json
 import logging
+import os
 import signal
 import threading
 import time
-from collections import Counter
-from collections.abc import Callable
-from typing import Generic, TypeVar
+from collections import Counter, deque
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any, Generic, TypeVar
 
 import zenoh
 
@@ -39,6 +42,28 @@ def install_stop_handlers(stop: threading.Event | None = None) -> threading.Even
     signal.signal(signal.SIGTERM, _handler)
     signal.signal(signal.SIGINT, _handler)
     return stop
+
+
+def write_stats(path: Path, stats: Mapping[str, Any]) -> None:
+    """Write a service's counters as JSON at exit (`--stats-out`); a failure only warns.
+
+    Written to a temporary file and renamed, so a reader never sees half a file.
+    """
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_name(path.name + ".tmp")
+        tmp.write_text(json.dumps(stats, default=_jsonable))
+        os.replace(tmp, path)
+    except OSError as exc:
+        log.warning("could not write the stats to %s: %s", path, exc)  # the service's work is unaffected
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, (set, tuple, deque)):
+        return list(value)
+    if hasattr(value, "item"):  # numpy scalars
+        return value.item()
+    raise TypeError(f"{type(value).__name__} is not JSON serialisable")
 
 
 def wait_until(predicate: Callable[[], bool], timeout_s: float, poll_s: float = 0.005,
@@ -67,17 +92,38 @@ def is_alive(session: zenoh.Session, vehicle: str, service: str, timeout_s: floa
 class Inbox(Generic[M]):
     """A subscriber whose samples are decoded in the caller's thread and counted when rejected.
 
-    `newest_only=True` keeps one sample (RingChannel(1)): a slow consumer never builds a backlog.
-    Otherwise a FIFO of `depth` samples keeps every message (commands, prompt changes).
+    The Zenoh callback only hands the raw sample over (a deque and an event): decoding, checking
+    and logging happen in the service loop. `newest_only=True` keeps one sample: a slow consumer
+    never builds a backlog. Otherwise a FIFO of `depth` samples keeps every message (commands,
+    prompt changes); on overflow the oldest is dropped and counted. `wakeup`, an event shared by
+    several inboxes, lets one loop sleep until any of them has something, with no polling delay.
     """
 
     def __init__(self, session: zenoh.Session, key_expr: str, expected: type[M], *, newest_only: bool,
-                 depth: int = 256, max_bytes: int = DEFAULT_MAX_BYTES) -> None:
-        handler = zenoh.handlers.RingChannel(1) if newest_only else zenoh.handlers.FifoChannel(depth)
+                 depth: int = 256, max_bytes: int = DEFAULT_MAX_BYTES,
+                 wakeup: threading.Event | None = None) -> None:
         self.key_expr, self.expected, self.max_bytes = key_expr, expected, max_bytes
         self.rejected: Counter[str] = Counter()
         self.received = 0
-        self._sub = session.declare_subscriber(key_expr, handler)
+        self.dropped = 0  # FIFO overflow (never in newest-only mode, where replacing is the point)
+        self._reported_drops = 0
+        self._pending: deque[zenoh.Sample] = deque()
+        self._capacity = 1 if newest_only else max(1, depth)
+        self._lock = threading.Lock()
+        self._ready = threading.Event()
+        self._events = (self._ready,) if wakeup is None else (self._ready, wakeup)
+        self._sub = session.declare_subscriber(key_expr, self._hand_off)
+
+    def _hand_off(self, sample: zenoh.Sample) -> None:
+        # Runs on a Zenoh thread: no decoding, no logging, no Zenoh calls.
+        with self._lock:
+            if len(self._pending) >= self._capacity:
+                self._pending.popleft()
+                if self._capacity > 1:
+                    self.dropped += 1
+            self._pending.append(sample)
+        for event in self._events:
+            event.set()
 
     def _decode(self, sample: zenoh.Sample) -> M | None:
         key = str(sample.key_expr)
@@ -97,25 +143,32 @@ class Inbox(Generic[M]):
 
     def poll_keyed(self) -> tuple[M, str] | None:
         """Like `poll`, with the concrete key it arrived on (whose frame, on a wildcard subscription)."""
+        if self.dropped != self._reported_drops:
+            log.warning("%s: %d messages dropped (queue of %d full)", self.key_expr,
+                        self.dropped - self._reported_drops, self._capacity)
+            self._reported_drops = self.dropped
         while True:
-            sample = self._sub.try_recv()
-            if sample is None:
-                return None
+            with self._lock:
+                if not self._pending:
+                    return None
+                sample = self._pending.popleft()
             msg = self._decode(sample)
             if msg is not None:
                 return msg, str(sample.key_expr)
 
     def recv(self, timeout_s: float, stop: threading.Event | None = None) -> M | None:
-        """Wait up to `timeout_s` for the next valid message."""
+        """Wait up to `timeout_s` for the next valid message (woken at once when one arrives)."""
         deadline = time.monotonic() + timeout_s
         while True:
+            self._ready.clear()  # before polling: a sample arriving after this sets it again
             msg = self.poll()
             if msg is not None:
                 return msg
             remaining = deadline - time.monotonic()
             if remaining <= 0 or (stop is not None and stop.is_set()):
                 return None
-            time.sleep(min(0.001, remaining))
+            # Bounded so that a stop request is noticed within 50 ms.
+            self._ready.wait(min(remaining, 0.05))
 
     def close(self) -> None:
         self._sub.undeclare()

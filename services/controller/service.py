@@ -23,12 +23,14 @@ is told to hold (zero velocity, or the MAVLink adapter's `hold()`) before everyt
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import math
 import sys
 import threading
 from collections import deque
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Protocol
 
 import zenoh
@@ -40,7 +42,7 @@ from dovesei.shared import keys
 from dovesei.shared.clock import WallClock, wall_time_s
 from dovesei.shared.codec import encode
 from dovesei.shared.errors import ConfigError, DoveseiError
-from dovesei.shared.lifecycle import Inbox, declare_alive, install_stop_handlers
+from dovesei.shared.lifecycle import Inbox, declare_alive, install_stop_handlers, write_stats
 from dovesei.shared.messages import SafetyHeatmap, VehicleState, VelocityCommand, replace
 from dovesei.shared.zconfig import add_zenoh_args, zenoh_config_from_args
 
@@ -71,9 +73,12 @@ class ZenohVehicle:
     commands_during_handover = True
 
     def __init__(self, session: zenoh.Session, vehicle_id: str, *, lockstep: bool) -> None:
+        # Set when a state arrives; the lockstep loop shares it with the heatmap inbox so that it
+        # sleeps until either comes and stamps each heatmap the moment it lands.
+        self.wakeup = threading.Event()
         # Lockstep needs every state in order; real time only ever wants the newest one.
         self.states: Inbox[VehicleState] = Inbox(session, keys.state(vehicle_id), VehicleState,
-                                                 newest_only=not lockstep)
+                                                 newest_only=not lockstep, wakeup=self.wakeup)
         try:
             # Lockstep: a dropped command would stall the sim until its timeout, so block instead.
             flow = zenoh.CongestionControl.BLOCK if lockstep else zenoh.CongestionControl.DROP
@@ -165,7 +170,8 @@ class _Loop:
         self.config, self.stop, self.vehicle, self.core = config, stop, vehicle, core
         self.stats = RunStats()
         self.heatmaps: Inbox[SafetyHeatmap] = Inbox(session, keys.heatmap(config.vehicle_id), SafetyHeatmap,
-                                                    newest_only=not config.lockstep)
+                                                    newest_only=not config.lockstep,
+                                                    wakeup=getattr(vehicle, "wakeup", None))
         try:
             self._status_pub = session.declare_publisher(keys.status(config.vehicle_id))
         except BaseException:
@@ -230,10 +236,14 @@ def _run_lockstep(loop: _Loop) -> None:
     assert isinstance(vehicle, ZenohVehicle)  # ControllerConfig refuses lockstep with MAVLink
     segmenter_late = False
     while not loop.stop.is_set():
-        # Short timeout: a stop request is noticed within 0.1 s even when the sim is idle.
-        state = vehicle.recv_state(0.1, loop.stop)
+        vehicle.wakeup.clear()  # before polling: anything arriving after this sets it again
+        # Heatmaps are taken as they land (their arrival time is the transport figure), not
+        # when the next state happens to come.
         loop.drain_heatmaps()
+        state = vehicle.poll_state()
         if state is None:
+            # Bounded: a stop request is noticed within 0.1 s even when the sim is idle.
+            vehicle.wakeup.wait(0.1)
             continue
         awaited = state.await_frame_seq
         if awaited >= 0 and not core.has_heatmap(awaited):
@@ -373,6 +383,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="MAVLink: switch the autopilot to GUIDED/OFFBOARD when it is not (default: refuse to steer)")
     p.add_argument("--heatmap-wait-s", type=_positive, default=defaults.lockstep_heatmap_wait_s,
                    help="lockstep: wall deadline for an awaited heatmap")
+    p.add_argument("--stats-out", type=Path, metavar="FILE", help="write the run's counters as JSON at exit")
     p.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
     add_zenoh_args(p)
     return p
@@ -412,6 +423,8 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     log.info("controller done: %d ticks, %d commands, %d heatmaps (%d payloads rejected)",
              stats.ticks, stats.commands_sent, stats.heatmaps_received, stats.heatmap_payloads_rejected)
+    if args.stats_out is not None:
+        write_stats(args.stats_out, dataclasses.asdict(stats))
     return 0
 
 

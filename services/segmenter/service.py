@@ -32,14 +32,13 @@ from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import zenoh
 
 from dovesei.shared import keys
 from dovesei.shared.codec import decode, encode
 from dovesei.shared.errors import ConfigError, DoveseiError, ProtocolError
-from dovesei.shared.lifecycle import Inbox, declare_alive, install_stop_handlers
+from dovesei.shared.lifecycle import Inbox, declare_alive, install_stop_handlers, write_stats
 from dovesei.shared.messages import CameraFrame, PromptSetMsg, SafetyHeatmap, replace
 from dovesei.shared.zconfig import add_zenoh_args, zenoh_config_from_args
 
@@ -55,7 +54,7 @@ log = logging.getLogger(__name__)
 SERVICE = "segmenter"
 LOCKSTEP_FRAME_DEPTH = 64  # frames queued in lockstep; the sim waits on us, so a few suffice
 QUERY_DEPTH = 16
-IDLE_WAIT_S = 0.001  # how long the loop sleeps when nothing is pending
+IDLE_WAIT_S = 0.002  # longest idle sleep: frames and prompts wake the loop, queries are polled
 REJECT_DECODE = "decode"  # payloads the codec refused (garbage, broken JPEG, wrong schema)
 
 
@@ -77,18 +76,6 @@ class ServiceConfig:
         return keys.ANY_VEHICLE if self.all_vehicles else self.vehicle
 
 
-class _KeyedInbox(Inbox):
-    """An Inbox that also remembers the key of the last accepted sample: it names the vehicle."""
-
-    last_key = ""
-
-    def _decode(self, sample: zenoh.Sample) -> Any:
-        msg = super()._decode(sample)
-        if msg is not None:
-            self.last_key = str(sample.key_expr)
-        return msg
-
-
 class SegmenterService:
     """The Zenoh side of the segmenter; `run(stop)` serves until `stop` is set, `close()` undeclares."""
 
@@ -103,9 +90,11 @@ class SegmenterService:
         self.camera_key = keys.camera(vehicle)
         self.prompts_key = keys.prompts(vehicle)
         self.segment_key = keys.segment(keys.ANY_VEHICLE)
-        self.frames = _KeyedInbox(session, self.camera_key, CameraFrame, newest_only=not config.lockstep,
-                                  depth=LOCKSTEP_FRAME_DEPTH)
-        self.prompt_inbox = Inbox(session, self.prompts_key, PromptSetMsg, newest_only=False)
+        # Frames and prompts wake the loop at once; queries are polled (see IDLE_WAIT_S).
+        self.wakeup = threading.Event()
+        self.frames = Inbox(session, self.camera_key, CameraFrame, newest_only=not config.lockstep,
+                            depth=LOCKSTEP_FRAME_DEPTH, wakeup=self.wakeup)
+        self.prompt_inbox = Inbox(session, self.prompts_key, PromptSetMsg, newest_only=False, wakeup=self.wakeup)
         self.queryable = session.declare_queryable(self.segment_key, zenoh.handlers.FifoChannel(QUERY_DEPTH))
         # Declared last: when the token is visible, every subscription above already exists.
         self.token = declare_alive(session, vehicle, SERVICE)
@@ -131,13 +120,14 @@ class SegmenterService:
 
     def run(self, stop: threading.Event) -> None:
         while not stop.is_set():
+            self.wakeup.clear()  # before polling: anything arriving after this sets it again
             # Prompts first so that a change reaches the very next frame; then one query and one
             # frame per turn, so neither stream can starve the other.
             busy = self._apply_prompts()
             busy = self._serve_one_query() or busy
             busy = self._serve_one_frame() or busy
             if not busy:
-                stop.wait(IDLE_WAIT_S)
+                self.wakeup.wait(IDLE_WAIT_S)
 
     def _apply_prompts(self) -> bool:
         busy = False
@@ -152,15 +142,16 @@ class SegmenterService:
         return busy
 
     def _serve_one_frame(self) -> bool:
-        frame = self.frames.poll()
-        if frame is None:
+        got = self.frames.poll_keyed()
+        if got is None:
             return False
         recv_wall_s = time.time()  # transport latency only; nothing is decided on wall time
+        frame, key = got
         try:
-            vehicle = self._vehicle_of_key(self.frames.last_key, frame)
+            vehicle = self._vehicle_of_key(key, frame)
             heatmap = self.core.process(frame)
         except FrameRejected as exc:
-            log.warning("%s on %s", exc, self.frames.last_key)
+            log.warning("%s on %s", exc, key)
             return True
         self._publisher(vehicle).put(encode(self._stamped(heatmap, frame, recv_wall_s)))
         self.heatmaps_published += 1
@@ -293,6 +284,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-side-px", type=int, default=4096, help="largest accepted frame side")
     p.add_argument("--prompts", type=Path, metavar="FILE",
                    help='JSON {"positive": [...], "negative": [...], "template": "... {} ..."} (default: the reference\'s)')
+    p.add_argument("--stats-out", type=Path, metavar="FILE", help="write the run's counters as JSON at exit")
     p.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
     add_zenoh_args(p)
     return p
@@ -347,7 +339,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         log.error("segmenter not started: %s", exc)
         return 2
     with zenoh.open(zconf) as session:
-        run(session, config=config, stop=stop, backend=backend)
+        stats = run(session, config=config, stop=stop, backend=backend)
+    if args.stats_out is not None:
+        write_stats(args.stats_out, stats)
     return 0
 
 

@@ -28,7 +28,6 @@ Exit status: 0 when the episode reached an outcome (or was stopped by a signal),
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import math
 import sys
@@ -45,7 +44,7 @@ from dovesei.shared import keys
 from dovesei.shared.clock import WallClock, wall_time_s
 from dovesei.shared.codec import encode
 from dovesei.shared.errors import ConfigError, DoveseiError
-from dovesei.shared.lifecycle import Inbox, declare_alive, install_stop_handlers, is_alive
+from dovesei.shared.lifecycle import Inbox, declare_alive, install_stop_handlers, is_alive, write_stats
 from dovesei.shared.messages import CameraFrame, ClassEntry, EpisodeResult, GroundTruth, VehicleState, VelocityCommand
 from dovesei.shared.zconfig import add_zenoh_args, zenoh_config_from_args
 from dovesei.sim.camera import CameraModel, render
@@ -547,20 +546,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 1
     finally:
         if args.stats_out is not None:
-            _write_stats(args.stats_out, stats)
+            write_stats(args.stats_out, stats.to_json())
     log.info("sim done: %d steps, %d frames, %d commands used (%d stale, %d rejected payloads)",
              stats.steps, stats.frames_sent, stats.commands_used, stats.commands_stale, stats.commands_rejected)
     if result is None:
         return 0  # stopped by a signal: a clean shutdown, not a failure
     return 1 if result.outcome == "error" else 0
-
-
-def _write_stats(path: Path, stats: SimStats) -> None:
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps(stats.to_json()))
-    except OSError as exc:
-        log.warning("could not write the stats to %s: %s", path, exc)  # the episode itself is unaffected
 
 
 if __name__ == "__main__":
