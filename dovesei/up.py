@@ -865,7 +865,9 @@ def build_parser() -> argparse.ArgumentParser:
     where.add_argument("--start", metavar="X,Y[,ALT]", help="start position in world metres (x east, y north)")
     where.add_argument("--start-seed", type=int, help="draw the start like the bench's start 0 with this seed")
     p.add_argument("--start-alt-m", type=float, default=100.0, help="start altitude when --start gives none")
-    p.add_argument("--time-limit-s", type=float, default=1200.0, help="sim-time limit of the episode")
+    p.add_argument("--time-limit-s", type=float, default=None,
+                   help="sim-time limit of the episode (default: the paper's 1200 s on the preset's clock, "
+                        "as `dovesei bench`: 60 s with --timing reference, 1200 s with --timing real)")
     p.add_argument("--out", type=Path, help="report folder (default: runs/up-<timestamp>)")
     p.add_argument("--realtime", action="store_true", help="wall-clock rate instead of lockstep")
     p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
@@ -888,6 +890,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def options_from_args(args: argparse.Namespace) -> UpOptions:
+    from dovesei.bench import paper_time_limit_s
+
     start = None
     if args.start:
         x_m, y_m, alt_m = parse_start(args.start)
@@ -897,7 +901,8 @@ def options_from_args(args: argparse.Namespace) -> UpOptions:
                      seed=args.seed, noise=args.noise, start=start, start_seed=args.start_seed,
                      start_alt_m=args.start_alt_m, out=out, realtime=args.realtime, connect=tuple(args.connect),
                      vehicle=args.vehicle, pose_url=args.pose_url, takeoff=args.takeoff,
-                     time_limit_s=args.time_limit_s, video=args.video, model=args.model, vehicle_id=args.vehicle_id,
+                     time_limit_s=paper_time_limit_s(args.timing) if args.time_limit_s is None else args.time_limit_s,
+                     video=args.video, model=args.model, vehicle_id=args.vehicle_id,
                      heatmap_wait_s=args.heatmap_wait_s, heatmap_hold_after_s=args.heatmap_hold_after_s,
                      after_failure_s=args.after_failure_s, log_level=args.log_level)
 
