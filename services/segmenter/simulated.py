@@ -41,7 +41,7 @@ import math
 import re
 import time
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
@@ -132,11 +132,13 @@ class SimPerceptionParams:
     and the decoder's upsampling erase cars and people but keep roads and buildings."""
     field_amplitude: float = 0.15
     """Std of the slow spatially correlated error field at noise 1 (grid-node std)."""
-    field_corr_frac: float = 0.125
-    """Correlation length of both error fields as a fraction of the image width (grid spacing)."""
+    field_corr_frac: float = 0.2
+    """Correlation length of both error fields as a fraction of the image width (grid spacing).
+    0.2 is ~30 m seen from 100 m, a few ViT patches: shorter lengths paint object-sized fake
+    blobs that hide the scene; longer ones become a mere slow bias across the frame."""
     field_period_frames: int = 8
     """Frames over which the slow field morphs into the next independent one."""
-    flicker_amplitude: float = 0.08
+    flicker_amplitude: float = 0.06
     """Std of the per-frame independent correlated field at noise 1."""
     gain_jitter: float = 0.12
     """Std of the per-frame contrast gain around 0.5 (gain = 1 + N(0, this)) at noise 1."""
@@ -170,10 +172,9 @@ class SimPerceptionParams:
         ):
             _check_range(name, getattr(self, name), lo, hi)
         _check_range("field_corr_frac", self.field_corr_frac, 0.02, 1.0)
-        if isinstance(self.field_period_frames, bool) or not isinstance(self.field_period_frames, int):
-            raise ConfigError(f"SimPerceptionParams.field_period_frames must be an int, got {self.field_period_frames!r}")
-        if self.field_period_frames < 1:
-            raise ConfigError(f"SimPerceptionParams.field_period_frames must be >= 1, got {self.field_period_frames}")
+        period = self.field_period_frames
+        if isinstance(period, bool) or not isinstance(period, int) or period < 1:
+            raise ConfigError(f"SimPerceptionParams.field_period_frames must be an int >= 1, got {period!r}")
         try:
             lo_frac, hi_frac = (float(v) for v in self.flip_area_frac)
         except (TypeError, ValueError):
@@ -182,7 +183,8 @@ class SimPerceptionParams:
             ) from None
         if not 0.01 <= lo_frac <= hi_frac <= 0.5:
             raise ConfigError(
-                f"SimPerceptionParams.flip_area_frac must satisfy 0.01 <= min <= max <= 0.5, got {self.flip_area_frac!r}"
+                "SimPerceptionParams.flip_area_frac must satisfy 0.01 <= min <= max <= 0.5, "
+                f"got {self.flip_area_frac!r}"
             )
         seen: set[str] = set()
         for item in self.affinity:
@@ -280,7 +282,7 @@ class FrameEffects:
 class _ClassTables:
     """Per-id lookup tables of one class table: clean value, group index, affinity at noise 1."""
 
-    clean: np.ndarray  # (256,) float32: 1 safe, 0 unsafe/unknown, outside_prob at 255
+    clean: np.ndarray  # (256,) float64: 1 safe, 0 unsafe/unknown, outside_prob at 255
     group_index: np.ndarray  # (256,) int: index into GROUPS, -1 for outside
     other_safe: np.ndarray  # (256,) bool: "other" classes the world marks safe
 
@@ -324,6 +326,7 @@ class SimulatedBackend:
         flip_u = rng.random()
         blob_draws = rng.random(5 + 2 * 3)
 
+        # Jitter per GROUP, not per pixel: CLIPSeg misjudges a whole material at once in a frame.
         values = np.clip(self._affinity + p.group_jitter * p.noise * jitter, 0.0, 1.0)
         confused = values.copy()
         for i, (a, b) in enumerate(self._pairs):
@@ -333,6 +336,7 @@ class SimulatedBackend:
             confused[b] += pull_max * pulls[2 * i + 1] * (values[a] - values[b])
 
         flip = None
+        # Independent per frame: a flip lasts exactly one frame, as CLIPSeg's sudden misreadings do.
         if flip_u < min(1.0, p.flip_prob * p.noise) and p.flip_strength > 0.0:
             flip = self._flip_blob(blob_draws)
         return FrameEffects(
@@ -399,6 +403,8 @@ class SimulatedBackend:
 
     def _frame_lut(self, tables: _ClassTables, effects: FrameEffects) -> np.ndarray:
         """Per-id P(safe) of this frame: clean value moved towards the group's affinity."""
+        # Capped at 1: past CLIPSeg's affinities, more noise means more random error, not
+        # systematically inverted classes (see the module docstring).
         weight = min(1.0, self.params.noise)
         group_values = np.array([effects.group_affinity[g] for g in GROUPS])
         affinity = group_values[np.maximum(tables.group_index, 0)]
@@ -417,8 +423,11 @@ class SimulatedBackend:
         patches_across = CLIPSEG_INPUT_PX / CLIPSEG_PATCH_PX
         sigma_x = p.blur_sigma_patches * p.noise * width_px / patches_across
         sigma_y = p.blur_sigma_patches * p.noise * height_px / patches_across
-        # The output is smooth at the blur's scale, so work on a grid a few times coarser.
-        step = max(1, min(8, int(min(sigma_x, sigma_y) / 2.5)))
+        # The output is smooth at the blur's scale, so work on a grid a few times coarser; a
+        # power-of-two step divides common image sizes, which keeps OpenCV's area resize fast.
+        step = 1
+        while step < 8 and 2 * step <= min(sigma_x, sigma_y) / 2.0:
+            step *= 2
         work_h, work_w = -(-height_px // step), -(-width_px // step)
         work = prob if step == 1 else cv2.resize(prob, (work_w, work_h), interpolation=cv2.INTER_AREA)
         # The area downsample already blurred by a box of `step` pixels (variance (step^2-1)/12).
@@ -428,11 +437,15 @@ class SimulatedBackend:
         if max(sx, sy) >= 0.3:
             work = cv2.GaussianBlur(work, (0, 0), sigmaX=max(sx, 1e-3), sigmaY=max(sy, 1e-3))
 
+        # The error fields are drawn on a coarse node grid and interpolated (bicubic), which is
+        # what makes them spatially correlated at a cost independent of the image size.
         field_grid = self._field_grid(effects.frame_seq, work_h / work_w)
         work = work + cv2.resize(field_grid, (work_w, work_h), interpolation=cv2.INTER_CUBIC)
         # Flicker of the whole map: contrast around 0.5 and a global shift.
         work = 0.5 + effects.gain * (work - 0.5) + effects.offset
         if effects.flip is not None:
+            # Inverting after the noise makes the flipped region a mirror of the frame's own
+            # estimate there, the way a misread region looks, rather than a flat patch.
             blob = effects.flip.mask(work_h, work_w)
             work = work + (p.flip_strength * blob) * (1.0 - 2.0 * work)
         if step > 1:
@@ -443,6 +456,7 @@ class SimulatedBackend:
     def _field_grid(self, frame_seq: int, aspect_hw: float) -> np.ndarray:
         """Coarse grid of the summed error fields (slow morphing field + this frame's flicker)."""
         p = self.params
+        # One node per correlation length, plus one so both image edges sit on a node.
         grid_w = math.ceil(1.0 / p.field_corr_frac) + 1
         grid_h = max(2, math.ceil(aspect_hw / p.field_corr_frac) + 1)
         shape = (grid_h, grid_w)
@@ -476,6 +490,8 @@ class SimulatedBackend:
 def _class_entries(classes: Mapping[int, tuple[str, bool]] | Iterable[object]) -> dict[int, tuple[str, bool]]:
     """Normalise a class table to {id: (name, safe)}, accepting a mapping or ClassEntry-likes."""
     out: dict[int, tuple[str, bool]] = {}
+    # The brief's form (a mapping) and the wire form (GroundTruth.classes, a tuple of ClassEntry)
+    # both arrive here; duck typing keeps this module free of the message classes.
     if isinstance(classes, Mapping):
         items = list(classes.items())
     else:
@@ -519,6 +535,7 @@ def _check_labels(labels: object) -> np.ndarray:
     if labels.ndim != 2 or labels.shape[0] < 1 or labels.shape[1] < 1:
         raise ValueError(f"truth labels must be a non-empty HxW array, got shape {labels.shape}")
     if labels.dtype != np.uint8:
+        # Other integer dtypes are accepted when they fit: a world folder's PNG may load as int32.
         if not np.issubdtype(labels.dtype, np.integer):
             raise ValueError(f"truth labels must hold integer class ids, got dtype {labels.dtype}")
         if labels.min() < 0 or labels.max() > 255:
@@ -610,6 +627,7 @@ def bench_hz(n: int = 200) -> float:
         raise ValueError(f"n must be >= 1, got {n}")
     labels = demo_labels()
     backend = SimulatedBackend(SimPerceptionParams(noise=1.0), seed=0)
+    # One OpenCV thread: the figure is per core (the controller and sim share the machine).
     threads = cv2.getNumThreads()
     cv2.setNumThreads(1)
     try:
@@ -665,25 +683,66 @@ def _titled(rgb: np.ndarray, title: str) -> np.ndarray:
     return np.vstack([bar, rgb])
 
 
+def preview_scene(seed: int = 0) -> tuple[np.ndarray, np.ndarray, dict[int, tuple[str, bool]]]:
+    """(image_rgb, labels, classes) of a 352x352 nadir view for the preview.
+
+    A crop of a small generated synthetic city at 0.42 m/px (what the 73 deg camera sees from
+    100 m), the crop with the most classes in it; the hand-made demo scene in stand-in colours
+    when the sim package is not installed (the segmenter image may ship without it).
+    """
+    try:
+        from dovesei.sim.synthetic import SYNTHETIC_CLASSES, SyntheticParams, generate_city
+    except ImportError:
+        log.info("dovesei.sim not importable: preview uses the hand-made demo scene")
+        labels = demo_labels()
+        return _frame_rgb(labels, DEMO_CLASSES), labels, dict(DEMO_CLASSES)
+    image, labels = generate_city(SyntheticParams(seed=seed, size_m=400.0, gsd_m=0.42))
+    side = CLIPSEG_INPUT_PX
+    best, best_score = (0, 0), -1.0
+    for row in range(0, labels.shape[0] - side + 1, 64):
+        for col in range(0, labels.shape[1] - side + 1, 64):
+            counts = np.bincount(labels[row:row + side, col:col + side].ravel(), minlength=256)
+            # Classes with at least 0.3 % of the crop, ties broken towards balanced crops.
+            score = float((counts > 0.003 * side * side).sum()) + 1.0 - counts.max() / (side * side)
+            if score > best_score:
+                best, best_score = (row, col), score
+    row, col = best
+    return (image[row:row + side, col:col + side].copy(), labels[row:row + side, col:col + side].copy(),
+            dict(SYNTHETIC_CLASSES))
+
+
 def render_noise_preview(
     path: str | Path,
     labels: np.ndarray | None = None,
     classes: Mapping[int, tuple[str, bool]] | None = None,
     seed: int = 0,
+    image_rgb: np.ndarray | None = None,
 ) -> Path:
-    """Write a PNG: a frame, its simulated heatmap at noise 0, 1, 2, and two consecutive frames
-    at noise 1 where the second one has a region flip. Defaults to the demo scene."""
+    """Write a PNG: a frame, its simulated heatmap at noise 0, 1, 2, and two consecutive frames at
+    noise 1 where the second one has a region flip.
+
+    Default scene: `preview_scene(seed)`. With ``labels`` (and their ``classes``) and no
+    ``image_rgb``, the frame panel shows the labels in stand-in colours.
+    """
     if labels is None:
-        labels, classes = demo_labels(), DEMO_CLASSES
+        image_rgb, labels, classes = preview_scene(seed)
     elif classes is None:
         raise ValueError("render_noise_preview: labels given without their classes")
     labels = _check_labels(labels)
-    panels = [_titled(_frame_rgb(labels, classes), "frame (sim labels, stand-in colours)")]
+    if image_rgb is None:
+        image_rgb, frame_title = _frame_rgb(labels, classes), "labels (stand-in colours)"
+    else:
+        frame_title = "camera frame (sim)"
+        if image_rgb.shape != labels.shape + (3,):
+            raise ValueError(f"image_rgb shape {image_rgb.shape} does not match labels {labels.shape}")
+    panels = [_titled(image_rgb, frame_title)]
     for noise in (0.0, 1.0, 2.0):
         backend = SimulatedBackend(SimPerceptionParams(noise=noise), seed=seed)
-        panels.append(_titled(_heat_rgb(backend.safe_probability(labels, classes, 0)), f"simulated P(safe), noise {noise:g}"))
+        title = f"simulated P(safe), noise {noise:g}" + ("  (red 0 .. green 1)" if noise == 0 else "")
+        panels.append(_titled(_heat_rgb(backend.safe_probability(labels, classes, 0)), title))
     # Two consecutive frames where the second flips a region, to show flicker plus a flip.
     backend = SimulatedBackend(SimPerceptionParams(noise=1.0), seed=seed)
+    # Draws only (no pixels) to find the pair; with flip_prob 0.1 it is within the first frames.
     seq = next(s for s in range(1, 10_000) if backend.frame_effects(s).flip and not backend.frame_effects(s - 1).flip)
     for s in (seq - 1, seq):
         note = " (region flip)" if backend.frame_effects(s).flip else ""
