@@ -24,10 +24,11 @@ The log-mean-exp is a soft maximum that is normalised by the group size: it lies
 group's mean and its maximum logit, a group of k prompts that all agree scores the same as one
 of them, and repeating the whole group any number of times changes nothing. With n negatives,
 one more negative that matches nothing lowers s_neg by log((n+1)/n) at most, and a copy of an
-existing negative moves it by less than log(2n/(n+1)) < log 2; only a prompt that matches better
-than the group raises s_neg a lot, which is new information. The reference's softmax, in
-contrast, is driven towards 0 by mere copies of one negative prompt. The two-way comparison then gives P(safe) = 0.5 where the best-matching
-descriptions of both groups are equally likely, which is a calibration point that a user can
+existing negative moves it by less than max(log(2n/(n+1)), log((n+1)/n)) < log 2 either way;
+only a prompt that matches better than the group raises s_neg a lot, which is new information.
+The reference's softmax, in contrast, is driven towards 0 by mere copies of one negative
+prompt. The two-way comparison then gives P(safe) = 0.5 where the best-matching descriptions of
+both groups are equally likely, which is a calibration point that a user can
 read; ``temperature`` (> 0) sharpens (< 1) or softens (> 1) the transition. The same box blur
 follows.
 """

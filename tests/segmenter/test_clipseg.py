@@ -67,13 +67,14 @@ def test_fast_path_equals_stock_forward(backend):
 
 def test_decoder_chunking_does_not_change_logits(backend):
     image = _frame(2)
-    whole = backend.logits(image, REFERENCE_PROMPTS)
-    backend.decoder_chunk = 4
+    stock = backend.reference_logits(image, REFERENCE_PROMPTS)
+    default_chunk = backend.decoder_chunk
     try:
-        chunked = backend.logits(image, REFERENCE_PROMPTS)
+        for chunk in (None, 1, 5):  # all at once, one by one, uneven split of 13
+            backend.decoder_chunk = chunk
+            np.testing.assert_allclose(backend.logits(image, REFERENCE_PROMPTS), stock, atol=LOGIT_ATOL, rtol=0)
     finally:
-        backend.decoder_chunk = None
-    np.testing.assert_allclose(chunked, whole, atol=LOGIT_ATOL, rtol=0)
+        backend.decoder_chunk = default_chunk
 
 
 def test_vision_encoder_stops_at_the_deepest_extract_layer(backend):
@@ -231,3 +232,20 @@ def test_bench_refuses_a_missing_model_with_exit_code_2(tmp_path, capsys):
 
     assert main(["--model", str(tmp_path / "absent")]) == 2
     assert "not available" in capsys.readouterr().err
+
+
+def test_rd64_random_config_is_the_real_architecture():
+    from dovesei.segmenter.random_model import RD64_VOCAB_SIZE, _rd64_config, build_tokenizer_files
+
+    vocab, _ = build_tokenizer_files()
+    config = _rd64_config(vocab["<|startoftext|>"], vocab["<|endoftext|>"])
+    vision, text = config.vision_config, config.text_config
+    assert (vision.hidden_size, vision.num_hidden_layers, vision.num_attention_heads) == (768, 12, 12)
+    assert (vision.patch_size, vision.intermediate_size) == (16, 3072)
+    assert (text.hidden_size, text.num_hidden_layers, text.num_attention_heads) == (512, 12, 8)
+    assert text.vocab_size == RD64_VOCAB_SIZE
+    assert config.projection_dim == 512 and config.reduce_dim == 64
+    assert list(config.extract_layers) == [3, 6, 9]
+    assert config.use_complex_transposed_convolution and config.conditional_layer == 0
+    assert (config.decoder_num_attention_heads, config.decoder_intermediate_size) == (4, 2048)
+    assert max(vocab.values()) < RD64_VOCAB_SIZE

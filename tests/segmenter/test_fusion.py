@@ -185,7 +185,10 @@ def test_reference_prompts_are_the_references():
     assert REFERENCE_NEGATIVE[-1] == "stairs, steps, footsteps"
     texts = REFERENCE_PROMPTS.texts()
     assert len(texts) == 13
-    assert texts[0] == "aerial view, drone footage photo of grass, dead grass, backyard, frontyard, courtyard, lawn, shade, shadows, low resolution"
+    assert texts[0] == (
+        "aerial view, drone footage photo of grass, dead grass, backyard, frontyard, courtyard, lawn, "
+        "shade, shadows, low resolution"
+    )
     assert texts[3].startswith("aerial view, drone footage photo of building, house")  # negatives after positives
 
 
