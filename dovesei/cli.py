@@ -19,6 +19,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "bench-segmenter": ("dovesei.segmenter.bench", "CLIPSeg reference vs fast path, and the simulated backend"),
     "bench-policy": ("dovesei.controller.policies.bench", "policy compute time per heatmap at 352x352"),
     "bench-loop": ("dovesei.controller.bench_loop", "controller loop jitter at 20 Hz with a 2 Hz segmenter"),
+    "preview": ("dovesei.preview", "PNG pictures of a world, the camera's view and the simulated perception"),
     "health": ("dovesei.health", "exit 0 when a service's liveliness token is visible"),
     "bench-codec": ("dovesei.bench_codec", "encode/decode time of a 352x352 frame and heatmap"),
 }
