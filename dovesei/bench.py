@@ -88,6 +88,11 @@ def _init_worker(world_spec: str) -> None:
     from dovesei.sim.world import load_world
 
     logging.getLogger().setLevel(logging.WARNING)  # workers report through results, not logs
+    # One thread per worker: --jobs workers already fill the cores, and OpenCV's own thread pool
+    # on top of them only adds contention (results do not depend on it).
+    import cv2
+
+    cv2.setNumThreads(1)
     _WORLD = load_world(world_spec)
 
 
