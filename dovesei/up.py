@@ -351,6 +351,7 @@ class Recorder:
         self.latency: dict[str, list[float]] = {s: [] for s in STAGES}
         self.delivery_s: dict[str, list[float]] = {"camera": [], "heatmap": [], "cmd": [], "state": []}
         self.heatmap_delivery_by_seq: dict[int, float] = {}
+        self.hm_to_ctrl_by_seq: dict[int, float] = {}  # the controller's own stamp per frame
         self.camera_delivery_by_seq: dict[int, float] = {}
         self.frame_to_seg_by_seq: dict[int, float] = {}
         self.cmd_delivery_by_frame: dict[int, float] = {}
@@ -424,6 +425,7 @@ class Recorder:
             self._latency_seen.add(cmd.frame_seq)
             lat = cmd.latency
             self.latency["heatmap_to_controller"].append(lat.heatmap_to_controller_s)
+            self.hm_to_ctrl_by_seq[cmd.frame_seq] = lat.heatmap_to_controller_s
             self.latency["policy"].append(lat.policy_s)
 
     def _on_heatmap(self, hm: SafetyHeatmap, s: Sample) -> None:
@@ -486,26 +488,28 @@ class Recorder:
             rows["cmd_down_m_s"].append(down_m_s)  # what the controller commanded at this tick
         return rows
 
-    def transport_overhead_s(self, command_to_sim_s: dict[int, float] | None) -> list[float]:
-        """Per decision: frame->segmenter + heatmap->(receiver) + command->(receiver), wall seconds.
+    def transport_overhead_s(self, command_to_sim_s: dict[int, float] | None, lockstep: bool) -> list[float]:
+        """Per decision: frame->segmenter + heatmap->controller + command->sim, wall seconds.
 
         Everything between a frame's publication and its command's arrival except inference,
         policy and the lockstep protocol's deliberate waits (a heatmap is held until it is due).
-        The first and last hops are the services' own stamps (they include each service's
-        polling); the heatmap hop is the monitor's, because the controller stamps a heatmap only
-        when its loop takes it, which in lockstep is when the next state arrives.
+        Each hop is the receiving service's own stamp. In real time the controller takes a
+        heatmap at its next 20 Hz tick, a wait that is the loop's, not transport: that hop is
+        then the monitor's delivery time instead.
         """
         cmd_hops = command_to_sim_s if command_to_sim_s else self.cmd_delivery_by_frame
-        return self._chain(self.frame_to_seg_by_seq, cmd_hops)
+        hm_hops = self.hm_to_ctrl_by_seq if lockstep else self.heatmap_delivery_by_seq
+        return self._chain(self.frame_to_seg_by_seq, hm_hops, cmd_hops)
 
     def zenoh_delivery_overhead_s(self) -> list[float]:
         """The same three hops as Zenoh delivers them (arrival stamped in the monitor's callbacks)."""
-        return self._chain(self.camera_delivery_by_seq, self.cmd_delivery_by_frame)
+        return self._chain(self.camera_delivery_by_seq, self.heatmap_delivery_by_seq, self.cmd_delivery_by_frame)
 
-    def _chain(self, first: dict[int, float], last: dict[int, float]) -> list[float]:
+    @staticmethod
+    def _chain(first: dict[int, float], middle: dict[int, float], last: dict[int, float]) -> list[float]:
         out = []
         for seq, first_s in first.items():
-            hm_s, last_s = self.heatmap_delivery_by_seq.get(seq), last.get(seq)
+            hm_s, last_s = middle.get(seq), last.get(seq)
             if hm_s is not None and last_s is not None:
                 out.append(first_s + hm_s + last_s)
         return out
@@ -588,11 +592,9 @@ def build_report(options: UpOptions, rec: Recorder, start: tuple[float, float, f
     res = rec.result
     cmd_to_sim, cmd_by_frame = _command_to_sim(stats.get("sim"))
     latency = {s: _percentiles_ms(rec.latency[s]) for s in STAGES if s != "command_to_sim"}
-    # Both are stamped when the consumer's loop takes the message, not when Zenoh delivers it.
-    latency["heatmap_to_controller"]["note"] = (
-        "stamped when the controller's loop takes the heatmap: " + (
-            "in lockstep when the next state arrives, so it includes the sim's step" if options.lockstep
-            else "at its next 20 Hz tick, so it includes up to one period of waiting"))
+    if not options.lockstep:
+        latency["heatmap_to_controller"]["note"] = (
+            "stamped when the controller's 20 Hz loop takes the heatmap: includes up to one period of waiting")
     if cmd_to_sim:
         latency["command_to_sim"] = {**_percentiles_ms(cmd_to_sim), "measured_by": "sim"}
     else:
@@ -616,7 +618,7 @@ def build_report(options: UpOptions, rec: Recorder, start: tuple[float, float, f
         sim_time_s = traj["t_s"][-1] - traj["t_s"][0] if traj["t_s"] else 0.0
         xy = np.column_stack([traj["x_m"], traj["y_m"]]) if traj["t_s"] else np.zeros((0, 2))
         path_length_m = float(np.linalg.norm(np.diff(xy, axis=0), axis=1).sum()) if len(xy) > 1 else 0.0
-    overhead = rec.transport_overhead_s(cmd_by_frame)
+    overhead = rec.transport_overhead_s(cmd_by_frame, options.lockstep)
     return {
         "outcome": outcome, "detail": detail, "judged": res is not None and res.outcome in JUDGE_OUTCOMES,
         "sim_time_s": sim_time_s, "path_length_m": path_length_m,
@@ -632,8 +634,9 @@ def build_report(options: UpOptions, rec: Recorder, start: tuple[float, float, f
                            if rec.result_wall_s is not None and rec.first_state_wall_s is not None else None),
         "latency_ms": latency,
         "transport_overhead_ms": {**_percentiles_ms(overhead), "definition": (
-            "per decision: frame->segmenter (segmenter's stamp) + heatmap delivery + command delivery "
-            f"({'sim' if cmd_by_frame else 'monitor'}-measured); excludes inference, policy and lockstep waits")},
+            "per decision: frame->segmenter + heatmap->controller + command->sim, each stamped by the "
+            "receiving service (real time: the heatmap hop as the monitor sees it); excludes inference, "
+            "policy and lockstep waits")},
         "zenoh_delivery_overhead_ms": {**_percentiles_ms(rec.zenoh_delivery_overhead_s()), "definition": (
             "per decision: frame, heatmap and command delivery as the monitor's callbacks see them "
             "(no service polling)")},
