@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import socket
 import sys
 
 import numpy as np
@@ -19,18 +18,14 @@ from dovesei.shared import keys
 from dovesei.shared.codec import encode
 from dovesei.shared.lifecycle import Inbox, wait_until
 from dovesei.shared.messages import SafetyHeatmap, Stamp
-from dovesei.shared.zconfig import loopback_config
+from dovesei.shared.zconfig import free_port, loopback_config
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def main(argv: list[str] | None = None) -> int:
     argparse.ArgumentParser(prog="dovesei smoke", description=__doc__).parse_args(argv)
-    port = _free_port()
+    port = free_port()
     hm = SafetyHeatmap("smoke", 0, Stamp(0.0, "sim"), np.zeros((352, 352), np.uint8), 100.0, 1.274,
                        "simulated", True, "none", "grouped", 0.0)
     with zenoh.open(loopback_config(listen_port=port)) as a, zenoh.open(loopback_config(connect_ports=[port])) as b:

@@ -61,6 +61,7 @@ from dovesei.shared.lifecycle import install_stop_handlers
 from dovesei.shared.messages import (
     CameraFrame, ControllerStatus, EpisodeResult, SafetyHeatmap, VehicleState, VelocityCommand,
 )
+from dovesei.shared.zconfig import free_port
 
 log = logging.getLogger("dovesei.up")
 
@@ -748,7 +749,7 @@ def run(options: UpOptions, *, stop: threading.Event) -> int:
     if options.takeoff:
         takeoff(options, start[2])
 
-    ports = {name: _free_port() for name in (*SERVICES, "monitor")}
+    ports = {name: free_port() for name in (*SERVICES, "monitor")}
     commands = child_commands(options, start, ports, out, noise)
     monitor_conf = (zenoh_config(mode="client", connect=options.connect, env={}) if options.connect else
                     zenoh_config(mode="peer", listen=[f"tcp/127.0.0.1:{ports['monitor']}"], multicast_scouting=False,
@@ -842,12 +843,6 @@ def _watch(options: UpOptions, rec: Recorder, monitor: Monitor, children: Childr
         stop.wait(0.005)
 
 
-def _free_port() -> int:
-    import socket
-
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 # ------------------------------------------------------------------------ command line

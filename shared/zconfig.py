@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import socket
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -64,6 +65,16 @@ def zenoh_config_from_args(args: argparse.Namespace, env: Mapping[str, str] | No
     return zenoh_config(mode=args.mode, connect=args.connect, listen=args.listen, config_file=args.zenoh_config,
                         multicast_scouting=False if args.no_multicast_scouting else None,
                         shared_memory=False if args.no_shm else None, env=env)
+
+
+def free_port(kind: int = socket.SOCK_STREAM) -> int:
+    """A port on 127.0.0.1 that nothing is bound to right now (TCP by default, SOCK_DGRAM for UDP).
+
+    For loopback peers, tests and benchmarks; another process may still take it before use.
+    """
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
 
 
 def loopback_config(listen_port: int | None = None, connect_ports: Sequence[int] = (),

@@ -22,7 +22,6 @@ import json
 import logging
 import multiprocessing
 import queue
-import socket
 import statistics
 import sys
 import threading
@@ -40,17 +39,13 @@ from dovesei.shared.clock import WallClock, wall_time_s
 from dovesei.shared.codec import encode
 from dovesei.shared.lifecycle import Inbox, is_alive, wait_until
 from dovesei.shared.messages import SafetyHeatmap, Stamp, VehicleState, VelocityCommand
-from dovesei.shared.zconfig import loopback_config
+from dovesei.shared.zconfig import free_port, loopback_config
 
 log = logging.getLogger(__name__)
 VEHICLE = "bench"
 HFOV_RAD = np.radians(73.0)
 
 
-def _free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _heatmaps(count: int, size_px: int, seed: int) -> list[np.ndarray]:
@@ -134,7 +129,7 @@ def _world_process(port: int, rate_hz: float, heatmap_hz: float, size_px: int, r
 
 def bench(*, duration_s: float, rate_hz: float, heatmap_hz: float, size_px: int, policy: str,
           world_in_process: bool) -> dict[str, object]:
-    port = _free_port()
+    port = free_port()
     config = ControllerConfig(vehicle_id=VEHICLE, policy=policy, timing="real", lockstep=False, rate_hz=rate_hz)
     stop_service = threading.Event()
     result: dict[str, RunStats] = {}

@@ -26,7 +26,6 @@ import json
 import logging
 import math
 import os
-import socket
 import statistics
 import sys
 import threading
@@ -40,6 +39,7 @@ from dovesei.sim.camera import CameraModel, prebuild_pyramid, render
 from dovesei.sim.core import SimConfig, SimCore
 from dovesei.sim.starts import Start, generate_starts
 from dovesei.sim.world import World, WorldError, load_world
+from dovesei.shared.zconfig import free_port
 
 log = logging.getLogger(__name__)
 
@@ -98,10 +98,6 @@ def measure_episode(world: World, start: Start, timing: str, episode_s: float, s
             "frames": frames, "sim_s": sim_s, "outcome": out.result.outcome}
 
 
-def _free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def measure_zenoh_episode(world: World, start: Start, episode_s: float, seed: int) -> float:
@@ -114,7 +110,7 @@ def measure_zenoh_episode(world: World, start: Start, episode_s: float, seed: in
     from dovesei.shared.zconfig import loopback_config
     from dovesei.sim.service import SimServiceConfig, run
 
-    port = _free_port()
+    port = free_port()
     config = SimServiceConfig(sim=SimConfig(vehicle_id=VEHICLE_ID, time_limit_s=episode_s, seed=seed,
                                             attach_truth=False),
                               start_xy_alt_m=(start.x_m, start.y_m, start.alt_m), wait_for=("controller",),

@@ -20,12 +20,9 @@ from dovesei.controller.mavlink import MavlinkVehicle, NotSteerableError, Vehicl
 from dovesei.shared.errors import ConfigError
 from dovesei.shared.lifecycle import wait_until
 from dovesei.shared.messages import Stamp, VelocityCommand
+from dovesei.shared.zconfig import free_port
 
 
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def command(fwd: float = 0.0, right: float = 0.0, down: float = 0.0, yaw_rate: float = 0.0) -> VelocityCommand:
@@ -49,7 +46,7 @@ def fly() -> Iterator[Fly]:
 
     def make(flavour: str = "ardupilot", mode: str = "GUIDED", armed: bool = True, fake_kw: dict | None = None,
              wait_state: bool = True, **vehicle_kw: object) -> tuple[FakeAutopilot, MavlinkVehicle]:
-        port = free_udp_port()
+        port = free_port(socket.SOCK_DGRAM)
         # 20 Hz heartbeats make mode changes visible fast; the adapter logic does not depend on it.
         fake = FakeAutopilot(f"udpin:127.0.0.1:{port}", flavour=flavour, mode=mode, armed=armed, heartbeat_hz=20,
                              **(fake_kw or {}))
@@ -123,7 +120,7 @@ def test_bad_configuration_is_refused() -> None:
 
 
 def test_connect_without_autopilot_times_out_with_a_clear_error() -> None:
-    vehicle = MavlinkVehicle(f"udpout:127.0.0.1:{free_udp_port()}")
+    vehicle = MavlinkVehicle(f"udpout:127.0.0.1:{free_port(socket.SOCK_DGRAM)}")
     with pytest.raises(VehicleConnectError, match="no ArduPilot/PX4 heartbeat"):
         vehicle.connect(0.3)
     vehicle.close()

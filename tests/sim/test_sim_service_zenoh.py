@@ -31,7 +31,7 @@ from dovesei.sim.core import SimConfig, SimCore
 from dovesei.sim.service import SimServiceConfig, SimStats, build_parser, config_from_args, main, run
 from dovesei.sim.starts import Start
 from dovesei.sim.world import World
-from tests.conftest import free_port
+from dovesei.shared.zconfig import free_port
 from tests.sim.test_sim_core import WEST_M, MID_Y_M, command, split_world
 
 VID = "uav1"
@@ -306,10 +306,6 @@ def test_jpeg_frames_on_the_wire_keep_exact_truth(pair, world: World) -> None:
     assert np.array_equal(sent.truth.labels, raw.truth.labels)  # labels always travel raw
 
 
-def free_udp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def teleport(fake: FakeAutopilot, north_m: float, east_m: float, alt_m: float) -> None:
@@ -321,7 +317,7 @@ def teleport(fake: FakeAutopilot, north_m: float, east_m: float, alt_m: float) -
 
 def test_external_pose_frames_follow_the_autopilot_and_the_judge_ends_it(pair, world: World) -> None:
     sim_session, rec = pair
-    port = free_udp_port()
+    port = free_port(socket.SOCK_DGRAM)
     config = SimServiceConfig(sim=SimConfig(vehicle_id=VID), start_xy_alt_m=(WEST_M, MID_Y_M, 100.0),
                               external_pose=f"udpout:127.0.0.1:{port}", wait_timeout_s=5.0, cmd_timeout_s=5.0)
 
@@ -357,7 +353,7 @@ def test_external_pose_frames_follow_the_autopilot_and_the_judge_ends_it(pair, w
 def test_external_pose_without_an_autopilot_is_an_error(pair, world: World) -> None:
     sim_session, _rec = pair
     config = SimServiceConfig(sim=SimConfig(vehicle_id=VID), start_xy_alt_m=(WEST_M, MID_Y_M, 100.0),
-                              external_pose=f"udpout:127.0.0.1:{free_udp_port()}", wait_timeout_s=0.5)
+                              external_pose=f"udpout:127.0.0.1:{free_port(socket.SOCK_DGRAM)}", wait_timeout_s=0.5)
     with SimThread(sim_session, config, world) as sim:
         result = sim.join()
     assert result.outcome == "error" and "autopilot" in result.detail and "heartbeat" in result.detail
