@@ -23,6 +23,7 @@ import numpy as np
 
 from dovesei.controller.core import ControllerConfig, ControllerCore
 from dovesei.segmenter.core import SegmenterConfig, SegmenterCore, make_backend
+from dovesei.segmenter.simulated import CALIBRATED_NOISE
 from dovesei.shared.messages import EpisodeResult, SafetyHeatmap
 from dovesei.sim.core import SimConfig, SimCore
 from dovesei.sim.starts import Start
@@ -39,7 +40,7 @@ class EpisodeSpec:
     start: Start
     timing: str = "reference"
     seed: int = 0  # seeds the simulated perception and the vehicle's disturbances
-    noise: float = 1.0  # simulated perception noise scale
+    noise: float = CALIBRATED_NOISE  # simulated perception noise scale
     time_limit_s: float = 1200.0
     vehicle_id: str = "uav1"
 

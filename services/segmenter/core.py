@@ -44,7 +44,7 @@ from dovesei.shared.messages import CameraFrame, PromptSetMsg, SafetyHeatmap
 # CLIPSeg backend is built, so the simulated backend and the service run without torch.
 from .fusion import FUSION_MODES, FusionConfig
 from .prompts import REFERENCE_PROMPTS, PromptError, PromptSet
-from .simulated import MissingTruthError, SimPerceptionParams, SimulatedBackend
+from .simulated import CALIBRATED_NOISE, MissingTruthError, SimPerceptionParams, SimulatedBackend
 
 log = logging.getLogger(__name__)
 
@@ -96,7 +96,7 @@ class SegmenterConfig:
     threads: int | None = None  # torch intra-op threads (None: torch's default)
     fusion: str = "grouped"
     fusion_temperature: float = 1.0
-    sim_noise: float = 1.0
+    sim_noise: float = CALIBRATED_NOISE  # see dovesei.segmenter.simulated
     sim_seed: int = 0
     heatmap_dtype: str = "uint8"
     min_side_px: int = 16

@@ -111,6 +111,12 @@ class MissingTruthError(DoveseiError, ValueError):
         )
 
 
+# The default noise: the level at which, on the default synthetic world under the reference-timing
+# preset, `dovesei` vs `dovesei-nofocus` land closest to the paper's 29/50 vs 3/50 (measured with
+# `dovesei calibrate`; the sweep and the check run are in docs/RESULTS.md).
+CALIBRATED_NOISE = 0.55
+
+
 @dataclass(frozen=True)
 class SimPerceptionParams:
     """Knobs of the simulated perception. ``noise`` multiplies every strength below; 0 = clean labels.
@@ -119,8 +125,8 @@ class SimPerceptionParams:
     same params fit any camera resolution.
     """
 
-    noise: float = 1.0
-    """Overall error scale: 0 clean labels, 1 CLIPSeg-like, up to 4 for stress tests."""
+    noise: float = CALIBRATED_NOISE
+    """Overall error scale: 0 clean labels, 1 every effect at its CLIPSeg-like strength, up to 4."""
     affinity: tuple[tuple[str, float], ...] = DEFAULT_AFFINITY
     """(group, P(safe) at noise 1) pairs; groups not listed keep DEFAULT_AFFINITY."""
     other_safe_affinity: float = OTHER_SAFE_AFFINITY
