@@ -107,7 +107,10 @@ class Inbox(Generic[M]):
         self.received = 0
         self.dropped = 0  # FIFO overflow (never in newest-only mode, where replacing is the point)
         self._reported_drops = 0
-        self._pending: deque[zenoh.Sample] = deque()
+        # (sample, wall time of arrival): stamped in the callback, so a transport-latency figure
+        # measures the network and not how long the service loop took to get to the message.
+        self._pending: deque[tuple[zenoh.Sample, float]] = deque()
+        self.last_recv_wall_s = 0.0  # arrival time of the message the last poll returned
         self._capacity = 1 if newest_only else max(1, depth)
         self._lock = threading.Lock()
         self._ready = threading.Event()
@@ -121,7 +124,7 @@ class Inbox(Generic[M]):
                 self._pending.popleft()
                 if self._capacity > 1:
                     self.dropped += 1
-            self._pending.append(sample)
+            self._pending.append((sample, time.time()))
         for event in self._events:
             event.set()
 
@@ -151,9 +154,10 @@ class Inbox(Generic[M]):
             with self._lock:
                 if not self._pending:
                     return None
-                sample = self._pending.popleft()
+                sample, recv_wall_s = self._pending.popleft()
             msg = self._decode(sample)
             if msg is not None:
+                self.last_recv_wall_s = recv_wall_s
                 return msg, str(sample.key_expr)
 
     def recv(self, timeout_s: float, stop: threading.Event | None = None) -> M | None:

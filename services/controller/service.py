@@ -187,8 +187,8 @@ class _Loop:
         """Hand every waiting heatmap to the core (never blocks)."""
         while (hm := self.heatmaps.poll()) is not None:
             self.stats.heatmaps_received += 1
-            # Receive time on the wall clock: only for the transport-latency figure, never decisions.
-            self.core.on_heatmap(hm, wall_time_s())
+            # Arrival time on the wall clock: only for the transport-latency figure, never decisions.
+            self.core.on_heatmap(hm, self.heatmaps.last_recv_wall_s)
 
     def step(self, state: VehicleState, wall_s: float | None) -> bool:
         """Tick the core on `state`, send the command, publish the status; False if refused."""
@@ -257,7 +257,7 @@ def _run_lockstep(loop: _Loop) -> None:
                 hm = loop.heatmaps.recv(remaining_s, loop.stop)
                 if hm is not None:
                     loop.stats.heatmaps_received += 1
-                    core.on_heatmap(hm, wall_time_s())
+                    core.on_heatmap(hm, loop.heatmaps.last_recv_wall_s)
             if not core.has_heatmap(awaited):
                 if loop.stop.is_set():
                     break

@@ -145,7 +145,7 @@ class SegmenterService:
         got = self.frames.poll_keyed()
         if got is None:
             return False
-        recv_wall_s = time.time()  # transport latency only; nothing is decided on wall time
+        recv_wall_s = self.frames.last_recv_wall_s  # transport latency only; nothing is decided on it
         frame, key = got
         try:
             vehicle = self._vehicle_of_key(key, frame)

@@ -278,7 +278,7 @@ def _run_lockstep(wire: _Wire, core: SimCore, config: SimServiceConfig, stop: th
             vid = config.sim.vehicle_id
             return core.abort(f"no command from the controller of {vid} answering state {out.state.seq} "
                               f"within {config.cmd_timeout_s:g} s (key {keys.cmd(vid)})")
-        stats.on_command(cmd, wall_time_s())
+        stats.on_command(cmd, wire.cmds.last_recv_wall_s)
         out = core.step(cmd)
         stats.steps += 1
     return None
@@ -336,9 +336,9 @@ def _newest_command(cmds: Inbox[VelocityCommand], config: SimServiceConfig, stat
         if cmd.vehicle_id != config.sim.vehicle_id:
             stats.commands_foreign += 1
             continue
-        newest = cmd
+        newest, newest_recv_wall_s = cmd, cmds.last_recv_wall_s
     if newest is not None:
-        stats.on_command(newest, wall_time_s())
+        stats.on_command(newest, newest_recv_wall_s)
     return newest
 
 
