@@ -96,6 +96,11 @@ def _init_worker(world_spec: str) -> None:
     _WORLD = load_world(world_spec)
 
 
+def _use_world(world) -> None:
+    global _WORLD
+    _WORLD = world
+
+
 def _run_job(job: dict) -> dict:
     from dovesei.episode import EpisodeSpec, run_episode
     from dovesei.sim.starts import Start
@@ -248,11 +253,11 @@ def run_bench(*, world_spec: str, episodes: int, seed: int, policies: Sequence[s
             results.append(rec)
             bar.show(results)
 
-        if jobs == 1 or len(jobs_todo) <= 1:
-            _init_worker(world_spec)
+        if jobs == 1 or len(jobs_todo) == 1:
+            _use_world(world)  # in this process: reuse the loaded world, keep the caller's logging
             for job in jobs_todo:
                 keep(_run_job(job))
-        else:
+        elif jobs_todo:
             ctx = mp.get_context("spawn")  # no inherited Zenoh/torch state in workers
             with ctx.Pool(jobs, initializer=_init_worker, initargs=(world_spec,)) as pool:
                 for rec in pool.imap_unordered(_run_job, jobs_todo):
