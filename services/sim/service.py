@@ -45,7 +45,7 @@ from dovesei.shared.clock import WallClock, wall_time_s
 from dovesei.shared.codec import encode
 from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.shared.lifecycle import Inbox, declare_alive, install_stop_handlers, is_alive, write_stats
-from dovesei.shared.messages import CameraFrame, ClassEntry, EpisodeResult, GroundTruth, VehicleState, VelocityCommand
+from dovesei.shared.messages import CameraFrame, ClassEntry, EpisodeResult, GroundTruth, VehicleState, VelocityCommand, replace
 from dovesei.shared.zconfig import add_zenoh_args, zenoh_config_from_args
 from dovesei.sim.camera import CameraModel, render
 from dovesei.sim.core import TIMING_PRESETS, SimConfig, SimCore, StepOut, judge_result
@@ -416,6 +416,10 @@ def _run_external_pose(wire: _Wire, world: World, start: Start, config: SimServi
             if judge.check(pose) is not None:
                 return judge_result(cfg.vehicle_id, judge, judge.outcome, clock="vehicle")
             wire.publish_frame(camera.frame(pose, state), stats)
+            # The autopilot's state as the camera saw it, for monitors (`dovesei up` records the
+            # path from it); the controller of a MAVLink vehicle reads the autopilot itself.
+            wire.state.put(encode(replace(state, sent_wall_s=wall_time_s())))
+            stats.states_sent += 1
             stats.steps += 1
         return None
     finally:

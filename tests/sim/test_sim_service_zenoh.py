@@ -346,7 +346,10 @@ def test_external_pose_frames_follow_the_autopilot_and_the_judge_ends_it(pair, w
             assert sim.join() == result
     assert result.outcome == "safe" and result.stamp.clock == "vehicle"
     assert (result.final_x_m, result.final_y_m) == pytest.approx((WEST_M - 7.0, MID_Y_M + 12.0))
-    assert rec.of("state") == []  # the controller reads the autopilot, not us
+    # The autopilot's own states are republished for monitors, each beside its frame, on the vehicle clock.
+    states = rec.of("state")
+    assert states and all(st.stamp.clock == "vehicle" and st.pos_valid for st in states)
+    assert states[-1].pos_local_ned_m[:2] == pytest.approx((12.0, -7.0))
     assert sim.stats.poses_received > 0
 
 
