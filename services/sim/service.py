@@ -17,8 +17,9 @@ Three ways to run an episode, chosen by the config:
 - external pose (`external_pose` = a pymavlink URL): no own dynamics. The pose of a real or SITL
   autopilot (LOCAL_POSITION_NED + ATTITUDE, read through a read-only `MavlinkVehicle`) is placed
   in the world with the local origin at the start (north = +y, east = +x); frames are rendered
-  there at the frame rate of the wall clock and the judge watches the same world. No
-  VehicleState is published: the controller reads the autopilot itself.
+  there at the frame rate of the wall clock and the judge watches the same world. The
+  autopilot's VehicleState is republished beside each frame for monitors (the controller of a
+  MAVLink vehicle reads the autopilot itself).
 
 `main` only parses flags, sets up logging and signals, loads the world, opens the session and
 calls `run`; `run` reads no flags or environment, so tests call it with a hand-made world.
