@@ -71,6 +71,9 @@ class ControllerConfig:
     vehicle_connect_timeout_s: float = 30.0  # MAVLink: wait this long for the autopilot's heartbeat
     mavlink_alt_source: str = "local"  # MAVLink altitude: "local" position or "rangefinder"
     mavlink_allow_mode_switch: bool = False  # MAVLink: may switch to GUIDED/OFFBOARD itself
+    # MAVLink: "rate" sends velocity + yaw rate 0 (type mask 0x05C7: the heading, and so the camera,
+    # is held); "autopilot" sends velocity only (0x0DC7: ArduCopter then yaws by WP_YAW_BEHAVIOR).
+    mavlink_yaw_control: str = "rate"
     lockstep_heatmap_wait_s: float = 5.0  # wall deadline for an awaited heatmap (lockstep)
     lockstep_heatmap_retry_s: float = 0.25  # shorter deadline while the segmenter seems down
     heatmap_buffer_len: int = 64  # lockstep: early heatmaps kept by seq
@@ -103,6 +106,8 @@ class ControllerConfig:
             )
         if self.handover_action not in HANDOVER_ACTIONS:
             raise ConfigError(f"handover_action {self.handover_action!r}: choose one of {HANDOVER_ACTIONS}")
+        if self.mavlink_yaw_control not in ("rate", "autopilot"):
+            raise ConfigError(f"mavlink_yaw_control {self.mavlink_yaw_control!r}: choose 'rate' or 'autopilot'")
         if self.heatmap_buffer_len < 1:
             raise ConfigError(f"heatmap_buffer_len must be >= 1, got {self.heatmap_buffer_len}")
         if self.lockstep and self.vehicle != "zenoh":

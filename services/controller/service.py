@@ -135,7 +135,8 @@ def open_vehicle(session: zenoh.Session, config: ControllerConfig) -> Vehicle:
         ) from None
     vehicle = MavlinkVehicle(config.vehicle, vehicle_id=config.vehicle_id, handover=config.handover_action,
                              alt_source=config.mavlink_alt_source,
-                             allow_mode_switch=config.mavlink_allow_mode_switch)
+                             allow_mode_switch=config.mavlink_allow_mode_switch,
+                             yaw_control=config.mavlink_yaw_control)
     try:
         vehicle.connect(config.vehicle_connect_timeout_s)
     except BaseException:
@@ -379,6 +380,9 @@ def build_parser() -> argparse.ArgumentParser:
     # The adapter validates these too; literal choices keep --help free of a pymavlink import.
     p.add_argument("--alt-source", choices=("local", "rangefinder"), default=defaults.mavlink_alt_source,
                    help="MAVLink altitude source (default: local position)")
+    p.add_argument("--yaw-control", choices=("rate", "autopilot"), default=defaults.mavlink_yaw_control,
+                   help="MAVLink: 'rate' holds the heading (velocity + zero yaw rate, mask 0x05C7); 'autopilot' "
+                        "sends velocity only (mask 0x0DC7) and lets the autopilot choose the heading")
     p.add_argument("--allow-mode-switch", action="store_true",
                    help="MAVLink: switch the autopilot to GUIDED/OFFBOARD when it is not (default: refuse to steer)")
     p.add_argument("--heatmap-wait-s", type=_positive, default=defaults.lockstep_heatmap_wait_s,
@@ -399,6 +403,7 @@ def config_from_args(args: argparse.Namespace) -> ControllerConfig:
         climb_speed_m_s=args.climb_speed_m_s, search_alt_m=args.search_alt_m, handover_alt_m=args.handover_alt_m,
         handover_action=args.handover_action, vehicle=args.vehicle, lockstep_heatmap_wait_s=args.heatmap_wait_s,
         mavlink_alt_source=args.alt_source, mavlink_allow_mode_switch=args.allow_mode_switch,
+        mavlink_yaw_control=args.yaw_control,
     )
 
 
