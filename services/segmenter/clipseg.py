@@ -49,12 +49,11 @@ import numpy as np
 import torch
 
 from .fusion import FusionConfig, fuse_with
+from .options import DEFAULT_MODEL, DTYPES
 from .prompts import PromptError, PromptSet
 
 LOG = logging.getLogger(__name__)
 
-DEFAULT_MODEL = "CIDAS/clipseg-rd64-refined"
-DTYPES = ("float32", "bfloat16")
 # Prompts per decoder batch. The decoder MLP expands 64 -> 2048 channels on 485 tokens per
 # prompt: 13 prompts at once make a 51 MB activation that streams through memory, 4 at a time
 # stays in cache. Measured on 2 Cascade Lake cores: 0.19 s (4) vs 0.34 s (all 13) per frame.

@@ -43,16 +43,13 @@ from dovesei.shared.messages import CameraFrame, PromptSetMsg, SafetyHeatmap
 # `.clipseg` imports torch, which the onboard install does not have: it is imported only when a
 # CLIPSeg backend is built, so the simulated backend and the service run without torch.
 from .fusion import FUSION_MODES, FusionConfig
+from .options import DEFAULT_MODEL, DTYPES
 from .prompts import REFERENCE_PROMPTS, PromptError, PromptSet
 from .simulated import CALIBRATED_NOISE, MissingTruthError, SimPerceptionParams, SimulatedBackend
 
 log = logging.getLogger(__name__)
 
 BACKENDS = ("auto", "clipseg", "sim")
-# Mirrors of clipseg.DEFAULT_MODEL and clipseg.DTYPES (a test keeps them equal), here so that a
-# config can be built and checked without importing torch.
-DEFAULT_MODEL = "CIDAS/clipseg-rd64-refined"
-DTYPES = ("float32", "bfloat16")
 HEATMAP_DTYPES = ("uint8", "float16")
 # The heatmap's `fusion` field for the simulated backend: it has no prompt logits to fuse.
 SIM_FUSION = "none"
