@@ -15,13 +15,13 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "up": ("dovesei.up", "fly one simulated (or real) landing with the three services as separate processes"),
     "bench": ("dovesei.bench", "the paper's experiment: N starts x policies, judged, resumable"),
     "calibrate": ("dovesei.calibrate", "success rates vs simulated perception noise, both timing presets"),
-    "bench-sim": ("dovesei.sim.bench", "simulator speed: render fps and lockstep real-time factor"),
-    "bench-segmenter": ("dovesei.segmenter.bench", "CLIPSeg reference vs fast path, and the simulated backend"),
-    "bench-policy": ("dovesei.controller.policies.bench", "policy compute time per heatmap at 352x352"),
-    "bench-loop": ("dovesei.controller.bench_loop", "controller loop jitter at 20 Hz with a 2 Hz segmenter"),
+    "bench-sim": ("dovesei.benchmarks.sim", "simulator speed: render fps and lockstep real-time factor"),
+    "bench-segmenter": ("dovesei.benchmarks.segmenter", "CLIPSeg reference vs fast path, and the simulated backend"),
+    "bench-policy": ("dovesei.benchmarks.policy", "policy compute time per heatmap at 352x352"),
+    "bench-loop": ("dovesei.benchmarks.loop", "controller loop jitter at 20 Hz with a 2 Hz segmenter"),
     "preview": ("dovesei.preview", "PNG pictures of a world, the camera's view and the simulated perception"),
     "health": ("dovesei.health", "exit 0 when a service's liveliness token is visible"),
-    "bench-codec": ("dovesei.bench_codec", "encode/decode time of a 352x352 frame and heatmap"),
+    "bench-codec": ("dovesei.benchmarks.codec", "encode/decode time of a 352x352 frame and heatmap"),
 }
 
 

@@ -263,7 +263,7 @@ def test_jpeg_on_the_wire_and_a_looping_file(service: tuple, tmp_path: Path) -> 
 def test_state_from_mavlink_never_steers(service: tuple, tmp_path: Path) -> None:
     import socket
 
-    from dovesei.controller.fake_autopilot import FakeAutopilot
+    from dovesei.testing.fake_autopilot import FakeAutopilot
 
     b, start = service
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:

@@ -15,7 +15,7 @@ from collections.abc import Callable, Iterator
 import pytest
 
 from dovesei.controller import mavlink as mv
-from dovesei.controller.fake_autopilot import FakeAutopilot
+from dovesei.testing.fake_autopilot import FakeAutopilot
 from dovesei.controller.mavlink import MavlinkVehicle, NotSteerableError, VehicleConnectError
 from dovesei.shared.errors import ConfigError
 from dovesei.shared.lifecycle import wait_until

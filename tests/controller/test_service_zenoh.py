@@ -275,7 +275,7 @@ def test_the_entry_point_holds_the_vehicle_on_sigterm_and_exits_cleanly() -> Non
 
 def test_service_steers_a_fake_autopilot_through_the_mavlink_adapter(zenoh_pair) -> None:
     """`--vehicle <pymavlink URL>`: the real adapter against the fake ArduCopter on UDP loopback."""
-    from dovesei.controller.fake_autopilot import FakeAutopilot
+    from dovesei.testing.fake_autopilot import FakeAutopilot
 
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
         probe.bind(("127.0.0.1", 0))

@@ -127,7 +127,7 @@ def test_report_of_a_run_that_never_started_says_why(tmp_path: Path, realtime: b
 def test_takeoff_arms_and_climbs_a_grounded_autopilot_only_when_asked(tmp_path: Path) -> None:
     import socket
 
-    from dovesei.controller.fake_autopilot import FakeAutopilot
+    from dovesei.testing.fake_autopilot import FakeAutopilot
     from dovesei.up import takeoff
 
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:

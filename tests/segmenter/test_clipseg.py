@@ -19,7 +19,7 @@ from dovesei.segmenter.clipseg import (
 )
 from dovesei.segmenter.fusion import FusionConfig
 from dovesei.segmenter.prompts import REFERENCE_PROMPTS, PromptError, PromptSet
-from dovesei.segmenter.random_model import build_random_clipseg
+from dovesei.testing.random_model import build_random_clipseg
 
 # fp32 fast path vs stock forward; the tiny model's logits have a spread of ~4.
 LOGIT_ATOL = 1e-4
@@ -214,7 +214,7 @@ def test_directory_without_weights_is_unavailable(tmp_path):
 def test_bench_smoke_prints_one_json_record(capsys):
     import json
 
-    from dovesei.segmenter.bench import main
+    from dovesei.benchmarks.segmenter import main
 
     code = main(["--random-weights", "--size", "tiny", "--json", "--repeats", "1", "--reference-repeats", "1"])
     assert code == 0
@@ -228,14 +228,14 @@ def test_bench_smoke_prints_one_json_record(capsys):
 
 
 def test_bench_refuses_a_missing_model_with_exit_code_2(tmp_path, capsys):
-    from dovesei.segmenter.bench import main
+    from dovesei.benchmarks.segmenter import main
 
     assert main(["--model", str(tmp_path / "absent")]) == 2
     assert "not available" in capsys.readouterr().err
 
 
 def test_rd64_random_config_is_the_real_architecture():
-    from dovesei.segmenter.random_model import RD64_VOCAB_SIZE, _rd64_config, build_tokenizer_files
+    from dovesei.testing.random_model import RD64_VOCAB_SIZE, _rd64_config, build_tokenizer_files
 
     vocab, _ = build_tokenizer_files()
     config = _rd64_config(vocab["<|startoftext|>"], vocab["<|endoftext|>"])

@@ -18,7 +18,7 @@ from dovesei.segmenter.core import (
     DEFAULT_MODEL, DTYPES, BackendUnavailableError, ClipSegFrameBackend, FrameRejected, SegmenterConfig, SegmenterCore, SimFrameBackend, make_backend, to_wire,
 )
 from dovesei.segmenter.prompts import REFERENCE_PROMPTS, PromptError, PromptSet
-from dovesei.segmenter.random_model import build_random_clipseg
+from dovesei.testing.random_model import build_random_clipseg
 from dovesei.shared.errors import ConfigError
 from dovesei.shared.messages import CameraFrame, ClassEntry, GroundTruth, PromptSetMsg, Stamp
 

@@ -6,7 +6,7 @@ import json
 
 import pytest
 
-from dovesei.sim import bench
+from dovesei.benchmarks import sim as bench
 from dovesei.sim.core import SimConfig, SimCore
 from dovesei.sim.starts import Start
 from tests.sim.test_sim_core import MID_Y_M, WEST_M, split_world

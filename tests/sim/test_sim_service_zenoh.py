@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 import zenoh
 
-from dovesei.controller.fake_autopilot import FakeAutopilot
+from dovesei.testing.fake_autopilot import FakeAutopilot
 from dovesei.shared import keys
 from dovesei.shared.codec import decode, encode
 from dovesei.shared.lifecycle import is_alive, wait_until

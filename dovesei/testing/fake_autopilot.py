@@ -16,7 +16,7 @@ setpoints are already streaming and falls back to LOITER when they stop for 0.5 
 a guided velocity that is not refreshed within 3 s. Setpoints in any frame other than the
 flavour's body frame (or LOCAL_NED) are recorded but not flown. One thread owns the socket;
 `stop()` joins it and closes the link. `main()` runs one as a process (`python -m
-dovesei.controller.fake_autopilot --url udpin:127.0.0.1:14550`).
+dovesei.testing.fake_autopilot --url udpin:127.0.0.1:14550`).
 """
 
 from __future__ import annotations
@@ -364,7 +364,7 @@ def main(argv: list[str] | None = None) -> int:
     """Run a fake autopilot until SIGTERM/SIGINT (for end-to-end runs of `dovesei up --vehicle`)."""
     from dovesei.shared.lifecycle import install_stop_handlers
 
-    p = argparse.ArgumentParser(prog="python -m dovesei.controller.fake_autopilot", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(prog="python -m dovesei.testing.fake_autopilot", description=__doc__.split("\n")[0])
     p.add_argument("--url", default="udpin:127.0.0.1:14550", help="pymavlink URL the fake listens or sends on")
     p.add_argument("--flavour", choices=FLAVOURS, default="ardupilot")
     p.add_argument("--mode", default=None, help="initial mode (default LOITER); GUIDED/OFFBOARD to accept setpoints")

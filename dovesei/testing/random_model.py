@@ -25,7 +25,7 @@ import logging
 import re
 from pathlib import Path
 
-from .prompts import REFERENCE_PROMPTS
+from dovesei.segmenter.prompts import REFERENCE_PROMPTS
 
 LOG = logging.getLogger(__name__)
 

@@ -1,6 +1,6 @@
 """Loop-jitter benchmark of the real-time controller: how late its 20 Hz ticks run.
 
-    python -m dovesei.controller.bench_loop [--duration-s 30] [--heatmap-hz 2] [--json]
+    python -m dovesei.benchmarks.loop [--duration-s 30] [--heatmap-hz 2] [--json]
 
 Two Zenoh peers on loopback. On one, a fake world publishes VehicleState at the loop rate (its
 altitude follows the newest command) and a fake segmenter publishes 352x352 heatmaps at 2 Hz (a

@@ -117,7 +117,7 @@ def _time_variant(
     repeats: int,
 ) -> dict:
     """Load a separate backend (bf16 and/or torch.compile) and time its fast path."""
-    from .clipseg import load_clipseg
+    from dovesei.segmenter.clipseg import load_clipseg
 
     backend = load_clipseg(model_dir, dtype=dtype, compile=compile_graph, threads=threads, decoder_chunk=decoder_chunk)
     prompts = _bench_prompts()
@@ -145,7 +145,7 @@ def _time_variant(
 
 def _bench_prompts():
     """The prompt set every figure is measured with: the reference's 13 prompts."""
-    from .prompts import REFERENCE_PROMPTS
+    from dovesei.segmenter.prompts import REFERENCE_PROMPTS
 
     return REFERENCE_PROMPTS
 
@@ -154,7 +154,7 @@ def run(args: argparse.Namespace, model_dir: str) -> dict:
     """Time reference and fast path on ``model_dir``; return the result record."""
     import torch
 
-    from .clipseg import load_clipseg
+    from dovesei.segmenter.clipseg import load_clipseg
 
     prompts = _bench_prompts()
     load_at_start = os.getloadavg()[0]
@@ -265,11 +265,11 @@ def main(argv: list[str] | None = None) -> int:
 
     # Progress bars for a 600 MB save/load would drown the timing lines on stderr.
     transformers_logging.disable_progress_bar()
-    from .clipseg import ModelUnavailableError
+    from dovesei.segmenter.clipseg import ModelUnavailableError
 
     try:
         if args.random_weights:
-            from .random_model import build_random_clipseg
+            from dovesei.testing.random_model import build_random_clipseg
 
             with tempfile.TemporaryDirectory(prefix="dovesei-bench-") as tmp:
                 _say("building a random-weight %s CLIPSeg in %s ...", args.size, tmp)

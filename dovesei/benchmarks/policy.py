@@ -1,6 +1,6 @@
 """Speed benchmark: a policy's compute per heatmap at 352x352 (median and p99), on one core.
 
-    python -m dovesei.controller.policies.bench [--policy dovesei] [--cycles 400] [--json]
+    python -m dovesei.benchmarks.policy [--policy dovesei] [--cycles 400] [--json]
 
 Heatmaps are smooth random P(safe) fields (several blobs, so several cores and contours per
 cycle, as CLIPSeg maps have) and the altitude follows the policy's own vertical command from
