@@ -268,7 +268,7 @@ def run_bench(*, world_spec: str, episodes: int, seed: int, policies: Sequence[s
     (out / "results.json").write_text(json.dumps(doc, indent=1))
     (out / "summary.md").write_text(summary_markdown(doc["summary"], config))
     try:
-        from dovesei.report import plot_bench_paths
+        from dovesei.pictures.plots import plot_bench_paths
 
         plot_bench_paths(world, doc, out / "tracks", out / "paths.png")
     except ImportError as exc:  # matplotlib is a dev extra; the numbers matter more than the picture

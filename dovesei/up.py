@@ -668,18 +668,18 @@ def _rejected_in(stats: Any) -> int:
 
 def write_outputs(world: Any, report: dict[str, Any], rec: Recorder, out: Path, video: bool) -> dict[str, str]:
     """report.json, trajectory.png and the video; a failing picture is logged, never fatal."""
-    from dovesei import report as pictures
+    from dovesei.pictures import common as pictures, plots, video as videos
 
     files = {"report": "report.json"}
     if report["trajectory"]["t_s"]:
         try:
-            pictures.plot_trajectory(world, report, out / "trajectory.png")
+            plots.plot_trajectory(world, report, out / "trajectory.png")
             files["trajectory_plot"] = "trajectory.png"
         except (ImportError, pictures.ReportError) as exc:
             log.warning("no trajectory plot: %s", exc)
     if video and rec.video_frames:
         try:
-            path = pictures.write_video(_video_frames(rec, backend_text(report)), out / "episode.mp4")
+            path = videos.write_video(_video_frames(rec, backend_text(report)), out / "episode.mp4")
             files["video"] = path.name
         except pictures.ReportError as exc:
             log.warning("no video: %s", exc)
@@ -689,7 +689,7 @@ def write_outputs(world: Any, report: dict[str, Any], rec: Recorder, out: Path, 
 
 
 def _video_frames(rec: Recorder, perception: str) -> list:
-    from dovesei.report import VideoFrame
+    from dovesei.pictures.video import VideoFrame
 
     frames = []
     for seq in sorted(rec.video_frames):
@@ -796,7 +796,7 @@ def run(options: UpOptions, *, stop: threading.Event) -> int:
 
 
 def backend_text(report: dict[str, Any]) -> str:
-    from dovesei.report import backend_label
+    from dovesei.pictures.common import backend_label
 
     return backend_label(report["backend"], report["simulated"], report.get("noise"))
 

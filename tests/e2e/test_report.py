@@ -8,9 +8,9 @@ import cv2
 import numpy as np
 import pytest
 
-from dovesei.report import (
-    ReportError, VideoFrame, backend_label, plot_bench_paths, plot_trajectory, write_video,
-)
+from dovesei.pictures.common import ReportError, backend_label
+from dovesei.pictures.plots import plot_bench_paths, plot_trajectory
+from dovesei.pictures.video import VideoFrame, write_video
 from dovesei.sim.world import ClassInfo, World
 
 SIDE_PX = 352
