@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 import pytest
 
-from dovesei.controller.policies import bench
+from dovesei.benchmarks import policy as bench
 from dovesei.controller.policies.base import Observation, PolicyInputError, make_policy, policy_names
 from dovesei.controller.policies.config import DoveseiConfig, real_timing
 from dovesei.controller.policies.dovesei import (

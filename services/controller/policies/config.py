@@ -1,20 +1,15 @@
-"""Every constant of the `dovesei` policy, with units, and the two timing presets.
+"""Every constant of the `dovesei` policy, with units, and its view of the two timing presets.
 
-The values are those in force in the reference's aerial experiments (../shared/REFERENCE.md).
+The values are those in force in the reference's aerial experiments (REFERENCE.md in the project's
+shared notes).
 Timers are written in the reference's own seconds (5 s, 60 s, 300 s), which were WALL seconds;
 `timer_scale` converts them to seconds of the data clock the policy actually runs on:
 
     data-clock seconds = reference seconds x timer_scale
 
-Two presets (REFERENCE.md, "Time in the reference"):
-
-- `reference`: what the reference's simulated UAV experienced. Its simulator ran at ~5 % of real
-  time while the timers ran on the wall clock, so in sim time the timers were 20x shorter
-  (give-up 0.25 s, restart 3 s, conservative-gain horizon 15 s) and a heatmap arrived ~1.3 times
-  per wall second, i.e. ~26 decisions per simulated second.
-- `real`: true seconds, decisions at the rate a real CLIPSeg achieves (2 Hz).
-
-Neither preset is "the paper's setup": the paper's behaviour depended on its host's speed.
+The presets themselves (`reference`, `real`) are defined once, in `dovesei.shared.timing`, for
+the sim, the policies and the CLI alike; this module only copies their `timer_scale` and
+`decision_period_s` into a `DoveseiConfig`.
 """
 
 from __future__ import annotations
@@ -23,11 +18,8 @@ import dataclasses
 import math
 from dataclasses import dataclass
 
+from dovesei.shared import timing as shared_timing
 from dovesei.shared.errors import ConfigError
-
-# The reference's heatmap period on the wall clock (~1.3 Hz) and its simulator's speed (~5 %).
-_REFERENCE_WALL_HEATMAP_HZ = 1.3
-_REFERENCE_SIM_SPEED = 0.05
 
 
 @dataclass(frozen=True)
@@ -135,27 +127,27 @@ class DoveseiConfig:
             raise ConfigError(f"DoveseiConfig: {exc}") from None
 
 
+def _from_shared(name: str) -> DoveseiConfig:
+    t = shared_timing.timing(name)
+    return DoveseiConfig(timing_name=t.name, timer_scale=t.timer_scale, decision_period_s=t.decision_period_s)
+
+
 def reference_timing() -> DoveseiConfig:
-    """Timers and decision rate as the reference's simulated UAV experienced them (sim at ~5 %)."""
-    return DoveseiConfig(
-        timing_name="reference",
-        timer_scale=_REFERENCE_SIM_SPEED,
-        # ~1.3 heatmaps per wall second at 5 % speed = ~26 decisions per simulated second.
-        decision_period_s=_REFERENCE_SIM_SPEED / _REFERENCE_WALL_HEATMAP_HZ,
-    )
+    """Timers and decision rate as the reference's simulated UAV experienced them (shared preset)."""
+    return _from_shared("reference")
 
 
 def real_timing() -> DoveseiConfig:
-    """True seconds, and decisions at a real CLIPSeg's rate (2 Hz)."""
-    return DoveseiConfig(timing_name="real", timer_scale=1.0, decision_period_s=0.5)
+    """True seconds, and decisions at a real CLIPSeg's rate (shared preset)."""
+    return _from_shared("real")
 
 
-TIMING_PRESETS = {"reference": reference_timing, "real": real_timing}
+# Name -> builder, for every preset of dovesei.shared.timing (the one owner of the names).
+TIMING_PRESETS = {name: (lambda n=name: _from_shared(n)) for name in shared_timing.TIMING_NAMES}
 
 
 def timing_preset(name: str) -> DoveseiConfig:
-    """The preset called `name` ("reference" or "real")."""
-    try:
-        return TIMING_PRESETS[name]()
-    except KeyError:
-        raise ConfigError(f"unknown timing preset {name!r}; known: {', '.join(sorted(TIMING_PRESETS))}") from None
+    """The preset called `name` ("reference" or "real"), or a ConfigError naming the choices."""
+    if name not in TIMING_PRESETS:
+        raise ConfigError(f"unknown timing preset {name!r}; known: {', '.join(sorted(TIMING_PRESETS))}")
+    return TIMING_PRESETS[name]()
