@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from dovesei.controller.policies.config import DoveseiConfig, real_timing, reference_timing
+from dovesei.shared import timing as shared_timing
 from dovesei.controller.policies.dovesei import DoveseiState as S
 from dovesei.controller.policies.dovesei import MachineOutput, StateMachine, conservative_gain
 
@@ -105,6 +106,14 @@ def test_landing_descent_floor_and_landed_boundary() -> None:
     assert drv.cycle(5.25, (0.5, 0.0)).state is S.LANDED
 
 
+def _latest_within(start_s: float, duration_s: float) -> float:
+    """The latest float time t with t - start <= duration (the timers' strict test in floats)."""
+    t_s = start_s + duration_s
+    while t_s - start_s > duration_s:
+        t_s = math.nextafter(t_s, -math.inf)
+    return t_s
+
+
 def test_waiting_give_up_restarting_then_searching_after_restart_time(drv: Driver) -> None:
     cfg = drv.cfg
     drv.warm_up()
@@ -114,7 +123,7 @@ def test_waiting_give_up_restarting_then_searching_after_restart_time(drv: Drive
     assert out.state is S.WAITING
     assert drv.machine.giveup_start_s == 7.0
     # The give-up test is strict: exactly 5 s (scaled: 0.25 s) later it is still WAITING.
-    giveup_end_s = 7.0 + cfg.giveup_after_data_s  # exact in binary for both presets
+    giveup_end_s = _latest_within(7.0, cfg.giveup_after_data_s)
     assert drv.cycle(52.0, (30.0, 0.0), (5.0, -3.0), at_s=giveup_end_s).state is S.WAITING
     # After it: RESTARTING towards the SECOND candidate, chosen once.
     restart_start_s = giveup_end_s + 0.5
@@ -125,7 +134,7 @@ def test_waiting_give_up_restarting_then_searching_after_restart_time(drv: Drive
     assert out.state is S.RESTARTING
     assert drv.machine.restart_dir_m == (5.0, -3.0)
     # Strict again: exactly 60 s (scaled: 3 s) of restarting keeps RESTARTING, later -> SEARCHING.
-    restart_end_s = restart_start_s + cfg.restart_duration_data_s
+    restart_end_s = _latest_within(restart_start_s, cfg.restart_duration_data_s)
     assert drv.cycle(52.0, (30.0, 0.0), at_s=restart_end_s).state is S.RESTARTING
     out = drv.cycle(52.0, (30.0, 0.0), at_s=restart_end_s + 0.5)
     assert out.state is S.SEARCHING
@@ -148,10 +157,24 @@ def test_a_long_gap_between_heatmaps_inflates_est_and_lands() -> None:
 def test_timer_presets_scale_the_wall_clock_timers() -> None:
     ref, real = reference_timing(), real_timing()
     assert (ref.giveup_after_data_s, ref.restart_duration_data_s, ref.max_landing_time_data_s) == pytest.approx(
-        (0.25, 3.0, 15.0))
+        (0.325, 3.9, 19.5))
     assert (real.giveup_after_data_s, real.restart_duration_data_s, real.max_landing_time_data_s) == (5.0, 60.0, 300.0)
-    assert 20.0 <= 1.0 / ref.decision_period_s <= 40.0  # decisions per simulated second
     assert real.decision_period_s == 0.5
+
+
+def test_one_reference_timing_for_sim_and_policy() -> None:
+    """Issue 10: the policy decides at the sim's frame rate, and each decision is one of the
+    reference's heatmap cycles (1/1.3 wall s), so est per decision is s / 1.3, not s."""
+    for name, preset in PRESETS.items():
+        assert preset().decision_period_s == shared_timing.timing(name).frame_period_s
+    ref = reference_timing()
+    assert 1.0 / ref.decision_period_s == pytest.approx(20.0)
+    per_decision_ref_s = ref.decision_period_s / ref.timer_scale
+    assert per_decision_ref_s == pytest.approx(1.0 / 1.3)
+    drv = Driver(ref)
+    drv.warm_up()
+    out = drv.cycle(100.0, (0.0, 0.0))
+    assert out.info["est_m"] == pytest.approx(3.0 / 1.3)
 
 
 def test_give_up_below_safe_altitude_climbs_then_restarts_above_it(drv: Driver) -> None:
@@ -284,7 +307,7 @@ def test_conservative_gain_law_and_its_effect_on_xy_ok() -> None:
     assert conservative_gain(100.0, real) == pytest.approx(1.0 - math.exp(1.0 - 3.0))
     assert conservative_gain(150.0, real) == pytest.approx(1.0 - math.exp(-1.0))
     assert conservative_gain(300.0, real) == 0.5  # 1 - e^0 = 0, floored at 0.5
-    assert conservative_gain(5.0, ref) == pytest.approx(conservative_gain(100.0, real))  # 5 s sim = 100 s wall
+    assert conservative_gain(6.5, ref) == pytest.approx(conservative_gain(100.0, real))  # 6.5 s sim = 100 s wall
     # xy_ok = err < 4 / cg: a 6 m error is too far at the start but accepted once cg = 0.5.
     drv = Driver(real_timing())
     drv.warm_up()
