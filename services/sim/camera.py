@@ -33,6 +33,7 @@ import cv2
 import numpy as np
 
 from dovesei.shared.errors import DoveseiError
+from dovesei.shared.validate import is_number
 from dovesei.sim.world import OUT_OF_WORLD_LABEL, World
 
 log = logging.getLogger(__name__)
@@ -197,9 +198,9 @@ def render(
     view magnifies the world (low altitude); "linear" is bilinear at every scale: softer, and
     ~1.4x slower over an episode's mix of altitudes (measured with bench_render).
     """
-    if not (math.isfinite(alt_agl_m) and alt_agl_m > 0.0):
+    if not (is_number(alt_agl_m) and alt_agl_m > 0.0):
         raise CameraError(f"alt_agl_m must be finite and > 0 to render, got {alt_agl_m!r}")
-    if not (math.isfinite(x_m) and math.isfinite(y_m) and math.isfinite(yaw_rad)):
+    if not (is_number(x_m) and is_number(y_m) and is_number(yaw_rad)):
         raise CameraError(f"pose must be finite, got x_m={x_m!r} y_m={y_m!r} yaw_rad={yaw_rad!r}")
     if interpolation not in ("auto", "linear"):
         raise CameraError(f"interpolation must be 'auto' or 'linear', got {interpolation!r}")

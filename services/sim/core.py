@@ -19,28 +19,27 @@ reference".
 from __future__ import annotations
 
 import dataclasses
-import math
 from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from dovesei.shared import validate
 from dovesei.shared.clock import wall_time_s
 from dovesei.shared.errors import ConfigError
+from dovesei.shared.timing import DEFAULT_TIMING, timing
 from dovesei.shared.messages import (
     CameraFrame, ClassEntry, EpisodeResult, GroundTruth, Stamp, VehicleState, VelocityCommand,
 )
 from dovesei.sim.camera import CameraModel, render
-from dovesei.sim.dynamics import Vehicle, VehicleParams
-from dovesei.sim.dynamics import VehicleState as Pose
+from dovesei.sim.dynamics import Pose, Vehicle, VehicleParams
 from dovesei.sim.judge import EpisodeJudge
 from dovesei.sim.starts import Start
 from dovesei.sim.world import World
 
-# timing preset -> (frame period, perception latency), sim seconds. `reference`: a heatmap every
-# controller tick, one tick old when used (~20 decisions per sim second, as the reference's
-# UAV experienced); `real`: what a real CLIPSeg achieves on a ground station (2 Hz, 0.4 s).
-TIMING_PRESETS: dict[str, tuple[float, float]] = {"reference": (0.05, 0.05), "real": (0.5, 0.4)}
+# The frame period and perception latency of each preset come from dovesei.shared.timing (its one
+# owner): `reference` renders a frame every controller tick, one tick old when used; `real` is a
+# CLIPSeg on a ground station (2 Hz, 0.4 s).
 _EPS_S = 1e-9  # float slack when comparing accumulated sim times
 
 
@@ -49,7 +48,7 @@ class SimConfig:
     """Everything the sim needs besides the world and the start; units in the names."""
 
     vehicle_id: str = "uav1"
-    timing: str = "reference"
+    timing: str = DEFAULT_TIMING
     dt_s: float = 0.05  # one step = one controller tick (20 Hz)
     frame_period_s: float | None = None  # None: the timing preset's
     latency_s: float | None = None  # None: the timing preset's
@@ -65,14 +64,13 @@ class SimConfig:
     render_image: bool = True
 
     def __post_init__(self) -> None:
-        if self.timing not in TIMING_PRESETS:
-            raise ConfigError(f"timing {self.timing!r}: choose one of {sorted(TIMING_PRESETS)}")
+        timing(self.timing)  # a ConfigError naming the presets
         for name in ("dt_s", "time_limit_s", "safety_radius_m"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ConfigError(f"sim {name} must be a finite number > 0, got {v!r}")
-        if not (math.isfinite(self.handover_alt_m) and self.handover_alt_m >= 0):
-            raise ConfigError(f"sim handover_alt_m must be >= 0, got {self.handover_alt_m!r}")
+            validate.positive(f"sim {name}", getattr(self, name))
+        validate.non_negative("sim handover_alt_m", self.handover_alt_m)
+        for name in ("frame_period_s", "latency_s"):
+            if getattr(self, name) is not None:
+                validate.non_negative(f"sim {name}", getattr(self, name))
         if self.period_s < self.dt_s - _EPS_S:
             raise ConfigError(f"frame period {self.period_s} s is shorter than the step {self.dt_s} s")
         if not 0.0 <= self.delay_s <= 10.0:
@@ -80,11 +78,11 @@ class SimConfig:
 
     @property
     def period_s(self) -> float:
-        return TIMING_PRESETS[self.timing][0] if self.frame_period_s is None else self.frame_period_s
+        return timing(self.timing).frame_period_s if self.frame_period_s is None else self.frame_period_s
 
     @property
     def delay_s(self) -> float:
-        return TIMING_PRESETS[self.timing][1] if self.latency_s is None else self.latency_s
+        return timing(self.timing).latency_s if self.latency_s is None else self.latency_s
 
 
 @dataclass(frozen=True)

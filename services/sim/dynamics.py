@@ -12,7 +12,7 @@ Data flow per `Vehicle.step(dt_s, cmd, yaw_rate, cmd_t_s)`:
 The velocity the autopilot controls (`vel_own_ned_m_s`) is relative to a frame that the
 disturbances move: without GNSS the vehicle cannot see wind or estimator drift, so a hover
 command still drifts at wind + drift. The speed and acceleration limits bound the vehicle's own
-velocity; `VehicleState.vel_ned_m_s` is the ground velocity and includes the disturbances.
+velocity; `Pose.vel_ned_m_s` is the ground velocity and includes the disturbances.
 
 Deterministic: the only randomness (gusts, drift) comes from one numpy Generator seeded at
 construction, so the same seed and the same sequence of steps give the same trajectory.
@@ -25,7 +25,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from dovesei.shared.errors import DoveseiError
+from dovesei.shared import validate
+from dovesei.shared.errors import ConfigError, DoveseiError
 
 GRAVITY_M_S2 = 9.80665
 
@@ -54,18 +55,16 @@ class VehicleParams:
     def __post_init__(self) -> None:
         positive = ("max_speed_h_m_s", "max_speed_v_m_s", "max_accel_h_m_s2", "max_accel_v_m_s2",
                     "max_yaw_rate_rad_s", "vel_time_constant_s", "cmd_timeout_s", "gust_time_constant_s")
-        for name in positive:
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise DynamicsError(f"VehicleParams.{name} must be finite and > 0, got {value!r}")
-        for name in ("gust_sigma_m_s", "drift_sigma_m_s_sqrt_s"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
-                raise DynamicsError(f"VehicleParams.{name} must be finite and >= 0, got {value!r}")
-        if not 0.0 < self.max_tilt_deg < 90.0:
+        try:
+            for name in positive:
+                validate.positive(f"VehicleParams.{name}", getattr(self, name))
+            for name in ("gust_sigma_m_s", "drift_sigma_m_s_sqrt_s"):
+                validate.non_negative(f"VehicleParams.{name}", getattr(self, name))
+            validate.finite_vector("VehicleParams.wind_ned_m_s", self.wind_ned_m_s, 3)
+        except ConfigError as exc:
+            raise DynamicsError(str(exc)) from None
+        if not (validate.is_number(self.max_tilt_deg) and 0.0 < self.max_tilt_deg < 90.0):
             raise DynamicsError(f"VehicleParams.max_tilt_deg must be in (0, 90), got {self.max_tilt_deg!r}")
-        if len(self.wind_ned_m_s) != 3 or not all(math.isfinite(v) for v in self.wind_ned_m_s):
-            raise DynamicsError(f"VehicleParams.wind_ned_m_s must be 3 finite numbers, got {self.wind_ned_m_s!r}")
 
     @property
     def accel_limit_h_m_s2(self) -> float:
@@ -74,7 +73,7 @@ class VehicleParams:
 
 
 @dataclass(frozen=True)
-class VehicleState:
+class Pose:
     """Where the vehicle is: world frame position, ground velocity (NED), heading, sim time."""
 
     x_m: float  # east of the world image's left edge
@@ -107,10 +106,10 @@ def wrap_angle_rad(a: float) -> float:
 class Vehicle:
     """A multirotor under velocity control with limits, command timeout and disturbances."""
 
-    def __init__(self, state: VehicleState, params: VehicleParams = VehicleParams(), seed: int = 0) -> None:
+    def __init__(self, state: Pose, params: VehicleParams = VehicleParams(), seed: int = 0) -> None:
         for name in ("x_m", "y_m", "alt_agl_m", "yaw_rad", "t_s"):
-            if not math.isfinite(getattr(state, name)):
-                raise DynamicsError(f"initial VehicleState.{name} must be finite, got {getattr(state, name)!r}")
+            if not validate.is_number(getattr(state, name)):
+                raise DynamicsError(f"initial Pose.{name} must be finite, got {getattr(state, name)!r}")
         if state.alt_agl_m < 0:
             raise DynamicsError(f"initial alt_agl_m must be >= 0 (ground), got {state.alt_agl_m}")
         self.params = params
@@ -125,7 +124,7 @@ class Vehicle:
         self.last_command_stale = True  # did the last step brake because no fresh command existed?
 
     @property
-    def state(self) -> VehicleState:
+    def state(self) -> Pose:
         return self._state
 
     @property
@@ -139,7 +138,7 @@ class Vehicle:
         cmd_vel_body_frd_m_s: tuple[float, float, float] | None,
         cmd_yaw_rate_rad_s: float = 0.0,
         cmd_t_s: float | None = None,
-    ) -> VehicleState:
+    ) -> Pose:
         """Advance dt_s seconds under the newest command (issued at sim time cmd_t_s); returns the new state.
 
         A missing command (None, or no cmd_t_s), or one older than `cmd_timeout_s` at the start of the
@@ -147,7 +146,7 @@ class Vehicle:
         of flying on.
         """
         p = self.params
-        if not (math.isfinite(dt_s) and dt_s > 0):
+        if not (validate.is_number(dt_s) and dt_s > 0):
             raise DynamicsError(f"dt_s must be finite and > 0, got {dt_s!r}")
         st = self._state
         stale = cmd_vel_body_frd_m_s is None or cmd_t_s is None or st.t_s - cmd_t_s > p.cmd_timeout_s
@@ -191,7 +190,7 @@ class Vehicle:
             v1[2] = min(v1[2], 0.0)  # NED: only an upward (negative down) velocity survives
             ground1 = np.zeros(3)
         self._vel_own_ned = v1
-        self._state = VehicleState(
+        self._state = Pose(
             x_m=st.x_m + move[1],
             y_m=st.y_m + move[0],
             alt_agl_m=alt,

@@ -26,7 +26,8 @@ from typing import Any
 import numpy as np
 
 from dovesei.shared.errors import DoveseiError
-from dovesei.sim.dynamics import VehicleState
+from dovesei.shared.validate import is_number
+from dovesei.sim.dynamics import Pose
 from dovesei.sim.world import World
 
 OUTSIDE_WORLD_NAME = "outside the world"
@@ -76,9 +77,9 @@ def judge_landing(
     """Judge a landing at world point (x_m, y_m) from the world's label map."""
     if world.labels is None:
         raise JudgeError(f"world {world.name!r} has no label map: landings on it cannot be judged")
-    if not (math.isfinite(x_m) and math.isfinite(y_m)):
+    if not (is_number(x_m) and is_number(y_m)):
         raise JudgeError(f"landing point must be finite, got ({x_m!r}, {y_m!r})")
-    if not (math.isfinite(safety_radius_m) and safety_radius_m >= 0):
+    if not (is_number(safety_radius_m) and safety_radius_m >= 0):
         raise JudgeError(f"safety_radius_m must be finite and >= 0, got {safety_radius_m!r}")
     if not 0.0 <= tolerance_frac < 1.0:
         raise JudgeError(f"tolerance_frac must be in [0, 1), got {tolerance_frac!r}")
@@ -180,7 +181,7 @@ class EpisodeJudge:
     ) -> None:
         if world.labels is None:
             raise JudgeError(f"world {world.name!r} has no label map: episodes on it cannot be judged")
-        if not (handover_alt_m >= 0 and time_limit_s > 0):
+        if not (is_number(handover_alt_m) and handover_alt_m >= 0 and is_number(time_limit_s) and time_limit_s > 0):
             raise JudgeError(f"need handover_alt_m >= 0 and time_limit_s > 0, got {handover_alt_m}, {time_limit_s}")
         self.world = world
         self.handover_alt_m = handover_alt_m
@@ -192,7 +193,7 @@ class EpisodeJudge:
         self.verdict: Verdict | None = None  # set when the hand-over altitude was reached
         self.path_length_m = 0.0  # horizontal, summed over the states checked
         self.start_t_s: float | None = None
-        self.last_state: VehicleState | None = None
+        self.last_state: Pose | None = None
 
     @property
     def sim_time_s(self) -> float:
@@ -200,7 +201,7 @@ class EpisodeJudge:
             return 0.0
         return self.last_state.t_s - self.start_t_s
 
-    def check(self, state: VehicleState) -> str | None:
+    def check(self, state: Pose) -> str | None:
         """Feed the newest state; returns the outcome once the episode has ended (then always the same)."""
         if self.outcome is not None:
             return self.outcome

@@ -14,12 +14,12 @@ Three ways to run an episode, chosen by the config:
 - real time: step k is due at t0 + k x dt / speed on the wall clock (absolute schedule, so delays
   never accumulate); each step takes the newest command and never waits. A controller that falls
   silent is handled by the vehicle itself: its command times out in sim time and it brakes.
-- external pose (`external_pose` = a pymavlink URL): no own dynamics. The pose of a real or SITL
-  autopilot (LOCAL_POSITION_NED + ATTITUDE, read through a read-only `MavlinkVehicle`) is placed
-  in the world with the local origin at the start (north = +y, east = +x); frames are rendered
-  there at the frame rate of the wall clock and the judge watches the same world. The
-  autopilot's VehicleState is republished beside each frame for monitors (the controller of a
-  MAVLink vehicle reads the autopilot itself).
+- external pose (`external_pose`): no own dynamics and no commands. The sim LISTENS on the state
+  key, where the controller of a real or SITL autopilot publishes the autopilot's VehicleState
+  (only the controller opens MAVLink); the newest state with a local position is placed in the
+  world with the local origin at the start (north = +y, east = +x), frames are rendered there at
+  the frame rate of the wall clock and the judge watches the same world. Nothing is published
+  on the state key in this mode: monitors read the controller's states there directly.
 
 `main` only parses flags, sets up logging and signals, loads the world, opens the session and
 calls `run`; `run` reads no flags or environment, so tests call it with a hand-made world.
@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import argparse
 import logging
-import math
 import sys
 import threading
 import time
@@ -41,16 +40,17 @@ from pathlib import Path
 
 import zenoh
 
-from dovesei.shared import keys
+from dovesei.shared import keys, validate
 from dovesei.shared.clock import WallClock, wall_time_s
 from dovesei.shared.codec import encode
 from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.shared.lifecycle import Inbox, declare_alive, install_stop_handlers, is_alive, write_stats
-from dovesei.shared.messages import CameraFrame, ClassEntry, EpisodeResult, GroundTruth, VehicleState, VelocityCommand, replace
+from dovesei.shared.messages import CameraFrame, ClassEntry, EpisodeResult, GroundTruth, VehicleState, VelocityCommand
+from dovesei.shared.timing import TIMING_NAMES
 from dovesei.shared.zconfig import add_zenoh_args, zenoh_config_from_args
 from dovesei.sim.camera import CameraModel, render
-from dovesei.sim.core import TIMING_PRESETS, SimConfig, SimCore, StepOut, judge_result
-from dovesei.sim.dynamics import VehicleState as Pose
+from dovesei.sim.core import SimConfig, SimCore, StepOut, judge_result
+from dovesei.sim.dynamics import Pose
 from dovesei.sim.judge import EpisodeJudge
 from dovesei.sim.starts import Start, generate_starts
 from dovesei.sim.world import World, WorldError, load_world
@@ -78,25 +78,23 @@ class SimServiceConfig:
     lockstep: bool = True
     speed: float = 1.0  # real time only: sim seconds per wall second
     jpeg_quality: int | None = None  # None: raw frames on the wire
-    external_pose: str | None = None  # pymavlink URL of an autopilot whose pose replaces the dynamics
+    external_pose: bool = False  # render at the VehicleState received on the state key, no own dynamics
     wait_for: tuple[str, ...] = ()  # liveliness tokens to see before the episode starts
     wait_timeout_s: float = 60.0
-    cmd_timeout_s: float = 10.0  # lockstep: wall wait for a command; external pose: for a new pose
+    cmd_timeout_s: float = 10.0  # lockstep: wall wait for a command; external pose: for a new state
 
     def __post_init__(self) -> None:
         for name in ("speed", "wait_timeout_s", "cmd_timeout_s", "start_alt_m"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise ConfigError(f"sim service {name} must be a finite number > 0, got {value!r}")
-        if self.jpeg_quality is not None and not 1 <= self.jpeg_quality <= 100:
-            raise ConfigError(f"--jpeg-quality must be in 1..100, got {self.jpeg_quality}")
+            validate.positive(f"sim service {name}", getattr(self, name))
+        if self.jpeg_quality is not None:
+            validate.in_range("--jpeg-quality", self.jpeg_quality, 1, 100)
         unknown = [s for s in self.wait_for if s not in WAITABLE]
         if unknown:
             raise ConfigError(f"--wait-for {','.join(unknown)}: choose among {','.join(WAITABLE)}")
-        if self.start_xy_alt_m is not None and not all(math.isfinite(v) for v in self.start_xy_alt_m):
-            raise ConfigError(f"--start must be finite numbers, got {self.start_xy_alt_m!r}")
-        if self.external_pose is not None and not self.external_pose.strip():
-            raise ConfigError("--external-pose needs a pymavlink URL, e.g. udpin:0.0.0.0:14551")
+        if self.start_xy_alt_m is not None:
+            validate.finite_vector("--start", self.start_xy_alt_m, 3)
+        if not isinstance(self.external_pose, bool):
+            raise ConfigError(f"sim service external_pose must be true or false, got {self.external_pose!r}")
 
 
 @dataclass
@@ -110,7 +108,9 @@ class SimStats:
     commands_stale: int = 0  # lockstep: answers to an earlier state (or the controller's hold)
     commands_foreign: int = 0  # a vehicle id other than ours on our key
     commands_rejected: int = 0  # payloads the codec refused (counted by the inbox)
-    poses_received: int = 0  # external pose
+    states_rejected: int = 0  # external pose: state payloads the codec refused
+    poses_received: int = 0  # external pose: states of our vehicle with a local position used
+    states_foreign: int = 0  # external pose: a vehicle id other than ours on our state key
     overruns: int = 0  # real time: schedule restarts after falling behind
     # Transport latency of each command used (wall: received here - sent by the controller), and
     # of the first command made from each frame's heatmap (for `dovesei up`'s per-frame budget).
@@ -157,12 +157,18 @@ class _Wire:
             # Real time prefers dropping an old frame to delaying the next one (Zenoh's default).
             flow = zenoh.CongestionControl.BLOCK if config.lockstep else zenoh.CongestionControl.DROP
             self.camera = self._keep(session.declare_publisher(keys.camera(vid), congestion_control=flow))
-            self.state = self._keep(session.declare_publisher(keys.state(vid), congestion_control=flow))
+            self.state = None
+            self.states: Inbox[VehicleState] | None = None
+            if config.external_pose:
+                # The controller publishes the autopilot's state here; the sim only listens.
+                self.states = self._keep(Inbox(session, keys.state(vid), VehicleState, newest_only=True))
+            else:
+                self.state = self._keep(session.declare_publisher(keys.state(vid), congestion_control=flow))
             # The result is published once, just before the session closes: no batching delay.
             self.episode = self._keep(session.declare_publisher(
                 keys.episode(vid), congestion_control=zenoh.CongestionControl.BLOCK, express=True))
             self.cmds: Inbox[VelocityCommand] | None = None
-            if config.external_pose is None:
+            if not config.external_pose:
                 # Lockstep needs every answer in order; real time only ever wants the newest.
                 self.cmds = self._keep(Inbox(session, keys.cmd(vid), VelocityCommand,
                                              newest_only=not config.lockstep))
@@ -205,7 +211,7 @@ def run(session: zenoh.Session, *, config: SimServiceConfig, stop: threading.Eve
     start = resolve_start(world, config)
     wire = _Wire(session, config)
     try:
-        mode = ("external pose " + config.external_pose if config.external_pose
+        mode = ("external pose from " + keys.state(config.sim.vehicle_id) if config.external_pose
                 else "lockstep" if config.lockstep else f"real time x{config.speed:g}")
         log.info("sim %s up: world %s (%.0f x %.0f m), start (%.1f, %.1f) m at %.0f m, %s timing "
                  "(frame every %.2f s, latency %.2f s), %s, keys %s",
@@ -216,7 +222,7 @@ def run(session: zenoh.Session, *, config: SimServiceConfig, stop: threading.Eve
             return None
         if missing:
             result = _never_started(world, start, config, missing)
-        elif config.external_pose is not None:
+        elif config.external_pose:
             result = _run_external_pose(wire, world, start, config, stop, stats)
         else:
             core = SimCore(world, start, config.sim)
@@ -226,6 +232,8 @@ def run(session: zenoh.Session, *, config: SimServiceConfig, stop: threading.Eve
                 result = _run_realtime(wire, core, config, stop, stats)
         if wire.cmds is not None:
             stats.commands_rejected = sum(wire.cmds.rejected.values())
+        if wire.states is not None:
+            stats.states_rejected = sum(wire.states.rejected.values())
         if result is None:
             log.info("sim %s stopped before the episode ended", config.sim.vehicle_id)
             return None
@@ -363,91 +371,90 @@ class _PoseCamera:
 
 
 def pose_in_world(state: VehicleState, start: Start) -> Pose:
-    """An autopilot's local NED state placed in the world: origin at the start, north +y, east +x."""
+    """A vehicle's local NED state placed in the world: origin at the start, north +y, east +x."""
     north_m, east_m, _down_m = state.pos_local_ned_m
     return Pose(x_m=start.x_m + east_m, y_m=start.y_m + north_m, alt_agl_m=max(state.alt_agl_m, 0.0),
                 yaw_rad=state.yaw_rad, t_s=state.stamp.t_s)
 
 
+def _newest_state(states: Inbox[VehicleState], config: SimServiceConfig, stats: SimStats) -> VehicleState | None:
+    """The newest state of our vehicle with a local position waiting in the inbox, or None."""
+    newest = None
+    while (state := states.poll()) is not None:
+        if state.vehicle_id != config.sim.vehicle_id:
+            stats.states_foreign += 1
+            continue
+        if state.pos_valid:  # until the autopilot has a local position there is no pose to render
+            newest = state
+    return newest
+
+
 def _run_external_pose(wire: _Wire, world: World, start: Start, config: SimServiceConfig, stop: threading.Event,
                        stats: SimStats) -> EpisodeResult | None:
-    from dovesei.controller.mavlink import MAV_COMP_ID_CAMERA, MavlinkVehicle  # pymavlink only in this mode
-
+    """Render at the vehicle states the controller publishes (it alone talks to the autopilot)."""
     cfg = config.sim
     judge = EpisodeJudge(world, handover_alt_m=cfg.handover_alt_m, time_limit_s=cfg.time_limit_s,
                          safety_radius_m=cfg.safety_radius_m)
-    url = config.external_pose
+    key = keys.state(cfg.vehicle_id)
     camera = _PoseCamera(world, cfg)
-    # Read-only: it only listens (plus the companion heartbeat and stream requests), never steers.
-    autopilot = MavlinkVehicle(url, vehicle_id=cfg.vehicle_id, read_only=True, source_component=MAV_COMP_ID_CAMERA)
-    try:
-        try:
-            autopilot.connect(config.wait_timeout_s)
-        except DoveseiError as exc:
-            return _never_started(world, start, config, f"autopilot: {exc}")
-        clock = WallClock()
-        last_pose_wall_s = clock.now_s()
-        first_pose_wall_s: float | None = None
-        state: VehicleState | None = None
-        due_s = clock.now_s()
-        while clock.sleep_until(due_s, stop):
-            due_s += cfg.period_s
-            if clock.now_s() - due_s > _MAX_BEHIND_S:
-                stats.overruns += 1
-                due_s = clock.now_s() + cfg.period_s
-            while (new := autopilot.poll_state()) is not None:
-                if new.pos_valid:  # until LOCAL_POSITION_NED arrives there is no pose to render
-                    state = new
-                    stats.poses_received += 1
-                    last_pose_wall_s = clock.now_s()
-                    if first_pose_wall_s is None:
-                        first_pose_wall_s = last_pose_wall_s
-            if autopilot.lost_reason is not None:
-                return judge_result(cfg.vehicle_id, judge, "error", f"autopilot at {url}: {autopilot.lost_reason}",
-                                    clock="vehicle")
-            if clock.now_s() - last_pose_wall_s > config.cmd_timeout_s:
-                return judge_result(cfg.vehicle_id, judge, "error",
-                                    f"no local position from the autopilot at {url} for {config.cmd_timeout_s:g} s",
-                                    clock="vehicle")
-            # The position and attitude streams start independently and the adapter reports yaw 0
-            # until the first ATTITUDE: render nothing during the first moments of the streams.
-            if state is None or last_pose_wall_s - first_pose_wall_s < _POSE_WARMUP_S:
-                continue
-            pose = pose_in_world(state, start)
-            if judge.check(pose) is not None:
-                return judge_result(cfg.vehicle_id, judge, judge.outcome, clock="vehicle")
-            wire.publish_frame(camera.frame(pose, state), stats)
-            # The autopilot's state as the camera saw it, for monitors (`dovesei up` records the
-            # path from it); the controller of a MAVLink vehicle reads the autopilot itself.
-            wire.state.put(encode(replace(state, sent_wall_s=wall_time_s())))
-            stats.states_sent += 1
-            stats.steps += 1
-        return None
-    finally:
-        autopilot.close()
+    clock = WallClock()
+    last_state_wall_s: float | None = None
+    first_state_wall_s: float | None = None
+    state: VehicleState | None = None
+    due_s = clock.now_s()
+    while clock.sleep_until(due_s, stop):
+        due_s += cfg.period_s
+        if clock.now_s() - due_s > _MAX_BEHIND_S:
+            stats.overruns += 1
+            due_s = clock.now_s() + cfg.period_s
+        new = _newest_state(wire.states, config, stats)
+        if new is not None:
+            state = new
+            stats.poses_received += 1
+            last_state_wall_s = clock.now_s()
+            if first_state_wall_s is None:
+                first_state_wall_s = last_state_wall_s
+                log.info("first vehicle state with a local position on %s", key)
+        if last_state_wall_s is None:
+            if clock.now_s() > config.wait_timeout_s:
+                return _never_started(world, start, config, f"no vehicle state with a local position on {key} "
+                                      f"within {config.wait_timeout_s:g} s (is the controller running "
+                                      "against the autopilot?)")
+            continue
+        if clock.now_s() - last_state_wall_s > config.cmd_timeout_s:
+            return judge_result(cfg.vehicle_id, judge, "error",
+                                f"no vehicle state on {key} for {config.cmd_timeout_s:g} s", clock="vehicle")
+        # The position and attitude streams of an autopilot start independently (yaw reads 0
+        # until the first ATTITUDE): render nothing during the first moments of the stream.
+        if last_state_wall_s - first_state_wall_s < _POSE_WARMUP_S:
+            continue
+        pose = pose_in_world(state, start)
+        if judge.check(pose) is not None:
+            return judge_result(cfg.vehicle_id, judge, judge.outcome, clock="vehicle")
+        wire.publish_frame(camera.frame(pose, state), stats)
+        stats.steps += 1
+    return None
 
 
 # ------------------------------------------------------------------------------------------------ flags
 
 
-def _positive(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not math.isfinite(value) or value <= 0:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number > 0")
-    return value
+def _flag_number(check):
+    """An argparse type: the text as a float, then `check` from dovesei.shared.validate."""
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+        try:
+            return check(repr(text), value)
+        except ConfigError as exc:
+            raise argparse.ArgumentTypeError(str(exc)) from None
+    return parse
 
 
-def _non_negative(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not math.isfinite(value) or value < 0:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number >= 0")
-    return value
+_positive = _flag_number(validate.positive)
+_non_negative = _flag_number(validate.non_negative)
 
 
 def parse_start(text: str) -> tuple[float, float, float | None]:
@@ -459,7 +466,7 @@ def parse_start(text: str) -> tuple[float, float, float | None]:
         values = [float(p) for p in parts]
     except ValueError:
         raise argparse.ArgumentTypeError(f"--start {text!r}: not numbers") from None
-    if not all(math.isfinite(v) for v in values):
+    if not all(validate.is_number(v) for v in values):
         raise argparse.ArgumentTypeError(f"--start {text!r}: values must be finite")
     return values[0], values[1], values[2] if len(values) == 3 else None
 
@@ -482,7 +489,7 @@ def build_parser() -> argparse.ArgumentParser:
                        help="start in world metres (x east, y north of the south-west corner); altitude default 100")
     where.add_argument("--start-seed", type=int, default=d.start_seed,
                        help="seed of the generated start (the first of generate_starts; default 0)")
-    p.add_argument("--timing", choices=sorted(TIMING_PRESETS), default=ds.timing,
+    p.add_argument("--timing", choices=TIMING_NAMES, default=ds.timing,
                    help="frame period and perception latency preset (default: reference)")
     mode = p.add_mutually_exclusive_group()
     mode.add_argument("--lockstep", dest="lockstep", action="store_true",
@@ -500,14 +507,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--jpeg-quality", type=int, default=None, metavar="Q",
                    help="send frames JPEG-compressed at quality Q (1-100; default raw)")
     p.add_argument("--no-truth", action="store_true", help="do not attach ground-truth labels to frames")
-    p.add_argument("--external-pose", metavar="URL", default=None,
-                   help="render at the pose of a MAVLink autopilot (pymavlink URL) instead of simulating the flight")
+    p.add_argument("--external-pose", action="store_true",
+                   help="render at the vehicle state the controller publishes on the state key (a real or SITL "
+                        "autopilot) instead of simulating the flight; the sim then sends no states")
     p.add_argument("--wait-for", type=_wait_list, default=(), metavar="SERVICES",
                    help="comma list of services (segmenter,controller) whose liveliness to wait for before starting")
     p.add_argument("--wait-timeout-s", type=_positive, default=d.wait_timeout_s,
-                   help="give up waiting for --wait-for services (or the autopilot) after this long")
+                   help="give up waiting for --wait-for services (or the first external-pose state) after this long")
     p.add_argument("--cmd-timeout-s", type=_positive, default=d.cmd_timeout_s,
-                   help="lockstep: wall seconds to wait for each command before ending the episode as 'error'")
+                   help="lockstep: wall seconds to wait for each command (external pose: for a new state) "
+                        "before ending the episode as 'error'")
     p.add_argument("--stats-out", type=Path, default=None, metavar="FILE",
                    help="write the run's counters and command latencies as JSON when it ends")
     p.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])

@@ -9,11 +9,11 @@ on n, so a 10-episode run flies the first 10 starts of a 50-episode run.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
 
+from dovesei.shared.validate import is_number
 from dovesei.sim.camera import CameraModel
 from dovesei.sim.world import World, WorldError
 
@@ -39,7 +39,7 @@ def generate_starts(
     """n start positions uniform over the world with the footprint at alt_m inside it (yaw 0)."""
     if isinstance(n, bool) or not isinstance(n, int) or n < 0:
         raise ValueError(f"n must be a non-negative integer, got {n!r}")
-    if not (math.isfinite(alt_m) and alt_m > 0 and math.isfinite(margin_m) and margin_m >= 0):
+    if not (is_number(alt_m) and alt_m > 0 and is_number(margin_m) and margin_m >= 0):
         raise ValueError(f"need alt_m > 0 and margin_m >= 0, got {alt_m!r}, {margin_m!r}")
     # Yaw 0: image columns run east, rows north, so the footprint is an axis-aligned rectangle.
     half_x_m = cam.half_width_m(alt_m) + margin_m

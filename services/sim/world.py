@@ -5,6 +5,7 @@ labels, the judge reads its labels and `safe_lut`, the start generator reads its
 `load_world(spec)` is the one factory that turns a user's `--world` value into a `World`:
 
     "synthetic[:seed=N,...]"        -> synthetic.parse_spec + synthetic.load_or_generate (cached)
+    "dubai" (a name in WORLD_ALIASES) -> the world folder shipped in `worlds/` beside this module
     "tiles:<url template>[,k=v...]" -> tiles.load_tile_world (web map tiles, no labels)
     "<folder>" or ".../world.json"  -> world.json + image + labels (DESIGN.md section 8)
 
@@ -31,11 +32,25 @@ from typing import Any
 import cv2
 import numpy as np
 
-from dovesei.shared.errors import DoveseiError
+from dovesei.shared.errors import ConfigError, DoveseiError
+from dovesei.shared.validate import positive
 
 log = logging.getLogger(__name__)
 
 OUT_OF_WORLD_LABEL = 255  # written by the camera outside the world; never a class id
+
+# The world folders shipped inside the package (package data), and the short names users type.
+WORLDS_DIR = Path(__file__).resolve().parent / "worlds"
+WORLD_ALIASES = {"dubai": "dubai-tile8-004"}
+
+
+def shipped_world(name: str) -> Path:
+    """The folder of a world shipped with the package, by alias ('dubai') or folder name."""
+    folder = WORLDS_DIR / WORLD_ALIASES.get(name, name)
+    if not (folder / "world.json").is_file():
+        known = ", ".join(sorted({*WORLD_ALIASES, *(d.name for d in WORLDS_DIR.iterdir() if d.is_dir())}))
+        raise WorldError(f"no shipped world {name!r} (known: {known})")
+    return folder
 
 
 class WorldError(DoveseiError, ValueError):
@@ -150,18 +165,18 @@ def _describe(a: Any) -> str:
 
 
 def _check_gsd(gsd_m: Any, what: str) -> float:
-    if isinstance(gsd_m, bool) or not isinstance(gsd_m, (int, float)):
-        raise WorldError(f"{what} must be a number of metres per pixel, got {gsd_m!r}")
-    if not math.isfinite(gsd_m) or gsd_m <= 0:
-        raise WorldError(f"{what} must be finite and > 0, got {gsd_m!r}")
-    return float(gsd_m)
+    try:
+        return positive(f"{what} (metres per pixel)", gsd_m)
+    except ConfigError as exc:
+        raise WorldError(str(exc)) from None
 
 
 def load_world(spec: str) -> World:
     """Build the world a `--world` value names (see the module docstring for the forms)."""
     spec = spec.strip()  # specs often arrive from shells and config files with stray spaces
     if not spec:
-        raise WorldError("empty world spec: use 'synthetic[:seed=N]', 'tiles:<url>,...' or a world folder")
+        raise WorldError("empty world spec: use 'synthetic[:seed=N]', 'tiles:<url>,...', "
+                         f"{', '.join(repr(a) for a in WORLD_ALIASES)} or a world folder")
     if spec == "synthetic" or spec.startswith("synthetic:"):
         return _load_synthetic(spec)
     if spec.startswith("tiles:"):
@@ -169,6 +184,8 @@ def load_world(spec: str) -> World:
         from dovesei.sim.tiles import load_tile_world
 
         return load_tile_world(spec)
+    if spec in WORLD_ALIASES:
+        return load_world_folder(shipped_world(spec))
     return load_world_folder(Path(spec))
 
 

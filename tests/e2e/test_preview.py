@@ -6,9 +6,10 @@ from pathlib import Path
 
 import cv2
 
+import dovesei.sim
 from dovesei.preview import main
 
-DUBAI = Path(__file__).resolve().parents[2].parent / "shared" / "worlds" / "dubai-tile8-004"
+DUBAI = Path(dovesei.sim.__file__).parent / "worlds" / "dubai-tile8-004"  # shipped as package data
 
 
 def _png_size(path: Path) -> tuple[int, int]:

@@ -12,14 +12,14 @@ from dovesei.sim.dynamics import (
     DynamicsError,
     Vehicle,
     VehicleParams,
-    VehicleState,
+    Pose,
     body_frd_to_ned,
 )
 
 DT_S = 0.05
 
 
-def fly(vehicle: Vehicle, seconds: float, cmd, yaw_rate: float = 0.0) -> VehicleState:
+def fly(vehicle: Vehicle, seconds: float, cmd, yaw_rate: float = 0.0) -> Pose:
     """Step with a command re-sent every step (always fresh)."""
     for _ in range(round(seconds / DT_S)):
         vehicle.step(DT_S, cmd, yaw_rate, vehicle.state.t_s)
@@ -34,7 +34,7 @@ def test_body_to_ned_by_heading() -> None:
 
 
 def test_step_response_reaches_commanded_speed_and_moves_the_right_way() -> None:
-    v = Vehicle(VehicleState(100.0, 100.0, 50.0, yaw_rad=math.pi / 2))  # facing east
+    v = Vehicle(Pose(100.0, 100.0, 50.0, yaw_rad=math.pi / 2))  # facing east
     st = fly(v, 6.0, (5.0, 0.0, 1.0))  # forward 5 m/s, descend 1 m/s
     assert st.vel_ned_m_s[1] == pytest.approx(5.0, abs=0.01) and abs(st.vel_ned_m_s[0]) < 1e-9
     assert st.vel_ned_m_s[2] == pytest.approx(1.0, abs=0.01)
@@ -45,7 +45,7 @@ def test_step_response_reaches_commanded_speed_and_moves_the_right_way() -> None
 
 def test_limits_are_never_exceeded() -> None:
     params = VehicleParams(max_tilt_deg=20.0)  # g*tan(20 deg) = 3.57 < 4: the tilt limit binds
-    v = Vehicle(VehicleState(0.0, 0.0, 500.0), params, seed=1)
+    v = Vehicle(Pose(0.0, 0.0, 500.0), params, seed=1)
     rng = np.random.default_rng(0)
     a_h_max = GRAVITY_M_S2 * math.tan(math.radians(20.0))
     prev = np.array(v.vel_own_ned_m_s)
@@ -73,14 +73,14 @@ def test_limits_are_never_exceeded() -> None:
 
 
 def test_saturated_command_reaches_max_speed() -> None:
-    v = Vehicle(VehicleState(0.0, 0.0, 100.0))
+    v = Vehicle(Pose(0.0, 0.0, 100.0))
     st = fly(v, 10.0, (30.0, 30.0, -20.0))
     assert math.hypot(st.vel_ned_m_s[0], st.vel_ned_m_s[1]) == pytest.approx(15.0, abs=1e-6)
     assert st.vel_ned_m_s[2] == pytest.approx(-5.0, abs=1e-6)  # climbing at 5 m/s
 
 
 def test_stale_command_brakes_to_hover() -> None:
-    v = Vehicle(VehicleState(0.0, 0.0, 50.0))
+    v = Vehicle(Pose(0.0, 0.0, 50.0))
     fly(v, 5.0, (10.0, 0.0, 0.0))
     assert v.state.vel_ned_m_s[0] == pytest.approx(10.0, abs=0.01)
     cmd_t_s = v.state.t_s
@@ -95,7 +95,7 @@ def test_stale_command_brakes_to_hover() -> None:
         assert v.last_command_stale
     assert max(abs(c) for c in v.state.vel_ned_m_s) < 1e-3
     # No command at all is the same as a stale one.
-    v2 = Vehicle(VehicleState(0.0, 0.0, 50.0, vel_ned_m_s=(3.0, 0.0, 0.0)))
+    v2 = Vehicle(Pose(0.0, 0.0, 50.0, vel_ned_m_s=(3.0, 0.0, 0.0)))
     for _ in range(80):
         v2.step(DT_S, None)
     assert abs(v2.state.vel_ned_m_s[0]) < 1e-3
@@ -103,7 +103,7 @@ def test_stale_command_brakes_to_hover() -> None:
 
 def test_wind_drifts_a_hovering_vehicle() -> None:
     # Hovering in the wind: the ground velocity already equals the wind, the own velocity is 0.
-    start = VehicleState(50.0, 50.0, 30.0, vel_ned_m_s=(1.0, -2.0, 0.0))
+    start = Pose(50.0, 50.0, 30.0, vel_ned_m_s=(1.0, -2.0, 0.0))
     v = Vehicle(start, VehicleParams(wind_ned_m_s=(1.0, -2.0, 0.0)))
     st = fly(v, 10.0, (0.0, 0.0, 0.0))
     assert st.y_m == pytest.approx(60.0, abs=1e-6)  # north 1 m/s
@@ -115,22 +115,22 @@ def test_wind_drifts_a_hovering_vehicle() -> None:
 def test_drift_and_gusts_are_seeded() -> None:
     params = VehicleParams(drift_sigma_m_s_sqrt_s=0.1, gust_sigma_m_s=1.0)
 
-    def run(seed: int) -> list[VehicleState]:
-        v = Vehicle(VehicleState(0.0, 0.0, 40.0), params, seed=seed)
+    def run(seed: int) -> list[Pose]:
+        v = Vehicle(Pose(0.0, 0.0, 40.0), params, seed=seed)
         return [v.step(DT_S, (1.0, 0.5, 0.2), 0.1, v.state.t_s) for _ in range(400)]
 
     a, b, c = run(7), run(7), run(8)
     assert a == b
     assert a != c
     # The disturbance actually moves the vehicle off the undisturbed path.
-    calm = Vehicle(VehicleState(0.0, 0.0, 40.0))
+    calm = Vehicle(Pose(0.0, 0.0, 40.0))
     for _ in range(400):
         calm.step(DT_S, (1.0, 0.5, 0.2), 0.1, calm.state.t_s)
     assert math.hypot(a[-1].x_m - calm.state.x_m, a[-1].y_m - calm.state.y_m) > 0.5
 
 
 def test_ground_stops_descent() -> None:
-    v = Vehicle(VehicleState(0.0, 0.0, 2.0))
+    v = Vehicle(Pose(0.0, 0.0, 2.0))
     st = fly(v, 5.0, (2.0, 0.0, 5.0))
     assert st.alt_agl_m == 0.0 and st.vel_ned_m_s == (0.0, 0.0, 0.0)
     st = fly(v, 3.0, (0.0, 0.0, -2.0))  # a climb command lifts it off again
@@ -145,10 +145,10 @@ def test_bad_params(kwargs: dict) -> None:
 
 
 def test_bad_steps() -> None:
-    v = Vehicle(VehicleState(0.0, 0.0, 10.0))
+    v = Vehicle(Pose(0.0, 0.0, 10.0))
     with pytest.raises(DynamicsError, match="dt_s"):
         v.step(0.0, (1.0, 0.0, 0.0), 0.0, 0.0)
     with pytest.raises(DynamicsError, match="finite"):
         v.step(0.1, (float("inf"), 0.0, 0.0), 0.0, 0.0)
     with pytest.raises(DynamicsError, match="alt_agl_m"):
-        Vehicle(VehicleState(0.0, 0.0, -1.0))
+        Vehicle(Pose(0.0, 0.0, -1.0))

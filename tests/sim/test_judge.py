@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from dovesei.sim.dynamics import VehicleState
+from dovesei.sim.dynamics import Pose
 from dovesei.sim.judge import EpisodeJudge, JudgeError, closest_unsafe_m, judge_landing
 from dovesei.sim.world import ClassInfo, World
 
@@ -111,13 +111,13 @@ def test_world_without_labels_is_an_error() -> None:
 def test_episode_ends_on_handover_with_a_verdict_and_path_length() -> None:
     world = world_of(grass())
     judge = EpisodeJudge(world)
-    assert judge.check(VehicleState(10.0, 10.0, 100.0, t_s=0.0)) is None
-    assert judge.check(VehicleState(13.0, 14.0, 60.0, t_s=10.0)) is None
-    assert judge.check(VehicleState(13.0, 14.0, 20.0, t_s=20.0)) == "safe"
+    assert judge.check(Pose(10.0, 10.0, 100.0, t_s=0.0)) is None
+    assert judge.check(Pose(13.0, 14.0, 60.0, t_s=10.0)) is None
+    assert judge.check(Pose(13.0, 14.0, 20.0, t_s=20.0)) == "safe"
     assert judge.path_length_m == pytest.approx(5.0)
     assert judge.sim_time_s == 20.0 and judge.verdict is not None
     # Once ended it stays ended and stops accumulating.
-    assert judge.check(VehicleState(40.0, 40.0, 5.0, t_s=30.0)) == "safe"
+    assert judge.check(Pose(40.0, 40.0, 5.0, t_s=30.0)) == "safe"
     assert judge.path_length_m == pytest.approx(5.0)
     summary = judge.summary()
     assert summary["outcome"] == "safe" and summary["verdict"]["outcome"] == "safe"
@@ -126,15 +126,15 @@ def test_episode_ends_on_handover_with_a_verdict_and_path_length() -> None:
 def test_episode_timeout_and_out_of_world() -> None:
     world = world_of(grass())  # 50 m square
     judge = EpisodeJudge(world, time_limit_s=100.0)
-    judge.check(VehicleState(25.0, 25.0, 100.0, t_s=5.0))
-    assert judge.check(VehicleState(25.0, 25.0, 90.0, t_s=104.9)) is None
-    assert judge.check(VehicleState(25.0, 25.0, 90.0, t_s=105.0)) == "timeout"
+    judge.check(Pose(25.0, 25.0, 100.0, t_s=5.0))
+    assert judge.check(Pose(25.0, 25.0, 90.0, t_s=104.9)) is None
+    assert judge.check(Pose(25.0, 25.0, 90.0, t_s=105.0)) == "timeout"
     gone = EpisodeJudge(world)
-    gone.check(VehicleState(49.0, 25.0, 100.0))
-    assert gone.check(VehicleState(50.5, 25.0, 100.0, t_s=1.0)) == "out_of_world"
+    gone.check(Pose(49.0, 25.0, 100.0))
+    assert gone.check(Pose(50.5, 25.0, 100.0, t_s=1.0)) == "out_of_world"
     # Leaving the world while low is still out of world: it cannot be judged.
     low = EpisodeJudge(world)
-    assert low.check(VehicleState(-1.0, 25.0, 10.0)) == "out_of_world"
+    assert low.check(Pose(-1.0, 25.0, 10.0)) == "out_of_world"
 
 
 def test_unsafe_handover() -> None:
@@ -143,5 +143,5 @@ def test_unsafe_handover() -> None:
     world = world_of(labels)
     judge = EpisodeJudge(world)
     x_m, y_m = centre_of(world, 100, 150)
-    assert judge.check(VehicleState(x_m, y_m, 19.0)) == "unsafe"
+    assert judge.check(Pose(x_m, y_m, 19.0)) == "unsafe"
     assert judge.verdict.classes[0].name == "road"

@@ -10,7 +10,8 @@ import pytest
 
 from dovesei.shared.errors import ConfigError
 from dovesei.shared.messages import Stamp, VehicleState, VelocityCommand
-from dovesei.sim.core import TIMING_PRESETS, SimConfig, SimCore, StepOut
+from dovesei.shared.timing import timing
+from dovesei.sim.core import SimConfig, SimCore, StepOut
 from dovesei.sim.dynamics import VehicleParams
 from dovesei.sim.starts import Start
 from dovesei.sim.world import ClassInfo, World
@@ -66,7 +67,8 @@ def test_reference_preset_renders_every_step_and_awaits_the_previous_frame(world
 
 
 def test_real_preset_frame_every_half_second_heatmap_due_latency_later(world: World) -> None:
-    period_s, latency_s = TIMING_PRESETS["real"]
+    period_s, latency_s = timing("real").frame_period_s, timing("real").latency_s
+    assert (period_s, latency_s) == (0.5, 0.4)  # the numbers the release flew with
     core = SimCore(world, Start(WEST_M, MID_Y_M, 60.0), SimConfig(timing="real", time_limit_s=3.0))
     outs = fly(core, (0.5, 0.0, 0.0))
     frames = {o.frame.seq: o.frame for o in outs if o.frame is not None}

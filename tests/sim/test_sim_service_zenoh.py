@@ -2,15 +2,14 @@
 
 `run()` flies in a thread on one loopback peer; the test reads frames, states and the result from
 the other (one subscriber on `dovesei/<vehicle>/*`, so the arrival order across keys is visible)
-and answers with commands. Also: the external-pose mode against the fake autopilot on UDP
-loopback, and the flags. Every wait has a deadline.
+and answers with commands. Also: the external-pose mode, with the test session publishing the
+vehicle states a controller of a MAVLink vehicle would, and the flags. Every wait has a deadline.
 """
 
 from __future__ import annotations
 
 import json
 import signal
-import socket
 import threading
 import time
 from collections.abc import Iterator
@@ -21,11 +20,10 @@ import numpy as np
 import pytest
 import zenoh
 
-from dovesei.testing.fake_autopilot import FakeAutopilot
 from dovesei.shared import keys
 from dovesei.shared.codec import decode, encode
 from dovesei.shared.lifecycle import is_alive, wait_until
-from dovesei.shared.messages import CameraFrame, EpisodeResult, Message, VehicleState, replace
+from dovesei.shared.messages import CameraFrame, EpisodeResult, Message, Stamp, VehicleState, replace
 from dovesei.sim.camera import render
 from dovesei.sim.core import SimConfig, SimCore
 from dovesei.sim.service import SimServiceConfig, SimStats, build_parser, config_from_args, main, run
@@ -308,18 +306,57 @@ def test_jpeg_frames_on_the_wire_keep_exact_truth(pair, world: World) -> None:
 
 
 
-def teleport(fake: FakeAutopilot, north_m: float, east_m: float, alt_m: float) -> None:
-    # The fake has no public setter; moving it directly keeps the test free of a steering peer
-    # (a second MAVLink peer would steal the fake's udpin replies from the sim).
-    with fake._lock:
-        fake._pos_ned_m[:] = [north_m, east_m, -alt_m]
+class StatePublisher:
+    """Plays the controller of a MAVLink vehicle: publishes its state on the state key at ~50 Hz.
+
+    `move` changes the pose published from then on (local NED about the take-off point).
+    """
+
+    def __init__(self, session: zenoh.Session, vehicle_id: str = VID, *, alt_m: float = 60.0, yaw_rad: float = 0.3,
+                 pos_valid: bool = True) -> None:
+        self._pub = session.declare_publisher(keys.state(VID))
+        self.vehicle_id, self.pos_valid = vehicle_id, pos_valid
+        self._ned_m = (0.0, 0.0, -alt_m)
+        self._yaw_rad = yaw_rad
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self.sent = 0
+        self._thread = threading.Thread(target=self._run, name="states", daemon=True)
+
+    def move(self, north_m: float, east_m: float, alt_m: float) -> None:
+        with self._lock:
+            self._ned_m = (north_m, east_m, -alt_m)
+
+    def _run(self) -> None:
+        t0 = time.monotonic()
+        while not self._stop.wait(0.02):
+            with self._lock:
+                ned, yaw = self._ned_m, self._yaw_rad
+            st = VehicleState(self.vehicle_id, self.sent, Stamp(time.monotonic() - t0, "vehicle"), -ned[2],
+                              (0.0, 0.0, 0.0), yaw_rad=yaw, mode="GUIDED", pos_valid=self.pos_valid,
+                              pos_local_ned_m=ned)
+            self._pub.put(encode(st))
+            self.sent += 1
+
+    def __enter__(self) -> StatePublisher:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join(DEADLINE_S)
+        self._pub.undeclare()
 
 
-def test_external_pose_frames_follow_the_autopilot_and_the_judge_ends_it(pair, world: World) -> None:
+def external_config(**overrides) -> SimServiceConfig:
+    base = dict(sim=SimConfig(vehicle_id=VID), start_xy_alt_m=(WEST_M, MID_Y_M, 100.0), external_pose=True,
+                wait_timeout_s=5.0, cmd_timeout_s=5.0)
+    base.update(overrides)
+    return SimServiceConfig(**base)
+
+
+def test_external_pose_frames_follow_the_received_states_and_the_judge_ends_it(pair, world: World) -> None:
     sim_session, rec = pair
-    port = free_port(socket.SOCK_DGRAM)
-    config = SimServiceConfig(sim=SimConfig(vehicle_id=VID), start_xy_alt_m=(WEST_M, MID_Y_M, 100.0),
-                              external_pose=f"udpout:127.0.0.1:{port}", wait_timeout_s=5.0, cmd_timeout_s=5.0)
 
     def shows(frame: CameraFrame, x_m: float, y_m: float) -> bool:
         expected = render(world, x_m, y_m, frame.alt_agl_m, frame.yaw_rad)[0]
@@ -333,33 +370,56 @@ def test_external_pose_frames_follow_the_autopilot_and_the_judge_ends_it(pair, w
                 return msg
         raise AssertionError(f"no frame rendered at ({x_m}, {y_m})")
 
-    with FakeAutopilot(f"udpin:127.0.0.1:{port}", alt_m=60.0, yaw_rad=0.3, heartbeat_hz=20) as fake:
-        with SimThread(sim_session, config, world) as sim:
-            first = frame_at(WEST_M, MID_Y_M)  # the local origin sits at the start
-            assert first.alt_agl_m == pytest.approx(60.0) and first.yaw_rad == pytest.approx(0.3, abs=1e-6)
-            assert first.stamp.clock == "vehicle" and first.truth is not None
-            teleport(fake, north_m=12.0, east_m=-7.0, alt_m=60.0)
-            moved = frame_at(WEST_M - 7.0, MID_Y_M + 12.0)  # north = +y, east = +x
-            assert moved.seq > first.seq
-            teleport(fake, north_m=12.0, east_m=-7.0, alt_m=15.0)  # below the hand-over altitude
-            result = rec.until_result()
-            assert sim.join() == result
+    with StatePublisher(rec.session) as states, SimThread(sim_session, external_config(), world) as sim:
+        first = frame_at(WEST_M, MID_Y_M)  # the local origin sits at the start
+        assert first.alt_agl_m == pytest.approx(60.0) and first.yaw_rad == pytest.approx(0.3, abs=1e-6)
+        assert first.stamp.clock == "vehicle" and first.truth is not None
+        states.move(north_m=12.0, east_m=-7.0, alt_m=60.0)
+        moved = frame_at(WEST_M - 7.0, MID_Y_M + 12.0)  # north = +y, east = +x
+        assert moved.seq > first.seq
+        states.move(north_m=12.0, east_m=-7.0, alt_m=15.0)  # below the hand-over altitude
+        result = rec.until_result()
+        assert sim.join() == result
     assert result.outcome == "safe" and result.stamp.clock == "vehicle"
     assert (result.final_x_m, result.final_y_m) == pytest.approx((WEST_M - 7.0, MID_Y_M + 12.0))
-    # The autopilot's own states are republished for monitors, each beside its frame, on the vehicle clock.
-    states = rec.of("state")
-    assert states and all(st.stamp.clock == "vehicle" and st.pos_valid for st in states)
-    assert states[-1].pos_local_ned_m[:2] == pytest.approx((12.0, -7.0))
-    assert sim.stats.poses_received > 0
+    # The sim only listens on the state key in this mode: every state seen there is the controller's.
+    seen_states = rec.of("state")
+    assert seen_states and all(st.mode == "GUIDED" for st in seen_states)
+    assert sim.stats.poses_received > 0 and sim.stats.states_sent == 0
 
 
-def test_external_pose_without_an_autopilot_is_an_error(pair, world: World) -> None:
+def test_external_pose_without_states_is_an_error_naming_the_key(pair, world: World) -> None:
     sim_session, _rec = pair
-    config = SimServiceConfig(sim=SimConfig(vehicle_id=VID), start_xy_alt_m=(WEST_M, MID_Y_M, 100.0),
-                              external_pose=f"udpout:127.0.0.1:{free_port(socket.SOCK_DGRAM)}", wait_timeout_s=0.5)
-    with SimThread(sim_session, config, world) as sim:
+    with SimThread(sim_session, external_config(wait_timeout_s=0.5), world) as sim:
         result = sim.join()
-    assert result.outcome == "error" and "autopilot" in result.detail and "heartbeat" in result.detail
+    assert result.outcome == "error" and keys.state(VID) in result.detail
+    assert sim.stats.frames_sent == 0
+
+
+def test_external_pose_ignores_foreign_and_positionless_states(pair, world: World) -> None:
+    sim_session, rec = pair
+    with StatePublisher(rec.session, vehicle_id="uav9") as foreign, \
+            StatePublisher(rec.session, pos_valid=False) as positionless, \
+            SimThread(sim_session, external_config(wait_timeout_s=1.0), world) as sim:
+        result = sim.join()
+        assert foreign.sent > 0 and positionless.sent > 0
+    assert result.outcome == "error" and sim.stats.frames_sent == 0 and sim.stats.states_foreign > 0
+
+
+def test_external_pose_ends_in_error_when_the_states_stop(pair, world: World) -> None:
+    sim_session, rec = pair
+    with SimThread(sim_session, external_config(cmd_timeout_s=0.5), world) as sim:
+        with StatePublisher(rec.session):
+            assert wait_until(lambda: sim.stats.frames_sent > 0, DEADLINE_S)
+        result = sim.join()
+    assert result.outcome == "error" and "no vehicle state" in result.detail
+
+
+def test_external_pose_flag_takes_no_url() -> None:
+    assert config_from_args(build_parser().parse_args(["--external-pose"])).external_pose is True
+    assert config_from_args(build_parser().parse_args([])).external_pose is False
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["--external-pose", "udpin:0.0.0.0:14551"])
 
 
 def test_flags_build_the_config() -> None:
@@ -384,11 +444,9 @@ def test_bad_flags_are_refused(argv: list[str]) -> None:
 
 
 def test_main_exits_1_when_the_episode_ends_in_error(tmp_path: Path) -> None:
-    # A real world folder (the Dubai tile) and a controller that never comes: error, exit status 1.
-    dubai = Path(__file__).resolve().parents[2].parent / "shared" / "worlds" / "dubai-tile8-004"
-    if not dubai.is_dir():  # the shared folder sits beside the repository on the team's machines
-        dubai = Path("/work/shared/worlds/dubai-tile8-004")
-    argv = ["--world", str(dubai), "--wait-for", "controller", "--wait-timeout-s", "0.3", "--no-multicast-scouting",
+    # A real world (the Dubai tile shipped in the package, by its alias) and a controller that
+    # never comes: error, exit status 1.
+    argv = ["--world", "dubai", "--wait-for", "controller", "--wait-timeout-s", "0.3", "--no-multicast-scouting",
             "--listen", f"tcp/127.0.0.1:{free_port()}", "--log-level", "WARNING",
             "--stats-out", str(tmp_path / "stats" / "sim.json")]
     # main installs SIGINT/SIGTERM handlers: put pytest's back afterwards.

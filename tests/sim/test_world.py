@@ -10,11 +10,11 @@ import cv2
 import numpy as np
 import pytest
 
-from dovesei.sim.world import ClassInfo, World, WorldError, load_world
+import dovesei.sim
+from dovesei.sim.world import WORLD_ALIASES, ClassInfo, World, WorldError, load_world, shipped_world
 
-DUBAI = Path(__file__).resolve().parents[2].parent / "shared" / "worlds" / "dubai-tile8-004"
-if not DUBAI.is_dir():  # the shared folder sits beside the repository on the team's machines
-    DUBAI = Path("/work/shared/worlds/dubai-tile8-004")
+# The CC0 Dubai tile ships inside the package (package data), found from the installed module.
+DUBAI = Path(dovesei.sim.__file__).parent / "worlds" / "dubai-tile8-004"
 
 
 def small_world(h: int = 4, w: int = 6, gsd_m: float = 0.5) -> World:
@@ -211,3 +211,10 @@ def test_synthetic_spec_goes_through_the_generator(tmp_path: Path, monkeypatch) 
     assert set(np.unique(world.labels)) <= set(world.classes)
     again = load_world("synthetic:seed=1,size_m=200,gsd_m=0.5")  # from the disk cache this time
     np.testing.assert_array_equal(again.image_rgb, world.image_rgb)
+
+
+def test_the_dubai_alias_names_the_shipped_folder() -> None:
+    assert shipped_world("dubai") == DUBAI and WORLD_ALIASES["dubai"] == DUBAI.name
+    assert load_world(" dubai ").name == "dubai-tile8-004"
+    with pytest.raises(WorldError, match="known: dubai"):
+        shipped_world("atlantis")
