@@ -214,7 +214,7 @@ def child_commands(options: UpOptions, start: tuple[float, float, float], ports:
     if "--wait-for" in flags["sim"]:
         sim += ["--wait-for", "segmenter,controller"]
     if options.vehicle:
-        sim += ["--external-pose", options.pose_url or options.vehicle]
+        sim += ["--external-pose"]  # renders at the states the controller publishes (it alone opens MAVLink)
 
     seg = [sys.executable, "-m", MODULES["segmenter"], "--vehicle", vid, "--backend", options.segmenter,
            "--sim-noise", repr(float(noise)), "--sim-seed", str(options.seed), *stats("segmenter")]

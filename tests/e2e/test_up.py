@@ -70,7 +70,7 @@ def test_a_real_vehicle_runs_in_real_time_with_the_sim_as_camera(tmp_path: Path)
     assert not opts.lockstep
     cmds = child_commands(opts, (1.0, 2.0, 30.0), {n: 1 for n in (*SERVICES, "monitor")}, tmp_path, 0.0,
                           flags={n: set() for n in SERVICES})
-    assert cmds["sim"][cmds["sim"].index("--external-pose") + 1] == "udpin:0.0.0.0:14551"
+    assert "--external-pose" in cmds["sim"] and not any(a.startswith("udp") for a in cmds["sim"])
     assert cmds["controller"][cmds["controller"].index("--vehicle") + 1] == "udpin:0.0.0.0:14550"
     assert "--realtime" in cmds["controller"]
 
