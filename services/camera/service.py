@@ -1,11 +1,12 @@
-"""Onboard camera source for real flights: OpenCV capture -> CameraFrame on `dovesei/<vehicle>/camera`.
+"""The onboard camera service (`dovesei-camera`): OpenCV capture -> CameraFrame on `dovesei/<vehicle>/camera`.
 
 Data flow:
 
-    capture thread: cv2.VideoCapture (device index, video file, RTSP/HTTP URL or GStreamer
-        pipeline) -> newest frame slot (BGR, capture time); older frames are overwritten unread
-    state source:  VehicleState from Zenoh (`dovesei/<vehicle>/state`, newest wins) or from the
-        autopilot over MAVLink (a read-only MavlinkVehicle: it never steers) -> short history
+    capture thread (`dovesei.camera.source.Grabber`): cv2.VideoCapture (device index, video file,
+        RTSP/HTTP URL or GStreamer pipeline) -> newest frame slot (BGR, capture time); older
+        frames are overwritten unread
+    state inbox:   VehicleState from Zenoh (`dovesei/<vehicle>/state`, newest wins), published
+        by the controller, the one process that talks to the autopilot -> short history
     publish loop:  at `rate_hz`, the newest unpublished frame -> rotate, centre-crop to the output
         aspect, resize -> tagged with the state received just before capture (altitude, attitude,
         a stamp on the vehicle's clock extrapolated to the capture instant) -> encode (JPEG when
@@ -27,21 +28,18 @@ from __future__ import annotations
 
 import argparse
 import logging
-import math
 import sys
 import threading
 import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Protocol
 
-import cv2
-import numpy as np
 import zenoh
 
-from dovesei.shared import keys
+from dovesei.camera.source import ROTATIONS, Grabber, crop_resize, output_hfov_rad
+from dovesei.shared import keys, validate
 from dovesei.shared.codec import encode
 from dovesei.shared.errors import ConfigError
 from dovesei.shared.lifecycle import Inbox, declare_alive, install_stop_handlers
@@ -50,9 +48,7 @@ from dovesei.shared.zconfig import add_zenoh_args, zenoh_config_from_args
 
 log = logging.getLogger(__name__)
 
-ROTATIONS = {0: None, 90: cv2.ROTATE_90_CLOCKWISE, 180: cv2.ROTATE_180, 270: cv2.ROTATE_90_COUNTERCLOCKWISE}
 STATE_HISTORY_S = 3.0  # how far back states are kept to find the one at a frame's capture time
-REOPEN_PERIOD_S = 1.0  # a lost device or stream is reopened this often
 
 
 @dataclass(frozen=True)
@@ -70,8 +66,6 @@ class CameraConfig:
     stall_timeout_s: float = 2.0
     state_timeout_s: float = 1.0
     loop_file: bool = False
-    state_from: str = "zenoh"  # "zenoh" or "mavlink"
-    mavlink_url: str = ""
 
     def __post_init__(self) -> None:
         if not isinstance(self.source, str) or not self.source.strip():
@@ -81,20 +75,14 @@ class CameraConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or not 16 <= value <= 4096:
                 raise ConfigError(f"camera {name} must be an integer in 16..4096, got {value!r}")
-        if not 0.0 < self.hfov_deg < 180.0:
+        if not (validate.is_number(self.hfov_deg) and 0.0 < self.hfov_deg < 180.0):
             raise ConfigError(f"camera hfov_deg must be in (0, 180), got {self.hfov_deg!r}")
         if self.rotate_deg not in ROTATIONS:
             raise ConfigError(f"camera rotate_deg must be one of {sorted(ROTATIONS)}, got {self.rotate_deg!r}")
         for name in ("rate_hz", "stall_timeout_s", "state_timeout_s"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise ConfigError(f"camera {name} must be a positive number, got {value!r}")
-        if self.jpeg_quality is not None and not 1 <= self.jpeg_quality <= 100:
-            raise ConfigError(f"jpeg_quality must be in 1..100, got {self.jpeg_quality!r}")
-        if self.state_from not in ("zenoh", "mavlink"):
-            raise ConfigError(f"state_from {self.state_from!r}: choose 'zenoh' or 'mavlink'")
-        if self.state_from == "mavlink" and not self.mavlink_url:
-            raise ConfigError("state_from 'mavlink' needs a MAVLink URL (--mavlink udpin:0.0.0.0:14550)")
+            validate.positive(f"camera {name}", getattr(self, name))
+        if self.jpeg_quality is not None:
+            validate.in_range("camera jpeg_quality", self.jpeg_quality, 1, 100)
 
 
 @dataclass
@@ -109,132 +97,6 @@ class CameraStats:
     warnings: list[str] = field(default_factory=list)
 
 
-def source_kind(source: str) -> str:
-    """'device', 'gstreamer', 'stream' or 'file', from the shape of the source string."""
-    if source.isdigit():
-        return "device"
-    if "!" in source:
-        return "gstreamer"
-    if "://" in source:
-        return "stream"
-    return "file"
-
-
-def output_hfov_rad(hfov_deg: float, src_w: int, src_h: int, out_w: int, out_h: int, rotate_deg: int) -> float:
-    """Horizontal FOV of the published image after rotation and centre crop to out_w:out_h."""
-    half_tan_w = math.tan(math.radians(hfov_deg) / 2.0)
-    if rotate_deg in (90, 270):
-        # The old vertical axis becomes horizontal: its FOV follows from square pixels.
-        half_tan_w, src_w, src_h = half_tan_w * src_h / src_w, src_h, src_w
-    crop_w = min(src_w, src_h * out_w / out_h)
-    return 2.0 * math.atan(half_tan_w * crop_w / src_w)
-
-
-def crop_resize(bgr: np.ndarray, out_w: int, out_h: int, rotate_deg: int) -> np.ndarray:
-    """Rotate, centre-crop to the output aspect and resize; returns RGB uint8 (out_h, out_w, 3)."""
-    if ROTATIONS[rotate_deg] is not None:
-        bgr = cv2.rotate(bgr, ROTATIONS[rotate_deg])
-    h, w = bgr.shape[:2]
-    crop_w, crop_h = min(w, round(h * out_w / out_h)), min(h, round(w * out_h / out_w))
-    x0, y0 = (w - crop_w) // 2, (h - crop_h) // 2
-    crop = bgr[y0:y0 + crop_h, x0:x0 + crop_w]
-    # INTER_AREA averages when shrinking (no aliasing of fine ground texture), LINEAR when growing.
-    interp = cv2.INTER_AREA if crop_w >= out_w else cv2.INTER_LINEAR
-    return cv2.cvtColor(cv2.resize(crop, (out_w, out_h), interpolation=interp), cv2.COLOR_BGR2RGB)
-
-
-def open_capture(source: str) -> cv2.VideoCapture:
-    """An opened cv2.VideoCapture for any supported source, or ConfigError saying what failed."""
-    kind = source_kind(source)
-    if kind == "file" and not Path(source).is_file():
-        raise ConfigError(f"camera source {source!r}: no such video file")
-    if kind == "gstreamer" and "GStreamer:                   YES" not in cv2.getBuildInformation():
-        raise ConfigError("camera source is a GStreamer pipeline but this OpenCV build has no GStreamer "
-                          "support (opencv-python-headless ships without it; use a system OpenCV)")
-    if kind == "device":
-        cap = cv2.VideoCapture(int(source))
-    elif kind == "gstreamer":
-        cap = cv2.VideoCapture(source, cv2.CAP_GSTREAMER)
-    else:
-        cap = cv2.VideoCapture(source)
-    if not cap.isOpened():
-        cap.release()
-        raise ConfigError(f"camera source {source!r} ({kind}) could not be opened")
-    return cap
-
-
-class Grabber:
-    """Reads frames continuously in a thread and keeps only the newest (BGR, capture time, index).
-
-    A file is paced at its own frame rate (it would otherwise be read in a blink); a device or a
-    stream is read as fast as it delivers, and reopened every REOPEN_PERIOD_S while it fails.
-    """
-
-    def __init__(self, source: str, *, loop_file: bool, clock: Callable[[], float] = time.monotonic) -> None:
-        self.source, self.kind, self.loop_file, self._clock = source, source_kind(source), loop_file, clock
-        self._cap = open_capture(source)
-        fps = self._cap.get(cv2.CAP_PROP_FPS) if self.kind == "file" else 0.0
-        self._file_period_s = 1.0 / fps if fps and math.isfinite(fps) and fps > 0 else 1.0 / 30.0
-        self._lock = threading.Lock()
-        self._slot: tuple[np.ndarray, float, int] | None = None
-        self._count = 0
-        self.ended = threading.Event()  # a file reached its end and does not loop
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="camera-grab", daemon=True)
-
-    def start(self) -> Grabber:
-        self._thread.start()
-        return self
-
-    def newest(self) -> tuple[np.ndarray, float, int] | None:
-        """(BGR frame, capture time on the clock, running index) of the newest frame, if any."""
-        with self._lock:
-            return self._slot
-
-    def close(self) -> None:
-        self._stop.set()
-        if self._thread.is_alive():
-            self._thread.join(timeout=5.0)
-        if self._cap is not None:
-            self._cap.release()
-            self._cap = None
-
-    def _run(self) -> None:
-        next_read_s = self._clock()
-        while not self._stop.is_set():
-            if self.kind == "file":
-                # Pace the file at its own frame rate (never faster), as if a camera produced it.
-                delay = next_read_s - self._clock()
-                if delay > 0 and self._stop.wait(delay):
-                    return
-                next_read_s = max(next_read_s + self._file_period_s, self._clock())
-            ok, bgr = self._cap.read() if self._cap is not None else (False, None)
-            if ok and bgr is not None and bgr.ndim == 3 and bgr.shape[2] == 3:
-                with self._lock:
-                    self._count += 1
-                    self._slot = (bgr, self._clock(), self._count)
-                continue
-            if self.kind == "file":
-                if not self.loop_file:
-                    self.ended.set()
-                    return
-                self._cap.set(cv2.CAP_PROP_POS_FRAMES, 0)
-                continue
-            # A device unplugged or a stream dropped: wait, reopen, and go on if it is back.
-            if self._stop.wait(REOPEN_PERIOD_S):
-                return
-            self._reopen()
-
-    def _reopen(self) -> None:
-        if self._cap is not None:
-            self._cap.release()
-        try:
-            self._cap = open_capture(self.source)
-        except ConfigError as exc:
-            self._cap = None
-            log.debug("camera reopen failed: %s", exc)
-
-
 class StateSource(Protocol):
     def poll(self) -> VehicleState | None: ...
 
@@ -242,7 +104,7 @@ class StateSource(Protocol):
 
 
 class ZenohStateSource:
-    """The vehicle state published on Zenoh (by the MAVLink service or the sim), newest wins."""
+    """The vehicle state published on Zenoh (by the controller of a MAVLink vehicle, or the sim), newest wins."""
 
     def __init__(self, session: zenoh.Session, vehicle_id: str) -> None:
         self._inbox = Inbox(session, keys.state(vehicle_id), VehicleState, newest_only=True)
@@ -252,23 +114,6 @@ class ZenohStateSource:
 
     def close(self) -> None:
         self._inbox.close()
-
-
-class MavlinkStateSource:
-    """The autopilot's state read directly over MAVLink; read-only: it can never steer."""
-
-    def __init__(self, url: str, vehicle_id: str, connect_timeout_s: float = 10.0) -> None:
-        from dovesei.controller.mavlink import MAV_COMP_ID_CAMERA, MavlinkVehicle
-
-        # A component id of its own, so the autopilot tells this link from the controller's.
-        self._vehicle = MavlinkVehicle(url, vehicle_id=vehicle_id, read_only=True, source_component=MAV_COMP_ID_CAMERA)
-        self._vehicle.connect(connect_timeout_s)
-
-    def poll(self) -> VehicleState | None:
-        return self._vehicle.poll_state()
-
-    def close(self) -> None:
-        self._vehicle.close()
 
 
 class CameraPublisher:
@@ -374,14 +219,13 @@ def run(session: zenoh.Session, *, config: CameraConfig, stop: threading.Event,
     """Capture and publish until `stop` is set; returns what happened."""
     own_source = state_source is None
     if state_source is None:
-        state_source = (MavlinkStateSource(config.mavlink_url, config.vehicle_id) if config.state_from == "mavlink"
-                        else ZenohStateSource(session, config.vehicle_id))
+        state_source = ZenohStateSource(session, config.vehicle_id)
     grabber = Grabber(config.source, loop_file=config.loop_file).start()
     publisher = session.declare_publisher(keys.camera(config.vehicle_id))
     loop = CameraPublisher(config, grabber, state_source, publisher.put, stats=stats)
     log.info("camera %s (%s) -> %s at %.1f Hz, %dx%d, %s, state from %s", config.source, grabber.kind,
              keys.camera(config.vehicle_id), config.rate_hz, config.width_px, config.height_px,
-             f"JPEG q{config.jpeg_quality}" if config.jpeg_quality else "raw RGB", config.state_from)
+             f"JPEG q{config.jpeg_quality}" if config.jpeg_quality else "raw RGB", keys.state(config.vehicle_id))
     period_s, poll_s = 1.0 / config.rate_hz, 0.01
     try:
         next_pub_s = time.monotonic()
@@ -414,9 +258,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--stall-timeout", type=float, default=2.0, help="seconds without a frame before reporting")
     p.add_argument("--state-timeout", type=float, default=1.0, help="max age of the state used to tag a frame")
     p.add_argument("--loop", action="store_true", help="loop a video file")
-    p.add_argument("--state-from", choices=("zenoh", "mavlink"), default=None,
-                   help="where altitude/attitude come from (default: mavlink if --mavlink is given, else zenoh)")
-    p.add_argument("--mavlink", default="", metavar="URL", help="pymavlink URL of the autopilot (read-only)")
     p.add_argument("--log-level", default="INFO")
     add_zenoh_args(p)
     return p
@@ -429,9 +270,7 @@ def main(argv: list[str] | None = None) -> int:
         config = CameraConfig(source=args.source, vehicle_id=args.vehicle, width_px=args.width, height_px=args.height,
                               hfov_deg=args.hfov_deg, rotate_deg=args.rotate, rate_hz=args.rate_hz,
                               jpeg_quality=args.jpeg_quality, stall_timeout_s=args.stall_timeout,
-                              state_timeout_s=args.state_timeout, loop_file=args.loop,
-                              state_from=args.state_from or ("mavlink" if args.mavlink else "zenoh"),
-                              mavlink_url=args.mavlink)
+                              state_timeout_s=args.state_timeout, loop_file=args.loop)
         zconf = zenoh_config_from_args(args)
     except ConfigError as exc:
         log.error("%s", exc)
@@ -447,9 +286,6 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as exc:
         log.error("%s", exc)
         return 2
-    except ConnectionError as exc:  # the MAVLink state source found no autopilot
-        log.error("%s", exc)
-        return 1
     return 0
 
 

@@ -1,5 +1,6 @@
-"""The onboard camera source: pure geometry, the publish loop with a fake grabber and clock, and the
-whole service on a video file it writes itself over in-process Zenoh (state from Zenoh or MAVLink).
+"""The onboard camera service: pure geometry, the publish loop with a fake grabber and clock, and the
+whole service on a video file it writes itself over in-process Zenoh, tagged with the states a test
+session publishes on the state key (as the controller of a MAVLink vehicle does).
 """
 
 from __future__ import annotations
@@ -14,8 +15,9 @@ import cv2
 import numpy as np
 import pytest
 
-from dovesei.controller import camera_source as cs
-from dovesei.controller.camera_source import CameraConfig, CameraPublisher, CameraStats
+from dovesei.camera import service as cs
+from dovesei.camera import source as src
+from dovesei.camera.service import CameraConfig, CameraPublisher, CameraStats
 from dovesei.shared import keys
 from dovesei.shared.codec import decode, encode
 from dovesei.shared.errors import ConfigError
@@ -50,35 +52,35 @@ def test_crop_keeps_orientation_and_colour_order() -> None:
     bgr = np.zeros((120, 160, 3), np.uint8)
     bgr[:, :80] = (255, 0, 0)  # blue on the left
     bgr[:60, 80:] = (0, 0, 255)  # red top-right
-    rgb = cs.crop_resize(bgr, 64, 64, 0)
+    rgb = src.crop_resize(bgr, 64, 64, 0)
     assert rgb.shape == (64, 64, 3) and rgb.dtype == np.uint8
     assert tuple(rgb[32, 5]) == (0, 0, 255) and tuple(rgb[5, 60]) == (255, 0, 0)
     # Rotated 90 deg clockwise: the old left edge (blue) is the top, the old top edge the right side,
     # so red (old top-right) ends bottom-right and the black old bottom-right ends bottom-left.
-    rot = cs.crop_resize(bgr, 64, 64, 90)
+    rot = src.crop_resize(bgr, 64, 64, 90)
     assert tuple(rot[5, 32]) == (0, 0, 255) and tuple(rot[60, 60]) == (255, 0, 0) and tuple(rot[60, 5]) == (0, 0, 0)
 
 
 def test_cropping_narrows_the_published_field_of_view() -> None:
     # 4:3 to square keeps 3/4 of the width: tan(hfov'/2) = 0.75 tan(hfov/2).
-    hfov = cs.output_hfov_rad(73.0, 160, 120, 352, 352, 0)
+    hfov = src.output_hfov_rad(73.0, 160, 120, 352, 352, 0)
     assert math.tan(hfov / 2) == pytest.approx(0.75 * math.tan(math.radians(36.5)))
-    assert cs.output_hfov_rad(73.0, 120, 120, 352, 352, 0) == pytest.approx(math.radians(73.0))
+    assert src.output_hfov_rad(73.0, 120, 120, 352, 352, 0) == pytest.approx(math.radians(73.0))
     # Rotated: the old vertical FOV becomes horizontal, and nothing is cropped to a portrait 3:4.
     vfov_half_tan = math.tan(math.radians(36.5)) * 120 / 160
-    assert math.tan(cs.output_hfov_rad(73.0, 160, 120, 120, 160, 90) / 2) == pytest.approx(vfov_half_tan)
+    assert math.tan(src.output_hfov_rad(73.0, 160, 120, 120, 160, 90) / 2) == pytest.approx(vfov_half_tan)
 
 
 def test_config_and_sources_are_checked() -> None:
     with pytest.raises(ConfigError, match="width_px"):
         CameraConfig(source="0", width_px=8)
-    with pytest.raises(ConfigError, match="MAVLink URL"):
-        CameraConfig(source="0", state_from="mavlink")
+    with pytest.raises(ConfigError, match="rate_hz"):
+        CameraConfig(source="0", rate_hz=True)  # a bool is not a rate
     with pytest.raises(ConfigError, match="rotate_deg"):
         CameraConfig(source="0", rotate_deg=45)
     with pytest.raises(ConfigError, match="no such video file"):
-        cs.open_capture("/nonexistent/flight.avi")
-    assert [cs.source_kind(s) for s in ("0", "a.avi", "rtsp://cam/1", "v4l2src ! appsink")] == \
+        src.open_capture("/nonexistent/flight.avi")
+    assert [src.source_kind(s) for s in ("0", "a.avi", "rtsp://cam/1", "v4l2src ! appsink")] == \
         ["device", "file", "stream", "gstreamer"]
 
 
@@ -158,19 +160,19 @@ def test_frames_without_a_recent_state_are_withheld() -> None:
 
 
 class StatePublisher:
-    """Publishes a VehicleState at 50 Hz from a thread until closed (what the MAVLink service would do)."""
+    """Publishes a VehicleState at 50 Hz from a thread until closed (what the controller of a MAVLink vehicle does)."""
 
     def __init__(self, session: object, alt_m: float) -> None:
         self._pub = session.declare_publisher(keys.state("uav1"))
         self._stop = threading.Event()
-        self._alt_m = alt_m
+        self.alt_m = alt_m
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._thread.start()
 
     def _run(self) -> None:
         seq = 0
         while not self._stop.wait(0.02):
-            self._pub.put(encode(state(self._alt_m, t_s=10.0 + seq * 0.02, seq=seq)))
+            self._pub.put(encode(state(self.alt_m, t_s=10.0 + seq * 0.02, seq=seq)))
             seq += 1
 
     def close(self) -> None:
@@ -260,26 +262,29 @@ def test_jpeg_on_the_wire_and_a_looping_file(service: tuple, tmp_path: Path) -> 
     assert max(raw_sizes) < 128 * 128 * 3 / 4  # JPEG, not raw RGB
 
 
-def test_state_from_mavlink_never_steers(service: tuple, tmp_path: Path) -> None:
-    import socket
-
-    from dovesei.testing.fake_autopilot import FakeAutopilot
-
+def test_frames_carry_the_newest_state_received(service: tuple, tmp_path: Path) -> None:
+    # The state changes while the camera runs: later frames carry the new altitude, none a mix.
     b, start = service
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    video = write_video(tmp_path / "flight.avi", frames=20, fps=20.0)
-    with FakeAutopilot(f"udpin:127.0.0.1:{port}", mode="GUIDED", alt_m=55.0) as fake:
-        source = cs.MavlinkStateSource(f"udpout:127.0.0.1:{port}", "uav1", connect_timeout_s=5.0)
-        try:
-            with Inbox(b, keys.camera("uav1"), CameraFrame, newest_only=False) as inbox:
-                start(CameraConfig(source=str(video), width_px=64, height_px=64, rate_hz=10.0, state_from="mavlink",
-                                   mavlink_url=f"udpout:127.0.0.1:{port}"), CameraStats(), state_source=source)
-                frame = inbox.recv(10.0)
-        finally:
-            source.close()
-        assert frame is not None and frame.alt_agl_m == pytest.approx(55.0)
-        setpoints, heartbeats, _ = fake.received()
-        assert setpoints == []
-        assert {h.component for h in heartbeats} == {100}  # MAV_COMP_ID_CAMERA: told apart from the controller
+    video = write_video(tmp_path / "flight.avi", frames=40, fps=20.0)
+    states = StatePublisher(b, alt_m=50.0)
+    try:
+        with Inbox(b, keys.camera("uav1"), CameraFrame, newest_only=False) as inbox:
+            start(CameraConfig(source=str(video), width_px=64, height_px=64, rate_hz=20.0, loop_file=True),
+                  CameraStats())
+            first = inbox.recv(10.0)
+            assert first is not None and first.alt_agl_m == 50.0
+            states.alt_m = 20.0  # read by the publishing thread on its next tick
+
+            def lower() -> bool:
+                f = inbox.poll()
+                return f is not None and f.alt_agl_m == 20.0
+
+            assert wait_until(lower, 10.0)
+    finally:
+        states.close()
+
+
+def test_the_camera_service_has_no_autopilot_link() -> None:
+    # Only the controller opens MAVLink: no flag, no config field, no import of it here.
+    assert "mavlink" not in cs.build_parser().format_help().lower()
+    assert "pymavlink" not in Path(cs.__file__).read_text() and "pymavlink" not in Path(src.__file__).read_text()

@@ -1,0 +1,1 @@
+"""Onboard camera service: frames from a real camera, tagged with the vehicle state received over Zenoh."""
