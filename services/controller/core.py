@@ -287,10 +287,14 @@ class ControllerCore:
             self._refuse("heatmap from the future", "heatmap %d stamped %.3f s after state %.3f s: ignored",
                          hm.seq, hm.stamp.t_s, state.stamp.t_s)
             return
-        self._run_policy(hm, recv_wall_s)
+        self._run_policy(hm, recv_wall_s, state)
 
-    def _run_policy(self, hm: SafetyHeatmap, recv_wall_s: float) -> None:
-        obs = Observation(t_s=hm.stamp.t_s, alt_agl_m=hm.alt_agl_m, prob_safe=hm.probability(), hfov_rad=hm.hfov_rad)
+    def _run_policy(self, hm: SafetyHeatmap, recv_wall_s: float, state: VehicleState) -> None:
+        # Altitude and camera model at capture come with the heatmap; attitude and the autopilot's
+        # velocity estimate from the state of this tick (the heatmap carries none). Never a position.
+        obs = Observation(t_s=hm.stamp.t_s, alt_agl_m=hm.alt_agl_m, prob_safe=hm.probability(), hfov_rad=hm.hfov_rad,
+                          roll_rad=state.roll_rad, pitch_rad=state.pitch_rad, yaw_rad=state.yaw_rad,
+                          vel_est_body_frd_m_s=state.vel_body_frd_m_s)
         start = time.perf_counter()
         try:
             decision = self.policy.step(obs)

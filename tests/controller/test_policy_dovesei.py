@@ -409,7 +409,7 @@ def test_time_running_backwards_is_rejected() -> None:
 
 
 def test_make_policy_names_presets_and_errors() -> None:
-    assert policy_names() == ["dovesei", "dovesei-nofocus"]
+    assert policy_names() == ["clearance", "dovesei", "dovesei-nofocus"]
     assert make_policy("dovesei", "reference").config.timer_scale == pytest.approx(0.065)
     assert make_policy("dovesei").config.timing_name == "real"
     with pytest.raises(ValueError, match="dovesei-nofocus"):

@@ -24,13 +24,24 @@ class PolicyInputError(DoveseiError, ValueError):
 
 @dataclass(frozen=True)
 class Observation:
-    """One look at the world, on the data clock."""
+    """One look at the world, on the data clock: what a real vehicle without GNSS has.
+
+    The camera model is the heatmap's size (pixels, square) and `hfov_rad`; altitude and attitude
+    are those at capture; the velocity is the autopilot's own estimate (body FRD, no GNSS: it does
+    not see wind or estimator drift). There is deliberately no position field: policies never read
+    the sim's true pose (a test asserts this field set).
+    """
 
     t_s: float  # data clock (sim or vehicle), seconds
     # Altitude when the heatmap's frame was captured (the reference samples it at request time).
     alt_agl_m: float
     prob_safe: np.ndarray | None  # (H, W) float32 P(safe) in [0, 1]; None = no new heatmap this tick
     hfov_rad: float = math.radians(73.0)
+    roll_rad: float = 0.0  # attitude at capture (FRD body, radians)
+    pitch_rad: float = 0.0
+    yaw_rad: float = 0.0
+    vel_est_body_frd_m_s: tuple[float, float, float] | None = None  # autopilot estimate; None = none
+    cmd_vel_body_frd_m_s: tuple[float, float, float] | None = None  # last command sent; None = unknown
 
 
 @dataclass(frozen=True)
@@ -44,6 +55,7 @@ class Decision:
     focus_radius_px: float
     threshold: float | None  # dynamic segmentation threshold used (None when it failed)
     info: Mapping[str, float] = field(default_factory=dict)
+    reason: str = ""  # why the policy is in `state` (the last transition's reason)
 
 
 class Policy(Protocol):
@@ -68,8 +80,15 @@ def _build_dovesei_nofocus(config: Any) -> Policy:
     return DoveseiPolicy(config, name="dovesei-nofocus", dynamic_focus=False)
 
 
+def _build_clearance(config: Any) -> Policy:
+    from dovesei.controller.policies.clearance import ClearancePolicy
+
+    return ClearancePolicy(config)
+
+
 # Name -> factory. Imports stay inside the factories so importing this module stays cheap.
 _FACTORIES: dict[str, Callable[[Any], Policy]] = {
+    "clearance": _build_clearance,
     "dovesei": _build_dovesei,
     "dovesei-nofocus": _build_dovesei_nofocus,
 }
@@ -84,7 +103,8 @@ def make_policy(name: str, config: Any = None) -> Policy:
     """Build the policy called `name`.
 
     `config` is policy-specific: for `dovesei*` a `DoveseiConfig`, a timing preset name
-    ("reference" or "real") or None (the `real` preset).
+    ("reference" or "real") or None (the `real` preset); for `clearance` a `ClearanceConfig`, a
+    timing preset name (it runs on true data-clock seconds under both) or None.
     """
     try:
         factory = _FACTORIES[name]

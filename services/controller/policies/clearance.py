@@ -1,0 +1,220 @@
+"""The `clearance` policy: our own lander, built to fix what REFERENCE.md lists as the paper's quirks.
+
+Per heatmap, data flows one way:
+
+    Observation (P(safe), camera model, altitude + attitude at capture, velocity estimate, time)
+      -> EgoMotion   predict with the velocity estimate (+ commanded velocity, + learnt bias),
+                     correct by registering the heatmap against a keyframe    (clearance_motion)
+      -> GroundMap   decay, follow the vehicle and the altitude's resolution, fuse the heatmap
+                     in log-odds at the estimated pose                         (clearance_map)
+      -> spots       clearance = metric distance to the nearest unsafe/unknown cell; the best
+                     spot and the current target re-checked                    (clearance_map)
+      -> machine     one pure step: phase, target, reasons, velocity          (clearance_machine)
+      -> Decision    body FRD velocity, state, target pixel, reason, info (spot, clearance,
+                     confidence, position estimate, bias, registration)
+
+Compared with `dovesei`: memory lives on the ground, not in the image (the drone's own motion is
+compensated); a spot's real size is checked in metres; the search is bounded and remembers
+rejected spots; an abort climbs back; a perception gap holds with the map frozen and never turns
+into a landing; dt is capped; time is true data-clock seconds under every timing preset.
+Never reads a true position: the Observation has none.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+
+from dovesei.controller.policies.base import Decision, Observation, PolicyInputError
+from dovesei.controller.policies.clearance_config import ClearanceConfig, clearance_preset
+from dovesei.controller.policies.clearance_machine import TERMINAL, Inputs, Memory, Phase, search_pattern, step
+from dovesei.controller.policies.clearance_map import GroundMap, clearance_at, find_spot, footprint_width_m
+from dovesei.controller.policies.clearance_motion import EgoMotion, MotionStep, tilt_offset_ne, to_body
+
+log = logging.getLogger(__name__)
+
+
+def _resolve(config: ClearanceConfig | str | None) -> ClearanceConfig:
+    if config is None:
+        return clearance_preset("real")
+    if isinstance(config, str):
+        return clearance_preset(config)
+    if isinstance(config, ClearanceConfig):
+        return config
+    raise TypeError(f"clearance config must be a ClearanceConfig, a preset name or None, got {type(config).__name__}")
+
+
+class ClearancePolicy:
+    """Ground map + metric clearance + bounded search; `step` once per controller tick."""
+
+    def __init__(self, config: ClearanceConfig | str | None = None, *, name: str = "clearance") -> None:
+        self.name = name
+        self.config = _resolve(config)
+        self.reset()
+
+    def reset(self) -> None:
+        self.map = GroundMap(self.config)
+        self.motion = EgoMotion(self.config)
+        self.memory: Memory | None = None
+        self._last_t_s: float | None = None  # last heatmap
+        self._search_alt_m: float | None = None
+        self._waypoints: tuple[tuple[float, float], ...] = ()
+        self._cmd: tuple[float, float, float] = (0.0, 0.0, 0.0)
+        self._last_motion: MotionStep | None = None
+        self._decision = Decision((0.0, 0.0, 0.0), 0.0, Phase.WARMUP.value, None, 0.0, None, {}, "starting")
+
+    @property
+    def state(self) -> Phase:
+        return self.memory.phase if self.memory is not None else Phase.WARMUP
+
+    # ---- the step ----------------------------------------------------------------------
+
+    def step(self, obs: Observation) -> Decision:
+        prob = self._validate(obs)
+        cfg = self.config
+        if self.memory is None:
+            self.memory = Memory(since_s=obs.t_s, start_s=obs.t_s)
+            self._search_alt_m = cfg.search_alt_m if cfg.search_alt_m is not None else max(
+                float(obs.alt_agl_m), cfg.handover_alt_m + 10.0)
+            spacing = cfg.search_spacing_frac * footprint_width_m(self._search_alt_m, obs.hfov_rad)
+            self._waypoints = search_pattern(spacing, cfg.search_radius_m)
+        if prob is None:
+            # No new heatmap: nothing moves on the map; only a perception gap changes the decision.
+            if (self._last_t_s is not None and obs.t_s - self._last_t_s > cfg.gap_s
+                    and self.memory.phase not in TERMINAL and self.memory.phase is not Phase.GAP_HOLD):
+                return self._decide(obs, fresh=False, gap=True, best=None, check=None, clearance=None)
+            return self._decision
+        dt_s = cfg.decision_period_s if self._last_t_s is None else obs.t_s - self._last_t_s
+        if self._last_t_s is not None and dt_s == 0.0:
+            return self._decision  # the same capture time twice: nothing new
+        self._last_t_s = obs.t_s
+        gap = dt_s > cfg.gap_s
+        dt_c = min(dt_s, cfg.dt_cap_s)
+
+        # Ego-motion: predict with the estimate blended with what was commanded, then register.
+        cmd = obs.cmd_vel_body_frd_m_s if obs.cmd_vel_body_frd_m_s is not None else self._cmd
+        est = obs.vel_est_body_frd_m_s if obs.vel_est_body_frd_m_s is not None else cmd
+        w = cfg.cmd_weight
+        vel = tuple((1.0 - w) * e + w * c for e, c in zip(est, cmd))
+        self.motion.predict(dt_c, vel, obs.yaw_rad)  # type: ignore[arg-type]
+        motion = self.motion.correct(prob, dt_s, obs.alt_agl_m, obs.hfov_rad, obs.yaw_rad, obs.roll_rad,
+                                     obs.pitch_rad)
+        self._last_motion = motion
+        pn, pe = motion.north_m, motion.east_m
+
+        # Map: frozen across a gap (no decay); after one, only registered frames are fused.
+        if not gap:
+            self.map.decay(dt_c)
+        self.map.follow(obs.alt_agl_m, pn, pe)
+        blind = gap or self.memory.phase is Phase.GAP_HOLD
+        if not blind or motion.registered:
+            tn, te = tilt_offset_ne(obs.alt_agl_m, obs.roll_rad, obs.pitch_rad, obs.yaw_rad)
+            self.map.fuse(prob, obs.alt_agl_m, obs.hfov_rad, obs.yaw_rad, pn + tn, pe + te,
+                          weight=min(1.0, dt_c / cfg.look_period_s))
+        clearance = self.map.clearance_m()
+        best = find_spot(self.map, clearance, cfg, north_m=pn, east_m=pe, blacklist=self.memory.blacklist)
+        check = None
+        target = self.memory.target
+        if target is not None:
+            check = find_spot(self.map, clearance, cfg, north_m=pn, east_m=pe, blacklist=(),
+                              near=(target.north_m, target.east_m), within_m=cfg.refine_radius_m,
+                              need_m=cfg.required_clearance_m * cfg.recheck_hysteresis)
+        return self._decide(obs, fresh=True, gap=gap, best=best, check=check, clearance=clearance)
+
+    def _decide(self, obs: Observation, *, fresh: bool, gap: bool, best, check, clearance) -> Decision:
+        cfg = self.config
+        assert self.memory is not None and self._search_alt_m is not None
+        pn, pe = self.motion.north_m, self.motion.east_m
+        inp = Inputs(t_s=obs.t_s, alt_agl_m=float(obs.alt_agl_m), north_m=pn, east_m=pe, yaw_rad=obs.yaw_rad,
+                     fresh=fresh, gap=gap, search_alt_m=self._search_alt_m, waypoints=self._waypoints,
+                     best=best, check=check)
+        prev = self.memory
+        mem, vel = step(prev, inp, cfg)
+        self.memory = mem
+        self._cmd = vel
+        if mem.phase is not prev.phase or mem.reason != prev.reason:
+            log.info("clearance: %s -> %s at t=%.2f s, alt %.1f m: %s", prev.phase.value, mem.phase.value, obs.t_s,
+                     obs.alt_agl_m, mem.reason)
+        info: dict[str, float] = {
+            "alt_agl_m": float(obs.alt_agl_m), "est_north_m": pn, "est_east_m": pe,
+            "bias_north_m_s": self.motion.bias_n_m_s, "bias_east_m_s": self.motion.bias_e_m_s,
+            "cell_m": self.map.cell_m, "aborts": float(mem.aborts), "blacklisted": float(len(mem.blacklist)),
+            "required_clearance_m": cfg.required_clearance_m, "waypoint": float(mem.waypoint),
+        }
+        m = self._last_motion
+        if m is not None:
+            info.update(registered=float(m.registered), reg_response=m.response, reg_innovation_m=m.innovation_m)
+        target_px = None
+        spot = mem.target
+        if spot is not None:
+            info.update(spot_north_m=spot.north_m, spot_east_m=spot.east_m, spot_confidence=spot.confidence,
+                        spot_p_safe=spot.p_safe, spot_distance_m=math.hypot(spot.north_m - pn, spot.east_m - pe))
+            # The clearance the map gives the spot now (the target's own figure is from its last check).
+            info["spot_clearance_m"] = (clearance_at(self.map, clearance, spot.north_m, spot.east_m)
+                                        if clearance is not None else spot.clearance_m)
+            if obs.prob_safe is not None:
+                h, w = obs.prob_safe.shape
+                gsd = footprint_width_m(obs.alt_agl_m, obs.hfov_rad) / w
+                tn, te = tilt_offset_ne(obs.alt_agl_m, obs.roll_rad, obs.pitch_rad, obs.yaw_rad)
+                f, r = to_body(spot.north_m - pn - tn, spot.east_m - pe - te, obs.yaw_rad)
+                target_px = ((h - 1) / 2.0 - f / gsd, (w - 1) / 2.0 + r / gsd)
+        self._decision = Decision(
+            vel_body_frd_m_s=(float(vel[0]), float(vel[1]), float(vel[2])), yaw_rate_rad_s=0.0,
+            state=mem.phase.value, target_px=target_px,
+            focus_radius_px=self._required_px(obs), threshold=cfg.p_safe_min, info=info, reason=mem.reason,
+        )
+        return self._decision
+
+    def _required_px(self, obs: Observation) -> float:
+        """The required clearance disk in heatmap pixels (drawn like the reference's focus circle)."""
+        if obs.prob_safe is None:
+            return self._decision.focus_radius_px
+        gsd = footprint_width_m(obs.alt_agl_m, obs.hfov_rad) / obs.prob_safe.shape[1]
+        return self.config.required_clearance_m / gsd
+
+    # ---- views for reports and videos ---------------------------------------------------
+
+    def map_view(self) -> dict[str, object]:
+        """The fused map for pictures: P, confidence, clearance (metres) and its geometry."""
+        return {"p_safe": self.map.fused_p(), "confidence": self.map.confidence(),
+                "clearance_m": self.map.clearance_m(), "cell_m": self.map.cell_m,
+                "north0_m": self.map.north0_m, "east0_m": self.map.east0_m,
+                "vehicle_ne_m": (self.motion.north_m, self.motion.east_m),
+                "blacklist": self.memory.blacklist if self.memory else ()}
+
+    # ---- input checks ------------------------------------------------------------------
+
+    def _validate(self, obs: Observation) -> np.ndarray | None:
+        if not isinstance(obs.t_s, (int, float)) or not math.isfinite(obs.t_s):
+            raise PolicyInputError(f"observation t_s must be a finite number of seconds, got {obs.t_s!r}")
+        if self._last_t_s is not None and obs.t_s < self._last_t_s:
+            raise PolicyInputError(f"observation t_s went backwards: {obs.t_s} s after a heatmap at {self._last_t_s} s")
+        for name in ("alt_agl_m", "roll_rad", "pitch_rad", "yaw_rad"):
+            v = getattr(obs, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise PolicyInputError(f"observation {name} must be a finite number, got {v!r}")
+        if obs.alt_agl_m <= 0.0:
+            raise PolicyInputError(f"observation alt_agl_m must be > 0, got {obs.alt_agl_m!r}")
+        if abs(obs.roll_rad) >= 1.2 or abs(obs.pitch_rad) >= 1.2:
+            raise PolicyInputError(f"observation attitude beyond +/-1.2 rad (roll {obs.roll_rad}, pitch {obs.pitch_rad})")
+        if not (isinstance(obs.hfov_rad, (int, float)) and 0.0 < obs.hfov_rad < math.pi):
+            raise PolicyInputError(f"observation hfov_rad must be in (0, pi), got {obs.hfov_rad!r}")
+        for name in ("vel_est_body_frd_m_s", "cmd_vel_body_frd_m_s"):
+            v = getattr(obs, name)
+            if v is not None and (len(v) != 3 or not all(isinstance(x, (int, float)) and math.isfinite(x) for x in v)):
+                raise PolicyInputError(f"observation {name} must be 3 finite numbers or None, got {v!r}")
+        if obs.prob_safe is None:
+            return None
+        prob = obs.prob_safe
+        if not isinstance(prob, np.ndarray) or prob.ndim != 2 or min(prob.shape) < 16:
+            raise PolicyInputError(f"prob_safe must be a 2-D numpy array at least 16 px a side, got shape "
+                                   f"{getattr(prob, 'shape', None)}")
+        if not np.issubdtype(prob.dtype, np.floating):
+            raise PolicyInputError(f"prob_safe must hold floats in [0, 1], got dtype {prob.dtype}")
+        prob = np.ascontiguousarray(prob, dtype=np.float32)
+        lo, hi = float(prob.min()), float(prob.max())
+        if not (math.isfinite(lo) and math.isfinite(hi)) or lo < 0.0 or hi > 1.0:
+            raise PolicyInputError(f"prob_safe must be finite and within [0, 1], got range [{lo}, {hi}]")
+        return prob

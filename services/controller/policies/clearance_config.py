@@ -1,0 +1,135 @@
+"""Every constant of the `clearance` policy, with units, validated once.
+
+The policy runs on true data-clock seconds under both timing presets: its timers are its own, not
+the reference's, so a preset name only changes nothing but the name kept for reports.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+from dovesei.shared import timing as shared_timing
+from dovesei.shared import validate
+from dovesei.shared.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class ClearanceConfig:
+    timing_name: str = "real"
+    decision_period_s: float = 0.5  # nominal heatmap period (first cycle, bench stepping)
+
+    # --- landing goal ---
+    safety_radius_m: float = 2.0  # the disk that must be safe at touchdown (the judge's)
+    margin_m: float = 1.5  # added to the radius: position error and the map's blur
+    handover_alt_m: float = 20.0  # HANDOVER only at/below this measured altitude
+    search_alt_m: float | None = None  # None: the altitude of the first heatmap
+
+    # --- safety map ---
+    map_cells: int = 320  # map side in cells (square, centred near the vehicle)
+    cell_per_alt: float = 0.01  # desired cell size = alt x this (1 m at 100 m) ...
+    cell_min_m: float = 0.25  # ... within these bounds, in power-of-two steps
+    cell_max_m: float = 1.0
+    p_clip: float = 0.02  # P clipped to [p_clip, 1 - p_clip] before the logit
+    look_period_s: float = 0.5  # frames closer than this count as one look (errors correlate)
+    decay_tau_s: float = 30.0  # evidence fades with this time constant
+    p_safe_min: float = 0.6  # fused P a cell needs to count as safe
+    looks_min: float = 2.0  # evidence (looks) a cell needs to count as known
+    looks_full: float = 6.0  # confidence = 1 - exp(-looks / looks_full)
+
+    # --- ego-motion ---
+    reg_size_px: int = 96  # registration image side
+    reg_min_response: float = 0.08  # phase-correlation peak quality to accept a shift
+    reg_min_std: float = 0.03  # minimum heatmap texture (std of P) to try registering
+    reg_min_eigen_ratio: float = 0.2  # a direction is constrained when its texture is this share of the best
+    reg_gate_m: float = 4.0  # innovation gate: base, plus reg_gate_frac x footprint width
+    reg_gate_frac: float = 0.1
+    reg_pos_gain: float = 0.6  # share of an accepted innovation applied to the position
+    bias_tau_s: float = 6.0  # velocity-bias estimator time constant
+    bias_max_m_s: float = 3.0
+    cmd_weight: float = 0.2  # blend of the commanded velocity into the prediction
+    key_shift_frac: float = 0.2  # new keyframe beyond this share of the image, or ...
+    key_scale_ratio: float = 1.25  # ... this altitude ratio
+    dt_cap_s: float = 2.0  # no single step integrates more than this
+
+    # --- search ---
+    search_radius_m: float = 150.0  # never fly further than this from the start
+    search_spacing_frac: float = 0.6  # pattern spacing = this x footprint width at search altitude
+    search_speed_m_s: float = 6.0
+    pattern_repeats: int = 2
+
+    # --- approach / descent ---
+    approach_gain_per_s: float = 0.5  # lateral velocity = gain x error (capped)
+    max_speed_m_s: float = 6.0
+    lock_in_m: float = 1.5  # start descending within this (plus lock_alt_frac x altitude) ...
+    lock_out_m: float = 3.0  # ... stop descending beyond this (hysteresis)
+    lock_alt_frac: float = 0.02
+    switch_gain: float = 0.3  # a new spot must score this much better to replace the target
+    refine_radius_m: float = 4.0  # the target slides to the best clearance within this
+    descent_gain_per_s: float = 0.08  # descent speed = gain x height above hand-over + min
+    descent_min_m_s: float = 1.0
+    descent_max_m_s: float = 4.0
+    climb_speed_m_s: float = 3.0
+    fail_frames: int = 3  # consecutive failed re-checks that reject the target
+    recheck_hysteresis: float = 0.85  # a locked target fails only below this x the required clearance
+
+    # --- timeouts and limits ---
+    warmup_frames: int = 3
+    warmup_timeout_s: float = 10.0
+    approach_timeout_s: float = 90.0
+    descend_timeout_s: float = 180.0
+    abort_timeout_s: float = 60.0
+    gap_s: float = 1.5  # no heatmap for this long = perception gap: hold, map frozen
+    gap_recover_frames: int = 3  # fresh heatmaps needed before leaving GAP_HOLD
+    gap_hold_timeout_s: float = 30.0  # still blind after this: climb back (ABORT)
+    max_aborts: int = 4
+    no_spot_after_s: float = 900.0  # searching this long: hold and report "no safe spot found"
+
+    def __post_init__(self) -> None:
+        positive = (
+            "decision_period_s", "safety_radius_m", "handover_alt_m", "cell_per_alt", "cell_min_m", "cell_max_m",
+            "look_period_s", "decay_tau_s", "looks_min", "looks_full", "reg_gate_m", "bias_tau_s",
+            "key_scale_ratio", "dt_cap_s", "search_radius_m", "search_spacing_frac", "search_speed_m_s",
+            "approach_gain_per_s", "max_speed_m_s", "lock_in_m", "lock_out_m",
+            "refine_radius_m", "descent_gain_per_s", "descent_min_m_s", "descent_max_m_s", "climb_speed_m_s",
+            "warmup_timeout_s", "approach_timeout_s", "descend_timeout_s", "abort_timeout_s", "gap_s",
+            "gap_hold_timeout_s", "no_spot_after_s",
+        )
+        for name in positive:
+            validate.positive(f"ClearanceConfig.{name}", getattr(self, name))
+        for name in ("margin_m", "reg_gate_frac", "bias_max_m_s", "switch_gain"):
+            validate.non_negative(f"ClearanceConfig.{name}", getattr(self, name))
+        for name in ("p_clip", "p_safe_min", "reg_min_response", "reg_min_std", "reg_min_eigen_ratio", "reg_pos_gain", "cmd_weight",
+                     "key_shift_frac", "recheck_hysteresis"):
+            validate.in_range(f"ClearanceConfig.{name}", getattr(self, name), 0.0, 1.0)
+        if self.cell_min_m > self.cell_max_m:
+            raise ConfigError(f"ClearanceConfig.cell_min_m {self.cell_min_m} exceeds cell_max_m {self.cell_max_m}")
+        if self.lock_out_m < self.lock_in_m:
+            raise ConfigError(f"ClearanceConfig.lock_out_m {self.lock_out_m} must be >= lock_in_m {self.lock_in_m}")
+        for name in ("map_cells", "reg_size_px", "pattern_repeats", "fail_frames", "warmup_frames",
+                     "gap_recover_frames", "max_aborts"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ConfigError(f"ClearanceConfig.{name} must be an integer >= 1, got {value!r}")
+        if self.map_cells < 32 or self.reg_size_px < 16:
+            raise ConfigError("ClearanceConfig: map_cells must be >= 32 and reg_size_px >= 16")
+        if self.search_alt_m is not None and not self.search_alt_m > self.handover_alt_m:
+            raise ConfigError(f"ClearanceConfig.search_alt_m {self.search_alt_m!r} must be above the hand-over "
+                              f"altitude {self.handover_alt_m} m")
+
+    @property
+    def required_clearance_m(self) -> float:
+        """Metric clearance a spot needs: every cell within this radius is known and safe."""
+        return self.safety_radius_m + self.margin_m
+
+    def replace(self, **changes: object) -> ClearanceConfig:
+        try:
+            return dataclasses.replace(self, **changes)
+        except TypeError as exc:
+            raise ConfigError(f"ClearanceConfig: {exc}") from None
+
+
+def clearance_preset(name: str) -> ClearanceConfig:
+    """The config for a timing preset: only the nominal decision period differs."""
+    t = shared_timing.timing(name)
+    return ClearanceConfig(timing_name=t.name, decision_period_s=t.decision_period_s)

@@ -1,0 +1,247 @@
+"""The `clearance` policy's state machine: an enum and one pure step function.
+
+    WARMUP --3 frames / 10 s--> SEARCH --spot with clearance >= radius + margin--> APPROACH
+    SEARCH  --pattern flown (x repeats) or 900 s--> NO_SPOT (hold: "no safe spot found")
+    APPROACH --within the lock radius--> DESCEND --measured alt <= hand-over alt--> HANDOVER
+    APPROACH --target fails 3 re-checks / 90 s--> blacklist it; SEARCH (or ABORT below search alt)
+    DESCEND  --target fails 3 re-checks / 180 s--> ABORT (blacklist)
+    DESCEND  --lock lost (error > 3 x lock-out)--> APPROACH
+    ABORT    --back at the search altitude / 60 s--> SEARCH, or NO_SPOT after max_aborts
+    any live state --no heatmap for gap_s--> GAP_HOLD (map frozen, zero velocity)
+    GAP_HOLD --3 fresh frames--> APPROACH (target kept, lock again) or SEARCH
+    GAP_HOLD --still blind after 30 s--> ABORT (climb to the search altitude, no blacklist)
+
+Every live state has a timeout and a way out; NO_SPOT and HANDOVER are the chain's two ends
+(the operator, or the short-range sensors, take over). Descent happens only in DESCEND, only with
+the lateral error inside the lock (hysteresis: lock_in to start, lock_out to stop), and HANDOVER
+only at the measured hand-over altitude. Every transition carries its reason.
+
+Positions are north/east metres in the policy's own frame; velocities come out body FRD.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from enum import Enum
+
+from dovesei.controller.policies.clearance_config import ClearanceConfig
+from dovesei.controller.policies.clearance_map import Spot
+from dovesei.controller.policies.clearance_motion import to_body
+
+
+class Phase(str, Enum):
+    WARMUP = "WARMUP"
+    SEARCH = "SEARCH"
+    APPROACH = "APPROACH"
+    DESCEND = "DESCEND"
+    ABORT = "ABORT"
+    GAP_HOLD = "GAP_HOLD"
+    NO_SPOT = "NO_SPOT"
+    HANDOVER = "HANDOVER"
+
+
+TERMINAL = (Phase.NO_SPOT, Phase.HANDOVER)
+
+
+@dataclass(frozen=True)
+class Memory:
+    """Everything the machine remembers between steps (immutable: a step returns a new one)."""
+
+    phase: Phase = Phase.WARMUP
+    since_s: float = 0.0  # when the phase was entered
+    start_s: float = 0.0  # when the policy started
+    frames: int = 0  # fresh frames counted in the phase (warm-up, gap recovery)
+    target: Spot | None = None
+    fails: int = 0  # consecutive failed re-checks of the target
+    aborts: int = 0
+    blacklist: tuple[tuple[float, float], ...] = ()
+    waypoint: int = 0  # index into the search pattern (counts repeats)
+    descending: bool = False  # inside the lock (hysteresis state)
+    reason: str = "starting"
+
+
+@dataclass(frozen=True)
+class Inputs:
+    """One step's view: time, the vehicle's estimated pose, what the map says."""
+
+    t_s: float
+    alt_agl_m: float
+    north_m: float
+    east_m: float
+    yaw_rad: float
+    fresh: bool  # a new heatmap this step
+    gap: bool  # no heatmap for more than gap_s
+    search_alt_m: float
+    waypoints: tuple[tuple[float, float], ...]  # one pass of the search pattern
+    best: Spot | None  # the best spot on the map now (not blacklisted, inside the radius)
+    check: Spot | None  # the target re-checked and refined (None: it fails), when there is one
+
+
+def search_pattern(spacing_m: float, radius_m: float) -> tuple[tuple[float, float], ...]:
+    """An expanding square around the start (0, 0): legs 1, 1, 2, 2, 3, 3... x spacing, turning
+    N, E, S, W; it stops before a corner would leave the radius, then returns to the start."""
+    points: list[tuple[float, float]] = []
+    n = e = 0.0
+    dirs = ((1.0, 0.0), (0.0, 1.0), (-1.0, 0.0), (0.0, -1.0))
+    leg = 0
+    while len(points) < 64:
+        length = (leg // 2 + 1) * spacing_m
+        dn, de = dirs[leg % 4]
+        nn, ne = n + dn * length, e + de * length
+        if math.hypot(nn, ne) > radius_m:
+            break
+        points.append((nn, ne))
+        n, e = nn, ne
+        leg += 1
+    points.append((0.0, 0.0))
+    return tuple(points)
+
+
+def _go(mem: Memory, phase: Phase, t_s: float, reason: str, **changes: object) -> Memory:
+    return dataclasses.replace(mem, phase=phase, since_s=t_s, frames=0, fails=0, descending=False, reason=reason,
+                               **changes)
+
+
+def _blacklisted(mem: Memory, spot: Spot) -> tuple[tuple[float, float], ...]:
+    return mem.blacklist + ((spot.north_m, spot.east_m),)
+
+
+def _toward(north_err: float, east_err: float, gain: float, vmax: float, yaw: float) -> tuple[float, float]:
+    vn, ve = gain * north_err, gain * east_err
+    speed = math.hypot(vn, ve)
+    if speed > vmax:
+        vn, ve = vn * vmax / speed, ve * vmax / speed
+    return to_body(vn, ve, yaw)
+
+
+def _hold_alt(alt: float, goal: float, cfg: ClearanceConfig) -> float:
+    """Vertical speed (+down) holding an altitude; never below the hand-over altitude."""
+    up = min(max(0.5 * (goal - alt), -cfg.climb_speed_m_s), cfg.climb_speed_m_s)
+    return -up
+
+
+def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[float, float, float]]:
+    """One decision: the next memory and the body FRD velocity (+down)."""
+    t, p = inp.t_s, mem.phase
+    if p in TERMINAL:
+        return mem, (0.0, 0.0, 0.0)
+    elapsed = t - mem.since_s
+
+    # --- perception gap: freeze and hold, from any live state ---
+    if inp.gap and p is not Phase.GAP_HOLD:
+        mem = _go(mem, Phase.GAP_HOLD, t, f"no heatmap for more than {cfg.gap_s:g} s: map frozen, holding")
+        return mem, (0.0, 0.0, 0.0)
+    if p is Phase.GAP_HOLD:
+        if elapsed > cfg.gap_hold_timeout_s:
+            return _go(mem, Phase.ABORT, t, f"blind for {cfg.gap_hold_timeout_s:g} s: climbing to the search "
+                                            "altitude"), (0.0, 0.0, -cfg.climb_speed_m_s)
+        frames = mem.frames + (1 if inp.fresh and not inp.gap else 0)
+        if frames >= cfg.gap_recover_frames:
+            if mem.target is not None:
+                return _go(mem, Phase.APPROACH, t, "perception back: re-locking on the target"), (0.0, 0.0, 0.0)
+            return _go(mem, Phase.SEARCH, t, "perception back: searching"), (0.0, 0.0, 0.0)
+        return dataclasses.replace(mem, frames=frames), (0.0, 0.0, 0.0)
+
+    if p is Phase.WARMUP:
+        frames = mem.frames + (1 if inp.fresh else 0)
+        if frames >= cfg.warmup_frames or elapsed > cfg.warmup_timeout_s:
+            mem = _go(mem, Phase.SEARCH, t, f"warm-up done after {frames} frames")
+            p = Phase.SEARCH
+        else:
+            return dataclasses.replace(mem, frames=frames), (0.0, 0.0, 0.0)
+
+    if p is Phase.SEARCH:
+        if inp.best is not None:
+            s = inp.best
+            mem = _go(mem, Phase.APPROACH, t, f"spot {s.distance_m:.0f} m away: clearance {s.clearance_m:.1f} m, "
+                                              f"confidence {s.confidence:.2f}", target=s)
+            p = Phase.APPROACH
+        elif t - mem.start_s > cfg.no_spot_after_s:
+            return _go(mem, Phase.NO_SPOT, t, f"no safe spot found in {cfg.no_spot_after_s:g} s"), (0.0, 0.0, 0.0)
+        else:
+            total = len(inp.waypoints) * cfg.pattern_repeats
+            wp = mem.waypoint
+            if wp >= total:
+                return _go(mem, Phase.NO_SPOT, t, f"no safe spot found within {cfg.search_radius_m:g} m "
+                                                  f"({cfg.pattern_repeats} search passes)"), (0.0, 0.0, 0.0)
+            goal_n, goal_e = inp.waypoints[wp % len(inp.waypoints)]
+            err_n, err_e = goal_n - inp.north_m, goal_e - inp.east_m
+            if math.hypot(err_n, err_e) < 5.0:
+                mem = dataclasses.replace(mem, waypoint=wp + 1)
+            vf, vr = _toward(err_n, err_e, cfg.approach_gain_per_s, cfg.search_speed_m_s, inp.yaw_rad)
+            return mem, (vf, vr, _hold_alt(inp.alt_agl_m, inp.search_alt_m, cfg))
+
+    if p is Phase.ABORT:
+        back = inp.alt_agl_m >= inp.search_alt_m - 2.0
+        if back or elapsed > cfg.abort_timeout_s:
+            why = "back at the search altitude" if back else f"climb took over {cfg.abort_timeout_s:g} s"
+            if mem.aborts >= cfg.max_aborts:
+                return _go(mem, Phase.NO_SPOT, t, f"no safe spot found: {mem.aborts} aborts ({why})"), (0.0, 0.0, 0.0)
+            return _go(mem, Phase.SEARCH, t, f"{why}: searching again"), (0.0, 0.0, 0.0)
+        return mem, (0.0, 0.0, -cfg.climb_speed_m_s)
+
+    # --- APPROACH and DESCEND: a target is held ---
+    target = mem.target
+    assert target is not None
+    fails = mem.fails
+    if inp.fresh:
+        if inp.check is None:
+            fails += 1
+        else:
+            fails = 0
+            target = inp.check  # refined: the best clearance near the target, as resolution improves
+    if fails >= cfg.fail_frames:
+        why = f"target failed {fails} re-checks (clearance or confidence too low at {inp.alt_agl_m:.0f} m)"
+        below = inp.alt_agl_m < inp.search_alt_m - 2.0
+        if p is Phase.DESCEND or below:
+            return _go(mem, Phase.ABORT, t, why + ": abort, climbing back", target=None, aborts=mem.aborts + 1,
+                       blacklist=_blacklisted(mem, target)), (0.0, 0.0, -cfg.climb_speed_m_s)
+        return _go(mem, Phase.SEARCH, t, why + ": rejected", target=None,
+                   blacklist=_blacklisted(mem, target)), (0.0, 0.0, 0.0)
+    err_n, err_e = target.north_m - inp.north_m, target.east_m - inp.east_m
+    err = math.hypot(err_n, err_e)
+    lock_in = cfg.lock_in_m + cfg.lock_alt_frac * inp.alt_agl_m
+    lock_out = cfg.lock_out_m + cfg.lock_alt_frac * inp.alt_agl_m
+    mem = dataclasses.replace(mem, target=target, fails=fails)
+
+    if p is Phase.APPROACH:
+        if elapsed > cfg.approach_timeout_s:
+            return _go(mem, Phase.SEARCH, t, f"approach took over {cfg.approach_timeout_s:g} s: rejected",
+                       target=None, blacklist=_blacklisted(mem, target)), (0.0, 0.0, 0.0)
+        best = inp.best
+        if (best is not None and best.score > target.score + cfg.switch_gain
+                and math.hypot(best.north_m - target.north_m, best.east_m - target.east_m) > cfg.refine_radius_m):
+            mem = _go(mem, Phase.APPROACH, t, f"better spot: clearance {best.clearance_m:.1f} m, confidence "
+                                              f"{best.confidence:.2f}, score {best.score:.2f} > {target.score:.2f}",
+                      target=best)
+            target = best
+            err_n, err_e = target.north_m - inp.north_m, target.east_m - inp.east_m
+            err = math.hypot(err_n, err_e)
+        elif err < lock_in:
+            mem = _go(mem, Phase.DESCEND, t, f"locked within {err:.1f} m: descending, re-checking the footprint",
+                      target=target)
+            p = Phase.DESCEND
+        if p is Phase.APPROACH:
+            vf, vr = _toward(err_n, err_e, cfg.approach_gain_per_s, cfg.max_speed_m_s, inp.yaw_rad)
+            return mem, (vf, vr, _hold_alt(inp.alt_agl_m, max(inp.alt_agl_m, cfg.handover_alt_m + 5.0), cfg))
+
+    # DESCEND
+    if inp.alt_agl_m <= cfg.handover_alt_m:
+        return _go(mem, Phase.HANDOVER, t, f"at the hand-over altitude over the spot (error {err:.1f} m, "
+                                           f"clearance {target.clearance_m:.1f} m)"), (0.0, 0.0, 0.0)
+    if t - mem.since_s > cfg.descend_timeout_s:
+        return _go(mem, Phase.ABORT, t, f"descent took over {cfg.descend_timeout_s:g} s: abort", target=None,
+                   aborts=mem.aborts + 1, blacklist=_blacklisted(mem, target)), (0.0, 0.0, -cfg.climb_speed_m_s)
+    if err > 3.0 * lock_out:
+        return _go(mem, Phase.APPROACH, t, f"lock lost ({err:.1f} m off): approaching again"), (0.0, 0.0, 0.0)
+    descending = err < lock_in or (mem.descending and err <= lock_out)
+    if descending != mem.descending:
+        mem = dataclasses.replace(mem, descending=descending)
+    vf, vr = _toward(err_n, err_e, cfg.approach_gain_per_s, cfg.max_speed_m_s, inp.yaw_rad)
+    vz = 0.0
+    if descending:
+        vz = min(max(cfg.descent_gain_per_s * (inp.alt_agl_m - cfg.handover_alt_m) + cfg.descent_min_m_s,
+                     cfg.descent_min_m_s), cfg.descent_max_m_s)
+    return mem, (vf, vr, vz)

@@ -1,0 +1,260 @@
+"""The `clearance` policy's ground-plane safety map and its spots, in a local metric frame.
+
+Frame: north/east metres from where the policy started (its own dead-reckoned frame, never the
+sim's). Map row 0 is the northern edge, column 0 the western one, so with yaw 0 the map and the
+camera image have the same orientation.
+
+Per cell the map keeps two sums, decayed with time:
+
+    L = sum of w * logit(P)      (evidence)        W = sum of w      (looks)
+
+The fused probability is sigmoid(L / W): a weighted mean in log-odds. A plain log-odds SUM would
+treat every frame as independent, and CLIPSeg's errors are not (the same ground is misread frame
+after frame): 30 frames of 0.6 would add up to certainty. Frames closer than `look_period_s`
+share one look (w = dt / look_period), and the confidence is 1 - exp(-W / looks_full).
+
+Resolution follows altitude: the cell is alt x `cell_per_alt`, in power-of-two steps between
+`cell_min_m` and `cell_max_m` (1 m at 100 m, 0.25 m at 25 m), so a spot chosen high up is checked
+again at four times the resolution on the way down. A change of cell size or a vehicle near the
+edge resamples the map around the vehicle (mean values carry over; looks per cell too).
+
+Spots: a cell is safe when its fused P >= `p_safe_min` and its looks >= `looks_min`; everything
+else (unsafe, unknown, off the map) is an obstacle. The clearance of a cell is its metric
+distance to the nearest obstacle (one distance transform); a spot is a cell whose clearance is at
+least the safety radius + margin, i.e. the whole disk passes both thresholds.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from dovesei.controller.policies.clearance_config import ClearanceConfig
+
+
+@dataclass(frozen=True)
+class Spot:
+    """A landing spot in the policy's local frame, and why it was chosen."""
+
+    north_m: float
+    east_m: float
+    clearance_m: float  # distance from the spot to the nearest unsafe or unknown cell
+    confidence: float  # 1 - exp(-looks / looks_full) at the spot
+    p_safe: float  # fused P at the spot
+    distance_m: float  # from the vehicle when found
+    score: float
+
+
+def footprint_width_m(alt_agl_m: float, hfov_rad: float) -> float:
+    """Ground width the camera sees at this altitude (nadir, flat ground)."""
+    return 2.0 * max(alt_agl_m, 0.1) * math.tan(hfov_rad / 2.0)
+
+
+def _logit(p: np.ndarray, clip: float) -> np.ndarray:
+    q = np.clip(p, clip, 1.0 - clip)
+    return np.log(q / (1.0 - q)).astype(np.float32)
+
+
+class GroundMap:
+    """Decayed log-odds evidence and looks per cell; resampled as altitude and position change."""
+
+    def __init__(self, config: ClearanceConfig) -> None:
+        self.cfg = config
+        self.n = config.map_cells
+        self.cell_m = config.cell_max_m
+        self.north0_m = 0.0  # north coordinate of row 0's centre
+        self.east0_m = 0.0  # east coordinate of column 0's centre
+        self.evidence = np.zeros((self.n, self.n), np.float32)  # L
+        self.looks = np.zeros((self.n, self.n), np.float32)  # W
+        self._centre(0.0, 0.0)
+
+    # ---- geometry ----------------------------------------------------------------------
+
+    def _centre(self, north_m: float, east_m: float) -> None:
+        half = (self.n - 1) / 2.0
+        # Snap to the cell grid so re-centring moves whole cells (no blur from resampling).
+        self.north0_m = round(north_m / self.cell_m) * self.cell_m + half * self.cell_m
+        self.east0_m = round(east_m / self.cell_m) * self.cell_m - half * self.cell_m
+
+    def cell_of(self, north_m: float, east_m: float) -> tuple[float, float]:
+        """(row, col) of a point, as floats (may lie off the map)."""
+        return (self.north0_m - north_m) / self.cell_m, (east_m - self.east0_m) / self.cell_m
+
+    def point_of(self, row: float, col: float) -> tuple[float, float]:
+        """(north, east) of a cell centre."""
+        return self.north0_m - row * self.cell_m, self.east0_m + col * self.cell_m
+
+    def desired_cell_m(self, alt_agl_m: float) -> float:
+        cfg = self.cfg
+        want = min(max(alt_agl_m * cfg.cell_per_alt, cfg.cell_min_m), cfg.cell_max_m)
+        # Power-of-two steps below cell_max; hysteresis: refine only once clearly below a step.
+        cell = cfg.cell_max_m
+        while cell / 2.0 >= cfg.cell_min_m - 1e-9 and want <= cell / 2.0 * 1.2:
+            cell /= 2.0
+        return cell
+
+    def follow(self, alt_agl_m: float, north_m: float, east_m: float) -> bool:
+        """Keep the vehicle near the centre and the cell at the altitude's size; True if resampled."""
+        cell = self.desired_cell_m(alt_agl_m)
+        row, col = self.cell_of(north_m, east_m)
+        half = (self.n - 1) / 2.0
+        off_centre = max(abs(row - half), abs(col - half)) > self.n / 4.0
+        if cell == self.cell_m and not off_centre:
+            return False
+        self._resample(cell, north_m, east_m)
+        return True
+
+    def _resample(self, cell_m: float, north_m: float, east_m: float) -> None:
+        old_cell, old_n0, old_e0 = self.cell_m, self.north0_m, self.east0_m
+        self.cell_m = cell_m
+        self._centre(north_m, east_m)
+        # New cell (r, c) -> old cell coordinates: an affine map (scale + offset).
+        s = cell_m / old_cell
+        m = np.array([[s, 0.0, (self.east0_m - old_e0) / old_cell],
+                      [0.0, s, (old_n0 - self.north0_m) / old_cell]], np.float64)
+        interp = cv2.INTER_LINEAR if s <= 1.0 else cv2.INTER_AREA
+        if s > 1.0:
+            # Coarser cells: average first (INTER_AREA is only honoured by resize), then place.
+            k = int(round(s))
+            small_ev = cv2.resize(self.evidence, None, fx=1.0 / k, fy=1.0 / k, interpolation=cv2.INTER_AREA)
+            small_lk = cv2.resize(self.looks, None, fx=1.0 / k, fy=1.0 / k, interpolation=cv2.INTER_AREA)
+            m[:, :2] /= k
+            m[:, 2] = (m[:, 2] + 0.5) / k - 0.5
+            src_ev, src_lk = small_ev, small_lk
+            interp = cv2.INTER_LINEAR
+        else:
+            src_ev, src_lk = self.evidence, self.looks
+        flags = interp | cv2.WARP_INVERSE_MAP
+        size = (self.n, self.n)
+        self.evidence = cv2.warpAffine(src_ev, m, size, flags=flags, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+        self.looks = cv2.warpAffine(src_lk, m, size, flags=flags, borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+
+    # ---- evidence ----------------------------------------------------------------------
+
+    def decay(self, dt_s: float) -> None:
+        if dt_s <= 0.0:
+            return
+        factor = np.float32(math.exp(-dt_s / self.cfg.decay_tau_s))
+        self.evidence *= factor
+        self.looks *= factor
+
+    def fuse(self, prob: np.ndarray, alt_agl_m: float, hfov_rad: float, yaw_rad: float,
+             centre_north_m: float, centre_east_m: float, weight: float) -> None:
+        """Add one heatmap whose image centre looks at (centre_north, centre_east)."""
+        h, w = prob.shape
+        width_m = footprint_width_m(alt_agl_m, hfov_rad)
+        gsd_m = width_m / w  # square pixels: the same along rows
+        # Average down to about the cell size first: warping alone would alias.
+        factor = min(1.0, gsd_m / self.cell_m * 1.5)
+        small_w, small_h = max(4, int(round(w * factor))), max(4, int(round(h * factor)))
+        small = cv2.resize(prob, (small_w, small_h), interpolation=cv2.INTER_AREA) if small_w < w else prob
+        g = width_m / small.shape[1]
+        logit = _logit(small, self.cfg.p_clip)
+        cx, cy = (small.shape[1] - 1) / 2.0, (small.shape[0] - 1) / 2.0
+        cos_y, sin_y, c = math.cos(yaw_rad), math.sin(yaw_rad), self.cell_m
+        m = np.array([
+            [g * cos_y / c, -g * sin_y / c, (centre_east_m - self.east0_m + cy * g * sin_y - cx * g * cos_y) / c],
+            [g * sin_y / c, g * cos_y / c, (self.north0_m - centre_north_m - cy * g * cos_y - cx * g * sin_y) / c],
+        ], np.float64)
+        # Only the footprint's bounding box of the map is touched.
+        corners = np.array([[0, 0, 1], [small.shape[1] - 1, 0, 1], [0, small.shape[0] - 1, 1],
+                            [small.shape[1] - 1, small.shape[0] - 1, 1]], np.float64) @ m.T
+        c0, r0 = np.floor(corners.min(axis=0)).astype(int)
+        c1, r1 = np.ceil(corners.max(axis=0)).astype(int) + 1
+        c0, r0, c1, r1 = max(c0, 0), max(r0, 0), min(c1, self.n), min(r1, self.n)
+        if c1 <= c0 or r1 <= r0:
+            return
+        m[0, 2] -= c0
+        m[1, 2] -= r0
+        size = (c1 - c0, r1 - r0)
+        warped = cv2.warpAffine(logit, m, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        inside = cv2.warpAffine(np.ones_like(logit), m, size, flags=cv2.INTER_NEAREST,
+                                borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+        inside *= np.float32(weight)
+        self.evidence[r0:r1, c0:c1] += warped * inside
+        self.looks[r0:r1, c0:c1] += inside
+
+    # ---- reading -----------------------------------------------------------------------
+
+    def fused_p(self) -> np.ndarray:
+        """sigmoid(L / W) per cell; 0.5 where nothing was seen."""
+        mean = np.divide(self.evidence, self.looks, out=np.zeros_like(self.evidence), where=self.looks > 1e-6)
+        return (1.0 / (1.0 + np.exp(-mean))).astype(np.float32)
+
+    def confidence(self) -> np.ndarray:
+        return (1.0 - np.exp(-self.looks / np.float32(self.cfg.looks_full))).astype(np.float32)
+
+    def safe_mask(self) -> np.ndarray:
+        """uint8 1 where the cell is known and safe (L >= logit(p_min) x W, W >= looks_min)."""
+        cfg = self.cfg
+        lt = np.float32(math.log(cfg.p_safe_min / (1.0 - cfg.p_safe_min)))
+        mask = (self.evidence >= lt * self.looks) & (self.looks >= np.float32(cfg.looks_min))
+        mask = mask.view(np.uint8)
+        mask[0, :] = mask[-1, :] = mask[:, 0] = mask[:, -1] = 0  # off the map is unknown
+        return mask
+
+    def clearance_m(self) -> np.ndarray:
+        """Metric distance of each cell to the nearest unsafe or unknown cell (0 on obstacles)."""
+        dist = cv2.distanceTransform(self.safe_mask(), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+        # The distance runs centre to centre; the obstacle cell's own half-width is not free.
+        return np.maximum(dist - 0.5, 0.0) * np.float32(self.cell_m)
+
+    def at(self, north_m: float, east_m: float) -> tuple[float, float]:
+        """(fused P, looks) of the cell containing a point; (0.5, 0) off the map."""
+        row, col = self.cell_of(north_m, east_m)
+        r, c = int(round(row)), int(round(col))
+        if not (0 <= r < self.n and 0 <= c < self.n):
+            return 0.5, 0.0
+        looks = float(self.looks[r, c])
+        if looks <= 1e-6:
+            return 0.5, 0.0
+        return 1.0 / (1.0 + math.exp(-float(self.evidence[r, c]) / looks)), looks
+
+
+def find_spot(gmap: GroundMap, clearance: np.ndarray, cfg: ClearanceConfig, *, north_m: float, east_m: float,
+              blacklist: tuple[tuple[float, float], ...], within_m: float | None = None,
+              near: tuple[float, float] | None = None, need_m: float | None = None) -> Spot | None:
+    """The best spot: clearance >= safety radius + margin, inside the search radius around the
+    start (0, 0), away from blacklisted spots; ranked by clearance, confidence and distance.
+
+    `near` + `within_m` restrict the search to a disk (re-checking and refining a target), and
+    `need_m` replaces the required clearance (a locked target's hysteresis). Distances count
+    from the vehicle, so scores compare across calls.
+    """
+    need = cfg.required_clearance_m
+    rows, cols = np.nonzero(clearance >= (need if need_m is None else need_m))
+    if rows.size == 0:
+        return None
+    c = gmap.cell_m
+    north = gmap.north0_m - rows * c
+    east = gmap.east0_m + cols * c
+    keep = north * north + east * east <= cfg.search_radius_m ** 2
+    for bn, be in blacklist:
+        keep &= (north - bn) ** 2 + (east - be) ** 2 > (need + cfg.refine_radius_m) ** 2
+    if near is not None and within_m is not None:
+        keep &= (north - near[0]) ** 2 + (east - near[1]) ** 2 <= within_m ** 2
+    if not keep.any():
+        return None
+    rows, cols, north, east = rows[keep], cols[keep], north[keep], east[keep]
+    clear = clearance[rows, cols]
+    looks = gmap.looks[rows, cols]
+    conf = 1.0 - np.exp(-looks / cfg.looks_full)
+    dist = np.hypot(north - north_m, east - east_m)
+    # Clearance beyond twice the need buys little; 50 m of extra flight costs as much as it.
+    score = np.minimum(clear / need, 2.0) + conf - dist / 50.0
+    best = int(np.argmax(score))
+    p_safe, _ = gmap.at(float(north[best]), float(east[best]))
+    return Spot(north_m=float(north[best]), east_m=float(east[best]), clearance_m=float(clear[best]),
+                confidence=float(conf[best]), p_safe=p_safe, distance_m=float(dist[best]), score=float(score[best]))
+
+
+def clearance_at(gmap: GroundMap, clearance: np.ndarray, north_m: float, east_m: float) -> float:
+    """The clearance of the cell containing a point (0 off the map)."""
+    row, col = gmap.cell_of(north_m, east_m)
+    r, c = int(round(row)), int(round(col))
+    if not (0 <= r < gmap.n and 0 <= c < gmap.n):
+        return 0.0
+    return float(clearance[r, c])

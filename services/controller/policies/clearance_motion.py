@@ -1,0 +1,184 @@
+"""Ego-motion for the `clearance` policy: where the vehicle is in its own local frame, without GNSS.
+
+Two sources, fused every heatmap:
+
+- prediction: the autopilot's velocity estimate (blended with the commanded velocity, which is
+  what the vehicle was told to do) rotated by yaw into north/east, plus an estimated bias, times
+  dt (capped). On its own this drifts: a real estimator without GNSS misses wind and its own
+  errors.
+- registration: phase correlation of the heatmap against a keyframe, both resampled to the same
+  ground scale (metres per pixel from altitude and field of view), gives the camera's ground
+  displacement since the keyframe. A keyframe (not the previous frame) keeps the error from
+  piling up per frame; it is renewed once the view moved a share of the image or the altitude
+  changed by a ratio. A shift is used only when the correlation peak is clear, the heatmap has
+  texture and the innovation is inside a gate; then it corrects the position and, slowly, the
+  velocity bias (so a biased estimator is learnt, not just patched).
+
+Pure and deterministic: arrays in, numbers out, no clock but the observation's.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from dovesei.controller.policies.clearance_config import ClearanceConfig
+from dovesei.controller.policies.clearance_map import footprint_width_m
+
+
+def phase_shift(ref: np.ndarray, cur: np.ndarray, window: np.ndarray) -> tuple[float, float, float]:
+    """(dx, dy, response): `cur` is `ref` with its content moved by (+dx right, +dy down) px."""
+    a = ref - np.float32(ref.mean())
+    b = cur - np.float32(cur.mean())
+    (dx, dy), response = cv2.phaseCorrelate(a, b, window)
+    return float(dx), float(dy), float(response)
+
+
+def to_ne(forward: float, right: float, yaw_rad: float) -> tuple[float, float]:
+    """Body forward/right -> north/east for a heading `yaw_rad` (0 = north, + = towards east)."""
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    return forward * c - right * s, forward * s + right * c
+
+
+def to_body(north: float, east: float, yaw_rad: float) -> tuple[float, float]:
+    """North/east -> body forward/right."""
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    return north * c + east * s, -north * s + east * c
+
+
+def tilt_offset_ne(alt_agl_m: float, roll_rad: float, pitch_rad: float, yaw_rad: float) -> tuple[float, float]:
+    """Where the image centre looks relative to the point below the vehicle (flat ground).
+
+    Nose up (pitch > 0) turns the camera's axis backwards; right wing down (roll > 0) turns it left.
+    """
+    forward = -alt_agl_m * math.tan(pitch_rad)
+    right = -alt_agl_m * math.tan(roll_rad)
+    return to_ne(forward, right, yaw_rad)
+
+
+def _constrained(img: np.ndarray, inn_n: float, inn_e: float, yaw_rad: float, min_ratio: float) -> tuple[float, float]:
+    """The innovation with its components along weakly textured directions removed.
+
+    The structure tensor of the image (sums of gradient products) has one large eigenvalue per
+    direction that edges constrain; a strip or a single edge leaves the other one near zero.
+    """
+    gx = cv2.Sobel(img, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(img, cv2.CV_32F, 0, 1, ksize=3)
+    jxx, jyy, jxy = float((gx * gx).sum()), float((gy * gy).sum()), float((gx * gy).sum())
+    evals, evecs = np.linalg.eigh(np.array([[jxx, jxy], [jxy, jyy]]))
+    top = float(evals[-1])
+    if top <= 0.0:
+        return 0.0, 0.0
+    out_n = out_e = 0.0
+    for lam, (ux, uy) in zip(evals, evecs.T):
+        if lam < min_ratio * top:
+            continue
+        # Image direction (x right, y down) -> body (forward = -y, right = x) -> north/east.
+        vn, ve = to_ne(-float(uy), float(ux), yaw_rad)
+        along = inn_n * vn + inn_e * ve
+        out_n += along * vn
+        out_e += along * ve
+    return out_n, out_e
+
+
+@dataclass(frozen=True)
+class MotionStep:
+    """What the ego-motion did with one heatmap (for the status and tests)."""
+
+    north_m: float
+    east_m: float
+    registered: bool  # a registration shift was accepted
+    response: float
+    innovation_m: float  # |measured - predicted| when a shift was measured, else 0
+    new_keyframe: bool
+
+
+class EgoMotion:
+    """Dead reckoning corrected by keyframe registration; north/east metres from the start."""
+
+    def __init__(self, config: ClearanceConfig) -> None:
+        self.cfg = config
+        n = config.reg_size_px
+        self._window = cv2.createHanningWindow((n, n), cv2.CV_32F)
+        self.reset()
+
+    def reset(self) -> None:
+        self.north_m = 0.0
+        self.east_m = 0.0
+        self.bias_n_m_s = 0.0
+        self.bias_e_m_s = 0.0
+        self._key: np.ndarray | None = None
+        self._key_gsd_m = 1.0
+        self._key_yaw = 0.0
+        self._key_cc = (0.0, 0.0)  # ground point the keyframe's centre looked at
+        self._fails = 0
+
+    def predict(self, dt_s: float, vel_body_frd_m_s: tuple[float, float, float], yaw_rad: float) -> None:
+        dt = min(max(dt_s, 0.0), self.cfg.dt_cap_s)
+        vn, ve = to_ne(vel_body_frd_m_s[0], vel_body_frd_m_s[1], yaw_rad)
+        self.north_m += (vn + self.bias_n_m_s) * dt
+        self.east_m += (ve + self.bias_e_m_s) * dt
+
+    def correct(self, prob: np.ndarray, dt_s: float, alt_agl_m: float, hfov_rad: float, yaw_rad: float,
+                roll_rad: float = 0.0, pitch_rad: float = 0.0) -> MotionStep:
+        """Register `prob` (taken at the predicted position) against the keyframe."""
+        cfg = self.cfg
+        n = cfg.reg_size_px
+        img = cv2.resize(prob, (n, n), interpolation=cv2.INTER_AREA).astype(np.float32, copy=False)
+        width_m = footprint_width_m(alt_agl_m, hfov_rad)
+        gsd = width_m / n
+        tn, te = tilt_offset_ne(alt_agl_m, roll_rad, pitch_rad, yaw_rad)
+        textured = float(img.std()) >= cfg.reg_min_std
+        registered, response, innovation, new_key = False, 0.0, 0.0, False
+        if self._key is not None and textured:
+            scale = self._key_gsd_m / gsd  # keyframe pixels cover more ground when it was higher
+            angle = math.degrees(yaw_rad - self._key_yaw)
+            m = cv2.getRotationMatrix2D(((n - 1) / 2.0, (n - 1) / 2.0), angle, scale)
+            ref = cv2.warpAffine(self._key, m, (n, n), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
+            dx, dy, response = phase_shift(ref, img, self._window)
+            # Content moving down the image = the camera moved forward.
+            dn, de = to_ne(dy * gsd, -dx * gsd, yaw_rad)
+            meas_n = self._key_cc[0] + dn - tn
+            meas_e = self._key_cc[1] + de - te
+            inn_n, inn_e = meas_n - self.north_m, meas_e - self.east_m
+            innovation = math.hypot(inn_n, inn_e)
+            gate = cfg.reg_gate_m + cfg.reg_gate_frac * width_m
+            if response >= cfg.reg_min_response and innovation <= gate:
+                registered = True
+                self._fails = 0
+                k = cfg.reg_pos_gain
+                # Aperture problem: along a straight edge or strip a shift is unobservable, and
+                # phase correlation then says "no motion". Only directions the texture constrains
+                # are corrected; the others keep the prediction.
+                inn_n, inn_e = _constrained(img, inn_n, inn_e, yaw_rad, cfg.reg_min_eigen_ratio)
+                self.north_m += k * inn_n
+                self.east_m += k * inn_e
+                # The innovation accrued over dt: a velocity error; learnt over bias_tau.
+                if dt_s > 0.0:
+                    rate = min(1.0, min(dt_s, cfg.dt_cap_s) / cfg.bias_tau_s) / max(min(dt_s, cfg.dt_cap_s), 1e-3)
+                    self.bias_n_m_s += rate * inn_n * (1.0 - k)
+                    self.bias_e_m_s += rate * inn_e * (1.0 - k)
+                    b = math.hypot(self.bias_n_m_s, self.bias_e_m_s)
+                    if b > cfg.bias_max_m_s:
+                        self.bias_n_m_s *= cfg.bias_max_m_s / b
+                        self.bias_e_m_s *= cfg.bias_max_m_s / b
+            else:
+                self._fails += 1
+            # Motion since the keyframe by the estimate (a measured shift can be blind along a strip).
+            moved_px = math.hypot(self.north_m + tn - self._key_cc[0], self.east_m + te - self._key_cc[1]) / gsd
+            ratio = max(scale, 1.0 / scale)
+            if moved_px > cfg.key_shift_frac * n or ratio > cfg.key_scale_ratio or self._fails >= 3:
+                new_key = True
+        elif self._key is None or (not textured and self._fails >= 3):
+            new_key = True
+        if new_key or self._key is None:
+            self._key = img.copy()
+            self._key_gsd_m = gsd
+            self._key_yaw = yaw_rad
+            self._key_cc = (self.north_m + tn, self.east_m + te)
+            self._fails = 0
+            new_key = True
+        return MotionStep(self.north_m, self.east_m, registered, response, innovation, new_key)
