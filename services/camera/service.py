@@ -40,6 +40,7 @@ import zenoh
 
 from dovesei.camera.source import ROTATIONS, Grabber, crop_resize, output_hfov_rad
 from dovesei.shared import keys, validate
+from dovesei.shared.cliconfig import PROCESS, CommandLine, Flag, integer_in, non_blank, service_parser
 from dovesei.shared.codec import encode
 from dovesei.shared.errors import ConfigError
 from dovesei.shared.lifecycle import Inbox, declare_alive, install_stop_handlers
@@ -245,36 +246,47 @@ def run(session: zenoh.Session, *, config: CameraConfig, stop: threading.Event,
     return loop.stats
 
 
+# The one table of the camera's flags: `build_parser`, `config_from_args` and `to_argv` read it.
+CLI = CommandLine(CameraConfig, {
+    "source": Flag("--source", "device index (0), video file, rtsp:// URL or GStreamer pipeline", check=non_blank),
+    "vehicle_id": Flag("--vehicle-id", "vehicle id in the Zenoh keys", check=lambda _w, v: keys.check_vehicle_id(v)),
+    "width_px": Flag("--width", "published width, pixels", check=integer_in(16, 4096)),
+    "height_px": Flag("--height", "published height, pixels", check=integer_in(16, 4096)),
+    "hfov_deg": Flag("--hfov-deg", "camera horizontal field of view before cropping", check=validate.positive),
+    "rotate_deg": Flag("--rotate", "clockwise rotation, degrees", choices=tuple(sorted(ROTATIONS))),
+    "rate_hz": Flag("--rate-hz", "publication rate", check=validate.positive),
+    "jpeg_quality": Flag("--jpeg-quality", "JPEG on the wire at quality Q (for a remote segmenter; default raw)",
+                         check=integer_in(1, 100), metavar="Q"),
+    "stall_timeout_s": Flag("--stall-timeout", "seconds without a frame before reporting", check=validate.positive),
+    "state_timeout_s": Flag("--state-timeout", "max age of the state used to tag a frame, seconds",
+                            check=validate.positive),
+    "loop_file": Flag("--loop", "loop a video file"),
+})
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="dovesei-camera", description="Publish an onboard camera as dovesei frames.")
-    p.add_argument("--source", required=True, help="device index (0), video file, rtsp:// URL or GStreamer pipeline")
-    p.add_argument("--vehicle-id", dest="vehicle", default="uav1", help="vehicle id in the Zenoh keys")
-    p.add_argument("--width", type=int, default=352, help="published width, pixels")
-    p.add_argument("--height", type=int, default=352, help="published height, pixels")
-    p.add_argument("--hfov-deg", type=float, default=73.0, help="camera horizontal field of view before cropping")
-    p.add_argument("--rotate", type=int, default=0, choices=sorted(ROTATIONS), help="clockwise rotation, degrees")
-    p.add_argument("--rate-hz", type=float, default=2.0, help="publication rate")
-    p.add_argument("--jpeg-quality", type=int, default=None, help="JPEG on the wire (for a remote segmenter)")
-    p.add_argument("--stall-timeout", type=float, default=2.0, help="seconds without a frame before reporting")
-    p.add_argument("--state-timeout", type=float, default=1.0, help="max age of the state used to tag a frame")
-    p.add_argument("--loop", action="store_true", help="loop a video file")
-    p.add_argument("--log-level", default="INFO")
-    add_zenoh_args(p)
-    return p
+    return service_parser("dovesei-camera", "Publish an onboard camera as dovesei frames.", CLI, add_zenoh_args)
+
+
+def config_from_args(args: argparse.Namespace) -> CameraConfig:
+    return CLI.from_args(args)
+
+
+def to_argv(config: CameraConfig) -> list[str]:
+    """The flags of `config`; they parse back to it."""
+    return CLI.to_argv(config)
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(sys.argv[1:] if argv is None else argv)
-    logging.basicConfig(level=args.log_level.upper(), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    process = PROCESS.from_args(args)
+    logging.basicConfig(level=process.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:
-        config = CameraConfig(source=args.source, vehicle_id=args.vehicle, width_px=args.width, height_px=args.height,
-                              hfov_deg=args.hfov_deg, rotate_deg=args.rotate, rate_hz=args.rate_hz,
-                              jpeg_quality=args.jpeg_quality, stall_timeout_s=args.stall_timeout,
-                              state_timeout_s=args.state_timeout, loop_file=args.loop)
+        config = config_from_args(args)
         zconf = zenoh_config_from_args(args)
     except ConfigError as exc:
-        log.error("%s", exc)
-        return 2
+        parser.error(str(exc))  # exits 2 with the usage line, like any other bad flag
     stop = install_stop_handlers()
     try:
         with zenoh.open(zconf) as session:

@@ -39,6 +39,7 @@ from dovesei.controller.policies.config import TIMING_PRESETS
 from dovesei.shared import keys
 from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.shared.messages import ControllerStatus, SafetyHeatmap, StageLatency, VehicleState, VelocityCommand
+from dovesei.shared.timing import DEFAULT_TIMING
 
 log = logging.getLogger(__name__)
 
@@ -55,7 +56,7 @@ class ControllerConfig:
 
     vehicle_id: str = "uav1"
     policy: str = "dovesei"
-    timing: str = "real"  # policy timing preset: "real" or "reference"
+    timing: str = DEFAULT_TIMING  # policy timing preset (dovesei.shared.timing); a real vehicle runs "real"
     lockstep: bool = True  # True: one tick per sim state (as the sim's default); False: own 20 Hz loop
     rate_hz: float = 20.0  # real-time loop rate on the wall clock
     heatmap_hold_after_s: float = 1.5  # data-clock age beyond which the vehicle holds position
@@ -67,7 +68,7 @@ class ControllerConfig:
     handover_alt_m: float = 20.0  # at/below: stop commanding, report HANDOVER
     handover_release_m: float = 2.0  # hysteresis: leave HANDOVER only above handover + this
     handover_action: str = "hold"  # MAVLink adapter action at hand-over: hold, land or none
-    vehicle: str = "zenoh"  # "zenoh" (the sim over Zenoh) or a pymavlink connection URL
+    vehicle_url: str = "zenoh"  # "zenoh" (the sim over Zenoh) or a pymavlink connection URL
     vehicle_connect_timeout_s: float = 30.0  # MAVLink: wait this long for the autopilot's heartbeat
     mavlink_alt_source: str = "local"  # MAVLink altitude: "local" position or "rangefinder"
     mavlink_allow_mode_switch: bool = False  # MAVLink: may switch to GUIDED/OFFBOARD itself
@@ -110,8 +111,8 @@ class ControllerConfig:
             raise ConfigError(f"mavlink_yaw_control {self.mavlink_yaw_control!r}: choose 'rate' or 'autopilot'")
         if self.heatmap_buffer_len < 1:
             raise ConfigError(f"heatmap_buffer_len must be >= 1, got {self.heatmap_buffer_len}")
-        if self.lockstep and self.vehicle != "zenoh":
-            raise ConfigError("lockstep needs the simulator (--vehicle zenoh); a real vehicle runs in real time")
+        if self.lockstep and self.vehicle_url != "zenoh":
+            raise ConfigError("lockstep needs the simulator (--vehicle-url zenoh); a real vehicle runs in real time")
 
     @property
     def period_s(self) -> float:

@@ -29,21 +29,22 @@ import math
 import sys
 import threading
 from collections import deque
+from collections.abc import Mapping
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Protocol
+from typing import Any, Protocol
 
 import zenoh
 
 from dovesei.controller.core import HANDOVER_ACTIONS, ControllerConfig, ControllerCore, ControllerInputError, Mode
 from dovesei.controller.policies.base import policy_names
-from dovesei.controller.policies.config import TIMING_PRESETS
-from dovesei.shared import keys
+from dovesei.shared import keys, validate
+from dovesei.shared.cliconfig import PROCESS, CommandLine, Flag, non_blank, service_parser
 from dovesei.shared.clock import WallClock, wall_time_s
 from dovesei.shared.codec import encode
 from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.shared.lifecycle import Inbox, declare_alive, install_stop_handlers, write_stats
 from dovesei.shared.messages import SafetyHeatmap, VehicleState, VelocityCommand, replace
+from dovesei.shared.timing import DEFAULT_TIMING, TIMING_NAMES
 from dovesei.shared.zconfig import add_zenoh_args, zenoh_config_from_args
 
 log = logging.getLogger(__name__)
@@ -123,17 +124,17 @@ class ZenohVehicle:
 
 def open_vehicle(session: zenoh.Session, config: ControllerConfig) -> Vehicle:
     """The sim over Zenoh, or a flight controller through the MAVLink adapter (imported lazily)."""
-    if config.vehicle == "zenoh":
+    if config.vehicle_url == "zenoh":
         # Subscribers are declared now so no state published after start-up is missed.
         return ZenohVehicle(session, config.vehicle_id, lockstep=config.lockstep)
     try:
         from dovesei.controller.mavlink import MavlinkVehicle
     except ModuleNotFoundError as exc:
         raise ConfigError(
-            f"--vehicle {config.vehicle!r} needs the MAVLink adapter, which cannot be imported "
-            f"(missing module {exc.name!r}); install the package with pymavlink or use --vehicle zenoh"
+            f"--vehicle-url {config.vehicle_url!r} needs the MAVLink adapter, which cannot be imported "
+            f"(missing module {exc.name!r}); install the package with pymavlink or use --vehicle-url zenoh"
         ) from None
-    vehicle = MavlinkVehicle(config.vehicle, vehicle_id=config.vehicle_id, handover=config.handover_action,
+    vehicle = MavlinkVehicle(config.vehicle_url, vehicle_id=config.vehicle_id, handover=config.handover_action,
                              alt_source=config.mavlink_alt_source,
                              allow_mode_switch=config.mavlink_allow_mode_switch,
                              yaw_control=config.mavlink_yaw_control)
@@ -322,7 +323,7 @@ def run(session: zenoh.Session, *, config: ControllerConfig, stop: threading.Eve
         token = declare_alive(session, config.vehicle_id, "controller")
         log.info("controller %s up: policy %s (%s timing), %s, vehicle %s, keys %s -> %s",
                  config.vehicle_id, config.policy, config.timing,
-                 "lockstep" if config.lockstep else f"real time at {config.rate_hz:g} Hz", config.vehicle,
+                 "lockstep" if config.lockstep else f"real time at {config.rate_hz:g} Hz", config.vehicle_url,
                  keys.heatmap(config.vehicle_id), keys.cmd(config.vehicle_id))
         if config.lockstep:
             _run_lockstep(loop)
@@ -343,74 +344,65 @@ def run(session: zenoh.Session, *, config: ControllerConfig, stop: threading.Eve
                 vehicle.close()
 
 
-def _positive(text: str) -> float:
-    value = float(text)
-    if not math.isfinite(value) or value <= 0:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number > 0")
-    return value
+def _derived_defaults(given: Mapping[str, Any]) -> dict[str, Any]:
+    """Defaults that follow the vehicle: the sim runs in lockstep (the sim's default too); a real
+    vehicle runs in real time on true seconds."""
+    real_vehicle = given.get("vehicle_url", ControllerConfig.vehicle_url) != "zenoh"
+    return {"lockstep": not real_vehicle, "timing": "real" if real_vehicle else DEFAULT_TIMING}
+
+
+# The one table of the controller's flags: `build_parser`, `config_from_args` and `to_argv` read it.
+CLI = CommandLine(ControllerConfig, {
+    "vehicle_url": Flag("--vehicle-url", "'zenoh' (the simulator) or a pymavlink URL, e.g. udpin:0.0.0.0:14550",
+                        check=non_blank, metavar="URL"),
+    "vehicle_id": Flag("--vehicle-id", "vehicle id in the keys", check=lambda _w, v: keys.check_vehicle_id(v)),
+    "policy": Flag("--policy", "landing policy", choices=policy_names()),
+    "timing": Flag("--timing", f"policy timing preset ({DEFAULT_TIMING} with the sim, real with a MAVLink vehicle)",
+                   choices=TIMING_NAMES),
+    "lockstep": Flag("--lockstep", "one tick per sim state, waiting for awaited heatmaps (default with the sim)",
+                     off="--realtime", off_help="own fixed-rate loop on the wall clock (the only mode with MAVLink)"),
+    "rate_hz": Flag("--rate-hz", "real-time loop rate", check=validate.positive),
+    "heatmap_hold_after_s": Flag("--heatmap-hold-after-s", "hold position when the heatmap is older than this "
+                                 "(data clock)", check=validate.positive),
+    "heatmap_climb_after_s": Flag("--heatmap-climb-after-s", "climb to the search altitude when the heatmap is "
+                                  "older than this", check=validate.positive),
+    "state_stale_after_s": Flag("--state-stale-after-s", "zero velocity when the vehicle state stops updating for "
+                                "this long (real time)", check=validate.positive),
+    "climb_speed_m_s": Flag("--climb-speed-m-s", "largest climb speed of the climb watchdog", check=validate.positive),
+    "search_alt_m": Flag("--search-alt-m", "altitude of the climb watchdog (default: the altitude first seen)",
+                         check=validate.positive),
+    "handover_alt_m": Flag("--handover-alt-m", "stop commanding at/below this altitude", check=validate.positive),
+    "handover_action": Flag("--handover-action", "MAVLink action at the hand-over altitude", choices=HANDOVER_ACTIONS),
+    # The adapter validates these too; literal choices keep --help free of a pymavlink import.
+    "mavlink_alt_source": Flag("--alt-source", "MAVLink altitude source", choices=("local", "rangefinder")),
+    "mavlink_yaw_control": Flag("--yaw-control", "MAVLink: 'rate' holds the heading (velocity + zero yaw rate, "
+                                "mask 0x05C7); 'autopilot' sends velocity only (mask 0x0DC7) and lets the autopilot "
+                                "choose the heading", choices=("rate", "autopilot")),
+    "mavlink_allow_mode_switch": Flag("--allow-mode-switch", "MAVLink: switch the autopilot to GUIDED/OFFBOARD when "
+                                      "it is not (default: refuse to steer)"),
+    "lockstep_heatmap_wait_s": Flag("--heatmap-wait-s", "lockstep: wall deadline for an awaited heatmap",
+                                    check=validate.positive),
+}, derive=_derived_defaults)
 
 
 def build_parser() -> argparse.ArgumentParser:
-    defaults = ControllerConfig()
-    p = argparse.ArgumentParser(prog="dovesei-controller", description=__doc__.splitlines()[0])
-    p.add_argument("--vehicle", default="zenoh",
-                   help="'zenoh' (the simulator, default) or a pymavlink URL, e.g. udpin:0.0.0.0:14550")
-    p.add_argument("--vehicle-id", default=defaults.vehicle_id, help="vehicle id in the keys (default: uav1)")
-    p.add_argument("--policy", default=defaults.policy, choices=policy_names())
-    p.add_argument("--timing", default=defaults.timing, choices=sorted(TIMING_PRESETS),
-                   help="policy timing preset (default: real)")
-    mode = p.add_mutually_exclusive_group()
-    mode.add_argument("--lockstep", dest="lockstep", action="store_true", default=None,
-                      help="one tick per sim state, waiting for awaited heatmaps (default with --vehicle zenoh)")
-    mode.add_argument("--realtime", dest="lockstep", action="store_false",
-                      help="own fixed-rate loop on the wall clock (default, and the only mode, with MAVLink)")
-    p.add_argument("--rate-hz", type=_positive, default=defaults.rate_hz)
-    p.add_argument("--heatmap-hold-after-s", type=_positive, default=defaults.heatmap_hold_after_s,
-                   help="hold position when the heatmap is older than this (data clock)")
-    p.add_argument("--heatmap-climb-after-s", type=_positive, default=defaults.heatmap_climb_after_s,
-                   help="climb to the search altitude when the heatmap is older than this")
-    p.add_argument("--state-stale-after-s", type=_positive, default=defaults.state_stale_after_s,
-                   help="zero velocity when the vehicle state stops updating for this long (real time)")
-    p.add_argument("--climb-speed-m-s", type=_positive, default=defaults.climb_speed_m_s)
-    p.add_argument("--search-alt-m", type=_positive, default=None,
-                   help="altitude of the climb watchdog (default: the altitude first seen)")
-    p.add_argument("--handover-alt-m", type=_positive, default=defaults.handover_alt_m)
-    p.add_argument("--handover-action", choices=HANDOVER_ACTIONS, default=defaults.handover_action,
-                   help="MAVLink action at the hand-over altitude (default: hold)")
-    # The adapter validates these too; literal choices keep --help free of a pymavlink import.
-    p.add_argument("--alt-source", choices=("local", "rangefinder"), default=defaults.mavlink_alt_source,
-                   help="MAVLink altitude source (default: local position)")
-    p.add_argument("--yaw-control", choices=("rate", "autopilot"), default=defaults.mavlink_yaw_control,
-                   help="MAVLink: 'rate' holds the heading (velocity + zero yaw rate, mask 0x05C7); 'autopilot' "
-                        "sends velocity only (mask 0x0DC7) and lets the autopilot choose the heading")
-    p.add_argument("--allow-mode-switch", action="store_true",
-                   help="MAVLink: switch the autopilot to GUIDED/OFFBOARD when it is not (default: refuse to steer)")
-    p.add_argument("--heatmap-wait-s", type=_positive, default=defaults.lockstep_heatmap_wait_s,
-                   help="lockstep: wall deadline for an awaited heatmap")
-    p.add_argument("--stats-out", type=Path, metavar="FILE", help="write the run's counters as JSON at exit")
-    p.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
-    add_zenoh_args(p)
-    return p
+    return service_parser("dovesei-controller", __doc__.splitlines()[0], CLI, add_zenoh_args)
 
 
 def config_from_args(args: argparse.Namespace) -> ControllerConfig:
-    return ControllerConfig(
-        vehicle_id=args.vehicle_id, policy=args.policy, timing=args.timing,
-        # Neither flag: lockstep with the sim (its default too), real time with a real vehicle.
-        lockstep=args.vehicle == "zenoh" if args.lockstep is None else args.lockstep,
-        rate_hz=args.rate_hz, heatmap_hold_after_s=args.heatmap_hold_after_s,
-        heatmap_climb_after_s=args.heatmap_climb_after_s, state_stale_after_s=args.state_stale_after_s,
-        climb_speed_m_s=args.climb_speed_m_s, search_alt_m=args.search_alt_m, handover_alt_m=args.handover_alt_m,
-        handover_action=args.handover_action, vehicle=args.vehicle, lockstep_heatmap_wait_s=args.heatmap_wait_s,
-        mavlink_alt_source=args.alt_source, mavlink_allow_mode_switch=args.allow_mode_switch,
-        mavlink_yaw_control=args.yaw_control,
-    )
+    return CLI.from_args(args)
+
+
+def to_argv(config: ControllerConfig) -> list[str]:
+    """The flags of `config` (what `dovesei up` passes to a controller process); they parse back to it."""
+    return CLI.to_argv(config)
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    logging.basicConfig(level=args.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    process = PROCESS.from_args(args)
+    logging.basicConfig(level=process.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:
         config = config_from_args(args)
         zconf = zenoh_config_from_args(args)
@@ -428,8 +420,8 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     log.info("controller done: %d ticks, %d commands, %d heatmaps (%d payloads rejected)",
              stats.ticks, stats.commands_sent, stats.heatmaps_received, stats.heatmap_payloads_rejected)
-    if args.stats_out is not None:
-        write_stats(args.stats_out, dataclasses.asdict(stats))
+    if process.stats_out is not None:
+        write_stats(process.stats_out, dataclasses.asdict(stats))
     return 0
 
 

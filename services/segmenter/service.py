@@ -31,11 +31,13 @@ import time
 from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import zenoh
 
-from dovesei.shared import keys
+from dovesei.shared import keys, validate
+from dovesei.shared.cliconfig import (
+    PROCESS, CommandLine, Flag, in_range, integer_at_least, json_or_file, non_blank, service_parser,
+)
 from dovesei.shared.codec import decode, encode
 from dovesei.shared.errors import ConfigError, DoveseiError, ProtocolError
 from dovesei.shared.lifecycle import Inbox, declare_alive, install_stop_handlers, write_stats
@@ -43,11 +45,11 @@ from dovesei.shared.messages import CameraFrame, PromptSetMsg, SafetyHeatmap, re
 from dovesei.shared.zconfig import add_zenoh_args, zenoh_config_from_args
 
 from .core import (
-    BACKENDS, DEFAULT_MODEL, DTYPES, HEATMAP_DTYPES, REJECT_VEHICLE, FrameBackend, FrameRejected, SegmenterConfig, SegmenterCore,
+    BACKENDS, DTYPES, HEATMAP_DTYPES, REJECT_VEHICLE, FrameBackend, FrameRejected, SegmenterConfig, SegmenterCore,
     make_backend,
 )
 from .fusion import FUSION_MODES
-from .prompts import REFERENCE_PROMPTS, PromptError, PromptSet
+from .prompts import PromptError, PromptSet
 
 log = logging.getLogger(__name__)
 
@@ -63,17 +65,17 @@ class ServiceConfig:
     """Transport settings around a SegmenterConfig."""
 
     segmenter: SegmenterConfig = field(default_factory=SegmenterConfig)
-    vehicle: str = "uav1"
+    vehicle_id: str = "uav1"
     all_vehicles: bool = False  # serve every vehicle's camera key (a ground-station segmenter)
     lockstep: bool = False  # answer every frame in order instead of the newest one
 
     def __post_init__(self) -> None:
-        keys.check_vehicle_id(self.vehicle)
+        keys.check_vehicle_id(self.vehicle_id)
 
     @property
     def key_vehicle(self) -> str:
         """The vehicle chunk of the subscribed keys: the vehicle id, or `*` for all vehicles."""
-        return keys.ANY_VEHICLE if self.all_vehicles else self.vehicle
+        return keys.ANY_VEHICLE if self.all_vehicles else self.vehicle_id
 
 
 class SegmenterService:
@@ -261,74 +263,86 @@ def _log_start(service: SegmenterService) -> None:
 # --- command line -------------------------------------------------------------------------------
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="dovesei-segmenter",
-                                description="Camera frames in, per-pixel safe-to-land probabilities out (Zenoh).")
-    p.add_argument("--vehicle-id", dest="vehicle", default="uav1", help="vehicle id of the keys (default: uav1)")
-    p.add_argument("--all-vehicles", action="store_true", help="serve every vehicle's camera key (ground station)")
-    p.add_argument("--lockstep", action="store_true", help="answer every frame in order (lockstep benchmarks)")
-    p.add_argument("--backend", choices=BACKENDS, default="auto",
-                   help="auto: CLIPSeg, else simulated perception with a warning (default: auto)")
-    p.add_argument("--model", default=DEFAULT_MODEL, help=f"CLIPSeg Hub id or local directory (default: {DEFAULT_MODEL})")
-    p.add_argument("--device", default="cpu", help="torch device, e.g. cpu or cuda:0 (default: cpu)")
-    p.add_argument("--dtype", choices=DTYPES, default="float32")
-    p.add_argument("--compile", action="store_true", help="torch.compile the fast path")
-    p.add_argument("--threads", type=int, help="torch intra-op threads")
-    p.add_argument("--fusion", choices=FUSION_MODES, default="grouped",
-                   help="grouped (default, independent of the number of negatives) or dovesei (the reference)")
-    p.add_argument("--fusion-temperature", type=float, default=1.0)
-    p.add_argument("--sim-noise", type=float, default=1.0, help="simulated perception error scale, 0 = clean labels")
-    p.add_argument("--sim-seed", type=int, default=0)
-    p.add_argument("--heatmap-dtype", choices=HEATMAP_DTYPES, default="uint8")
-    p.add_argument("--frame-size", metavar="WxH", help="accept only frames of this size, e.g. 352x352")
-    p.add_argument("--max-side-px", type=int, default=4096, help="largest accepted frame side")
-    p.add_argument("--prompts", type=Path, metavar="FILE",
-                   help='JSON {"positive": [...], "negative": [...], "template": "... {} ..."} (default: the reference\'s)')
-    p.add_argument("--stats-out", type=Path, metavar="FILE", help="write the run's counters as JSON at exit")
-    p.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
-    add_zenoh_args(p)
-    return p
-
-
-def _frame_size(text: str | None) -> tuple[int, int] | None:
-    if text is None:
-        return None
+def _parse_frame_size(text: str) -> tuple[int, int]:
+    """'WIDTHxHEIGHT' -> (height_px, width_px), the order of SegmenterConfig.expected_size_px."""
     try:
         width_px, height_px = (int(v) for v in text.lower().split("x"))
     except ValueError:
-        raise ConfigError(f"--frame-size {text!r}: expected WIDTHxHEIGHT, e.g. 352x352") from None
+        raise ValueError("expected WIDTHxHEIGHT, e.g. 352x352") from None
+    if width_px < 1 or height_px < 1:
+        raise ValueError("both sides must be >= 1 px")
     return height_px, width_px
 
 
-def _load_prompts(path: Path | None) -> PromptSet:
-    if path is None:
-        return REFERENCE_PROMPTS
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError) as exc:
-        raise ConfigError(f"--prompts {str(path)!r}: cannot read a JSON object: {exc}") from None
+def _render_frame_size(size_px: tuple[int, int]) -> str:
+    height_px, width_px = size_px
+    return f"{width_px}x{height_px}"
+
+
+def _parse_prompts(text: str) -> PromptSet:
+    """A JSON file, or the JSON object itself (what `to_argv` writes), describing a PromptSet."""
+    data = json_or_file("--prompts", text)
     if not isinstance(data, dict) or set(data) - {"positive", "negative", "template"}:
-        raise ConfigError(f"--prompts {str(path)!r}: expected an object with positive, negative and template")
+        raise ValueError("expected an object with positive, negative and template")
     try:
         return PromptSet(positive=data.get("positive", ()), negative=data.get("negative", ()),
                          template=data.get("template", "{}"))
     except PromptError as exc:
-        raise ConfigError(f"--prompts {str(path)!r}: {exc}") from None
+        raise ValueError(str(exc)) from None
+
+
+def _render_prompts(prompts: PromptSet) -> str:
+    return json.dumps({"positive": list(prompts.positive), "negative": list(prompts.negative),
+                       "template": prompts.template}, ensure_ascii=False)
+
+
+# The one table of the segmenter's flags: `build_parser`, `config_from_args` and `to_argv` read it.
+CLI = CommandLine(ServiceConfig, {
+    "vehicle_id": Flag("--vehicle-id", "vehicle id of the keys", check=lambda _w, v: keys.check_vehicle_id(v)),
+    "all_vehicles": Flag("--all-vehicles", "serve every vehicle's camera key (ground station)"),
+    "lockstep": Flag("--lockstep", "answer every frame in order (lockstep benchmarks)"),
+    "segmenter.backend": Flag("--backend", "auto: CLIPSeg, else simulated perception with a warning",
+                              choices=BACKENDS),
+    "segmenter.model": Flag("--model", "CLIPSeg Hub id or local directory", check=non_blank),
+    "segmenter.device": Flag("--device", "torch device, e.g. cpu or cuda:0", check=non_blank),
+    "segmenter.dtype": Flag("--dtype", "torch dtype of the model", choices=DTYPES),
+    "segmenter.compile": Flag("--compile", "torch.compile the fast path"),
+    "segmenter.threads": Flag("--threads", "torch intra-op threads (default: torch's)", check=integer_at_least(1)),
+    "segmenter.fusion": Flag("--fusion", "grouped (independent of the number of negatives) or dovesei "
+                             "(the reference)", choices=FUSION_MODES),
+    "segmenter.fusion_temperature": Flag("--fusion-temperature", "softmax temperature of the fusion",
+                                         check=validate.positive),
+    "segmenter.sim_noise": Flag("--sim-noise", "simulated perception error scale, 0 = clean labels (default: "
+                                "the calibrated one)", check=in_range(0.0, 4.0)),
+    "segmenter.sim_seed": Flag("--sim-seed", "seed of the simulated perception", check=integer_at_least(0)),
+    "segmenter.heatmap_dtype": Flag("--heatmap-dtype", "heatmap pixels on the wire", choices=HEATMAP_DTYPES),
+    "segmenter.expected_size_px": Flag("--frame-size", "accept only frames of this size, e.g. 352x352",
+                                       parse=_parse_frame_size, render=_render_frame_size, metavar="WxH"),
+    "segmenter.max_side_px": Flag("--max-side-px", "largest accepted frame side", check=integer_at_least(1)),
+    "segmenter.prompts": Flag("--prompts", 'JSON file (or the JSON itself) {"positive": [...], "negative": [...], '
+                              '"template": "... {} ..."} (default: the reference\'s)', parse=_parse_prompts,
+                              render=_render_prompts, metavar="FILE"),
+})
+
+
+def build_parser() -> argparse.ArgumentParser:
+    return service_parser("dovesei-segmenter",
+                          "Camera frames in, per-pixel safe-to-land probabilities out (Zenoh).", CLI, add_zenoh_args)
 
 
 def config_from_args(args: argparse.Namespace) -> ServiceConfig:
-    seg = SegmenterConfig(
-        backend=args.backend, model=args.model, device=args.device, dtype=args.dtype, compile=args.compile,
-        threads=args.threads, fusion=args.fusion, fusion_temperature=args.fusion_temperature,
-        sim_noise=args.sim_noise, sim_seed=args.sim_seed, heatmap_dtype=args.heatmap_dtype,
-        max_side_px=args.max_side_px, expected_size_px=_frame_size(args.frame_size), prompts=_load_prompts(args.prompts),
-    )
-    return ServiceConfig(segmenter=seg, vehicle=args.vehicle, all_vehicles=args.all_vehicles, lockstep=args.lockstep)
+    return CLI.from_args(args)
+
+
+def to_argv(config: ServiceConfig) -> list[str]:
+    """The flags of `config` (what `dovesei up` passes to a segmenter process); they parse back to it."""
+    return CLI.to_argv(config)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    logging.basicConfig(level=args.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    process = PROCESS.from_args(args)
+    logging.basicConfig(level=process.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     stop = install_stop_handlers()
     try:
         config = config_from_args(args)
@@ -340,8 +354,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     with zenoh.open(zconf) as session:
         stats = run(session, config=config, stop=stop, backend=backend)
-    if args.stats_out is not None:
-        write_stats(args.stats_out, stats)
+    if process.stats_out is not None:
+        write_stats(process.stats_out, stats)
     return 0
 
 

@@ -36,11 +36,11 @@ import time
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import zenoh
 
 from dovesei.shared import keys, validate
+from dovesei.shared.cliconfig import PROCESS, CommandLine, Flag, integer_in, non_blank, service_parser
 from dovesei.shared.clock import WallClock, wall_time_s
 from dovesei.shared.codec import encode
 from dovesei.shared.errors import ConfigError, DoveseiError
@@ -439,109 +439,81 @@ def _run_external_pose(wire: _Wire, world: World, start: Start, config: SimServi
 # ------------------------------------------------------------------------------------------------ flags
 
 
-def _flag_number(check):
-    """An argparse type: the text as a float, then `check` from dovesei.shared.validate."""
-    def parse(text: str) -> float:
-        try:
-            value = float(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-        try:
-            return check(repr(text), value)
-        except ConfigError as exc:
-            raise argparse.ArgumentTypeError(str(exc)) from None
-    return parse
-
-
-_positive = _flag_number(validate.positive)
-_non_negative = _flag_number(validate.non_negative)
-
-
-def parse_start(text: str) -> tuple[float, float, float | None]:
-    """'X_M,Y_M[,ALT_M]' in world metres (x east, y north of the world's south-west corner)."""
+def parse_start(text: str) -> tuple[float, float, float]:
+    """'X_M,Y_M[,ALT_M]' in world metres (x east, y north of the world's south-west corner);
+    the altitude defaults to that of a generated start."""
     parts = [p.strip() for p in text.split(",")]
     if len(parts) not in (2, 3):
-        raise argparse.ArgumentTypeError(f"--start {text!r}: expected X_M,Y_M or X_M,Y_M,ALT_M")
+        raise ValueError("expected X_M,Y_M or X_M,Y_M,ALT_M")
     try:
         values = [float(p) for p in parts]
     except ValueError:
-        raise argparse.ArgumentTypeError(f"--start {text!r}: not numbers") from None
+        raise ValueError("expected numbers X_M,Y_M[,ALT_M]") from None
     if not all(validate.is_number(v) for v in values):
-        raise argparse.ArgumentTypeError(f"--start {text!r}: values must be finite")
-    return values[0], values[1], values[2] if len(values) == 3 else None
+        raise ValueError("values must be finite")
+    if len(values) == 2:
+        values.append(SimServiceConfig.start_alt_m)
+    if values[2] <= 0:
+        raise ValueError(f"the altitude must be > 0 m, got {values[2]:g}")
+    return values[0], values[1], values[2]
 
 
-def _wait_list(text: str) -> tuple[str, ...]:
-    names = tuple(s.strip() for s in text.split(",") if s.strip())
-    unknown = [s for s in names if s not in WAITABLE]
-    if unknown:
-        raise argparse.ArgumentTypeError(f"--wait-for {text!r}: {', '.join(unknown)} not among {', '.join(WAITABLE)}")
-    return names
+def _render_start(start: tuple[float, float, float]) -> str:
+    return ",".join(repr(float(v)) for v in start)
+
+
+# The one table of the sim's flags: `build_parser`, `config_from_args` and `to_argv` all read it.
+CLI = CommandLine(SimServiceConfig, {
+    "sim.vehicle_id": Flag("--vehicle-id", "vehicle id in the keys", check=lambda _w, v: keys.check_vehicle_id(v)),
+    "world": Flag("--world", "synthetic[:seed=N,size_m=X,gsd_m=Y], tiles:<url>,... or a world folder",
+                  check=non_blank),
+    "start_xy_alt_m": Flag("--start", "start in world metres (x east, y north of the south-west corner); "
+                           f"altitude default {SimServiceConfig.start_alt_m:g}", parse=parse_start,
+                           render=_render_start, metavar="X_M,Y_M[,ALT_M]", group="start"),
+    "start_seed": Flag("--start-seed", "seed of the generated start (the first of generate_starts)", group="start"),
+    "sim.timing": Flag("--timing", "frame period and perception latency preset", choices=TIMING_NAMES),
+    "lockstep": Flag("--lockstep", "advance only when the controller has answered each state (deterministic)",
+                     off="--realtime", off_help="step on the wall clock and never wait for commands"),
+    "speed": Flag("--speed", "real time: sim seconds per wall second", check=validate.positive),
+    "sim.time_limit_s": Flag("--time-limit-s", "sim-time limit of the episode", check=validate.positive),
+    "sim.handover_alt_m": Flag("--handover-alt-m", "the episode ends (and is judged) at this altitude",
+                               check=validate.non_negative),
+    "sim.seed": Flag("--seed", "seed of the vehicle's disturbances"),
+    "sim.frame_period_s": Flag("--frame-period-s", "override the preset's frame period", check=validate.positive),
+    "sim.latency_s": Flag("--latency-s", "override the preset's perception latency", check=validate.non_negative),
+    "jpeg_quality": Flag("--jpeg-quality", "send frames JPEG-compressed at quality Q (1-100; default raw)",
+                         check=integer_in(1, 100), metavar="Q"),
+    "sim.attach_truth": Flag("--no-truth", "do not attach ground-truth labels to frames", negate=True),
+    "external_pose": Flag("--external-pose", "render at the vehicle state the controller publishes on the state "
+                          "key (a real or SITL autopilot) instead of simulating the flight; the sim then sends no "
+                          "states"),
+    "wait_for": Flag("--wait-for", "comma list of services (segmenter,controller) whose liveliness to wait for "
+                     "before starting", choices=WAITABLE, metavar="SERVICES"),
+    "wait_timeout_s": Flag("--wait-timeout-s", "give up waiting for --wait-for services (or the first "
+                           "external-pose state) after this long", check=validate.positive),
+    "cmd_timeout_s": Flag("--cmd-timeout-s", "lockstep: wall seconds to wait for each command (external pose: "
+                          "for a new state) before ending the episode as 'error'", check=validate.positive),
+})
 
 
 def build_parser() -> argparse.ArgumentParser:
-    d, ds = SimServiceConfig(), SimConfig()
-    p = argparse.ArgumentParser(prog="dovesei-sim", description=__doc__.splitlines()[0])
-    p.add_argument("--vehicle-id", default=ds.vehicle_id, help="vehicle id in the keys (default: uav1)")
-    p.add_argument("--world", default=d.world, help="synthetic[:seed=N,size_m=X,gsd_m=Y], tiles:<url>,... or a world folder")
-    where = p.add_mutually_exclusive_group()
-    where.add_argument("--start", type=parse_start, metavar="X_M,Y_M[,ALT_M]",
-                       help="start in world metres (x east, y north of the south-west corner); altitude default 100")
-    where.add_argument("--start-seed", type=int, default=d.start_seed,
-                       help="seed of the generated start (the first of generate_starts; default 0)")
-    p.add_argument("--timing", choices=TIMING_NAMES, default=ds.timing,
-                   help="frame period and perception latency preset (default: reference)")
-    mode = p.add_mutually_exclusive_group()
-    mode.add_argument("--lockstep", dest="lockstep", action="store_true",
-                      help="advance only when the controller has answered each state (default; deterministic)")
-    mode.add_argument("--realtime", dest="lockstep", action="store_false",
-                      help="step on the wall clock and never wait for commands")
-    p.set_defaults(lockstep=d.lockstep)
-    p.add_argument("--speed", type=_positive, default=d.speed, help="real time: sim seconds per wall second (default 1)")
-    p.add_argument("--time-limit-s", type=_positive, default=ds.time_limit_s, help="sim-time limit of the episode")
-    p.add_argument("--handover-alt-m", type=_non_negative, default=ds.handover_alt_m,
-                   help="the episode ends (and is judged) at this altitude")
-    p.add_argument("--seed", type=int, default=ds.seed, help="seed of the vehicle's disturbances")
-    p.add_argument("--frame-period-s", type=_positive, default=None, help="override the preset's frame period")
-    p.add_argument("--latency-s", type=_non_negative, default=None, help="override the preset's perception latency")
-    p.add_argument("--jpeg-quality", type=int, default=None, metavar="Q",
-                   help="send frames JPEG-compressed at quality Q (1-100; default raw)")
-    p.add_argument("--no-truth", action="store_true", help="do not attach ground-truth labels to frames")
-    p.add_argument("--external-pose", action="store_true",
-                   help="render at the vehicle state the controller publishes on the state key (a real or SITL "
-                        "autopilot) instead of simulating the flight; the sim then sends no states")
-    p.add_argument("--wait-for", type=_wait_list, default=(), metavar="SERVICES",
-                   help="comma list of services (segmenter,controller) whose liveliness to wait for before starting")
-    p.add_argument("--wait-timeout-s", type=_positive, default=d.wait_timeout_s,
-                   help="give up waiting for --wait-for services (or the first external-pose state) after this long")
-    p.add_argument("--cmd-timeout-s", type=_positive, default=d.cmd_timeout_s,
-                   help="lockstep: wall seconds to wait for each command (external pose: for a new state) "
-                        "before ending the episode as 'error'")
-    p.add_argument("--stats-out", type=Path, default=None, metavar="FILE",
-                   help="write the run's counters and command latencies as JSON when it ends")
-    p.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
-    add_zenoh_args(p)
-    return p
+    return service_parser("dovesei-sim", __doc__.splitlines()[0], CLI, add_zenoh_args)
 
 
 def config_from_args(args: argparse.Namespace) -> SimServiceConfig:
-    start, start_alt_m = None, SimServiceConfig.start_alt_m
-    if args.start is not None:
-        x_m, y_m, alt_m = args.start
-        start = (x_m, y_m, start_alt_m if alt_m is None else alt_m)
-    sim = SimConfig(vehicle_id=keys.check_vehicle_id(args.vehicle_id), timing=args.timing,
-                    frame_period_s=args.frame_period_s, latency_s=args.latency_s, handover_alt_m=args.handover_alt_m,
-                    time_limit_s=args.time_limit_s, seed=args.seed, attach_truth=not args.no_truth)
-    return SimServiceConfig(sim=sim, world=args.world, start_xy_alt_m=start, start_seed=args.start_seed,
-                            lockstep=args.lockstep, speed=args.speed, jpeg_quality=args.jpeg_quality,
-                            external_pose=args.external_pose, wait_for=tuple(args.wait_for),
-                            wait_timeout_s=args.wait_timeout_s, cmd_timeout_s=args.cmd_timeout_s)
+    return CLI.from_args(args)
+
+
+def to_argv(config: SimServiceConfig) -> list[str]:
+    """The flags of `config` (what `dovesei up` passes to a sim process); they parse back to it."""
+    return CLI.to_argv(config)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    logging.basicConfig(level=args.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    process = PROCESS.from_args(args)
+    logging.basicConfig(level=process.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:
         config = config_from_args(args)
         zconf = zenoh_config_from_args(args)
@@ -559,8 +531,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         log.error("sim stopped: %s", exc)
         return 1
     finally:
-        if args.stats_out is not None:
-            write_stats(args.stats_out, stats.to_json())
+        if process.stats_out is not None:
+            write_stats(process.stats_out, stats.to_json())
     log.info("sim done: %d steps, %d frames, %d commands used (%d stale, %d rejected payloads)",
              stats.steps, stats.frames_sent, stats.commands_used, stats.commands_stale, stats.commands_rejected)
     if result is None:

@@ -240,7 +240,7 @@ def test_a_flight_controller_gets_setpoints_then_handover_then_hold_on_stop(zeno
 
 def test_a_missing_mavlink_adapter_is_a_clear_error(zenoh_pair, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setitem(sys.modules, "dovesei.controller.mavlink", None)  # import now fails
-    config = ControllerConfig(lockstep=False, vehicle="udpin:127.0.0.1:14550")
+    config = ControllerConfig(lockstep=False, vehicle_url="udpin:127.0.0.1:14550")
     with pytest.raises(ConfigError, match="MAVLink adapter"):
         open_vehicle(zenoh_pair[0], config)
 
@@ -280,7 +280,7 @@ def test_service_steers_a_fake_autopilot_through_the_mavlink_adapter(zenoh_pair)
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
         probe.bind(("127.0.0.1", 0))
         udp_port = probe.getsockname()[1]
-    config = ControllerConfig(lockstep=False, vehicle=f"udpout:127.0.0.1:{udp_port}", vehicle_connect_timeout_s=5.0)
+    config = ControllerConfig(lockstep=False, vehicle_url=f"udpout:127.0.0.1:{udp_port}", vehicle_connect_timeout_s=5.0)
     with FakeAutopilot(f"udpin:127.0.0.1:{udp_port}", mode="GUIDED", armed=True, alt_m=50.0, heartbeat_hz=20) as fake:
         gen = start_service(zenoh_pair, config, core=ControllerCore(config, policy=Descend()))
         h, thread = next(gen)
@@ -303,7 +303,7 @@ def test_cli_flags_reach_the_config_and_pick_the_loop_for_the_vehicle() -> None:
     parser = build_parser()
     assert config_from_args(parser.parse_args([])).lockstep is True  # the sim's default mode
     assert config_from_args(parser.parse_args(["--realtime"])).lockstep is False
-    assert config_from_args(parser.parse_args(["--vehicle", "udpin:0.0.0.0:14550"])).lockstep is False
+    assert config_from_args(parser.parse_args(["--vehicle-url", "udpin:0.0.0.0:14550"])).lockstep is False
     cfg = config_from_args(parser.parse_args([
         "--vehicle-id", "uav7", "--policy", "dovesei-nofocus", "--timing", "reference", "--rate-hz", "10",
         "--heatmap-hold-after-s", "2", "--heatmap-climb-after-s", "12", "--search-alt-m", "80",

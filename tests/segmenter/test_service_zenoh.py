@@ -153,7 +153,7 @@ def test_queryable_round_trip_and_error_replies(zenoh_pair) -> None:
     def ask(key: str, payload: bytes) -> list[zenoh.Reply]:
         return list(client.get(key, payload=payload, timeout=2.0))
 
-    with serving(server, ServiceConfig(segmenter=SIM, vehicle="base")) as service:
+    with serving(server, ServiceConfig(segmenter=SIM, vehicle_id="base")) as service:
         frame = make_frame(seq=9, vehicle="uav3")
         replies: list[zenoh.Reply] = []
         # Any vehicle may ask, whatever the service's own vehicle id; retry while the queryable propagates.
