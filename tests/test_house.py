@@ -1,0 +1,206 @@
+"""House rules that keep the repository standing alone (issue 9), checked on the source itself.
+
+- Each service stands alone: product code (`services/**`, `shared/**`) imports only
+  `dovesei.shared` and its own package, never another service and never the CLI layer
+  (`dovesei.cli`, `dovesei.up`, `dovesei.testing`, `dovesei.benchmarks`, `dovesei.pictures`, ...).
+  `dovesei.shared` imports no service at all.
+- Imports of project modules sit at module top; one inside a function needs a reason on its line
+  (``# lazy: <why>``). Third-party imports inside functions (torch, transformers, cv2, pymavlink
+  when a mode needs them) are the usual optional-dependency pattern and are not counted here.
+- Nothing tracked refers to the team's machines: no `../shared`, no `/work/`, no home folders.
+- Packaging matches the tree: every declared package exists, every package folder is declared,
+  every package-data pattern matches a file.
+"""
+
+from __future__ import annotations
+
+import ast
+import re
+import subprocess
+import tomllib
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PYPROJECT = tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))
+PACKAGE_DIRS: dict[str, str] = PYPROJECT["tool"]["setuptools"]["package-dir"]
+
+
+def _package_of(path: Path) -> str:
+    """The dotted package a product file belongs to (dovesei.shared, dovesei.sim, ...)."""
+    rel = path.relative_to(ROOT).as_posix()
+    best = max((d for d in PACKAGE_DIRS.values() if rel.startswith(d + "/")), key=len)
+    pkg = next(name for name, d in PACKAGE_DIRS.items() if d == best)
+    sub = Path(rel[len(best) + 1:]).parent.parts
+    return ".".join((pkg, *sub))
+
+
+def _product_files() -> list[Path]:
+    files = sorted((ROOT / "shared").rglob("*.py")) + sorted((ROOT / "services").rglob("*.py"))
+    return [f for f in files if "__pycache__" not in f.parts]
+
+
+PRODUCT = _product_files()
+
+
+def _imports(tree: ast.AST, package: str):
+    """(node, absolute module name, inside a function?) for every import in `tree`."""
+    def walk(node: ast.AST, in_function: bool):
+        for child in ast.iter_child_nodes(node):
+            nested = in_function or isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda))
+            if isinstance(child, ast.Import):
+                for alias in child.names:
+                    yield child, alias.name, in_function
+            elif isinstance(child, ast.ImportFrom):
+                if child.level:
+                    base = package.split(".")
+                    base = base[: len(base) - (child.level - 1)]
+                    module = ".".join(base + ([child.module] if child.module else []))
+                else:
+                    module = child.module or ""
+                yield child, module, in_function
+            yield from walk(child, nested)
+    yield from walk(tree, False)
+
+
+def _own_root(package: str) -> str:
+    """dovesei.controller.policies -> dovesei.controller: a service may import all of itself."""
+    return ".".join(package.split(".")[:2])
+
+
+def _allowed(module: str, package: str) -> bool:
+    if module != "dovesei" and not module.startswith("dovesei."):
+        return True  # third party or stdlib
+    own = _own_root(package)
+    if own == "dovesei.shared":
+        return module == own or module.startswith(own + ".")
+    return any(module == p or module.startswith(p + ".") for p in ("dovesei.shared", own))
+
+
+def test_the_product_files_are_found() -> None:
+    packages = {_own_root(_package_of(f)) for f in PRODUCT}
+    assert {"dovesei.shared", "dovesei.sim", "dovesei.segmenter", "dovesei.controller"} <= packages
+
+
+@pytest.mark.parametrize("path", PRODUCT, ids=lambda p: p.relative_to(ROOT).as_posix())
+def test_a_service_imports_only_shared_and_itself(path: Path) -> None:
+    package = _package_of(path)
+    tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
+    bad = [f"line {node.lineno}: {module}" for node, module, _ in _imports(tree, package)
+           if not _allowed(module, package)]
+    assert not bad, f"{path.relative_to(ROOT)} ({package}) imports outside dovesei.shared and itself: {bad}"
+
+
+@pytest.mark.parametrize("path", PRODUCT, ids=lambda p: p.relative_to(ROOT).as_posix())
+def test_project_imports_inside_functions_state_a_reason(path: Path) -> None:
+    package = _package_of(path)
+    lines = path.read_text(encoding="utf-8").splitlines()
+    tree = ast.parse("\n".join(lines), filename=str(path))
+    hidden = []
+    for node, module, in_function in _imports(tree, package):
+        if not in_function or not (module == "dovesei" or module.startswith("dovesei.")):
+            continue
+        span = lines[node.lineno - 1: (node.end_lineno or node.lineno)]
+        if not any("# lazy:" in line for line in span):
+            hidden.append(f"line {node.lineno}: {module}")
+    assert not hidden, (f"{path.relative_to(ROOT)}: project imports inside functions without a "
+                        f"'# lazy: <reason>' comment (move them to the top): {hidden}")
+
+
+def test_the_checker_sees_what_it_should() -> None:
+    # The walk itself: relative imports resolve, function-level imports are told apart.
+    src = ("from . import core\nfrom ..shared import keys\nimport dovesei.controller.mavlink\n"
+           "def f():\n    from dovesei.sim.world import load_world  # lazy: test\n")
+    found = [(m, inside) for _, m, inside in _imports(ast.parse(src), "dovesei.segmenter")]
+    assert found == [("dovesei.segmenter", False), ("dovesei.shared", False), ("dovesei.controller.mavlink", False),
+                     ("dovesei.sim.world", True)]
+    assert _allowed("dovesei.shared.keys", "dovesei.sim") and _allowed("dovesei.sim.core", "dovesei.sim")
+    assert not _allowed("dovesei.controller.mavlink", "dovesei.sim")
+    assert not _allowed("dovesei.testing.fake_autopilot", "dovesei.controller")
+    assert not _allowed("dovesei.sim.world", "dovesei.shared")
+    assert not _allowed("dovesei", "dovesei.sim")
+    assert _package_of(ROOT / "services/controller/policies/base.py") == "dovesei.controller.policies"
+
+
+# ---------------------------------------------------------------------------------- paths
+
+# Paths of the team's machines (and folders beside the repository) that a clean clone lacks.
+# /home/nobody is the home of the container's user (deploy/Dockerfile: USER nobody), inside the image.
+FORBIDDEN = [r"\.\./shared\b", r"(?<![\w.])/work/", r"(?<![\w.])/home/(?!nobody/)\w", r"(?<![\w.])/Users/\w",
+             r"(?<![\w.])/root/", r"\b[A-Z]:\\\\Users"]
+
+
+def _tracked() -> list[str]:
+    res = subprocess.run(["git", "ls-files", "-z"], cwd=ROOT, capture_output=True, timeout=60)
+    if res.returncode != 0:
+        pytest.fail(f"git ls-files failed: {res.stderr.decode(errors='replace')}")
+    return [p for p in res.stdout.decode().split("\0") if p]
+
+
+def test_nothing_tracked_refers_to_the_teams_machines() -> None:
+    pattern = re.compile("|".join(FORBIDDEN))
+    me = Path(__file__).resolve().relative_to(ROOT).as_posix()
+    offenders = []
+    for rel in _tracked():
+        path = ROOT / rel
+        if rel == me or not path.is_file():
+            continue
+        data = path.read_bytes()
+        if b"\0" in data[:8192]:
+            continue  # binary (images, label maps)
+        for n, line in enumerate(data.decode("utf-8", errors="replace").splitlines(), 1):
+            if pattern.search(line):
+                offenders.append(f"{rel}:{n}: {line.strip()[:120]}")
+    assert not offenders, "paths outside the repository:\n" + "\n".join(offenders)
+
+
+def test_the_path_patterns_catch_what_they_should() -> None:
+    pattern = re.compile("|".join(FORBIDDEN))
+    for bad in ("see ../shared/REFERENCE.md", 'Path("/work/shared/worlds")', "/home/alice/x", "cd /root/x"):
+        assert pattern.search(bad), bad
+    for fine in ("deploy/zenoh/router.json5", "/etc/zenoh/router.json5", "/dev/video0", "a/work/b",
+                 "worlds:/home/nobody/.cache/dovesei",
+                 "https://example.org/work/x"):
+        assert not pattern.search(fine), fine
+
+
+# ---------------------------------------------------------------------------------- packaging
+
+
+def test_every_declared_package_exists_and_every_package_is_declared() -> None:
+    declared = set(PYPROJECT["tool"]["setuptools"]["packages"])
+
+    def folder(pkg: str) -> Path:
+        parts = pkg.split(".")
+        for i in range(len(parts), 0, -1):
+            head = ".".join(parts[:i])
+            if head in PACKAGE_DIRS:
+                return ROOT / PACKAGE_DIRS[head] / Path(*parts[i:])
+        return ROOT / Path(*parts)
+
+    missing = [p for p in sorted(declared) if not (folder(p) / "__init__.py").is_file()]
+    assert not missing, f"declared in pyproject.toml but no package folder: {missing}"
+    on_disk = set()
+    for pkg, d in PACKAGE_DIRS.items():
+        for init in (ROOT / d).rglob("__init__.py"):
+            if "__pycache__" in init.parts:
+                continue
+            sub = init.parent.relative_to(ROOT / d).parts
+            name = ".".join((pkg, *sub))
+            # A folder mapped to its own package-dir entry is that package, not a subpackage here.
+            if not any(name != p and (ROOT / PACKAGE_DIRS[p]) == init.parent for p in PACKAGE_DIRS):
+                on_disk.add(name)
+    undeclared = sorted(on_disk - declared)
+    assert not undeclared, f"package folders missing from pyproject.toml packages (a wheel would lack them): {undeclared}"
+
+
+def test_every_package_data_pattern_matches_files() -> None:
+    data: dict[str, list[str]] = PYPROJECT["tool"]["setuptools"].get("package-data", {})
+    assert data, "the Dubai world is package data of dovesei.sim"
+    for pkg, patterns in data.items():
+        base = ROOT / PACKAGE_DIRS.get(pkg, pkg.replace(".", "/"))
+        assert base.is_dir(), f"package-data for {pkg}: no folder {base.relative_to(ROOT)}"
+        for pattern in patterns:
+            matches = [p for p in base.glob(pattern) if p.is_file()]
+            assert matches, f"package-data {pkg}: {pattern!r} matches no file under {base.relative_to(ROOT)}"
