@@ -20,14 +20,12 @@ a weak dictionary so it dies with the world.
 
 from __future__ import annotations
 
-import colorsys
 import logging
 import math
 import threading
 import time
 import weakref
 from dataclasses import dataclass
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -301,74 +299,3 @@ def prebuild_pyramid(world: World, cam: CameraModel = CameraModel(), max_alt_m: 
     pyr = _pyramid(world)
     pyr.level(_level_index(cam.metres_per_px(max_alt_m) / world.gsd_m))
     return pyr.build_s
-
-
-def colourise_labels(world: World, labels: np.ndarray) -> np.ndarray:
-    """An RGB picture of a label map: safe classes in greens, unsafe ones in other hues, outside black."""
-    lut = np.zeros((256, 3), dtype=np.uint8)
-    for cid, rgb in _class_colours(world).items():
-        lut[cid] = rgb
-    return lut[labels]
-
-
-def _class_colours(world: World) -> dict[int, tuple[int, int, int]]:
-    # Hues spread evenly within each group, so neighbouring classes stay tellable apart: safe
-    # classes share the green band (a glance tells safe from not), unsafe ones get the rest.
-    safe = sorted(c for c, info in world.classes.items() if info.safe)
-    unsafe = sorted(c for c, info in world.classes.items() if not info.safe)
-    colours = {}
-    for group, (h0, h1) in ((safe, (0.17, 0.42)), (unsafe, (0.5, 1.08))):
-        for i, cid in enumerate(group):
-            hue = (h0 + (h1 - h0) * i / max(1, len(group))) % 1.0
-            value = 0.95 if i % 2 == 0 else 0.7
-            colours[cid] = tuple(int(255 * v) for v in colorsys.hsv_to_rgb(hue, 0.8, value))
-    return colours
-
-
-def render_views(world: World, x_m: float, y_m: float, path: str | Path,
-                 alts_m: tuple[float, ...] = (100.0, 50.0, 20.0), yaw_rad: float = 0.0,
-                 cam: CameraModel = CameraModel()) -> Path:
-    """Write one PNG: the camera image (top row) and its label map (bottom row) per altitude."""
-    gap = 8
-    cols = []
-    for alt_m in alts_m:
-        image, labels, _ = render(world, x_m, y_m, alt_m, yaw_rad, cam)
-        tile = image.copy()
-        _caption(tile, f"{alt_m:.0f} m AGL  {2 * cam.half_width_m(alt_m):.0f} m wide")
-        parts = [tile]
-        if labels is not None:
-            lab = colourise_labels(world, labels)
-            _caption(lab, "labels")
-            parts += [np.full((gap, cam.width_px, 3), 255, np.uint8), lab]
-        cols.append(np.vstack(parts))
-        cols.append(np.full((cols[-1].shape[0], gap, 3), 255, np.uint8))
-    body = np.hstack(cols[:-1])
-    legend = _legend(world, body.shape[1])
-    sheet = np.vstack([body, legend]) if legend is not None else body
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(path), np.ascontiguousarray(sheet[:, :, ::-1])):
-        raise OSError(f"could not write {path}")
-    return path
-
-
-def _caption(img: np.ndarray, text: str) -> None:
-    cv2.putText(img, text, (6, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 3, cv2.LINE_AA)
-    cv2.putText(img, text, (6, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
-
-
-def _legend(world: World, width_px: int) -> np.ndarray | None:
-    if world.labels is None or not world.classes:
-        return None
-    per_row = max(1, width_px // 260)
-    ids = sorted(world.classes)
-    colours = _class_colours(world)
-    rows = -(-len(ids) // per_row)
-    legend = np.full((rows * 22 + 8, width_px, 3), 255, np.uint8)
-    for i, cid in enumerate(ids):
-        x0, y0 = (i % per_row) * 260 + 6, (i // per_row) * 22 + 6
-        cv2.rectangle(legend, (x0, y0), (x0 + 16, y0 + 16), colours[cid], -1)
-        info = world.classes[cid]
-        text = f"{cid} {info.name[:26]}{'' if info.safe else ' (unsafe)'}"
-        cv2.putText(legend, text, (x0 + 22, y0 + 13), cv2.FONT_HERSHEY_SIMPLEX, 0.42, (0, 0, 0), 1, cv2.LINE_AA)
-    return legend

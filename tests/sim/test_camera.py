@@ -3,9 +3,7 @@
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
 
@@ -15,7 +13,6 @@ from dovesei.sim.camera import (
     bench_render,
     pixel_to_world_affine,
     render,
-    render_views,
 )
 from dovesei.sim.world import ClassInfo, World
 
@@ -166,13 +163,6 @@ def test_bad_inputs() -> None:
         render(world, 5.0, 5.0, 0.0, 0.0)
     with pytest.raises(CameraError, match="finite"):
         render(world, float("nan"), 5.0, 10.0, 0.0)
-
-
-def test_render_views_writes_one_picture(markers, tmp_path: Path) -> None:
-    world, _ = markers
-    path = render_views(world, CAM_X_M, CAM_Y_M, tmp_path / "views.png")
-    sheet = cv2.imread(str(path))
-    assert sheet is not None and sheet.shape[1] == 3 * 352 + 2 * 8 and sheet.shape[0] > 2 * 352
 
 
 def test_bench_render_runs(markers) -> None:

@@ -214,10 +214,3 @@ def test_default_cache_dir_follows_environment(monkeypatch, tmp_path):
     monkeypatch.delenv("XDG_CACHE_HOME")
     monkeypatch.setenv("HOME", str(tmp_path / "h"))
     assert syn.default_cache_dir() == tmp_path / "h" / ".cache" / "dovesei" / "worlds"
-
-
-def test_render_preview_writes_a_png(tmp_path):
-    out = syn.render_preview(SyntheticParams(seed=1, size_m=200.0, gsd_m=0.5), tmp_path / "p.png",
-                             crop_m=100.0, panel_px=200)
-    picture = cv2.imread(str(out))
-    assert picture is not None and picture.shape[0] > 200 and picture.shape[1] >= 2 * 200
