@@ -17,7 +17,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from dovesei.pictures.world import colourise_labels, render_preview, render_views
 from dovesei.shared.errors import DoveseiError
+from dovesei.sim.camera import CameraModel, render
+from dovesei.sim.synthetic import parse_spec
+from dovesei.sim.world import load_world
 
 log = logging.getLogger(__name__)
 
@@ -25,7 +29,8 @@ log = logging.getLogger(__name__)
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="dovesei preview", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--world", default="synthetic", help="synthetic[:seed=N,...] or a world folder")
+    p.add_argument("--world", default="synthetic",
+                   help="synthetic[:seed=N,style=S,...], dubai, tiles:<url>,... or a world folder")
     p.add_argument("--at", metavar="X_M,Y_M", help="where the camera looks (default: the world's centre)")
     p.add_argument("--out", type=Path, default=Path("runs/preview"))
     p.add_argument("--no-perception", action="store_true", help="skip the simulated perception sheet")
@@ -33,8 +38,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _world_sheet(world, path: Path, panel_px: int = 900) -> None:
-    from dovesei.sim.camera import colourise_labels
-
     image = world.image_rgb
     scale = panel_px / max(image.shape[:2])
     size = (max(1, int(image.shape[1] * scale)), max(1, int(image.shape[0] * scale)))
@@ -50,9 +53,6 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
     from dovesei.segmenter.simulated import render_noise_preview
-    from dovesei.sim.camera import CameraModel, render, render_views
-    from dovesei.sim.synthetic import parse_spec, render_preview
-    from dovesei.sim.world import load_world
 
     try:
         world = load_world(args.world)
