@@ -34,6 +34,7 @@ import numpy as np
 
 from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.shared.validate import positive
+from dovesei.sim import synthetic
 
 log = logging.getLogger(__name__)
 
@@ -180,8 +181,9 @@ def load_world(spec: str) -> World:
     if spec == "synthetic" or spec.startswith("synthetic:"):
         return _load_synthetic(spec)
     if spec.startswith("tiles:"):
-        # Imported here: tiles pulls urllib and cache handling that other worlds never need.
-        from dovesei.sim.tiles import load_tile_world
+        # tiles imports this module (World, WorldError), and it pulls urllib and tile caching
+        # that other worlds never need.
+        from dovesei.sim.tiles import load_tile_world  # lazy: import cycle with tiles
 
         return load_tile_world(spec)
     if spec in WORLD_ALIASES:
@@ -190,8 +192,6 @@ def load_world(spec: str) -> World:
 
 
 def _load_synthetic(spec: str) -> World:
-    from dovesei.sim import synthetic
-
     try:
         params = synthetic.parse_spec(spec)
     except synthetic.SyntheticWorldError as exc:
