@@ -4,14 +4,20 @@ In simulation the data clock is sim time, advanced by the messages themselves (a
 fed from stamps); in flight it is the vehicle's clock, equally fed from its state messages; a
 `WallClock` serves the real-time loops that must tick on their own. Each clock is named, and the
 name travels in every `Stamp` so a reader knows which timeline a number belongs to.
+
+A sender's stamp is a claim, not a fact: `StampBound` judges each one against the receiver's own
+clock at arrival, so a stamp from the future (a skewed clock, a bug, a forgery) is refused and
+counted before it can become "the newest" and make every honest sample look old.
 """
 
 from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 
-from dovesei.shared.messages import Stamp
+from dovesei.shared.messages import CLOCKS, Stamp
 
 
 class WallClock:
@@ -69,3 +75,100 @@ class DataClock:
 def wall_time_s() -> float:
     """Wall time for transport-latency measurement only (comparable across local processes)."""
     return time.time()
+
+
+DEFAULT_FUTURE_TOLERANCE_S = 1.0
+# How many data seconds may pass per second of the receiver's monotonic clock, for clocks whose
+# rate is known. The vehicle's clock runs on true seconds (5 % margin for crystal drift and
+# latency jitter). Sim time runs at any multiple of real time in lockstep (bursts of frames are
+# legitimate there), so only a real-time service bounds it by rate (`REALTIME_RATES`), and a
+# lockstep receiver bounds it by its own sim time (`own`). 'wall' stamps come from each
+# process's own monotonic clock and cannot be compared across processes.
+MAX_DATA_RATE: Mapping[str, float] = {"vehicle": 1.05}
+REALTIME_RATES: Mapping[str, float] = {"vehicle": 1.05, "sim": 1.05}
+
+
+@dataclass(frozen=True)
+class Arrival:
+    """When a sample reached the receiver: its monotonic clock and, when it has one, its own data time."""
+
+    mono_s: float
+    own_s: float | None = None
+
+
+class StampBound:
+    """Judges sender stamps against the receiver's own clock at arrival; refuses the future.
+
+    With `own` (a callable giving the receiver's time on `own_clock`, e.g. the sim's own sim time)
+    a stamp may lead that time by at most `tolerance_s`. Without it the receiver's clock is learnt
+    per (source, clock) from on-time samples: the newest stamp that did not lead the projection of
+    the previous one (its stamp plus `MAX_DATA_RATE` x the monotonic time since it arrived) becomes
+    the anchor, and a stamp may lead the projection by `tolerance_s`. Samples inside the tolerance
+    are accepted but never move the anchor, so a sender cannot ratchet the clock forward by a
+    tolerance per message; an honest sample pulls it back. A stamp in the past is always accepted
+    here (a restarted sim, a reordered sample): what is too old is the receiver's decision.
+
+    Thread-safe; one instance may be shared by several inboxes of a service, so a fast stream
+    (states at 20 Hz) keeps the anchor fresh for a slow one (heatmaps) on the same clock.
+    """
+
+    def __init__(self, tolerance_s: float = DEFAULT_FUTURE_TOLERANCE_S, *,
+                 own: Callable[[], float | None] | None = None, own_clock: str | None = None,
+                 rates: Mapping[str, float] = MAX_DATA_RATE) -> None:
+        if not tolerance_s >= 0:
+            raise ValueError(f"stamp tolerance must be >= 0 s, got {tolerance_s!r}")
+        if (own is None) != (own_clock is None):
+            raise ValueError("a receiver's own clock needs both `own` and `own_clock`")
+        if own_clock is not None and own_clock not in CLOCKS:
+            raise ValueError(f"own_clock {own_clock!r} is not one of {CLOCKS}")
+        for clock, rate in rates.items():
+            if clock not in CLOCKS or not rate > 0:
+                raise ValueError(f"rate of clock {clock!r} must be > 0 data seconds per second, got {rate!r}")
+        self.tolerance_s, self._own, self.own_clock = float(tolerance_s), own, own_clock
+        self._rates = dict(rates)
+        self._anchors: dict[tuple[str, str], tuple[float, float]] = {}  # (source, clock) -> (t_s, mono_s)
+        self._lock = threading.Lock()
+
+    def arrive(self) -> Arrival:
+        """Read the receiver's clocks now; called where a sample lands (cheap, any thread)."""
+        own = self._own() if self._own is not None else None
+        return Arrival(time.monotonic(), None if own is None else float(own))
+
+    def judge(self, source: str, stamp: Stamp, arrival: Arrival) -> str | None:
+        """None if the stamp is acceptable, else the reason it is refused."""
+        if stamp.clock == self.own_clock:
+            if arrival.own_s is not None and stamp.t_s > arrival.own_s + self.tolerance_s:
+                return (f"stamp {stamp.t_s:.3f} s ({stamp.clock}) leads the receiver's clock "
+                        f"{arrival.own_s:.3f} s by more than {self.tolerance_s:g} s")
+            return None
+        rate = self._rates.get(stamp.clock)
+        if rate is None:
+            return None
+        key = (source, stamp.clock)
+        with self._lock:
+            anchor = self._anchors.get(key)
+            if anchor is None:
+                self._anchors[key] = (stamp.t_s, arrival.mono_s)
+                return None
+            # max(0, ...): samples judged out of arrival order never shrink the projection below the anchor.
+            projected = anchor[0] + rate * max(0.0, arrival.mono_s - anchor[1])
+            if stamp.t_s <= projected:
+                self._anchors[key] = (stamp.t_s, arrival.mono_s)
+                return None
+        if stamp.t_s <= projected + self.tolerance_s:
+            return None
+        return (f"stamp {stamp.t_s:.3f} s ({stamp.clock}) leads the receiver's clock "
+                f"(~{projected:.3f} s at arrival) by more than {self.tolerance_s:g} s")
+
+    def forget(self, source: str | None = None) -> None:
+        """Drop the learnt anchors (of one source, or all): the next sample anchors afresh."""
+        with self._lock:
+            for key in [k for k in self._anchors if source is None or k[0] == source]:
+                del self._anchors[key]
+
+
+def own_time(clock: DataClock | WallClock) -> Callable[[], float | None]:
+    """`own` for a `StampBound` from a receiver's clock: None until a data clock has started."""
+    if isinstance(clock, DataClock):
+        return lambda: clock.now_s() if clock.started else None
+    return clock.now_s

@@ -6,9 +6,11 @@ encode: message -> {"_schema", "_v", fields...} -> msgpack bytes. Numpy arrays t
 
 decode: bytes -> message. Everything that can be wrong with a payload (not msgpack, not a map,
 unknown schema, wrong version, missing/unknown/mistyped fields, array bytes not matching shape and
-dtype, NaN/inf, oversized payloads, undecodable JPEG) raises `ProtocolError` naming the key or
-schema and the problem; no other exception type leaves `decode`. Raw arrays are decoded with
-`np.frombuffer` (no copy, read-only).
+dtype, NaN/inf, numbers outside their field's range, oversized payloads, undecodable JPEG)
+raises `ProtocolError` naming the key or schema and the problem; no other exception type leaves
+`decode`. Raw arrays are decoded with `np.frombuffer` (no copy, read-only). A JPEG's dimensions
+are read from its frame header before anything is decoded: a few hundred bytes can claim
+16000x16000 px, and decoding that first costs close to a gigabyte.
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ import msgpack
 import numpy as np
 
 from dovesei.shared.errors import ProtocolError
-from dovesei.shared.messages import SCHEMAS, FieldError, Message, Record, field_hints
+from dovesei.shared.messages import MAX_IMAGE_SIDE_PX, SCHEMAS, FieldError, Message, Record, field_hints
 
 DEFAULT_MAX_BYTES = 32 * 1024 * 1024  # a 4K raw frame is 25 MB; anything bigger is an attack or a bug
 _WIRE_DTYPES = {"uint8", "uint16", "int16", "int32", "float16", "float32", "float64", "bool"}
@@ -145,8 +147,16 @@ def _array_from_wire(value: Any, cls: type, name: str) -> np.ndarray:
         buf = value["jpeg"]
         if not isinstance(buf, bytes) or not buf:
             raise FieldError(f"field {name!r}: JPEG data must be non-empty bytes")
+        height, width, _ = jpeg_header_size(buf, name)
+        if not (1 <= height <= MAX_IMAGE_SIDE_PX and 1 <= width <= MAX_IMAGE_SIDE_PX):
+            raise FieldError(f"field {name!r}: JPEG of {width}x{height} px outside 1..{MAX_IMAGE_SIDE_PX} px "
+                             f"(refused before decoding)")
+        if height * width * 3 > DEFAULT_MAX_BYTES:
+            # A JPEG may not decode to more than a raw frame may carry.
+            raise FieldError(f"field {name!r}: JPEG of {width}x{height} px decodes to more than "
+                             f"{DEFAULT_MAX_BYTES} bytes (refused before decoding)")
         bgr = cv2.imdecode(np.frombuffer(buf, np.uint8), cv2.IMREAD_COLOR)
-        if bgr is None:
+        if bgr is None or bgr.shape[:2] != (height, width):
             raise FieldError(f"field {name!r}: undecodable JPEG ({len(buf)} bytes)")
         return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
     if set(value) != {"dtype", "shape", "data"}:
@@ -165,3 +175,43 @@ def _array_from_wire(value: Any, cls: type, name: str) -> np.ndarray:
         raise FieldError(f"field {name!r}: {len(data)} bytes for shape {shape} {dtype} (expected {expected})")
     arr = np.frombuffer(data, dtype=dt).reshape(shape)
     return arr if dt.isnative else arr.astype(dt.newbyteorder("="))
+
+
+# Start-of-frame markers (baseline, extended, progressive, lossless, arithmetic): they carry the
+# image size. 0xC4 (DHT), 0xC8 (JPG) and 0xCC (DAC) share the range but are not frames.
+_SOF_MARKERS = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}
+_STANDALONE_MARKERS = frozenset(range(0xD0, 0xD8)) | {0x01}  # RSTn and TEM have no length field
+
+
+def jpeg_header_size(buf: bytes, name: str = "image") -> tuple[int, int, int]:
+    """(height, width, components) from a JPEG's frame header, without decoding any pixels.
+
+    Walks the marker segments from SOI to the first start-of-frame; raises `FieldError` when the
+    bytes are not a JPEG or end before a frame header (then there is nothing safe to decode).
+    """
+    if len(buf) < 4 or buf[0] != 0xFF or buf[1] != 0xD8:
+        raise FieldError(f"field {name!r}: undecodable JPEG (no start-of-image marker)")
+    i = 2
+    while i + 4 <= len(buf):
+        if buf[i] != 0xFF:
+            raise FieldError(f"field {name!r}: undecodable JPEG (no marker at byte {i})")
+        marker = buf[i + 1]
+        if marker == 0xFF:  # fill byte before a marker
+            i += 1
+            continue
+        if marker in _STANDALONE_MARKERS:
+            i += 2
+            continue
+        if marker in (0xD9, 0xDA):  # end of image, or scan data before any frame header
+            break
+        length = (buf[i + 2] << 8) | buf[i + 3]
+        if length < 2:
+            raise FieldError(f"field {name!r}: undecodable JPEG (segment length {length} at byte {i})")
+        if marker in _SOF_MARKERS:
+            if i + 10 > len(buf):
+                break
+            height = (buf[i + 5] << 8) | buf[i + 6]
+            width = (buf[i + 7] << 8) | buf[i + 8]
+            return height, width, buf[i + 9]
+        i += 2 + length
+    raise FieldError(f"field {name!r}: undecodable JPEG (no frame header in {len(buf)} bytes)")

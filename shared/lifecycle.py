@@ -2,9 +2,10 @@
 
 Signal handlers only set a stop event so that `with` blocks close Zenoh sessions and
 subscribers (an open Zenoh callback at interpreter exit hangs the process). Callbacks never do
-work: subscribers hand samples to a ring (newest wins) or a FIFO, and the service loop decodes
-them through an `Inbox`, which counts and logs what it rejects so nothing malformed reaches an
-algorithm and the service keeps serving.
+work: subscribers hand raw samples over, and the service loop validates them through an `Inbox`
+(decoded, its stamp not from the future on the receiver's clock)
+before one can become the newest; it counts what it rejects and logs it rate-limited, so nothing
+malformed reaches an algorithm, a flood cannot evict a valid sample, and the service keeps serving.
 """
 
 from __future__ import annotations
@@ -23,9 +24,10 @@ from typing import Any, Generic, TypeVar
 import zenoh
 
 from dovesei.shared import keys
+from dovesei.shared.clock import Arrival, StampBound
 from dovesei.shared.codec import DEFAULT_MAX_BYTES, decode
 from dovesei.shared.errors import ProtocolError
-from dovesei.shared.messages import Message
+from dovesei.shared.messages import Message, Stamp
 
 log = logging.getLogger(__name__)
 M = TypeVar("M", bound=Message)
@@ -89,27 +91,83 @@ def is_alive(session: zenoh.Session, vehicle: str, service: str, timeout_s: floa
     return any(r.ok is not None for r in replies)
 
 
-class Inbox(Generic[M]):
-    """A subscriber whose samples are decoded in the caller's thread and counted when rejected.
+class RateLimitedLog:
+    """Warn at once about the first occurrence of each kind of event, then at most once per interval.
 
-    The Zenoh callback only hands the raw sample over (a deque and an event): decoding, checking
-    and logging happen in the service loop. `newest_only=True` keeps one sample: a slow consumer
-    never builds a backlog. Otherwise a FIFO of `depth` samples keeps every message (commands,
-    prompt changes); on overflow the oldest is dropped and counted. `wakeup`, an event shared by
-    several inboxes, lets one loop sleep until any of them has something, with no polling delay.
+    A flood (garbage on a key, a sender with a skewed clock) must not become a flood of log lines:
+    the first of each kind is logged with its detail, later ones are counted and summarised.
+    """
+
+    def __init__(self, logger: logging.Logger, what: str, interval_s: float = 10.0) -> None:
+        self._log, self.what, self.interval_s = logger, what, interval_s
+        self._seen: set[str] = set()
+        self._suppressed: Counter[str] = Counter()
+        self._last_summary_s = time.monotonic()
+
+    def warn(self, kind: str, detail: str) -> None:
+        if kind not in self._seen:
+            self._seen.add(kind)
+            self._log.warning("%s: %s", self.what, detail)
+        else:
+            self._suppressed[kind] += 1
+        self.flush()
+
+    def flush(self, force: bool = False) -> None:
+        """Summarise what was suppressed, if the interval has passed (or `force`)."""
+        now = time.monotonic()
+        if self._suppressed and (force or now - self._last_summary_s >= self.interval_s):
+            self._log.warning("%s: %d more in the last %.0f s (%s)", self.what, sum(self._suppressed.values()),
+                              now - self._last_summary_s,
+                              ", ".join(f"{k}: {n}" for k, n in self._suppressed.most_common(5)))
+            self._suppressed.clear()
+            self._last_summary_s = now
+
+
+REJECT_STAMP = "stamp from the future"
+REJECT_OVERFLOW = "arrived faster than validated"
+# A newest-only inbox holds this many raw samples between two polls, so a flood of garbage is
+# decoded and refused instead of pushing the last valid sample out (and bounded in bytes, so a
+# flood of large payloads cannot take the memory instead).
+FLOOD_DEPTH = 4096
+
+
+class Inbox(Generic[M]):
+    """A subscriber whose samples are validated in the caller's thread and counted when rejected.
+
+    The Zenoh callback only hands the raw sample over (a deque and an event) with its arrival
+    time: decoding, checking and logging happen in the service loop. A sample must pass decoding,
+    the vehicle-id check (the id inside must be the key's) and the stamp bound (`StampBound`: not
+    from the future on the receiver's clock) before it can be returned; whatever fails is counted
+    in `rejected` by reason and logged rate-limited.
+
+    `newest_only=True` returns only the newest *valid* sample: raw samples wait (up to
+    `FLOOD_DEPTH`, and `4 x max_bytes`) and are validated newest first, so garbage arriving after
+    a valid sample is refused and never displaces it; older samples behind a valid one are
+    superseded undecoded (`superseded`). Otherwise a FIFO of `depth` valid samples keeps every
+    message (commands, prompt changes); on overflow the oldest is dropped and counted. `wakeup`,
+    an event shared by several inboxes, lets one loop sleep until any of them has something.
     """
 
     def __init__(self, session: zenoh.Session, key_expr: str, expected: type[M], *, newest_only: bool,
                  depth: int = 256, max_bytes: int = DEFAULT_MAX_BYTES,
-                 wakeup: threading.Event | None = None) -> None:
+                 wakeup: threading.Event | None = None, stamps: StampBound | None = None) -> None:
         self.key_expr, self.expected, self.max_bytes = key_expr, expected, max_bytes
+        self.newest_only = newest_only
+        self.stamps = stamps if stamps is not None else StampBound()
         self.rejected: Counter[str] = Counter()
         self.received = 0
-        self.dropped = 0  # FIFO overflow (never in newest-only mode, where replacing is the point)
+        self.dropped = 0  # valid messages lost to FIFO overflow, or raw samples lost to a flood
+        self.superseded = 0  # newest-only: raw samples behind a newer valid one, never decoded
         self._reported_drops = 0
-        # (sample, wall time of arrival): stamped in the callback, so a transport-latency figure
-        # measures the network and not how long the service loop took to get to the message.
-        self._pending: deque[tuple[zenoh.Sample, float]] = deque()
+        self._reject_log = RateLimitedLog(log, f"rejected on {key_expr}")
+        # (sample, arrival): stamped in the callback, so a transport-latency figure measures the
+        # network and not how long the service loop took to get to the message, and a stamp is
+        # judged against the receiver's clock when the sample landed.
+        self._raw: deque[tuple[zenoh.Sample, float, Arrival, int]] = deque()
+        self._raw_bytes = 0
+        self._raw_limit = FLOOD_DEPTH if newest_only else max(FLOOD_DEPTH, depth)
+        self._raw_byte_limit = 4 * max_bytes
+        self._valid: deque[tuple[M, str, float]] = deque()
         self.last_recv_wall_s = 0.0  # arrival time of the message the last poll returned
         self._capacity = 1 if newest_only else max(1, depth)
         self._lock = threading.Lock()
@@ -119,25 +177,59 @@ class Inbox(Generic[M]):
 
     def _hand_off(self, sample: zenoh.Sample) -> None:
         # Runs on a Zenoh thread: no decoding, no logging, no Zenoh calls.
+        arrival, recv_wall_s, size = self.stamps.arrive(), time.time(), len(sample.payload)
         with self._lock:
-            if len(self._pending) >= self._capacity:
-                self._pending.popleft()
-                if self._capacity > 1:
-                    self.dropped += 1
-            self._pending.append((sample, time.time()))
+            self._raw.append((sample, recv_wall_s, arrival, size))
+            self._raw_bytes += size
+            while len(self._raw) > self._raw_limit or (self._raw_bytes > self._raw_byte_limit and len(self._raw) > 1):
+                self._raw_bytes -= self._raw.popleft()[3]
+                self.rejected[REJECT_OVERFLOW] += 1
         for event in self._events:
             event.set()
 
-    def _decode(self, sample: zenoh.Sample) -> M | None:
+    def _validate(self, sample: zenoh.Sample, arrival: Arrival) -> M | None:
         key = str(sample.key_expr)
         try:
             msg = decode(sample.payload.to_bytes(), self.expected, key=key, max_bytes=self.max_bytes)
         except ProtocolError as exc:
-            self.rejected[exc.problem.split(":")[0][:60]] += 1
-            log.warning("rejected message on %s: %s", key, exc.problem)
-            return None
+            return self._reject(exc.problem.split(":")[0][:60], f"{key}: {exc.problem}")
+        # Stamps are judged per vehicle: a ground segmenter serves vehicles whose clocks differ.
+        # (A message whose vehicle id differs from its key's is the service's to count as foreign.)
+        source = _vehicle_in(key)
+        stamp = getattr(msg, "stamp", None)
+        if isinstance(stamp, Stamp):
+            refused = self.stamps.judge(source or key, stamp, arrival)
+            if refused is not None:
+                return self._reject(REJECT_STAMP, f"{key}: {refused}")
         self.received += 1
         return msg
+
+    def _reject(self, reason: str, detail: str) -> None:
+        self.rejected[reason] += 1
+        self._reject_log.warn(reason, detail)
+        return None
+
+    def _drain(self) -> None:
+        """Validate what has arrived; only valid samples reach `_valid`."""
+        with self._lock:
+            raw, self._raw, self._raw_bytes = self._raw, deque(), 0
+        if self.newest_only:
+            while raw:  # newest first: the first valid one wins, whatever garbage came after it
+                sample, recv_wall_s, arrival, _ = raw.pop()
+                msg = self._validate(sample, arrival)
+                if msg is not None:
+                    self.superseded += len(raw)
+                    self._valid.clear()
+                    self._valid.append((msg, str(sample.key_expr), recv_wall_s))
+                    return
+            return
+        for sample, recv_wall_s, arrival, _ in raw:
+            msg = self._validate(sample, arrival)
+            if msg is not None:
+                if len(self._valid) >= self._capacity:
+                    self._valid.popleft()
+                    self.dropped += 1
+                self._valid.append((msg, str(sample.key_expr), recv_wall_s))
 
     def poll(self) -> M | None:
         """The next valid message if one is waiting, else None (never blocks)."""
@@ -146,19 +238,17 @@ class Inbox(Generic[M]):
 
     def poll_keyed(self) -> tuple[M, str] | None:
         """Like `poll`, with the concrete key it arrived on (whose frame, on a wildcard subscription)."""
+        self._drain()
+        self._reject_log.flush()
         if self.dropped != self._reported_drops:
             log.warning("%s: %d messages dropped (queue of %d full)", self.key_expr,
                         self.dropped - self._reported_drops, self._capacity)
             self._reported_drops = self.dropped
-        while True:
-            with self._lock:
-                if not self._pending:
-                    return None
-                sample, recv_wall_s = self._pending.popleft()
-            msg = self._decode(sample)
-            if msg is not None:
-                self.last_recv_wall_s = recv_wall_s
-                return msg, str(sample.key_expr)
+        if not self._valid:
+            return None
+        msg, key, recv_wall_s = self._valid.popleft()
+        self.last_recv_wall_s = recv_wall_s
+        return msg, key
 
     def recv(self, timeout_s: float, stop: threading.Event | None = None) -> M | None:
         """Wait up to `timeout_s` for the next valid message (woken at once when one arrives)."""
@@ -174,7 +264,13 @@ class Inbox(Generic[M]):
             # Bounded so that a stop request is noticed within 50 ms.
             self._ready.wait(min(remaining, 0.05))
 
+    def stats(self) -> dict[str, Any]:
+        """Counters for a service's `--stats-out`: what was accepted, refused (by reason), lost."""
+        return {"received": self.received, "rejected": dict(self.rejected), "dropped": self.dropped,
+                "superseded": self.superseded}
+
     def close(self) -> None:
+        self._reject_log.flush(force=True)
         self._sub.undeclare()
 
     def __enter__(self) -> Inbox[M]:
@@ -182,3 +278,9 @@ class Inbox(Generic[M]):
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def _vehicle_in(key: str) -> str | None:
+    """The vehicle chunk of a dovesei key (`dovesei/<vehicle>/...`), else None."""
+    parts = key.split("/")
+    return parts[1] if len(parts) >= 3 and parts[0] == keys.ROOT else None

@@ -29,6 +29,9 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from dovesei.shared.errors import ConfigError
+from dovesei.shared.validate import in_range
+
 CLOCKS = ("sim", "wall", "vehicle")
 MAX_STR_CHARS = 4096
 MAX_SEQ_ITEMS = 256
@@ -78,6 +81,52 @@ class ArraySpec:
 
 Checker = Callable[[str, Any], None]
 
+# Physical bounds of the numbers on the wire, wide enough for any real flight and narrow enough
+# that no arithmetic downstream can overflow (a heatmap with alt_agl_m = 1e300 once crashed the
+# controller). A record names its fields in `RANGES`; `_FIELD_RANGES` holds the defaults by field
+# name, so a new message with a known field name is bounded without thinking about it.
+ANGLE_RAD = (-2 * math.pi, 2 * math.pi)
+SEQ = (-1, 2**62)
+LATENCY_S = (-1e6, 1e6)  # cross-host wall differences can be negative when clocks disagree
+_FIELD_RANGES: dict[str, tuple[float, float]] = {
+    "t_s": (0.0, 1e9),  # sim time, vehicle boot time or a process's monotonic wall clock
+    "sent_wall_s": (0.0, 1e11),  # Unix time at publication; 0 = not set
+    "seq": SEQ, "state_seq": SEQ, "frame_seq": SEQ, "await_frame_seq": SEQ,
+    "alt_agl_m": (-1000.0, 100_000.0),
+    "final_alt_m": (-1000.0, 100_000.0),
+    "vel_body_frd_m_s": (-300.0, 300.0),
+    "yaw_rate_rad_s": (-50.0, 50.0),
+    "roll_rad": ANGLE_RAD, "pitch_rad": ANGLE_RAD, "yaw_rad": ANGLE_RAD,
+    "hfov_rad": (0.0, math.pi),
+    "pos_local_ned_m": (-1e7, 1e7),
+    "inference_s": LATENCY_S, "frame_to_segmenter_s": LATENCY_S, "heatmap_to_controller_s": LATENCY_S,
+    "policy_s": LATENCY_S,
+    "heatmap_age_s": (-1.0, 1e9),
+    "focus_radius_px": (0.0, 1e6), "target_row_px": (-1e6, 1e6), "target_col_px": (-1e6, 1e6),
+    "threshold": (-1e6, 1e6),
+    "sim_time_s": (0.0, 1e9), "path_length_m": (0.0, 1e9), "final_x_m": (-1e9, 1e9), "final_y_m": (-1e9, 1e9),
+    "closest_unsafe_m": (0.0, 1e9),
+}
+
+
+def field_range(cls: type, name: str) -> tuple[float, float] | None:
+    """The accepted [lo, hi] of a numeric field: the record's own `RANGES`, else the default by name."""
+    own = getattr(cls, "RANGES", {})
+    return own[name] if name in own else _FIELD_RANGES.get(name)
+
+
+def _ranged(check: Checker, bounds: tuple[float, float]) -> Checker:
+    lo, hi = bounds
+
+    def check_range(name: str, value: Any) -> None:
+        check(name, value)
+        if not lo <= value <= hi:  # cheap test first: this runs for every field of every message
+            try:
+                in_range(f"field {name!r}", value, lo, hi)
+            except ConfigError as exc:
+                raise FieldError(str(exc)) from None
+    return check_range
+
 
 def _check_float(name: str, value: Any) -> None:
     if type(value) is not float and (isinstance(value, bool) or not isinstance(value, (int, float))):
@@ -111,7 +160,8 @@ _SCALARS: dict[Any, Checker] = {float: _check_float, int: _check_int, bool: _che
 def _compile(hint: Any, owner: type, field_name: str) -> Checker:
     """A checker for one annotation, built once per record class (messages are built per tick)."""
     if hint in _SCALARS:
-        return _SCALARS[hint]
+        bounds = field_range(owner, field_name) if hint in (int, float) else None
+        return _SCALARS[hint] if bounds is None else _ranged(_SCALARS[hint], bounds)
     origin = typing.get_origin(hint)
     if origin in (typing.Union, types.UnionType):
         (inner,) = [a for a in typing.get_args(hint) if a is not type(None)]
@@ -181,6 +231,7 @@ class Record:
     """Base of every wire record: checks all fields against their annotations when built."""
 
     ARRAYS: ClassVar[dict[str, ArraySpec]] = {}
+    RANGES: ClassVar[dict[str, tuple[float, float]]] = {}  # overrides of `_FIELD_RANGES` by field name
 
     def __post_init__(self) -> None:
         for name, check in _checkers(type(self)):
@@ -230,6 +281,7 @@ class Stamp(Record):
 class ClassEntry(Record):
     """One class of a world's label map."""
 
+    RANGES: ClassVar[dict[str, tuple[float, float]]] = {"id": (0, 254)}
     id: int
     name: str
     safe: bool
@@ -421,5 +473,5 @@ def replace(msg: Record, **changes: Any) -> Any:
 __all__ = [
     "ArraySpec", "CameraFrame", "ClassEntry", "ControllerStatus", "EpisodeResult", "FieldError",
     "GroundTruth", "Message", "OUTCOMES", "PromptSetMsg", "Record", "SCHEMAS", "SafetyHeatmap",
-    "StageLatency", "Stamp", "VehicleState", "VelocityCommand", "replace",
+    "StageLatency", "Stamp", "VehicleState", "VelocityCommand", "field_range", "replace",
 ]
