@@ -162,8 +162,9 @@ class ClearancePolicy:
                 target_px = ((h - 1) / 2.0 - f / gsd, (w - 1) / 2.0 + r / gsd)
         self._decision = Decision(
             vel_body_frd_m_s=(float(vel[0]), float(vel[1]), float(vel[2])), yaw_rate_rad_s=0.0,
-            state=mem.phase.value, target_px=target_px,
-            focus_radius_px=self._required_px(obs), threshold=cfg.p_safe_min, info=info, reason=mem.reason,
+            state=mem.phase.value, target_px=None if target_px is None else (float(target_px[0]), float(target_px[1])),
+            focus_radius_px=self._required_px(obs), threshold=cfg.p_safe_min,
+            info={k: float(v) for k, v in info.items()}, reason=mem.reason,
         )
         return self._decision
 

@@ -198,7 +198,8 @@ class GroundMap:
 
     def clearance_m(self) -> np.ndarray:
         """Metric distance of each cell to the nearest unsafe or unknown cell (0 on obstacles)."""
-        dist = cv2.distanceTransform(self.safe_mask(), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+        # The 5x5 mask is within ~2 % of the exact distance at a tenth of its cost.
+        dist = cv2.distanceTransform(self.safe_mask(), cv2.DIST_L2, 5)
         # The distance runs centre to centre; the obstacle cell's own half-width is not free.
         return np.maximum(dist - 0.5, 0.0) * np.float32(self.cell_m)
 
@@ -225,9 +226,22 @@ def find_spot(gmap: GroundMap, clearance: np.ndarray, cfg: ClearanceConfig, *, n
     from the vehicle, so scores compare across calls.
     """
     need = cfg.required_clearance_m
-    rows, cols = np.nonzero(clearance >= (need if need_m is None else need_m))
+    r0 = c0 = 0
+    if near is not None and within_m is not None:
+        # Only the window around `near` can qualify: search there (a target's re-check is cheap).
+        rc, cc = gmap.cell_of(*near)
+        half = int(math.ceil(within_m / gmap.cell_m)) + 1
+        r0, c0 = max(int(rc) - half, 0), max(int(cc) - half, 0)
+        r1, c1 = min(int(rc) + half + 1, gmap.n), min(int(cc) + half + 1, gmap.n)
+        if r1 <= r0 or c1 <= c0:
+            return None
+        window = clearance[r0:r1, c0:c1]
+    else:
+        window = clearance
+    rows, cols = np.nonzero(window >= (need if need_m is None else need_m))
     if rows.size == 0:
         return None
+    rows, cols = rows + r0, cols + c0
     c = gmap.cell_m
     north = gmap.north0_m - rows * c
     east = gmap.east0_m + cols * c

@@ -1,0 +1,191 @@
+"""The clearance state machine, one pure step at a time: every state's timeout and way out."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import pytest
+
+from dovesei.controller.policies.clearance_config import ClearanceConfig
+from dovesei.controller.policies.clearance_machine import Inputs, Memory, Phase, search_pattern, step
+from dovesei.controller.policies.clearance_map import Spot
+
+CFG = ClearanceConfig()
+WAYPOINTS = search_pattern(80.0, CFG.search_radius_m)
+
+
+def spot(n: float = 20.0, e: float = 0.0, score: float = 1.5) -> Spot:
+    return Spot(north_m=n, east_m=e, clearance_m=6.0, confidence=0.8, p_safe=0.9, distance_m=math.hypot(n, e),
+                score=score)
+
+
+def inp(t: float, *, alt: float = 100.0, n: float = 0.0, e: float = 0.0, fresh: bool = True, gap: bool = False,
+        best: Spot | None = None, check: Spot | None = None) -> Inputs:
+    return Inputs(t_s=t, alt_agl_m=alt, north_m=n, east_m=e, yaw_rad=0.0, fresh=fresh, gap=gap, search_alt_m=100.0,
+                  waypoints=WAYPOINTS, best=best, check=check)
+
+
+def at(phase: Phase, **kw: object) -> Memory:
+    return dataclasses.replace(Memory(), phase=phase, **kw)
+
+
+def test_search_pattern_is_an_expanding_square_inside_the_radius_ending_at_the_start() -> None:
+    pts = search_pattern(40.0, 150.0)
+    assert pts[0] == (40.0, 0.0) and pts[1] == (40.0, 40.0) and pts[2] == (-40.0, 40.0)
+    assert all(math.hypot(*p) <= 150.0 for p in pts)
+    assert pts[-1] == (0.0, 0.0)
+    assert len(pts) >= 6
+
+
+def test_warmup_then_search_then_approach_with_a_reason() -> None:
+    mem = Memory()
+    for i in range(CFG.warmup_frames - 1):
+        mem, vel = step(mem, inp(i * 0.5), CFG)
+        assert mem.phase is Phase.WARMUP and vel == (0.0, 0.0, 0.0)
+    mem, vel = step(mem, inp(1.0), CFG)
+    assert mem.phase is Phase.SEARCH and "warm-up" in mem.reason
+    assert vel[0] > 0.0  # heads for the first waypoint (north)
+    mem, _ = step(mem, inp(1.5, best=spot()), CFG)
+    assert mem.phase is Phase.APPROACH and mem.target == spot()
+    assert "clearance 6.0 m" in mem.reason and "confidence 0.80" in mem.reason
+
+
+def test_warmup_times_out_without_frames() -> None:
+    mem, _ = step(Memory(), inp(CFG.warmup_timeout_s + 0.1, fresh=False), CFG)
+    assert mem.phase is Phase.SEARCH
+
+
+def test_search_gives_up_after_its_time_and_after_its_passes() -> None:
+    mem, vel = step(at(Phase.SEARCH), inp(CFG.no_spot_after_s + 1.0), CFG)
+    assert mem.phase is Phase.NO_SPOT and "no safe spot found" in mem.reason and vel == (0.0, 0.0, 0.0)
+    done = at(Phase.SEARCH, waypoint=len(WAYPOINTS) * CFG.pattern_repeats)
+    mem, _ = step(done, inp(10.0), CFG)
+    assert mem.phase is Phase.NO_SPOT and "search passes" in mem.reason
+    # NO_SPOT is an end: it holds whatever comes.
+    mem2, vel = step(mem, inp(20.0, best=spot()), CFG)
+    assert mem2.phase is Phase.NO_SPOT and vel == (0.0, 0.0, 0.0)
+
+
+def test_approach_locks_with_hysteresis_and_descends() -> None:
+    target = spot(20.0, 0.0)
+    mem = at(Phase.APPROACH, target=target)
+    mem, vel = step(mem, inp(1.0, n=0.0, check=target), CFG)
+    assert mem.phase is Phase.APPROACH and vel[0] > 0.0 and vel[2] <= 0.0  # flies, never descends
+    mem, vel = step(mem, inp(2.0, n=19.0, check=target), CFG)
+    assert mem.phase is Phase.DESCEND and vel[2] > 0.0
+    # lock_in = 1.5 m + 2 % of 100 m = 3.5 m, lock_out = 3 m + 2 m = 5 m.
+    mem, vel = step(mem, inp(3.0, n=15.5, check=target), CFG)  # 4.5 m off: inside lock_out, descending
+    assert vel[2] > 0.0
+    mem, vel = step(mem, inp(4.0, n=14.5, check=target), CFG)  # 5.5 m off: descent stops, lock kept
+    assert mem.phase is Phase.DESCEND and vel[2] == 0.0 and vel[0] > 0.0
+    mem, vel = step(mem, inp(5.0, n=15.5, check=target), CFG)  # 4.5 m: not yet (hysteresis)
+    assert vel[2] == 0.0
+    mem, vel = step(mem, inp(6.0, n=17.0, check=target), CFG)  # 3 m: inside lock_in again
+    assert vel[2] > 0.0
+    # Far off: the lock is lost, back to APPROACH.
+    mem, _ = step(mem, inp(7.0, n=0.0, check=target), CFG)
+    assert mem.phase is Phase.APPROACH and "lock lost" in mem.reason
+
+
+def test_target_switch_needs_a_clearly_better_spot() -> None:
+    target = spot(20.0, 0.0, score=1.5)
+    mem = at(Phase.APPROACH, target=target)
+    mem, _ = step(mem, inp(1.0, check=target, best=spot(-30.0, 0.0, score=1.6)), CFG)
+    assert mem.target == target
+    mem, _ = step(mem, inp(2.0, check=target, best=spot(-30.0, 0.0, score=2.0)), CFG)
+    assert mem.phase is Phase.APPROACH and mem.target.north_m == -30.0 and "better spot" in mem.reason
+
+
+def test_failed_rechecks_reject_in_approach_and_abort_in_descent() -> None:
+    target = spot()
+    mem = at(Phase.APPROACH, target=target)
+    for i in range(CFG.fail_frames):
+        mem, _ = step(mem, inp(float(i), check=None), CFG)
+    assert mem.phase is Phase.SEARCH and mem.blacklist == ((20.0, 0.0),) and mem.aborts == 0
+    assert "rejected" in mem.reason
+    mem = at(Phase.DESCEND, target=target)
+    for i in range(CFG.fail_frames):
+        mem, vel = step(mem, inp(float(i), alt=50.0, n=20.0, check=None), CFG)
+    assert mem.phase is Phase.ABORT and mem.aborts == 1 and mem.blacklist == ((20.0, 0.0),)
+    assert vel[2] < 0.0  # climbing
+    # Ticks without a new heatmap do not count as failures.
+    mem = at(Phase.DESCEND, target=target)
+    for i in range(10):
+        mem, _ = step(mem, inp(float(i) * 0.1, alt=50.0, n=20.0, fresh=False, check=None), CFG)
+    assert mem.phase is Phase.DESCEND
+
+
+def test_abort_climbs_back_to_the_search_altitude_then_searches_or_gives_up() -> None:
+    mem = at(Phase.ABORT, aborts=1)
+    mem, vel = step(mem, inp(1.0, alt=60.0), CFG)
+    assert mem.phase is Phase.ABORT and vel == (0.0, 0.0, -CFG.climb_speed_m_s)
+    mem, _ = step(mem, inp(2.0, alt=99.0), CFG)
+    assert mem.phase is Phase.SEARCH and "search altitude" in mem.reason
+    mem, _ = step(at(Phase.ABORT, aborts=CFG.max_aborts), inp(3.0, alt=99.0), CFG)
+    assert mem.phase is Phase.NO_SPOT and f"{CFG.max_aborts} aborts" in mem.reason
+    mem, _ = step(at(Phase.ABORT, aborts=1), inp(CFG.abort_timeout_s + 1.0, alt=60.0), CFG)
+    assert mem.phase is Phase.SEARCH  # the climb's timeout
+
+
+def test_timeouts_of_approach_and_descent() -> None:
+    target = spot()
+    mem, _ = step(at(Phase.APPROACH, target=target), inp(CFG.approach_timeout_s + 1.0, check=target), CFG)
+    assert mem.phase is Phase.SEARCH and mem.blacklist
+    mem, _ = step(at(Phase.DESCEND, target=target), inp(CFG.descend_timeout_s + 1.0, alt=50.0, n=20.0,
+                                                          check=target), CFG)
+    assert mem.phase is Phase.ABORT and mem.aborts == 1
+
+
+def test_handover_only_at_the_measured_handover_altitude() -> None:
+    target = spot()
+    mem = at(Phase.DESCEND, target=target)
+    mem, vel = step(mem, inp(1.0, alt=CFG.handover_alt_m + 0.5, n=20.0, check=target), CFG)
+    assert mem.phase is Phase.DESCEND and vel[2] >= CFG.descent_min_m_s
+    mem, vel = step(mem, inp(2.0, alt=CFG.handover_alt_m, n=20.0, check=target), CFG)
+    assert mem.phase is Phase.HANDOVER and vel == (0.0, 0.0, 0.0)
+    # Never from a phase without a locked target, whatever the altitude.
+    for phase in (Phase.SEARCH, Phase.ABORT, Phase.GAP_HOLD, Phase.WARMUP):
+        m, _ = step(at(phase, target=target), inp(1.0, alt=10.0, n=20.0, check=target), CFG)
+        assert m.phase is not Phase.HANDOVER
+
+
+def test_gap_holds_from_any_live_state_recovers_after_fresh_frames_or_climbs() -> None:
+    target = spot()
+    for phase in (Phase.SEARCH, Phase.APPROACH, Phase.DESCEND, Phase.ABORT):
+        mem, vel = step(at(phase, target=target), inp(1.0, alt=60.0, gap=True), CFG)
+        assert mem.phase is Phase.GAP_HOLD and vel == (0.0, 0.0, 0.0)
+    mem = at(Phase.GAP_HOLD, target=target, since_s=0.0)
+    for i in range(CFG.gap_recover_frames - 1):
+        mem, vel = step(mem, inp(1.0 + i), CFG)
+        assert mem.phase is Phase.GAP_HOLD and vel == (0.0, 0.0, 0.0)
+    mem, _ = step(mem, inp(5.0), CFG)
+    assert mem.phase is Phase.APPROACH and mem.target == target  # re-lock before descending again
+    mem, _ = step(at(Phase.GAP_HOLD, since_s=0.0), inp(1.0), CFG)
+    mem, _ = step(mem, inp(2.0), CFG)
+    mem, _ = step(mem, inp(3.0), CFG)
+    assert mem.phase is Phase.SEARCH
+    mem, vel = step(at(Phase.GAP_HOLD, since_s=0.0), inp(CFG.gap_hold_timeout_s + 1.0, fresh=False), CFG)
+    assert mem.phase is Phase.ABORT and vel[2] < 0.0 and mem.aborts == 0
+
+
+def test_search_never_commands_beyond_its_speed_or_below_search_altitude() -> None:
+    mem = at(Phase.SEARCH)
+    for k in range(50):
+        mem, vel = step(mem, inp(float(k), alt=100.0, n=-200.0, e=300.0), CFG)
+        assert math.hypot(vel[0], vel[1]) <= CFG.search_speed_m_s + 1e-9
+        assert vel[2] <= 0.0 + 1e-9
+
+
+@pytest.mark.parametrize("phase", list(Phase))
+def test_every_phase_has_a_way_out_or_is_an_end(phase: Phase) -> None:
+    """Stepping any phase long enough with nothing useful happening leaves it (or it is an end)."""
+    mem = at(phase, target=spot() if phase in (Phase.APPROACH, Phase.DESCEND) else None, since_s=0.0)
+    t = 0.0
+    for _ in range(4000):
+        t += 0.5
+        mem, _ = step(mem, inp(t, alt=60.0 if phase is Phase.ABORT else 100.0, fresh=False,
+                               check=mem.target), CFG)
+        if mem.phase is not phase:
+            break
+    assert mem.phase is not phase or phase in (Phase.NO_SPOT, Phase.HANDOVER)

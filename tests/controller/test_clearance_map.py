@@ -1,0 +1,123 @@
+"""The clearance policy's ground map: fusion, decay, confidence, resolution, spots by clearance."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from dovesei.controller.policies.clearance_config import ClearanceConfig
+from dovesei.controller.policies.clearance_map import GroundMap, clearance_at, find_spot, footprint_width_m
+
+HFOV = math.radians(73.0)
+CFG = ClearanceConfig()
+
+
+def _fuse(gmap: GroundMap, prob: np.ndarray, alt: float = 50.0, at: tuple[float, float] = (0.0, 0.0),
+          times: int = 1, weight: float = 1.0) -> None:
+    for _ in range(times):
+        gmap.fuse(prob, alt, HFOV, 0.0, at[0], at[1], weight)
+
+
+def test_fused_probability_is_the_log_odds_mean_not_a_certainty() -> None:
+    gmap = GroundMap(CFG)
+    gmap.follow(50.0, 0.0, 0.0)
+    _fuse(gmap, np.full((352, 352), 0.7, np.float32), times=20)
+    p, looks = gmap.at(0.0, 0.0)
+    # Twenty looks of 0.7 stay 0.7: errors of one ground patch are not independent.
+    assert p == pytest.approx(0.7, abs=1e-3)
+    assert looks == pytest.approx(20.0)
+    _fuse(gmap, np.full((352, 352), 0.3, np.float32), times=20)
+    assert gmap.at(0.0, 0.0)[0] == pytest.approx(0.5, abs=1e-3)  # logit(0.7) = -logit(0.3)
+    assert gmap.confidence()[gmap.n // 2, gmap.n // 2] == pytest.approx(1.0 - math.exp(-40.0 / CFG.looks_full))
+
+
+def test_decay_fades_confidence_but_keeps_the_mean_and_unseen_cells_are_unknown() -> None:
+    gmap = GroundMap(CFG)
+    gmap.follow(50.0, 0.0, 0.0)
+    _fuse(gmap, np.full((352, 352), 0.8, np.float32), times=4)
+    gmap.decay(CFG.decay_tau_s)
+    p, looks = gmap.at(0.0, 0.0)
+    assert p == pytest.approx(0.8, abs=1e-3)
+    assert looks == pytest.approx(4.0 * math.exp(-1.0), rel=1e-4)
+    half_width = footprint_width_m(50.0, HFOV) / 2.0
+    assert gmap.at(half_width + 10.0, 0.0) == (0.5, 0.0)  # never seen
+    assert gmap.at(1e6, 0.0) == (0.5, 0.0)  # off the map
+
+
+def test_a_shifted_view_lands_in_the_right_cells() -> None:
+    gmap = GroundMap(CFG)
+    gmap.follow(50.0, 0.0, 0.0)
+    prob = np.full((352, 352), 0.1, np.float32)
+    prob[:176, :] = 0.9  # the northern half of the image is safe
+    _fuse(gmap, prob, at=(10.0, -5.0))  # the camera looks at 10 m north, 5 m west
+    assert gmap.at(20.0, -5.0)[0] > 0.85  # north of the image centre
+    assert gmap.at(0.0, -5.0)[0] < 0.15  # south of it
+
+
+def test_resolution_follows_altitude_and_resampling_keeps_the_evidence() -> None:
+    gmap = GroundMap(CFG)
+    assert gmap.desired_cell_m(100.0) == 1.0
+    assert gmap.desired_cell_m(40.0) == 0.5
+    assert gmap.desired_cell_m(20.0) == 0.25
+    gmap.follow(100.0, 0.0, 0.0)
+    prob = np.full((352, 352), 0.1, np.float32)
+    prob[:, 200:] = 0.9  # east is safe
+    _fuse(gmap, prob, alt=100.0, times=3)
+    assert gmap.follow(20.0, 0.0, 0.0) and gmap.cell_m == 0.25
+    assert gmap.at(15.0, 15.0)[0] > 0.85 and gmap.at(0.0, -15.0)[0] < 0.15
+    assert gmap.at(15.0, 15.0)[1] == pytest.approx(3.0, rel=1e-3)
+    # Moving far re-centres the map on the vehicle (whole cells, evidence carried along).
+    assert gmap.follow(20.0, 0.0, 30.0)
+    row, col = gmap.cell_of(0.0, 30.0)
+    assert abs(row - gmap.n / 2) < 2 and abs(col - gmap.n / 2) < 2
+    assert gmap.at(15.0, 15.0)[0] > 0.85
+
+
+def _built_mask_map(safe_width_m: float, alt: float = 30.0) -> GroundMap:
+    """The map after several looks at a safe north-south band `safe_width_m` wide on unsafe ground."""
+    gmap = GroundMap(CFG)
+    gmap.follow(alt, 0.0, 0.0)
+    width_m = footprint_width_m(alt, HFOV)
+    cols = (np.arange(352) - 175.5) * width_m / 352
+    prob = np.where(np.abs(cols) <= safe_width_m / 2.0, 0.9, 0.1).astype(np.float32)
+    _fuse(gmap, np.tile(prob, (352, 1)), alt=alt, times=4)
+    return gmap
+
+
+def test_a_3_m_strip_is_rejected_and_a_12_m_lawn_accepted() -> None:
+    strip = _built_mask_map(3.0)
+    clear = strip.clearance_m()
+    assert clearance_at(strip, clear, 0.0, 0.0) <= 1.6
+    assert find_spot(strip, clear, CFG, north_m=0.0, east_m=0.0, blacklist=()) is None
+    lawn = _built_mask_map(12.0)
+    clear = lawn.clearance_m()
+    spot = find_spot(lawn, clear, CFG, north_m=0.0, east_m=0.0, blacklist=())
+    assert spot is not None
+    assert spot.clearance_m >= CFG.required_clearance_m
+    assert abs(spot.east_m) <= 6.0 - CFG.required_clearance_m + 0.3  # its whole disk is on the lawn
+    assert 5.4 <= clearance_at(lawn, clear, 0.0, 0.0) <= 6.3  # the lawn's half-width
+    assert spot.p_safe > 0.85 and 0.0 < spot.confidence < 1.0
+
+
+def test_spots_respect_the_blacklist_and_the_search_radius() -> None:
+    lawn = _built_mask_map(12.0)
+    clear = lawn.clearance_m()
+    spot = find_spot(lawn, clear, CFG, north_m=0.0, east_m=0.0, blacklist=())
+    assert spot is not None
+    again = find_spot(lawn, clear, CFG, north_m=0.0, east_m=0.0, blacklist=((spot.north_m, spot.east_m),))
+    assert again is None or math.hypot(again.north_m - spot.north_m, again.east_m - spot.east_m) > (
+        CFG.required_clearance_m + CFG.refine_radius_m)
+    tight = CFG.replace(search_radius_m=1.0)
+    near = find_spot(lawn, clear, tight, north_m=0.0, east_m=0.0, blacklist=())
+    assert near is None or math.hypot(near.north_m, near.east_m) <= 1.0
+
+
+def test_unknown_ground_is_never_a_spot() -> None:
+    gmap = GroundMap(CFG)
+    gmap.follow(30.0, 0.0, 0.0)
+    _fuse(gmap, np.full((352, 352), 0.95, np.float32), alt=30.0, weight=0.5)  # half a look only
+    assert find_spot(gmap, gmap.clearance_m(), CFG, north_m=0.0, east_m=0.0, blacklist=()) is None
+    _fuse(gmap, np.full((352, 352), 0.95, np.float32), alt=30.0, times=3)
+    assert find_spot(gmap, gmap.clearance_m(), CFG, north_m=0.0, east_m=0.0, blacklist=()) is not None

@@ -1,0 +1,253 @@
+"""Closed-loop scenarios for the `clearance` policy with a tiny pure harness.
+
+The harness is a flat world of safe/unsafe ground (a boolean grid), a nadir camera that renders
+it, a perception that blurs it the way CLIPSeg's 22x22 token grid does (a box of 1/22 of the
+view) plus per-frame noise, and a vehicle that tracks the commanded velocity with a lag. The
+policy sees only the observation: heatmap, camera model, altitude, a velocity estimate that may be
+biased and noisy, and time; wind it cannot see moves the vehicle too.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from dovesei.controller.policies.base import Observation, make_policy
+from dovesei.controller.policies.clearance import ClearancePolicy
+from dovesei.controller.policies.clearance_config import ClearanceConfig
+
+HFOV = math.radians(73.0)
+GSD_M = 0.25  # world grid, metres per cell
+SIDE = 2400  # cells: a 600 m square centred on the start
+
+
+class World:
+    """Safe (1) / unsafe (0) ground, north up, the start at the centre."""
+
+    def __init__(self, safe: np.ndarray) -> None:
+        self.safe = safe.astype(np.float32)
+        self.h, self.w = safe.shape
+
+    def px(self, north_m: float, east_m: float) -> tuple[float, float]:
+        return (self.h - 1) / 2.0 - north_m / GSD_M, (self.w - 1) / 2.0 + east_m / GSD_M
+
+    def view(self, north_m: float, east_m: float, alt_m: float, size: int = 352) -> np.ndarray:
+        g = 2.0 * alt_m * math.tan(HFOV / 2.0) / size
+        c = (size - 1) / 2.0
+        row0, col0 = self.px(north_m, east_m)
+        s = g / GSD_M
+        # image (x, y) -> world (col, row): same orientation (yaw 0), scaled.
+        m = np.array([[s, 0.0, col0 - s * c], [0.0, s, row0 - s * c]])
+        return cv2.warpAffine(self.safe, m, (size, size), flags=cv2.INTER_AREA | cv2.WARP_INVERSE_MAP,
+                              borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+
+    def disk_safe(self, north_m: float, east_m: float, radius_m: float) -> bool:
+        row, col = self.px(north_m, east_m)
+        rr = radius_m / GSD_M
+        y, x = np.ogrid[: self.h, : self.w]
+        disk = (x - col) ** 2 + (y - row) ** 2 <= rr * rr
+        return bool(disk.any()) and float(self.safe[disk].min()) > 0.5
+
+
+def perceive(view: np.ndarray, rng: np.random.Generator, noise: float = 0.1) -> np.ndarray:
+    p = 0.15 + 0.7 * view
+    k = max(3, view.shape[0] // 22)  # CLIPSeg's token grid smears detail under 1/22 of the view
+    p = cv2.blur(p, (k, k)) + rng.normal(0.0, noise, view.shape).astype(np.float32)
+    return np.clip(p, 0.0, 1.0).astype(np.float32)
+
+
+@dataclasses.dataclass
+class Flight:
+    north_m: float
+    east_m: float
+    alt_m: float
+    t_s: float
+    states: list[str]
+    track: list[tuple[float, float, float, str, float]]  # north, east, alt, state, commanded down speed
+    decision: object
+    max_range_m: float
+
+
+def fly(world: World, policy: ClearancePolicy, *, t_max_s: float = 400.0, dt_s: float = 0.5,
+        bias_m_s: tuple[float, float] = (0.0, 0.0), vel_noise_m_s: float = 0.0,
+        wind_m_s: tuple[float, float] = (0.0, 0.0), gap_s: tuple[float, float] | None = None,
+        seed: int = 0, start: tuple[float, float] = (0.0, 0.0)) -> Flight:
+    rng = np.random.default_rng(seed)
+    n, e = start
+    alt, t = 100.0, 0.0
+    v = np.zeros(3)
+    states: list[str] = []
+    track = []
+    max_range = 0.0
+    decision = None
+    while t < t_max_s:
+        fresh = gap_s is None or not (gap_s[0] <= t < gap_s[1])
+        prob = perceive(world.view(n, e, alt), rng) if fresh else None
+        vel_est = (v[0] + bias_m_s[0] + rng.normal(0.0, vel_noise_m_s),
+                   v[1] + bias_m_s[1] + rng.normal(0.0, vel_noise_m_s), v[2])
+        decision = policy.step(Observation(t_s=t, alt_agl_m=alt, prob_safe=prob, hfov_rad=HFOV,
+                                           vel_est_body_frd_m_s=vel_est))
+        cmd = np.asarray(decision.vel_body_frd_m_s)
+        states.append(decision.state)
+        track.append((n, e, alt, decision.state, float(cmd[2])))
+        for _ in range(5):  # the vehicle: first-order velocity tracking, wind on top
+            v += (cmd - v) * 0.2
+            n += (v[0] + wind_m_s[0]) * dt_s / 5
+            e += (v[1] + wind_m_s[1]) * dt_s / 5
+            alt -= v[2] * dt_s / 5
+        max_range = max(max_range, math.hypot(n - start[0], e - start[1]))
+        t += dt_s
+        if alt <= 20.0 or decision.state in ("NO_SPOT", "HANDOVER"):
+            break
+    return Flight(n, e, alt, t, states, track, decision, max_range)
+
+
+def _textured(rng: np.random.Generator, safe_fraction_blocks: int = 60) -> np.ndarray:
+    """Unsafe ground with roads and buildings, i.e. something registration can lock onto."""
+    safe = np.zeros((SIDE, SIDE), bool)
+    for _ in range(safe_fraction_blocks):  # small safe patches (yards), all narrower than 6 m
+        r, c = rng.integers(0, SIDE - 24, 2)
+        hgt, wid = rng.integers(4, 20, 2)
+        safe[r:r + hgt, c:c + wid] = True
+    return safe
+
+
+def _lawn(safe: np.ndarray, north_m: float, east_m: float, side_m: float) -> None:
+    row = int(round((SIDE - 1) / 2.0 - north_m / GSD_M))
+    col = int(round((SIDE - 1) / 2.0 + east_m / GSD_M))
+    half = int(round(side_m / GSD_M / 2))
+    safe[row - half:row + half, col - half:col + half] = True
+
+
+def test_open_desert_lands_near_the_start() -> None:
+    world = World(np.ones((SIDE, SIDE), bool))
+    flight = fly(world, ClearancePolicy())
+    assert flight.alt_m <= 20.0
+    assert world.disk_safe(flight.north_m, flight.east_m, 2.0)
+    assert math.hypot(flight.north_m, flight.east_m) < 15.0
+    assert flight.t_s < 60.0
+
+
+def test_strip_between_road_and_building_is_rejected_for_the_lawn() -> None:
+    safe = np.zeros((SIDE, SIDE), bool)
+    mid = SIDE // 2
+    safe[:, mid - 6:mid + 6] = True  # a 3 m strip under the start, road west, building east
+    _lawn(safe, -40.0, 45.0, 12.0)  # a 12 m lawn 60 m away
+    world = World(safe)
+    flight = fly(world, ClearancePolicy())
+    assert flight.alt_m <= 20.0
+    assert world.disk_safe(flight.north_m, flight.east_m, 2.0)
+    assert math.hypot(flight.north_m + 40.0, flight.east_m - 45.0) < 4.0
+    # It never descended over the strip.
+    for n, e, alt, state, down in flight.track:
+        if down > 0.0:
+            assert abs(e) > 10.0, (n, e, alt, state)
+
+
+def test_strip_alone_holds_no_safe_spot_and_stays_within_its_radius() -> None:
+    safe = np.zeros((SIDE, SIDE), bool)
+    mid = SIDE // 2
+    safe[:, mid - 6:mid + 6] = True
+    policy = ClearancePolicy(ClearanceConfig(search_radius_m=120.0))
+    flight = fly(policy=policy, world=World(safe), t_max_s=600.0)
+    assert flight.decision.state == "NO_SPOT"
+    assert "no safe spot found" in flight.decision.reason
+    assert flight.decision.vel_body_frd_m_s == (0.0, 0.0, 0.0)
+    assert flight.alt_m > 90.0  # it never descended
+    assert flight.max_range_m < 120.0 + 15.0  # the pattern's radius plus tracking overshoot
+
+
+def test_sea_with_a_small_island_lands_on_it_or_holds() -> None:
+    safe = np.zeros((SIDE, SIDE), bool)
+    _lawn(safe, 30.0, -25.0, 18.0)
+    world = World(safe)
+    flight = fly(world, ClearancePolicy())
+    if flight.alt_m <= 20.0:
+        assert world.disk_safe(flight.north_m, flight.east_m, 2.0)
+    else:
+        assert flight.decision.state == "NO_SPOT"
+    assert flight.alt_m <= 20.0  # with this island (18 m) it does find it
+
+
+def test_perception_gap_holds_with_the_map_frozen_and_never_hands_over() -> None:
+    world = World(np.ones((SIDE, SIDE), bool))
+    policy = ClearancePolicy()
+    # The gap starts mid-descent (descent begins ~1 s in) and lasts 20 s; wind pushes meanwhile.
+    flight = fly(world, policy, gap_s=(6.0, 26.0), wind_m_s=(0.3, 0.0))
+    in_gap = [(alt, state, down) for (n, e, alt, state, down), t in
+              zip(flight.track, np.arange(len(flight.track)) * 0.5) if 6.0 + 1.5 < t < 26.0]
+    assert in_gap, "the flight ended before the gap"
+    assert all(state == "GAP_HOLD" for _, state, _ in in_gap)
+    assert all(down <= 0.0 for _, _, down in in_gap)  # no descent while blind
+    alts = [alt for alt, _, _ in in_gap]
+    assert min(alts) > 20.0  # no hand-over during the gap
+    assert "HANDOVER" not in flight.states[: len(flight.states) - 1]
+    # Afterwards it re-verifies and lands.
+    assert flight.alt_m <= 20.0 and world.disk_safe(flight.north_m, flight.east_m, 2.0)
+
+
+def test_perception_gap_without_heatmaps_at_all_holds_then_climbs() -> None:
+    policy = ClearancePolicy()
+    world = World(np.ones((SIDE, SIDE), bool))
+    rng = np.random.default_rng(1)
+    for i in range(8):
+        d = policy.step(Observation(t_s=i * 0.5, alt_agl_m=60.0, prob_safe=perceive(world.view(0, 0, 60.0), rng)))
+    assert d.state == "DESCEND"
+    d = policy.step(Observation(t_s=4.0 + 1.6, alt_agl_m=55.0, prob_safe=None))
+    assert d.state == "GAP_HOLD" and d.vel_body_frd_m_s == (0.0, 0.0, 0.0)
+    assert "no heatmap" in d.reason
+    # Still blind past the gap timeout: a fresh frame... never arrives; the next one after 31 s
+    # counts as a gap again, and the hold timeout climbs back.
+    d = policy.step(Observation(t_s=40.0, alt_agl_m=55.0, prob_safe=perceive(world.view(0, 0, 55.0), rng)))
+    assert d.state == "ABORT" and d.vel_body_frd_m_s[2] < 0.0  # climbing (FRD: negative down)
+
+
+def _odometry_flight(config: ClearanceConfig) -> tuple[World, Flight]:
+    rng = np.random.default_rng(3)
+    safe = _textured(rng)
+    _lawn(safe, 35.0, -50.0, 12.0)
+    world = World(safe)
+    # The estimate is biased (1.0, -0.8) m/s and noisy, and a wind it cannot see blows (0.5, 0.3).
+    return world, fly(world, ClearancePolicy(config), bias_m_s=(1.0, -0.8), vel_noise_m_s=0.5,
+                      wind_m_s=(0.5, 0.3), seed=3)
+
+
+def test_noisy_biased_odometry_and_wind_still_land_on_the_chosen_spot() -> None:
+    world, flight = _odometry_flight(ClearanceConfig())
+    assert flight.alt_m <= 20.0
+    assert world.disk_safe(flight.north_m, flight.east_m, 2.0)
+    assert math.hypot(flight.north_m - 35.0, flight.east_m + 50.0) < 4.0
+    info = flight.decision.info
+    # Registration kept the estimate on the truth (the start is (0, 0) in both frames) ...
+    assert math.hypot(info["est_north_m"] - flight.north_m, info["est_east_m"] - flight.east_m) < 2.0
+    # ... and learnt the velocity error: truth - estimate = wind - bias = (-0.5, +1.1) m/s.
+    assert info["bias_north_m_s"] < -0.1 and info["bias_east_m_s"] > 0.5
+
+
+def test_without_registration_the_estimate_drifts() -> None:
+    """The same flight with registration off (no heatmap ever counts as textured): the position
+    estimate drifts metres off, so the test above passes because of the registration."""
+    _, flight = _odometry_flight(ClearanceConfig(reg_min_std=1.0))
+    info = flight.decision.info
+    assert math.hypot(info["est_north_m"] - flight.north_m, info["est_east_m"] - flight.east_m) > 4.0
+    assert info["bias_north_m_s"] == 0.0 and info["bias_east_m_s"] == 0.0
+
+
+def test_the_observation_has_no_position_field() -> None:
+    fields = {f.name for f in dataclasses.fields(Observation)}
+    assert fields == {"t_s", "alt_agl_m", "prob_safe", "hfov_rad", "roll_rad", "pitch_rad", "yaw_rad",
+                      "vel_est_body_frd_m_s", "cmd_vel_body_frd_m_s"}
+    assert not any("pos" in f or f.endswith(("_x_m", "_y_m")) for f in fields)
+
+
+def test_make_policy_builds_clearance_for_both_presets() -> None:
+    for preset in ("real", "reference"):
+        policy = make_policy("clearance", preset)
+        assert isinstance(policy, ClearancePolicy) and policy.name == "clearance"
+        assert policy.config.timing_name == preset
+    with pytest.raises(TypeError, match="ClearanceConfig"):
+        make_policy("clearance", 3.0)
