@@ -12,7 +12,8 @@ Geometry: the camera looks straight down; image up = body forward, image right =
 yaw_rad is the heading (0 = north, +pi/2 = east, NED convention). The ground footprint's
 half-width is tan(hfov / 2) * alt_agl_m and spans width_px / 2 pixels, so every output pixel covers
 2 * tan(hfov / 2) * alt / width_px metres; pixels are square. Output pixels whose centre falls
-outside the world get label 255, valid_mask False and a constant colour: the world never wraps.
+outside the world get label 255 (OUT_OF_WORLD_LABEL), valid_mask False and the flat neutral grey
+of unknown ground (OUT_OF_WORLD_RGB): the world never wraps.
 
 The pyramid is built lazily (only the levels an altitude needs), once per world, and cached in
 a weak dictionary so it dies with the world.
@@ -36,7 +37,10 @@ from dovesei.sim.world import OUT_OF_WORLD_LABEL, World
 
 log = logging.getLogger(__name__)
 
-OUT_OF_WORLD_RGB = (0, 0, 0)  # colour of image pixels that fall outside the world
+# Beyond the map the ground is unknown: a flat neutral grey with no texture, so a segmenter finds
+# nothing there to read as a surface (and the label is OUT_OF_WORLD_LABEL, which every simulated
+# perception profile reads as unsafe).
+OUT_OF_WORLD_RGB = (128, 128, 128)
 
 
 class CameraError(DoveseiError, ValueError):

@@ -10,7 +10,12 @@ Each step k (t = k * dt) produces, in this order:
 3. the `EpisodeResult` once the judge ends the episode (hand-over altitude, time limit, or the
    vehicle leaving the world).
 
-`step(cmd)` applies the controller's answer to step k for dt and returns step k+1. The Zenoh
+`step(cmd)` applies the controller's answer to step k for dt and returns step k+1. A command
+counts only while it is fresh on the sim's own clock, as an autopilot's guided mode does
+(ArduPilot's GUID_TIMEOUT): its stamp must be on the "sim" clock, not in the future, and at most
+`vehicle.cmd_timeout_s` old; otherwise it is dropped (counted in `commands_dropped`) and the
+vehicle flies on the last fresh one until that, too, times out and it brakes to a hover. In
+lockstep every command carries the stamp of the state it answers, so none is ever dropped. The Zenoh
 service publishes these in lockstep or real time; the bench calls them directly. Timing presets
 (`reference`, `real`) set the perception rate and latency; see REFERENCE.md "Time in the
 reference".
@@ -112,6 +117,7 @@ class SimCore:
         self._in_flight: deque[tuple[int, float]] = deque()  # (frame seq, sim time its heatmap is due)
         self._last_cmd: VelocityCommand | None = None
         self._result: EpisodeResult | None = None
+        self.commands_dropped = 0
         return self._emit()
 
     @property
@@ -131,12 +137,20 @@ class SimCore:
         if self._result is not None:
             raise RuntimeError("the episode has ended; reset() to fly another")
         if cmd is not None:
-            self._last_cmd = cmd
+            if self.is_fresh(cmd):
+                self._last_cmd = cmd
+            else:
+                self.commands_dropped += 1
         c = self._last_cmd
         self.vehicle.step(self.config.dt_s, c.vel_body_frd_m_s if c else None, c.yaw_rate_rad_s if c else 0.0,
                           c.stamp.t_s if c else None)
         self._k += 1
         return self._emit()
+
+    def is_fresh(self, cmd: VelocityCommand) -> bool:
+        """True when the command's stamp is on the sim clock, not ahead of it and not too old."""
+        age_s = self.t_s - cmd.stamp.t_s
+        return cmd.stamp.clock == "sim" and -_EPS_S <= age_s <= self.config.vehicle.cmd_timeout_s + _EPS_S
 
     @property
     def result(self) -> EpisodeResult | None:

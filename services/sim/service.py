@@ -28,7 +28,6 @@ Exit status: 0 when the episode reached an outcome (or was stopped by a signal),
 
 from __future__ import annotations
 
-import argparse
 import logging
 import sys
 import threading
@@ -40,14 +39,13 @@ from dataclasses import dataclass, field
 import zenoh
 
 from dovesei.shared import keys, validate
-from dovesei.shared.cliconfig import PROCESS, CommandLine, Flag, integer_in, non_blank, service_parser
+from dovesei.shared.cliconfig import CommandLine, Flag, integer_in, non_blank
 from dovesei.shared.clock import WallClock, wall_time_s
 from dovesei.shared.codec import encode
 from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.shared.lifecycle import Inbox, declare_alive, install_stop_handlers, is_alive, write_stats
 from dovesei.shared.messages import CameraFrame, ClassEntry, EpisodeResult, GroundTruth, VehicleState, VelocityCommand
 from dovesei.shared.timing import TIMING_NAMES
-from dovesei.shared.zconfig import add_zenoh_args, zenoh_config_from_args
 from dovesei.sim.camera import CameraModel, render
 from dovesei.sim.core import SimConfig, SimCore, StepOut, judge_result
 from dovesei.sim.dynamics import Pose
@@ -106,6 +104,7 @@ class SimStats:
     states_sent: int = 0
     commands_used: int = 0
     commands_stale: int = 0  # lockstep: answers to an earlier state (or the controller's hold)
+    commands_not_fresh: int = 0  # real time: stamps too old (or ahead, or not on the sim clock): dropped
     commands_foreign: int = 0  # a vehicle id other than ours on our key
     commands_rejected: int = 0  # payloads the codec refused (counted by the inbox)
     states_rejected: int = 0  # external pose: state payloads the codec refused
@@ -327,6 +326,7 @@ def _run_realtime(wire: _Wire, core: SimCore, config: SimServiceConfig, stop: th
         cmd = _newest_command(wire.cmds, config, stats)
         out = core.step(cmd)  # None keeps the last command, which then times out in the vehicle
         stats.steps += 1
+        stats.commands_not_fresh = core.commands_dropped
         wire.publish(out, stats)
         due_s += period_s
         behind_s = clock.now_s() - due_s
@@ -479,6 +479,9 @@ CLI = CommandLine(SimServiceConfig, {
     "sim.handover_alt_m": Flag("--handover-alt-m", "the episode ends (and is judged) at this altitude",
                                check=validate.non_negative),
     "sim.seed": Flag("--seed", "seed of the vehicle's disturbances"),
+    "sim.vehicle.cmd_timeout_s": Flag("--cmd-max-age-s", "drop a velocity command whose stamp is older than this "
+                                      "on the sim clock, as ArduPilot's GUID_TIMEOUT (the vehicle then brakes to a "
+                                      "hover)", check=validate.positive),
     "sim.frame_period_s": Flag("--frame-period-s", "override the preset's frame period", check=validate.positive),
     "sim.latency_s": Flag("--latency-s", "override the preset's perception latency", check=validate.non_negative),
     "jpeg_quality": Flag("--jpeg-quality", "send frames JPEG-compressed at quality Q (1-100; default raw)",
@@ -493,32 +496,16 @@ CLI = CommandLine(SimServiceConfig, {
                            "external-pose state) after this long", check=validate.positive),
     "cmd_timeout_s": Flag("--cmd-timeout-s", "lockstep: wall seconds to wait for each command (external pose: "
                           "for a new state) before ending the episode as 'error'", check=validate.positive),
-})
+}, prog="dovesei-sim", description=__doc__.splitlines()[0])
 
 
-def build_parser() -> argparse.ArgumentParser:
-    return service_parser("dovesei-sim", __doc__.splitlines()[0], CLI, add_zenoh_args)
-
-
-def config_from_args(args: argparse.Namespace) -> SimServiceConfig:
-    return CLI.from_args(args)
-
-
-def to_argv(config: SimServiceConfig) -> list[str]:
-    """The flags of `config` (what `dovesei up` passes to a sim process); they parse back to it."""
-    return CLI.to_argv(config)
+build_parser = CLI.build_parser
+config_from_args = CLI.from_args
+to_argv = CLI.to_argv  # what `dovesei up` passes to a child process; parses back to the same config
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    process = PROCESS.from_args(args)
-    logging.basicConfig(level=process.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    try:
-        config = config_from_args(args)
-        zconf = zenoh_config_from_args(args)
-    except ConfigError as exc:
-        parser.error(str(exc))
+    config, process, zconf = CLI.start(argv)
     stop = install_stop_handlers()
     stats = SimStats()
     try:

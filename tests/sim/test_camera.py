@@ -9,12 +9,13 @@ import pytest
 
 from dovesei.sim.camera import (
     CameraError,
+    OUT_OF_WORLD_RGB,
     CameraModel,
     bench_render,
     pixel_to_world_affine,
     render,
 )
-from dovesei.sim.world import ClassInfo, World
+from dovesei.sim.world import OUT_OF_WORLD_LABEL, ClassInfo, World
 
 GSD_M = 0.25
 SIDE_PX = 1600  # a 400 m square world
@@ -127,14 +128,16 @@ def test_out_of_world_is_marked_not_wrapped() -> None:
     expected[:, first_inside:] = True
     np.testing.assert_array_equal(valid, expected)
     assert (lab[~valid] == 255).all() and (lab[valid] == 1).all()
-    assert (img[~valid] == 0).all() and (img[valid] == 200).all()
+    assert (img[~valid] == OUT_OF_WORLD_RGB).all() and (img[valid] == 200).all()
+    assert OUT_OF_WORLD_RGB == (128, 128, 128)  # unknown ground: flat neutral grey, no texture
 
 
 def test_fully_outside_and_rotated_edge() -> None:
     world = World(np.full((100, 100, 3), 9, np.uint8), np.zeros((100, 100), np.uint8), 1.0,
                   {0: ClassInfo("a", True)}, "w")
     img, lab, valid = render(world, -500.0, -500.0, 50.0, 0.3)
-    assert not valid.any() and (lab == 255).all() and (img == 0).all()
+    assert not valid.any() and (lab == OUT_OF_WORLD_LABEL).all() and (img == OUT_OF_WORLD_RGB).all()
+    assert img.std() == 0  # no texture off the map
     # A rotated view over a corner: labels and image agree with the mask pixel for pixel.
     img, lab, valid = render(world, 2.0, 98.0, 60.0, math.radians(35))
     assert 0 < valid.sum() < valid.size

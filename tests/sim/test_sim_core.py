@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from dovesei.shared.errors import ConfigError
-from dovesei.shared.messages import Stamp, VehicleState, VelocityCommand
+from dovesei.shared.messages import Stamp, VehicleState, VelocityCommand, replace
 from dovesei.shared.timing import timing
 from dovesei.sim.core import SimConfig, SimCore, StepOut
 from dovesei.sim.dynamics import VehicleParams
@@ -166,6 +166,31 @@ def test_no_command_brakes_after_the_vehicle_timeout(world: World) -> None:
     for _ in range(60):  # then silence: None keeps the last command until it is 0.5 s old
         out = core.step(None)
     assert abs(out.state.vel_body_frd_m_s[2]) < 0.05
+
+
+def test_a_command_not_fresh_on_the_sim_clock_is_dropped(world: World) -> None:
+    core = SimCore(world, Start(WEST_M, MID_Y_M, 60.0), SimConfig(vehicle=VehicleParams(cmd_timeout_s=0.3)))
+    out = core.reset()
+    for _ in range(10):  # 0.5 s of sim time
+        out = core.step(None)
+    fresh = command(out.state, (3.0, 0.0, 0.0))
+    old = replace(fresh, stamp=Stamp(out.state.stamp.t_s - 0.35, "sim"))  # older than the 0.3 s timeout
+    ahead = replace(fresh, stamp=Stamp(out.state.stamp.t_s + 1.0, "sim"))  # a stamp from the future
+    wall = replace(fresh, stamp=Stamp(out.state.stamp.t_s, "wall"))  # the right number on the wrong clock
+    assert core.is_fresh(fresh) and not any(core.is_fresh(c) for c in (old, ahead, wall))
+    for cmd in (old, ahead, wall):
+        out = core.step(cmd)
+    assert core.commands_dropped == 3 and out.state.vel_body_frd_m_s[0] == pytest.approx(0.0, abs=1e-9)
+    out = core.step(command(out.state, (3.0, 0.0, 0.0)))
+    assert core.commands_dropped == 3 and out.state.vel_body_frd_m_s[0] > 0.1  # a fresh one is flown
+
+
+def test_lockstep_answers_are_never_dropped(world: World) -> None:
+    # Every lockstep answer carries the stamp of its state: the freshness rule changes nothing there.
+    for timing_name in ("reference", "real"):
+        core = SimCore(world, Start(WEST_M, MID_Y_M, 30.0), SimConfig(timing=timing_name, time_limit_s=20.0))
+        outs = fly(core, (0.5, 0.0, 3.0))
+        assert outs[-1].result is not None and core.commands_dropped == 0
 
 
 def test_abort_ends_as_error_and_keeps_a_verdict(world: World) -> None:
