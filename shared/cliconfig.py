@@ -21,8 +21,9 @@ when it is built (a path that names no field fails at import).
 
 Bad values never get far: argparse calls the flag's converter, which raises one line naming the
 flag and what it accepts (``argument --speed: must be a finite number > 0, got 0.0``).
-The Zenoh connection flags stay one shared group (`dovesei.shared.zconfig.add_zenoh_args`);
-`ProcessOptions` holds the two flags every service has besides its config (log level, stats file).
+`build_parser` adds the Zenoh connection flags as the one shared group of
+`dovesei.shared.zconfig`, and `ProcessOptions`, the two flags every service has besides its config
+(log level, stats file); `start` is the common head of every service's `main`.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import logging
 import types
 import typing
 from collections.abc import Callable, Mapping, Sequence
@@ -37,13 +39,17 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Generic, TypeVar
 
+import zenoh
+
 from dovesei.shared import validate
 from dovesei.shared.errors import ConfigError
+from dovesei.shared.zconfig import add_zenoh_args, zenoh_config_from_args
 
 C = TypeVar("C")
 Check = Callable[[str, Any], Any]  # validate-style: check(what, value) raises ConfigError naming `what`
 
 LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR")
+LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
 
 
 @dataclass(frozen=True)
@@ -131,14 +137,22 @@ def _field_default(cls: type, path: str) -> Any:
     return get_path(value, rest) if rest else value
 
 
-def _build(cls: type, values: Mapping[str, Any]) -> Any:
-    """`cls(...)` with the dotted paths of `values` set; nested configs start from their defaults."""
-    own = {p: v for p, v in values.items() if "." not in p}
+def _split(values: Mapping[str, Any]) -> tuple[dict[str, Any], dict[str, dict[str, Any]]]:
+    """{"a": 1, "b.c": 2} -> ({"a": 1}, {"b": {"c": 2}}): own fields, and values for nested ones."""
+    own: dict[str, Any] = {}
     nested: dict[str, dict[str, Any]] = {}
     for p, v in values.items():
-        if "." in p:
-            head, rest = p.split(".", 1)
+        head, dot, rest = p.partition(".")
+        if dot:
             nested.setdefault(head, {})[rest] = v
+        else:
+            own[p] = v
+    return own, nested
+
+
+def _build(cls: type, values: Mapping[str, Any]) -> Any:
+    """`cls(...)` with the dotted paths of `values` set; nested configs start from their defaults."""
+    own, nested = _split(values)
     for head, sub in nested.items():
         own[head] = _with_values(_field_default(cls, head), sub)
     return cls(**own)
@@ -146,12 +160,7 @@ def _build(cls: type, values: Mapping[str, Any]) -> Any:
 
 def _with_values(obj: Any, values: Mapping[str, Any]) -> Any:
     """`obj` with the dotted paths of `values` replaced (nested dataclasses rebuilt bottom-up)."""
-    own = {p: v for p, v in values.items() if "." not in p}
-    nested: dict[str, dict[str, Any]] = {}
-    for p, v in values.items():
-        if "." in p:
-            head, rest = p.split(".", 1)
-            nested.setdefault(head, {})[rest] = v
+    own, nested = _split(values)
     for head, sub in nested.items():
         own[head] = _with_values(getattr(obj, head), sub)
     return dataclasses.replace(obj, **own) if own else obj
@@ -168,14 +177,16 @@ class CommandLine(Generic[C]):
     """The flags of one config dataclass `cls`; see the module docstring.
 
     `derive(given)` may add values for fields whose default depends on other flags (it receives
-    the paths given on the command line and returns extra path -> value pairs).
+    the paths given on the command line and returns extra path -> value pairs). `prog` and
+    `description` name the service for `build_parser` and `start`.
     """
 
     def __init__(self, cls: type[C], flags: Mapping[str, Flag], *,
-                 derive: Callable[[Mapping[str, Any]], Mapping[str, Any]] | None = None) -> None:
+                 derive: Callable[[Mapping[str, Any]], Mapping[str, Any]] | None = None,
+                 prog: str | None = None, description: str | None = None) -> None:
         if not dataclasses.is_dataclass(cls):
             raise ConfigError(f"{cls!r} is not a dataclass")
-        self.cls, self.derive = cls, derive
+        self.cls, self.derive, self.prog, self.description = cls, derive, prog, description
         entries, seen = [], set()
         for path, flag in flags.items():
             kind, optional = _unwrap_optional(_field_type(cls, path))
@@ -262,6 +273,30 @@ class CommandLine(Generic[C]):
         if f.check is not None:
             f.check(f.name, value)
         return value
+
+    def build_parser(self) -> argparse.ArgumentParser:
+        """The whole parser of a service: its config flags, the process flags, then the Zenoh group.
+
+        Prefixes are not expanded (`allow_abbrev=False`): `--vehicle` must never silently mean
+        `--vehicle-id`.
+        """
+        parser = argparse.ArgumentParser(prog=self.prog, description=self.description, allow_abbrev=False)
+        self.add_to(parser)
+        PROCESS.add_to(parser)
+        add_zenoh_args(parser)
+        return parser
+
+    def start(self, argv: Sequence[str] | None) -> tuple[C, ProcessOptions, zenoh.Config]:
+        """What every service's `main` does first: parse, set up logging, build the config and the
+        Zenoh config. A bad flag or config exits 2 with the usage line and one error line."""
+        parser = self.build_parser()
+        args = parser.parse_args(argv)
+        process = PROCESS.from_args(args)
+        logging.basicConfig(level=process.log_level, format=LOG_FORMAT)
+        try:
+            return self.from_args(args), process, zenoh_config_from_args(args)
+        except ConfigError as exc:
+            parser.error(str(exc))
 
     # ------------------------------------------------------------------ namespace -> config
 
@@ -449,18 +484,3 @@ PROCESS = CommandLine(ProcessOptions, {
     "log_level": Flag("--log-level", "logging threshold", choices=LOG_LEVELS),
     "stats_out": Flag("--stats-out", "write the run's counters as JSON when it ends", metavar="FILE"),
 })
-
-
-def service_parser(prog: str, description: str, cli: CommandLine[Any],
-                   add_zenoh: Callable[[argparse.ArgumentParser], None] | None = None) -> argparse.ArgumentParser:
-    """The whole parser of a service: its config flags, the process flags, then the Zenoh group.
-
-    Prefixes are not expanded (`allow_abbrev=False`): `--vehicle` must never silently mean
-    `--vehicle-id`.
-    """
-    parser = argparse.ArgumentParser(prog=prog, description=description, allow_abbrev=False)
-    cli.add_to(parser)
-    PROCESS.add_to(parser)
-    if add_zenoh is not None:
-        add_zenoh(parser)
-    return parser

@@ -26,7 +26,6 @@ policy.
 
 from __future__ import annotations
 
-import argparse
 import logging
 import sys
 import threading
@@ -40,12 +39,11 @@ import zenoh
 
 from dovesei.camera.source import ROTATIONS, Grabber, crop_resize, output_hfov_rad
 from dovesei.shared import keys, validate
-from dovesei.shared.cliconfig import PROCESS, CommandLine, Flag, integer_in, non_blank, service_parser
+from dovesei.shared.cliconfig import CommandLine, Flag, integer_in, non_blank
 from dovesei.shared.codec import encode
 from dovesei.shared.errors import ConfigError
 from dovesei.shared.lifecycle import Inbox, declare_alive, install_stop_handlers
 from dovesei.shared.messages import CameraFrame, Stamp, VehicleState
-from dovesei.shared.zconfig import add_zenoh_args, zenoh_config_from_args
 
 log = logging.getLogger(__name__)
 
@@ -261,32 +259,16 @@ CLI = CommandLine(CameraConfig, {
     "state_timeout_s": Flag("--state-timeout", "max age of the state used to tag a frame, seconds",
                             check=validate.positive),
     "loop_file": Flag("--loop", "loop a video file"),
-})
+}, prog="dovesei-camera", description="Publish an onboard camera as dovesei frames.")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    return service_parser("dovesei-camera", "Publish an onboard camera as dovesei frames.", CLI, add_zenoh_args)
-
-
-def config_from_args(args: argparse.Namespace) -> CameraConfig:
-    return CLI.from_args(args)
-
-
-def to_argv(config: CameraConfig) -> list[str]:
-    """The flags of `config`; they parse back to it."""
-    return CLI.to_argv(config)
+build_parser = CLI.build_parser
+config_from_args = CLI.from_args
+to_argv = CLI.to_argv  # what `dovesei up` passes to a child process; parses back to the same config
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    process = PROCESS.from_args(args)
-    logging.basicConfig(level=process.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    try:
-        config = config_from_args(args)
-        zconf = zenoh_config_from_args(args)
-    except ConfigError as exc:
-        parser.error(str(exc))  # exits 2 with the usage line, like any other bad flag
+    config, _process, zconf = CLI.start(argv)  # a bad flag exits 2 with the usage line
     stop = install_stop_handlers()
     try:
         with zenoh.open(zconf) as session:

@@ -22,7 +22,6 @@ is told to hold (zero velocity, or the MAVLink adapter's `hold()`) before everyt
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import logging
 import math
@@ -38,14 +37,13 @@ import zenoh
 from dovesei.controller.core import HANDOVER_ACTIONS, ControllerConfig, ControllerCore, ControllerInputError, Mode
 from dovesei.controller.policies.base import policy_names
 from dovesei.shared import keys, validate
-from dovesei.shared.cliconfig import PROCESS, CommandLine, Flag, non_blank, service_parser
+from dovesei.shared.cliconfig import CommandLine, Flag, non_blank
 from dovesei.shared.clock import WallClock, wall_time_s
 from dovesei.shared.codec import encode
 from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.shared.lifecycle import Inbox, declare_alive, install_stop_handlers, write_stats
 from dovesei.shared.messages import SafetyHeatmap, VehicleState, VelocityCommand, replace
 from dovesei.shared.timing import DEFAULT_TIMING, TIMING_NAMES
-from dovesei.shared.zconfig import add_zenoh_args, zenoh_config_from_args
 
 log = logging.getLogger(__name__)
 
@@ -382,32 +380,16 @@ CLI = CommandLine(ControllerConfig, {
                                       "it is not (default: refuse to steer)"),
     "lockstep_heatmap_wait_s": Flag("--heatmap-wait-s", "lockstep: wall deadline for an awaited heatmap",
                                     check=validate.positive),
-}, derive=_derived_defaults)
+}, derive=_derived_defaults, prog="dovesei-controller", description=__doc__.splitlines()[0])
 
 
-def build_parser() -> argparse.ArgumentParser:
-    return service_parser("dovesei-controller", __doc__.splitlines()[0], CLI, add_zenoh_args)
-
-
-def config_from_args(args: argparse.Namespace) -> ControllerConfig:
-    return CLI.from_args(args)
-
-
-def to_argv(config: ControllerConfig) -> list[str]:
-    """The flags of `config` (what `dovesei up` passes to a controller process); they parse back to it."""
-    return CLI.to_argv(config)
+build_parser = CLI.build_parser
+config_from_args = CLI.from_args
+to_argv = CLI.to_argv  # what `dovesei up` passes to a child process; parses back to the same config
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    process = PROCESS.from_args(args)
-    logging.basicConfig(level=process.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    try:
-        config = config_from_args(args)
-        zconf = zenoh_config_from_args(args)
-    except ConfigError as exc:
-        parser.error(str(exc))  # exits 2 with the usage line, like any other bad flag
+    config, process, zconf = CLI.start(argv)  # a bad flag exits 2 with the usage line
     stop = install_stop_handlers()
     # A waking loop thread gets the GIL within 1 ms instead of the default 5 ms when another
     # Python thread (e.g. a MAVLink reader) is busy: that default alone would break the 5 ms jitter.

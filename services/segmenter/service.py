@@ -23,7 +23,6 @@ another vehicle) are counted by reason; each is logged at WARNING with the reaso
 
 from __future__ import annotations
 
-import argparse
 import json
 import logging
 import threading
@@ -36,13 +35,12 @@ import zenoh
 
 from dovesei.shared import keys, validate
 from dovesei.shared.cliconfig import (
-    PROCESS, CommandLine, Flag, in_range, integer_at_least, json_or_file, non_blank, service_parser,
+    CommandLine, Flag, in_range, integer_at_least, json_or_file, non_blank,
 )
 from dovesei.shared.codec import decode, encode
 from dovesei.shared.errors import ConfigError, DoveseiError, ProtocolError
 from dovesei.shared.lifecycle import Inbox, declare_alive, install_stop_handlers, write_stats
 from dovesei.shared.messages import CameraFrame, PromptSetMsg, SafetyHeatmap, replace
-from dovesei.shared.zconfig import add_zenoh_args, zenoh_config_from_args
 
 from .core import (
     BACKENDS, DTYPES, HEATMAP_DTYPES, REJECT_VEHICLE, FrameBackend, FrameRejected, SegmenterConfig, SegmenterCore,
@@ -322,31 +320,18 @@ CLI = CommandLine(ServiceConfig, {
     "segmenter.prompts": Flag("--prompts", 'JSON file (or the JSON itself) {"positive": [...], "negative": [...], '
                               '"template": "... {} ..."} (default: the reference\'s)', parse=_parse_prompts,
                               render=_render_prompts, metavar="FILE"),
-})
+}, prog="dovesei-segmenter", description="Camera frames in, per-pixel safe-to-land probabilities out (Zenoh).")
 
 
-def build_parser() -> argparse.ArgumentParser:
-    return service_parser("dovesei-segmenter",
-                          "Camera frames in, per-pixel safe-to-land probabilities out (Zenoh).", CLI, add_zenoh_args)
-
-
-def config_from_args(args: argparse.Namespace) -> ServiceConfig:
-    return CLI.from_args(args)
-
-
-def to_argv(config: ServiceConfig) -> list[str]:
-    """The flags of `config` (what `dovesei up` passes to a segmenter process); they parse back to it."""
-    return CLI.to_argv(config)
+build_parser = CLI.build_parser
+config_from_args = CLI.from_args
+to_argv = CLI.to_argv  # what `dovesei up` passes to a child process; parses back to the same config
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    process = PROCESS.from_args(args)
-    logging.basicConfig(level=process.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    config, process, zconf = CLI.start(argv)  # a bad flag exits 2 with the usage line
     stop = install_stop_handlers()
     try:
-        config = config_from_args(args)
-        zconf = zenoh_config_from_args(args)
         # Weights load before the session opens: a missing model fails fast, before any key is declared.
         backend = make_backend(config.segmenter)
     except (DoveseiError, ValueError) as exc:

@@ -7,7 +7,6 @@ values exit 2 with one error line naming the flag.
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -28,13 +27,15 @@ from dovesei.shared.errors import ConfigError
 from dovesei.shared.timing import DEFAULT_TIMING
 from dovesei.sim import service as sim_service
 from dovesei.sim.core import SimConfig
+from dovesei.sim.dynamics import VehicleParams
 from dovesei.sim.service import SimServiceConfig
 
 # A config per service that changes every field that has a flag (the test below checks that).
 NON_DEFAULT = {
     "sim": SimServiceConfig(
         sim=SimConfig(vehicle_id="uav-7", timing="real", frame_period_s=1.25, latency_s=0.1 + 0.2,
-                      handover_alt_m=12.5, time_limit_s=77.7, seed=-3, attach_truth=False),
+                      handover_alt_m=12.5, time_limit_s=77.7, seed=-3, attach_truth=False,
+                      vehicle=VehicleParams(cmd_timeout_s=0.8)),
         world="synthetic:seed=3,size_m=400", start_xy_alt_m=(120.0, 80.5, 61.0), lockstep=False, speed=4.5,
         jpeg_quality=80, external_pose=True, wait_for=("controller", "segmenter"), wait_timeout_s=2.5,
         cmd_timeout_s=0.75),
@@ -46,7 +47,7 @@ NON_DEFAULT = {
             prompts=PromptSet(positive=["grass, \"soft\""], negative=["road", "car"], template="a photo of {}.")),
         vehicle_id="base", all_vehicles=True, lockstep=True),
     "controller": ControllerConfig(
-        vehicle_id="uav3", policy="dovesei-nofocus", timing="reference", lockstep=False, rate_hz=12.5,
+        vehicle_id="uav3", policy="dovesei-nofocus", timing="real", lockstep=False, rate_hz=12.5,
         heatmap_hold_after_s=2.0, heatmap_climb_after_s=12.0, state_stale_after_s=0.8, climb_speed_m_s=1.5,
         search_alt_m=80.0, handover_alt_m=15.0, handover_action="land", vehicle_url="udpin:0.0.0.0:14550",
         mavlink_alt_source="rangefinder", mavlink_allow_mode_switch=True, mavlink_yaw_control="autopilot",
@@ -124,8 +125,10 @@ def test_one_owner_of_the_timing_and_perception_defaults() -> None:
     real = parse_with_service_parser("controller", ["--vehicle-url", "udpin:0.0.0.0:14550"])
     assert (real.lockstep, real.timing) == (False, "real")
     assert controller_service.to_argv(real) == ["--vehicle-url", "udpin:0.0.0.0:14550"]
-    odd = dataclasses.replace(real, timing="reference")
-    assert parse_with_service_parser("controller", controller_service.to_argv(odd)) == odd
+    # With the sim, the same values are not the defaults and are spelled out.
+    sim_real = ControllerConfig(timing="real", lockstep=False)
+    assert controller_service.to_argv(sim_real) == ["--timing", "real", "--realtime"]
+    assert parse_with_service_parser("controller", ["--timing", "real", "--realtime"]) == sim_real
 
 
 def test_process_options_round_trip(tmp_path: Path) -> None:
