@@ -1,22 +1,40 @@
 """A fake ArduCopter or PX4 autopilot on a MAVLink link, for tests and end-to-end runs without SITL.
 
-It plays the autopilot's side of what `dovesei.controller.mavlink` relies on, with the real
-conventions of each flavour:
+It plays the autopilot's side of what `dovesei.controller.mavlink` relies on, with each
+personality's documented rules, so the adapter meets the edges a real vehicle has:
 
-    peer --SET_POSITION_TARGET_LOCAL_NED--> recorded (receive time, frame, mask, velocity, yaw rate)
-                                            and, when armed in GUIDED/OFFBOARD, flown: body velocity
-                                            rotated by the heading and integrated into a NED position
-    peer --COMMAND_LONG / SET_MODE--------> COMMAND_ACK; modes, arming, takeoff, message intervals
+    peer --SET_POSITION_TARGET_LOCAL_NED--> recorded; when armed in GUIDED/OFFBOARD flown within the
+                                            personality's speed caps (body velocity rotated by
+                                            the heading, integrated into a NED position)
+    peer --COMMAND_LONG / SET_MODE--------> COMMAND_ACK; modes, arming, takeoff, message intervals,
+                                            REQUEST_MESSAGE(HOME_POSITION)
+    peer --LANDING_TARGET------------------> recorded; in LAND/PRECLAND the vehicle drifts towards it
     fake --HEARTBEAT (mode, armed)--------> peer, at `heartbeat_hz` (stoppable: heartbeat-loss tests)
-    fake --LOCAL_POSITION_NED, ATTITUDE, DISTANCE_SENSOR, GLOBAL_POSITION_INT--> peer, only at the
-                                            intervals asked for with MAV_CMD_SET_MESSAGE_INTERVAL
+    fake --LOCAL_POSITION_NED, ATTITUDE, DISTANCE_SENSOR, GLOBAL_POSITION_INT, SYS_STATUS,
+           EKF_STATUS_REPORT--> peer, only at the intervals asked for with SET_MESSAGE_INTERVAL
+    fake --STATUSTEXT--> boot banner, pre-arm failures every `statustext_period_s` while booting,
+                         arming refusals
 
-Flavour rules modelled because the adapter must cope with them: PX4 accepts OFFBOARD only while
-setpoints are already streaming and falls back to LOITER when they stop for 0.5 s; ArduPilot stops
-a guided velocity that is not refreshed within 3 s. Setpoints in any frame other than the
-flavour's body frame (or LOCAL_NED) are recorded but not flown. One thread owns the socket;
-`stop()` joins it and closes the link. `main()` runs one as a process (`python -m
-dovesei.testing.fake_autopilot --url udpin:127.0.0.1:14550`).
+Personalities (`flavour`):
+
+- Boot: for `boot_s` (40 s by default, what ArduCopter 4.6 SITL needed; tests pass ~1 s) the
+  pre-arm bit of SYS_STATUS is unhealthy, EKF flags come up one by one (attitude, velocities,
+  positions), home appears at the end, and ARM is refused with the reasons as STATUSTEXT
+  (ArduPilot "PreArm: ..."/MAV_RESULT_FAILED; PX4 "Preflight Fail: ..."/MAV_RESULT_DENIED).
+  A fake created armed (in the air) has booted long ago.
+- Speed caps: ArduPilot WPNAV_SPEED 10 m/s, WPNAV_SPEED_UP 2.5, WPNAV_SPEED_DN 1.5; PX4
+  MPC_XY_VEL_MAX 12, MPC_Z_VEL_MAX_UP 3, MPC_Z_VEL_MAX_DN 1.5.
+- ArduPilot stops a guided velocity not refreshed within GUID_TIMEOUT (3 s). PX4 accepts
+  OFFBOARD (and arming in it) only while setpoints stream and falls back to LOITER when they stop
+  for COM_OF_LOSS_T (1 s).
+- `heading_drift_rad_s`: the heading wanders while airborne (the 5-23 degrees seen on ArduCopter).
+- `gcs_set_mode()`: a second ground station switching modes; `inject()`: one hand-made message
+  (NaN, out of range) in the fake's own stream; `signing_key`: MAVLink 2 signing, unsigned and
+  wrong-key frames rejected and counted.
+
+Setpoints in any frame other than the flavour's body frame (or LOCAL_NED) are recorded but not
+flown. One thread owns the socket; `stop()` joins it and closes the link. `main()` runs one as a
+process (`python -m dovesei.testing.fake_autopilot --url udpin:127.0.0.1:14550`).
 """
 
 from __future__ import annotations
@@ -26,10 +44,13 @@ import logging
 import math
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
 from dovesei.controller import mavlink as mv
+from dovesei.controller import mavlink_proto as proto
+from dovesei.shared.lifecycle import install_stop_handlers
 
 log = logging.getLogger(__name__)
 
@@ -41,10 +62,39 @@ MAV_MODE_FLAG_GUIDED_ENABLED = 8
 MAV_RESULT_DENIED = 2
 MAV_RESULT_UNSUPPORTED = 3
 MAV_RESULT_FAILED = 4
-PX4_OFFBOARD_LOSS_S = 0.5  # PX4's COM_OF_LOSS_T default
-ARDUPILOT_GUIDED_VEL_TIMEOUT_S = 3.0  # ArduCopter stops a guided velocity after 3 s without an update
-CLIMB_RATE_M_S, LAND_RATE_M_S = 2.5, 1.0
+MAV_SEVERITY_CRITICAL, MAV_SEVERITY_WARNING, MAV_SEVERITY_INFO = 2, 4, 6
+PX4_OFFBOARD_LOSS_S = 1.0  # PX4's COM_OF_LOSS_T default
+ARDUPILOT_GUIDED_VEL_TIMEOUT_S = 3.0  # ArduCopter's GUID_TIMEOUT default
+LAND_RATE_M_S = 1.0
+PRECLAND_GAIN_PER_S, PRECLAND_MAX_M_S = 0.5, 1.0
+DEFAULT_BOOT_S = 40.0
 ORIGIN_LAT_DEG, ORIGIN_LON_DEG = 47.3977, 8.5456  # any fixed point; only GLOBAL_POSITION_INT uses it
+
+
+@dataclass(frozen=True)
+class Personality:
+    """What differs between the two autopilots, as far as the adapter can tell."""
+
+    horizontal_cap_m_s: float
+    up_cap_m_s: float
+    down_cap_m_s: float
+    arm_refused_result: int
+    banner: str
+    # (fraction of boot until which it fails, STATUSTEXT) in the autopilot's own words.
+    prearm_failures: tuple[tuple[float, str], ...]
+
+
+PERSONALITIES = {
+    "ardupilot": Personality(10.0, 2.5, 1.5, MAV_RESULT_FAILED, "ArduCopter V4.6.0 (fake)", (
+        (0.25, "PreArm: EKF attitude is bad"),
+        (0.5, "PreArm: Need Alt Estimate"),
+        (1.0, "PreArm: AHRS: waiting for home"),
+    )),
+    "px4": Personality(12.0, 3.0, 1.5, MAV_RESULT_DENIED, "PX4 v1.15.0 (fake)", (
+        (0.5, "Preflight Fail: ekf2 missing data"),
+        (1.0, "Preflight Fail: Attitude estimate not valid"),
+    )),
+}
 
 
 @dataclass(frozen=True)
@@ -79,20 +129,32 @@ class ReceivedCommand:
     result: int
 
 
+@dataclass(frozen=True)
+class ReceivedLandingTarget:
+    recv_s: float
+    frame: int
+    angle_x_rad: float
+    angle_y_rad: float
+    distance_m: float
+
+
 class FakeAutopilot:
     """A simulated multirotor autopilot speaking MAVLink 2 on `url` (default: listens, udpin)."""
 
     def __init__(self, url: str, *, flavour: str = "ardupilot", mode: str | None = None, armed: bool = True,
                  alt_m: float = 50.0, yaw_rad: float = 0.0, terrain_height_m: float = 0.0,
                  rangefinder_max_m: float = 40.0, heartbeat_hz: float = 1.0, physics_hz: float = 50.0,
-                 offboard_loss_s: float = PX4_OFFBOARD_LOSS_S, system: int = 1, component: int = 1) -> None:
+                 offboard_loss_s: float = PX4_OFFBOARD_LOSS_S, system: int = 1, component: int = 1,
+                 boot_s: float = DEFAULT_BOOT_S, heading_drift_rad_s: float = 0.0,
+                 statustext_period_s: float = 2.0, signing_key: bytes | None = None) -> None:
         if flavour not in FLAVOURS:
             raise ValueError(f"flavour {flavour!r}: choose one of {FLAVOURS}")
-        self.url, self.flavour = url, flavour
+        self.url, self.flavour, self.personality = url, flavour, PERSONALITIES[flavour]
         self._system, self._component = system, component
         self._heartbeat_period_s, self._physics_period_s = 1.0 / heartbeat_hz, 1.0 / physics_hz
         self._rangefinder_max_m = rangefinder_max_m
         self._offboard_loss_s = offboard_loss_s  # PX4 only; also the grace for starting in OFFBOARD
+        self._signing_key = signing_key
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -100,26 +162,40 @@ class FakeAutopilot:
         self._t0 = time.monotonic()
         self._custom_mode = mv.encode_mode(flavour, mode or ("LOITER"))[0]
         self._armed = armed
+        # A vehicle that starts armed (in the air) booted long ago.
+        self._boot_s = 0.0 if armed else max(0.0, float(boot_s))
+        self._home_sent = False
+        self._statustext_period_s = statustext_period_s
         self._pos_ned_m = [0.0, 0.0, -float(alt_m)]  # the local origin is on the ground below the start
         self._vel_ned_m_s = [0.0, 0.0, 0.0]
         self._yaw_rad, self._yaw_rate_rad_s = float(yaw_rad), 0.0
+        self._heading_drift_rad_s = float(heading_drift_rad_s)
         self.terrain_height_m = float(terrain_height_m)  # ground under the vehicle above the local origin
         self._takeoff_alt_m: float | None = None
         self._heartbeats_on = True
         self._intervals_s: dict[int, float] = {}
         self._next_send_s: dict[int, float] = {}
         self._last_setpoint: ReceivedSetpoint | None = None
+        self._landing_target: ReceivedLandingTarget | None = None
+        self._outbox: list[Callable[[Any], None]] = []  # sends queued for the fake's own thread
         self._started_s = time.monotonic()
         self.setpoints: list[ReceivedSetpoint] = []
         self.heartbeats: list[ReceivedHeartbeat] = []
         self.commands: list[ReceivedCommand] = []
+        self.landing_targets: list[ReceivedLandingTarget] = []
         self.set_mode_messages: list[tuple[float, int, int]] = []  # (recv_s, base_mode, custom_mode)
+        self.statustexts_sent: list[tuple[int, str]] = []
         self.peer_seen = threading.Event()
 
     # ----------------------------------------------------------------- control from the test
 
     def start(self) -> FakeAutopilot:
         self._conn = mv.open_link(self.url, source_system=self._system, source_component=self._component)
+        if self._signing_key is not None:
+            # As a signing autopilot channel: sign everything, accept only frames signed with the key.
+            self._conn.setup_signing(self._signing_key, sign_outgoing=True, allow_unsigned_callback=None,
+                                     link_id=1)
+        self._queue_statustext(MAV_SEVERITY_INFO, self.personality.banner)
         self._thread = threading.Thread(target=self._loop, name="fake-autopilot", daemon=True)
         self._thread.start()
         return self
@@ -144,6 +220,14 @@ class FakeAutopilot:
         with self._lock:
             self._custom_mode = mv.encode_mode(self.flavour, name)[0]
 
+    def gcs_set_mode(self, name: str, gcs_system: int = 254) -> None:
+        """A second ground station's DO_SET_MODE (recorded as a command from `gcs_system`)."""
+        custom, p2, p3 = mv.encode_mode(self.flavour, name)
+        with self._lock:
+            result = self._command(mv.MAV_CMD_DO_SET_MODE, (1.0, float(p2), float(p3), 0.0, 0.0, 0.0, 0.0))
+            self.commands.append(ReceivedCommand(time.monotonic(), mv.MAV_CMD_DO_SET_MODE, (1.0, p2, p3), result))
+        log.info("fake: ground station %d switched the mode to %s (result %d)", gcs_system, name, result)
+
     def set_armed(self, armed: bool) -> None:
         with self._lock:
             self._armed = armed
@@ -156,6 +240,16 @@ class FakeAutopilot:
         with self._lock:
             self._heartbeats_on = True
 
+    def inject(self, name: str, **fields: Any) -> None:
+        """Send one `name` message (e.g. 'attitude', 'local_position_ned') with the given fields."""
+        sender = f"{name}_send"
+
+        def send(mav: Any) -> None:
+            getattr(mav, sender)(**fields)
+
+        with self._lock:
+            self._outbox.append(send)
+
     @property
     def mode(self) -> str:
         with self._lock:
@@ -167,6 +261,10 @@ class FakeAutopilot:
             return self._armed
 
     @property
+    def booted(self) -> bool:
+        return self._now_s() >= self._boot_s
+
+    @property
     def position_ned_m(self) -> tuple[float, float, float]:
         with self._lock:
             return tuple(self._pos_ned_m)  # type: ignore[return-value]
@@ -175,6 +273,13 @@ class FakeAutopilot:
     def yaw_rad(self) -> float:
         with self._lock:
             return self._yaw_rad
+
+    @property
+    def signing_counts(self) -> dict[str, int]:
+        """pymavlink's counters on the fake's side (bad signatures, unsigned rejected)."""
+        signing = self._conn.mav.signing
+        return {"goodsig": signing.goodsig_count, "badsig": signing.badsig_count,
+                "unsigned": signing.reject_count}
 
     def received(self) -> tuple[list[ReceivedSetpoint], list[ReceivedHeartbeat], list[ReceivedCommand]]:
         """Copies of what was recorded so far (setpoints, heartbeats, commands)."""
@@ -186,8 +291,19 @@ class FakeAutopilot:
     def _now_s(self) -> float:
         return time.monotonic() - self._t0
 
+    def _boot_fraction(self) -> float:
+        return 1.0 if self._boot_s <= 0 else min(1.0, self._now_s() / self._boot_s)
+
+    def _prearm_failures(self) -> list[str]:
+        fraction = self._boot_fraction()
+        return [text for until, text in self.personality.prearm_failures if fraction < until]
+
+    def _queue_statustext(self, severity: int, text: str) -> None:
+        self.statustexts_sent.append((severity, text))
+        self._outbox.append(lambda mav: mav.statustext_send(severity, text.encode("ascii")[:50]))
+
     def _loop(self) -> None:
-        next_hb_s = next_phys_s = self._now_s()
+        next_hb_s = next_phys_s = next_text_s = self._now_s()
         last_phys_s = next_phys_s
         while not self._stop.is_set():
             now = self._now_s()
@@ -200,6 +316,18 @@ class FakeAutopilot:
                 if beat:
                     self._send_heartbeat()
                 next_hb_s = now + self._heartbeat_period_s
+            if now >= next_text_s:
+                with self._lock:
+                    for text in self._prearm_failures():
+                        self._queue_statustext(MAV_SEVERITY_CRITICAL, text)
+                    if not self._home_sent and self.booted:
+                        self._home_sent = True
+                        self._outbox.append(self._send_home)
+                next_text_s = now + self._statustext_period_s
+            with self._lock:
+                outbox, self._outbox = self._outbox, []
+            for send in outbox:
+                send(self._conn.mav)
             self._send_streams(now)
             with self._lock:
                 wake_s = min([next_hb_s, next_phys_s, *self._next_send_s.values()])
@@ -217,27 +345,52 @@ class FakeAutopilot:
             sp, now = self._last_setpoint, time.monotonic()
             last_sp_s = sp.recv_s if sp is not None else self._started_s
             if self.flavour == "px4" and name == "OFFBOARD" and now - last_sp_s > self._offboard_loss_s:
-                log.info("fake PX4: offboard setpoints lost, failsafe to LOITER")
+                log.info("fake PX4: offboard setpoints lost for COM_OF_LOSS_T, failsafe to LOITER")
                 self._custom_mode = mv.encode_mode("px4", "LOITER")[0]
                 name = "LOITER"
             steering = self._armed and name == mv.STEER_MODE[self.flavour]
+            airborne = -self._pos_ned_m[2] > self.terrain_height_m + 0.05
             if steering and self._takeoff_alt_m is not None:
-                vel_ned[2] = -CLIMB_RATE_M_S if -self._pos_ned_m[2] < self._takeoff_alt_m else 0.0
+                vel_ned[2] = -self.personality.up_cap_m_s if -self._pos_ned_m[2] < self._takeoff_alt_m else 0.0
                 if vel_ned[2] == 0.0:
                     self._takeoff_alt_m = None
             elif steering and sp is not None and now - sp.recv_s <= ARDUPILOT_GUIDED_VEL_TIMEOUT_S:
                 vel_ned, yaw_rate = self._setpoint_to_ned(sp)
-            elif self._armed and name == "LAND":
-                vel_ned[2] = LAND_RATE_M_S
-            self._yaw_rad = math.remainder(self._yaw_rad + yaw_rate * dt_s, 2.0 * math.pi)
+            elif self._armed and name in ("LAND", "PRECLAND"):
+                vel_ned = self._landing_velocity(now)
+            vel_ned = self._capped(vel_ned)
+            drift = self._heading_drift_rad_s if airborne and self._armed else 0.0
+            self._yaw_rad = math.remainder(self._yaw_rad + (yaw_rate + drift) * dt_s, 2.0 * math.pi)
             for i in range(3):
                 self._pos_ned_m[i] += vel_ned[i] * dt_s
             if self._pos_ned_m[2] > -self.terrain_height_m:
                 # On the ground: a landing ends with the motors disarmed, as both autopilots do.
                 self._pos_ned_m[2], vel_ned[2] = -self.terrain_height_m, 0.0
-                if name == "LAND":
+                if name in ("LAND", "PRECLAND"):
                     self._armed = False
-            self._vel_ned_m_s, self._yaw_rate_rad_s = vel_ned, yaw_rate
+            self._vel_ned_m_s, self._yaw_rate_rad_s = vel_ned, yaw_rate + drift
+
+    def _capped(self, vel_ned: list[float]) -> list[float]:
+        """The personality's speed limits (caller holds the lock)."""
+        p = self.personality
+        speed = math.hypot(vel_ned[0], vel_ned[1])
+        scale = p.horizontal_cap_m_s / speed if speed > p.horizontal_cap_m_s else 1.0
+        down = min(max(vel_ned[2], -p.up_cap_m_s), p.down_cap_m_s)
+        return [vel_ned[0] * scale, vel_ned[1] * scale, down]
+
+    def _landing_velocity(self, now: float) -> list[float]:
+        """LAND descends; with a fresh LANDING_TARGET it also moves over the target (precision landing)."""
+        vel = [0.0, 0.0, LAND_RATE_M_S]
+        target = self._landing_target
+        if target is None or now - target.recv_s > 1.0:
+            return vel
+        agl_m = max(0.0, -self._pos_ned_m[2] - self.terrain_height_m)
+        # Image x right, image y down (= body backward): the ArduPilot companion convention.
+        fwd_m, right_m = -math.tan(target.angle_y_rad) * agl_m, math.tan(target.angle_x_rad) * agl_m
+        c, s = math.cos(self._yaw_rad), math.sin(self._yaw_rad)
+        for i, offset_m in enumerate((c * fwd_m - s * right_m, s * fwd_m + c * right_m)):
+            vel[i] = max(-PRECLAND_MAX_M_S, min(PRECLAND_MAX_M_S, PRECLAND_GAIN_PER_S * offset_m))
+        return vel
 
     def _setpoint_to_ned(self, sp: ReceivedSetpoint) -> tuple[list[float], float]:
         """What the autopilot would fly for a setpoint (caller holds the lock)."""
@@ -245,6 +398,8 @@ class FakeAutopilot:
             return [0.0, 0.0, 0.0], 0.0
         yaw_rate = 0.0 if sp.type_mask & 0x800 else sp.yaw_rate_rad_s
         fwd, right, down = sp.vel_m_s
+        if not all(math.isfinite(v) for v in (fwd, right, down, yaw_rate)):
+            return [0.0, 0.0, 0.0], 0.0  # both autopilots ignore a setpoint with NaN velocities
         if sp.frame == mv.STEER_FRAME[self.flavour]:
             c, s = math.cos(self._yaw_rad), math.sin(self._yaw_rad)
             return [c * fwd - s * right, s * fwd + c * right, down], yaw_rate
@@ -269,6 +424,11 @@ class FakeAutopilot:
                 self.setpoints.append(sp)
                 if msg.target_system == self._system:
                     self._last_setpoint = sp
+        elif kind == "LANDING_TARGET":
+            target = ReceivedLandingTarget(recv_s, msg.frame, msg.angle_x, msg.angle_y, msg.distance)
+            with self._lock:
+                self.landing_targets.append(target)
+                self._landing_target = target
         elif kind == "SET_MODE":
             with self._lock:
                 self.set_mode_messages.append((recv_s, msg.base_mode, msg.custom_mode))
@@ -281,23 +441,35 @@ class FakeAutopilot:
                 self.commands.append(ReceivedCommand(recv_s, msg.command, params, result))
             self._conn.mav.command_ack_send(msg.command, result)
 
+    def _streaming(self) -> bool:
+        sp = self._last_setpoint
+        return sp is not None and time.monotonic() - sp.recv_s <= self._offboard_loss_s
+
     def _mode_allowed(self, custom_mode: int) -> bool:
         """PX4 refuses OFFBOARD unless setpoints are already streaming (caller holds the lock)."""
         if self.flavour == "px4" and mv.mode_name("px4", custom_mode) == "OFFBOARD":
-            sp = self._last_setpoint
-            return sp is not None and time.monotonic() - sp.recv_s <= self._offboard_loss_s
+            return self._streaming()
         return True
 
     def _command(self, command: int, params: tuple[float, ...]) -> int:
         """Execute one COMMAND_LONG and return its MAV_RESULT (caller holds the lock)."""
         if command == mv.MAV_CMD_SET_MESSAGE_INTERVAL:
             msg_id, interval_us = int(params[0]), params[1]
+            if msg_id == mv.MSG_ID_EKF_STATUS_REPORT and self.flavour == "px4":
+                return MAV_RESULT_UNSUPPORTED  # an ardupilotmega message; PX4 has ESTIMATOR_STATUS
             if interval_us < 0:
                 self._intervals_s.pop(msg_id, None)
                 self._next_send_s.pop(msg_id, None)
             else:
                 self._intervals_s[msg_id] = interval_us / 1e6 if interval_us > 0 else 0.25  # 0: our default 4 Hz
                 self._next_send_s[msg_id] = self._now_s()
+            return mv.MAV_RESULT_ACCEPTED
+        if command == mv.MAV_CMD_REQUEST_MESSAGE:
+            if int(params[0]) != mv.MSG_ID_HOME_POSITION:
+                return MAV_RESULT_UNSUPPORTED
+            if not self.booted:
+                return MAV_RESULT_FAILED  # no home yet
+            self._outbox.append(self._send_home)
             return mv.MAV_RESULT_ACCEPTED
         if command == mv.MAV_CMD_DO_SET_MODE:
             if self.flavour == "px4":
@@ -309,8 +481,7 @@ class FakeAutopilot:
             self._custom_mode = custom
             return mv.MAV_RESULT_ACCEPTED
         if command == mv.MAV_CMD_COMPONENT_ARM_DISARM:
-            self._armed = params[0] == 1.0
-            return mv.MAV_RESULT_ACCEPTED
+            return self._arm(params[0] == 1.0)
         if command == mv.MAV_CMD_NAV_TAKEOFF:
             guided = mv.mode_name(self.flavour, self._custom_mode) == "GUIDED"
             if self.flavour != "ardupilot" or not guided or not self._armed:
@@ -319,10 +490,32 @@ class FakeAutopilot:
             return mv.MAV_RESULT_ACCEPTED
         return MAV_RESULT_UNSUPPORTED
 
+    def _arm(self, arm: bool) -> int:
+        """ARM/DISARM with each personality's refusals (caller holds the lock)."""
+        if not arm:
+            self._armed = False
+            return mv.MAV_RESULT_ACCEPTED
+        failures = self._prearm_failures()
+        name = mv.mode_name(self.flavour, self._custom_mode)
+        if not failures and self.flavour == "px4" and name == "OFFBOARD" and not self._streaming():
+            failures = ["Arming denied: offboard signal lost"]
+        if failures:
+            for text in failures:
+                # ArduPilot repeats its pre-arm failures with "Arm:" when an ARM is refused.
+                said = "Arm: " + text.split(": ", 1)[-1] if self.flavour == "ardupilot" else text
+                self._queue_statustext(MAV_SEVERITY_CRITICAL, said)
+            return self.personality.arm_refused_result
+        self._armed = True
+        return mv.MAV_RESULT_ACCEPTED
+
     # ----------------------------------------------------------------- sending
 
     def _boot_ms(self) -> int:
         return int(self._now_s() * 1000.0)
+
+    def _send_home(self, mav: Any) -> None:
+        mav.home_position_send(int(ORIGIN_LAT_DEG * 1e7), int(ORIGIN_LON_DEG * 1e7), 0, 0.0, 0.0, 0.0,
+                               [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0)
 
     def _send_heartbeat(self) -> None:
         with self._lock:
@@ -331,6 +524,15 @@ class FakeAutopilot:
             custom, status = self._custom_mode, mv.MAV_STATE_ACTIVE if self._armed else MAV_STATE_STANDBY
         autopilot = mv.MAV_AUTOPILOT_ARDUPILOTMEGA if self.flavour == "ardupilot" else mv.MAV_AUTOPILOT_PX4
         self._conn.mav.heartbeat_send(MAV_TYPE_QUADROTOR, autopilot, base, custom, status)
+
+    def _ekf_flags(self) -> int:
+        fraction = self._boot_fraction()
+        flags = proto.EKF_ATTITUDE if fraction >= 0.25 else proto.EKF_UNINITIALIZED
+        if fraction >= 0.5:
+            flags |= proto.EKF_VELOCITY_HORIZ | proto.EKF_VELOCITY_VERT | proto.EKF_POS_VERT_ABS
+        if fraction >= 0.75:
+            flags |= proto.EKF_POS_HORIZ_REL
+        return flags
 
     def _send_streams(self, now: float) -> None:
         with self._lock:
@@ -345,6 +547,12 @@ class FakeAutopilot:
                 mav.local_position_ned_send(boot_ms, pos[0], pos[1], pos[2], vel[0], vel[1], vel[2])
             elif msg_id == mv.MSG_ID_ATTITUDE:
                 mav.attitude_send(boot_ms, 0.0, 0.0, yaw, 0.0, 0.0, yaw_rate)
+            elif msg_id == mv.MSG_ID_SYS_STATUS:
+                bit = mv.MAV_SYS_STATUS_PREARM_CHECK
+                health = bit if not self._prearm_failures() else 0
+                mav.sys_status_send(bit, bit, health, 100, 12000, -1, -1, 0, 0, 0, 0, 0, 0)
+            elif msg_id == mv.MSG_ID_EKF_STATUS_REPORT:
+                mav.ekf_status_report_send(self._ekf_flags(), 0.1, 0.1, 0.1, 0.1, 0.0)
             elif msg_id == mv.MSG_ID_DISTANCE_SENSOR:
                 agl_m = -pos[2] - terrain_m
                 # Out of range reads as max + 1 cm, the convention ArduPilot's driver uses.
@@ -362,18 +570,19 @@ class FakeAutopilot:
 
 def main(argv: list[str] | None = None) -> int:
     """Run a fake autopilot until SIGTERM/SIGINT (for end-to-end runs of `dovesei up --vehicle`)."""
-    from dovesei.shared.lifecycle import install_stop_handlers
-
     p = argparse.ArgumentParser(prog="python -m dovesei.testing.fake_autopilot", description=__doc__.split("\n")[0])
     p.add_argument("--url", default="udpin:127.0.0.1:14550", help="pymavlink URL the fake listens or sends on")
     p.add_argument("--flavour", choices=FLAVOURS, default="ardupilot")
     p.add_argument("--mode", default=None, help="initial mode (default LOITER); GUIDED/OFFBOARD to accept setpoints")
     p.add_argument("--alt", type=float, default=100.0, help="initial altitude above the local origin, metres")
-    p.add_argument("--disarmed", action="store_true", help="start disarmed (on the ground if --alt 0)")
+    p.add_argument("--disarmed", action="store_true", help="start disarmed (on the ground if --alt 0), booting")
+    p.add_argument("--boot-s", type=float, default=DEFAULT_BOOT_S, help="pre-arm phase after start (disarmed only)")
+    p.add_argument("--heading-drift-deg-s", type=float, default=0.0, help="heading drift while airborne")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     stop = install_stop_handlers()
-    with FakeAutopilot(args.url, flavour=args.flavour, mode=args.mode, armed=not args.disarmed, alt_m=args.alt) as fake:
+    with FakeAutopilot(args.url, flavour=args.flavour, mode=args.mode, armed=not args.disarmed, alt_m=args.alt,
+                       boot_s=args.boot_s, heading_drift_rad_s=math.radians(args.heading_drift_deg_s)) as fake:
         log.info("fake %s autopilot on %s, mode %s", args.flavour, args.url, fake.mode)
         while not stop.wait(5.0):
             n, e, d = fake.position_ned_m

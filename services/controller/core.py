@@ -15,6 +15,8 @@ Watchdog modes, highest priority first (each change is logged once at INFO with 
 
     state_stale  the vehicle state stopped advancing (real time only, wall clock) -> zero velocity
     handover     at/below the hand-over altitude: stop commanding, short-range sensors take over
+    policy_fault the policy raised, or declared LANDED/HANDOVER above the hand-over altitude
+                 (measured)                                                      -> zero velocity
     no_heatmap   nothing adopted yet                                             -> zero velocity
     climb        heatmap older than `heatmap_climb_after_s`  -> climb to the search altitude, hold
     hold         heatmap older than `heatmap_hold_after_s`   -> zero velocity (stop descending)
@@ -22,6 +24,13 @@ Watchdog modes, highest priority first (each change is logged once at INFO with 
 
 A stale decision is never re-sent: outside `ok` the command is built from the mode, not from the
 policy. Recovery is automatic: the next fresh heatmap is adopted, the policy steps, `ok` resumes.
+
+Clocks, in front of every policy: the policy sees the data clock with every step capped at
+`policy_dt_max_s` (a 14 s perception gap is not 14 s of progress for its timers), and a jump of
+the state stamp never resets it mid-flight (only the lockstep sim's new episode, whose state
+sequence restarts, does). In real time a stamp is judged on the controller's own monotonic clock:
+a state or heatmap leading it by more than `future_tolerance_s` is refused and counted, so one
+future stamp cannot make every honest sample look old.
 """
 
 from __future__ import annotations
@@ -30,6 +39,7 @@ import logging
 import math
 import time
 from collections import Counter
+from collections.abc import Callable
 from dataclasses import dataclass
 from enum import Enum
 from typing import Any
@@ -43,7 +53,11 @@ from dovesei.shared.timing import DEFAULT_TIMING
 
 log = logging.getLogger(__name__)
 
-HANDOVER_ACTIONS = ("hold", "land", "none")
+HANDOVER_ACTIONS = ("hold", "land", "precland", "none")
+# Decisions that end the policy's job; accepted only at/below the hand-over altitude.
+TERMINAL_STATES = ("LANDED", "HANDOVER")
+# The vehicle clock runs on true seconds; 5 % margin for crystal drift and latency jitter.
+_DATA_RATE_MARGIN = 1.05
 
 
 class ControllerInputError(DoveseiError, ValueError):
@@ -67,8 +81,10 @@ class ControllerConfig:
     search_alt_m: float | None = None  # None: the altitude at which the vehicle was first seen
     handover_alt_m: float = 20.0  # at/below: stop commanding, report HANDOVER
     handover_release_m: float = 2.0  # hysteresis: leave HANDOVER only above handover + this
-    handover_action: str = "hold"  # MAVLink adapter action at hand-over: hold, land or none
+    handover_action: str = "hold"  # MAVLink adapter action at hand-over: hold, land, precland or none
     vehicle_url: str = "zenoh"  # "zenoh" (the sim over Zenoh) or a pymavlink connection URL
+    policy_dt_max_s: float = 1.0  # the policy's clock advances at most this much per heatmap
+    future_tolerance_s: float = 1.0  # real time: stamps may lead the controller's clock this much
     vehicle_connect_timeout_s: float = 30.0  # MAVLink: wait this long for the autopilot's heartbeat
     mavlink_alt_source: str = "local"  # MAVLink altitude: "local" position or "rangefinder"
     mavlink_allow_mode_switch: bool = False  # MAVLink: may switch to GUIDED/OFFBOARD itself
@@ -87,8 +103,8 @@ class ControllerConfig:
             raise ConfigError(f"timing {self.timing!r}: choose one of {', '.join(sorted(TIMING_PRESETS))}")
         positive = ("rate_hz", "heatmap_hold_after_s", "heatmap_climb_after_s", "state_stale_after_s",
                     "climb_speed_m_s", "climb_gain_per_s", "handover_alt_m", "vehicle_connect_timeout_s",
-                    "lockstep_heatmap_wait_s",
-                    "lockstep_heatmap_retry_s")
+                    "lockstep_heatmap_wait_s", "lockstep_heatmap_retry_s", "policy_dt_max_s",
+                    "future_tolerance_s")
         for name in positive:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
@@ -113,6 +129,11 @@ class ControllerConfig:
             raise ConfigError(f"heatmap_buffer_len must be >= 1, got {self.heatmap_buffer_len}")
         if self.lockstep and self.vehicle_url != "zenoh":
             raise ConfigError("lockstep needs the simulator (--vehicle-url zenoh); a real vehicle runs in real time")
+        if self.vehicle_url != "zenoh" and self.timing != "real":
+            # The reference preset's timers are 5 % of true seconds: against a real vehicle its
+            # 60 s limit ran out at 28.8 m. A real vehicle always runs on true seconds.
+            raise ConfigError(f"timing {self.timing!r} with a real vehicle ({self.vehicle_url}): a real vehicle "
+                              "runs on true seconds, use --timing real")
 
     @property
     def period_s(self) -> float:
@@ -128,11 +149,12 @@ class Mode(str, Enum):
     CLIMB = "climb"
     STATE_STALE = "state_stale"
     HANDOVER = "handover"
+    POLICY_FAULT = "policy_fault"
 
     @property
     def watchdog(self) -> str:
         """The status key's `watchdog` field: ok, hold, climb or state_stale."""
-        if self is Mode.NO_HEATMAP:
+        if self in (Mode.NO_HEATMAP, Mode.POLICY_FAULT):
             return "hold"
         if self is Mode.HANDOVER:
             return "ok"  # not a fault: the status `state` says HANDOVER
@@ -150,13 +172,16 @@ class _Adopted:
 class ControllerCore:
     """Policy + heatmap buffer + watchdog; `tick` returns a command and a status every time."""
 
-    def __init__(self, config: ControllerConfig, policy: Policy | None = None) -> None:
+    def __init__(self, config: ControllerConfig, policy: Policy | None = None,
+                 mono: Callable[[], float] = time.monotonic) -> None:
         self.config = config
+        self._mono = mono  # the controller's own clock (stamps are judged on it in real time)
         # The real wiring always goes through the factory; tests may hand in a double.
         self.policy = policy if policy is not None else make_policy(config.policy, config.timing)
         self.rejected: Counter[str] = Counter()  # reason -> count (heatmaps and states refused)
         self.adopted_count = 0
         self._tick_seq = 0
+        self.policy_errors = 0
         self._reset_episode()
 
     # ---- episode bookkeeping -------------------------------------------------------------
@@ -171,10 +196,19 @@ class ControllerCore:
         self._first_alt_m: float | None = None
         self._in_handover = False
         self._mode: Mode | None = None
+        self._last_state_seq: int | None = None
+        self._state_anchor: tuple[float, float] | None = None  # (state t_s, own mono s): on-time state
+        self._policy_offset_s = 0.0  # policy clock = heatmap stamp + offset (changes only at jumps)
+        self._last_policy_t_s: float | None = None
+        self._policy_fault: str | None = None  # why the newest policy step cannot be followed
 
     def _maybe_new_episode(self, state: VehicleState) -> None:
-        """Data time running backwards means the sim started a new episode: start afresh."""
-        if self._last_state_t_s is not None and state.stamp.t_s < self._last_state_t_s:
+        """Time running backwards is a new sim episode only in lockstep with a restarted state
+        sequence; anywhere else it is a clock jump, and the policy goes on (never reset mid-flight)."""
+        if self._last_state_t_s is None or state.stamp.t_s >= self._last_state_t_s:
+            return
+        restarted = self._last_state_seq is not None and state.seq <= self._last_state_seq
+        if self.config.lockstep and restarted:
             log.info("controller %s: data clock went back from %.3f s to %.3f s: new episode, policy reset",
                      self.config.vehicle_id, self._last_state_t_s, state.stamp.t_s)
             buffered = self._buffer
@@ -182,6 +216,36 @@ class ControllerCore:
             self.policy.reset()
             # Heatmaps of the new episode may already be buffered; older episodes' are in the future.
             self._buffer = {seq: item for seq, item in buffered.items() if item[0].stamp.t_s <= state.stamp.t_s}
+            return
+        self._refuse("clock jump", "controller %s: state clock jumped back from %.3f s to %.3f s: policy kept, "
+                     "heatmaps of the old timeline dropped (holding until a new one)", self.config.vehicle_id,
+                     self._last_state_t_s, state.stamp.t_s)
+        # The adopted decision's age can no longer be measured on the new timeline: hold until a
+        # heatmap of the new one arrives (NO_HEATMAP), and judge stamps afresh.
+        self._adopted, self._decision, self._pending, self._state_anchor = None, None, None, None
+        self._buffer = {seq: item for seq, item in self._buffer.items() if item[0].stamp.t_s <= state.stamp.t_s}
+
+    def _projected_now_s(self) -> float | None:
+        """Real time: the vehicle clock now, projected from the newest on-time state (None: no anchor)."""
+        anchor = self._state_anchor
+        if self.config.lockstep or anchor is None:
+            return None
+        return anchor[0] + _DATA_RATE_MARGIN * max(0.0, self._mono() - anchor[1])
+
+    def _state_from_future(self, state: VehicleState) -> str | None:
+        """Real time: does the state lead the controller's own clock? Learns it from on-time states."""
+        if self.config.lockstep:
+            return None  # lockstep: the sim's states are the clock
+        projected = self._projected_now_s()
+        if projected is None or state.stamp.t_s <= projected:
+            # On time: re-anchor. A stamp inside the tolerance never moves the anchor, so a sender
+            # cannot ratchet the clock forward one tolerance per message.
+            self._state_anchor = (state.stamp.t_s, self._mono())
+            return None
+        if state.stamp.t_s <= projected + self.config.future_tolerance_s:
+            return None
+        return (f"state {state.seq} stamped {state.stamp.t_s:.3f} s leads the controller's clock "
+                f"(~{projected:.3f} s) by more than {self.config.future_tolerance_s:g} s")
 
     # ---- inputs --------------------------------------------------------------------------
 
@@ -198,6 +262,12 @@ class ControllerCore:
                 del self._buffer[dropped]
                 log.debug("heatmap buffer full: dropped seq %d", dropped)
             return True
+        projected = self._projected_now_s()
+        if projected is not None and hm.stamp.t_s > projected + self.config.future_tolerance_s:
+            # Refused before it can become "the newest" and make every honest heatmap look old.
+            return self._refuse("heatmap from the future", "heatmap %d stamped %.3f s leads the controller's "
+                                "clock (~%.3f s) by more than %g s: refused", hm.seq, hm.stamp.t_s, projected,
+                                self.config.future_tolerance_s)
         # Real time: "newest" is the latest capture time, whatever order the network delivers.
         newest_t_s = self._adopted.hm.stamp.t_s if self._adopted is not None else -math.inf
         if self._pending is not None:
@@ -234,11 +304,15 @@ class ControllerCore:
         if state.vehicle_id != cfg.vehicle_id:
             self.rejected["other vehicle"] += 1
             raise ControllerInputError(f"state for vehicle {state.vehicle_id!r} sent to controller {cfg.vehicle_id!r}")
+        future = self._state_from_future(state)
+        if future is not None:
+            self._refuse("state from the future", "%s: refused", future)
+            raise ControllerInputError(future)
         self._maybe_new_episode(state)
         now_s = state.stamp.t_s
         if self._last_state_t_s is None or now_s > self._last_state_t_s or self._state_advanced_wall_s is None:
             self._state_advanced_wall_s = wall_s
-        self._last_state_t_s = now_s
+        self._last_state_t_s, self._last_state_seq = now_s, state.seq
         if self._first_alt_m is None:
             self._first_alt_m = state.alt_agl_m
 
@@ -283,17 +357,35 @@ class ControllerCore:
             self._refuse("clock mismatch", "heatmap %d on clock %r, vehicle state on %r: ignored",
                          hm.seq, hm.stamp.clock, state.stamp.clock)
             return
-        if self.config.lockstep and hm.stamp.t_s > state.stamp.t_s:
-            # A frame from the future cannot be due: another episode's leftover.
+        # Lockstep: a frame from the future cannot be due (another episode's leftover); real time:
+        # nothing captured after the newest state by more than the tolerance is real.
+        lead_s = 0.0 if self.config.lockstep else self.config.future_tolerance_s
+        if hm.stamp.t_s > state.stamp.t_s + lead_s:
             self._refuse("heatmap from the future", "heatmap %d stamped %.3f s after state %.3f s: ignored",
                          hm.seq, hm.stamp.t_s, state.stamp.t_s)
             return
         self._run_policy(hm, recv_wall_s, state)
 
+    def _policy_time_s(self, hm: SafetyHeatmap) -> float:
+        """The policy's clock: the heatmap's stamp, shifted only when a step would exceed
+        `policy_dt_max_s` or go backwards (so normal runs see the exact stamps)."""
+        t_s = hm.stamp.t_s + self._policy_offset_s
+        last = self._last_policy_t_s
+        if last is not None:
+            dt_s = t_s - last
+            if dt_s > self.config.policy_dt_max_s or dt_s <= 0.0:
+                capped_s = self.config.policy_dt_max_s if dt_s > 0.0 else min(1e-3, self.config.policy_dt_max_s)
+                self._policy_offset_s = last + capped_s - hm.stamp.t_s
+                log.info("controller %s: heatmap %d is %.3f s after the previous one: the policy's clock "
+                         "advances %.3f s", self.config.vehicle_id, hm.seq, dt_s, capped_s)
+                t_s = last + capped_s
+        self._last_policy_t_s = t_s
+        return t_s
+
     def _run_policy(self, hm: SafetyHeatmap, recv_wall_s: float, state: VehicleState) -> None:
         # Altitude and camera model at capture come with the heatmap; attitude and the autopilot's
         # velocity estimate from the state of this tick (the heatmap carries none). Never a position.
-        obs = Observation(t_s=hm.stamp.t_s, alt_agl_m=hm.alt_agl_m, prob_safe=hm.probability(), hfov_rad=hm.hfov_rad,
+        obs = Observation(t_s=self._policy_time_s(hm), alt_agl_m=hm.alt_agl_m, prob_safe=hm.probability(), hfov_rad=hm.hfov_rad,
                           roll_rad=state.roll_rad, pitch_rad=state.pitch_rad, yaw_rad=state.yaw_rad,
                           vel_est_body_frd_m_s=state.vel_body_frd_m_s)
         start = time.perf_counter()
@@ -302,6 +394,15 @@ class ControllerCore:
         except PolicyInputError as exc:
             self._refuse("policy refused", "policy refused heatmap %d: %s", hm.seq, exc)
             return
+        except Exception as exc:  # noqa: BLE001 - caught once here: a policy bug must end in a hold
+            self.policy_errors += 1
+            self._policy_fault = f"policy raised {type(exc).__name__} on heatmap {hm.seq}: {exc}"
+            self._refuse("policy error", "%s (holding)", self._policy_fault, level=logging.ERROR)
+            if self.policy_errors == 1:
+                log.error("first policy error, with its traceback", exc_info=True)
+            self._decision = None
+            return
+        self._policy_fault = None
         policy_s = time.perf_counter() - start
         # Transport latency only means something when the sender stamped its wall time.
         to_controller_s = recv_wall_s - hm.sent_wall_s if hm.sent_wall_s > 0.0 else 0.0
@@ -335,6 +436,13 @@ class ControllerCore:
         if self._in_handover:
             return Mode.HANDOVER, (f"at/below the hand-over altitude {cfg.handover_alt_m:g} m: "
                                    "short-range sensors take over")
+        if self._policy_fault is not None:
+            return Mode.POLICY_FAULT, f"{self._policy_fault}: holding position"
+        decision = self._decision
+        if decision is not None and decision.state in TERMINAL_STATES:
+            self.rejected["terminal above hand-over"] += 1
+            return Mode.POLICY_FAULT, (f"policy declared {decision.state} at {state.alt_agl_m:.1f} m, above the "
+                                       f"hand-over altitude {cfg.handover_alt_m:g} m: refused, holding position")
         age_s = self.heatmap_age_s(state)
         if age_s is None:
             return Mode.NO_HEATMAP, "no heatmap received yet: holding position"

@@ -3,187 +3,140 @@
 Data flow (one I/O thread owns the link; callers only read snapshots and hand commands over):
 
     autopilot --HEARTBEAT, LOCAL_POSITION_NED, ATTITUDE, DISTANCE_SENSOR--> I/O thread
-        -> VehicleState (stamp on the 'vehicle' clock from time_boot_ms) -> poll_state()
-    send(VelocityCommand) -> checks (armed, GUIDED/OFFBOARD, link alive) -> SET_POSITION_TARGET_LOCAL_NED
-        and the I/O thread repeats the newest command at `setpoint_rate_hz` (PX4 leaves OFFBOARD
-        when the stream stops; ArduPilot stops a velocity after 3 s without an update)
+        -> every sample validated (finite, plausible ranges; bad ones counted, logged rate-limited,
+           dropped) -> VehicleState (stamp on the 'vehicle' clock from time_boot_ms) -> poll_state()
+    autopilot --SYS_STATUS, EKF_STATUS_REPORT, HOME_POSITION, STATUSTEXT--> ArmReadiness (takeoff),
+        every STATUSTEXT logged at INFO with its severity
+    send(VelocityCommand) -> checks (armed, GUIDED/OFFBOARD, link alive) -> clamp to SpeedLimits,
+        heading hold -> SET_POSITION_TARGET_LOCAL_NED; the I/O thread repeats the newest command at
+        `setpoint_rate_hz` (PX4 leaves OFFBOARD when the stream stops; ArduPilot stops a velocity
+        after GUID_TIMEOUT, 3 s)
     I/O thread -> HEARTBEAT at 1 Hz as an onboard controller (MAV_TYPE_ONBOARD_CONTROLLER,
-        MAV_AUTOPILOT_INVALID), so the autopilot and a GCS see a live companion
+        MAV_AUTOPILOT_INVALID); LANDING_TARGET at 10 Hz during a precision-landing hand-over
 
 Why one thread and no callbacks into the caller: pymavlink's parser is not thread-safe, and the
-controller's loop must never block on the radio. Sends from the caller's thread (send, hold,
-handover) share a transmit lock with the I/O thread because pymavlink's sequence counter and
-socket writes are not thread-safe either.
+controller's loop must never block on the radio. Sends from the caller's thread share a transmit
+lock with the I/O thread (pymavlink's sequence counter and socket writes are not thread-safe).
 
-Conventions followed exactly (ArduPilot "Copter Commands in Guided Mode", PX4 offboard docs):
-- Body-frame velocity: ArduPilot takes MAV_FRAME_BODY_OFFSET_NED (9) for velocities relative to
-  the vehicle's heading (its documented frame for this); PX4 takes MAV_FRAME_BODY_NED (8), which
-  its receiver rotates by the heading (x forward, y right, z down). Both are heading-level frames:
-  roll and pitch do not tilt the commanded vector, which is what a nadir servo wants.
-- Type mask: velocity + yaw rate, 0x05C7 (ignore position, acceleration and yaw angle). The
-  velocity-only mask 0x0DC7 also ignores yaw rate, and then ArduCopter (4.2+) falls back to
-  WP_YAW_BEHAVIOR and turns the nose into the direction of travel, which rotates the camera under
-  the controller's feet; `yaw_control="autopilot"` selects 0x0DC7 for users who want that.
-- Modes: ArduCopter custom modes GUIDED 4, LAND 9, BRAKE 17; PX4 custom_mode =
-  (main << 16) | (sub << 24) with OFFBOARD = main 6, AUTO.LAND = main 4 sub 6. Set with
-  MAV_CMD_DO_SET_MODE (176), falling back to the SET_MODE message when it is not acknowledged.
-- Streams: MAV_CMD_SET_MESSAGE_INTERVAL (511) for the messages the state needs (LOCAL_POSITION_NED,
-  ATTITUDE, and DISTANCE_SENSOR with the rangefinder), repeated until the first state arrives.
+Conventions (ArduPilot "Copter Commands in Guided Mode", PX4 offboard docs; numbers in
+`mavlink_proto`): body-frame velocities in MAV_FRAME_BODY_OFFSET_NED (ArduPilot) or
+MAV_FRAME_BODY_NED (PX4), both heading-level frames; type mask 0x05C7 (velocity + yaw rate).
+Heading: with `yaw_control="rate"` the yaw rate sent is the policy's plus a proportional
+correction towards the heading held since steering began (read from ATTITUDE), so the camera does
+not rotate under the map when the autopilot's heading drifts; "autopilot" sends velocity only.
+
+Trust: the autopilot is the first ArduPilot/PX4 heartbeat heard, or only `system_id` when pinned
+(a spoofer heard first is never locked onto); another autopilot id later is refused, counted and
+reported. With a signing key every frame we send is signed and every unsigned, wrong-key or
+replayed frame is rejected and counted (the timestamp is persisted). Any exception in the I/O
+thread is a permanent link loss: steering stops, `send()` raises, `lost_reason` says why.
 
 Safety: nothing is sent that steers unless the autopilot is armed, in GUIDED (ArduPilot) or
 OFFBOARD (PX4) and its heartbeat is fresh. The adapter never arms or takes off unless
-`arm_and_takeoff` is called (only `dovesei up --takeoff` does). A mode switch into GUIDED/OFFBOARD
-happens only with `allow_mode_switch=True`, and never again once the vehicle has left that mode
-after we steered it (a pilot who takes over keeps control). A command not refreshed within
-`command_timeout_s` is replaced by zero velocity in the stream: a dead controller never leaves a
-non-zero velocity repeating.
+`arm_and_takeoff` is called (only with the controller's `--takeoff-alt-m`). A mode switch into
+GUIDED/OFFBOARD happens only with `allow_mode_switch=True`, and never again once the vehicle left
+that mode after we steered it (a pilot who takes over keeps control). A command not refreshed
+within `command_timeout_s` is replaced by zero velocity: a dead controller never leaves a non-zero
+velocity repeating.
 """
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import math
-import os
+import struct
 import threading
 import time
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
-from dovesei.shared.errors import ConfigError, DoveseiError
+from dovesei.controller.mavlink_proto import (  # noqa: F401  (re-exported: tests and the fake use mv.NAME)
+    ALT_SOURCES,
+    ARDUCOPTER_MODES,
+    AUTOPILOT_KINDS,
+    HANDOVERS,
+    LANDING_TARGET_TYPE_VISION_OTHER,
+    MAV_AUTOPILOT_ARDUPILOTMEGA,
+    MAV_AUTOPILOT_INVALID,
+    MAV_AUTOPILOT_PX4,
+    MAV_CMD_COMPONENT_ARM_DISARM,
+    MAV_CMD_DO_SET_MODE,
+    MAV_CMD_NAV_TAKEOFF,
+    MAV_CMD_REQUEST_MESSAGE,
+    MAV_CMD_SET_MESSAGE_INTERVAL,
+    MAV_COMP_ID_AUTOPILOT1,
+    MAV_COMP_ID_CAMERA,
+    MAV_COMP_ID_ONBOARD_COMPUTER,
+    MAV_FRAME_BODY_FRD,
+    MAV_FRAME_BODY_NED,
+    MAV_FRAME_BODY_OFFSET_NED,
+    MAV_FRAME_LOCAL_NED,
+    MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
+    MAV_MODE_FLAG_SAFETY_ARMED,
+    MAV_RESULT_ACCEPTED,
+    MAV_RESULT_IN_PROGRESS,
+    MAV_RESULT_TEMPORARILY_REJECTED,
+    MAV_SENSOR_ROTATION_PITCH_270,
+    MAV_STATE_ACTIVE,
+    MAV_SYS_STATUS_PREARM_CHECK,
+    MAV_TYPE_GCS,
+    MAV_TYPE_ONBOARD_CONTROLLER,
+    MSG_ID_ATTITUDE,
+    MSG_ID_DISTANCE_SENSOR,
+    MSG_ID_EKF_STATUS_REPORT,
+    MSG_ID_GLOBAL_POSITION_INT,
+    MSG_ID_HOME_POSITION,
+    MSG_ID_LOCAL_POSITION_NED,
+    MSG_ID_SYS_STATUS,
+    PX4_MODES,
+    STEER_FRAME,
+    STEER_MODE,
+    TYPE_MASK_VELOCITY_ONLY,
+    TYPE_MASK_VELOCITY_YAW_RATE,
+    YAW_CONTROLS,
+    MavlinkError,
+    NotSteerableError,
+    RateLimitedLog,
+    SpeedLimits,
+    VehicleConnectError,
+    check_attitude,
+    check_distance_m,
+    check_local_position,
+    check_url,
+    clamp_setpoint,
+    encode_mode,
+    load_mavutil,
+    mode_name,
+    ned_to_frd,
+    open_link,
+    px4_custom_mode,
+    read_signing_timestamp,
+    signing_timestamp_now,
+    write_signing_timestamp,
+)
+from dovesei.controller import mavlink_takeoff
+from dovesei.controller.mavlink_readiness import ArmReadiness
+from dovesei.shared import validate
+from dovesei.shared.errors import ConfigError
 from dovesei.shared.keys import check_vehicle_id
 from dovesei.shared.messages import Stamp, VehicleState, VelocityCommand
 
 log = logging.getLogger(__name__)
 
-# MAVLink enum values used here (checked against pymavlink's in the tests).
-MAV_TYPE_GCS = 6
-MAV_TYPE_ONBOARD_CONTROLLER = 18
-MAV_AUTOPILOT_ARDUPILOTMEGA = 3
-MAV_AUTOPILOT_INVALID = 8
-MAV_AUTOPILOT_PX4 = 12
-MAV_MODE_FLAG_CUSTOM_MODE_ENABLED = 1
-MAV_MODE_FLAG_SAFETY_ARMED = 128
-MAV_STATE_ACTIVE = 4
-MAV_FRAME_LOCAL_NED = 1
-MAV_FRAME_BODY_NED = 8
-MAV_FRAME_BODY_OFFSET_NED = 9
-MAV_CMD_NAV_TAKEOFF = 22
-MAV_CMD_DO_SET_MODE = 176
-MAV_CMD_COMPONENT_ARM_DISARM = 400
-MAV_CMD_SET_MESSAGE_INTERVAL = 511
-MAV_RESULT_ACCEPTED = 0
-MAV_RESULT_IN_PROGRESS = 5
-MAV_SENSOR_ROTATION_PITCH_270 = 25  # a downward-facing distance sensor
-MAV_COMP_ID_ONBOARD_COMPUTER = 191
-MAV_COMP_ID_CAMERA = 100
-MSG_ID_ATTITUDE = 30
-MSG_ID_LOCAL_POSITION_NED = 32
-MSG_ID_GLOBAL_POSITION_INT = 33
-MSG_ID_DISTANCE_SENSOR = 132
-
-# SET_POSITION_TARGET_LOCAL_NED type masks (bits set = field ignored).
-TYPE_MASK_VELOCITY_YAW_RATE = 0x05C7  # use vx, vy, vz and yaw_rate
-TYPE_MASK_VELOCITY_ONLY = 0x0DC7  # use vx, vy, vz; the autopilot chooses the heading
-
-# Custom modes of the two autopilots, by the name we use for them.
-ARDUCOPTER_MODES = {"GUIDED": 4, "LAND": 9, "BRAKE": 17, "LOITER": 5, "POSHOLD": 16, "RTL": 6,
-                    "STABILIZE": 0, "ALT_HOLD": 2, "AUTO": 3}
-PX4_MODES = {"OFFBOARD": (6, 0), "LAND": (4, 6), "LOITER": (4, 3), "TAKEOFF": (4, 2), "RTL": (4, 5),
-             "MISSION": (4, 4), "POSCTL": (3, 0), "ALTCTL": (2, 0), "MANUAL": (1, 0), "STABILIZED": (7, 0)}
-STEER_MODE = {"ardupilot": "GUIDED", "px4": "OFFBOARD"}
-STEER_FRAME = {"ardupilot": MAV_FRAME_BODY_OFFSET_NED, "px4": MAV_FRAME_BODY_NED}
-
-ALT_SOURCES = ("local", "rangefinder")
-HANDOVERS = ("hold", "land", "none")
-YAW_CONTROLS = ("rate", "autopilot")
-
-
-def px4_custom_mode(main: int, sub: int = 0) -> int:
-    """PX4 packs its main mode in bits 16-23 and its sub mode in bits 24-31 of custom_mode."""
-    return (main << 16) | (sub << 24)
-
-
-def mode_name(autopilot: str, custom_mode: int) -> str:
-    """Our name for an autopilot's custom mode ('GUIDED', 'OFFBOARD', 'LAND', ...)."""
-    if autopilot == "px4":
-        main, sub = (custom_mode >> 16) & 0xFF, (custom_mode >> 24) & 0xFF
-        for name, (m, s) in PX4_MODES.items():
-            # PX4 reports non-AUTO main modes with sub mode 0; AUTO needs both to match.
-            if m == main and (s == sub or m != 4):
-                return name
-        return f"PX4({main}.{sub})"
-    for name, number in ARDUCOPTER_MODES.items():
-        if number == custom_mode:
-            return name
-    return f"MODE({custom_mode})"
-
-
-def encode_mode(autopilot: str, name: str) -> tuple[int, int, int]:
-    """(custom_mode, DO_SET_MODE param2, param3) for one of our mode names."""
-    if autopilot == "px4":
-        if name not in PX4_MODES:
-            raise ConfigError(f"PX4 mode {name!r} unknown; choose one of {sorted(PX4_MODES)}")
-        main, sub = PX4_MODES[name]
-        return px4_custom_mode(main, sub), main, sub
-    if name not in ARDUCOPTER_MODES:
-        raise ConfigError(f"ArduCopter mode {name!r} unknown; choose one of {sorted(ARDUCOPTER_MODES)}")
-    return ARDUCOPTER_MODES[name], ARDUCOPTER_MODES[name], 0
-
-
-class MavlinkError(DoveseiError):
-    """Something went wrong talking to the autopilot."""
-
-
-class VehicleConnectError(MavlinkError, ConnectionError):
-    """No autopilot heartbeat arrived, or the link could not be opened."""
-
-
-class NotSteerableError(MavlinkError):
-    """The adapter refuses to steer: `reason` says why (mode, disarmed, link lost, read-only)."""
-
-    def __init__(self, reason: str) -> None:
-        super().__init__(reason)
-        self.reason = reason
-
-
-def load_mavutil() -> Any:
-    """pymavlink's mavutil speaking MAVLink 2 (the factory every user of pymavlink here calls).
-
-    mavutil picks its wire protocol from the MAVLINK20 variable when it is imported and again on
-    every set_dialect(); we set it here rather than at our import so importing this module has no
-    side effect, and re-select the dialect in case something imported mavutil before us.
-    """
-    os.environ["MAVLINK20"] = "1"
-    from pymavlink import mavutil
-
-    if mavutil.mavlink.WIRE_PROTOCOL_VERSION != "2.0":
-        mavutil.set_dialect(mavutil.current_dialect)
-    return mavutil
-
-
-def open_link(url: str, *, source_system: int, source_component: int) -> Any:
-    """A pymavlink connection from a URL: udpin:/udpout:/tcp:/tcpin: host:port, or DEVICE[,BAUD]."""
-    mavutil = load_mavutil()
-    device, baud = url, 115200
-    if "," in url and not url.startswith(("udp", "tcp")):
-        device, _, baud_text = url.partition(",")
-        if not baud_text.isdigit():
-            raise ConfigError(f"MAVLink URL {url!r}: the baud rate after ',' must be an integer")
-        baud = int(baud_text)
-    try:
-        return mavutil.mavlink_connection(device, baud=baud, source_system=source_system,
-                                          source_component=source_component, autoreconnect=False)
-    except (OSError, ValueError) as exc:
-        raise VehicleConnectError(f"cannot open MAVLink link {url!r}: {exc}") from None
-
-
-AUTOPILOT_KINDS = {MAV_AUTOPILOT_ARDUPILOTMEGA: "ardupilot", MAV_AUTOPILOT_PX4: "px4"}
+_ATTITUDE_FRESH_S = 1.0  # heading hold only corrects from an attitude younger than this
+_LANDING_TARGET_PERIOD_S = 0.1  # 10 Hz: ArduPilot's precland filter expects >= ~5 Hz
+_LANDING_TARGET_FRESH_S = 1.0  # a spot older than this is no longer streamed
+_SIGNING_PERSIST_PERIOD_S = 10.0
+_NEW_STREAM_WINDOW = 6_000_000  # signing units (60 s): how far behind ours a new stream may start
 
 
 @dataclass(frozen=True)
 class _Target:
-    """The autopilot we talk to, learnt from its first heartbeat."""
+    """The autopilot we talk to, learnt from its heartbeat."""
 
     system: int
     component: int
@@ -195,39 +148,47 @@ class MavlinkVehicle:
 
     `connect()` opens the link and starts the I/O thread; `poll_state()` returns the newest state
     not yet returned; `send()` steers (or raises `NotSteerableError`); `close()` stops everything.
-    With `read_only=True` (the camera source) every steering call raises and nothing but the
-    companion heartbeat and stream requests is ever sent.
+    With `read_only=True` every steering call raises and nothing but the companion heartbeat and
+    stream requests is ever sent.
     """
 
     def __init__(self, url: str, *, vehicle_id: str = "uav1", alt_source: str = "local",
                  handover: str = "hold", allow_mode_switch: bool = False, heartbeat_timeout_s: float = 3.0,
                  setpoint_rate_hz: float = 20.0, stream_rate_hz: float = 20.0, command_timeout_s: float = 1.0,
                  yaw_control: str = "rate", read_only: bool = False, source_system: int = 255,
-                 source_component: int = MAV_COMP_ID_ONBOARD_COMPUTER,
-                 clock: Callable[[], float] = time.monotonic) -> None:
-        if not isinstance(url, str) or not url:
-            raise ConfigError(f"MAVLink URL must be a non-empty string, got {url!r}")
+                 source_component: int = MAV_COMP_ID_ONBOARD_COMPUTER, system_id: int | None = None,
+                 limits: SpeedLimits | None = None, yaw_hold_gain_per_s: float = 1.0,
+                 signing_key: bytes | None = None, signing_timestamp_file: str | Path | None = None,
+                 require_home: bool = True, clock: Callable[[], float] = time.monotonic) -> None:
+        check_url(url)
         for name, value, choices in (("alt_source", alt_source, ALT_SOURCES), ("handover", handover, HANDOVERS),
                                      ("yaw_control", yaw_control, YAW_CONTROLS)):
-            if value not in choices:
-                raise ConfigError(f"{name} {value!r}: choose one of {choices}")
+            validate.one_of(name, value, choices)
         for name, value in (("heartbeat_timeout_s", heartbeat_timeout_s), ("setpoint_rate_hz", setpoint_rate_hz),
-                            ("stream_rate_hz", stream_rate_hz), ("command_timeout_s", command_timeout_s)):
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise ConfigError(f"{name} must be a positive number, got {value!r}")
+                            ("stream_rate_hz", stream_rate_hz), ("command_timeout_s", command_timeout_s),
+                            ("yaw_hold_gain_per_s", yaw_hold_gain_per_s)):
+            validate.positive(name, value)
         if setpoint_rate_hz < 10.0:
-            # PX4 drops out of OFFBOARD below 2 Hz; we keep a wide margin as the issue requires.
+            # PX4 drops out of OFFBOARD below 2 Hz; we keep a wide margin.
             raise ConfigError(f"setpoint_rate_hz {setpoint_rate_hz} is below the 10 Hz minimum")
-        for name, value in (("source_system", source_system), ("source_component", source_component)):
+        for name, value in (("source_system", source_system), ("source_component", source_component),
+                            ("system_id", 1 if system_id is None else system_id)):
             if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= 255:
                 raise ConfigError(f"{name} must be an integer in 1..255, got {value!r}")
+        if signing_key is not None and (not isinstance(signing_key, bytes) or len(signing_key) != 32):
+            raise ConfigError("a MAVLink signing key must be exactly 32 bytes")
         self.url, self.vehicle_id = url, check_vehicle_id(vehicle_id)
         self.alt_source, self.handover_action, self.allow_mode_switch = alt_source, handover, allow_mode_switch
         self.heartbeat_timeout_s, self.command_timeout_s = float(heartbeat_timeout_s), float(command_timeout_s)
         self.setpoint_period_s, self.stream_rate_hz = 1.0 / setpoint_rate_hz, float(stream_rate_hz)
+        self.yaw_control, self.yaw_hold_gain_per_s = yaw_control, float(yaw_hold_gain_per_s)
         self.type_mask = TYPE_MASK_VELOCITY_YAW_RATE if yaw_control == "rate" else TYPE_MASK_VELOCITY_ONLY
-        self.read_only = read_only
+        self.read_only, self.system_id = read_only, system_id
+        self.limits = limits if limits is not None else SpeedLimits()
         self.source_system, self.source_component = source_system, source_component
+        self._signing_key = signing_key
+        self._signing_file = Path(signing_timestamp_file) if signing_timestamp_file is not None else None
+        self.readiness = ArmReadiness(require_home=require_home)
         self._clock = clock
         self._conn: Any = None
         self._thread: threading.Thread | None = None
@@ -240,7 +201,9 @@ class MavlinkVehicle:
         self._mode, self._custom_mode, self._armed = "", -1, False
         self._last_hb_s: float | None = None
         self._lost_reason: str | None = None
+        self._fatal: str | None = None  # the I/O thread died: the link never comes back
         self._attitude_rad = (0.0, 0.0, 0.0)
+        self._attitude_s: float | None = None
         self._local: tuple[float, float, float, float, float, float] | None = None  # x y z vx vy vz NED
         self._range_m: float | None = None
         self._state: VehicleState | None = None
@@ -249,13 +212,27 @@ class MavlinkVehicle:
         self._cmd: VelocityCommand | None = None  # newest command to stream (None: stream nothing)
         self._cmd_time_s = 0.0
         self._cmd_zeroed = False
+        self._prestream = False  # stream zero setpoints with no command (PX4 before OFFBOARD)
+        self._yaw_ref_rad: float | None = None  # the heading held while steering
         self._steered = False  # we have streamed in GUIDED/OFFBOARD at least once
         self._mode_request: tuple[str, float] | None = None  # (mode name, give-up time) in progress
         self._mode_request_next_s = 0.0  # when the I/O thread sends the next DO_SET_MODE for it
+        self._landing_target: tuple[float, float, float, float] | None = None  # ax, ay, dist, set at
+        self._precland = False
         self._unsupported_seen: set[int] = set()  # MAV_AUTOPILOT values of heartbeats we cannot fly
         self._next_setpoint_s = 0.0
-        self.setpoints_sent = 0  # counters for tests and operators' logs
+        self._sig_failed = False
+        self._persisted_s = -math.inf  # when the signing timestamp was last written
+        self._ratelog = RateLimitedLog(log)
+        # Counters for tests, operators' logs and the run's stats.
+        self.setpoints_sent = 0
+        self.setpoints_clamped = 0
         self.messages_received = 0
+        self.landing_targets_sent = 0
+        self.samples_rejected: Counter[str] = Counter()  # reason -> count
+        self.intruders: Counter[int] = Counter()  # system id of another autopilot -> heartbeats refused
+        self.signing_rejected: Counter[str] = Counter()  # unsigned / wrong key / replayed -> count
+        self.send_failures = 0
 
     # ----------------------------------------------------------------- life cycle
 
@@ -264,19 +241,28 @@ class MavlinkVehicle:
         if self._conn is not None:
             raise MavlinkError("connect() called twice")
         self._conn = open_link(self.url, source_system=self.source_system, source_component=self.source_component)
-        self._thread = threading.Thread(target=self._io_loop, name=f"mavlink-{self.vehicle_id}", daemon=True)
+        if self._signing_key is not None:
+            self._setup_signing()
+        self._thread = threading.Thread(target=self._io_main, name=f"mavlink-{self.vehicle_id}", daemon=True)
         self._thread.start()
         if not self._identified.wait(timeout_s):
+            fatal = self._fatal
             self.close()
+            if fatal is not None:
+                raise VehicleConnectError(fatal)
             seen = (f"; heartbeats seen only from unsupported autopilots (MAV_AUTOPILOT "
                     f"{sorted(self._unsupported_seen)}), only ArduPilot and PX4 are supported"
                     if self._unsupported_seen else "")
-            raise VehicleConnectError(f"no ArduPilot/PX4 heartbeat on {self.url!r} within {timeout_s:.1f} s{seen} "
-                                      "(for udpin the autopilot must send to us; for udpout we send first)")
+            pinned = f" from system {self.system_id}" if self.system_id is not None else ""
+            signed = f"; {dict(self.signing_rejected)} frames failed signing" if self.signing_rejected else ""
+            raise VehicleConnectError(f"no ArduPilot/PX4 heartbeat{pinned} on {self.url!r} within {timeout_s:.1f} s"
+                                      f"{seen}{signed} (for udpin the autopilot must send to us; for udpout we "
+                                      "send first)")
         target = self._target
         assert target is not None
-        log.info("connected to %s on %s (system %d component %d), mode %s, %s", target.autopilot, self.url,
-                 target.system, target.component, self.mode, "armed" if self.armed else "disarmed")
+        log.info("connected to %s on %s (system %d component %d%s), mode %s, %s%s", target.autopilot, self.url,
+                 target.system, target.component, ", pinned" if self.system_id is not None else "", self.mode,
+                 "armed" if self.armed else "disarmed", ", signed link" if self._signing_key else "")
 
     def close(self) -> None:
         """Stop the I/O thread and close the link (the autopilot's own failsafes take over)."""
@@ -285,6 +271,8 @@ class MavlinkVehicle:
             self._thread.join(timeout=5.0)
             self._thread = None
         if self._conn is not None:
+            if self._signing_key is not None:
+                self._persist_signing_timestamp()
             self._conn.close()
             self._conn = None
 
@@ -313,7 +301,7 @@ class MavlinkVehicle:
 
     @property
     def lost_reason(self) -> str | None:
-        """Why the link counts as lost (heartbeat timeout), or None while it is alive."""
+        """Why the link counts as lost (heartbeat timeout, I/O failure), or None while it is alive."""
         with self._lock:
             return self._lost_reason
 
@@ -324,6 +312,14 @@ class MavlinkVehicle:
                 return None
             self._returned_seq = self._state_seq
             return self._state
+
+    def counters(self) -> dict[str, Any]:
+        """What the link did, for the run's stats and the operator."""
+        return {"setpoints_sent": self.setpoints_sent, "setpoints_clamped": self.setpoints_clamped,
+                "messages_received": self.messages_received, "landing_targets_sent": self.landing_targets_sent,
+                "samples_rejected": dict(self.samples_rejected), "intruder_heartbeats": dict(self.intruders),
+                "signing_rejected": dict(self.signing_rejected), "send_failures": self.send_failures,
+                "lost_reason": self.lost_reason}
 
     # ----------------------------------------------------------------- steering
 
@@ -341,26 +337,28 @@ class MavlinkVehicle:
         if reason is not None:
             raise NotSteerableError(reason)
         # Out at once (the stream only fills the gaps); the stream's next repeat is a period away.
-        self._send_setpoint(cmd)
+        if not self._send_setpoint(cmd):
+            raise NotSteerableError("setpoint not sent: the link's socket refused it (see the log)")
         with self._lock:
             self._next_setpoint_s = self._clock() + self.setpoint_period_s
 
     def hold(self) -> bool:
         """Command zero velocity (the autopilot holds position); False (and a log) if not steerable."""
-        zero = VelocityCommand(vehicle_id=self.vehicle_id, seq=-1, stamp=Stamp(0.0, "vehicle"),
-                               vel_body_frd_m_s=(0.0, 0.0, 0.0))
         try:
-            self.send(zero)
+            self.send(self._zero())
         except NotSteerableError as exc:
             log.warning("hold not sent: %s", exc.reason)
             return False
         return True
 
     def handover(self) -> bool:
-        """The configured action at the goal altitude: 'hold', 'land' (LAND mode) or 'none'."""
+        """The configured action at the goal altitude: 'hold', 'land', 'precland' or 'none'.
+
+        'land' and 'precland' stop our setpoints and ask the I/O thread for the mode (it retries
+        each second for 5 s), so the controller's loop never blocks on the radio.
+        """
         if self.handover_action == "none":
-            # The user's own system takes over from here: stop streaming, or our setpoints
-            # (zero velocity once the controller goes quiet) would fight it.
+            # The user's own system takes over from here: our setpoints would fight it.
             with self._lock:
                 self._cmd = None
             log.info("handover: no action configured (handover='none'); setpoint stream stopped")
@@ -369,11 +367,25 @@ class MavlinkVehicle:
             return self.hold()
         if self.read_only:
             raise NotSteerableError("read-only MAVLink adapter: handover refused")
+        target = self._require_target()
+        # PX4 lands precisely only in AUTO.PRECLAND; ArduPilot's LAND uses PLND_* when enabled.
+        wanted = "PRECLAND" if self.handover_action == "precland" and target.autopilot == "px4" else "LAND"
         with self._lock:
             self._cmd = None  # the autopilot lands on its own now; our setpoints would fight it
-        ok = self.set_mode("LAND")
-        log.info("handover: LAND mode %s", "confirmed" if ok else "NOT confirmed by the autopilot")
-        return ok
+            self._precland = self.handover_action == "precland"
+            self._mode_request = (wanted, self._clock() + 5.0)
+            self._mode_request_next_s = self._clock()
+        log.info("handover: %s mode requested%s", wanted,
+                 ", streaming LANDING_TARGET at the chosen spot" if self._precland else "")
+        return True
+
+    def set_landing_target(self, angle_x_rad: float, angle_y_rad: float, distance_m: float) -> None:
+        """The chosen spot as seen from the camera (image x right, image y down = body backward)."""
+        ax = validate.in_range("landing target angle_x", angle_x_rad, -math.pi / 2, math.pi / 2)
+        ay = validate.in_range("landing target angle_y", angle_y_rad, -math.pi / 2, math.pi / 2)
+        dist = validate.in_range("landing target distance", distance_m, 0.0, 10_000.0)
+        with self._lock:
+            self._landing_target = (ax, ay, dist, self._clock())
 
     def set_mode(self, name: str, timeout_s: float = 3.0) -> bool:
         """Ask for a mode by name and wait until the heartbeat shows it (True) or the timeout (False)."""
@@ -385,45 +397,23 @@ class MavlinkVehicle:
                                          float(p3), timeout_s=min(1.0, timeout_s))
         if result is None:
             # Older firmware may ignore DO_SET_MODE; SET_MODE is the message every autopilot knows.
-            with self._tx_lock:
-                self._conn.mav.set_mode_send(target.system, MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, custom)
+            self._tx(lambda mav: mav.set_mode_send(target.system, MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, custom))
         elif result != MAV_RESULT_ACCEPTED:
             log.warning("autopilot refused mode %s (MAV_RESULT %d)", name, result)
             return False
         return self._wait(lambda: self._mode == name, timeout_s)
 
-    def arm_and_takeoff(self, alt_m: float, timeout_s: float = 60.0) -> None:
-        """ArduPilot only, and only when the user asked (`dovesei up --takeoff`): GUIDED, arm, climb.
+    def arm_and_takeoff(self, alt_m: float, timeout_s: float | None = None, *, ready_timeout_s: float = 120.0,
+                        climb_rate_m_s: float | None = None) -> None:
+        """Wait until the autopilot can arm, arm (retried with backoff) and climb to `alt_m`.
 
-        PX4 is refused: its takeoff goes through AUTO.TAKEOFF and a switch to OFFBOARD with a
-        setpoint stream already running, a sequence we have not flown; take off with the ground
-        station and switch to OFFBOARD, then start dovesei.
+        Only when the user asked (the controller's `--takeoff-alt-m`). ArduPilot: GUIDED, ARM,
+        NAV_TAKEOFF. PX4: zero setpoints streamed, OFFBOARD, ARM, then a climb velocity (no global
+        position needed). Gives up after `ready_timeout_s` naming the autopilot's last pre-arm
+        reasons; the climb limit is `timeout_s`, by default 30 s + 2 x alt / climb rate.
         """
-        if self.read_only:
-            raise NotSteerableError("read-only MAVLink adapter: arm_and_takeoff refused")
-        if not (isinstance(alt_m, (int, float)) and math.isfinite(alt_m) and 1.0 <= alt_m <= 500.0):
-            raise ConfigError(f"takeoff altitude must be within 1..500 m, got {alt_m!r}")
-        target = self._require_target()
-        if target.autopilot != "ardupilot":
-            raise NotSteerableError("arm_and_takeoff supports ArduPilot only: with PX4, take off from the ground "
-                                    "station, then switch to OFFBOARD yourself or let dovesei do it "
-                                    "(allow_mode_switch) once airborne")
-        if not self.set_mode("GUIDED"):
-            raise NotSteerableError(f"the autopilot did not enter GUIDED for takeoff (mode {self.mode})")
-        log.info("arming (requested explicitly)")
-        result = self._command_long_wait(MAV_CMD_COMPONENT_ARM_DISARM, 1.0, timeout_s=3.0)
-        if result != MAV_RESULT_ACCEPTED or not self._wait(lambda: self._armed, 5.0):
-            raise NotSteerableError(f"the autopilot refused to arm (MAV_RESULT {result}); check its pre-arm messages")
-        result = self._command_long_wait(MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, float(alt_m), timeout_s=3.0)
-        if result != MAV_RESULT_ACCEPTED:
-            raise NotSteerableError(f"the autopilot refused NAV_TAKEOFF to {alt_m} m (MAV_RESULT {result})")
-
-        def high_enough() -> bool:
-            return self._state is not None and self._state.alt_agl_m >= 0.95 * alt_m
-
-        if not self._wait(high_enough, timeout_s):
-            raise NotSteerableError(f"takeoff to {alt_m} m did not complete within {timeout_s:.0f} s")
-        log.info("takeoff complete at %.1f m", self._state.alt_agl_m if self._state else float("nan"))
+        mavlink_takeoff.arm_and_takeoff(self, alt_m, climb_timeout_s=timeout_s, ready_timeout_s=ready_timeout_s,
+                        climb_rate_m_s=climb_rate_m_s if climb_rate_m_s is not None else self.limits.up_m_s)
 
     # ----------------------------------------------------------------- internals: policy of refusal
 
@@ -453,18 +443,38 @@ class MavlinkVehicle:
             # We flew it in that mode and someone switched away: a pilot's takeover wins, always.
             return f"{reason}; not switching back after a mode change away from {wanted} (pilot override)"
         if self._mode_request is None:
-            now = self._clock()
-            self._mode_request = (wanted, now + 5.0)
-            # PX4 refuses OFFBOARD until setpoints stream: let the zero pre-stream run first.
-            self._mode_request_next_s = now + (0.3 if target.autopilot == "px4" else 0.0)
+            self._request_mode_locked(wanted)
             log.info("requesting mode %s (allow_mode_switch)", wanted)
         return f"{reason}; switch to {wanted} requested"
 
+    def _request_mode_locked(self, wanted: str) -> None:
+        """Have the I/O thread ask for `wanted` each second for 5 s. Caller holds the lock."""
+        now = self._clock()
+        self._mode_request = (wanted, now + 5.0)
+        px4_offboard = self._target is not None and self._target.autopilot == "px4" and wanted == "OFFBOARD"
+        # PX4 refuses OFFBOARD until setpoints stream: let the zero pre-stream run first.
+        self._mode_request_next_s = now + (0.3 if px4_offboard else 0.0)
+
+    def _zero(self, seq: int = -1) -> VelocityCommand:
+        return VelocityCommand(vehicle_id=self.vehicle_id, seq=seq, stamp=Stamp(0.0, "vehicle"),
+                               vel_body_frd_m_s=(0.0, 0.0, 0.0))
+
     # ----------------------------------------------------------------- internals: I/O thread
+
+    def _io_main(self) -> None:
+        """The I/O thread: any exception ends it as a reported, permanent link loss."""
+        try:
+            self._io_loop()
+        except Exception as exc:  # noqa: BLE001 - the thread must never die silently
+            reason = f"MAVLink I/O thread failed ({type(exc).__name__}: {exc}): link lost, steering stopped"
+            with self._lock:
+                self._fatal = self._lost_reason = reason
+                self._cmd, self._prestream, self._precland = None, False, False
+            log.error("%s", reason, exc_info=True)
 
     def _io_loop(self) -> None:
         next_hb_s = self._clock()  # send at once: an udpout peer learns our address from it
-        next_stream_request_s = 0.0
+        next_stream_request_s = next_landing_s = next_sign_s = 0.0
         while not self._stop.is_set():
             now = self._clock()
             if now >= next_hb_s:
@@ -485,6 +495,12 @@ class MavlinkVehicle:
                 mode_due = self._mode_request is not None and now >= self._mode_request_next_s
             if mode_due:
                 self._mode_request_tick(now)
+            if self._precland and now >= next_landing_s:
+                self._send_landing_target(now)
+                next_landing_s = now + _LANDING_TARGET_PERIOD_S
+            if self._signing_key is not None and now >= next_sign_s:
+                self._advance_signing_clock()
+                next_sign_s = now + 1.0
             with self._lock:
                 wake_s = min(next_hb_s, self._next_setpoint_s)
             self._conn.select(max(0.0, min(wake_s - self._clock(), 0.05)))
@@ -496,16 +512,23 @@ class MavlinkVehicle:
             try:
                 msg = self._conn.recv_msg()
             except OSError as exc:
-                log.warning("MAVLink receive failed: %s", exc)
+                # Transient on UDP (ICMP refusals while the peer starts); a dead peer shows as
+                # heartbeat loss, which is what stops steering.
+                self._ratelog.log(logging.WARNING, "recv", "MAVLink receive failed: %s", exc)
                 return
             if msg is None:
                 return
             self._handle(msg)
 
+    def _reject(self, reason: str, detail: str) -> None:
+        self.samples_rejected[reason] += 1
+        self._ratelog.log(logging.WARNING, reason, "autopilot sample dropped (%s): %s [%d so far]", reason, detail,
+                          self.samples_rejected[reason])
+
     def _handle(self, msg: Any) -> None:
         kind = msg.get_type()
         if kind == "BAD_DATA":
-            return
+            return  # corrupt or unauthenticated bytes; signing failures are counted where checked
         self.messages_received += 1
         src_sys, src_comp = msg.get_srcSystem(), msg.get_srcComponent()
         if kind == "HEARTBEAT":
@@ -514,37 +537,70 @@ class MavlinkVehicle:
         target = self._target
         if target is None or src_sys != target.system:
             return  # another vehicle on a shared link, or data before we know who we talk to
-        if kind == "DISTANCE_SENSOR":
-            self._on_distance(msg)  # any component of the vehicle: a rangefinder may speak for itself
-            return
-        if src_comp != target.component:
-            return  # e.g. a vision component's own estimate: the autopilot's is the one it flies on
-        if kind == "LOCAL_POSITION_NED":
-            with self._lock:
-                self._local = (msg.x, msg.y, msg.z, msg.vx, msg.vy, msg.vz)
-            if self.alt_source == "local":
-                self._publish_state(msg.time_boot_ms, -msg.z)
-        elif kind == "ATTITUDE":
-            with self._lock:
-                self._attitude_rad = (msg.roll, msg.pitch, msg.yaw)
-        elif kind == "COMMAND_ACK":
-            with self._ack_cond:
-                self._acks[msg.command] = msg.result
-                self._ack_cond.notify_all()
-            if msg.result not in (MAV_RESULT_ACCEPTED, MAV_RESULT_IN_PROGRESS):
-                log.warning("autopilot answered command %d with MAV_RESULT %d", msg.command, msg.result)
+        try:
+            if kind == "DISTANCE_SENSOR":
+                self._on_distance(msg)  # any component of the vehicle: a rangefinder may speak for itself
+                return
+            if src_comp != target.component:
+                return  # e.g. a vision component's own estimate: the autopilot's is the one it flies on
+            if kind == "LOCAL_POSITION_NED":
+                local = check_local_position(msg)
+                with self._lock:
+                    self._local = local
+                if self.alt_source == "local":
+                    self._publish_state(msg.time_boot_ms, -local[2])
+            elif kind == "ATTITUDE":
+                attitude = check_attitude(msg)
+                with self._lock:
+                    self._attitude_rad, self._attitude_s = attitude, self._clock()
+            elif kind == "COMMAND_ACK":
+                with self._ack_cond:
+                    self._acks[msg.command] = msg.result
+                    self._ack_cond.notify_all()
+                if msg.result not in (MAV_RESULT_ACCEPTED, MAV_RESULT_IN_PROGRESS):
+                    # Repeated requests (streams, home) would repeat the same line every 2 s.
+                    self._ratelog.log(logging.WARNING, f"ack {msg.command}", "autopilot answered command %d with "
+                                      "MAV_RESULT %d", msg.command, msg.result)
+            elif kind == "STATUSTEXT":
+                text = msg.text if isinstance(msg.text, str) else bytes(msg.text).decode("utf-8", "replace")
+                item = self.readiness.on_statustext(msg.severity, text.rstrip("\x00"))
+                log.info("autopilot [%s] %s", item.severity_name, item.text)
+            elif kind == "SYS_STATUS":
+                self.readiness.on_sys_status(msg.onboard_control_sensors_present,
+                                             msg.onboard_control_sensors_enabled,
+                                             msg.onboard_control_sensors_health)
+            elif kind == "EKF_STATUS_REPORT":
+                self.readiness.on_ekf_status(msg.flags)
+            elif kind == "HOME_POSITION":
+                validate.finite_vector("HOME_POSITION x, y, z", (msg.x, msg.y, msg.z), 3)
+                self.readiness.on_home()
+        except ConfigError as exc:
+            # One bad sample is dropped; the previous good one stays until the next good one.
+            self._reject(f"bad {kind}", str(exc))
 
     def _on_heartbeat(self, msg: Any, src_sys: int, src_comp: int) -> None:
         if msg.autopilot == MAV_AUTOPILOT_INVALID or msg.type in (MAV_TYPE_GCS, MAV_TYPE_ONBOARD_CONTROLLER):
             return  # ground stations and companions (including a second dovesei process)
+        kind = AUTOPILOT_KINDS.get(msg.autopilot)
         if self._target is None:
-            kind = AUTOPILOT_KINDS.get(msg.autopilot)
             if kind is None:
                 self._unsupported_seen.add(int(msg.autopilot))  # a gimbal, a camera, another stack
+                return
+            if self.system_id is not None and src_sys != self.system_id:
+                # Pinned: whoever speaks first, only the configured autopilot is ever locked onto.
+                self.intruders[src_sys] += 1
+                self._ratelog.log(logging.WARNING, "unpinned", "heartbeat of an autopilot with system id %d "
+                                  "ignored: pinned to system %d", src_sys, self.system_id)
                 return
             self._target = _Target(src_sys, src_comp, kind)
         target = self._target
         if (src_sys, src_comp) != (target.system, target.component):
+            if kind is not None:
+                # A second autopilot (or a spoofer) mid-flight: never followed, always reported.
+                self.intruders[src_sys] += 1
+                self._ratelog.log(logging.WARNING, f"intruder {src_sys}", "a second autopilot (system %d component "
+                                  "%d) is on the link: refused, still flying system %d [%d heartbeats so far]",
+                                  src_sys, src_comp, target.system, self.intruders[src_sys])
             return
         custom = int(msg.custom_mode) if msg.base_mode & MAV_MODE_FLAG_CUSTOM_MODE_ENABLED else -1
         name = mode_name(target.autopilot, custom) if custom >= 0 else f"BASE(0x{msg.base_mode:02x})"
@@ -557,7 +613,7 @@ class MavlinkVehicle:
                     self._mode_request = None
             self._mode, self._custom_mode, self._armed = name, custom, armed
             self._last_hb_s = self._clock()
-            if self._lost_reason is not None:
+            if self._lost_reason is not None and self._fatal is None:
                 log.info("autopilot heartbeat back; steering resumes only with a new command")
                 self._lost_reason = None
         self._identified.set()
@@ -565,12 +621,11 @@ class MavlinkVehicle:
     def _on_distance(self, msg: Any) -> None:
         if msg.orientation != MAV_SENSOR_ROTATION_PITCH_270:
             return  # only a downward sensor measures height above ground
-        in_range = msg.min_distance <= msg.current_distance <= msg.max_distance
         with self._lock:
             roll, pitch, _ = self._attitude_rad
-            # The beam follows the body's down axis: its vertical share is cos(roll) * cos(pitch).
-            self._range_m = msg.current_distance / 100.0 * math.cos(roll) * math.cos(pitch) if in_range else None
-            range_m = self._range_m
+        range_m = check_distance_m(msg, roll, pitch)
+        with self._lock:
+            self._range_m = range_m
         if self.alt_source == "rangefinder":
             if range_m is None:
                 # No state at all: a made-up altitude is worse than the controller's stale-state hold.
@@ -581,6 +636,8 @@ class MavlinkVehicle:
 
     def _publish_state(self, time_boot_ms: int, alt_agl_m: float) -> None:
         with self._lock:
+            if self._attitude_s is None:
+                return  # without the heading the body-frame velocity would be made up
             roll, pitch, yaw = self._attitude_rad
             local = self._local
             vel_frd = ned_to_frd(local[3:], roll, pitch, yaw) if local else (0.0, 0.0, 0.0)
@@ -611,25 +668,24 @@ class MavlinkVehicle:
         with self._lock:
             cmd = self._cmd
             if cmd is None:
-                prestream = (self._mode_request is not None and self._target is not None
-                             and self._target.autopilot == "px4" and self._lost_reason is None)
-                if not prestream:
+                px4_switch = (self._mode_request is not None and self._mode_request[0] == "OFFBOARD"
+                              and self._target is not None and self._target.autopilot == "px4")
+                if not (px4_switch or self._prestream) or self._lost_reason is not None:
+                    self._yaw_ref_rad = None  # a new steering session holds its own heading
                     return
                 # PX4 accepts OFFBOARD only while setpoints already stream: zero velocity until it switches.
-                cmd = VelocityCommand(vehicle_id=self.vehicle_id, seq=-1, stamp=Stamp(0.0, "vehicle"),
-                                      vel_body_frd_m_s=(0.0, 0.0, 0.0))
+                cmd = self._zero()
             else:
                 reason = self._refusal_locked()
                 if reason is not None:
                     log.warning("setpoint stream stopped: %s", reason)
-                    self._cmd = None
+                    self._cmd, self._yaw_ref_rad = None, None
                     return
                 if now - self._cmd_time_s > self.command_timeout_s and not self._cmd_zeroed:
                     log.warning("no new command for %.1f s: streaming zero velocity", now - self._cmd_time_s)
                     self._cmd_zeroed = True
                 if self._cmd_zeroed:
-                    cmd = VelocityCommand(vehicle_id=self.vehicle_id, seq=cmd.seq, stamp=cmd.stamp,
-                                          vel_body_frd_m_s=(0.0, 0.0, 0.0))
+                    cmd = self._zero(cmd.seq)
         self._send_setpoint(cmd)
 
     def _mode_request_tick(self, now: float) -> None:
@@ -650,6 +706,21 @@ class MavlinkVehicle:
 
     # ----------------------------------------------------------------- internals: sending
 
+    def _tx(self, write: Callable[[Any], None]) -> bool:
+        """One write under the transmit lock; a socket error is logged (rate-limited) and False."""
+        conn = self._conn
+        if conn is None:
+            return False
+        with self._tx_lock:
+            try:
+                write(conn.mav)
+            except OSError as exc:
+                self.send_failures += 1
+                self._ratelog.log(logging.WARNING, "send", "MAVLink send failed: %s [%d so far]", exc,
+                                  self.send_failures)
+                return False
+        return True
+
     def _request_streams(self) -> None:
         """MAV_CMD_SET_MESSAGE_INTERVAL for what the state is made of, at `stream_rate_hz`."""
         interval_us = float(int(1e6 / self.stream_rate_hz))
@@ -658,27 +729,62 @@ class MavlinkVehicle:
             wanted.append(MSG_ID_DISTANCE_SENSOR)
         for msg_id in wanted:
             self._send_command_long(MAV_CMD_SET_MESSAGE_INTERVAL, float(msg_id), interval_us)
+        # Health at 1 Hz: what a ground station shows before it offers to arm.
+        for msg_id in (MSG_ID_SYS_STATUS, MSG_ID_EKF_STATUS_REPORT):
+            self._send_command_long(MAV_CMD_SET_MESSAGE_INTERVAL, float(msg_id), 1e6)
 
     def _send_heartbeat(self) -> None:
-        with self._tx_lock:
-            self._conn.mav.heartbeat_send(MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID, 0, 0, MAV_STATE_ACTIVE)
+        self._tx(lambda mav: mav.heartbeat_send(MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID, 0, 0,
+                                                MAV_STATE_ACTIVE))
 
-    def _send_setpoint(self, cmd: VelocityCommand) -> None:
+    def _final_setpoint(self, cmd: VelocityCommand) -> tuple[tuple[float, float, float], float]:
+        """The command clamped to the limits, with the heading-hold correction added."""
+        yaw_rate = cmd.yaw_rate_rad_s
+        if self.yaw_control == "rate":
+            with self._lock:
+                fresh = self._attitude_s is not None and self._clock() - self._attitude_s <= _ATTITUDE_FRESH_S
+                yaw = self._attitude_rad[2]
+                if yaw_rate != 0.0 or not fresh:
+                    # A deliberate turn (or no heading to hold): follow, and hold wherever it ends.
+                    self._yaw_ref_rad = None
+                else:
+                    if self._yaw_ref_rad is None:
+                        self._yaw_ref_rad = yaw
+                    yaw_rate = self.yaw_hold_gain_per_s * math.remainder(self._yaw_ref_rad - yaw, 2.0 * math.pi)
+        vel, yaw_rate, clamped = clamp_setpoint(cmd.vel_body_frd_m_s, yaw_rate, self.limits)
+        if clamped:
+            self.setpoints_clamped += 1
+            self._ratelog.log(logging.INFO, "clamp", "setpoint %s m/s clamped to %s m/s (limits %s)",
+                              cmd.vel_body_frd_m_s, tuple(round(v, 2) for v in vel), self.limits)
+        return vel, yaw_rate
+
+    def _send_setpoint(self, cmd: VelocityCommand) -> bool:
         target = self._target
         assert target is not None
-        vx, vy, vz = cmd.vel_body_frd_m_s
+        (vx, vy, vz), yaw_rate = self._final_setpoint(cmd)
         time_boot_ms = int(self._clock() * 1000.0) & 0xFFFFFFFF
-        with self._tx_lock:
-            self._conn.mav.set_position_target_local_ned_send(
-                time_boot_ms, target.system, target.component, STEER_FRAME[target.autopilot], self.type_mask,
-                0.0, 0.0, 0.0, vx, vy, vz, 0.0, 0.0, 0.0, 0.0, cmd.yaw_rate_rad_s)
+        ok = self._tx(lambda mav: mav.set_position_target_local_ned_send(
+            time_boot_ms, target.system, target.component, STEER_FRAME[target.autopilot], self.type_mask,
+            0.0, 0.0, 0.0, vx, vy, vz, 0.0, 0.0, 0.0, 0.0, yaw_rate))
+        if ok:
             self.setpoints_sent += 1
+        return ok
+
+    def _send_landing_target(self, now: float) -> None:
+        with self._lock:
+            spot, mode = self._landing_target, self._mode
+        if spot is None or now - spot[3] > _LANDING_TARGET_FRESH_S or mode not in ("LAND", "PRECLAND"):
+            return
+        ax, ay, dist, _ = spot
+        usec = int(now * 1e6)
+        if self._tx(lambda mav: mav.landing_target_send(usec, 0, MAV_FRAME_BODY_FRD, ax, ay, dist, 0.0, 0.0,
+                                                         type=LANDING_TARGET_TYPE_VISION_OTHER)):
+            self.landing_targets_sent += 1
 
     def _send_command_long(self, command: int, *params: float) -> None:
         target = self._require_target()
         p = list(params) + [0.0] * (7 - len(params))
-        with self._tx_lock:
-            self._conn.mav.command_long_send(target.system, target.component, command, 0, *p)
+        self._tx(lambda mav: mav.command_long_send(target.system, target.component, command, 0, *p))
 
     def _command_long_wait(self, command: int, *params: float, timeout_s: float) -> int | None:
         """Send COMMAND_LONG and wait for its COMMAND_ACK result (None: no answer in time)."""
@@ -711,15 +817,66 @@ class MavlinkVehicle:
         with self._lock:
             return predicate()
 
+    # ----------------------------------------------------------------- internals: signing
 
-def ned_to_frd(vel_ned: tuple[float, ...], roll_rad: float, pitch_rad: float,
-               yaw_rad: float) -> tuple[float, float, float]:
-    """Rotate a NED vector into the body FRD frame (ZYX Euler angles, as MAVLink's ATTITUDE gives)."""
-    vn, ve, vd = (float(v) for v in vel_ned)
-    cr, sr, cp, sp = math.cos(roll_rad), math.sin(roll_rad), math.cos(pitch_rad), math.sin(pitch_rad)
-    cy, sy = math.cos(yaw_rad), math.sin(yaw_rad)
-    # Rows of R_body<-ned = (R_ned<-body)^T for R = Rz(yaw) Ry(pitch) Rx(roll).
-    f = cp * cy * vn + cp * sy * ve - sp * vd
-    r = (sr * sp * cy - cr * sy) * vn + (sr * sp * sy + cr * cy) * ve + sr * cp * vd
-    d = (cr * sp * cy + sr * sy) * vn + (cr * sp * sy - sr * cy) * ve + cr * cp * vd
-    return (f, r, d)
+    def _setup_signing(self) -> None:
+        """Sign everything we send; accept only frames signed with our key, never replayed."""
+        assert self._signing_key is not None
+        initial = max(signing_timestamp_now(), read_signing_timestamp(self._signing_file) + 1)
+        self._conn.setup_signing(self._signing_key, sign_outgoing=True, allow_unsigned_callback=self._unsigned,
+                                 initial_timestamp=initial, link_id=0)
+        self._conn.mav.check_signature = self._check_signature
+        self._persist_signing_timestamp()
+
+    def _unsigned(self, mav: Any, msg_id: int) -> bool:
+        """pymavlink's callback for a frame it would reject: unsigned ones are counted here."""
+        if self._sig_failed:
+            self._sig_failed = False  # already counted by _check_signature
+            return False
+        self.signing_rejected["unsigned"] += 1
+        self._ratelog.log(logging.WARNING, "unsigned", "unsigned MAVLink frame (message %d) rejected [%d so far]",
+                          msg_id, self.signing_rejected["unsigned"])
+        return False
+
+    def _check_signature(self, msgbuf: bytearray, src_sys: int, src_comp: int) -> bool:
+        """The hash first, then the timestamp: a forged frame must not advance a stream's timestamp
+        (pymavlink's own check stores the timestamp before it checks the hash)."""
+        signing = self._conn.mav.signing
+        link_id = msgbuf[-13]
+        low, high = struct.unpack("<IH", bytes(msgbuf[-12:-6]))
+        timestamp = low + (high << 32)
+        digest = hashlib.sha256(signing.secret_key + bytes(msgbuf[:-6])).digest()[:6]
+        why = None
+        if digest != bytes(msgbuf[-6:]):
+            why = "wrong key"
+        else:
+            stream = (link_id, src_sys, src_comp)
+            last = signing.stream_timestamps.get(stream)
+            if (last is not None and timestamp <= last) or (last is None
+                                                             and timestamp + _NEW_STREAM_WINDOW < signing.timestamp):
+                why = "replayed"
+            else:
+                signing.stream_timestamps[stream] = timestamp
+                signing.timestamp = max(signing.timestamp, timestamp)
+                return True
+        self._sig_failed = True
+        self.signing_rejected[why] += 1
+        self._ratelog.log(logging.WARNING, why, "MAVLink frame from system %d rejected: %s signature [%d so far]",
+                          src_sys, why, self.signing_rejected[why])
+        return False
+
+    def _advance_signing_clock(self) -> None:
+        """Keep the signing timestamp at least at real time and persist it now and then."""
+        signing = self._conn.mav.signing
+        with self._tx_lock:
+            signing.timestamp = max(signing.timestamp, signing_timestamp_now())
+        if self._clock() - self._persisted_s >= _SIGNING_PERSIST_PERIOD_S:
+            self._persist_signing_timestamp()
+
+    def _persist_signing_timestamp(self) -> None:
+        try:
+            write_signing_timestamp(self._signing_file, self._conn.mav.signing.timestamp)
+        except OSError as exc:
+            self._ratelog.log(logging.WARNING, "persist", "signing timestamp not persisted to %s: %s",
+                              self._signing_file, exc)
+        self._persisted_s = self._clock()

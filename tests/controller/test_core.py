@@ -209,7 +209,9 @@ def test_real_wiring_builds_the_named_policy() -> None:
     ({"rate_hz": math.nan}, "rate_hz"),
     ({"vehicle_id": "a/b"}, "vehicle id"),
     ({"search_alt_m": 10.0}, "search_alt_m"),
-    ({"lockstep": True, "vehicle": "udpin:0.0.0.0:14550"}, "lockstep"),
+    ({"lockstep": True, "vehicle_url": "udpin:0.0.0.0:14550", "timing": "real"}, "lockstep"),
+    ({"lockstep": False, "vehicle_url": "udpin:0.0.0.0:14550", "timing": "reference"}, "true seconds"),
+    ({"policy_dt_max_s": 0.0}, "policy_dt_max_s"),
 ])
 def test_config_validation_names_the_bad_value(overrides: dict, match: str) -> None:
     with pytest.raises(ConfigError, match=match):

@@ -240,7 +240,7 @@ def test_a_flight_controller_gets_setpoints_then_handover_then_hold_on_stop(zeno
 
 def test_a_missing_mavlink_adapter_is_a_clear_error(zenoh_pair, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setitem(sys.modules, "dovesei.controller.mavlink", None)  # import now fails
-    config = ControllerConfig(lockstep=False, vehicle_url="udpin:127.0.0.1:14550")
+    config = ControllerConfig(lockstep=False, timing="real", vehicle_url="udpin:127.0.0.1:14550")
     with pytest.raises(ConfigError, match="MAVLink adapter"):
         open_vehicle(zenoh_pair[0], config)
 
@@ -280,7 +280,7 @@ def test_service_steers_a_fake_autopilot_through_the_mavlink_adapter(zenoh_pair)
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
         probe.bind(("127.0.0.1", 0))
         udp_port = probe.getsockname()[1]
-    config = ControllerConfig(lockstep=False, vehicle_url=f"udpout:127.0.0.1:{udp_port}", vehicle_connect_timeout_s=5.0)
+    config = ControllerConfig(lockstep=False, timing="real", vehicle_url=f"udpout:127.0.0.1:{udp_port}", vehicle_connect_timeout_s=5.0)
     with FakeAutopilot(f"udpin:127.0.0.1:{udp_port}", mode="GUIDED", armed=True, alt_m=50.0, heartbeat_hz=20) as fake:
         gen = start_service(zenoh_pair, config, core=ControllerCore(config, policy=Descend()))
         h, thread = next(gen)
