@@ -465,8 +465,8 @@ def _render_start(start: tuple[float, float, float]) -> str:
 # The one table of the sim's flags: `build_parser`, `config_from_args` and `to_argv` all read it.
 CLI = CommandLine(SimServiceConfig, {
     "sim.vehicle_id": Flag("--vehicle-id", "vehicle id in the keys", check=lambda _w, v: keys.check_vehicle_id(v)),
-    "world": Flag("--world", "synthetic[:seed=N,size_m=X,gsd_m=Y], tiles:<url>,... or a world folder",
-                  check=non_blank),
+    "world": Flag("--world", "synthetic[:seed=N,size_m=X,gsd_m=Y], dubai (shipped), tiles:<url>,... or a "
+                  "world folder", check=non_blank),
     "start_xy_alt_m": Flag("--start", "start in world metres (x east, y north of the south-west corner); "
                            f"altitude default {SimServiceConfig.start_alt_m:g}", parse=parse_start,
                            render=_render_start, metavar="X_M,Y_M[,ALT_M]", group="start"),
