@@ -14,6 +14,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "smoke": ("dovesei.smoke", "check the install: codec round trip and a loopback Zenoh session"),
     "up": ("dovesei.up", "fly one simulated (or real) landing with the three services as separate processes"),
     "bench": ("dovesei.bench", "the paper's experiment: N starts x policies, judged, resumable"),
+    "sweep": ("dovesei.sweep", "a grid of policies x perception profiles x worlds x prompt sets, one table and plot"),
     "calibrate": ("dovesei.calibrate", "success rates vs simulated perception noise, both timing presets"),
     "bench-sim": ("dovesei.benchmarks.sim", "simulator speed: render fps and lockstep real-time factor"),
     "bench-segmenter": ("dovesei.benchmarks.segmenter", "CLIPSeg reference vs fast path, and the simulated backend"),

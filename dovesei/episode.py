@@ -23,13 +23,44 @@ import numpy as np
 
 from dovesei.controller.core import ControllerConfig, ControllerCore
 from dovesei.segmenter.core import SegmenterConfig, SegmenterCore, make_backend
+from dovesei.segmenter.prompts import REFERENCE_PROMPTS, PromptSet
 from dovesei.segmenter.simulated import CALIBRATED_NOISE
+from dovesei.shared.errors import ConfigError
 from dovesei.shared.messages import EpisodeResult, SafetyHeatmap
 from dovesei.sim.core import SimConfig, SimCore
 from dovesei.sim.starts import Start
 from dovesei.sim.world import World
 
 log = logging.getLogger(__name__)
+
+# The paper's policies are flown with the paper's fusion (softmax over all prompts), on every
+# backend: their thresholds were tuned on its output. Other policies get the segmenter's default.
+REFERENCE_FUSION_POLICIES = ("dovesei", "dovesei-nofocus")
+REFERENCE_FUSION = "dovesei"
+DEFAULT_PERCEPTION = "realistic"
+
+
+def perception_names() -> tuple[str, ...]:
+    """The simulated perception profiles this install offers."""
+    return (DEFAULT_PERCEPTION,)
+
+
+def fusion_for(policy: str) -> str | None:
+    """The fusion mode a policy must be flown with, or None for the segmenter's default."""
+    return REFERENCE_FUSION if policy in REFERENCE_FUSION_POLICIES else None
+
+
+def prompt_set(prompts: dict | PromptSet | None) -> PromptSet:
+    """A PromptSet from a job's plain dict ({positive, negative, template}); None = the reference's."""
+    if prompts is None:
+        return REFERENCE_PROMPTS
+    if isinstance(prompts, PromptSet):
+        return prompts
+    try:
+        return PromptSet(positive=tuple(prompts["positive"]), negative=tuple(prompts["negative"]),
+                         template=prompts.get("template", REFERENCE_PROMPTS.template))
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ConfigError(f"prompt set {prompts!r}: {exc}") from None
 
 
 @dataclass(frozen=True)
@@ -40,9 +71,18 @@ class EpisodeSpec:
     start: Start
     timing: str = "reference"
     seed: int = 0  # seeds the simulated perception and the vehicle's disturbances
-    noise: float = CALIBRATED_NOISE  # simulated perception noise scale
+    noise: float | None = None  # simulated perception noise scale (None: the profile's own)
     time_limit_s: float = 1200.0
     vehicle_id: str = "uav1"
+    perception: str = DEFAULT_PERCEPTION  # simulated perception profile
+    prompts: PromptSet = REFERENCE_PROMPTS
+
+    @classmethod
+    def from_job(cls, job: dict, start: Start) -> EpisodeSpec:
+        """The spec a bench job (a plain, picklable dict) describes."""
+        return cls(policy=job["policy"], start=start, timing=job["timing"], seed=job["seed"], noise=job.get("noise"),
+                   time_limit_s=job["time_limit_s"], perception=job.get("perception") or DEFAULT_PERCEPTION,
+                   prompts=prompt_set(job.get("prompts")))
 
 
 @dataclass
@@ -66,11 +106,22 @@ def build_cores(world: World, spec: EpisodeSpec, *, render_images: bool = False
     """
     sim = SimCore(world, spec.start, SimConfig(vehicle_id=spec.vehicle_id, timing=spec.timing, seed=spec.seed,
                                                time_limit_s=spec.time_limit_s, render_image=render_images))
-    seg_config = SegmenterConfig(backend="sim", sim_noise=spec.noise, sim_seed=spec.seed)
+    seg_config = segmenter_config(spec)
     seg = SegmenterCore(make_backend(seg_config), seg_config)
     ctrl = ControllerCore(ControllerConfig(vehicle_id=spec.vehicle_id, policy=spec.policy, timing=spec.timing,
                                            lockstep=True))
     return sim, seg, ctrl
+
+
+def segmenter_config(spec: EpisodeSpec) -> SegmenterConfig:
+    """The simulated segmenter's settings for an episode: profile, noise, seed, prompts, and the
+    reference fusion for the paper's policies."""
+    fusion = fusion_for(spec.policy)
+    extra = {} if fusion is None else {"fusion": fusion}
+    if spec.perception != DEFAULT_PERCEPTION:
+        raise ConfigError(f"perception profile {spec.perception!r}: only {DEFAULT_PERCEPTION!r} is available")
+    noise = CALIBRATED_NOISE if spec.noise is None else spec.noise
+    return SegmenterConfig(backend="sim", sim_noise=noise, sim_seed=spec.seed, prompts=spec.prompts, **extra)
 
 
 def run_episode(world: World, spec: EpisodeSpec, *, record_track: bool = True) -> EpisodeRecord:

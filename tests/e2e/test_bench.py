@@ -1,23 +1,33 @@
-"""`dovesei bench`: the results contract, resuming, refusing mixed settings, jobs do not change results."""
+"""`dovesei bench`: the results contract, resuming, refusing mixed settings, jobs do not change
+results, clean one-line errors before any work, intervals and limits from the same runs."""
 
 from __future__ import annotations
 
+import json
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
 
-from dovesei.bench import main, run_bench, summarise
+from dovesei.bench import main, run_bench, summarise, wilson_interval
+from dovesei.bench.stats import limits_for, success_by_limit
 from dovesei.shared.errors import ConfigError
 
 WORLD = "synthetic:size_m=400,seed=1"
-EPISODE_KEYS = {"policy", "seed", "start", "outcome", "sim_time_s", "path_length_m", "wall_time_s"}
-SUMMARY_KEYS = {"episodes", "safe", "unsafe", "timeout", "mean_sim_time_s", "mean_path_length_m"}
+EPISODE_KEYS = {"world", "policy", "seed", "start", "outcome", "sim_time_s", "path_length_m", "wall_time_s"}
+SUMMARY_KEYS = {"episodes", "safe", "unsafe", "timeout", "out_of_world", "error", "mean_sim_time_s",
+                "mean_path_length_m", "success_ci95", "success_by_limit"}
 
 
-def _bench(out: Path, jobs: int = 1, episodes: int = 1, noise: float = 0.0) -> dict:
+def _bench(out: Path, jobs: int = 1, episodes: int = 1, noise: float = 0.0, **kw) -> dict:
     return run_bench(world_spec=WORLD, episodes=episodes, seed=3, policies=["dovesei", "dovesei-nofocus"],
                      noise=noise, timing="reference", time_limit_s=8.0, start_alt_m=100.0, jobs=jobs, out=out,
-                     progress=False)
+                     progress=False, **kw)
+
+
+def _strip(doc: dict) -> list[dict]:
+    return [{k: v for k, v in e.items() if k != "wall_time_s"} for e in doc["episodes"]]
 
 
 def test_results_contract_and_resume(tmp_path: Path) -> None:
@@ -25,6 +35,7 @@ def test_results_contract_and_resume(tmp_path: Path) -> None:
     assert len(doc["episodes"]) == 2
     for e in doc["episodes"]:
         assert EPISODE_KEYS <= set(e)
+        assert e["world"] == WORLD
         assert e["outcome"] in {"safe", "unsafe", "timeout", "out_of_world", "error"}
         assert set(e["start"]) == {"x_m", "y_m", "alt_m"} and e["start"]["alt_m"] == 100.0
     assert set(doc["summary"]) == {"dovesei", "dovesei-nofocus"}
@@ -32,8 +43,10 @@ def test_results_contract_and_resume(tmp_path: Path) -> None:
     # The same starts for every policy.
     starts = {p: [e["start"] for e in doc["episodes"] if e["policy"] == p] for p in doc["summary"]}
     assert starts["dovesei"] == starts["dovesei-nofocus"]
-    assert (tmp_path / "summary.md").read_text().count("| dovesei") == 2
+    table = (tmp_path / "summary.md").read_text().split("## ")[0]
+    assert table.count("| dovesei") == 2 and "95 % CI" in table
     assert (tmp_path / "paths.png").stat().st_size > 0
+    assert len(list((tmp_path / "tracks").glob("*.npy"))) == 2
     journal = (tmp_path / "episodes.jsonl").read_text()
     # Resuming: nothing runs again and the results are the same.
     again = _bench(tmp_path)
@@ -49,8 +62,7 @@ def test_an_interrupted_bench_continues_where_it_stopped(tmp_path: Path) -> None
     # Keep one finished episode and a torn last line, as a killed bench leaves them.
     (part / "episodes.jsonl").write_text(lines[0] + "\n" + lines[1][: len(lines[1]) // 2])
     resumed = _bench(part)
-    strip = lambda d: [{k: v for k, v in e.items() if k != "wall_time_s"} for e in d["episodes"]]  # noqa: E731
-    assert strip(resumed) == strip(full)
+    assert _strip(resumed) == _strip(full)
 
 
 def test_other_settings_in_the_same_folder_are_refused(tmp_path: Path) -> None:
@@ -60,10 +72,21 @@ def test_other_settings_in_the_same_folder_are_refused(tmp_path: Path) -> None:
 
 
 def test_parallel_jobs_give_the_same_episodes(tmp_path: Path) -> None:
-    one = _bench(tmp_path / "one", jobs=1)
-    two = _bench(tmp_path / "two", jobs=2)
-    strip = lambda d: [{k: v for k, v in e.items() if k != "wall_time_s"} for e in d["episodes"]]  # noqa: E731
-    assert strip(one) == strip(two)
+    one = _bench(tmp_path / "one", jobs=1, episodes=2)
+    two = _bench(tmp_path / "two", jobs=2, episodes=2)
+    assert _strip(one) == _strip(two)
+
+
+def test_several_worlds_give_a_row_per_world_and_the_worlds_own_starts(tmp_path: Path) -> None:
+    other = "synthetic:size_m=400,seed=2"
+    doc = run_bench(worlds=(WORLD, other), episodes=1, seed=3, policies=["dovesei"], noise=0.0, timing="reference",
+                    time_limit_s=4.0, start_alt_m=100.0, jobs=1, out=tmp_path, progress=False, world_label="two")
+    assert [e["world"] for e in doc["episodes"]] == [WORLD, other]
+    assert [(r["world"], r["policy"], r["episodes"]) for r in doc["per_world"]] == [(WORLD, "dovesei", 1),
+                                                                                   (other, "dovesei", 1)]
+    assert "## Per world" in (tmp_path / "summary.md").read_text()
+    assert {p.parent.name for p in (tmp_path / "tracks").rglob("*.npy")} == {"00-synthetic-size-m-400-seed-1",
+                                                                            "01-synthetic-size-m-400-seed-2"}
 
 
 def test_summary_means_are_over_successful_episodes() -> None:
@@ -73,6 +96,62 @@ def test_summary_means_are_over_successful_episodes() -> None:
     assert (s["safe"], s["timeout"], s["mean_sim_time_s"], s["mean_path_length_m"]) == (1, 1, 40.0, 10.0)
 
 
-def test_cli_rejects_unknown_policy(capsys) -> None:
-    assert main(["--policy", "dovesei,nope", "--episodes", "1"]) == 2
-    assert "nope" in capsys.readouterr().err
+def test_wilson_interval_known_values() -> None:
+    # Textbook values (Wilson 1927 / Newcombe 1998, z = 1.96).
+    assert wilson_interval(5, 10) == pytest.approx((0.2366, 0.7634), abs=1e-4)
+    assert wilson_interval(0, 10) == pytest.approx((0.0, 0.2775), abs=1e-4)
+    lo, hi = wilson_interval(29, 50)  # symmetric under swapping successes and failures
+    assert (lo, hi) == pytest.approx((1 - wilson_interval(21, 50)[1], 1 - wilson_interval(21, 50)[0]))
+    assert lo < 29 / 50 < hi
+    assert wilson_interval(0, 0) == (0.0, 1.0)
+
+
+def test_success_against_the_limit_counts_landings_by_each_limit() -> None:
+    limits = limits_for("real", 1200.0)
+    assert [p for p, _ in limits] == [60.0, 300.0, 600.0, 1200.0]
+    assert [s for _, s in limits] == [60.0, 300.0, 600.0, 1200.0]
+    eps = [{"outcome": "safe", "sim_time_s": t} for t in (50.0, 250.0, 700.0)] + [{"outcome": "timeout",
+                                                                                    "sim_time_s": 1200.0}]
+    got = success_by_limit(eps, limits)
+    assert [got[k]["safe"] for k in ("60", "300", "600", "1200")] == [1, 2, 2, 3]
+    # A shorter run only reports the limits it covers, on the preset's own clock.
+    ref = limits_for("reference", 20.0)
+    assert [p for p, _ in ref] == [60.0, 300.0] and ref[0][1] < ref[1][1] <= 20.0
+
+
+def _cli(*args: str, cwd: Path) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "dovesei.cli", "bench", *args], cwd=cwd, capture_output=True,
+                          text=True, timeout=120)
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["--world", "no/such/world"], "no/such/world"),
+    (["--episodes", "-1"], "--episodes"),
+    (["--jobs", "0"], "--jobs"),
+    (["--policy", "dovesei,nope"], "nope"),
+    (["--timing", "fast"], "fast"),
+    (["--perception", "dreamy"], "--perception"),
+    (["--address", "10.0.0.1:6379"], "--engine ray"),
+    (["--time-limit-s", "nan"], "--time-limit-s"),
+])
+def test_cli_errors_are_one_line_and_leave_no_folder(tmp_path: Path, args: list[str], needle: str) -> None:
+    out = tmp_path / "out"
+    r = _cli(*args, "--out", str(out), "--no-progress", cwd=tmp_path)
+    assert r.returncode == 2, r.stderr
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("dovesei bench:") and needle in lines[0], r.stderr
+    assert "Traceback" not in r.stderr
+    assert not out.exists()
+
+
+def test_engine_ray_without_ray_names_the_install_command(tmp_path: Path, monkeypatch, capsys) -> None:
+    monkeypatch.setitem(sys.modules, "ray", None)  # what an install without the `scale` extra sees
+    assert main(["--engine", "ray", "--world", WORLD, "--episodes", "1", "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert "pip install" in err and "dovesei[scale]" in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_results_json_round_trips(tmp_path: Path) -> None:
+    doc = _bench(tmp_path)
+    assert json.loads((tmp_path / "results.json").read_text()) == doc

@@ -1,0 +1,163 @@
+"""`dovesei bench`: the paper's experiment, automatically judged and resumable.
+
+N seeded start positions uniform over each world at 100 m, the same starts for every policy, one
+episode per (world, policy, start) run by the in-process runner (`dovesei.episode`, the same
+service cores as `dovesei up`), on a local process pool or as Ray tasks (`--engine ray`). Each
+finished episode is appended to `episodes.jsonl` at once, so an interrupted bench continues where
+it stopped. At the end:
+
+    results.json   {"episodes": [...], "summary": {policy: {...}}, "config": {...}, "per_world": [...]}
+    summary.md     a table shaped like the paper's Table I with Wilson 95 % intervals, success
+                   against the time limit (60/300/600/1200 paper seconds), one row per world
+    paths.png      every policy's path from the same starts over the world image (one per world)
+    tracks/        one .npy path per episode (t_s, x_m, y_m, alt_agl_m)
+
+Every flag, world and engine is checked before the output folder is created.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import sys
+from pathlib import Path
+
+from dovesei.bench.run import Grid, Variant, run_grid, summary_markdown
+from dovesei.controller.policies import policy_names
+from dovesei.episode import DEFAULT_PERCEPTION
+from dovesei.episode import perception_names as _perception_names
+from dovesei.bench.stats import SUMMARY_KEYS, summarise, wilson_interval
+from dovesei.shared import timing as shared_timing
+from dovesei.shared.errors import ConfigError, DoveseiError
+from dovesei.shared.validate import in_range, positive
+
+__all__ = ["DEFAULT_POLICIES", "SUMMARY_KEYS", "build_parser", "main", "paper_time_limit_s", "parse_policies",
+           "run_bench", "summarise", "summary_markdown", "wilson_interval", "suite_worlds", "perception_names"]
+
+log = logging.getLogger(__name__)
+
+DEFAULT_POLICIES = "dovesei,dovesei-nofocus"
+PAPER_TIME_LIMIT_S = shared_timing.PAPER_TIME_LIMIT_S
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="dovesei bench", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    where = p.add_mutually_exclusive_group()
+    where.add_argument("--world", default=None, help="synthetic[:seed=N,...], dubai or a world folder (default: synthetic)")
+    where.add_argument("--suite", default=None, help="a world suite of the repository: 'default' (every world of it)")
+    p.add_argument("--episodes", type=int, default=50, help="start positions per world (each flown by every policy)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the start positions and of the perception noise")
+    p.add_argument("--policy", default=DEFAULT_POLICIES, help="comma-separated policies")
+    p.add_argument("--segmenter", default="sim", choices=("sim",),
+                   help="perception backend (the bench flies simulated perception; CLIPSeg runs in `dovesei up`)")
+    p.add_argument("--perception", default=None, help="simulated perception profile (default: realistic)")
+    p.add_argument("--noise", type=float, default=None, help="simulated perception noise scale (default: the profile's)")
+    p.add_argument("--timing", default=shared_timing.DEFAULT_TIMING, help="timing preset: reference or real")
+    p.add_argument("--time-limit-s", type=float, default=None,
+                   help="sim-time limit of an episode (default: the paper's 1200 s on the preset's clock)")
+    p.add_argument("--start-alt-m", type=float, default=100.0)
+    p.add_argument("--jobs", type=int, default=os.cpu_count() or 1,
+                   help="episodes in parallel (local workers; with --engine ray and no --address, the local Ray CPUs)")
+    p.add_argument("--engine", default="local", choices=("local", "ray"), help="local process pool or Ray tasks")
+    p.add_argument("--address", default=None, help="Ray cluster address (with --engine ray; default: a private local Ray)")
+    p.add_argument("--out", type=Path, default=Path("runs/bench"), help="output folder (resumes if it exists)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar on stderr")
+    return p
+
+
+def parse_policies(text: str) -> list[str]:
+    names = [p.strip() for p in text.split(",") if p.strip()]
+    known = policy_names()
+    unknown = [n for n in names if n not in known]
+    if not names or unknown:
+        raise ConfigError(f"--policy {text!r}: unknown {unknown or 'empty list'}; known: {', '.join(known)}")
+    return list(dict.fromkeys(names))
+
+
+def paper_time_limit_s(timing: str) -> float:
+    """The paper's 1200 s limit on the clock of a timing preset (see dovesei.shared.timing)."""
+    return shared_timing.timing(timing).time_limit_s
+
+
+def perception_names() -> tuple[str, ...]:
+    """The simulated perception profiles the segmenter offers."""
+    return _perception_names()
+
+
+def check_perception(name: str | None) -> str:
+    name = DEFAULT_PERCEPTION if name is None else name.strip()
+    known = perception_names()
+    if name not in known:
+        raise ConfigError(f"--perception {name!r}: choose one of {', '.join(known)}")
+    return name
+
+
+def suite_worlds(name: str) -> tuple[str, ...]:
+    """The world specs of a named suite of the repository."""
+    if name != "default":
+        raise ConfigError(f"--suite {name!r}: the only suite is 'default'")
+    try:
+        from dovesei.sim.suite import DEFAULT_SUITE  # lazy: an install may lack the suite
+    except ImportError:
+        raise ConfigError("--suite default: this install has no world suite (dovesei.sim.suite)") from None
+    # A suite entry is a world spec, or an object carrying one in `.spec`.
+    return tuple(w if isinstance(w, str) else str(w.spec) for w in DEFAULT_SUITE)
+
+
+def _at_least_one(flag: str, value: int) -> int:
+    if value < 1:
+        raise ConfigError(f"{flag} must be at least 1, got {value}")
+    return value
+
+
+def run_bench(*, world_spec: str | None = None, worlds: tuple[str, ...] | None = None, episodes: int, seed: int,
+              policies, noise: float | None, timing: str, time_limit_s: float, start_alt_m: float, jobs: int,
+              out: Path, segmenter: str = "sim", perception: str | None = None, engine: str = "local",
+              address: str | None = None, progress: bool = True, world_label: str = "",
+              seed_note: str = "") -> dict:
+    """Run (or resume) a bench into `out`; returns the results.json content."""
+    _at_least_one("--episodes", episodes)
+    _at_least_one("--jobs", jobs)
+    if seed < 0:
+        raise ConfigError(f"--seed must be >= 0, got {seed}")
+    if noise is not None:
+        in_range("--noise", noise, 0.0, 4.0)
+    positive("--time-limit-s", time_limit_s)
+    positive("--start-alt-m", start_alt_m)
+    shared_timing.timing(timing)
+    if address and engine != "ray":
+        raise ConfigError("--address names a Ray cluster: use it with --engine ray")
+    specs = tuple(worlds) if worlds else (world_spec or "synthetic",)
+    grid = Grid(worlds=specs, episodes=episodes, seed=seed, policies=tuple(policies),
+                variants=(Variant(perception=check_perception(perception)),), noise=noise, timing=timing,
+                time_limit_s=float(time_limit_s), start_alt_m=float(start_alt_m), segmenter=segmenter,
+                world_label=world_label or specs[0], extra={"seed_note": seed_note} if seed_note else {})
+    return run_grid(grid, out=out, workers=jobs, engine=engine, address=address, progress=progress)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    try:
+        policies = parse_policies(args.policy)
+        limit_s = paper_time_limit_s(args.timing) if args.time_limit_s is None else args.time_limit_s
+        worlds = suite_worlds(args.suite.strip()) if args.suite is not None else None
+        doc = run_bench(world_spec=args.world, worlds=worlds, episodes=args.episodes, seed=args.seed,
+                        policies=policies, noise=args.noise, timing=args.timing, time_limit_s=limit_s,
+                        start_alt_m=args.start_alt_m, jobs=args.jobs, out=args.out, segmenter=args.segmenter,
+                        perception=args.perception, engine=args.engine, address=args.address,
+                        progress=not args.no_progress,
+                        world_label=f"suite:{args.suite.strip()}" if args.suite is not None else "")
+    except DoveseiError as exc:  # a user error: one line, no traceback
+        print(f"dovesei bench: {exc}", file=sys.stderr)
+        return 2
+    print((args.out / "summary.md").read_text())
+    print(json.dumps(doc["summary"]))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,276 @@
+"""Running a bench grid: worlds x starts x policies (x perception profiles x prompt sets for a
+sweep), journalled so an interrupted run continues where it stopped.
+
+`run_grid` is the one driver: `dovesei bench` calls it with one perception profile and the
+default prompts, `dovesei sweep` with several. Every finished episode is appended to
+`episodes.jsonl` at once (tagged with the hash of the settings, so a folder never mixes two
+benches), its track saved under `tracks/`, and the progress bar redrawn. At the end
+`results.json`, `summary.md` and the path pictures are written from the whole journal.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import re
+import shutil
+import sys
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from dovesei.bench import engines, stats
+from dovesei.shared.errors import ConfigError, DoveseiError
+from dovesei.sim.starts import generate_starts
+from dovesei.sim.world import load_world
+
+log = logging.getLogger(__name__)
+
+EPISODE_SEED_STRIDE = 100003  # episode seed = seed * stride + start index: disjoint across bench seeds
+
+
+def episode_seed(seed: int, index: int) -> int:
+    return seed * EPISODE_SEED_STRIDE + index
+
+
+@dataclass(frozen=True)
+class Variant:
+    """One perception profile and prompt set an episode is flown with (a sweep has several).
+
+    `label` is None for the bench's single variant: its records keep the release's fields.
+    """
+
+    perception: str
+    prompts_name: str = "reference"
+    prompts: dict | None = None  # {"positive": [...], "negative": [...], "template": "..."}; None = the reference
+    labelled: bool = False
+
+
+@dataclass(frozen=True)
+class Grid:
+    """Everything that decides the episodes of one run (and so its settings hash)."""
+
+    worlds: tuple[str, ...]
+    episodes: int
+    seed: int
+    policies: tuple[str, ...]
+    variants: tuple[Variant, ...]
+    noise: float | None
+    timing: str
+    time_limit_s: float
+    start_alt_m: float
+    world_label: str = ""  # what --world/--suite said, for the summary
+    segmenter: str = "sim"
+    extra: dict = field(default_factory=dict)  # more settings that belong in the hash (e.g. the sweep file's)
+
+    def config(self) -> dict:
+        return {"world": self.world_label or self.worlds[0], "worlds": list(self.worlds), "episodes": self.episodes,
+                "seed": self.seed, "policies": list(self.policies), "noise": self.noise, "timing": self.timing,
+                "time_limit_s": self.time_limit_s, "start_alt_m": self.start_alt_m, "segmenter": self.segmenter,
+                "perception": [v.perception for v in self.variants] if len(self.variants) > 1 else self.variants[0].perception,
+                "prompts": {v.prompts_name: v.prompts for v in self.variants}, **self.extra}
+
+
+def _config_key(config: dict) -> str:
+    return hashlib.sha256(json.dumps(config, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def _record_key(rec: dict) -> tuple:
+    return (rec.get("world"), rec["policy"], rec.get("perception"), rec.get("prompts"), rec["index"])
+
+
+def load_journal(path: Path, key: str) -> dict[tuple, dict]:
+    done: dict[tuple, dict] = {}
+    if not path.exists():
+        return done
+    for n, line in enumerate(path.read_text().splitlines(), 1):
+        if not line.strip():
+            continue
+        try:
+            rec = json.loads(line)
+        except json.JSONDecodeError:
+            log.warning("%s line %d is truncated (interrupted write); that episode runs again", path, n)
+            continue
+        if rec.get("config_key") != key:
+            raise ConfigError(f"{path.parent} holds a bench with other settings; use another --out or delete it")
+        done[_record_key(rec)] = rec
+    return done
+
+
+def world_slug(i: int, spec: str) -> str:
+    return f"{i:02d}-" + re.sub(r"[^A-Za-z0-9]+", "-", Path(spec).name if "/" in spec else spec).strip("-")[:40]
+
+
+class Progress:
+    """One stderr line: episodes done and the running success counts per policy."""
+
+    def __init__(self, total: int, policies: Sequence[str], enabled: bool) -> None:
+        self.total, self.policies, self.enabled = total, policies, enabled
+        self.t0 = time.monotonic()
+
+    def show(self, episodes: list[dict]) -> None:
+        if not self.enabled:
+            return
+        done = len(episodes)
+        width = 24
+        bar = "#" * int(width * done / max(1, self.total))
+        counts = "  ".join(
+            f"{p}: {sum(e['outcome'] == 'safe' for e in episodes if e['policy'] == p)} safe"
+            f"/{sum(e['policy'] == p for e in episodes)}" for p in self.policies)
+        sys.stderr.write(f"\r[{bar:<{width}}] {done}/{self.total}  {counts}  {time.monotonic() - self.t0:.0f}s ")
+        sys.stderr.flush()
+        if done == self.total:
+            sys.stderr.write("\n")
+
+
+def load_worlds(specs: Sequence[str]) -> dict:
+    """Every world of the run, loaded before anything is written (a bad one fails the run early)."""
+    return {spec: load_world(spec) for spec in specs}
+
+
+def plan_jobs(grid: Grid, worlds: dict, out: Path) -> list[dict]:
+    """Every episode of the grid as a job dict, in a fixed order (world, start, variant, policy)."""
+    jobs = []
+    for wi, spec in enumerate(grid.worlds):
+        starts = generate_starts(worlds[spec], grid.episodes, grid.seed, alt_m=grid.start_alt_m)
+        for i, st in enumerate(starts):
+            for var in grid.variants:
+                for pol in grid.policies:
+                    jobs.append({
+                        "world": spec, "world_index": wi, "policy": pol, "index": i, "seed": episode_seed(grid.seed, i),
+                        "noise": grid.noise, "timing": grid.timing, "time_limit_s": grid.time_limit_s,
+                        "perception": var.perception, "prompts": var.prompts,
+                        "perception_label": var.perception if var.labelled else None,
+                        "prompts_label": var.prompts_name if var.labelled else None,
+                        "start": {"x_m": round(st.x_m, 3), "y_m": round(st.y_m, 3), "alt_m": st.alt_m}})
+    return jobs
+
+
+def _track_path(out: Path, grid: Grid, rec: dict) -> Path:
+    parts = [] if len(grid.worlds) == 1 else [world_slug(grid.worlds.index(rec["world"]), rec["world"])]
+    if rec.get("perception") is not None or rec.get("prompts") is not None:
+        parts.append(f"{rec.get('perception')}-{rec.get('prompts')}")
+    folder = out.joinpath("tracks", *parts)
+    folder.mkdir(parents=True, exist_ok=True)
+    return folder / f"{rec['policy']}-{rec['index']:04d}.npy"
+
+
+def run_grid(grid: Grid, *, out: Path, workers: int, engine: str = "local", address: str | None = None,
+             progress: bool = True, title: str = "dovesei bench") -> dict:
+    """Run (or resume) every episode of `grid` into `out`; returns the results.json content.
+
+    All checks (worlds load, starts fit, Ray importable, the folder holds no other bench) happen
+    before the output folder is created, so a failed start leaves nothing behind.
+    """
+    if engine not in engines.ENGINES:
+        raise ConfigError(f"--engine {engine!r}: choose one of {', '.join(engines.ENGINES)}")
+    if engine == "ray":
+        engines.ray_module()
+    worlds = load_worlds(grid.worlds)
+    jobs = plan_jobs(grid, worlds, out)
+    config = grid.config()
+    key = _config_key(config)
+    journal = out / "episodes.jsonl"
+    done = load_journal(journal, key)
+    todo = [j for j in jobs if _record_key(engines.record_base(j)) not in done]
+    created = not out.exists()
+    try:
+        return _run(grid, jobs, todo, done, worlds, config, key, out=out, workers=workers, engine=engine,
+                    address=address, progress=progress, title=title)
+    except BaseException:
+        # A run that failed (or was interrupted) before its first episode leaves no empty folder.
+        if created and out.is_dir() and not (journal.exists() and journal.stat().st_size):
+            shutil.rmtree(out, ignore_errors=True)
+        raise
+
+
+def _run(grid: Grid, jobs: list[dict], todo: list[dict], done: dict, worlds: dict, config: dict, key: str, *,
+         out: Path, workers: int, engine: str, address: str | None, progress: bool, title: str) -> dict:
+    journal = out / "episodes.jsonl"
+    out.mkdir(parents=True, exist_ok=True)
+    if done:
+        log.info("resuming: %d episodes already done, %d to go", len(done), len(todo))
+    results = list(done.values())
+    bar = Progress(len(jobs), grid.policies, progress)
+    bar.show(results)
+    with journal.open("a") as fh:
+        def keep(rec: dict) -> None:
+            track = rec.pop("_track", None)
+            if track is not None:
+                np.save(_track_path(out, grid, rec), track)
+            rec["config_key"] = key
+            fh.write(json.dumps(rec) + "\n")
+            fh.flush()  # a crash loses at most the episodes in flight
+            results.append(rec)
+            bar.show(results)
+
+        if todo and engine == "ray":
+            engines.run_ray(todo, workers=workers, address=address, on_record=keep)
+        elif todo:
+            engines.run_local(todo, workers=workers, on_record=keep, preloaded=worlds)
+    order = {_record_key(engines.record_base(j)): n for n, j in enumerate(jobs)}
+    results.sort(key=lambda e: order.get(_record_key(e), len(order)))
+    episodes_out = [{k: v for k, v in e.items() if k != "config_key"} for e in results]
+    limits = stats.limits_for(grid.timing, grid.time_limit_s)
+    doc = {"episodes": episodes_out, "summary": stats.summarise(episodes_out, grid.policies, limits=limits),
+           "config": config}
+    if len(grid.worlds) > 1:
+        doc["per_world"] = stats.summarise_by(episodes_out, ("world", "policy"))
+    if any(v.labelled for v in grid.variants):
+        doc["per_variant"] = stats.summarise_by(episodes_out, ("policy", "perception", "prompts"))
+    (out / "results.json").write_text(json.dumps(doc, indent=1))
+    (out / "summary.md").write_text(summary_markdown(doc, title=title))
+    _plot_paths(grid, worlds, doc, out)
+    return doc
+
+
+def summary_markdown(doc: dict, *, title: str = "dovesei bench") -> str:
+    config = doc["config"]
+    worlds = config["worlds"]
+    where = f"World `{worlds[0]}`" if len(worlds) == 1 else f"{len(worlds)} worlds (`{config['world']}`)"
+    noise = "the profile's own noise" if config["noise"] is None else f"noise x{config['noise']:g}"
+    lines = [
+        f"# {title}", "",
+        f"{where}, {config['episodes']} starts{' per world' if len(worlds) > 1 else ''} at "
+        f"{config['start_alt_m']:.0f} m (seed {config['seed']}), limit {config['time_limit_s']:g} s of sim time, "
+        f"timing preset `{config['timing']}`, simulated perception `{config['perception']}` ({noise}). "
+        "Success = reaching the hand-over altitude (20 m) with the 2 m footprint disk on safe classes, judged on "
+        "the label map. Intervals are Wilson 95 %.", "",
+        *stats.policy_table(doc["summary"]), "",
+        "Averages are over successful episodes, as in the paper's Table I (time in sim seconds, distance = "
+        "horizontal path length).", ""]
+    limit_lines = stats.limit_table(doc["summary"])
+    if limit_lines:
+        lines += ["## Success against the time limit (the same runs, cut at each limit)", "",
+                  "The paper's limits on its own clock and, in brackets, on this preset's sim clock.", "",
+                  *limit_lines, ""]
+    if doc.get("per_world"):
+        lines += ["## Per world", "", *stats.rows_table(doc["per_world"], ("world", "policy")), ""]
+    if doc.get("per_variant"):
+        lines += ["## Per perception profile and prompt set", "",
+                  *stats.rows_table(doc["per_variant"], ("policy", "perception", "prompts")), ""]
+    return "\n".join(lines)
+
+
+def _plot_paths(grid: Grid, worlds: dict, doc: dict, out: Path) -> None:
+    try:
+        from dovesei.pictures.plots import plot_bench_paths  # lazy: needs matplotlib (dev extra)
+    except ImportError as exc:  # matplotlib is a dev extra; the numbers matter more than the picture
+        log.warning("no paths.png: %s", exc)
+        return
+    if any(v.labelled for v in grid.variants):
+        return  # a sweep's picture is its results plot; per-variant path panels would be unreadable
+    for wi, spec in enumerate(grid.worlds):
+        sub = {**doc, "episodes": [e for e in doc["episodes"] if e.get("world") == spec]}
+        if len(grid.worlds) == 1:
+            plot_bench_paths(worlds[spec], sub, out / "tracks", out / "paths.png")
+        else:
+            slug = world_slug(wi, spec)
+            try:
+                plot_bench_paths(worlds[spec], sub, out / "tracks" / slug, out / f"paths-{slug}.png")
+            except DoveseiError as exc:
+                log.warning("no paths picture for %s: %s", spec, exc)
