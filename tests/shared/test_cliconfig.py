@@ -11,6 +11,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from dovesei.camera import service as camera_service
 from dovesei.camera.service import CameraConfig
@@ -22,7 +24,7 @@ from dovesei.segmenter.prompts import PromptSet
 from dovesei.segmenter.service import ServiceConfig
 from dovesei.segmenter.simulated import CALIBRATED_NOISE
 from dovesei.shared import validate
-from dovesei.shared.cliconfig import PROCESS, CommandLine, Flag, ProcessOptions
+from dovesei.shared.cliconfig import PROCESS, CommandLine, Flag, ProcessOptions, _build
 from dovesei.shared.errors import ConfigError
 from dovesei.shared.timing import DEFAULT_TIMING
 from dovesei.sim import service as sim_service
@@ -51,7 +53,10 @@ NON_DEFAULT = {
         heatmap_hold_after_s=2.0, heatmap_climb_after_s=12.0, state_stale_after_s=0.8, climb_speed_m_s=1.5,
         search_alt_m=80.0, handover_alt_m=15.0, handover_action="land", vehicle_url="udpin:0.0.0.0:14550",
         mavlink_alt_source="rangefinder", mavlink_allow_mode_switch=True, mavlink_yaw_control="autopilot",
-        lockstep_heatmap_wait_s=7.5),
+        lockstep_heatmap_wait_s=7.5, policy_dt_max_s=0.8, future_tolerance_s=0.6, mavlink_system_id=7,
+        mavlink_max_horizontal_m_s=8.0, mavlink_max_up_m_s=2.0, mavlink_max_down_m_s=1.0,
+        mavlink_signing_key_file="keys/uav3.key", mavlink_require_home=False, takeoff_alt_m=60.0,
+        takeoff_ready_timeout_s=90.0),
     "camera": CameraConfig(source="rtsp://10.0.0.2/cam", vehicle_id="uav2", width_px=320, height_px=240,
                            hfov_deg=90.0, rotate_deg=180, rate_hz=5.0, jpeg_quality=85, stall_timeout_s=3.0,
                            state_timeout_s=0.5, loop_file=True),
@@ -240,3 +245,27 @@ def test_a_table_naming_no_field_fails_when_built() -> None:
         CommandLine(Outer, {"name": Flag("--x"), "count": Flag("--x")})
     with pytest.raises(ConfigError, match="defaults to True"):
         CommandLine(Outer, {"fast": Flag("--fast")})  # could never say False
+
+
+# ------------------------------------------------------------------ any number survives the trip
+
+NUMBER_FIELDS = [(name, entry) for name in sorted(MODULES) for entry in MODULES[name].CLI.entries
+                 if entry.kind in (float, int)]
+
+
+@pytest.mark.parametrize(("name", "entry"), NUMBER_FIELDS, ids=[f"{n}:{e.flag.name}" for n, e in NUMBER_FIELDS])
+@settings(max_examples=25, deadline=None)
+@given(data=st.data())
+def test_any_accepted_number_round_trips_exactly(name, entry, data) -> None:
+    if entry.kind is float:
+        value = data.draw(st.floats(min_value=1e-6, max_value=1e6, allow_nan=False, allow_infinity=False))
+    else:
+        value = data.draw(st.integers(min_value=0, max_value=10_000))
+    base = {"source": "0"} if name == "camera" else {}
+    try:
+        config = _build(MODULES[name].CLI.cls, {**base, entry.path: value})
+        if entry.flag.check is not None:
+            entry.flag.check(entry.flag.name, value)
+    except ConfigError:
+        return  # a value this field refuses (alone or with the defaults): nothing to render
+    assert parse_with_service_parser(name, MODULES[name].to_argv(config)) == config
