@@ -22,6 +22,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "bench-loop": ("dovesei.benchmarks.loop", "controller loop jitter at 20 Hz with a 2 Hz segmenter"),
     "preview": ("dovesei.preview", "PNG pictures of a world, the camera's view and the simulated perception"),
     "health": ("dovesei.health", "exit 0 when a service's liveliness token is visible"),
+    "certs": ("dovesei.certs", "a CA, one certificate per role and the router's ACL for the secured Zenoh mode"),
     "bench-codec": ("dovesei.benchmarks.codec", "encode/decode time of a 352x352 frame and heatmap"),
 }
 

@@ -2,7 +2,12 @@
 
 Precedence, lowest first: Zenoh's defaults, the file named by `ZENOH_CONFIG`, the file given with
 `--zenoh-config`, then the individual flags (`--mode`, `--connect`, `--listen`,
-`--no-multicast-scouting`, `--no-shm`). Every service and test builds its config here.
+`--no-multicast-scouting`, `--no-shm`, `--tls-ca`/`--tls-cert`/`--tls-key`). Every service and
+test builds its config here.
+
+Secured mode (`--tls-*`, certificates from `dovesei certs`): mutual TLS with the process's role
+certificate, for connecting and (router or `--listen`) for listening; plain `tcp/` endpoints are
+then refused, so a typo cannot fall back to an open link. What a role may do is the router's ACL.
 """
 
 from __future__ import annotations
@@ -12,6 +17,7 @@ import json
 import os
 import socket
 from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import zenoh
@@ -34,11 +40,15 @@ def add_zenoh_args(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--no-multicast-scouting", action="store_true",
                    help="do not discover peers by UDP multicast (use with --connect/--listen)")
     g.add_argument("--no-shm", action="store_true", help="disable shared-memory transport")
+    g.add_argument("--tls-ca", type=Path, metavar="PEM", help="CA certificate: secured mode (mutual TLS, tls/ endpoints)")
+    g.add_argument("--tls-cert", type=Path, metavar="PEM", help="this process's role certificate (from `dovesei certs`)")
+    g.add_argument("--tls-key", type=Path, metavar="KEY", help="the private key of --tls-cert")
 
 
 def zenoh_config(*, mode: str | None = None, connect: Sequence[str] = (), listen: Sequence[str] = (),
                  config_file: Path | str | None = None, multicast_scouting: bool | None = None,
-                 shared_memory: bool | None = None, env: Mapping[str, str] | None = None) -> zenoh.Config:
+                 shared_memory: bool | None = None, env: Mapping[str, str] | None = None,
+                 tls: TlsFiles | None = None) -> zenoh.Config:
     """Build a `zenoh.Config`; a bad value raises `ConfigError` naming it."""
     env = os.environ if env is None else env
     conf = _load_file(env.get(ENV_CONFIG), f"${ENV_CONFIG}") if env.get(ENV_CONFIG) else zenoh.Config()
@@ -58,13 +68,67 @@ def zenoh_config(*, mode: str | None = None, connect: Sequence[str] = (), listen
         _insert(conf, "scouting/multicast/enabled", bool(multicast_scouting))
     if shared_memory is not None:
         _insert(conf, "transport/shared_memory/enabled", bool(shared_memory))
+    if tls is not None:
+        _apply_tls(conf, tls)
     return conf
 
 
+@dataclass(frozen=True)
+class TlsFiles:
+    """The three PEM files of a secured process: the CA, its role certificate and that key."""
+
+    ca: Path
+    cert: Path
+    key: Path
+
+    @classmethod
+    def from_flags(cls, ca: Path | str | None, cert: Path | str | None, key: Path | str | None) -> TlsFiles | None:
+        """None when no flag is given; all three or an error naming the missing ones."""
+        given = {"--tls-ca": ca, "--tls-cert": cert, "--tls-key": key}
+        if not any(given.values()):
+            return None
+        missing = [flag for flag, v in given.items() if not v]
+        if missing:
+            raise ConfigError(f"secured mode needs --tls-ca, --tls-cert and --tls-key; missing {', '.join(missing)}")
+        for flag, v in given.items():
+            if not Path(v).is_file():
+                raise ConfigError(f"{flag} {str(v)!r}: no such file")
+        return cls(Path(ca), Path(cert), Path(key))
+
+
+def _apply_tls(conf: zenoh.Config, tls: TlsFiles) -> None:
+    mode = json.loads(conf.get_json("mode") or '"peer"') or "peer"
+    for section in ("connect", "listen"):
+        endpoints = json.loads(conf.get_json(f"{section}/endpoints") or "null") or []
+        defaults = isinstance(endpoints, dict)  # Zenoh's per-mode defaults: {"router": [...], "peer": [...]}
+        if defaults:
+            endpoints = endpoints.get(mode) or []
+        plain = [ep for ep in endpoints if not str(ep).startswith(("tls/", "quic/"))]
+        if plain and defaults and not (section == "listen" and mode == "router"):
+            _insert(conf, f"{section}/endpoints", [])  # a default plain listener must not stay open
+        elif plain:
+            raise ConfigError(f"secured mode: {section} endpoint(s) {plain} are not TLS; use tls/HOST:PORT")
+    listening = json.loads(conf.get_json("listen/endpoints") or "null") or []
+    if isinstance(listening, dict):
+        listening = listening.get(mode) or []
+    listens = mode == "router" or bool(listening)
+    files = {"root_ca_certificate": tls.ca, "connect_certificate": tls.cert, "connect_private_key": tls.key}
+    if listens:
+        files |= {"listen_certificate": tls.cert, "listen_private_key": tls.key}
+    for key, path in files.items():
+        _insert(conf, f"transport/link/tls/{key}", str(Path(path).resolve()))
+    _insert(conf, "transport/link/tls/enable_mtls", True)
+    # Only TLS links: a session that cannot reach the router over TLS must not try anything else.
+    _insert(conf, "transport/link/protocols", ["tls"])
+
+
 def zenoh_config_from_args(args: argparse.Namespace, env: Mapping[str, str] | None = None) -> zenoh.Config:
+    # getattr: parsers built before the TLS flags existed (or without them) still work.
+    tls = TlsFiles.from_flags(getattr(args, "tls_ca", None), getattr(args, "tls_cert", None),
+                              getattr(args, "tls_key", None))
     return zenoh_config(mode=args.mode, connect=args.connect, listen=args.listen, config_file=args.zenoh_config,
                         multicast_scouting=False if args.no_multicast_scouting else None,
-                        shared_memory=False if args.no_shm else None, env=env)
+                        shared_memory=False if args.no_shm else None, env=env, tls=tls)
 
 
 def free_port(kind: int = socket.SOCK_STREAM) -> int:
