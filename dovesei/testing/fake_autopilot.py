@@ -265,6 +265,11 @@ class FakeAutopilot:
         return self._now_s() >= self._boot_s
 
     @property
+    def boot_end_s(self) -> float:
+        """When the boot phase ends, on time.monotonic (as the recv_s of what it records)."""
+        return self._t0 + self._boot_s
+
+    @property
     def position_ned_m(self) -> tuple[float, float, float]:
         with self._lock:
             return tuple(self._pos_ned_m)  # type: ignore[return-value]

@@ -46,7 +46,7 @@ from typing import Any
 
 from dovesei.controller.policies.base import Decision, Observation, Policy, PolicyInputError, make_policy, policy_names
 from dovesei.controller.policies.config import TIMING_PRESETS
-from dovesei.shared import keys
+from dovesei.shared import keys, validate
 from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.shared.messages import ControllerStatus, SafetyHeatmap, StageLatency, VehicleState, VelocityCommand
 from dovesei.shared.timing import DEFAULT_TIMING
@@ -91,6 +91,15 @@ class ControllerConfig:
     # MAVLink: "rate" sends velocity + yaw rate 0 (type mask 0x05C7: the heading, and so the camera,
     # is held); "autopilot" sends velocity only (0x0DC7: ArduCopter then yaws by WP_YAW_BEHAVIOR).
     mavlink_yaw_control: str = "rate"
+    mavlink_system_id: int | None = None  # MAVLink: fly only this autopilot system id (None: the first heard)
+    # MAVLink setpoint limits, ArduCopter's defaults: WPNAV_SPEED, WPNAV_SPEED_UP, WPNAV_SPEED_DN.
+    mavlink_max_horizontal_m_s: float = 10.0
+    mavlink_max_up_m_s: float = 2.5
+    mavlink_max_down_m_s: float = 1.5
+    mavlink_signing_key_file: str | None = None  # MAVLink 2 signing key (32 bytes, 64 hex or a passphrase)
+    mavlink_require_home: bool = True  # takeoff waits for the autopilot's home position
+    takeoff_alt_m: float | None = None  # MAVLink: arm and climb here before flying (None: never arms)
+    takeoff_ready_timeout_s: float = 120.0  # give up when the autopilot cannot arm within this
     lockstep_heatmap_wait_s: float = 5.0  # wall deadline for an awaited heatmap (lockstep)
     lockstep_heatmap_retry_s: float = 0.25  # shorter deadline while the segmenter seems down
     heatmap_buffer_len: int = 64  # lockstep: early heatmaps kept by seq
@@ -104,7 +113,7 @@ class ControllerConfig:
         positive = ("rate_hz", "heatmap_hold_after_s", "heatmap_climb_after_s", "state_stale_after_s",
                     "climb_speed_m_s", "climb_gain_per_s", "handover_alt_m", "vehicle_connect_timeout_s",
                     "lockstep_heatmap_wait_s", "lockstep_heatmap_retry_s", "policy_dt_max_s",
-                    "future_tolerance_s")
+                    "future_tolerance_s", "takeoff_ready_timeout_s")
         for name in positive:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
@@ -129,6 +138,14 @@ class ControllerConfig:
             raise ConfigError(f"heatmap_buffer_len must be >= 1, got {self.heatmap_buffer_len}")
         if self.lockstep and self.vehicle_url != "zenoh":
             raise ConfigError("lockstep needs the simulator (--vehicle-url zenoh); a real vehicle runs in real time")
+        for name in ("mavlink_max_horizontal_m_s", "mavlink_max_up_m_s", "mavlink_max_down_m_s"):
+            validate.in_range(f"ControllerConfig.{name}", getattr(self, name), 0.01, 50.0)
+        if self.mavlink_system_id is not None:
+            validate.in_range("ControllerConfig.mavlink_system_id", self.mavlink_system_id, 1, 255)
+        if self.takeoff_alt_m is not None:
+            validate.in_range("ControllerConfig.takeoff_alt_m", self.takeoff_alt_m, 1.0, 500.0)
+            if self.vehicle_url == "zenoh":
+                raise ConfigError("takeoff_alt_m needs a MAVLink vehicle (--vehicle-url); the sim starts in the air")
         if self.vehicle_url != "zenoh" and self.timing != "real":
             # The reference preset's timers are 5 % of true seconds: against a real vehicle its
             # 60 s limit ran out at 28.8 m. A real vehicle always runs on true seconds.
@@ -473,6 +490,17 @@ class ControllerCore:
     @property
     def mode(self) -> Mode | None:
         return self._mode
+
+    def landing_target_angles(self) -> tuple[float, float] | None:
+        """The decision's target as camera angles (image x right, image y down = body backward),
+        what MAVLink's LANDING_TARGET carries; None without a target."""
+        adopted, decision = self._adopted, self._decision
+        if adopted is None or decision is None or decision.target_px is None:
+            return None
+        h, w = adopted.hm.prob_safe.shape
+        focal_px = (w / 2.0) / math.tan(adopted.hm.hfov_rad / 2.0)  # square pixels: one focal length
+        row, col = decision.target_px
+        return math.atan((col - (w - 1) / 2.0) / focal_px), math.atan((row - (h - 1) / 2.0) / focal_px)
 
     @property
     def decision(self) -> Decision | None:

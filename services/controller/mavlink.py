@@ -152,6 +152,9 @@ class MavlinkVehicle:
     stream requests is ever sent.
     """
 
+    # The controller owns this link alone and republishes its states on the state key.
+    is_link_owner = True
+
     def __init__(self, url: str, *, vehicle_id: str = "uav1", alt_source: str = "local",
                  handover: str = "hold", allow_mode_switch: bool = False, heartbeat_timeout_s: float = 3.0,
                  setpoint_rate_hz: float = 20.0, stream_rate_hz: float = 20.0, command_timeout_s: float = 1.0,

@@ -5,6 +5,8 @@
     vehicle (sim over Zenoh, or MAVLink) --> VehicleState --> ControllerCore.tick
         --> VelocityCommand --> vehicle (the `cmd` key, or MAVLink setpoints)
         --> ControllerStatus --> status key (every tick)
+    MAVLink only: VehicleState --> state key (the controller is the one owner of the autopilot link;
+        the sim's camera mode and the camera service take the pose from here)
 
 Two loops, chosen by `ControllerConfig.lockstep`:
 
@@ -18,6 +20,10 @@ Two loops, chosen by `ControllerConfig.lockstep`:
 `main` only parses flags, sets up logging and signals, opens the session and calls `run`; `run`
 reads no flags or environment, so tests call it directly with a stop event. On stop the vehicle
 is told to hold (zero velocity, or the MAVLink adapter's `hold()`) before everything is closed.
+
+Takeoff (MAVLink, only with `takeoff_alt_m`): the adapter waits until the autopilot can arm, arms
+and climbs in a thread while the loop publishes states; the policy starts once it is done, and a
+failed takeoff ends `run` with the adapter's reason.
 """
 
 from __future__ import annotations
@@ -132,10 +138,18 @@ def open_vehicle(session: zenoh.Session, config: ControllerConfig) -> Vehicle:
             f"--vehicle-url {config.vehicle_url!r} needs the MAVLink adapter, which cannot be imported "
             f"(missing module {exc.name!r}); install the package with pymavlink or use --vehicle-url zenoh"
         ) from None
+    from dovesei.controller.mavlink_proto import SpeedLimits, load_signing_key
+
+    key_file = config.mavlink_signing_key_file
+    limits = SpeedLimits(horizontal_m_s=config.mavlink_max_horizontal_m_s, up_m_s=config.mavlink_max_up_m_s,
+                         down_m_s=config.mavlink_max_down_m_s)
     vehicle = MavlinkVehicle(config.vehicle_url, vehicle_id=config.vehicle_id, handover=config.handover_action,
                              alt_source=config.mavlink_alt_source,
                              allow_mode_switch=config.mavlink_allow_mode_switch,
-                             yaw_control=config.mavlink_yaw_control)
+                             yaw_control=config.mavlink_yaw_control, system_id=config.mavlink_system_id,
+                             limits=limits, require_home=config.mavlink_require_home,
+                             signing_key=load_signing_key(key_file) if key_file else None,
+                             signing_timestamp_file=f"{key_file}.timestamp" if key_file else None)
     try:
         vehicle.connect(config.vehicle_connect_timeout_s)
     except BaseException:
@@ -157,7 +171,9 @@ class RunStats:
     heatmaps_missed: int = 0  # lockstep: awaited heatmaps that did not come before the deadline
     missed_ticks: int = 0  # real time: whole periods skipped after an overrun
     send_errors: int = 0
+    states_published: int = 0  # MAVLink: vehicle states republished on the state key
     core_refusals: dict[str, int] = field(default_factory=dict)
+    vehicle_link: dict[str, Any] = field(default_factory=dict)  # the MAVLink adapter's counters
     wake_lateness_s: deque[float] = field(default_factory=lambda: deque(maxlen=_MAX_LATENESS_SAMPLES))
     publish_lateness_s: deque[float] = field(default_factory=lambda: deque(maxlen=_MAX_LATENESS_SAMPLES))
 
@@ -172,16 +188,31 @@ class _Loop:
         self.heatmaps: Inbox[SafetyHeatmap] = Inbox(session, keys.heatmap(config.vehicle_id), SafetyHeatmap,
                                                     newest_only=not config.lockstep,
                                                     wakeup=getattr(vehicle, "wakeup", None))
+        self._state_pub: Any = None
         try:
             self._status_pub = session.declare_publisher(keys.status(config.vehicle_id))
+            if getattr(vehicle, "is_link_owner", False):
+                # Newest wins for a pose: a congested link drops old states rather than queue them.
+                self._state_pub = session.declare_publisher(keys.state(config.vehicle_id),
+                                                            congestion_control=zenoh.CongestionControl.DROP)
         except BaseException:
             self.heatmaps.close()
+            if self._state_pub is not None:
+                self._state_pub.undeclare()
             raise
         self._mode: Mode | None = None
 
     def close(self) -> None:
         self.heatmaps.close()
         self._status_pub.undeclare()
+        if self._state_pub is not None:
+            self._state_pub.undeclare()
+
+    def publish_state(self, state: VehicleState) -> None:
+        """MAVLink: put the autopilot's state on the state key (the one owner of the link shares it)."""
+        if self._state_pub is not None:
+            self._state_pub.put(encode(replace(state, sent_wall_s=wall_time_s())))
+            self.stats.states_published += 1
 
     def drain_heatmaps(self) -> None:
         """Hand every waiting heatmap to the core (never blocks)."""
@@ -208,6 +239,8 @@ class _Loop:
             except DoveseiError as exc:
                 log.warning("vehicle refused the hand-over action: %s", exc)
         self._mode = mode
+        if mode is Mode.HANDOVER and self.config.handover_action == "precland":
+            self._stream_landing_target(state)
         # A MAVLink vehicle stops receiving setpoints at hand-over: its adapter does the action.
         if mode is not Mode.HANDOVER or getattr(self.vehicle, "commands_during_handover", False):
             try:
@@ -222,11 +255,26 @@ class _Loop:
         self._status_pub.put(encode(status))
         return True
 
+    def _stream_landing_target(self, state: VehicleState) -> None:
+        """Precision landing: the policy's newest target as LANDING_TARGET angles, every tick."""
+        angles = self.core.landing_target_angles()
+        set_target = getattr(self.vehicle, "set_landing_target", None)
+        if angles is None or set_target is None:
+            return
+        # Slant distance to the spot on flat ground below.
+        distance_m = state.alt_agl_m / max(1e-3, math.cos(angles[0]) * math.cos(angles[1]))
+        try:
+            set_target(angles[0], angles[1], max(0.0, distance_m))
+        except DoveseiError as exc:
+            log.debug("landing target not set: %s", exc)
+
     def finish(self) -> RunStats:
         stats = self.stats
         stats.heatmap_payloads_rejected = sum(self.heatmaps.rejected.values())
         stats.state_payloads_rejected = int(getattr(self.vehicle, "rejected", 0))
         stats.core_refusals = dict(self.core.rejected)
+        counters = getattr(self.vehicle, "counters", None)
+        stats.vehicle_link = counters() if callable(counters) else {}
         return stats
 
 
@@ -272,8 +320,26 @@ def _run_lockstep(loop: _Loop) -> None:
         loop.step(state, None)
 
 
-def _run_realtime(loop: _Loop) -> None:
-    """Fixed rate on the wall clock: tick k is due at t0 + k x period, whatever happened before."""
+class _Takeoff(threading.Thread):
+    """The adapter's blocking arm-and-climb in its own thread, so the loop keeps publishing states."""
+
+    def __init__(self, vehicle: Any, alt_m: float, ready_timeout_s: float) -> None:
+        super().__init__(name="takeoff", daemon=True)
+        self._vehicle, self._alt_m, self._ready_timeout_s = vehicle, alt_m, ready_timeout_s
+        self.error: DoveseiError | None = None
+
+    def run(self) -> None:
+        try:
+            log.warning("takeoff requested: arming %s and climbing to %.1f m", self._vehicle.url, self._alt_m)
+            self._vehicle.arm_and_takeoff(self._alt_m, ready_timeout_s=self._ready_timeout_s)
+        except DoveseiError as exc:
+            self.error = exc
+
+
+def _run_realtime(loop: _Loop, takeoff: _Takeoff | None = None) -> None:
+    """Fixed rate on the wall clock: tick k is due at t0 + k x period, whatever happened before.
+
+    With a takeoff in progress the loop only republishes states until it is done."""
     period_s = loop.config.period_s
     clock = WallClock()
     newest: VehicleState | None = None
@@ -285,8 +351,11 @@ def _run_realtime(loop: _Loop) -> None:
         state = loop.vehicle.poll_state()
         if state is not None:
             newest = state
+            loop.publish_state(state)
         loop.drain_heatmaps()
-        if newest is not None:
+        if takeoff is not None and takeoff.is_alive():
+            pass  # the adapter owns the vehicle until the climb is done; states still go out
+        elif newest is not None:
             # The newest state is re-used while no newer one comes; the core notices it aging.
             loop.step(newest, woke_s)
             loop.stats.wake_lateness_s.append(woke_s - due_s)
@@ -294,6 +363,8 @@ def _run_realtime(loop: _Loop) -> None:
         elif not waiting_logged:
             log.info("waiting for the first vehicle state of %s", loop.config.vehicle_id)
             waiting_logged = True
+        if takeoff is not None and takeoff.error is not None:
+            raise takeoff.error  # the vehicle never reached its start: nothing to fly
         due_s += period_s
         behind_s = clock.now_s() - due_s
         if behind_s > 0:
@@ -326,7 +397,11 @@ def run(session: zenoh.Session, *, config: ControllerConfig, stop: threading.Eve
         if config.lockstep:
             _run_lockstep(loop)
         else:
-            _run_realtime(loop)
+            takeoff = None
+            if config.takeoff_alt_m is not None:
+                takeoff = _Takeoff(vehicle, config.takeoff_alt_m, config.takeoff_ready_timeout_s)
+                takeoff.start()
+            _run_realtime(loop, takeoff)
         return loop.finish()
     finally:
         # Whatever ended the loop (stop, error), the vehicle must not keep the last velocity.
@@ -380,6 +455,29 @@ CLI = CommandLine(ControllerConfig, {
                                       "it is not (default: refuse to steer)"),
     "lockstep_heatmap_wait_s": Flag("--heatmap-wait-s", "lockstep: wall deadline for an awaited heatmap",
                                     check=validate.positive),
+    "policy_dt_max_s": Flag("--policy-dt-max-s", "the policy's clock advances at most this much per heatmap",
+                            check=validate.positive),
+    "future_tolerance_s": Flag("--future-tolerance-s", "real time: refuse stamps leading the controller's clock by "
+                               "more than this", check=validate.positive),
+    "mavlink_system_id": Flag("--autopilot-system-id", "MAVLink: fly only the autopilot with this system id (default: "
+                              "the first heard; pin it so a spoofer heard first is never followed)",
+                              check=lambda w, v: validate.in_range(w, v, 1, 255)),
+    "mavlink_max_horizontal_m_s": Flag("--max-horizontal-m-s", "MAVLink: largest horizontal setpoint (ArduCopter "
+                                       "WPNAV_SPEED)", check=validate.positive),
+    "mavlink_max_up_m_s": Flag("--max-up-m-s", "MAVLink: largest climb setpoint (WPNAV_SPEED_UP)",
+                               check=validate.positive),
+    "mavlink_max_down_m_s": Flag("--max-down-m-s", "MAVLink: largest descent setpoint (WPNAV_SPEED_DN)",
+                                 check=validate.positive),
+    "mavlink_signing_key_file": Flag("--signing-key", "MAVLink 2 signing key file (32 raw bytes, 64 hex digits or a "
+                                     "passphrase line, SHA-256 as MAVProxy); the timestamp is kept in FILE.timestamp",
+                                     check=non_blank, metavar="FILE"),
+    "mavlink_require_home": Flag("--no-require-home", "takeoff: do not wait for the autopilot's home position",
+                                 negate=True),
+    "takeoff_alt_m": Flag("--takeoff-alt-m", "MAVLink: wait until the autopilot can arm, arm and climb to this "
+                          "altitude before flying (never arms without it)",
+                          check=lambda w, v: validate.in_range(w, v, 1.0, 500.0)),
+    "takeoff_ready_timeout_s": Flag("--takeoff-ready-timeout-s", "takeoff: give up when the autopilot cannot arm "
+                                    "within this, naming its pre-arm reasons", check=validate.positive),
 }, derive=_derived_defaults, prog="dovesei-controller", description=__doc__.splitlines()[0])
 
 

@@ -1,0 +1,175 @@
+"""End to end: the controller service flies the fake autopilot from boot, in both personalities.
+
+`run()` owns the MAVLink link (udpout to the fake) and republishes the autopilot's state on the
+state key; the test plays camera + segmenter from that key only (each heatmap stamped with the
+newest published state, as the camera service tags frames). Flight: boot phase with pre-arm
+failures -> takeoff (waits, arms, climbs) -> steer and descend under a test policy -> hand-over at
+20 m -> stop (hold). Every wait has a deadline.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import socket
+import threading
+from collections.abc import Iterator
+
+import numpy as np
+import pytest
+
+from dovesei.controller.core import ControllerConfig, ControllerCore
+from dovesei.controller.policies.base import Decision, Observation
+from dovesei.controller.service import RunStats, run
+from dovesei.shared import keys
+from dovesei.shared.codec import encode
+from dovesei.shared.lifecycle import Inbox, is_alive, wait_until
+from dovesei.shared.messages import SafetyHeatmap, VehicleState
+from dovesei.shared.zconfig import free_port
+from dovesei.testing.fake_autopilot import FakeAutopilot
+
+TAKEOFF_ALT_M = 26.0
+FLIGHT_DEADLINE_S = 90.0
+
+
+class ForwardAndDown:
+    """Forward 3 m/s and down 1.5 m/s, the target right of centre (for LANDING_TARGET)."""
+
+    name = "forward-and-down"
+
+    def __init__(self) -> None:
+        self.steps = 0
+
+    def step(self, obs: Observation) -> Decision:
+        self.steps += 1
+        return Decision((3.0, 0.0, 1.5), 0.0, "LANDING", (32.0, 48.0), 10.0, 0.5, {})
+
+    def reset(self) -> None:
+        pass
+
+
+class Perception(threading.Thread):
+    """Camera + segmenter stand-in: a heatmap every 0.25 s stamped with the newest published state."""
+
+    def __init__(self, session, states: Inbox[VehicleState]) -> None:
+        super().__init__(name="perception", daemon=True)
+        self.session, self.states, self.stop = session, states, threading.Event()
+        self.published = 0
+        self.newest: VehicleState | None = None
+        self.seen: list[VehicleState] = []
+
+    def run(self) -> None:
+        prob = np.full((64, 64), 200, np.uint8)
+        while not self.stop.wait(0.25):
+            while (s := self.states.poll()) is not None:
+                self.newest = s
+                self.seen.append(s)
+            if self.newest is None:
+                continue
+            hm = SafetyHeatmap("uav1", self.published, self.newest.stamp, prob, self.newest.alt_agl_m, 1.27,
+                               "simulated", True, "p", "f", 0.01)
+            self.session.put(keys.heatmap("uav1"), encode(hm))
+            self.published += 1
+
+
+@pytest.fixture
+def flight(zenoh_pair) -> Iterator:
+    """Yields fly(fake, config) -> (stats, perception); stops everything it started."""
+    service_session, test_session = zenoh_pair
+    started: list = []
+
+    def fly(fake: FakeAutopilot, config: ControllerConfig, policy: ForwardAndDown) -> tuple[RunStats, Perception]:
+        handover = config.handover_action
+        states = Inbox(test_session, keys.state("uav1"), VehicleState, newest_only=True)
+        started.append(states)
+        perception = Perception(test_session, states)
+        started.append(perception)
+        stop, result = threading.Event(), {}
+
+        def serve() -> None:
+            try:
+                result["stats"] = run(service_session, config=config, stop=stop,
+                                      core=ControllerCore(config, policy=policy))
+            except BaseException as exc:  # surfaced below
+                result["error"] = exc
+
+        thread = threading.Thread(target=serve, name="controller", daemon=True)
+        thread.start()
+        try:
+            assert wait_until(lambda: is_alive(test_session, "uav1", "controller", 0.5) or "error" in result, 15.0)
+            perception.start()
+            # Hand-over ends the flight: the fake is at/below 20 m and no longer steered by us.
+            done = wait_until(lambda: "error" in result or (policy.steps > 0 and _handed_over(fake, handover)),
+                              FLIGHT_DEADLINE_S)
+            assert "error" not in result, result.get("error")
+            assert done, f"no hand-over: fake at {fake.position_ned_m}, mode {fake.mode}"
+        finally:
+            stop.set()
+            thread.join(15.0)
+            perception.stop.set()
+            perception.join(5.0)
+        assert not thread.is_alive()
+        if "error" in result:
+            raise result["error"]
+        return result["stats"], perception
+
+    yield fly
+    for thing in started:
+        if isinstance(thing, Inbox):
+            thing.close()
+
+
+def _handed_over(fake: FakeAutopilot, handover: str) -> bool:
+    """At/below 20 m and the hand-over action visible on the autopilot's side."""
+    if handover == "precland":
+        return fake.mode in ("LAND", "PRECLAND") and len(fake.landing_targets) >= 3
+    if handover == "land":
+        return fake.mode == "LAND"
+    sps = fake.received()[0]
+    return bool(sps) and sps[-1].vel_m_s == (0.0, 0.0, 0.0) and -fake.position_ned_m[2] <= 20.0
+
+
+def udp_pair() -> tuple[str, str]:
+    port = free_port(socket.SOCK_DGRAM)
+    return f"udpin:127.0.0.1:{port}", f"udpout:127.0.0.1:{port}"
+
+
+@pytest.mark.parametrize(("flavour", "handover"), [("ardupilot", "precland"), ("px4", "land")])
+def test_flies_from_boot_with_takeoff_steers_descends_and_hands_over(flight, flavour: str, handover: str,
+                                                                   caplog: pytest.LogCaptureFixture) -> None:
+    caplog.set_level(logging.INFO)
+    listen, connect = udp_pair()
+    config = ControllerConfig(lockstep=False, timing="real", vehicle_url=connect, vehicle_connect_timeout_s=5.0,
+                              takeoff_alt_m=TAKEOFF_ALT_M, takeoff_ready_timeout_s=30.0, handover_action=handover,
+                              state_stale_after_s=1.0)
+    policy = ForwardAndDown()
+    # Boot of 1.5 s: the takeoff has to wait through pre-arm failures; heading drifts 3 deg/s.
+    with FakeAutopilot(listen, flavour=flavour, armed=False, alt_m=0.0, heartbeat_hz=10, boot_s=1.5,
+                       heading_drift_rad_s=math.radians(3.0), statustext_period_s=0.5) as fake:
+        stats, perception = flight(fake, config, policy)
+        setpoints, _, commands = fake.received()
+    # It waited: the first ARM came after the boot, and the autopilot's reasons were shown at INFO.
+    arms = [c for c in commands if c.command == 400]
+    assert arms and arms[-1].result == 0 and arms[0].recv_s >= fake.boot_end_s - 0.1
+    said = [r.getMessage() for r in caplog.records if r.name == "dovesei.controller.mavlink" and
+            r.levelno == logging.INFO and r.getMessage().startswith("autopilot [")]
+    assert any("CRITICAL" in m and ("PreArm" in m or "Preflight" in m) for m in said), said
+    # Steered: forward 3 m/s in the body frame, descending within the 1.5 m/s limit.
+    steered = [sp for sp in setpoints if sp.vel_m_s[0] > 2.9]
+    assert steered and all(sp.vel_m_s[2] <= 1.5 for sp in setpoints)
+    # Heading held against the drift (the correction shows as a yaw rate): during the descent the
+    # camera turns less than 6 degrees, where the drift alone would turn it 3 degrees a second.
+    assert any(sp.yaw_rate_rad_s < -0.01 for sp in steered)
+    peak = max(range(len(perception.seen)), key=lambda i: perception.seen[i].alt_agl_m)
+    descent = [s.yaw_rad for s in perception.seen[peak:] if s.alt_agl_m > 20.0]
+    assert len(descent) >= 4
+    spread_deg = max(abs(math.degrees(math.remainder(y - descent[0], 2 * math.pi))) for y in descent)
+    assert spread_deg < 6.0, spread_deg
+    # The controller was the one link owner: its states reached Zenoh and fed the perception.
+    assert stats.states_published > 50 and perception.published > 10
+    assert perception.newest is not None and perception.newest.stamp.clock == "vehicle"
+    assert stats.commands_sent > 20 and stats.vehicle_link["samples_rejected"] == {}
+    if handover == "precland":
+        target = fake.landing_targets[-1]
+        assert target.frame == 12 and target.angle_x_rad > 0.05  # right of centre: positive image x
+        assert abs(target.angle_y_rad) < 0.05
