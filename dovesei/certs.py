@@ -143,6 +143,20 @@ def router_config(directory: str, *, listen: Sequence[str] = (DEFAULT_LISTEN,),
     }
 
 
+def router_json5(conf: dict) -> str:
+    """A router config as JSON5 text a person can review: one ACL rule, subject or policy per line."""
+    conf = dict(conf)
+    acl = conf.pop("access_control", None)
+    text = json.dumps(conf, indent=2)
+    if acl is None:
+        return text + "\n"
+    lines = [text[:-2] + ",", '  "access_control": {', f'    "enabled": {json.dumps(acl["enabled"])},',
+             f'    "default_permission": {json.dumps(acl["default_permission"])},']
+    for part in ("rules", "subjects", "policies"):
+        lines += [f'    "{part}": [', *(f"      {json.dumps(item)}," for item in acl[part]), "    ],"]
+    return "\n".join([*lines, "  }", "}"]) + "\n"
+
+
 # --- certificates -------------------------------------------------------------------------------------
 
 
@@ -262,7 +276,7 @@ def write_pki(out: Path, *, roles: Iterable[str] = tuple(ROLES), router_names: S
     conf = router_config(config_dir or str(out.resolve()), listen=listen, vehicle=vehicle)
     (out / "router.json5").write_text(
         "// Written by `dovesei certs`: the secured Zenoh router (mutual TLS + ACL, deny by default).\n"
-        + json.dumps(conf, indent=2) + "\n")
+        + router_json5(conf))
     written["router.json5"] = out / "router.json5"
     return written
 
