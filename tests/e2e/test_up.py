@@ -25,6 +25,9 @@ from dovesei.shared.messages import ControllerStatus, Stamp, VehicleState
 from dovesei.up import (
     SERVICES, Recorder, Sample, UpOptions, build_report, child_commands, last_error_line, parse_start, zenoh_flags,
 )
+from dovesei.up.launch import MODULES, check_link_owners, child_configs, mavlink_links
+from dovesei.up.options import parse_mavlink_url
+from dovesei.up.report import Failure
 
 WORLD = "synthetic:size_m=400,seed=1"  # generated in about a second, cached on disk after
 LIMIT_S = 300.0
@@ -45,34 +48,80 @@ def test_peers_listen_on_their_own_port_and_connect_to_every_other() -> None:
     assert routed == ["--mode", "client", "--connect", "tcp/10.0.0.1:7447"]
 
 
+def _parsed(name: str, argv: list[str]):
+    """A child's argv parsed back by the service's own parser: (namespace, typed config)."""
+    import importlib
+
+    service = importlib.import_module(MODULES[name])
+    args = service.build_parser().parse_args(argv[3:])  # past `python -m module`
+    return args, service.config_from_args(args)
+
+
 def test_child_commands_carry_the_episode_spec_exactly(tmp_path: Path) -> None:
-    opts = UpOptions(world=WORLD, segmenter="sim", policy="dovesei-nofocus", timing="real", seed=7, out=tmp_path)
+    opts = UpOptions(world=WORLD, segmenter="sim", policy="dovesei-nofocus", timing="real", seed=7, out=tmp_path,
+                     heatmap_wait_s=1.5, noise=0.25)
     start = (233.1457945777474, 144.28659252173492, 100.0)
-    every = {"--stats-out", "--wait-for"}
-    cmds = child_commands(opts, start, {n: 1 for n in (*SERVICES, "monitor")}, tmp_path, 0.25,
-                          flags={n: every for n in SERVICES})
-    sim, seg, ctrl = cmds["sim"], cmds["segmenter"], cmds["controller"]
-    # repr() of the floats: the sim starts at exactly the same point as the in-process runner.
-    assert sim[sim.index("--start") + 1] == "233.1457945777474,144.28659252173492,100.0"
-    assert sim[sim.index("--wait-for") + 1] == "segmenter,controller"
-    assert "--lockstep" in sim and "--lockstep" in seg and "--lockstep" in ctrl
-    assert seg[seg.index("--sim-noise") + 1] == "0.25" and seg[seg.index("--sim-seed") + 1] == "7"
-    assert ctrl[ctrl.index("--policy") + 1] == "dovesei-nofocus" and ctrl[ctrl.index("--timing") + 1] == "real"
-    assert all(c[c.index("--stats-out") + 1].endswith(f"{n}.json") for n, c in cmds.items())
-    # A flag a service does not have is never passed (it would make argparse exit).
-    bare = child_commands(opts, start, {n: 1 for n in (*SERVICES, "monitor")}, tmp_path, 0.25,
-                          flags={n: set() for n in SERVICES})
-    assert all("--stats-out" not in c and "--wait-for" not in c for c in bare.values())
+    configs = child_configs(opts, start)
+    cmds = child_commands(opts, configs, {n: 1 for n in (*SERVICES, "monitor")}, tmp_path)
+    # Each service parses its command line back into exactly the config up built for it.
+    parsed = {name: _parsed(name, cmds[name]) for name in SERVICES}
+    assert parsed["sim"][1] == configs.sim and parsed["segmenter"][1] == configs.segmenter
+    assert parsed["controller"][1] == configs.controller
+    sim, seg, ctrl = configs.sim, configs.segmenter, configs.controller
+    # The exact floats: the sim starts at the point the in-process runner would use.
+    assert sim.start_xy_alt_m == start and sim.wait_for == ("segmenter", "controller")
+    assert (sim.sim.vehicle_id, sim.sim.timing, sim.sim.seed, sim.sim.time_limit_s) == ("uav1", "real", 7,
+                                                                                       opts.time_limit_s)
+    assert sim.lockstep and seg.lockstep and ctrl.lockstep and not sim.external_pose
+    assert (seg.vehicle_id, seg.segmenter.backend, seg.segmenter.sim_noise, seg.segmenter.sim_seed) == (
+        "uav1", "sim", 0.25, 7)
+    assert (ctrl.vehicle_id, ctrl.policy, ctrl.timing, ctrl.vehicle_url) == ("uav1", "dovesei-nofocus", "real", "zenoh")
+    assert ctrl.lockstep_heatmap_wait_s == 1.5 and configs.noise == 0.25
+    from dovesei.shared.cliconfig import PROCESS, ProcessOptions
+
+    for name, (args, _) in parsed.items():
+        assert PROCESS.from_args(args) == ProcessOptions("INFO", tmp_path / "stats" / f"{name}.json")
+    # Without --noise the segmenter runs its own calibrated default, and the report says which.
+    from dovesei.segmenter.core import SegmenterConfig
+
+    assert child_configs(UpOptions(world=WORLD, out=tmp_path), start).noise == SegmenterConfig().sim_noise
 
 
 def test_a_real_vehicle_runs_in_real_time_with_the_sim_as_camera(tmp_path: Path) -> None:
-    opts = UpOptions(world=WORLD, vehicle="udpin:0.0.0.0:14550", pose_url="udpin:0.0.0.0:14551", out=tmp_path)
+    opts = UpOptions(world=WORLD, vehicle_url="udpin:0.0.0.0:14550", timing="real", out=tmp_path)
     assert not opts.lockstep
-    cmds = child_commands(opts, (1.0, 2.0, 30.0), {n: 1 for n in (*SERVICES, "monitor")}, tmp_path, 0.0,
-                          flags={n: set() for n in SERVICES})
-    assert "--external-pose" in cmds["sim"] and not any(a.startswith("udp") for a in cmds["sim"])
-    assert cmds["controller"][cmds["controller"].index("--vehicle") + 1] == "udpin:0.0.0.0:14550"
-    assert "--realtime" in cmds["controller"]
+    cmds = child_commands(opts, child_configs(opts, (1.0, 2.0, 30.0)), {n: 1 for n in (*SERVICES, "monitor")},
+                          tmp_path)
+    _, ctrl = _parsed("controller", cmds["controller"])
+    assert ctrl.vehicle_url == "udpin:0.0.0.0:14550" and not ctrl.lockstep and ctrl.timing == "real"
+    _, sim = _parsed("sim", cmds["sim"])
+    assert sim.external_pose is True and sim.lockstep is False
+    # Only the controller opens the autopilot's link.
+    assert set(mavlink_links(cmds)) == {"controller"}
+    check_link_owners(cmds)
+
+
+def test_two_processes_on_one_mavlink_endpoint_are_refused() -> None:
+    from dovesei.shared.errors import ConfigError
+
+    cmds = {"sim": ["python", "-m", "x", "--pose", "udpin:0.0.0.0:14550"],
+            "controller": ["python", "-m", "y", "--vehicle", "udp:0.0.0.0:14550"]}
+    with pytest.raises(ConfigError, match="both sim and controller would bind 0.0.0.0:14550"):
+        check_link_owners(cmds)
+    # Two clients sending to one autopilot bind nothing locally: allowed.
+    check_link_owners({"a": ["--v", "udpout:10.0.0.2:14550"], "b": ["--v", "udpout:10.0.0.2:14550"]})
+
+
+def test_a_vehicle_flies_on_true_seconds_and_its_url_is_checked(tmp_path: Path) -> None:
+    from dovesei.shared.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="--timing real"):
+        UpOptions(vehicle_url="udpin:0.0.0.0:14550", timing="reference", out=tmp_path)
+    for bad in ("14550", "udpin:0.0.0.0", "udpin:0.0.0.0:99999", "http://x:1", "udp:host:port"):
+        with pytest.raises(ConfigError, match="--vehicle"):
+            UpOptions(vehicle_url=bad, timing="real", out=tmp_path)
+    ep = parse_mavlink_url("tcp:127.0.0.1:5760")
+    assert (ep.scheme, ep.host, ep.port, ep.binds) == ("tcp", "127.0.0.1", 5760, False)
 
 
 def test_takeoff_needs_a_vehicle_and_start_is_checked() -> None:
@@ -114,13 +163,15 @@ def test_recorder_trajectory_is_start_plus_local_ned_with_the_state_of_each_tick
 @pytest.mark.parametrize("realtime", [False, True])
 def test_report_of_a_run_that_never_started_says_why(tmp_path: Path, realtime: bool) -> None:
     opts = UpOptions(world=WORLD, segmenter="sim", realtime=realtime, out=tmp_path)
-    failure = {"child": "sim", "returncode": 1, "last_line": "boom", "message": "sim exited with code 1"}
+    failure = Failure("sim", 1, "boom", "sim exited with code 1")
     report = build_report(opts, Recorder((1.0, 2.0, 100.0), video=False), (1.0, 2.0, 100.0), 0.0, {}, failure,
-                          False, 3.0)
+                          False, 3.0).to_dict()
     assert report["outcome"] == "error" and report["detail"] == "sim exited with code 1" and not report["judged"]
     assert report["latency_ms"]["command_to_sim"]["measured_by"] == "monitor"
     assert report["mode"] == ("realtime" if realtime else "lockstep")
     assert report["trajectory"]["t_s"] == [] and report["final"] is None
+    assert report["failure"] == {"child": "sim", "returncode": 1, "last_line": "boom",
+                                 "message": "sim exited with code 1"}
     json.dumps(report)  # the report must serialise as it is
 
 
@@ -135,7 +186,7 @@ def test_takeoff_arms_and_climbs_a_grounded_autopilot_only_when_asked(tmp_path: 
         port = s.getsockname()[1]
     fake = FakeAutopilot(f"udpin:127.0.0.1:{port}", mode="LOITER", armed=False, alt_m=0.0, heartbeat_hz=20).start()
     try:
-        opts = UpOptions(vehicle=f"udpout:127.0.0.1:{port}", takeoff=True, out=tmp_path)
+        opts = UpOptions(vehicle_url=f"udpout:127.0.0.1:{port}", takeoff=True, timing="real", out=tmp_path)
         takeoff(opts, 2.0)
         assert fake.armed and fake.mode == "GUIDED" and -fake.position_ned_m[2] >= 1.9
     finally:
@@ -244,8 +295,8 @@ def test_up_flies_to_the_judge_and_matches_the_in_process_runner(tmp_path: Path)
         code, stdout, stderr = up.finish(timeout_s=150)
     finally:
         up.kill()
-    assert code == 0, stderr[-3000:]
     report = json.loads((tmp_path / "run" / "report.json").read_text())
+    assert code == (0 if report["outcome"] == "safe" else 3), stderr[-3000:]
     assert report["outcome"] in ("safe", "unsafe", "timeout", "out_of_world") and report["judged"]
     assert report["outcome"] in stdout
     assert report["backend"] == "simulated" and report["simulated"] is True
@@ -325,3 +376,31 @@ def test_ctrl_c_leaves_no_process_behind(tmp_path: Path) -> None:
     assert not left, f"still running after Ctrl-C: {left}"
     report = json.loads((out / "report.json").read_text())
     assert report["interrupted"] is True and report["trajectory"]["t_s"]
+
+
+@pytest.mark.slow
+def test_a_hung_segmenter_is_named_and_up_fails(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    # A stopped process keeps its pid and, for a while, its liveliness token: only its silence shows.
+    up = _Up(out, "--no-video", "--stall-s", "3", "--after-failure-s", "2", "--heatmap-wait-s", "1",
+             "--heatmap-hold-after-s", "0.25")
+    seg_pid = None
+    try:
+        m = up.wait_for_line(r"alt ([2-8]\d|9[0-4])\.\d m: controller", timeout_s=90)
+        assert m is not None, "\n".join(up.lines[-30:])
+        seg_pid = _pids(out)["segmenter"]
+        os.kill(seg_pid, signal.SIGSTOP)
+        code, _stdout, stderr = up.finish(timeout_s=90)
+    finally:
+        if seg_pid is not None and not _gone(seg_pid):
+            os.kill(seg_pid, signal.SIGCONT)
+        up.kill()
+    assert code == 1, stderr[-3000:]
+    last = stderr.splitlines()[-1]
+    assert "segmenter" in last and "hung" in last and "no heatmap message for" in last, last
+    report = json.loads((out / "report.json").read_text())
+    assert report["failure"]["child"] == "segmenter" and report["outcome"] == "error"
+    watchdog = np.asarray(report["trajectory"]["watchdog"])
+    held = np.arange(int(np.flatnonzero(watchdog == "ok").max()) + 1, len(watchdog))
+    assert held.size > 0 and np.all(watchdog[held] == "hold")
+    assert np.all(np.asarray(report["trajectory"]["cmd_down_m_s"])[held] <= 0.0), "descent commanded while blind"

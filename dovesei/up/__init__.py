@@ -1,0 +1,218 @@
+"""`dovesei up`: fly one episode with the three services as separate OS processes on Zenoh.
+
+    dovesei up ──starts──> dovesei.sim.service         (camera frames, vehicle states, judge)
+               ──starts──> dovesei.segmenter.service   (heatmaps)
+               ──starts──> dovesei.controller.service  (velocity commands, status)
+               ──monitor session──> records states, statuses, commands, heatmaps, a subsample
+                                    of the camera frames, liveliness and the EpisodeResult
+               ──at the end──> <out>/report.json, trajectory.png, episode.mp4
+                               <out>/logs/<service>.log (each child's output), stats/<service>.json
+                               (from services with --stats-out), pids.json (written at start)
+
+The package, by concern: `options` (flags, typed options, every check made before a process
+starts), `launch` (each service's command line and Zenoh wiring), `children` (the processes),
+`monitor` (what `up` sees on Zenoh), `watch` (dead, hung or silent services; whose result to
+believe), `report` (the typed run report and its pictures). This module runs them in order.
+
+`up` never steps anything itself: the sim runs the episode (lockstep by default, so the trajectory
+equals `dovesei.episode.run_episode` for the same spec) and `up` watches the keys like any
+operator would. With `--vehicle URL` a real autopilot flies instead of the simulated vehicle, in
+true seconds (the `real` timing preset): the controller is the one process that opens the MAVLink
+link and publishes the autopilot's state; the sim renders the world at that state (its local
+origin placed at --start) and judges there.
+
+Exit codes: 0 landed safely; 3 the episode ran but ended unsafe, timed out or left the world;
+1 an error (a service died or hung, takeoff refused, an 'error' ending); 2 bad usage (flags, world,
+model directory, MAVLink URL: one line, before any process starts and before the output folder
+exists); 130 interrupted (SIGINT/SIGTERM stop every child the same way).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+import sys
+import threading
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import zenoh
+
+from dovesei.shared.errors import ConfigError, DoveseiError
+from dovesei.shared.lifecycle import install_stop_handlers
+from dovesei.shared.zconfig import free_port, zenoh_config
+from dovesei.up.children import Children, describe_exit, last_error_line
+from dovesei.up.launch import (
+    SERVICES, ChildConfigs, check_endpoint_free, check_link_owners, child_commands, child_configs, child_env,
+    zenoh_flags,
+)
+from dovesei.up.monitor import Monitor, Recorder, Sample
+from dovesei.up.options import (
+    UpOptions, build_parser, check_policy, options_from_args, parse_mavlink_url, parse_start, resolve_start,
+)
+from dovesei.up.report import RunReport, build_report, read_stats, write_outputs
+from dovesei.up.watch import RESULT_AFTER_EXIT_S, Watcher
+
+__all__ = ["SERVICES", "EXIT_OK", "EXIT_FAILED", "EXIT_USAGE", "EXIT_UNSAFE", "EXIT_INTERRUPTED", "Recorder",
+           "Sample", "UpOptions", "UpError", "build_report", "child_commands", "last_error_line", "main",
+           "parse_start", "run", "takeoff", "zenoh_flags"]
+
+log = logging.getLogger("dovesei.up")
+
+EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_UNSAFE, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
+
+
+class UpError(DoveseiError):
+    """`dovesei up` could not start or run the episode; the message says what and why."""
+
+
+def exit_code(report: RunReport) -> int:
+    if report.failure is not None:
+        return EXIT_FAILED
+    if report.interrupted:
+        return EXIT_INTERRUPTED
+    if report.outcome == "safe":
+        return EXIT_OK
+    return EXIT_UNSAFE if report.episode.judged else EXIT_FAILED
+
+
+def takeoff(options: UpOptions, alt_m: float) -> None:
+    """Only with --takeoff: GUIDED, arm and climb to the start altitude, then hand the link back.
+
+    `up` holds the link only here, before the controller starts, and closes it first: never two
+    processes on one endpoint.
+    """
+    from dovesei.controller.mavlink import MavlinkVehicle
+
+    log.warning("--takeoff: arming %s and climbing to %.1f m", options.vehicle_url, alt_m)
+    with MavlinkVehicle(options.vehicle_url, vehicle_id=options.vehicle_id) as vehicle:
+        vehicle.connect(30.0)
+        vehicle.arm_and_takeoff(alt_m)
+
+
+def preflight(options: UpOptions) -> tuple[object, tuple[float, float, float], ChildConfigs]:
+    """Everything that can be wrong before a process starts: policy, world, start, the link's endpoint."""
+    from dovesei.sim.world import load_world
+
+    check_policy(options.policy)
+    if options.out.exists() and not options.out.is_dir():
+        raise ConfigError(f"--out {str(options.out)!r} is a file; give a folder for the report")
+    if options.vehicle_url:
+        check_endpoint_free(parse_mavlink_url(options.vehicle_url))
+    world = load_world(options.world)
+    start = resolve_start(world, options)
+    configs = child_configs(options, start)  # each service's own checks, now rather than in a child
+    # The ports do not change which links the command lines open: placeholders suffice here.
+    check_link_owners(child_commands(options, configs, {n: 0 for n in (*SERVICES, "monitor")}, options.out))
+    return world, start, configs
+
+
+def _remove_if_empty(out: Path, created: list[Path]) -> None:
+    """A failed run leaves no empty folder behind: remove the folders this run made if they hold no file."""
+    if out.is_dir() and not any(p.is_file() for p in out.rglob("*")):
+        for folder in sorted(created, key=lambda p: len(p.parts), reverse=True):
+            shutil.rmtree(folder, ignore_errors=True)
+
+
+def run(options: UpOptions, *, stop: threading.Event,
+        checked: tuple[object, tuple[float, float, float], ChildConfigs] | None = None) -> int:
+    """Fly one episode; writes the report folder and returns the exit code.
+
+    `checked` is what `preflight(options)` returned (it runs here when not given).
+    """
+    t0 = time.monotonic()
+    world, start, configs = preflight(options) if checked is None else checked
+    out = options.out
+    created = [p for p in (*reversed(out.parents), out) if not p.exists()]
+    (out / "logs").mkdir(parents=True, exist_ok=True)
+    (out / "stats").mkdir(exist_ok=True)
+    try:
+        return _fly(options, world, start, configs, stop, t0)
+    finally:
+        _remove_if_empty(out, created)
+
+
+def _fly(options: UpOptions, world: object, start: tuple[float, float, float], configs: ChildConfigs,
+         stop: threading.Event, t0: float) -> int:
+    out = options.out
+    noise = configs.noise
+    log.info("world %s (%.0f x %.0f m), start (%.1f, %.1f) m at %.0f m, policy %s, %s timing, %s, segmenter %s",
+             options.world, world.width_m, world.height_m, *start, options.policy, options.timing,
+             "lockstep" if options.lockstep else "real time", options.segmenter)
+    if options.vehicle_url and options.segmenter == "sim":
+        log.warning("--segmenter sim with --vehicle: heatmaps come from the world's labels at the autopilot's "
+                    "pose, not from a model")
+    if options.segmenter != "sim" and options.lockstep and options.timing == "reference":
+        log.warning("a model segmenter in lockstep with reference timing runs one inference per 0.05 s of sim "
+                    "time; --timing real needs ten times fewer")
+    ports = {name: free_port() for name in (*SERVICES, "monitor")}
+    commands = child_commands(options, configs, ports, out)
+    if options.takeoff:
+        takeoff(options, start[2])
+
+    monitor_conf = (zenoh_config(mode="client", connect=options.connect, env={}) if options.connect else
+                    zenoh_config(mode="peer", listen=[f"tcp/127.0.0.1:{ports['monitor']}"], multicast_scouting=False,
+                                 env={}))
+    rec = Recorder(start, video=options.video, vehicle_id=options.vehicle_id)
+    children = Children(out / "logs")
+    session = zenoh.open(monitor_conf)
+    monitor = None
+    try:
+        # Subscribed before any child starts: the first state the sim publishes is recorded.
+        monitor = Monitor(session, options.vehicle_id, rec, with_camera=options.video or bool(options.vehicle_url))
+        for name in SERVICES:
+            children.start(name, commands[name], child_env(name, options))
+        (out / "pids.json").write_text(json.dumps({"up": os.getpid(), **{n: p.pid for n, p in children.procs.items()}}))
+        end = Watcher(options, rec, monitor, children, stop, t0).run()
+        if rec.result is not None:
+            # The sim ends its run once the result is out: a signal now would only cut its shutdown.
+            children.wait_exit("sim", RESULT_AFTER_EXIT_S)
+    finally:
+        codes = children.stop_all()
+        if monitor is not None:
+            monitor.drain()
+            monitor.close()
+        session.close()
+    log.info("children stopped: %s", ", ".join(f"{n} {describe_exit(c)}" for n, c in codes.items()))
+
+    report = build_report(options, rec, start, noise, read_stats(out), end.failure, end.interrupted,
+                          time.monotonic() - t0)
+    report = write_outputs(world, report, rec, out, options.video)
+    log.info("report: %s (%s)", out / "report.json", ", ".join(report.files.values()))
+    code = exit_code(report)
+    if end.failure is not None:
+        print(f"dovesei up: {end.failure.message}", file=sys.stderr)
+    elif end.interrupted:
+        print("dovesei up: interrupted; every service stopped", file=sys.stderr)
+    else:
+        t = report.timing
+        print(f"{report.outcome}: {report.episode.detail} ({report.episode.sim_time_s:.1f} s sim in "
+              f"{t.episode_wall_s or t.wall_time_s:.1f} s wall, path {report.episode.path_length_m:.0f} m, "
+              f"{report.perception_text()}); transport overhead p50 {t.transport_overhead.p50_ms} ms")
+    return code
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=args.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    stop = install_stop_handlers()
+    from dovesei.sim.world import WorldError
+
+    try:
+        options = options_from_args(args)
+        checked = preflight(options)
+    except (ConfigError, WorldError) as exc:  # bad flags, or a world, model, link or start that cannot be used
+        print(f"dovesei up: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    try:
+        return run(options, stop=stop, checked=checked)
+    except DoveseiError as exc:  # could not run: takeoff refused, a link taken
+        print(f"dovesei up: {exc}", file=sys.stderr)
+        return EXIT_FAILED
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,256 @@
+"""What `dovesei up` was asked to do: its flags, the typed options built from them, and every check
+that can be made before a process starts.
+
+    argv --build_parser--> Namespace --options_from_args--> UpOptions (checked on construction)
+         --preflight--> world, model directory, MAVLink URL, policy: one line naming the flag
+
+A user error never reaches a child: `main` turns any `ConfigError` or `WorldError` from here into
+one line on stderr and exit code 2, before the output folder exists.
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+from dataclasses import dataclass
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+from dovesei.shared import keys, validate
+from dovesei.shared.errors import ConfigError
+from dovesei.shared.timing import DEFAULT_TIMING, TIMING_NAMES, timing
+
+SEGMENTERS = ("auto", "clipseg", "sim")
+LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR")
+SEED_MAX = 2**32 - 1  # numpy's SeedSequence takes any int >= 0; the services' seeds fit 32 bits
+
+# pymavlink URL schemes, and whether the process opening the URL binds the local endpoint.
+MAVLINK_SCHEMES = {"udpin": True, "udp": True, "tcpin": True, "udpout": False, "udpbcast": False, "tcp": False}
+MAVLINK_FORMS = ("udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT, tcpin:HOST:PORT "
+                 "or a serial device such as /dev/ttyACM0[,BAUD]")
+_HUB_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*/[A-Za-z0-9][A-Za-z0-9_.-]*$")
+
+
+@dataclass(frozen=True)
+class MavlinkEndpoint:
+    """A parsed MAVLink URL: `binds` is True when opening it takes the local endpoint (a listener)."""
+
+    url: str
+    scheme: str  # one of MAVLINK_SCHEMES, or "serial"
+    host: str  # the device path for a serial link
+    port: int  # 0 for a serial link
+    binds: bool
+
+    @property
+    def endpoint(self) -> tuple[str, int]:
+        return self.host, self.port
+
+
+def parse_mavlink_url(url: str, flag: str = "--vehicle") -> MavlinkEndpoint:
+    """A pymavlink URL checked for its form (no socket is opened); ConfigError names the flag."""
+    text = url.strip()
+    scheme, sep, rest = text.partition(":")
+    if sep and scheme in MAVLINK_SCHEMES:
+        host, sep, port_text = rest.rpartition(":")
+        if not sep or not host or not port_text.isdigit() or not 1 <= int(port_text) <= 65535:
+            raise ConfigError(f"{flag} {url!r}: expected {scheme}:HOST:PORT with a port in 1..65535 "
+                              f"(accepted forms: {MAVLINK_FORMS})")
+        return MavlinkEndpoint(text, scheme, host, int(port_text), MAVLINK_SCHEMES[scheme])
+    device, _, baud = text.partition(",")
+    if device.startswith("/dev/") or re.fullmatch(r"COM\d+", device):
+        if baud and not baud.isdigit():
+            raise ConfigError(f"{flag} {url!r}: the baud rate after ',' must be an integer")
+        if device.startswith("/dev/") and not Path(device).exists():
+            raise ConfigError(f"{flag} {url!r}: no such serial device {device}")
+        return MavlinkEndpoint(text, "serial", device, 0, True)
+    raise ConfigError(f"{flag} {url!r}: not a MAVLink URL; accepted forms: {MAVLINK_FORMS}")
+
+
+def check_model(model: str) -> str:
+    """A CLIPSeg model is a local directory with config.json, or a Hub id `owner/name`."""
+    path = Path(model).expanduser()
+    if path.is_dir():
+        if not (path / "config.json").is_file():
+            raise ConfigError(f"--model {model!r}: the directory has no config.json (expected a saved CLIPSeg "
+                              "model: config.json and model.safetensors or pytorch_model.bin)")
+        if not any(path.glob("*.safetensors")) and not (path / "pytorch_model.bin").is_file():
+            raise ConfigError(f"--model {model!r}: the directory has no weights (model.safetensors or "
+                              "pytorch_model.bin)")
+        return model
+    looks_local = model.startswith((".", "/", "~")) or model.count("/") != 1 or path.exists()
+    if looks_local or not _HUB_ID.match(model):
+        raise ConfigError(f"--model {model!r}: no such directory and not a Hub id; give a local model "
+                          "directory or a Hub id such as CIDAS/clipseg-rd64-refined")
+    return model
+
+
+@dataclass(frozen=True)
+class UpOptions:
+    """Everything `up` was asked to do (built from flags; tests may build it directly)."""
+
+    world: str = "synthetic"
+    segmenter: str = "auto"
+    policy: str = "dovesei"
+    timing: str = DEFAULT_TIMING
+    seed: int = 0
+    noise: float | None = None  # None: the simulated perception's calibrated default
+    start: tuple[float, float, float] | None = None  # (x_m, y_m, alt_m); None: from start_seed
+    start_seed: int | None = None  # None: --seed
+    start_alt_m: float = 100.0
+    out: Path = Path("runs/up")
+    realtime: bool = False
+    connect: tuple[str, ...] = ()
+    vehicle_url: str | None = None  # MAVLink URL of a real autopilot (flag --vehicle); None: simulated
+    takeoff: bool = False
+    time_limit_s: float = 1200.0
+    video: bool = True
+    model: str | None = None
+    vehicle_id: str = "uav1"
+    heatmap_wait_s: float | None = None
+    heatmap_hold_after_s: float | None = None
+    after_failure_s: float = 5.0
+    startup_timeout_s: float = 120.0
+    stall_s: float = 8.0  # wall seconds without a service's stream before it is reported hung
+    log_level: str = "INFO"
+
+    def __post_init__(self) -> None:
+        keys.check_vehicle_id(self.vehicle_id)
+        validate.one_of("--segmenter", self.segmenter, SEGMENTERS)
+        validate.one_of("--log-level", self.log_level, LOG_LEVELS)
+        timing(self.timing)  # names the presets when unknown
+        for flag, seed in (("--seed", self.seed), ("--start-seed", self.start_seed)):
+            if seed is not None and not (isinstance(seed, int) and not isinstance(seed, bool)
+                                         and 0 <= seed <= SEED_MAX):
+                raise ConfigError(f"{flag} {seed!r}: a seed is an integer in 0..{SEED_MAX}")
+        if self.takeoff and not self.vehicle_url:
+            raise ConfigError("--takeoff only applies with --vehicle (a real autopilot)")
+        if self.vehicle_url:
+            parse_mavlink_url(self.vehicle_url)
+            if self.timing != "real":
+                # A real vehicle flies in true seconds: the reference preset's 60 s limit and 5 % timers
+                # would end a real flight at ~30 m (measured against ArduPilot SITL).
+                raise ConfigError("--vehicle flies in true seconds: use --timing real (or leave --timing out)")
+        if self.start is not None:
+            validate.finite_vector("--start", self.start, 3)
+            validate.positive("--start altitude (m)", self.start[2])
+        validate.positive("--start-alt-m", self.start_alt_m)
+        for flag, value in (("--heatmap-wait-s", self.heatmap_wait_s),
+                            ("--heatmap-hold-after-s", self.heatmap_hold_after_s)):
+            if value is not None:
+                validate.positive(flag, value)
+        validate.positive("--time-limit-s", self.time_limit_s)
+        validate.positive("--stall-s", self.stall_s)
+        validate.positive("startup_timeout_s", self.startup_timeout_s)
+        if self.noise is not None:
+            validate.non_negative("--noise", self.noise)
+        validate.non_negative("--after-failure-s", self.after_failure_s)
+        if self.model is not None:
+            if self.segmenter == "sim":
+                raise ConfigError("--model only applies to a model segmenter (--segmenter auto or clipseg)")
+            check_model(self.model)
+
+    @property
+    def lockstep(self) -> bool:
+        # A real autopilot cannot wait for anyone: real time whenever one flies.
+        return not self.realtime and not self.vehicle_url
+
+
+def parse_start(text: str) -> tuple[float, float, float | None]:
+    """`X,Y` or `X,Y,ALT` in world metres (x east, y north)."""
+    parts = [p.strip() for p in text.split(",")]
+    try:
+        values = [float(p) for p in parts]
+    except ValueError:
+        raise ConfigError(f"--start {text!r}: expected X,Y or X,Y,ALT in metres") from None
+    if len(values) not in (2, 3) or not all(validate.is_number(v) for v in values):
+        raise ConfigError(f"--start {text!r}: expected two or three finite numbers X,Y[,ALT]")
+    return values[0], values[1], (values[2] if len(values) == 3 else None)
+
+
+def resolve_start(world: Any, options: UpOptions) -> tuple[float, float, float]:
+    """The start `up` hands the sim explicitly, so it also knows where the local frame's origin is.
+
+    Without --start it is the first of `generate_starts(world, n, seed)`, i.e. exactly the bench's
+    start 0 for the same seed.
+    """
+    from dovesei.sim.starts import generate_starts
+
+    if options.start is not None:
+        x_m, y_m, alt_m = options.start
+        if not world.contains(x_m, y_m):
+            raise ConfigError(f"--start {x_m:g},{y_m:g} lies outside the world "
+                              f"({world.width_m:.0f} x {world.height_m:.0f} m, x east, y north)")
+        return float(x_m), float(y_m), float(alt_m)
+    seed = options.seed if options.start_seed is None else options.start_seed
+    st = generate_starts(world, 1, seed, alt_m=options.start_alt_m)[0]
+    return st.x_m, st.y_m, st.alt_m
+
+
+def check_policy(name: str) -> None:
+    from dovesei.controller.policies import policy_names
+
+    validate.one_of("--policy", name, policy_names())
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from dovesei import up
+
+    p = argparse.ArgumentParser(prog="dovesei up", description=up.__doc__.split("\n\n")[0],
+                                epilog="exit codes: 0 landed safely, 3 the episode ran but ended unsafe, timed out "
+                                       "or left the world, 1 an error (a service died or hung), 2 bad usage, "
+                                       "130 interrupted",
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--world", default="synthetic", help="synthetic[:seed=N,size_m=X,...] or a world folder")
+    p.add_argument("--segmenter", default="auto", choices=SEGMENTERS,
+                   help="auto: CLIPSeg when its weights load locally, else the simulated perception")
+    p.add_argument("--model", help="CLIPSeg Hub id or local directory (default: the segmenter's)")
+    p.add_argument("--policy", default="dovesei", help="landing policy (dovesei, dovesei-nofocus)")
+    p.add_argument("--timing", choices=TIMING_NAMES,
+                   help=f"timing preset (default: {DEFAULT_TIMING}; real with --vehicle)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the perception noise and of the start")
+    p.add_argument("--noise", type=float, help="simulated perception noise scale (default: calibrated)")
+    where = p.add_mutually_exclusive_group()
+    where.add_argument("--start", metavar="X,Y[,ALT]", help="start position in world metres (x east, y north)")
+    where.add_argument("--start-seed", type=int, help="draw the start like the bench's start 0 with this seed")
+    p.add_argument("--start-alt-m", type=float, default=100.0, help="start altitude when --start gives none")
+    p.add_argument("--time-limit-s", type=float, default=None,
+                   help="sim-time limit of the episode (default: the paper's 1200 s on the preset's clock, "
+                        "as `dovesei bench`: 60 s with --timing reference, 1200 s with --timing real)")
+    p.add_argument("--out", type=Path, help="report folder (default: runs/up-<timestamp>)")
+    p.add_argument("--realtime", action="store_true", help="wall-clock rate instead of lockstep")
+    p.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
+                   help="use a Zenoh router at this endpoint instead of loopback peers (repeatable)")
+    p.add_argument("--vehicle", metavar="URL", dest="vehicle_url",
+                   help=f"fly a real autopilot over MAVLink ({MAVLINK_FORMS}); it must already fly in "
+                        "GUIDED/OFFBOARD unless --takeoff")
+    p.add_argument("--takeoff", action="store_true", help="with --vehicle: arm and climb to the start altitude first")
+    p.add_argument("--video", action=argparse.BooleanOptionalAction, default=True, help="write episode.mp4")
+    p.add_argument("--vehicle-id", default="uav1", help="vehicle id in the Zenoh keys (default: uav1)")
+    p.add_argument("--heatmap-wait-s", type=float,
+                   help="controller, lockstep: wall seconds to wait for a due heatmap (default: the controller's)")
+    p.add_argument("--heatmap-hold-after-s", type=float,
+                   help="controller watchdog: hold when the heatmap is older than this (default: the controller's)")
+    p.add_argument("--after-failure-s", type=float, default=5.0,
+                   help="after a service dies or hangs, keep recording this long before stopping the others")
+    p.add_argument("--stall-s", type=float, default=8.0,
+                   help="report a service as hung when its stream is silent this many wall seconds")
+    p.add_argument("--log-level", default="INFO", choices=LOG_LEVELS)
+    return p
+
+
+def options_from_args(args: argparse.Namespace) -> UpOptions:
+    start = None
+    if args.start:
+        x_m, y_m, alt_m = parse_start(args.start)
+        start = (x_m, y_m, args.start_alt_m if alt_m is None else alt_m)
+    timing_name = args.timing or ("real" if args.vehicle_url else DEFAULT_TIMING)
+    out = args.out or Path("runs") / f"up-{datetime.now().strftime('%Y%m%d-%H%M%S')}"
+    limit_s = timing(timing_name).time_limit_s if args.time_limit_s is None else args.time_limit_s
+    return UpOptions(world=args.world, segmenter=args.segmenter, policy=args.policy, timing=timing_name,
+                     seed=args.seed, noise=args.noise, start=start, start_seed=args.start_seed,
+                     start_alt_m=args.start_alt_m, out=out, realtime=args.realtime, connect=tuple(args.connect),
+                     vehicle_url=args.vehicle_url, takeoff=args.takeoff, time_limit_s=limit_s, video=args.video,
+                     model=args.model, vehicle_id=args.vehicle_id, heatmap_wait_s=args.heatmap_wait_s,
+                     heatmap_hold_after_s=args.heatmap_hold_after_s, after_failure_s=args.after_failure_s,
+                     stall_s=args.stall_s, log_level=args.log_level)

@@ -1,0 +1,205 @@
+"""Watching the services while the episode runs: the loop between start-up and the report.
+
+    every few ms: drain the monitor, then in order
+      - a result candidate on the episode key: accepted only once the sim has ended its run (its
+        process exited right after) and the result agrees with the last recorded state; one
+        that arrives while the sim keeps flying is not the sim's, and is refused and counted
+      - a child that exited before the result: a failure naming it and its last log line
+      - a stream gone silent for --stall-s wall seconds (status: controller, heatmap: segmenter,
+        camera/state: sim): a failure naming the service whose stream went quiet FIRST (in
+        lockstep one hang silences everything downstream of it), with its liveliness
+      - nothing at all within the start-up timeout: a failure
+    after a failure the others keep running for --after-failure-s, so the report shows how they
+    reacted (the controller's watchdog holding), then `up` stops everything and exits 1.
+
+A hung process keeps its pid and often its liveliness token (the Zenoh lease outlives short
+stalls), so an exit alone would miss it: a 14 s segmenter hang once ended in a mid-air LANDED
+with `up` reporting nothing.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from dataclasses import dataclass
+
+from dovesei.shared.messages import EpisodeResult
+from dovesei.up.children import Children, describe_exit, last_error_line
+from dovesei.up.monitor import Monitor, Recorder
+from dovesei.up.options import UpOptions
+from dovesei.up.report import Failure
+
+log = logging.getLogger("dovesei.up")
+
+RESULT_AFTER_EXIT_S = 2.0  # a sim that exits right after publishing: give the result time to arrive
+RESULT_CONFIRM_S = 10.0  # a result is the sim's only if the sim ends its run within this long after it
+FIRST_HEATMAP_GRACE_S = 30.0  # a model's first inference (warm-up) may take this long beyond --stall-s
+RESULT_POSITION_TOLERANCE_M = 10.0  # result's final position vs the last recorded state
+
+
+@dataclass(frozen=True)
+class WatchEnd:
+    failure: Failure | None
+    interrupted: bool
+
+
+def stream_owners(options: UpOptions) -> dict[str, str]:
+    """Which service's liveness each watched stream proves."""
+    owners = {"status": "controller", "heatmap": "segmenter"}
+    if options.vehicle_url:
+        # The controller publishes the autopilot's states; the sim (camera mode) only frames.
+        owners["camera"] = "sim"
+    else:
+        owners["state"] = "sim"
+    return owners
+
+
+def stalled_service(rec: Recorder, owners: dict[str, str], now_wall_s: float, stall_s: float) -> tuple[str, str] | None:
+    """(service, stream) whose stream went silent first, once any watched stream is over `stall_s` old.
+
+    Watching begins with the episode (the first state): before it every service may still load.
+    """
+    if rec.first_state_wall_s is None:
+        return None
+    ages: dict[str, float] = {}
+    for topic in owners:
+        last = rec.last_recv_wall_s.get(topic)
+        if last is None:
+            # Never heard: counted from the episode's start, with a warm-up allowance for a model.
+            grace_s = FIRST_HEATMAP_GRACE_S if topic == "heatmap" else 0.0
+            last = rec.first_state_wall_s + grace_s
+        ages[topic] = now_wall_s - last
+    if not any(age > stall_s for age in ages.values()):
+        return None
+    topic = max(ages, key=ages.get)
+    return owners[topic], topic
+
+
+def result_is_consistent(rec: Recorder, result: EpisodeResult) -> str:
+    """'' when the result agrees with the last recorded state, else why not."""
+    if not rec.states:
+        return ""
+    x0, y0, _ = rec.start
+    north_m, east_m, _ = rec.states[-1].pos_local_ned_m
+    off_m = math.hypot(result.final_x_m - (x0 + east_m), result.final_y_m - (y0 + north_m))
+    if off_m > RESULT_POSITION_TOLERANCE_M:
+        return f"its final position is {off_m:.1f} m from the vehicle's last recorded state"
+    return ""
+
+
+class Watcher:
+    """The loop's state: pending result candidates, the failure (if any) and its deadline."""
+
+    def __init__(self, options: UpOptions, rec: Recorder, monitor: Monitor, children: Children,
+                 stop: threading.Event, t0: float, confirm_s: float = RESULT_CONFIRM_S) -> None:
+        self.options, self.rec, self.monitor, self.children, self.stop = options, rec, monitor, children, stop
+        self.t0, self.confirm_s = t0, confirm_s
+        self.owners = stream_owners(options)
+        self.failure: Failure | None = None
+        self.failure_deadline = math.inf
+        self._seen_candidates = 0
+        self._confirm_by = math.inf  # monotonic deadline of the oldest pending candidate
+
+    def run(self) -> WatchEnd:
+        """Record until an accepted result, a failure (plus --after-failure-s) or a stop."""
+        while True:
+            self.monitor.drain()
+            if self._check_result():
+                return WatchEnd(self.failure, False)
+            if self.stop.is_set():
+                return WatchEnd(self.failure, True)
+            now = time.monotonic()
+            if self.failure is None:
+                # While a result waits for the sim to finish, its streams have ended on purpose.
+                pending = bool(self.rec.result_candidates) and now < self._confirm_by
+                self.failure = (self._check_exits() or (None if pending else self._check_stalls())
+                                or self._check_startup(now))
+                if self.failure is not None:
+                    log.error("%s", self.failure.message)
+                    # The others keep running for a while so the report shows how they reacted.
+                    after_s = 0.0 if self.failure.child in (None, "sim") else self.options.after_failure_s
+                    self.failure_deadline = now + after_s
+            if now >= self.failure_deadline:
+                return WatchEnd(self.failure, False)
+            self.stop.wait(0.005)
+
+    # -- the episode's result -----------------------------------------------------------------
+
+    def _check_result(self) -> bool:
+        """True once a candidate is accepted as the sim's."""
+        candidates = self.rec.result_candidates
+        if len(candidates) > self._seen_candidates:
+            if self._confirm_by == math.inf:
+                self._confirm_by = time.monotonic() + self.confirm_s
+            self._seen_candidates = len(candidates)
+        if not candidates:
+            return False
+        sim = self.children.procs.get("sim")
+        if sim is not None and sim.poll() is None:
+            if time.monotonic() < self._confirm_by:
+                return False
+            log.warning("%d episode result(s) ignored: the sim kept running after them, so they are not the "
+                        "sim's (anyone on the network can put on the episode key)", len(candidates))
+            self.rec.results_refused += len(candidates)
+            candidates.clear()
+            self._seen_candidates, self._confirm_by = 0, math.inf
+            return False
+        # The sim has ended its run: the newest consistent candidate is its result.
+        for result, recv_wall_s in reversed(candidates):
+            why = result_is_consistent(self.rec, result)
+            if not why:
+                self.rec.results_refused += len(candidates) - 1
+                self.rec.accept_result(result, recv_wall_s)
+                log.info("episode result: %s after %.1f s of sim time (%s)", result.outcome, result.sim_time_s,
+                         result.detail)
+                return True
+            log.warning("episode result %s refused: %s", result.outcome, why)
+        self.rec.results_refused += len(candidates)
+        candidates.clear()
+        self._seen_candidates, self._confirm_by = 0, math.inf
+        return False
+
+    # -- failures -------------------------------------------------------------------------------
+
+    def _check_exits(self) -> Failure | None:
+        dead = self.children.exited()
+        if not dead:
+            return None
+        name, code = dead[0]
+        if name == "sim":
+            # A sim that ended the episode publishes its result just before exiting (code 1 for an
+            # 'error' ending, such as a silent controller): let the result arrive.
+            deadline = time.monotonic() + RESULT_AFTER_EXIT_S
+            while time.monotonic() < deadline:
+                self.monitor.drain()
+                if self.rec.result_candidates:
+                    return None  # _check_result takes it from here
+                self.stop.wait(0.01)
+        line = last_error_line(self.children.log_path(name))
+        message = (f"{name} (pid {self.children.procs[name].pid}) {describe_exit(code)} before the episode ended; "
+                   f"last log line: {line or '(empty log)'}")
+        return Failure(name, code, line, message)
+
+    def _check_stalls(self) -> Failure | None:
+        stalled = stalled_service(self.rec, self.owners, time.time(), self.options.stall_s)
+        if stalled is None:
+            return None
+        name, topic = stalled
+        last = self.rec.last_recv_wall_s.get(topic)
+        silent = f"no {topic} message for {time.time() - last:.1f} s" if last is not None else f"no {topic} message yet"
+        token = {True: "its liveliness token is still visible: alive but stuck",
+                 False: "its liveliness token was dropped", None: "no liveliness token seen"}[self.rec.alive.get(name)]
+        proc = self.children.procs.get(name)
+        pid = f" (pid {proc.pid})" if proc is not None else ""
+        message = f"{name}{pid} hung: {silent} (limit --stall-s {self.options.stall_s:g}); {token}"
+        return Failure(name, None, last_error_line(self.children.log_path(name)), message)
+
+    def _check_startup(self, now: float) -> Failure | None:
+        rec = self.rec
+        if rec.states or rec.status_count or now - self.t0 <= self.options.startup_timeout_s:
+            return None
+        return Failure(None, None, "", f"no vehicle state or controller status within "
+                                       f"{self.options.startup_timeout_s:.0f} s of starting; see the logs in "
+                                       f"{self.children.log_dir}")

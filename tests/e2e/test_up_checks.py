@@ -1,0 +1,261 @@
+"""`dovesei up` refuses bad input before any process starts, and judges what it sees.
+
+Fast tests: the command line as a user types it (bad world, model directory, MAVLink URL, seed,
+timing with a vehicle: exit 2, one line naming the flag, no traceback, no output folder left);
+the exit codes; the watcher's calls on hung services and on episode results that are not the
+sim's; the report's command count for a MAVLink vehicle and its nearest-time state labels.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from dovesei.shared.codec import encode
+from dovesei.shared.messages import ControllerStatus, EpisodeResult, Stamp, VehicleState
+from dovesei.up import EXIT_FAILED, EXIT_OK, EXIT_UNSAFE, UpOptions, build_report, exit_code
+from dovesei.up.monitor import Recorder, Sample
+from dovesei.up.watch import Watcher, stalled_service, stream_owners
+
+REPO = Path(__file__).resolve().parents[2]
+WORLD = "synthetic:size_m=400,seed=1"
+
+
+def _up(*args: str, timeout_s: float = 60.0) -> subprocess.CompletedProcess:
+    env = {**os.environ, "HF_HUB_OFFLINE": "1"}
+    return subprocess.run([sys.executable, "-m", "dovesei.cli", "up", *args], cwd=REPO, capture_output=True,
+                          text=True, timeout=timeout_s, env=env)
+
+
+@pytest.mark.parametrize("flags, names", [
+    (["--world", "no/such/world"], "world 'no/such/world'"),
+    (["--model", "no/such/dir"], "--model 'no/such/dir'"),
+    (["--vehicle", "udpin:0.0.0.0"], "--vehicle 'udpin:0.0.0.0'"),
+    (["--vehicle", "14550"], "--vehicle '14550'"),
+    (["--vehicle", "udpin:127.0.0.1:14550", "--timing", "reference"], "--timing real"),
+    (["--seed", "-1"], "--seed -1"),
+    (["--seed", "x"], "--seed"),
+    (["--start", "1;2"], "--start '1;2'"),
+    (["--policy", "nope"], "--policy 'nope'"),
+    (["--noise", "-0.5"], "--noise"),
+    (["--takeoff"], "--takeoff"),
+])
+def test_bad_input_is_one_line_naming_the_flag_before_anything_starts(tmp_path: Path, flags: list[str],
+                                                                       names: str) -> None:
+    out = tmp_path / "run"
+    done = _up("--world", WORLD, "--out", str(out), *flags) if "--world" not in flags else _up("--out", str(out),
+                                                                                               *flags)
+    assert done.returncode == 2, done.stderr
+    assert names in done.stderr and "Traceback" not in done.stderr, done.stderr
+    assert "started sim" not in done.stderr  # no service was started
+    assert not out.exists(), "a failed up left its output folder behind"
+
+
+def test_a_model_directory_without_weights_is_refused(tmp_path: Path) -> None:
+    model = tmp_path / "model"
+    model.mkdir()
+    done = _up("--world", WORLD, "--model", str(model), "--out", str(tmp_path / "run"))
+    assert done.returncode == 2 and "config.json" in done.stderr, done.stderr
+    (model / "config.json").write_text("{}")
+    done = _up("--world", WORLD, "--model", str(model), "--out", str(tmp_path / "run"))
+    assert done.returncode == 2 and "no weights" in done.stderr, done.stderr
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_taken_mavlink_port_is_refused_before_start(tmp_path: Path) -> None:
+    import socket
+
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+        done = _up("--world", WORLD, "--vehicle", f"udpin:127.0.0.1:{port}", "--out", str(tmp_path / "run"))
+    assert done.returncode == 2 and f"cannot bind 127.0.0.1:{port}" in done.stderr, done.stderr
+    assert not (tmp_path / "run").exists()
+
+
+# ---------------------------------------------------------------- exit codes and the report
+
+
+def _result(outcome: str, x_m: float = 1.0, y_m: float = 2.0) -> EpisodeResult:
+    return EpisodeResult("uav1", Stamp(5.0, "sim"), outcome, 5.0, 10.0, x_m, y_m, 20.0, ("grass",), detail="detail")
+
+
+def _state(k: int, t_s: float, north_m: float = 0.0) -> VehicleState:
+    return VehicleState("uav1", k, Stamp(t_s, "sim"), 50.0, (0.0, 0.0, 0.0), pos_valid=True,
+                        pos_local_ned_m=(north_m, 0.0, -50.0))
+
+
+def _status(k: int, t_s: float, state: str) -> ControllerStatus:
+    return ControllerStatus("uav1", k, Stamp(t_s, "sim"), "dovesei", state, "ok", "", 0, 0.0, 10.0)
+
+
+def _report(opts: UpOptions, rec: Recorder, stats: dict | None = None):
+    return build_report(opts, rec, (1.0, 2.0, 100.0), 0.0, stats or {}, None, False, 1.0)
+
+
+@pytest.mark.parametrize("outcome, code", [("safe", EXIT_OK), ("unsafe", EXIT_UNSAFE), ("timeout", EXIT_UNSAFE),
+                                           ("out_of_world", EXIT_UNSAFE), ("error", EXIT_FAILED)])
+def test_exit_code_follows_the_judge(tmp_path: Path, outcome: str, code: int) -> None:
+    rec = Recorder((1.0, 2.0, 100.0), video=False)
+    rec.accept_result(_result(outcome), 0.0)
+    report = _report(UpOptions(world=WORLD, out=tmp_path), rec)
+    assert exit_code(report) == code and report.to_dict()["outcome"] == outcome
+
+
+def test_a_mavlink_run_counts_the_setpoints_the_controller_sent(tmp_path: Path) -> None:
+    rec = Recorder((1.0, 2.0, 100.0), video=False)
+    for k in range(4):
+        rec.handle(Sample("status", 0.0, encode(_status(k, 0.05 * k, "HANDOVER" if k == 3 else "SEARCHING"))))
+    opts = UpOptions(world=WORLD, out=tmp_path, vehicle_url="udpin:127.0.0.1:14550", timing="real")
+    counts = _report(opts, rec, {"controller": {"commands_sent": 3269}}).to_dict()["counts"]
+    assert counts["commands"] == 3269 and counts["commands_measured_by"] == "controller"
+    # Without the controller's stats (it was killed): one command per status outside the hand-over.
+    counts = _report(opts, rec).to_dict()["counts"]
+    assert counts["commands"] == 3 and counts["commands_measured_by"] == "controller status"
+    # A simulated vehicle: the commands seen on the cmd key.
+    assert _report(UpOptions(world=WORLD, out=tmp_path), rec).counts.commands_measured_by == "monitor"
+
+
+def test_states_take_the_label_of_the_nearest_status_not_an_exact_stamp() -> None:
+    rec = Recorder((0.0, 0.0, 50.0), video=False)
+    # The autopilot's states at 10 Hz; the controller's statuses 30 ms off them, changing state at 0.43 s.
+    for k in range(8):
+        rec.handle(Sample("state", 0.0, encode(_state(k, 0.1 * k))))
+    for k in range(8):
+        rec.handle(Sample("status", 0.0, encode(_status(k, 0.1 * k + 0.03, "AIMING" if k >= 4 else "SEARCHING"))))
+    traj = rec.trajectory()
+    assert traj["state"] == ["SEARCHING"] * 4 + ["AIMING"] * 4, traj["state"]
+
+
+# ---------------------------------------------------------------- the watcher
+
+
+class _Proc:
+    def __init__(self, pid: int, running: bool = True) -> None:
+        self.pid, self.running = pid, running
+        self.returncode = None if running else 0
+
+    def poll(self) -> int | None:
+        return None if self.running else self.returncode
+
+
+class _Children:
+    def __init__(self, log_dir: Path, sim_running: bool) -> None:
+        self.log_dir = log_dir
+        self.procs = {"sim": _Proc(11, sim_running), "segmenter": _Proc(12), "controller": _Proc(13)}
+
+    def exited(self) -> list[tuple[str, int]]:
+        return [(n, p.returncode) for n, p in self.procs.items() if p.poll() is not None]
+
+    def log_path(self, name: str) -> Path:
+        return self.log_dir / f"{name}.log"
+
+
+class _Monitor:
+    def drain(self) -> int:
+        return 0
+
+
+def test_a_result_while_the_sim_keeps_flying_is_not_the_sims(tmp_path: Path) -> None:
+    rec = Recorder((1.0, 2.0, 100.0), video=False)
+    rec.handle(Sample("state", time.time(), encode(_state(0, 0.0))))
+    rec.handle(Sample("episode", time.time(), encode(_result("safe"))))  # forged: the sim is still running
+    stop = threading.Event()
+    children = _Children(tmp_path, sim_running=True)
+    watcher = Watcher(UpOptions(world=WORLD, out=tmp_path, stall_s=30.0), rec, _Monitor(), children, stop,
+                      time.monotonic(), confirm_s=0.2)
+    timer = threading.Timer(1.0, stop.set)
+    timer.start()
+    try:
+        end = watcher.run()
+    finally:
+        timer.cancel()
+    assert end.interrupted and rec.result is None and rec.results_refused == 1
+
+
+def test_the_sims_result_is_taken_once_it_has_ended_its_run(tmp_path: Path) -> None:
+    rec = Recorder((1.0, 2.0, 100.0), video=False)
+    rec.handle(Sample("state", time.time(), encode(_state(0, 0.0))))
+    # One far from where the vehicle was (refused), then the sim's own.
+    rec.handle(Sample("episode", time.time(), encode(_result("safe", x_m=300.0))))
+    rec.handle(Sample("episode", time.time(), encode(_result("unsafe"))))
+    watcher = Watcher(UpOptions(world=WORLD, out=tmp_path), rec, _Monitor(), _Children(tmp_path, sim_running=False),
+                      threading.Event(), time.monotonic())
+    end = watcher.run()
+    assert end.failure is None and rec.result is not None and rec.result.outcome == "unsafe"
+    rec2 = Recorder((1.0, 2.0, 100.0), video=False)
+    rec2.handle(Sample("state", time.time(), encode(_state(0, 0.0))))
+    rec2.handle(Sample("episode", time.time(), encode(_result("safe", x_m=300.0))))
+    stop = threading.Event()
+    timer = threading.Timer(4.0, stop.set)
+    timer.start()
+    try:
+        end = Watcher(UpOptions(world=WORLD, out=tmp_path), rec2, _Monitor(), _Children(tmp_path, sim_running=False),
+                      stop, time.monotonic()).run()
+    finally:
+        timer.cancel()
+    # Its only result did not match the flight: no result, and the sim's exit is the failure.
+    assert rec2.result is None and rec2.results_refused == 1 and end.failure is not None
+    assert end.failure.child == "sim"
+
+
+def test_the_service_whose_stream_went_quiet_first_is_named() -> None:
+    rec = Recorder((1.0, 2.0, 100.0), video=False)
+    owners = stream_owners(UpOptions(world=WORLD))
+    assert owners == {"status": "controller", "heatmap": "segmenter", "state": "sim"}
+    assert stalled_service(rec, owners, 1000.0, 5.0) is None  # before the episode: everything may still load
+    rec.first_state_wall_s = 100.0
+    rec.last_recv_wall_s = {"state": 200.0, "status": 199.0, "heatmap": 200.0}
+    assert stalled_service(rec, owners, 203.0, 5.0) is None
+    # A hung controller in lockstep: its status stops first, everything downstream follows.
+    assert stalled_service(rec, owners, 205.0, 5.0) == ("controller", "status")
+    rec.last_recv_wall_s = {"state": 210.0, "status": 210.0, "heatmap": 199.0}
+    assert stalled_service(rec, owners, 210.0, 5.0) == ("segmenter", "heatmap")
+    # A vehicle: the controller publishes the states, the sim only frames.
+    assert stream_owners(UpOptions(world=WORLD, vehicle_url="udpin:127.0.0.1:1", timing="real"))["camera"] == "sim"
+
+
+def test_report_json_keeps_the_keys_readers_use(tmp_path: Path) -> None:
+    rec = Recorder((1.0, 2.0, 100.0), video=False)
+    rec.handle(Sample("state", 0.0, encode(_state(0, 0.0))))
+    rec.accept_result(_result("safe"), 0.0)
+    doc = json.loads(json.dumps(_report(UpOptions(world=WORLD, out=tmp_path), rec).to_dict()))
+    for key in ("outcome", "detail", "judged", "sim_time_s", "path_length_m", "start", "final", "classes_found",
+                "closest_unsafe_m", "world", "backend", "simulated", "segmenter_option", "noise", "policy", "timing",
+                "seed", "mode", "vehicle", "vehicle_id", "safety_radius_m", "time_limit_s", "wall_time_s",
+                "episode_wall_s", "latency_ms", "transport_overhead_ms", "zenoh_delivery_overhead_ms", "delivery_ms",
+                "counts", "service_stats", "failure", "interrupted", "trajectory"):
+        assert key in doc, key
+    assert doc["outcome"] == "safe" and doc["judged"] is True and doc["final"] == {"x_m": 1.0, "y_m": 2.0,
+                                                                                    "alt_m": 20.0}
+    assert set(doc["latency_ms"]["policy"]) == {"p50", "p99", "n"}
+
+
+def test_the_watcher_ends_the_run_naming_a_silent_service(tmp_path: Path) -> None:
+    rec = Recorder((1.0, 2.0, 100.0), video=False)
+    now = time.time()
+    for topic in ("state", "status"):
+        rec.handle(Sample(topic, now, encode(_state(0, 0.0) if topic == "state" else _status(0, 0.0, "AIMING"))))
+    rec.first_state_wall_s = now - 60.0
+    rec.last_recv_wall_s["heatmap"] = now - 2.0  # the segmenter's last heatmap, then silence
+    rec.handle(Sample("alive", now, b"segmenter", True))
+
+    class _Fresh(_Monitor):
+        def drain(self) -> int:  # the sim and the controller go on
+            rec.last_recv_wall_s["state"] = rec.last_recv_wall_s["status"] = time.time()
+            return 0
+
+    t0 = time.monotonic()
+    end = Watcher(UpOptions(world=WORLD, out=tmp_path, stall_s=1.0, after_failure_s=0.5), rec, _Fresh(),
+                  _Children(tmp_path, sim_running=True), threading.Event(), t0).run()
+    assert end.failure is not None and end.failure.child == "segmenter" and end.failure.returncode is None
+    assert "segmenter (pid 12) hung: no heatmap message for" in end.failure.message
+    assert "still visible" in end.failure.message
+    assert 0.5 <= time.monotonic() - t0 < 5.0  # found at once (the heatmap was already 2 s old) + 0.5 s after
