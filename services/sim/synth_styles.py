@@ -20,7 +20,7 @@ from collections.abc import Callable
 import numpy as np
 
 from dovesei.sim.synth_blocks import parking_lot
-from dovesei.sim.synth_canvas import Canvas, jit, scaled, smooth_path, uni
+from dovesei.sim.synth_canvas import Canvas, blob, jit, scaled, smooth_path, uni
 from dovesei.sim.synth_classes import (
     BARE_SOIL, PAL_ASPHALT, PAL_PAINT, PLAZA, ROAD, ROOF_FLAT, SIDEWALK, WATER,
 )
@@ -29,8 +29,8 @@ from dovesei.sim.synth_objects import add_tree, draw_car, draw_person, flat_buil
 
 CITY_STYLES: dict[str, CityStyle] = {
     "downtown": CityStyle(
-        kind_weights=(("commercial", 0.38), ("apartments", 0.34), ("plaza", 0.1), ("parking", 0.1),
-                      ("park", 0.04), ("construction", 0.04)),
+        kind_weights=(("commercial", 0.44), ("apartments", 0.4), ("plaza", 0.06), ("parking", 0.05),
+                      ("park", 0.03), ("construction", 0.02)),
         spacing_long_m=(60, 110), spacing_short_m=(45, 85), no_river_chance=0.8),
     "villas": CityStyle(
         kind_weights=(("residential", 0.74), ("park", 0.08), ("water", 0.03), ("sports", 0.03), ("plaza", 0.03),
@@ -145,7 +145,11 @@ def _compound(cv: Canvas, rng, cx: float, cy: float) -> None:
     cv.rect(x0, y0, x1, y1, jit(rng, (196, 186, 168) if paved else (210, 186, 146), 0.04),
             PLAZA if paved else BARE_SOIL)
     wall = [(x0, y0), (x1, y0), (x1, y1), (x0, y1)]
-    cv.cast(wall, 2.5)
+    for (ax, ay), (bx, by) in zip(wall, wall[1:] + wall[:1]):
+        # One caster per side: the hull of the whole wall would shade the entire yard.
+        cv.cast([(ax - 0.25, ay - 0.25), (bx + 0.25, ay - 0.25), (bx + 0.25, by + 0.25), (ax - 0.25, by + 0.25)]
+                if ay == by else [(ax - 0.25, ay - 0.25), (ax + 0.25, ay - 0.25), (bx + 0.25, by + 0.25),
+                                  (bx - 0.25, by + 0.25)], 2.5)
     cv.band(wall, 0.5, jit(rng, (222, 212, 192), 0.03), ROOF_FLAT, 2.5, closed=True)
     bw, bh = w * uni(rng, 0.35, 0.6), h * uni(rng, 0.35, 0.6)
     bx, by = uni(rng, x0 + 3, x1 - bw - 3), uni(rng, y0 + 3, y1 - bh - 3)
@@ -168,12 +172,12 @@ def draw_desert(cv: Canvas, rng_layout, rng) -> None:
     cv.img[0] = _SAND
     cv.img[1:] = cv.img[0]
     cv.lab[:] = BARE_SOIL
-    # Dunes and gravel flats: large image-only patches of other sand tones.
+    # Dunes and gravel flats: large image-only patches of slightly other sand tones.
     for _ in range(int(size_m / 40)):
         cx, cy = uni(rng, 0, size_m), uni(rng, 0, size_m)
         a = uni(rng, 20, 120)
-        cv.poly(_ellipse(cx, cy, a, a * uni(rng, 0.3, 0.8), uni(rng, 0, math.pi)),
-                jit(rng, [(214, 190, 146), (190, 164, 124), (200, 182, 150)][int(rng.integers(3))], 0.03))
+        cv.poly(blob(rng, cx, cy, a, a * uni(rng, 0.3, 0.8)),
+                jit(rng, [(208, 182, 138), (196, 170, 128), (200, 178, 140)][int(rng.integers(3))], 0.02))
     roads = []
     for _ in range(int(rng_layout.integers(2, 5))):
         vertical = rng_layout.random() < 0.5
@@ -230,13 +234,6 @@ def draw_desert(cv: Canvas, rng_layout, rng) -> None:
                 nx, ny = -d[1] / np.linalg.norm(d), d[0] / np.linalg.norm(d)
                 draw_car(cv, rng, x + nx * side * width / 4, y + ny * side * width / 4,
                          ang + (0 if side > 0 else math.pi))
-
-
-def _ellipse(cx: float, cy: float, ax_m: float, ay_m: float, ang_rad: float, n: int = 24) -> np.ndarray:
-    t = np.linspace(0, 2 * math.pi, n, endpoint=False)
-    x, y = ax_m * np.cos(t), ay_m * np.sin(t)
-    c, s = math.cos(ang_rad), math.sin(ang_rad)
-    return np.stack([cx + c * x - s * y, cy + s * x + c * y], 1)
 
 
 # Styles that replace the street grid altogether: draw(canvas, layout rng, drawing rng).
