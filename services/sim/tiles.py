@@ -33,6 +33,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from dovesei.shared import validate
+from dovesei.shared.errors import ConfigError
 from dovesei.sim.synthetic import default_cache_dir
 from dovesei.sim.world import World, WorldError
 
@@ -117,8 +119,12 @@ def parse_tiles_spec(spec: str) -> TileSpec:
         raise TileError(f"tiles spec {spec!r}: zoom must be in 0..24, got {ts.zoom}")
     if not (abs(ts.lat_deg) < MAX_LAT_DEG and -180.0 <= ts.lon_deg <= 180.0):
         raise TileError(f"tiles spec {spec!r}: lat must be within +-{MAX_LAT_DEG:.2f} and lon within +-180")
-    if not (ts.extent_m > 0 and ts.tile_px > 0 and ts.timeout_s > 0 and ts.max_tiles > 0 and ts.workers > 0):
-        raise TileError(f"tiles spec {spec!r}: extent_m, tile_px, timeout_s, max_tiles, workers must be > 0")
+    for key, value in (("extent_m", ts.extent_m), ("tile_px", ts.tile_px), ("timeout_s", ts.timeout_s),
+                       ("max_tiles", ts.max_tiles), ("workers", ts.workers)):
+        try:
+            validate.positive(f"tiles spec {spec!r}: option {key}", value)
+        except ConfigError as exc:
+            raise TileError(str(exc)) from None
     return ts
 
 
