@@ -28,6 +28,8 @@ Personalities (`flavour`):
   OFFBOARD (and arming in it) only while setpoints stream and falls back to LOITER when they stop
   for COM_OF_LOSS_T (1 s).
 - `heading_drift_rad_s`: the heading wanders while airborne (the 5-23 degrees seen on ArduCopter).
+- `arm_refusals`: ARMs refused after boot by checks that run only at arming (a real case: the
+  pre-arm bit says healthy, ARM still fails once).
 - `gcs_set_mode()`: a second ground station switching modes; `inject()`: one hand-made message
   (NaN, out of range) in the fake's own stream; `signing_key`: MAVLink 2 signing, unsigned and
   wrong-key frames rejected and counted.
@@ -146,7 +148,7 @@ class FakeAutopilot:
                  rangefinder_max_m: float = 40.0, heartbeat_hz: float = 1.0, physics_hz: float = 50.0,
                  offboard_loss_s: float = PX4_OFFBOARD_LOSS_S, system: int = 1, component: int = 1,
                  boot_s: float = DEFAULT_BOOT_S, heading_drift_rad_s: float = 0.0,
-                 statustext_period_s: float = 2.0, signing_key: bytes | None = None) -> None:
+                 statustext_period_s: float = 2.0, signing_key: bytes | None = None, arm_refusals: int = 0) -> None:
         if flavour not in FLAVOURS:
             raise ValueError(f"flavour {flavour!r}: choose one of {FLAVOURS}")
         self.url, self.flavour, self.personality = url, flavour, PERSONALITIES[flavour]
@@ -166,6 +168,7 @@ class FakeAutopilot:
         self._boot_s = 0.0 if armed else max(0.0, float(boot_s))
         self._home_sent = False
         self._statustext_period_s = statustext_period_s
+        self._arm_refusals = arm_refusals  # ARMs refused after boot (checks run only at arming)
         self._pos_ned_m = [0.0, 0.0, -float(alt_m)]  # the local origin is on the ground below the start
         self._vel_ned_m_s = [0.0, 0.0, 0.0]
         self._yaw_rad, self._yaw_rate_rad_s = float(yaw_rad), 0.0
@@ -246,6 +249,22 @@ class FakeAutopilot:
 
         def send(mav: Any) -> None:
             getattr(mav, sender)(**fields)
+
+        with self._lock:
+            self._outbox.append(send)
+
+    def spoof_heartbeat(self, system: int, count: int = 1) -> None:
+        """Heartbeats claiming to be another autopilot (`system`) on this link: a spoofer, a second vehicle."""
+        autopilot = mv.MAV_AUTOPILOT_ARDUPILOTMEGA if self.flavour == "ardupilot" else mv.MAV_AUTOPILOT_PX4
+
+        def send(mav: Any) -> None:
+            own, mav.srcSystem = mav.srcSystem, system
+            try:
+                for _ in range(count):
+                    mav.heartbeat_send(MAV_TYPE_QUADROTOR, autopilot, mv.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 0,
+                                       MAV_STATE_STANDBY)
+            finally:
+                mav.srcSystem = own
 
         with self._lock:
             self._outbox.append(send)
@@ -504,6 +523,9 @@ class FakeAutopilot:
         name = mv.mode_name(self.flavour, self._custom_mode)
         if not failures and self.flavour == "px4" and name == "OFFBOARD" and not self._streaming():
             failures = ["Arming denied: offboard signal lost"]
+        if not failures and self._arm_refusals > 0:
+            self._arm_refusals -= 1
+            failures = ["PreArm: Throttle too high" if self.flavour == "ardupilot" else "Arming denied: throttle"]
         if failures:
             for text in failures:
                 # ArduPilot repeats its pre-arm failures with "Arm:" when an ARM is refused.
