@@ -155,7 +155,7 @@ class Vehicle:
             cmd_frd, yaw_rate = (0.0, 0.0, 0.0), 0.0
         else:
             cmd_frd, yaw_rate = tuple(cmd_vel_body_frd_m_s), cmd_yaw_rate_rad_s
-            if len(cmd_frd) != 3 or not all(math.isfinite(v) for v in (*cmd_frd, yaw_rate)):
+            if len(cmd_frd) != 3 or not all(validate.is_number(v) for v in (*cmd_frd, yaw_rate)):
                 raise DynamicsError(f"command must be 3 finite velocities and a finite yaw rate, "
                                     f"got {cmd_vel_body_frd_m_s!r}, {cmd_yaw_rate_rad_s!r}")
 
