@@ -216,3 +216,102 @@ def test_real_wiring_builds_the_named_policy() -> None:
 def test_config_validation_names_the_bad_value(overrides: dict, match: str) -> None:
     with pytest.raises(ConfigError, match=match):
         ControllerConfig(**overrides)
+
+
+# ---- faults in front of every policy (issue 13: clocks, policy errors, mid-air LANDED) --------
+
+
+class Clock:
+    """The controller's own monotonic clock, moved by the test."""
+
+    def __init__(self) -> None:
+        self.t_s = 100.0
+
+    def __call__(self) -> float:
+        return self.t_s
+
+
+def test_a_policy_exception_is_caught_counted_and_the_vehicle_holds() -> None:
+    class Crashing(RecordingPolicy):
+        def step(self, obs: Observation) -> Decision:
+            if len(self.observations) >= 1:
+                raise ZeroDivisionError("bug in the policy")
+            return super().step(obs)
+
+    policy = Crashing()
+    core = ControllerCore(ControllerConfig(lockstep=True), policy=policy)
+    core.on_heatmap(heatmap(0, 0.0), 0.0)
+    cmd, status = core.tick(state(0, 0.05, await_seq=0))
+    assert cmd.vel_body_frd_m_s == VEL_FRD
+    core.on_heatmap(heatmap(1, 0.10), 0.0)
+    cmd, status = core.tick(state(1, 0.15, await_seq=1))  # the policy raises: hold, not its last decision
+    assert cmd.vel_body_frd_m_s == (0.0, 0.0, 0.0) and status.watchdog == "hold"
+    assert core.mode is Mode.POLICY_FAULT and "ZeroDivisionError" in status.reason
+    assert core.policy_errors == 1 and core.rejected["policy error"] == 1
+
+
+@pytest.mark.parametrize("terminal", ["LANDED", "HANDOVER"])
+def test_landed_above_the_handover_altitude_is_refused(terminal: str) -> None:
+    class Lands(RecordingPolicy):
+        def step(self, obs: Observation) -> Decision:
+            self.observations.append(obs)
+            return Decision((0.0, 0.0, 0.0), 0.0, terminal, None, 0.0, None, {})
+
+    core = ControllerCore(ControllerConfig(lockstep=True, handover_alt_m=20.0), policy=Lands())
+    core.on_heatmap(heatmap(0, 0.0), 0.0)
+    cmd, status = core.tick(state(0, 0.05, alt_m=93.0, await_seq=0))  # measured altitude: 93 m
+    assert core.mode is Mode.POLICY_FAULT and status.watchdog == "hold"
+    assert f"declared {terminal} at 93.0 m" in status.reason and cmd.vel_body_frd_m_s == (0.0, 0.0, 0.0)
+    assert core.rejected["terminal above hand-over"] == 1
+    _, status = core.tick(state(1, 0.10, alt_m=19.5))  # at the hand-over altitude it is the real thing
+    assert core.mode is Mode.HANDOVER and status.state == "HANDOVER"
+
+
+def test_the_policy_dt_is_capped_across_a_perception_gap() -> None:
+    core, policy = make_core(lockstep=True, policy_dt_max_s=1.0)
+    for seq, t_s in enumerate((0.0, 0.5, 14.5, 15.0)):  # a 14 s gap between the 2nd and 3rd heatmap
+        core.on_heatmap(heatmap(seq, t_s), 0.0)
+        core.tick(state(seq, t_s + 0.05, await_seq=seq))
+    assert [o.t_s for o in policy.observations] == pytest.approx([0.0, 0.5, 1.5, 2.0])
+
+
+@pytest.mark.parametrize("jump_s", [-30.0, 30.0])
+def test_a_state_clock_jump_never_resets_the_policy_mid_flight(jump_s: float) -> None:
+    clock = Clock()
+    core = ControllerCore(ControllerConfig(lockstep=False, future_tolerance_s=1.0), policy=RecordingPolicy(),
+                          mono=clock)
+    for k in range(5):
+        clock.t_s += 0.5
+        core.on_heatmap(heatmap(k, 100.0 + 0.5 * k), 0.0)
+        core.tick(state(k, 100.05 + 0.5 * k), wall_s=clock.t_s)
+    policy = core.policy
+    steps = len(policy.observations)
+    clock.t_s += 0.5
+    try:
+        cmd, status = core.tick(state(5, 102.55 + jump_s), wall_s=clock.t_s)
+    except ControllerInputError as exc:  # a forward jump beyond the tolerance is refused
+        assert jump_s > 0 and "leads the controller's clock" in str(exc)
+        assert core.rejected["state from the future"] == 1
+    else:
+        # Backwards: the policy is kept, the old timeline's decision dropped: hold until a new heatmap.
+        assert jump_s < 0 and core.mode is Mode.NO_HEATMAP and cmd.vel_body_frd_m_s == (0.0, 0.0, 0.0)
+        assert core.rejected["clock jump"] == 1
+        clock.t_s += 0.5
+        core.on_heatmap(heatmap(6, 103.0 + jump_s), 0.0)
+        cmd, status = core.tick(state(6, 103.05 + jump_s), wall_s=clock.t_s)
+        assert cmd.frame_seq == 6 and status.watchdog == "ok"
+        assert policy.observations[-1].t_s > policy.observations[-2].t_s  # its clock never ran back
+    assert policy.resets == 0 and len(policy.observations) >= steps
+
+
+def test_a_heatmap_from_the_future_is_refused_and_honest_ones_still_adopted() -> None:
+    clock = Clock()
+    core = ControllerCore(ControllerConfig(lockstep=False, future_tolerance_s=1.0), policy=RecordingPolicy(),
+                          mono=clock)
+    core.tick(state(0, 10.0), wall_s=clock.t_s)
+    assert not core.on_heatmap(heatmap(0, 40.0), 0.0)  # stamped 30 s ahead
+    assert core.rejected["heatmap from the future"] == 1
+    clock.t_s += 0.5
+    assert core.on_heatmap(heatmap(1, 10.4), 0.0)  # an honest one is not "older than the newest"
+    cmd, status = core.tick(state(1, 10.5), wall_s=clock.t_s)
+    assert cmd.frame_seq == 1 and status.watchdog == "ok"
