@@ -54,15 +54,17 @@ from dovesei.up.options import (
     UpOptions, build_parser, check_policy, options_from_args, parse_mavlink_url, parse_start, resolve_start,
 )
 from dovesei.up.report import RunReport, build_report, read_stats, write_outputs
-from dovesei.up.watch import RESULT_AFTER_EXIT_S, Watcher
+from dovesei.up.watch import RESULT_AFTER_EXIT_S, Watcher, WatchEnd, wait_for_takeoff
 
 __all__ = ["SERVICES", "EXIT_OK", "EXIT_FAILED", "EXIT_USAGE", "EXIT_UNSAFE", "EXIT_INTERRUPTED", "Recorder",
            "Sample", "UpOptions", "UpError", "build_report", "child_commands", "last_error_line", "main",
-           "parse_start", "run", "takeoff", "zenoh_flags"]
+           "parse_start", "run", "zenoh_flags"]
 
 log = logging.getLogger("dovesei.up")
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_UNSAFE, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
+TAKEOFF_CLIMB_M_S = 1.0  # slowest climb rate allowed for when waiting for --takeoff (ArduCopter's default is 2.5)
+TAKEOFF_MARGIN_S = 30.0
 
 
 class UpError(DoveseiError):
@@ -77,20 +79,6 @@ def exit_code(report: RunReport) -> int:
     if report.outcome == "safe":
         return EXIT_OK
     return EXIT_UNSAFE if report.episode.judged else EXIT_FAILED
-
-
-def takeoff(options: UpOptions, alt_m: float) -> None:
-    """Only with --takeoff: GUIDED, arm and climb to the start altitude, then hand the link back.
-
-    `up` holds the link only here, before the controller starts, and closes it first: never two
-    processes on one endpoint.
-    """
-    from dovesei.controller.mavlink import MavlinkVehicle
-
-    log.warning("--takeoff: arming %s and climbing to %.1f m", options.vehicle_url, alt_m)
-    with MavlinkVehicle(options.vehicle_url, vehicle_id=options.vehicle_id) as vehicle:
-        vehicle.connect(30.0)
-        vehicle.arm_and_takeoff(alt_m)
 
 
 def preflight(options: UpOptions) -> tuple[object, tuple[float, float, float], ChildConfigs]:
@@ -150,9 +138,6 @@ def _fly(options: UpOptions, world: object, start: tuple[float, float, float], c
                     "time; --timing real needs ten times fewer")
     ports = {name: free_port() for name in (*SERVICES, "monitor")}
     commands = child_commands(options, configs, ports, out)
-    if options.takeoff:
-        takeoff(options, start[2])
-
     monitor_conf = (zenoh_config(mode="client", connect=options.connect, env={}) if options.connect else
                     zenoh_config(mode="peer", listen=[f"tcp/127.0.0.1:{ports['monitor']}"], multicast_scouting=False,
                                  env={}))
@@ -163,10 +148,16 @@ def _fly(options: UpOptions, world: object, start: tuple[float, float, float], c
     try:
         # Subscribed before any child starts: the first state the sim publishes is recorded.
         monitor = Monitor(session, options.vehicle_id, rec, with_camera=options.video or bool(options.vehicle_url))
-        for name in SERVICES:
-            children.start(name, commands[name], child_env(name, options))
-        (out / "pids.json").write_text(json.dumps({"up": os.getpid(), **{n: p.pid for n, p in children.procs.items()}}))
-        end = Watcher(options, rec, monitor, children, stop, t0).run()
+        end = WatchEnd(None, False)
+        if options.takeoff:
+            # The sim would judge the climb as a landing: it starts once the controller steers.
+            _start(children, ("segmenter", "controller"), commands, options)
+            end = wait_for_takeoff(rec, monitor, children, stop, configs.controller.takeoff_ready_timeout_s
+                                   + start[2] / TAKEOFF_CLIMB_M_S + TAKEOFF_MARGIN_S)
+            rec.first_state_wall_s = None  # the episode begins after the climb
+        if end.failure is None and not end.interrupted:
+            _start(children, [n for n in SERVICES if n not in children.procs], commands, options)
+            end = Watcher(options, rec, monitor, children, stop, t0).run()
         if rec.result is not None:
             # The sim ends its run once the result is out: a signal now would only cut its shutdown.
             children.wait_exit("sim", RESULT_AFTER_EXIT_S)
@@ -195,6 +186,14 @@ def _fly(options: UpOptions, world: object, start: tuple[float, float, float], c
     return code
 
 
+def _start(children: Children, names: Sequence[str], commands: dict[str, list[str]], options: UpOptions) -> None:
+    for name in names:
+        children.start(name, commands[name], child_env(name, options))
+    # Rewritten after each batch: tests and operators find every child's pid here.
+    pids = {"up": os.getpid(), **{n: p.pid for n, p in children.procs.items()}}
+    (options.out / "pids.json").write_text(json.dumps(pids))
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=args.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
@@ -209,7 +208,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_USAGE
     try:
         return run(options, stop=stop, checked=checked)
-    except DoveseiError as exc:  # could not run: takeoff refused, a link taken
+    except DoveseiError as exc:  # could not run: a service's start or the monitor's Zenoh session failed
         print(f"dovesei up: {exc}", file=sys.stderr)
         return EXIT_FAILED
 

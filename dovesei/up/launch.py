@@ -82,6 +82,9 @@ def child_configs(options: UpOptions, start: tuple[float, float, float]) -> Chil
         steering["lockstep_heatmap_wait_s"] = float(options.heatmap_wait_s)
     if options.heatmap_hold_after_s is not None:
         steering["heatmap_hold_after_s"] = float(options.heatmap_hold_after_s)
+    if options.takeoff:
+        # The controller, the link's one owner, arms and climbs to the start before it steers.
+        steering["takeoff_alt_m"] = float(start[2])
     controller = ControllerConfig(vehicle_id=options.vehicle_id, policy=options.policy, timing=options.timing,
                                   lockstep=options.lockstep, vehicle_url=options.vehicle_url or "zenoh", **steering)
     return ChildConfigs(sim, segmenter, controller)

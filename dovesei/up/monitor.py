@@ -119,8 +119,8 @@ class Recorder:
         getattr(self, f"_on_{s.topic}")(msg, s)
 
     def _on_state(self, st: VehicleState, s: Sample) -> None:
-        if not self.states:
-            self.first_state_wall_s = s.recv_wall_s
+        if self.first_state_wall_s is None:
+            self.first_state_wall_s = s.recv_wall_s  # after a takeoff: the first state of the episode
         self.states.append(st)
 
     def _on_status(self, st: ControllerStatus, s: Sample) -> None:

@@ -35,7 +35,9 @@ log = logging.getLogger("dovesei.up")
 
 RESULT_AFTER_EXIT_S = 2.0  # a sim that exits right after publishing: give the result time to arrive
 RESULT_CONFIRM_S = 10.0  # a result is the sim's only if the sim ends its run within this long after it
-FIRST_HEATMAP_GRACE_S = 30.0  # a model's first inference (warm-up) may take this long beyond --stall-s
+# A stream not heard yet gets this long beyond --stall-s: a model's first inference (warm-up), or
+# the sim loading its world while a real vehicle's states already flow.
+FIRST_MESSAGE_GRACE_S = 30.0
 RESULT_POSITION_TOLERANCE_M = 10.0  # result's final position vs the last recorded state
 
 
@@ -67,9 +69,8 @@ def stalled_service(rec: Recorder, owners: dict[str, str], now_wall_s: float, st
     for topic in owners:
         last = rec.last_recv_wall_s.get(topic)
         if last is None:
-            # Never heard: counted from the episode's start, with a warm-up allowance for a model.
-            grace_s = FIRST_HEATMAP_GRACE_S if topic == "heatmap" else 0.0
-            last = rec.first_state_wall_s + grace_s
+            # Never heard: counted from the episode's start, with a warm-up allowance.
+            last = rec.first_state_wall_s + FIRST_MESSAGE_GRACE_S
         ages[topic] = now_wall_s - last
     if not any(age > stall_s for age in ages.values()):
         return None
@@ -87,6 +88,33 @@ def result_is_consistent(rec: Recorder, result: EpisodeResult) -> str:
     if off_m > RESULT_POSITION_TOLERANCE_M:
         return f"its final position is {off_m:.1f} m from the vehicle's last recorded state"
     return ""
+
+
+def wait_for_takeoff(rec: Recorder, monitor: Monitor, children: Children, stop: threading.Event,
+                     timeout_s: float) -> WatchEnd:
+    """--takeoff: the controller arms and climbs before it steers; its first status says it is done.
+
+    A takeoff the autopilot refuses ends the controller with the reason (its last log line).
+    """
+    deadline = time.monotonic() + timeout_s
+    while rec.status_count == 0:
+        monitor.drain()
+        if stop.is_set():
+            return WatchEnd(None, True)
+        dead = children.exited()
+        if dead:
+            name, code = dead[0]
+            line = last_error_line(children.log_path(name))
+            return WatchEnd(Failure(name, code, line, f"{name} (pid {children.procs[name].pid}) {describe_exit(code)} "
+                                                      f"during the takeoff; last log line: {line or '(empty log)'}"),
+                            False)
+        if time.monotonic() > deadline:
+            alt = f"{rec.states[-1].alt_agl_m:.1f} m" if rec.states else "no vehicle state"
+            return WatchEnd(Failure("controller", None, "", f"the takeoff did not end within {timeout_s:.0f} s "
+                                                           f"(last: {alt})"), False)
+        stop.wait(0.02)
+    log.info("takeoff done at %.1f m: starting the sim", rec.states[-1].alt_agl_m if rec.states else float("nan"))
+    return WatchEnd(None, False)
 
 
 class Watcher:

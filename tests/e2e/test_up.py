@@ -175,24 +175,6 @@ def test_report_of_a_run_that_never_started_says_why(tmp_path: Path, realtime: b
     json.dumps(report)  # the report must serialise as it is
 
 
-def test_takeoff_arms_and_climbs_a_grounded_autopilot_only_when_asked(tmp_path: Path) -> None:
-    import socket
-
-    from dovesei.testing.fake_autopilot import FakeAutopilot
-    from dovesei.up import takeoff
-
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    fake = FakeAutopilot(f"udpin:127.0.0.1:{port}", mode="LOITER", armed=False, alt_m=0.0, heartbeat_hz=20).start()
-    try:
-        opts = UpOptions(vehicle_url=f"udpout:127.0.0.1:{port}", takeoff=True, timing="real", out=tmp_path)
-        takeoff(opts, 2.0)
-        assert fake.armed and fake.mode == "GUIDED" and -fake.position_ned_m[2] >= 1.9
-    finally:
-        fake.stop()
-
-
 # ---------------------------------------------------------------- slow: the real processes
 
 
@@ -404,3 +386,42 @@ def test_a_hung_segmenter_is_named_and_up_fails(tmp_path: Path) -> None:
     held = np.arange(int(np.flatnonzero(watchdog == "ok").max()) + 1, len(watchdog))
     assert held.size > 0 and np.all(watchdog[held] == "hold")
     assert np.all(np.asarray(report["trajectory"]["cmd_down_m_s"])[held] <= 0.0), "descent commanded while blind"
+
+
+@pytest.mark.slow
+def test_up_takes_off_and_flies_a_fake_autopilot_from_boot(tmp_path: Path) -> None:
+    """--vehicle --takeoff: the controller alone holds the link, arms after the boot phase and climbs;
+    the sim starts only then, renders at the states the controller publishes and judges."""
+    import socket
+
+    from dovesei.shared.zconfig import free_port
+    from dovesei.testing.fake_autopilot import FakeAutopilot
+
+    port = free_port(socket.SOCK_DGRAM)
+    out = tmp_path / "run"
+    with FakeAutopilot(f"udpin:127.0.0.1:{port}", flavour="ardupilot", armed=False, alt_m=0.0, heartbeat_hz=10,
+                       boot_s=1.5) as fake:
+        argv = [sys.executable, "-m", "dovesei.cli", "up", "--world", WORLD, "--segmenter", "sim", "--noise", "0",
+                "--start-seed", "0", "--start-alt-m", "26", "--vehicle", f"udpout:127.0.0.1:{port}", "--takeoff",
+                "--time-limit-s", "150", "--out", str(out), "--no-video"]
+        env = {**os.environ, "PYTHONUNBUFFERED": "1", "HF_HUB_OFFLINE": "1"}
+        try:
+            done = subprocess.run(argv, cwd=REPO, capture_output=True, text=True, timeout=300, env=env)
+        finally:
+            if (out / "pids.json").exists():
+                for name, pid in _pids(out).items():
+                    if name != "up" and not _gone(pid):
+                        os.kill(pid, signal.SIGKILL)
+        setpoints, _, commands = fake.received()
+    report = json.loads((out / "report.json").read_text())
+    assert report["judged"], done.stderr[-3000:]
+    assert done.returncode == (0 if report["outcome"] == "safe" else 3), done.stderr[-3000:]
+    assert "takeoff done" in done.stderr and report["vehicle"] == f"udpout:127.0.0.1:{port}"
+    assert report["timing"] == "real" and report["mode"] == "realtime"
+    # It armed (once the boot was over) and the setpoints the controller streamed are counted.
+    assert any(c.command == 400 and c.result == 0 for c in commands)
+    counts = report["counts"]
+    assert counts["commands_measured_by"] == "controller" and counts["commands"] >= 20 and setpoints
+    # The states came from the autopilot through the controller, labelled with the controller's decisions.
+    traj = report["trajectory"]
+    assert traj["t_s"] and max(traj["alt_m"]) >= 24.0 and set(traj["state"]) - {"INIT"}
