@@ -217,6 +217,14 @@ class SimCore:
         return judge_result(self.config.vehicle_id, self.judge, outcome, detail, clock="sim")
 
 
+def unstarted_result(world: World, start: Start, config: SimConfig, detail: str, clock: str = "sim") -> EpisodeResult:
+    """The 'error' result of an episode that could not begin (`detail` says why), placed at the start."""
+    judge = EpisodeJudge(world, handover_alt_m=config.handover_alt_m, time_limit_s=config.time_limit_s,
+                         safety_radius_m=config.safety_radius_m)
+    judge.check(Pose(start.x_m, start.y_m, start.alt_m, yaw_rad=start.yaw_rad))
+    return judge_result(config.vehicle_id, judge, "error", detail, clock=clock)
+
+
 def judge_result(vehicle_id: str, judge: EpisodeJudge, outcome: str, detail: str = "",
                  clock: str = "sim") -> EpisodeResult:
     """The wire `EpisodeResult` of an episode the judge has watched (also for 'error' endings).

@@ -14,12 +14,13 @@ Three ways to run an episode, chosen by the config:
 - real time: step k is due at t0 + k x dt / speed on the wall clock (absolute schedule, so delays
   never accumulate); each step takes the newest command and never waits. A controller that falls
   silent is handled by the vehicle itself: its command times out in sim time and it brakes.
-- external pose (`external_pose`): no own dynamics and no commands. The sim LISTENS on the state
-  key, where the controller of a real or SITL autopilot publishes the autopilot's VehicleState
-  (only the controller opens MAVLink); the newest state with a local position is placed in the
-  world with the local origin at the start (north = +y, east = +x), frames are rendered there at
-  the frame rate of the wall clock and the judge watches the same world. Nothing is published
-  on the state key in this mode: monitors read the controller's states there directly.
+- external pose (`external_pose`, run by `dovesei.sim.external`): no own dynamics and no
+  commands. The sim LISTENS on the state key, where the controller of a real or SITL autopilot
+  publishes the autopilot's VehicleState (only the controller opens MAVLink); the newest state
+  with a local position is placed in the world with the local origin at the start (north = +y,
+  east = +x), frames are rendered there at the frame rate of the wall clock and the judge
+  watches the same world. Nothing is published on the state key in this mode: monitors read
+  the controller's states there directly.
 
 `main` only parses flags, sets up logging and signals, loads the world, opens the session and
 calls `run`; `run` reads no flags or environment, so tests call it with a hand-made world.
@@ -40,16 +41,14 @@ import zenoh
 
 from dovesei.shared import keys, validate
 from dovesei.shared.cliconfig import CommandLine, Flag, integer_in, non_blank
-from dovesei.shared.clock import WallClock, wall_time_s
+from dovesei.shared.clock import WallClock
 from dovesei.shared.codec import encode
 from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.shared.lifecycle import Inbox, declare_alive, install_stop_handlers, is_alive, write_stats
-from dovesei.shared.messages import CameraFrame, ClassEntry, EpisodeResult, GroundTruth, VehicleState, VelocityCommand
+from dovesei.shared.messages import CameraFrame, EpisodeResult, VehicleState, VelocityCommand
 from dovesei.shared.timing import TIMING_NAMES
-from dovesei.sim.camera import CameraModel, render
-from dovesei.sim.core import SimConfig, SimCore, StepOut, judge_result
-from dovesei.sim.dynamics import Pose
-from dovesei.sim.judge import EpisodeJudge
+from dovesei.sim.core import SimConfig, SimCore, StepOut, unstarted_result
+from dovesei.sim.external import run_external_pose
 from dovesei.sim.starts import Start, generate_starts
 from dovesei.sim.world import World, WorldError, load_world
 
@@ -59,8 +58,6 @@ WAITABLE = ("segmenter", "controller")  # services whose liveliness --wait-for a
 # Real time: when the loop falls this far behind its schedule (a stalled host), it drops the debt
 # and restarts the schedule from now instead of bursting through the missed steps.
 _MAX_BEHIND_S = 1.0
-# External pose: frames start this long after the first local position (streams run at 20 Hz).
-_POSE_WARMUP_S = 0.3
 _MAX_LATENCY_SAMPLES = 200_000  # about 3 h of commands at 20 Hz: bounded memory for any episode
 
 
@@ -222,7 +219,9 @@ def run(session: zenoh.Session, *, config: SimServiceConfig, stop: threading.Eve
         if missing:
             result = _never_started(world, start, config, missing)
         elif config.external_pose:
-            result = _run_external_pose(wire, world, start, config, stop, stats)
+            result = run_external_pose(wire.states, lambda frame: wire.publish_frame(frame, stats), world, start,
+                                       config.sim, wait_timeout_s=config.wait_timeout_s,
+                                       state_timeout_s=config.cmd_timeout_s, stop=stop, stats=stats)
         else:
             core = SimCore(world, start, config.sim)
             if config.lockstep:
@@ -247,11 +246,7 @@ def run(session: zenoh.Session, *, config: SimServiceConfig, stop: threading.Eve
 
 def _never_started(world: World, start: Start, config: SimServiceConfig, detail: str) -> EpisodeResult:
     """The 'error' result of an episode that could not begin, placed at the start."""
-    cfg = config.sim
-    judge = EpisodeJudge(world, handover_alt_m=cfg.handover_alt_m, time_limit_s=cfg.time_limit_s,
-                         safety_radius_m=cfg.safety_radius_m)
-    judge.check(Pose(start.x_m, start.y_m, start.alt_m, yaw_rad=start.yaw_rad))
-    return judge_result(cfg.vehicle_id, judge, "error", detail, clock="vehicle" if config.external_pose else "sim")
+    return unstarted_result(world, start, config.sim, detail, clock="vehicle" if config.external_pose else "sim")
 
 
 def _wait_for_services(session: zenoh.Session, config: SimServiceConfig, stop: threading.Event) -> str:
@@ -349,91 +344,6 @@ def _newest_command(cmds: Inbox[VelocityCommand], config: SimServiceConfig, stat
     if newest is not None:
         stats.on_command(newest, newest_recv_wall_s)
     return newest
-
-
-class _PoseCamera:
-    """Renders `CameraFrame`s at poses given from outside (external-pose mode)."""
-
-    def __init__(self, world: World, sim: SimConfig) -> None:
-        self.world, self.sim = world, sim
-        self.classes = tuple(ClassEntry(int(i), c.name, bool(c.safe)) for i, c in sorted(world.classes.items()))
-        self.seq = -1
-
-    def frame(self, pose: Pose, state: VehicleState) -> CameraFrame:
-        cam: CameraModel = self.sim.camera
-        # A vehicle on the ground still needs a view; 0.1 m keeps the pinhole model defined.
-        image, labels, _valid = render(self.world, pose.x_m, pose.y_m, max(pose.alt_agl_m, 0.1), pose.yaw_rad, cam)
-        truth = GroundTruth(labels, self.classes) if self.sim.attach_truth and labels is not None else None
-        self.seq += 1
-        return CameraFrame(self.sim.vehicle_id, self.seq, state.stamp, image, cam.hfov_rad, pose.alt_agl_m,
-                           roll_rad=state.roll_rad, pitch_rad=state.pitch_rad, yaw_rad=pose.yaw_rad,
-                           sent_wall_s=wall_time_s(), truth=truth)
-
-
-def pose_in_world(state: VehicleState, start: Start) -> Pose:
-    """A vehicle's local NED state placed in the world: origin at the start, north +y, east +x."""
-    north_m, east_m, _down_m = state.pos_local_ned_m
-    return Pose(x_m=start.x_m + east_m, y_m=start.y_m + north_m, alt_agl_m=max(state.alt_agl_m, 0.0),
-                yaw_rad=state.yaw_rad, t_s=state.stamp.t_s)
-
-
-def _newest_state(states: Inbox[VehicleState], config: SimServiceConfig, stats: SimStats) -> VehicleState | None:
-    """The newest state of our vehicle with a local position waiting in the inbox, or None."""
-    newest = None
-    while (state := states.poll()) is not None:
-        if state.vehicle_id != config.sim.vehicle_id:
-            stats.states_foreign += 1
-            continue
-        if state.pos_valid:  # until the autopilot has a local position there is no pose to render
-            newest = state
-    return newest
-
-
-def _run_external_pose(wire: _Wire, world: World, start: Start, config: SimServiceConfig, stop: threading.Event,
-                       stats: SimStats) -> EpisodeResult | None:
-    """Render at the vehicle states the controller publishes (it alone talks to the autopilot)."""
-    cfg = config.sim
-    judge = EpisodeJudge(world, handover_alt_m=cfg.handover_alt_m, time_limit_s=cfg.time_limit_s,
-                         safety_radius_m=cfg.safety_radius_m)
-    key = keys.state(cfg.vehicle_id)
-    camera = _PoseCamera(world, cfg)
-    clock = WallClock()
-    last_state_wall_s: float | None = None
-    first_state_wall_s: float | None = None
-    state: VehicleState | None = None
-    due_s = clock.now_s()
-    while clock.sleep_until(due_s, stop):
-        due_s += cfg.period_s
-        if clock.now_s() - due_s > _MAX_BEHIND_S:
-            stats.overruns += 1
-            due_s = clock.now_s() + cfg.period_s
-        new = _newest_state(wire.states, config, stats)
-        if new is not None:
-            state = new
-            stats.poses_received += 1
-            last_state_wall_s = clock.now_s()
-            if first_state_wall_s is None:
-                first_state_wall_s = last_state_wall_s
-                log.info("first vehicle state with a local position on %s", key)
-        if last_state_wall_s is None:
-            if clock.now_s() > config.wait_timeout_s:
-                return _never_started(world, start, config, f"no vehicle state with a local position on {key} "
-                                      f"within {config.wait_timeout_s:g} s (is the controller running "
-                                      "against the autopilot?)")
-            continue
-        if clock.now_s() - last_state_wall_s > config.cmd_timeout_s:
-            return judge_result(cfg.vehicle_id, judge, "error",
-                                f"no vehicle state on {key} for {config.cmd_timeout_s:g} s", clock="vehicle")
-        # The position and attitude streams of an autopilot start independently (yaw reads 0
-        # until the first ATTITUDE): render nothing during the first moments of the stream.
-        if last_state_wall_s - first_state_wall_s < _POSE_WARMUP_S:
-            continue
-        pose = pose_in_world(state, start)
-        if judge.check(pose) is not None:
-            return judge_result(cfg.vehicle_id, judge, judge.outcome, clock="vehicle")
-        wire.publish_frame(camera.frame(pose, state), stats)
-        stats.steps += 1
-    return None
 
 
 # ------------------------------------------------------------------------------------------------ flags

@@ -1,0 +1,126 @@
+"""External-pose mode of the sim: no own dynamics, frames rendered where a real vehicle is.
+
+The controller of a real or SITL autopilot is the one process that talks MAVLink; it publishes the
+autopilot's `VehicleState` on the state key. Here the sim only listens:
+
+    state key --Inbox (newest wins)--> newest state of our vehicle with a local position
+        -> pose in the world (local NED origin at the start: north = +y, east = +x)
+        -> judge (hand-over altitude, time limit, leaving the world) -> camera frame at the pose
+
+Frames go out at the frame period of the wall clock, stamped with the state's own stamp (the
+vehicle's clock). No state within `wait_timeout_s` of the start, or none for `state_timeout_s`
+later, ends the episode as 'error' naming the key.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Callable
+from typing import Any
+
+from dovesei.shared import keys
+from dovesei.shared.clock import WallClock, wall_time_s
+from dovesei.shared.lifecycle import Inbox
+from dovesei.shared.messages import CameraFrame, ClassEntry, EpisodeResult, GroundTruth, VehicleState
+from dovesei.sim.camera import render
+from dovesei.sim.core import SimConfig, judge_result, unstarted_result
+from dovesei.sim.dynamics import Pose
+from dovesei.sim.judge import EpisodeJudge
+from dovesei.sim.starts import Start
+from dovesei.sim.world import World
+
+log = logging.getLogger(__name__)
+
+# Frames start this long after the first local position: an autopilot's position and attitude
+# streams start independently (yaw reads 0 until the first ATTITUDE).
+POSE_WARMUP_S = 0.3
+# When the loop falls this far behind its schedule (a stalled host) it restarts the schedule.
+_MAX_BEHIND_S = 1.0
+
+
+class PoseCamera:
+    """Renders `CameraFrame`s at poses given from outside, stamped with the vehicle's state."""
+
+    def __init__(self, world: World, sim: SimConfig) -> None:
+        self.world, self.sim = world, sim
+        self.classes = tuple(ClassEntry(int(i), c.name, bool(c.safe)) for i, c in sorted(world.classes.items()))
+        self.seq = -1
+
+    def frame(self, pose: Pose, state: VehicleState) -> CameraFrame:
+        cam = self.sim.camera
+        # A vehicle on the ground still needs a view; 0.1 m keeps the pinhole model defined.
+        image, labels, _valid = render(self.world, pose.x_m, pose.y_m, max(pose.alt_agl_m, 0.1), pose.yaw_rad, cam)
+        truth = GroundTruth(labels, self.classes) if self.sim.attach_truth and labels is not None else None
+        self.seq += 1
+        return CameraFrame(self.sim.vehicle_id, self.seq, state.stamp, image, cam.hfov_rad, pose.alt_agl_m,
+                           roll_rad=state.roll_rad, pitch_rad=state.pitch_rad, yaw_rad=pose.yaw_rad,
+                           sent_wall_s=wall_time_s(), truth=truth)
+
+
+def pose_in_world(state: VehicleState, start: Start) -> Pose:
+    """A vehicle's local NED state placed in the world: origin at the start, north +y, east +x."""
+    north_m, east_m, _down_m = state.pos_local_ned_m
+    return Pose(x_m=start.x_m + east_m, y_m=start.y_m + north_m, alt_agl_m=max(state.alt_agl_m, 0.0),
+                yaw_rad=state.yaw_rad, t_s=state.stamp.t_s)
+
+
+def newest_state(states: Inbox[VehicleState], vehicle_id: str, stats: Any) -> VehicleState | None:
+    """The newest state of `vehicle_id` with a local position waiting in the inbox, or None."""
+    newest = None
+    while (state := states.poll()) is not None:
+        if state.vehicle_id != vehicle_id:
+            stats.states_foreign += 1
+            continue
+        if state.pos_valid:  # until the autopilot has a local position there is no pose to render
+            newest = state
+    return newest
+
+
+def run_external_pose(states: Inbox[VehicleState], publish_frame: Callable[[CameraFrame], None], world: World,
+                      start: Start, sim: SimConfig, *, wait_timeout_s: float, state_timeout_s: float,
+                      stop: threading.Event, stats: Any) -> EpisodeResult | None:
+    """Render at the states received until the judge ends the episode; None when `stop` ends it first.
+
+    `stats` counts what happened (the service's SimStats: poses_received, states_foreign, steps,
+    overruns).
+    """
+    judge = EpisodeJudge(world, handover_alt_m=sim.handover_alt_m, time_limit_s=sim.time_limit_s,
+                         safety_radius_m=sim.safety_radius_m)
+    key = keys.state(sim.vehicle_id)
+    camera = PoseCamera(world, sim)
+    clock = WallClock()
+    last_state_wall_s: float | None = None
+    first_state_wall_s: float | None = None
+    state: VehicleState | None = None
+    due_s = clock.now_s()
+    while clock.sleep_until(due_s, stop):
+        due_s += sim.period_s
+        if clock.now_s() - due_s > _MAX_BEHIND_S:
+            stats.overruns += 1
+            due_s = clock.now_s() + sim.period_s
+        new = newest_state(states, sim.vehicle_id, stats)
+        if new is not None:
+            state = new
+            stats.poses_received += 1
+            last_state_wall_s = clock.now_s()
+            if first_state_wall_s is None:
+                first_state_wall_s = last_state_wall_s
+                log.info("first vehicle state with a local position on %s", key)
+        if last_state_wall_s is None:
+            if clock.now_s() > wait_timeout_s:
+                return unstarted_result(world, start, sim, f"no vehicle state with a local position on {key} "
+                                        f"within {wait_timeout_s:g} s (is the controller running against the "
+                                        "autopilot?)", clock="vehicle")
+            continue
+        if clock.now_s() - last_state_wall_s > state_timeout_s:
+            return judge_result(sim.vehicle_id, judge, "error", f"no vehicle state on {key} for {state_timeout_s:g} s",
+                                clock="vehicle")
+        if last_state_wall_s - first_state_wall_s < POSE_WARMUP_S:
+            continue
+        pose = pose_in_world(state, start)
+        if judge.check(pose) is not None:
+            return judge_result(sim.vehicle_id, judge, judge.outcome, clock="vehicle")
+        publish_frame(camera.frame(pose, state))
+        stats.steps += 1
+    return None
