@@ -100,7 +100,6 @@ from dovesei.controller.mavlink_proto import (  # noqa: F401  (re-exported: test
     YAW_CONTROLS,
     MavlinkError,
     NotSteerableError,
-    RateLimitedLog,
     SpeedLimits,
     VehicleConnectError,
     check_attitude,
@@ -123,6 +122,7 @@ from dovesei.controller.mavlink_readiness import ArmReadiness
 from dovesei.shared import validate
 from dovesei.shared.errors import ConfigError
 from dovesei.shared.keys import check_vehicle_id
+from dovesei.shared.lifecycle import RateLimitedLog
 from dovesei.shared.messages import Stamp, VehicleState, VelocityCommand
 
 log = logging.getLogger(__name__)
@@ -226,7 +226,7 @@ class MavlinkVehicle:
         self._next_setpoint_s = 0.0
         self._sig_failed = False
         self._persisted_s = -math.inf  # when the signing timestamp was last written
-        self._ratelog = RateLimitedLog(log)
+        self._ratelog = RateLimitedLog(log, f"MAVLink {url}")  # first of each kind, then summaries
         # Counters for tests, operators' logs and the run's stats.
         self.setpoints_sent = 0
         self.setpoints_clamped = 0
@@ -517,15 +517,19 @@ class MavlinkVehicle:
             except OSError as exc:
                 # Transient on UDP (ICMP refusals while the peer starts); a dead peer shows as
                 # heartbeat loss, which is what stops steering.
-                self._ratelog.log(logging.WARNING, "recv", "MAVLink receive failed: %s", exc)
+                self._warn("recv", "MAVLink receive failed: %s", exc)
                 return
             if msg is None:
                 return
             self._handle(msg)
 
+    def _warn(self, kind: str, fmt: str, *args: Any) -> None:
+        """A warning that may repeat at stream rate: the first of its kind, then summaries."""
+        self._ratelog.warn(kind, fmt % args)
+
     def _reject(self, reason: str, detail: str) -> None:
         self.samples_rejected[reason] += 1
-        self._ratelog.log(logging.WARNING, reason, "autopilot sample dropped (%s): %s [%d so far]", reason, detail,
+        self._warn(reason, "autopilot sample dropped (%s): %s [%d so far]", reason, detail,
                           self.samples_rejected[reason])
 
     def _handle(self, msg: Any) -> None:
@@ -562,7 +566,7 @@ class MavlinkVehicle:
                     self._ack_cond.notify_all()
                 if msg.result not in (MAV_RESULT_ACCEPTED, MAV_RESULT_IN_PROGRESS):
                     # Repeated requests (streams, home) would repeat the same line every 2 s.
-                    self._ratelog.log(logging.WARNING, f"ack {msg.command}", "autopilot answered command %d with "
+                    self._warn(f"ack {msg.command}", "autopilot answered command %d with "
                                       "MAV_RESULT %d", msg.command, msg.result)
             elif kind == "STATUSTEXT":
                 text = msg.text if isinstance(msg.text, str) else bytes(msg.text).decode("utf-8", "replace")
@@ -592,7 +596,7 @@ class MavlinkVehicle:
             if self.system_id is not None and src_sys != self.system_id:
                 # Pinned: whoever speaks first, only the configured autopilot is ever locked onto.
                 self.intruders[src_sys] += 1
-                self._ratelog.log(logging.WARNING, "unpinned", "heartbeat of an autopilot with system id %d "
+                self._warn("unpinned", "heartbeat of an autopilot with system id %d "
                                   "ignored: pinned to system %d", src_sys, self.system_id)
                 return
             self._target = _Target(src_sys, src_comp, kind)
@@ -601,7 +605,7 @@ class MavlinkVehicle:
             if kind is not None:
                 # A second autopilot (or a spoofer) mid-flight: never followed, always reported.
                 self.intruders[src_sys] += 1
-                self._ratelog.log(logging.WARNING, f"intruder {src_sys}", "a second autopilot (system %d component "
+                self._warn(f"intruder {src_sys}", "a second autopilot (system %d component "
                                   "%d) is on the link: refused, still flying system %d [%d heartbeats so far]",
                                   src_sys, src_comp, target.system, self.intruders[src_sys])
             return
@@ -719,7 +723,7 @@ class MavlinkVehicle:
                 write(conn.mav)
             except OSError as exc:
                 self.send_failures += 1
-                self._ratelog.log(logging.WARNING, "send", "MAVLink send failed: %s [%d so far]", exc,
+                self._warn("send", "MAVLink send failed: %s [%d so far]", exc,
                                   self.send_failures)
                 return False
         return True
@@ -757,7 +761,7 @@ class MavlinkVehicle:
         vel, yaw_rate, clamped = clamp_setpoint(cmd.vel_body_frd_m_s, yaw_rate, self.limits)
         if clamped:
             self.setpoints_clamped += 1
-            self._ratelog.log(logging.INFO, "clamp", "setpoint %s m/s clamped to %s m/s (limits %s)",
+            self._warn("clamp", "setpoint %s m/s clamped to %s m/s (limits %s)",
                               cmd.vel_body_frd_m_s, tuple(round(v, 2) for v in vel), self.limits)
         return vel, yaw_rate
 
@@ -837,7 +841,7 @@ class MavlinkVehicle:
             self._sig_failed = False  # already counted by _check_signature
             return False
         self.signing_rejected["unsigned"] += 1
-        self._ratelog.log(logging.WARNING, "unsigned", "unsigned MAVLink frame (message %d) rejected [%d so far]",
+        self._warn("unsigned", "unsigned MAVLink frame (message %d) rejected [%d so far]",
                           msg_id, self.signing_rejected["unsigned"])
         return False
 
@@ -864,7 +868,7 @@ class MavlinkVehicle:
                 return True
         self._sig_failed = True
         self.signing_rejected[why] += 1
-        self._ratelog.log(logging.WARNING, why, "MAVLink frame from system %d rejected: %s signature [%d so far]",
+        self._warn(why, "MAVLink frame from system %d rejected: %s signature [%d so far]",
                           src_sys, why, self.signing_rejected[why])
         return False
 
@@ -880,6 +884,6 @@ class MavlinkVehicle:
         try:
             write_signing_timestamp(self._signing_file, self._conn.mav.signing.timestamp)
         except OSError as exc:
-            self._ratelog.log(logging.WARNING, "persist", "signing timestamp not persisted to %s: %s",
+            self._warn("persist", "signing timestamp not persisted to %s: %s",
                               self._signing_file, exc)
         self._persisted_s = self._clock()

@@ -18,7 +18,6 @@ with pymavlink's) and the two autopilots' documented conventions:
 from __future__ import annotations
 
 import hashlib
-import logging
 import math
 import os
 import time
@@ -28,8 +27,6 @@ from typing import Any
 
 from dovesei.shared import validate
 from dovesei.shared.errors import ConfigError, DoveseiError
-
-log = logging.getLogger(__name__)
 
 # MAVLink enum values used here (checked against pymavlink's in the tests).
 MAV_TYPE_GCS = 6
@@ -341,22 +338,3 @@ def write_signing_timestamp(path: str | Path | None, timestamp: int) -> None:
     tmp = p.with_name(p.name + ".tmp")
     tmp.write_text(f"{int(timestamp)}\n", encoding="utf-8")
     os.replace(tmp, p)
-
-
-class RateLimitedLog:
-    """At most one log line per key and `period_s`; the lines say how many were suppressed."""
-
-    def __init__(self, logger: logging.Logger, period_s: float = 5.0) -> None:
-        self._log, self._period_s = logger, period_s
-        self._next_s: dict[str, float] = {}
-        self._suppressed: dict[str, int] = {}
-
-    def log(self, level: int, key: str, fmt: str, *args: Any) -> None:
-        now = time.monotonic()
-        if now < self._next_s.get(key, -math.inf):
-            self._suppressed[key] = self._suppressed.get(key, 0) + 1
-            return
-        more = self._suppressed.pop(key, 0)
-        self._next_s[key] = now + self._period_s
-        suffix = f" ({more} similar suppressed)" if more else ""
-        self._log.log(level, fmt + suffix, *args)
