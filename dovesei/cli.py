@@ -1,13 +1,17 @@
 """The user-facing `dovesei` command: one subcommand per job, each in its own module.
 
 Subcommands are imported only when chosen, so `dovesei up --help` never loads torch and the
-onboard image (no torch) can run everything but the CLIPSeg backend.
+onboard image (no torch) can run everything but the CLIPSeg backend. A project error that a
+command lets escape becomes one line on stderr (exit 2 for a bad configuration, 1 otherwise):
+a user never sees a traceback for something the project raised on purpose.
 """
 
 from __future__ import annotations
 
 import importlib
 import sys
+
+from dovesei.shared.errors import ConfigError, DoveseiError
 
 # name -> (module, help). Each module has main(argv) -> int.
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -39,7 +43,17 @@ def main(argv: list[str] | None = None) -> int:
         print(f"dovesei: unknown command {name!r}; choose one of {', '.join(COMMANDS)}", file=sys.stderr)
         return 2
     module = importlib.import_module(COMMANDS[name][0])
-    return int(module.main(rest) or 0)
+    try:
+        return int(module.main(rest) or 0)
+    except ConfigError as exc:  # a bad flag or file a command did not catch itself: still one line
+        print(f"dovesei {name}: {exc}", file=sys.stderr)
+        return 2
+    except DoveseiError as exc:  # an expected failure (a world, a link, a model): one line, no traceback
+        print(f"dovesei {name}: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f"dovesei {name}: interrupted", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

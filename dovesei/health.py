@@ -10,7 +10,8 @@ import sys
 
 import zenoh
 
-from dovesei.shared import keys
+from dovesei.shared import keys, validate
+from dovesei.shared.errors import ConfigError
 from dovesei.shared.lifecycle import is_alive
 from dovesei.shared.zconfig import add_zenoh_args, zenoh_config_from_args
 
@@ -25,9 +26,16 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    vehicle = keys.ANY_VEHICLE if args.vehicle_id == "any" else args.vehicle_id
-    with zenoh.open(zenoh_config_from_args(args)) as session:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        # Checked before any session opens: a bad flag is one usage line (exit 2), never a traceback.
+        validate.positive("--timeout-s", args.timeout_s)
+        vehicle = keys.ANY_VEHICLE if args.vehicle_id == "any" else keys.check_vehicle_id(args.vehicle_id)
+        conf = zenoh_config_from_args(args)
+    except ConfigError as exc:
+        parser.error(str(exc))
+    with zenoh.open(conf) as session:
         alive = is_alive(session, vehicle, args.service, timeout_s=args.timeout_s)
     print(f"{args.service} ({args.vehicle_id}): {'alive' if alive else 'NOT alive'}")
     return 0 if alive else 1

@@ -88,6 +88,8 @@ def preflight(options: UpOptions) -> tuple[object, tuple[float, float, float], C
     check_policy(options.policy)
     if options.out.exists() and not options.out.is_dir():
         raise ConfigError(f"--out {str(options.out)!r} is a file; give a folder for the report")
+    if options.connect:
+        zenoh_config(mode="client", connect=options.connect, env={})  # names a malformed --connect
     if options.vehicle_url:
         check_endpoint_free(parse_mavlink_url(options.vehicle_url))
     world = load_world(options.world)
@@ -162,6 +164,7 @@ def _fly(options: UpOptions, world: object, start: tuple[float, float, float], c
             # The sim ends its run once the result is out: a signal now would only cut its shutdown.
             children.wait_exit("sim", RESULT_AFTER_EXIT_S)
     finally:
+        rec.expect_exits = True
         codes = children.stop_all()
         if monitor is not None:
             monitor.drain()

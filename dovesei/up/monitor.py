@@ -81,6 +81,7 @@ class Recorder:
         self.foreign = 0  # messages on our keys naming another vehicle
         self.last_recv_wall_s: dict[str, float] = {}  # per topic: the newest valid arrival
         self.alive: dict[str, bool] = {}  # per service: its liveliness token is visible
+        self.expect_exits = False  # set once the run is ending: a dropped token is then no news
         self.first_state_wall_s: float | None = None  # wall clock at the monitor: the episode's duration
         self.result_wall_s: float | None = None
         self.last_state_name, self.last_watchdog = "", ""
@@ -97,8 +98,9 @@ class Recorder:
         if s.topic == LIVELINESS:
             service = s.payload.decode("utf-8", "replace")
             if self.alive.get(service) != s.alive:
-                log.log(logging.INFO if s.alive else logging.WARNING, "%s liveliness token %s", service,
-                        "visible" if s.alive else "DROPPED")
+                quiet = s.alive or self.expect_exits or self.result_candidates
+                log.log(logging.INFO if quiet else logging.WARNING, "%s liveliness token %s", service,
+                        "visible" if s.alive else "dropped")
             self.alive[service] = s.alive
             return
         try:

@@ -218,7 +218,7 @@ class Watcher:
         last = self.rec.last_recv_wall_s.get(topic)
         silent = f"no {topic} message for {time.time() - last:.1f} s" if last is not None else f"no {topic} message yet"
         token = {True: "its liveliness token is still visible: alive but stuck",
-                 False: "its liveliness token was dropped", None: "no liveliness token seen"}[self.rec.alive.get(name)]
+                 False: "its liveliness token was dropped (its Zenoh session is gone)", None: "no liveliness token seen"}[self.rec.alive.get(name)]
         proc = self.children.procs.get(name)
         pid = f" (pid {proc.pid})" if proc is not None else ""
         message = f"{name}{pid} hung: {silent} (limit --stall-s {self.options.stall_s:g}); {token}"

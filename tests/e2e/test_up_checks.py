@@ -46,6 +46,8 @@ def _up(*args: str, timeout_s: float = 60.0) -> subprocess.CompletedProcess:
     (["--policy", "nope"], "--policy 'nope'"),
     (["--noise", "-0.5"], "--noise"),
     (["--takeoff"], "--takeoff"),
+    (["--connect", "nope"], "--connect 'nope'"),
+    (["--stall-s", "0"], "--stall-s"),
 ])
 def test_bad_input_is_one_line_naming_the_flag_before_anything_starts(tmp_path: Path, flags: list[str],
                                                                        names: str) -> None:
@@ -56,6 +58,15 @@ def test_bad_input_is_one_line_naming_the_flag_before_anything_starts(tmp_path: 
     assert names in done.stderr and "Traceback" not in done.stderr, done.stderr
     assert "started sim" not in done.stderr  # no service was started
     assert not out.exists(), "a failed up left its output folder behind"
+
+
+def test_health_refuses_bad_flags_in_one_line() -> None:
+    env = {**os.environ, "HF_HUB_OFFLINE": "1"}
+    for flags, names in ((["--timeout-s", "-1"], "--timeout-s"), (["--connect", "nope"], "--connect 'nope'"),
+                         (["--vehicle-id", "a/b"], "vehicle id 'a/b'")):
+        done = subprocess.run([sys.executable, "-m", "dovesei.cli", "health", "--service", "sim", *flags], cwd=REPO,
+                              capture_output=True, text=True, timeout=60, env=env)
+        assert done.returncode == 2 and names in done.stderr and "Traceback" not in done.stderr, done.stderr
 
 
 def test_a_model_directory_without_weights_is_refused(tmp_path: Path) -> None:
