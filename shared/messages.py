@@ -89,7 +89,9 @@ ANGLE_RAD = (-2 * math.pi, 2 * math.pi)
 SEQ = (-1, 2**62)
 LATENCY_S = (-1e6, 1e6)  # cross-host wall differences can be negative when clocks disagree
 _FIELD_RANGES: dict[str, tuple[float, float]] = {
-    "t_s": (0.0, 1e9),  # sim time, vehicle boot time or a process's monotonic wall clock
+    # Sim time, vehicle boot time (MAVLink's wraps at 49.7 days) or a process's monotonic clock:
+    # three years of uptime is more than any of them; a command stamped 1e9 s never timed out.
+    "t_s": (0.0, 1e8),
     "sent_wall_s": (0.0, 1e11),  # Unix time at publication; 0 = not set
     "seq": SEQ, "state_seq": SEQ, "frame_seq": SEQ, "await_frame_seq": SEQ,
     "alt_agl_m": (-1000.0, 100_000.0),

@@ -24,7 +24,7 @@ from dovesei.shared.codec import decode, encode, jpeg_header_size
 from dovesei.shared.errors import ProtocolError
 from dovesei.shared.lifecycle import FLOOD_DEPTH, REJECT_STAMP, Inbox, RateLimitedLog, wait_until
 from dovesei.shared.messages import (
-    SCHEMAS, FieldError, Record, SafetyHeatmap, Stamp, VehicleState, VelocityCommand, field_hints, field_range,
+    SCHEMAS, FieldError, PromptSetMsg, Record, SafetyHeatmap, Stamp, VehicleState, VelocityCommand, field_hints, field_range,
     replace,
 )
 
@@ -88,6 +88,12 @@ def test_a_huge_value_in_any_numeric_field_is_refused(index: int) -> None:
     with pytest.raises(ProtocolError, match="t_s"):
         decode(_tamper(msg, stamp=stamp))
     assert tried >= 1 or type(msg).__name__ == "PromptSetMsg"
+
+
+def test_a_command_stamped_1e9_s_is_refused_at_decode() -> None:
+    cmd = sample_messages()[4]
+    with pytest.raises(ProtocolError, match="t_s"):
+        decode(_tamper(cmd, stamp={"t_s": 1e9, "clock": "sim"}), VelocityCommand)
 
 
 def test_a_negative_velocity_far_beyond_any_vehicle_is_refused_when_built() -> None:
@@ -275,6 +281,23 @@ def test_a_state_from_a_vehicle_clock_jumping_ahead_is_refused(zenoh_pair) -> No
         _flush(a, b, "dovesei/uav1/test_marker")
         assert inbox.poll() is None and inbox.rejected[REJECT_STAMP] == 1
         assert inbox.stats()["rejected"][REJECT_STAMP] == 1
+
+
+def test_a_flood_of_bad_prompts_logs_a_few_lines_not_one_per_message(zenoh_pair, caplog) -> None:
+    a, b = zenoh_pair
+    key = keys.prompts("uav1")
+    prompts = sample_messages()[6]
+    with Inbox(b, key, PromptSetMsg, newest_only=False) as inbox:
+        _warm_up(a, inbox, key, prompts)
+        caplog.set_level(logging.WARNING, logger="dovesei.shared.lifecycle")
+        caplog.clear()
+        for i in range(500):
+            a.put(key, b"\xc1" if i % 2 else _tamper(prompts, template="no placeholder"), congestion_control=BLOCK)
+        a.put(key, encode(replace(prompts, positive=("meadow",))), congestion_control=BLOCK)
+        got = inbox.recv(5.0)
+        assert got is not None and got.positive == ("meadow",)
+        assert sum(inbox.rejected.values()) == 500
+        assert len([r for r in caplog.records if "rejected on" in r.getMessage()]) <= 3
 
 
 def test_rate_limited_log_says_the_first_of_each_kind_then_summarises(caplog) -> None:
