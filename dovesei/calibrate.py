@@ -23,7 +23,7 @@ import os
 import sys
 from pathlib import Path
 
-from dovesei.bench import DEFAULT_POLICIES, paper_time_limit_s, parse_policies, run_bench
+from dovesei.bench import DEFAULT_POLICIES, OneLineParser, paper_time_limit_s, parse_policies, run_bench
 from dovesei.bench.run import episode_seed
 from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.shared.validate import in_range
@@ -38,7 +38,7 @@ DEFAULT_CALIBRATION_SEED = 1
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="dovesei calibrate", description=__doc__,
+    p = OneLineParser(prog="dovesei calibrate", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--world", default="synthetic")
     p.add_argument("--noise", default="0,0.5,1,1.5,2", help="comma-separated noise levels")

@@ -28,7 +28,7 @@ import os
 import sys
 from pathlib import Path
 
-from dovesei.bench import check_perception, paper_time_limit_s, parse_policies, suite_worlds
+from dovesei.bench import OneLineParser, check_perception, paper_time_limit_s, parse_policies, suite_worlds
 from dovesei.bench.run import Grid, Variant, run_grid
 from dovesei.episode import prompt_set
 from dovesei.shared import timing as shared_timing
@@ -154,7 +154,7 @@ def plot_sweep(rows: list[dict], out_png: Path, title: str) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="dovesei sweep", description=__doc__,
+    p = OneLineParser(prog="dovesei sweep", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("file", type=Path, help="the grid, YAML (.yaml/.yml) or JSON")
     p.add_argument("--out", type=Path, default=Path("runs/sweep"), help="output folder (resumes if it exists)")

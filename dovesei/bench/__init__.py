@@ -32,6 +32,7 @@ from dovesei.bench.stats import SUMMARY_KEYS, summarise, wilson_interval
 from dovesei.shared import timing as shared_timing
 from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.shared.validate import in_range, positive
+from dovesei.sim.suite import suite as world_suite
 
 __all__ = ["DEFAULT_POLICIES", "SUMMARY_KEYS", "build_parser", "main", "paper_time_limit_s", "parse_policies",
            "run_bench", "summarise", "summary_markdown", "wilson_interval", "suite_worlds", "perception_names"]
@@ -42,8 +43,15 @@ DEFAULT_POLICIES = "dovesei,dovesei-nofocus"
 PAPER_TIME_LIMIT_S = shared_timing.PAPER_TIME_LIMIT_S
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """argparse with usage errors as ONE line naming the flag (`--help` still prints the usage)."""
+
+    def error(self, message: str):  # noqa: D102 - argparse's hook
+        self.exit(2, f"{self.prog}: {message} (see --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="dovesei bench", description=__doc__,
+    p = OneLineParser(prog="dovesei bench", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     where = p.add_mutually_exclusive_group()
     where.add_argument("--world", default=None, help="synthetic[:seed=N,...], dubai or a world folder (default: synthetic)")
@@ -96,15 +104,11 @@ def check_perception(name: str | None) -> str:
 
 
 def suite_worlds(name: str) -> tuple[str, ...]:
-    """The world specs of a named suite of the repository."""
-    if name != "default":
-        raise ConfigError(f"--suite {name!r}: the only suite is 'default'")
+    """The world specs of a named suite of the repository (dovesei.sim.suite)."""
     try:
-        from dovesei.sim.suite import DEFAULT_SUITE  # lazy: an install may lack the suite
-    except ImportError:
-        raise ConfigError("--suite default: this install has no world suite (dovesei.sim.suite)") from None
-    # A suite entry is a world spec, or an object carrying one in `.spec`.
-    return tuple(w if isinstance(w, str) else str(w.spec) for w in DEFAULT_SUITE)
+        return world_suite(name)
+    except ConfigError as exc:
+        raise ConfigError(f"--{exc}") from None
 
 
 def _at_least_one(flag: str, value: int) -> int:

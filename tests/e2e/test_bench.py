@@ -89,6 +89,17 @@ def test_several_worlds_give_a_row_per_world_and_the_worlds_own_starts(tmp_path:
                                                                             "01-synthetic-size-m-400-seed-2"}
 
 
+def test_suite_default_flies_every_world_of_the_suite(tmp_path: Path, capsys) -> None:
+    from dovesei.sim.suite import DEFAULT_SUITE
+
+    assert main(["--suite", "default", "--episodes", "1", "--policy", "dovesei", "--time-limit-s", "0.5",
+                 "--jobs", "1", "--out", str(tmp_path), "--no-progress"]) == 0
+    doc = json.loads((tmp_path / "results.json").read_text())
+    assert [e["world"] for e in doc["episodes"]] == list(DEFAULT_SUITE)
+    assert doc["config"]["world"] == "suite:default" and len(doc["per_world"]) == len(DEFAULT_SUITE)
+    assert "## Per world" in capsys.readouterr().out
+
+
 def test_summary_means_are_over_successful_episodes() -> None:
     eps = [{"policy": "p", "outcome": "safe", "sim_time_s": 40.0, "path_length_m": 10.0, "wall_time_s": 1.0},
            {"policy": "p", "outcome": "timeout", "sim_time_s": 60.0, "path_length_m": 99.0, "wall_time_s": 1.0}]
@@ -133,6 +144,9 @@ def _cli(*args: str, cwd: Path) -> subprocess.CompletedProcess:
     (["--perception", "dreamy"], "--perception"),
     (["--address", "10.0.0.1:6379"], "--engine ray"),
     (["--time-limit-s", "nan"], "--time-limit-s"),
+    (["--suite", "nope"], "--suite"),
+    (["--episodes", "ten"], "--episodes"),
+    (["--suite", "default", "--world", "synthetic"], "not allowed with"),
 ])
 def test_cli_errors_are_one_line_and_leave_no_folder(tmp_path: Path, args: list[str], needle: str) -> None:
     out = tmp_path / "out"

@@ -21,6 +21,7 @@ WORLD = "synthetic:size_m=400,seed=1"
     (["--noise", "0,x"], "--noise"),
     (["--noise", "9"], "--noise"),
     (["--timing", "fast"], "fast"),
+    (["--episodes", "many"], "--episodes"),
 ])
 def test_bad_flags_are_one_line_and_leave_no_folder(tmp_path: Path, args: list[str], needle: str) -> None:
     out = tmp_path / "cal"
