@@ -24,6 +24,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "bench-segmenter": ("dovesei.benchmarks.segmenter", "CLIPSeg reference vs fast path, and the simulated backend"),
     "bench-policy": ("dovesei.benchmarks.policy", "policy compute time per heatmap at 352x352"),
     "bench-loop": ("dovesei.benchmarks.loop", "controller loop jitter at 20 Hz with a 2 Hz segmenter"),
+    "perception-stats": ("dovesei.perception_stats", "simulated perception vs real CLIPSeg statistics (threshold, precision)"),
     "preview": ("dovesei.preview", "PNG pictures of a world, the camera's view and the simulated perception"),
     "health": ("dovesei.health", "exit 0 when a service's liveliness token is visible"),
     "certs": ("dovesei.certs", "a CA, one certificate per role and the router's ACL for the secured Zenoh mode"),

@@ -94,6 +94,12 @@ def _log_mean_exp(group: np.ndarray) -> np.ndarray:
     return peak + np.log(np.exp(group - peak).mean(axis=0))
 
 
+def blur_prob(prob: np.ndarray, blur_px: int = DEFAULT_BLUR_PX) -> np.ndarray:
+    """The fusion's box blur alone (for a backend that fuses on a coarser grid and upsamples)."""
+    _check_params("grouped", 1.0, blur_px)
+    return _blur(np.asarray(prob, dtype=np.float32), blur_px)
+
+
 def _blur(prob: np.ndarray, blur_px: int) -> np.ndarray:
     if blur_px == 1:
         return prob

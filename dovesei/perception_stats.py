@@ -1,0 +1,228 @@
+"""`dovesei perception-stats`: the simulated perception's statistics, comparable to real CLIPSeg's.
+
+The figures the authors' logs and PEACE give for the reference pipeline with real CLIPSeg, and
+that the `realistic` profile is calibrated against (never against landing success counts):
+
+- `median_threshold`: median over frames of the reference's dynamic threshold (authors: 0.51);
+- `lowered_fraction`: share of frames whose threshold went below 0.85 (authors: 99.8 %);
+  frames where even 0.0085 leaves < 10 % of pixels count as lowered (the service failed);
+- `target_precision`: share of single-frame target pixels (P above the dynamic threshold) whose
+  2 m ground disk is truly safe, judged with the world's safe flags and the judge's 1 %
+  tolerance (PEACE: DOVESEI's prompts found a safe landing zone 57 % of the time);
+- `core_precision`: share of frames whose mask's deepest pixel (farthest from the mask's edge,
+  where the reference aims) has a truly safe disk: PEACE's per-image reading of the same thing;
+- `frame_agreement`: mean IoU of the target masks of consecutive frames (the camera drifting
+  0.2 m per frame at 100 m), i.e. how much of the map's choice survives one frame.
+
+All at 100 m over seeded starts, with the reference prompts, the reference fusion (softmax) and
+the dynamic threshold of `dovesei.controller.policies.dovesei`. This side is the JUDGE and may
+read the safe flags; the perception under test never does.
+
+    worlds --starts (seeded)--> views at 100 m, a short drift per start
+           --sim render (labels + pose)--> SimPerception --fusion "dovesei"--> P(safe)
+           --dynamic threshold--> target mask --world disk-safe map--> precision, agreement
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import sys
+from dataclasses import asdict, dataclass
+
+import cv2
+import numpy as np
+
+from dovesei.controller.policies.dovesei import DoveseiConfig, dynamic_threshold
+from dovesei.segmenter.fusion import FusionConfig
+from dovesei.segmenter.prompts import REFERENCE_PROMPTS
+from dovesei.segmenter.sim_backend import (
+    DEFAULT_PROFILE, PROFILES, PerceptionParams, SimPerception, View, profile_params,
+)
+from dovesei.shared.errors import ConfigError, DoveseiError
+from dovesei.sim.camera import CameraModel, pixel_to_world_affine, render
+from dovesei.sim.judge import DEFAULT_ZERO_TOLERANCE_NAMES
+from dovesei.sim.starts import generate_starts
+from dovesei.sim.world import World, load_world
+
+log = logging.getLogger(__name__)
+
+ALT_M = 100.0
+DRIFT_M_PER_FRAME = 0.2
+SAFETY_RADIUS_M = 2.0
+TOLERANCE_FRAC = 0.01  # the judge's
+
+
+@dataclass(frozen=True)
+class WorldStats:
+    world: str
+    frames: int
+    median_threshold: float
+    lowered_fraction: float
+    failed_fraction: float
+    target_precision: float
+    core_precision: float
+    frame_agreement: float
+
+
+def default_worlds() -> list[str]:
+    """The world suite (`dovesei.sim.suite.DEFAULT_SUITE` when present), else Dubai + synthetic."""
+    try:
+        from dovesei.sim.suite import DEFAULT_SUITE  # helper module of the world suite, if shipped
+    except ImportError:
+        return ["dubai", "synthetic"]
+    return [str(getattr(w, "spec", w)) for w in DEFAULT_SUITE]
+
+
+def disk_safe_map(world: World, radius_m: float = SAFETY_RADIUS_M, tolerance: float = TOLERANCE_FRAC) -> np.ndarray:
+    """uint8 map over the world: 1 where a landing disk of radius_m would be judged safe.
+
+    The judge's rule at every pixel at once: at most `tolerance` of the disk unsafe, no person at
+    all in it; beyond the world's edge is unsafe (the border of the filter counts as unsafe).
+    """
+    if world.labels is None:
+        raise ConfigError(f"world {world.name!r} has no labels: perception cannot be judged on it")
+    r_px = radius_m / world.gsd_m
+    n = int(math.ceil(r_px))
+    yy, xx = np.mgrid[-n:n + 1, -n:n + 1]
+    disk = ((xx * xx + yy * yy) <= r_px * r_px).astype(np.float32)
+    disk /= disk.sum()
+    unsafe = (~world.safe_lut[world.labels]).astype(np.float32)
+    unsafe_frac = cv2.filter2D(unsafe, -1, disk, borderType=cv2.BORDER_CONSTANT)
+    # Border: filter2D's constant border is 0 (safe); the world's edge is unsafe, so add the part
+    # of the disk that hangs outside.
+    outside = 1.0 - cv2.filter2D(np.ones_like(unsafe), -1, disk, borderType=cv2.BORDER_CONSTANT)
+    ok = (unsafe_frac + outside) <= tolerance + 1e-6
+    people = [cid for cid, c in world.classes.items()
+              if not c.safe and any(w in c.name.lower() for w in DEFAULT_ZERO_TOLERANCE_NAMES)]
+    if people:
+        person = np.isin(world.labels, people).astype(np.uint8)
+        ok &= cv2.dilate(person, (disk > 0).astype(np.uint8), borderType=cv2.BORDER_CONSTANT) == 0
+    return ok.astype(np.uint8)
+
+
+def _view_disk_safe(world: World, safe_map: np.ndarray, x_m: float, y_m: float, cam: CameraModel) -> np.ndarray:
+    m0 = pixel_to_world_affine(world, x_m, y_m, ALT_M, 0.0, cam)
+    return cv2.warpAffine(safe_map, m0, (cam.width_px, cam.height_px), flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
+                          borderMode=cv2.BORDER_CONSTANT, borderValue=0).astype(bool)
+
+
+def world_stats(world: World, params: PerceptionParams, n_starts: int, frames_per_start: int, seed: int) -> WorldStats:
+    """The statistics of one world under one perception profile (see the module docstring)."""
+    cam = CameraModel()
+    perception = SimPerception(params, seed=seed)
+    names = {cid: c.name for cid, c in world.classes.items()}  # names only: the flag stays here
+    fusion = FusionConfig(mode="dovesei")
+    policy_cfg = DoveseiConfig()
+    safe_map = disk_safe_map(world)
+    rng = np.random.default_rng([seed, 5])
+    thresholds, agreements = [], []
+    lowered = failed = 0
+    target_px = target_safe = 0
+    cores = cores_safe = 0
+    for i, start in enumerate(generate_starts(world, n_starts, seed, ALT_M, cam)):
+        heading = rng.uniform(0.0, 2.0 * math.pi)
+        prev = None
+        for k in range(frames_per_start):
+            x_m = start.x_m + k * DRIFT_M_PER_FRAME * math.sin(heading)
+            y_m = start.y_m + k * DRIFT_M_PER_FRAME * math.cos(heading)
+            _, labels, _ = render(world, x_m, y_m, ALT_M, 0.0, cam, with_image=False)
+            view = View((x_m, y_m), ALT_M, cam.hfov_rad, 0.0)
+            prob = perception.safe_probability(labels, names, view, i * 1000 + k, REFERENCE_PROMPTS, fusion)
+            res = dynamic_threshold(prob, policy_cfg)
+            if res.threshold is None:
+                failed += 1
+                lowered += 1
+                prev = None
+                continue
+            thresholds.append(res.threshold)
+            lowered += res.threshold < policy_cfg.seg_threshold_start
+            mask = res.mask_u8 > 0
+            truth = _view_disk_safe(world, safe_map, x_m, y_m, cam)
+            target_px += int(mask.sum())
+            target_safe += int((mask & truth).sum())
+            # The mask's deepest pixel (farthest from its edge), where a policy would aim.
+            dist = cv2.distanceTransform(res.mask_u8, cv2.DIST_L2, 3)
+            cores += 1
+            cores_safe += bool(truth.flat[int(np.argmax(dist))])
+            if prev is not None:
+                # The drift moves the ground under the camera by < 0.5 px: compare pixel for pixel.
+                agreements.append(float((mask & prev).sum()) / max(1, int((mask | prev).sum())))
+            prev = mask
+    frames = n_starts * frames_per_start
+    return WorldStats(
+        world=world.name, frames=frames,
+        median_threshold=float(np.median(thresholds)) if thresholds else float("nan"),
+        lowered_fraction=lowered / frames, failed_fraction=failed / frames,
+        target_precision=target_safe / target_px if target_px else float("nan"),
+        core_precision=cores_safe / cores if cores else float("nan"),
+        frame_agreement=float(np.mean(agreements)) if agreements else float("nan"))
+
+
+def suite_stats(worlds: list[str], profile: str = DEFAULT_PROFILE, noise: float = 1.0, n_starts: int = 40,
+                frames_per_start: int = 3, seed: int = 0) -> dict:
+    """Per-world statistics and their frame-weighted means over the worlds."""
+    per_world = []
+    for spec in worlds:
+        world = load_world(spec)
+        stats = world_stats(world, profile_params(profile, noise), n_starts, frames_per_start, seed)
+        log.info("%s", stats)
+        per_world.append(stats)
+    frames = sum(s.frames for s in per_world)
+
+    def mean(key: str) -> float:
+        vals = [(getattr(s, key), s.frames) for s in per_world if not math.isnan(getattr(s, key))]
+        return sum(v * f for v, f in vals) / sum(f for _, f in vals) if vals else float("nan")
+
+    return {"perception": profile, "noise": noise, "seed": seed, "starts_per_world": n_starts,
+            "frames_per_start": frames_per_start, "alt_m": ALT_M, "prompts": "reference", "fusion": "dovesei",
+            "frames": frames, "median_threshold": mean("median_threshold"), "lowered_fraction": mean("lowered_fraction"),
+            "failed_fraction": mean("failed_fraction"), "target_precision": mean("target_precision"),
+            "core_precision": mean("core_precision"),
+            "frame_agreement": mean("frame_agreement"), "worlds": [asdict(s) for s in per_world]}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="dovesei perception-stats", description=__doc__.split("\n\n")[0])
+    p.add_argument("--perception", default=DEFAULT_PROFILE, choices=sorted(PROFILES),
+                   help=f"simulated perception profile (default {DEFAULT_PROFILE})")
+    p.add_argument("--noise", type=float, default=1.0, help="error scale within the profile (default 1)")
+    p.add_argument("--world", action="append", default=None,
+                   help="world spec (repeatable; default: the world suite)")
+    p.add_argument("--starts", type=int, default=40, help="seeded starts per world (default 40)")
+    p.add_argument("--frames", type=int, default=3, help="consecutive frames per start (default 3, >= 2)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the starts and of the perception")
+    p.add_argument("--json", action="store_true", help="print the result as one JSON object")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
+    if args.starts < 1 or args.frames < 2 or args.seed < 0:
+        print("dovesei perception-stats: --starts must be >= 1, --frames >= 2 and --seed >= 0", file=sys.stderr)
+        return 2
+    try:
+        out = suite_stats(args.world or default_worlds(), args.perception, args.noise, args.starts, args.frames,
+                          args.seed)
+    except (DoveseiError, ValueError) as exc:
+        print(f"dovesei perception-stats: {exc}", file=sys.stderr)
+        return 2
+    if args.json:
+        print(json.dumps(out))
+    else:
+        for w in out["worlds"]:
+            print(f"{w['world']:<40} median thr {w['median_threshold']:.3f}  lowered {w['lowered_fraction']:.3f}  "
+                  f"precision {w['target_precision']:.3f}  core {w['core_precision']:.3f}  agreement {w['frame_agreement']:.3f}")
+        print(f"{'ALL':<40} median thr {out['median_threshold']:.3f}  lowered {out['lowered_fraction']:.3f}  "
+              f"precision {out['target_precision']:.3f}  core {out['core_precision']:.3f}  agreement {out['frame_agreement']:.3f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
+
+
+__all__ = ["WorldStats", "default_worlds", "disk_safe_map", "suite_stats", "world_stats"]

@@ -1,0 +1,486 @@
+"""Simulated CLIPSeg: one logit map per prompt from the sim's truth labels, wrong the way CLIPSeg is.
+
+A TEST INSTRUMENT for comparing landing policies, never a perception system: it needs the sim's
+ground-truth label image (frames without it are refused) and it never reads which classes the
+judge counts safe, only their NAMES (`appearance.py`). Its output is what CLIPSeg's is, a stack
+of prompt logits, and the same fusion (`fusion.py`, reference softmax or grouped) turns it into
+P(safe), so changing the prompts changes the map through the response table (`responses.py`).
+
+Data flow for one frame (labels resized to CLIPSeg's 352x352 input, as CLIPSeg resizes frames):
+
+    labels --class names--> appearance mix per class (cached per class table)
+           + shadows: roofs/trees/cars cast a fixed-sun shadow (world direction) on lower ground
+      --8x8-pixel cells, Gaussian ~1 token--> F: appearance fractions on a 44x44 grid. Detail
+        under one token (1/22 of the view: ~6.7 m at 100 m, ~1.3 m at 20 m) is diluted into
+        its surroundings; people and cars weigh a little more than their area (salience)
+      --confusions anchored in WORLD metres--> each appearance is read partly as a partner
+        (grey flat roof -> plaza, dark pond -> asphalt, lawn -> sports field) where a seeded
+        value-noise field over (east, north, log2 altitude) is high: the same ground is misread
+        the same way frame after frame and drifts as the altitude changes
+      --context--> each cell pulled towards its neighbourhood and towards the whole view
+      --responses--> logits = logit_scale * G @ R (R: appearance x prompt affinities)
+      + flicker: a small smooth per-frame field and per-prompt offsets (seed, frame_seq)
+      --fusion (softmax or grouped) on an 88x88 grid, box blur at 352--> P(safe)
+      --x fraction of the cell inside the world--> off-world reads 0, below any real class
+      --bilinear--> frame size
+
+Determinism: the output is a pure function of (labels, class names, view, prompts, params,
+seed, frame_seq); every random draw comes from a hash or a fresh generator keyed by them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from dovesei.shared.errors import ConfigError
+
+from .appearance import APPEARANCES, INDEX, OFF_WORLD_LABEL, appearance_mix
+from .fusion import FusionConfig, blur_prob, fuse
+from .prompts import PromptSet
+from .responses import ITEM_SHARPNESS, response_matrix
+
+log = logging.getLogger(__name__)
+
+INPUT_PX = 352  # CLIPSeg's input side
+CELL_SIZES_PX = (1, 2, 4, 8)  # 8 = half a 16-pixel ViT patch: appearance fractions on 44x44
+FIELD_GRID = 16  # world-anchored fields are evaluated on 16x16 points across the view
+A = len(APPEARANCES)
+
+# Who is misread as whom, and how often relative to the others (rows need not sum to 1).
+CONFUSIONS: dict[str, dict[str, float]] = {
+    "flat_roof": {"paved": 0.6, "parking": 0.2, "bare_ground": 0.2},
+    "pitched_roof": {"flat_roof": 0.5, "bare_ground": 0.3, "paved": 0.2},
+    "road": {"parking": 0.5, "paved": 0.5},
+    "paved": {"road": 0.3, "flat_roof": 0.4, "bare_ground": 0.3},
+    "parking": {"road": 0.6, "paved": 0.4},
+    "lawn": {"sports_field": 0.5, "tree": 0.3, "bare_ground": 0.2},
+    "sports_field": {"lawn": 0.7, "paved": 0.3},
+    "bare_ground": {"paved": 0.5, "lawn": 0.2, "flat_roof": 0.3},
+    "tree": {"lawn": 0.7, "shadow": 0.3},
+    "water": {"road": 0.5, "shadow": 0.3, "lawn": 0.2},
+    "vehicle": {"road": 0.5, "flat_roof": 0.5},
+    "person": {"paved": 0.6, "lawn": 0.4},
+    "shadow": {"water": 0.4, "road": 0.6},
+    "clutter": {"paved": 0.3, "flat_roof": 0.4, "bare_ground": 0.3},
+}
+# Height of what casts a shadow (m); the sun's elevation turns it into a length on the ground.
+CASTER_HEIGHT_M: dict[str, float] = {"flat_roof": 9.0, "pitched_roof": 7.0, "tree": 5.0, "vehicle": 1.5}
+SALIENCE: dict[str, float] = {"person": 2.0, "vehicle": 1.5}
+
+
+@dataclass(frozen=True)
+class PerceptionParams:
+    """One profile of the simulated perception; ``noise`` scales every error strength in it."""
+
+    name: str = "realistic"
+    noise: float = 1.0
+    """0: no confusions, context, flicker or shadows (the response table and token grid stay)."""
+    logit_scale: float = 5.0
+    """Logit per unit of affinity: CLIPSeg's spread between a matching and an unrelated prompt."""
+    item_sharpness: float = ITEM_SHARPNESS
+    confusion: float = 0.8
+    """Largest share of an appearance read as its partners where the world field is high."""
+    confusion_onset: float = 0.3
+    """Field value (in its std) where misreading starts; it is full at onset + 1."""
+    field_length_m: float = 20.0
+    """Lattice spacing of the world fields; a second octave at 0.4 x this adds texture."""
+    field_octaves_per_doubling: float = 0.7
+    """How fast the misreading changes with altitude: lattice units per altitude doubling."""
+    context_local: float = 0.25
+    context_sigma_px: float = 24.0
+    """Neighbourhood of the local context, Gaussian sigma in input pixels (1.5 tokens)."""
+    context_global: float = 0.12
+    flicker_logit: float = 0.2
+    """Std (logits) of the smooth per-frame field, per prompt."""
+    flicker_offset: float = 0.1
+    """Std (logits) of each prompt's per-frame offset over the whole view."""
+    shadow: float = 0.5
+    """Share of a shadowed patch that reads as shadow."""
+    sun_elevation_deg: float = 45.0
+    cell_px: int = 8
+    """Side of the cells the appearance is counted on, input pixels (8: half a ViT token)."""
+    token_sigma_px: float = 4.4
+    """Token footprint, Gaussian sigma in input pixels (with the 8-px cells, about a 16-px box)."""
+    fusion_grid_px: int = 88
+    """Grid the fusion runs on before the upsample to 352 (352 = CLIPSeg's own output grid)."""
+
+    def __post_init__(self) -> None:
+        checks = {"noise": (0.0, 4.0), "logit_scale": (0.1, 50.0), "item_sharpness": (0.0, 50.0),
+                  "confusion": (0.0, 0.95), "confusion_onset": (-3.0, 3.0), "field_length_m": (1.0, 1000.0),
+                  "field_octaves_per_doubling": (0.0, 5.0), "context_local": (0.0, 0.6),
+                  "context_sigma_px": (1.0, 200.0), "context_global": (0.0, 0.4), "flicker_logit": (0.0, 5.0),
+                  "flicker_offset": (0.0, 5.0), "shadow": (0.0, 1.0), "sun_elevation_deg": (10.0, 90.0),
+                  "token_sigma_px": (0.0, 40.0)}
+        for key, (lo, hi) in checks.items():
+            value = getattr(self, key)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
+                    or not lo <= value <= hi:
+                raise ConfigError(f"perception {self.name}: {key} must be a number in [{lo:g}, {hi:g}], got {value!r}")
+        if self.cell_px not in CELL_SIZES_PX:
+            raise ConfigError(f"perception {self.name}: cell_px must be one of {CELL_SIZES_PX}, got {self.cell_px!r}")
+        if self.fusion_grid_px not in (44, 88, 176, 352):
+            raise ConfigError(f"perception {self.name}: fusion_grid_px must be 44, 88, 176 or 352, "
+                              f"got {self.fusion_grid_px!r}")
+
+    def scaled(self) -> dict[str, float]:
+        """The error strengths after ``noise`` (capped where a share must stay below 1)."""
+        n = self.noise
+        local, glob = self.context_local * n, self.context_global * n
+        if local + glob > 0.8:  # a cell must keep most of its own look
+            local, glob = 0.8 * local / (local + glob), 0.8 * glob / (local + glob)
+        return {"confusion": min(0.95, self.confusion * n), "context_local": local, "context_global": glob,
+                "flicker_logit": self.flicker_logit * n, "flicker_offset": self.flicker_offset * n,
+                "shadow": min(1.0, self.shadow * n)}
+
+
+# The profiles: `realistic` is calibrated on threshold statistics of the authors' logs and on
+# PEACE's 57 % (see dovesei.perception_stats), on seeds apart from the reported ones.
+PROFILES: dict[str, PerceptionParams] = {
+    # clean: every error off, 2-px cells (no token grid) and confident logits: what the prompts
+    # say about each appearance, nothing else.
+    "clean": PerceptionParams(name="clean", logit_scale=15.0, cell_px=2, token_sigma_px=0.0, confusion=0.0,
+                              context_local=0.0, context_global=0.0, flicker_logit=0.0, flicker_offset=0.0,
+                              shadow=0.0),
+    "realistic": PerceptionParams(name="realistic"),
+    "harsh": PerceptionParams(name="harsh", confusion=0.95, confusion_onset=-0.2, context_local=0.35,
+                              context_global=0.2, flicker_logit=0.4, flicker_offset=0.2, shadow=0.7),
+}
+DEFAULT_PROFILE = "realistic"
+
+
+def profile_params(name: str = DEFAULT_PROFILE, noise: float = 1.0) -> PerceptionParams:
+    """The named profile at a noise scale (ConfigError naming the choices for a bad name)."""
+    if name not in PROFILES:
+        raise ConfigError(f"perception profile {name!r}: choose one of {', '.join(PROFILES)}")
+    return dataclasses.replace(PROFILES[name], noise=noise)
+
+
+@dataclass(frozen=True)
+class View:
+    """Where the camera looks: its optical axis on the ground (world metres, x east, y north;
+    None when the frame does not say, and the world fields are then anchored to the image),
+    altitude, horizontal FOV and heading (0 north, +pi/2 east)."""
+
+    centre_world_m: tuple[float, float] | None
+    alt_agl_m: float
+    hfov_rad: float
+    yaw_rad: float = 0.0
+
+
+# --- seeded value noise in world coordinates ------------------------------------------------
+
+_M1, _M2, _M3 = np.uint64(0x9E3779B97F4A7C15), np.uint64(0xBF58476D1CE4E5B9), np.uint64(0x94D049BB133111EB)
+
+
+def _hash_unit(ix: np.ndarray, iy: np.ndarray, iz: np.ndarray, key: int) -> np.ndarray:
+    """Uniform [-1, 1) from integer lattice coordinates and a key (splitmix64 finaliser)."""
+    with np.errstate(over="ignore"):
+        h = (ix.astype(np.uint64) * _M1) ^ (iy.astype(np.uint64) * _M2) ^ (iz.astype(np.uint64) * _M3)
+        h ^= np.uint64(key & 0xFFFFFFFFFFFFFFFF) * _M1
+        h ^= h >> np.uint64(30)
+        h *= _M2
+        h ^= h >> np.uint64(27)
+        h *= _M3
+        h ^= h >> np.uint64(31)
+    return (h >> np.uint64(11)).astype(np.float64) * (2.0 / 2.0**53) - 1.0
+
+
+def _value_noise(x: np.ndarray, y: np.ndarray, z: np.ndarray, key: int) -> np.ndarray:
+    """Smooth noise on a unit lattice (trilinear with smoothstep weights); about uniform in [-1, 1]."""
+    fx, fy, fz = np.floor(x), np.floor(y), np.floor(z)
+    tx, ty, tz = x - fx, y - fy, z - fz
+    tx, ty, tz = (t * t * (3.0 - 2.0 * t) for t in (tx, ty, tz))
+    ix, iy, iz = fx.astype(np.int64), fy.astype(np.int64), fz.astype(np.int64)
+    out = np.zeros_like(x)
+    for dx in (0, 1):
+        wx = tx if dx else 1.0 - tx
+        for dy in (0, 1):
+            wy = ty if dy else 1.0 - ty
+            for dz in (0, 1):
+                wz = tz if dz else 1.0 - tz
+                out += wx * wy * wz * _hash_unit(ix + dx, iy + dy, iz + dz, key)
+    return out
+
+
+# Two octaves of trilinear value noise have a std of about 0.33 (measured over 10^6 points);
+# dividing by it makes `confusion_onset` read in standard deviations.
+_FIELD_STD = 0.33
+
+
+def world_field(east_m: np.ndarray, north_m: np.ndarray, alt_m: float, key: int, params: PerceptionParams) -> np.ndarray:
+    """A seeded smooth field over the ground and log-altitude, about unit std."""
+    z = math.log2(max(alt_m, 0.5)) * params.field_octaves_per_doubling
+    length = params.field_length_m
+    coarse = _value_noise(east_m / length, north_m / length, np.full_like(east_m, z), key)
+    fine = _value_noise(east_m / (0.4 * length), north_m / (0.4 * length), np.full_like(east_m, z + 17.3), key + 7)
+    return (0.75 * coarse + 0.45 * fine) / _FIELD_STD
+
+
+# --- the model ---------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _Classes:
+    mix: np.ndarray  # (256, A) appearance weights per label id (255 = off_world)
+    height_m: np.ndarray  # (256,) caster height per label id
+
+
+def _class_names(classes: Mapping[int, object] | Iterable[object]) -> dict[int, str]:
+    """{id: name} from a mapping id -> (name, safe) / name, or entries with .id and .name.
+
+    Only the names are kept: the judge's safe flag never enters the perception.
+    """
+    out: dict[int, str] = {}
+    if isinstance(classes, Mapping):
+        items = [(cid, e if isinstance(e, str) else (e[0] if isinstance(e, tuple) else getattr(e, "name", e)))
+                 for cid, e in classes.items()]
+    else:
+        try:
+            items = [(e.id, e.name) for e in classes]  # type: ignore[attr-defined]
+        except (AttributeError, TypeError):
+            raise ValueError("classes must map id -> name or (name, ...), or be entries with id and name") from None
+    for cid, name in items:
+        if isinstance(cid, bool) or not isinstance(cid, (int, np.integer)) or not 0 <= int(cid) <= 254:
+            raise ValueError(f"class id {cid!r} must be an integer in 0..254 (255 marks outside the world)")
+        if not isinstance(name, str):
+            raise ValueError(f"class {cid} name must be a str, got {name!r}")
+        out[int(cid)] = name
+    return out
+
+
+def _build_classes(names: Mapping[int, str]) -> _Classes:
+    mix = np.zeros((256, A))
+    mix[:, INDEX["clutter"]] = 1.0  # ids missing from the table: something, nobody says what
+    for cid, name in names.items():
+        mix[cid] = 0.0
+        for app, w in appearance_mix(name).items():
+            mix[cid, INDEX[app]] = w
+    mix[OFF_WORLD_LABEL] = 0.0
+    mix[OFF_WORLD_LABEL, INDEX["off_world"]] = 1.0
+    heights = np.zeros(A)
+    for app, h in CASTER_HEIGHT_M.items():
+        heights[INDEX[app]] = h
+    return _Classes(mix=mix, height_m=mix @ heights)
+
+
+class SimPerception:
+    """Truth labels + view + prompts -> prompt logits and P(safe), CLIPSeg-like. Test instrument."""
+
+    def __init__(self, params: PerceptionParams = PROFILES[DEFAULT_PROFILE], seed: int = 0) -> None:
+        if not isinstance(params, PerceptionParams):
+            raise ConfigError(f"params must be PerceptionParams, got {type(params).__name__}")
+        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+            raise ConfigError(f"seed must be a non-negative int, got {seed!r}")
+        self.params, self.seed = params, int(seed)
+        self._strength = params.scaled()
+        self._classes: dict[tuple, _Classes] = {}
+        self._responses: dict[str, np.ndarray] = {}
+        sal = np.ones(A)
+        for app, s in SALIENCE.items():
+            sal[INDEX[app]] = s
+        self._salience = sal
+        # The sun stands in one world direction per seed, as over one real site on one afternoon.
+        self._sun_az_rad = 2.0 * math.pi * ((self.seed * 0.6180339887 + 0.23) % 1.0)
+        self.grid = INPUT_PX // params.cell_px
+        iy, ix = np.divmod(np.arange(INPUT_PX * INPUT_PX), INPUT_PX)
+        self._cell_of_px = ((iy // params.cell_px) * self.grid + ix // params.cell_px).astype(np.int64)
+
+    def describe(self) -> str:
+        return f"SIMULATED perception profile={self.params.name} noise={self.params.noise:g} seed={self.seed}"
+
+    def responses(self, prompts: PromptSet) -> np.ndarray:
+        """(A, P) logits of a pure patch of each appearance for each prompt (cached per set)."""
+        r = self._responses.get(prompts.set_id)
+        if r is None:
+            if len(self._responses) >= 16:
+                self._responses.clear()
+            r = self.params.logit_scale * response_matrix(prompts, self.params.item_sharpness)
+            self._responses[prompts.set_id] = r
+        return r
+
+    def _tables(self, classes: Mapping[int, object] | Iterable[object]) -> _Classes:
+        names = _class_names(classes)
+        key = tuple(sorted(names.items()))
+        tables = self._classes.get(key)
+        if tables is None:
+            if len(self._classes) >= 8:
+                self._classes.clear()
+            tables = self._classes[key] = _build_classes(names)
+            log.info("simulated perception appearances: %s", "; ".join(
+                f"{cid}:{name}->" + "+".join(f"{APPEARANCES[j]}" for j in np.flatnonzero(tables.mix[cid] > 0))
+                for cid, name in sorted(names.items())))
+        return tables
+
+    # --- one frame ---------------------------------------------------------------------
+
+    def fractions(self, labels: np.ndarray, classes: Mapping[int, object] | Iterable[object],
+                  view: View) -> np.ndarray:
+        """(grid, grid, A) appearance fractions per cell, shadows included, before any error."""
+        lab = _input_labels(labels)
+        tables = self._tables(classes)
+        present = np.flatnonzero(np.bincount(lab.ravel(), minlength=256))
+        compact = np.zeros(256, np.int64)
+        compact[present] = np.arange(present.size)
+        k = present.size
+        shadow = self._shadow_mask(lab, tables, view, labels.shape) if self._strength["shadow"] > 0 else None
+        key = self._cell_of_px * (2 * k) + compact[lab.ravel()]
+        if shadow is not None:
+            key += shadow.ravel().astype(np.int64) * k
+        n_cells = self.grid * self.grid
+        counts = np.bincount(key, minlength=n_cells * 2 * k).reshape(n_cells, 2, k).astype(np.float64)
+        mix = tables.mix[present]  # (k, A)
+        shadow_mix = (1.0 - self._strength["shadow"]) * mix
+        shadow_mix[:, INDEX["shadow"]] += self._strength["shadow"]
+        frac = (counts[:, 0] @ mix + counts[:, 1] @ shadow_mix) / float(self.params.cell_px ** 2)
+        return frac.reshape(self.grid, self.grid, A)
+
+    def logits(self, labels: np.ndarray, classes: Mapping[int, object] | Iterable[object], view: View,
+               frame_seq: int, prompts: PromptSet) -> tuple[np.ndarray, np.ndarray]:
+        """(P, grid, grid) prompt logits and the (grid, grid) in-world share of each cell."""
+        frame_seq = _check_seq(frame_seq)
+        frac = self.fractions(labels, classes, view)
+        in_world = 1.0 - frac[..., INDEX["off_world"]]
+        g = frac * self._salience
+        g /= np.maximum(g.sum(axis=2, keepdims=True), 1e-12)
+        if self.params.token_sigma_px > 0:
+            sigma = self.params.token_sigma_px / self.params.cell_px
+            g = cv2.GaussianBlur(g.astype(np.float32), (0, 0), sigma).astype(np.float64)
+        s = self._strength
+        if s["confusion"] > 0:
+            g = self._confuse(g, view, labels.shape)
+        if s["context_local"] > 0 or s["context_global"] > 0:
+            near = cv2.GaussianBlur(g.astype(np.float32), (0, 0), self.params.context_sigma_px / self.params.cell_px)
+            g = (1.0 - s["context_local"] - s["context_global"]) * g + s["context_local"] * near \
+                + s["context_global"] * g.mean(axis=(0, 1))
+        grid = self.grid
+        out = (g @ self.responses(prompts)).astype(np.float32)  # (grid, grid, P)
+        if s["flicker_logit"] > 0 or s["flicker_offset"] > 0:
+            rng = np.random.default_rng([self.seed, 11, frame_seq])
+            n_p = out.shape[2]
+            field = rng.standard_normal((6, 6, n_p)).astype(np.float32) * s["flicker_logit"]
+            out += cv2.resize(field, (grid, grid), interpolation=cv2.INTER_CUBIC).reshape(grid, grid, n_p)
+            out += (rng.standard_normal(n_p) * s["flicker_offset"]).astype(np.float32)
+        return np.ascontiguousarray(out.transpose(2, 0, 1)), in_world.astype(np.float32)
+
+    def safe_probability(self, labels: np.ndarray, classes: Mapping[int, object] | Iterable[object], view: View,
+                         frame_seq: int, prompts: PromptSet, fusion: FusionConfig = FusionConfig(),
+                         out_size: tuple[int, int] | None = None) -> np.ndarray:
+        """P(safe) float32 in [0, 1] at ``out_size`` (height, width; default the labels' size)."""
+        logits, in_world = self.logits(labels, classes, view, frame_seq, prompts)
+        grid = max(self.params.fusion_grid_px, self.grid)
+        up = logits
+        if grid != self.grid:
+            up = cv2.resize(logits.transpose(1, 2, 0), (grid, grid), interpolation=cv2.INTER_LINEAR)
+            up = up.reshape(grid, grid, -1).transpose(2, 0, 1)
+        if grid == INPUT_PX:
+            prob = fuse(up, prompts.n_positive, fusion.mode, fusion.temperature, fusion.blur_px)
+        else:
+            # Fuse on the coarse grid, then upsample and box-blur at CLIPSeg's 352: the logits are
+            # smooth below a token, so this is the exact path to within ~0.01 at a tenth of its cost.
+            prob = fuse(up, prompts.n_positive, fusion.mode, fusion.temperature, 1)
+            prob = blur_prob(cv2.resize(prob, (INPUT_PX, INPUT_PX), interpolation=cv2.INTER_LINEAR), fusion.blur_px)
+        prob *= cv2.resize(in_world, (INPUT_PX, INPUT_PX), interpolation=cv2.INTER_LINEAR)
+        height_px, width_px = labels.shape if out_size is None else out_size
+        if (height_px, width_px) != prob.shape:
+            prob = cv2.resize(prob, (int(width_px), int(height_px)), interpolation=cv2.INTER_LINEAR)
+        return np.clip(prob, 0.0, 1.0, out=prob)
+
+    # --- errors ------------------------------------------------------------------------
+
+    def cell_world_m(self, view: View, n: int, frame_shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+        """World (east, north) of an n x n grid of points spread like cell centres over the view."""
+        height_px, width_px = frame_shape
+        half_w_m = math.tan(view.hfov_rad / 2.0) * view.alt_agl_m
+        half_h_m = half_w_m * height_px / width_px
+        u = (np.arange(n) + 0.5) / n * 2.0 - 1.0  # -1 left/top .. +1 right/bottom
+        right = (u * half_w_m)[None, :].repeat(n, 0)
+        forward = (-u * half_h_m)[:, None].repeat(n, 1)
+        c, s = math.cos(view.yaw_rad), math.sin(view.yaw_rad)
+        cx, cy = view.centre_world_m if view.centre_world_m is not None else (0.0, 0.0)
+        return cx + c * right + s * forward, cy + c * forward - s * right
+
+    def _confuse(self, g: np.ndarray, view: View, frame_shape: tuple[int, int]) -> np.ndarray:
+        east, north = self.cell_world_m(view, FIELD_GRID, frame_shape)
+        p = self.params
+        out = g.copy()
+        top = g.max(axis=(0, 1))
+        for a_name, partners in CONFUSIONS.items():
+            a = INDEX[a_name]
+            if top[a] < 0.02:
+                continue  # not in view: no field to evaluate
+            total = sum(partners.values())
+            for b_name, w in partners.items():
+                b = INDEX[b_name]
+                key = self.seed * 1_000_003 + a * 97 + b
+                z = world_field(east, north, view.alt_agl_m, key, p).astype(np.float32)
+                z = cv2.resize(z, (self.grid, self.grid), interpolation=cv2.INTER_LINEAR)
+                share = self._strength["confusion"] * (w / total) * np.clip(z - p.confusion_onset, 0.0, 1.0)
+                moved = g[..., a] * share
+                out[..., a] -= moved
+                out[..., b] += moved
+        return out
+
+    def _shadow_mask(self, lab: np.ndarray, tables: _Classes, view: View, frame_shape: tuple[int, int]) -> np.ndarray:
+        """Input pixels in the shadow of something taller, sun fixed in the world."""
+        height_lut = tables.height_m
+        heights = np.unique(height_lut[np.flatnonzero(np.bincount(lab.ravel(), minlength=256))])
+        heights = heights[heights > 0.5]
+        shadow = np.zeros(lab.shape, dtype=bool)
+        if heights.size == 0:
+            return shadow
+        px_h = height_lut[lab]
+        ground = lab != OFF_WORLD_LABEL  # beyond the map nothing is lit or shaded
+        frame_h, frame_w = frame_shape
+        m_per_px_x = 2.0 * math.tan(view.hfov_rad / 2.0) * view.alt_agl_m / INPUT_PX
+        m_per_px_y = m_per_px_x * frame_h / frame_w
+        # Shadows fall away from the sun; world (east, north) -> image (right, forward).
+        east, north = -math.sin(self._sun_az_rad), -math.cos(self._sun_az_rad)
+        c, s = math.cos(view.yaw_rad), math.sin(view.yaw_rad)
+        right, forward = c * east - s * north, s * east + c * north
+        per_m = 1.0 / math.tan(math.radians(self.params.sun_elevation_deg))
+        for h in heights:
+            caster = px_h >= h
+            length_m = h * per_m
+            for frac in (0.5, 1.0):
+                dx = int(round(right * length_m * frac / m_per_px_x))
+                dy = int(round(-forward * length_m * frac / m_per_px_y))
+                shadow |= _shifted(caster, dx, dy) & (px_h < h) & ground
+        return shadow
+
+
+def _shifted(mask: np.ndarray, dx: int, dy: int) -> np.ndarray:
+    """mask moved by (dx right, dy down) pixels, False where nothing moved in."""
+    out = np.zeros_like(mask)
+    h, w = mask.shape
+    if abs(dx) >= w or abs(dy) >= h:
+        return out
+    out[max(dy, 0):h + min(dy, 0), max(dx, 0):w + min(dx, 0)] = mask[max(-dy, 0):h - max(dy, 0), max(-dx, 0):w - max(dx, 0)]
+    return out
+
+
+def _input_labels(labels: object) -> np.ndarray:
+    if not isinstance(labels, np.ndarray):
+        raise ValueError(f"truth labels must be a numpy array, got {type(labels).__name__}")
+    if labels.ndim != 2 or min(labels.shape) < 1:
+        raise ValueError(f"truth labels must be a non-empty HxW array, got shape {labels.shape}")
+    if labels.dtype != np.uint8:
+        if not np.issubdtype(labels.dtype, np.integer) or labels.min() < 0 or labels.max() > 255:
+            raise ValueError(f"truth labels must hold class ids in 0..255, got dtype {labels.dtype}")
+        labels = labels.astype(np.uint8)
+    if labels.shape != (INPUT_PX, INPUT_PX):
+        # CLIPSeg resizes every frame to 352x352 whatever its aspect; labels must not be blended.
+        labels = cv2.resize(labels, (INPUT_PX, INPUT_PX), interpolation=cv2.INTER_NEAREST)
+    return np.ascontiguousarray(labels)
+
+
+def _check_seq(frame_seq: object) -> int:
+    if isinstance(frame_seq, bool) or not isinstance(frame_seq, (int, np.integer)) or frame_seq < 0:
+        raise ValueError(f"frame_seq must be a non-negative int, got {frame_seq!r}")
+    return int(frame_seq)
