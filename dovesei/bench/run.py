@@ -76,7 +76,10 @@ class Grid:
 
 
 def _config_key(config: dict) -> str:
-    return hashlib.sha256(json.dumps(config, sort_keys=True).encode()).hexdigest()[:16]
+    # The episode count is left out: start i does not depend on how many starts are drawn, so a
+    # bench grown from 10 to 50 starts keeps its first 10 episodes and flies only the new ones.
+    kept = {k: v for k, v in config.items() if k != "episodes"}
+    return hashlib.sha256(json.dumps(kept, sort_keys=True).encode()).hexdigest()[:16]
 
 
 def _record_key(rec: dict) -> tuple:
@@ -176,6 +179,8 @@ def run_grid(grid: Grid, *, out: Path, workers: int, engine: str = "local", addr
     key = _config_key(config)
     journal = out / "episodes.jsonl"
     done = load_journal(journal, key)
+    planned = {_record_key(engines.record_base(j)) for j in jobs}
+    done = {k: rec for k, rec in done.items() if k in planned}  # a grown or shrunk bench keeps what fits
     todo = [j for j in jobs if _record_key(engines.record_base(j)) not in done]
     created = not out.exists()
     try:

@@ -71,6 +71,16 @@ def test_other_settings_in_the_same_folder_are_refused(tmp_path: Path) -> None:
         _bench(tmp_path, episodes=1, noise=0.5)
 
 
+def test_a_bench_grows_by_its_new_starts_only(tmp_path: Path) -> None:
+    small = _bench(tmp_path, episodes=1)
+    first = (tmp_path / "episodes.jsonl").read_text()
+    grown = _bench(tmp_path, episodes=2)
+    journal = (tmp_path / "episodes.jsonl").read_text()
+    assert journal.startswith(first) and len(journal.splitlines()) == 4  # two new episodes, two kept
+    assert grown["episodes"][0] == small["episodes"][0] and len(grown["episodes"]) == 4
+    assert _strip(_bench(tmp_path, episodes=1)) == _strip(small)  # and shrinks back to the first starts
+
+
 def test_parallel_jobs_give_the_same_episodes(tmp_path: Path) -> None:
     one = _bench(tmp_path / "one", jobs=1, episodes=2)
     two = _bench(tmp_path / "two", jobs=2, episodes=2)
