@@ -50,8 +50,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from dovesei.controller import mavlink as mv
-from dovesei.controller import mavlink_proto as proto
+from dovesei.controller import mavlink_proto as mv
 from dovesei.shared.lifecycle import install_stop_handlers
 
 log = logging.getLogger(__name__)
@@ -554,11 +553,11 @@ class FakeAutopilot:
 
     def _ekf_flags(self) -> int:
         fraction = self._boot_fraction()
-        flags = proto.EKF_ATTITUDE if fraction >= 0.25 else proto.EKF_UNINITIALIZED
+        flags = mv.EKF_ATTITUDE if fraction >= 0.25 else mv.EKF_UNINITIALIZED
         if fraction >= 0.5:
-            flags |= proto.EKF_VELOCITY_HORIZ | proto.EKF_VELOCITY_VERT | proto.EKF_POS_VERT_ABS
+            flags |= mv.EKF_VELOCITY_HORIZ | mv.EKF_VELOCITY_VERT | mv.EKF_POS_VERT_ABS
         if fraction >= 0.75:
-            flags |= proto.EKF_POS_HORIZ_REL
+            flags |= mv.EKF_POS_HORIZ_REL
         return flags
 
     def _send_streams(self, now: float) -> None:

@@ -14,6 +14,10 @@ Data flow (one I/O thread owns the link; callers only read snapshots and hand co
     I/O thread -> HEARTBEAT at 1 Hz as an onboard controller (MAV_TYPE_ONBOARD_CONTROLLER,
         MAV_AUTOPILOT_INVALID); LANDING_TARGET at 10 Hz during a precision-landing hand-over
 
+Size: one class, one lock domain (the I/O thread and the caller share every field below under
+`_lock`); the pure parts live beside it (`mavlink_proto` numbers and checks, `mavlink_readiness`,
+`mavlink_takeoff`, `mavlink_signing`), and splitting the rest would scatter the locking.
+
 Why one thread and no callbacks into the caller: pymavlink's parser is not thread-safe, and the
 controller's loop must never block on the radio. Sends from the caller's thread share a transmit
 lock with the I/O thread (pymavlink's sequence counter and socket writes are not thread-safe).
@@ -42,10 +46,8 @@ velocity repeating.
 
 from __future__ import annotations
 
-import hashlib
 import logging
 import math
-import struct
 import threading
 import time
 from collections import Counter
@@ -54,45 +56,29 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from dovesei.controller.mavlink_proto import (  # noqa: F401  (re-exported: tests and the fake use mv.NAME)
+from dovesei.controller.mavlink_proto import (
     ALT_SOURCES,
-    ARDUCOPTER_MODES,
     AUTOPILOT_KINDS,
     HANDOVERS,
     LANDING_TARGET_TYPE_VISION_OTHER,
-    MAV_AUTOPILOT_ARDUPILOTMEGA,
     MAV_AUTOPILOT_INVALID,
-    MAV_AUTOPILOT_PX4,
-    MAV_CMD_COMPONENT_ARM_DISARM,
     MAV_CMD_DO_SET_MODE,
-    MAV_CMD_NAV_TAKEOFF,
-    MAV_CMD_REQUEST_MESSAGE,
     MAV_CMD_SET_MESSAGE_INTERVAL,
-    MAV_COMP_ID_AUTOPILOT1,
-    MAV_COMP_ID_CAMERA,
     MAV_COMP_ID_ONBOARD_COMPUTER,
     MAV_FRAME_BODY_FRD,
-    MAV_FRAME_BODY_NED,
-    MAV_FRAME_BODY_OFFSET_NED,
-    MAV_FRAME_LOCAL_NED,
     MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
     MAV_MODE_FLAG_SAFETY_ARMED,
     MAV_RESULT_ACCEPTED,
     MAV_RESULT_IN_PROGRESS,
-    MAV_RESULT_TEMPORARILY_REJECTED,
     MAV_SENSOR_ROTATION_PITCH_270,
     MAV_STATE_ACTIVE,
-    MAV_SYS_STATUS_PREARM_CHECK,
     MAV_TYPE_GCS,
     MAV_TYPE_ONBOARD_CONTROLLER,
     MSG_ID_ATTITUDE,
     MSG_ID_DISTANCE_SENSOR,
     MSG_ID_EKF_STATUS_REPORT,
-    MSG_ID_GLOBAL_POSITION_INT,
-    MSG_ID_HOME_POSITION,
     MSG_ID_LOCAL_POSITION_NED,
     MSG_ID_SYS_STATUS,
-    PX4_MODES,
     STEER_FRAME,
     STEER_MODE,
     TYPE_MASK_VELOCITY_ONLY,
@@ -108,17 +94,13 @@ from dovesei.controller.mavlink_proto import (  # noqa: F401  (re-exported: test
     check_url,
     clamp_setpoint,
     encode_mode,
-    load_mavutil,
     mode_name,
     ned_to_frd,
     open_link,
-    px4_custom_mode,
-    read_signing_timestamp,
-    signing_timestamp_now,
-    write_signing_timestamp,
 )
 from dovesei.controller import mavlink_takeoff
 from dovesei.controller.mavlink_readiness import ArmReadiness
+from dovesei.controller.mavlink_signing import LinkSigning
 from dovesei.shared import validate
 from dovesei.shared.errors import ConfigError
 from dovesei.shared.keys import check_vehicle_id
@@ -130,8 +112,6 @@ log = logging.getLogger(__name__)
 _ATTITUDE_FRESH_S = 1.0  # heading hold only corrects from an attitude younger than this
 _LANDING_TARGET_PERIOD_S = 0.1  # 10 Hz: ArduPilot's precland filter expects >= ~5 Hz
 _LANDING_TARGET_FRESH_S = 1.0  # a spot older than this is no longer streamed
-_SIGNING_PERSIST_PERIOD_S = 10.0
-_NEW_STREAM_WINDOW = 6_000_000  # signing units (60 s): how far behind ours a new stream may start
 
 
 @dataclass(frozen=True)
@@ -181,6 +161,7 @@ class MavlinkVehicle:
         if signing_key is not None and (not isinstance(signing_key, bytes) or len(signing_key) != 32):
             raise ConfigError("a MAVLink signing key must be exactly 32 bytes")
         self.url, self.vehicle_id = url, check_vehicle_id(vehicle_id)
+        self._ratelog = RateLimitedLog(log, f"MAVLink {url}")  # first of each kind, then summaries
         self.alt_source, self.handover_action, self.allow_mode_switch = alt_source, handover, allow_mode_switch
         self.heartbeat_timeout_s, self.command_timeout_s = float(heartbeat_timeout_s), float(command_timeout_s)
         self.setpoint_period_s, self.stream_rate_hz = 1.0 / setpoint_rate_hz, float(stream_rate_hz)
@@ -189,8 +170,8 @@ class MavlinkVehicle:
         self.read_only, self.system_id = read_only, system_id
         self.limits = limits if limits is not None else SpeedLimits()
         self.source_system, self.source_component = source_system, source_component
-        self._signing_key = signing_key
-        self._signing_file = Path(signing_timestamp_file) if signing_timestamp_file is not None else None
+        self._signing = (LinkSigning(signing_key, signing_timestamp_file, self._warn, clock)
+                         if signing_key is not None else None)
         self.readiness = ArmReadiness(require_home=require_home)
         self._clock = clock
         self._conn: Any = None
@@ -224,9 +205,6 @@ class MavlinkVehicle:
         self._precland = False
         self._unsupported_seen: set[int] = set()  # MAV_AUTOPILOT values of heartbeats we cannot fly
         self._next_setpoint_s = 0.0
-        self._sig_failed = False
-        self._persisted_s = -math.inf  # when the signing timestamp was last written
-        self._ratelog = RateLimitedLog(log, f"MAVLink {url}")  # first of each kind, then summaries
         # Counters for tests, operators' logs and the run's stats.
         self.setpoints_sent = 0
         self.setpoints_clamped = 0
@@ -234,7 +212,6 @@ class MavlinkVehicle:
         self.landing_targets_sent = 0
         self.samples_rejected: Counter[str] = Counter()  # reason -> count
         self.intruders: Counter[int] = Counter()  # system id of another autopilot -> heartbeats refused
-        self.signing_rejected: Counter[str] = Counter()  # unsigned / wrong key / replayed -> count
         self.send_failures = 0
 
     # ----------------------------------------------------------------- life cycle
@@ -244,8 +221,8 @@ class MavlinkVehicle:
         if self._conn is not None:
             raise MavlinkError("connect() called twice")
         self._conn = open_link(self.url, source_system=self.source_system, source_component=self.source_component)
-        if self._signing_key is not None:
-            self._setup_signing()
+        if self._signing is not None:
+            self._signing.install(self._conn)
         self._thread = threading.Thread(target=self._io_main, name=f"mavlink-{self.vehicle_id}", daemon=True)
         self._thread.start()
         if not self._identified.wait(timeout_s):
@@ -265,7 +242,7 @@ class MavlinkVehicle:
         assert target is not None
         log.info("connected to %s on %s (system %d component %d%s), mode %s, %s%s", target.autopilot, self.url,
                  target.system, target.component, ", pinned" if self.system_id is not None else "", self.mode,
-                 "armed" if self.armed else "disarmed", ", signed link" if self._signing_key else "")
+                 "armed" if self.armed else "disarmed", ", signed link" if self._signing else "")
 
     def close(self) -> None:
         """Stop the I/O thread and close the link (the autopilot's own failsafes take over)."""
@@ -274,8 +251,8 @@ class MavlinkVehicle:
             self._thread.join(timeout=5.0)
             self._thread = None
         if self._conn is not None:
-            if self._signing_key is not None:
-                self._persist_signing_timestamp()
+            if self._signing is not None:
+                self._signing.persist()
             self._conn.close()
             self._conn = None
 
@@ -315,6 +292,11 @@ class MavlinkVehicle:
                 return None
             self._returned_seq = self._state_seq
             return self._state
+
+    @property
+    def signing_rejected(self) -> Counter[str]:
+        """Frames refused by signing, by kind: unsigned, wrong key, replayed (empty without a key)."""
+        return self._signing.rejected if self._signing is not None else Counter()
 
     def counters(self) -> dict[str, Any]:
         """What the link did, for the run's stats and the operator."""
@@ -501,8 +483,8 @@ class MavlinkVehicle:
             if self._precland and now >= next_landing_s:
                 self._send_landing_target(now)
                 next_landing_s = now + _LANDING_TARGET_PERIOD_S
-            if self._signing_key is not None and now >= next_sign_s:
-                self._advance_signing_clock()
+            if self._signing is not None and now >= next_sign_s:
+                self._signing.tick(self._tx_lock)
                 next_sign_s = now + 1.0
             with self._lock:
                 wake_s = min(next_hb_s, self._next_setpoint_s)
@@ -823,67 +805,3 @@ class MavlinkVehicle:
                 return False
         with self._lock:
             return predicate()
-
-    # ----------------------------------------------------------------- internals: signing
-
-    def _setup_signing(self) -> None:
-        """Sign everything we send; accept only frames signed with our key, never replayed."""
-        assert self._signing_key is not None
-        initial = max(signing_timestamp_now(), read_signing_timestamp(self._signing_file) + 1)
-        self._conn.setup_signing(self._signing_key, sign_outgoing=True, allow_unsigned_callback=self._unsigned,
-                                 initial_timestamp=initial, link_id=0)
-        self._conn.mav.check_signature = self._check_signature
-        self._persist_signing_timestamp()
-
-    def _unsigned(self, mav: Any, msg_id: int) -> bool:
-        """pymavlink's callback for a frame it would reject: unsigned ones are counted here."""
-        if self._sig_failed:
-            self._sig_failed = False  # already counted by _check_signature
-            return False
-        self.signing_rejected["unsigned"] += 1
-        self._warn("unsigned", "unsigned MAVLink frame (message %d) rejected [%d so far]",
-                          msg_id, self.signing_rejected["unsigned"])
-        return False
-
-    def _check_signature(self, msgbuf: bytearray, src_sys: int, src_comp: int) -> bool:
-        """The hash first, then the timestamp: a forged frame must not advance a stream's timestamp
-        (pymavlink's own check stores the timestamp before it checks the hash)."""
-        signing = self._conn.mav.signing
-        link_id = msgbuf[-13]
-        low, high = struct.unpack("<IH", bytes(msgbuf[-12:-6]))
-        timestamp = low + (high << 32)
-        digest = hashlib.sha256(signing.secret_key + bytes(msgbuf[:-6])).digest()[:6]
-        why = None
-        if digest != bytes(msgbuf[-6:]):
-            why = "wrong key"
-        else:
-            stream = (link_id, src_sys, src_comp)
-            last = signing.stream_timestamps.get(stream)
-            if (last is not None and timestamp <= last) or (last is None
-                                                             and timestamp + _NEW_STREAM_WINDOW < signing.timestamp):
-                why = "replayed"
-            else:
-                signing.stream_timestamps[stream] = timestamp
-                signing.timestamp = max(signing.timestamp, timestamp)
-                return True
-        self._sig_failed = True
-        self.signing_rejected[why] += 1
-        self._warn(why, "MAVLink frame from system %d rejected: %s signature [%d so far]",
-                          src_sys, why, self.signing_rejected[why])
-        return False
-
-    def _advance_signing_clock(self) -> None:
-        """Keep the signing timestamp at least at real time and persist it now and then."""
-        signing = self._conn.mav.signing
-        with self._tx_lock:
-            signing.timestamp = max(signing.timestamp, signing_timestamp_now())
-        if self._clock() - self._persisted_s >= _SIGNING_PERSIST_PERIOD_S:
-            self._persist_signing_timestamp()
-
-    def _persist_signing_timestamp(self) -> None:
-        try:
-            write_signing_timestamp(self._signing_file, self._conn.mav.signing.timestamp)
-        except OSError as exc:
-            self._warn("persist", "signing timestamp not persisted to %s: %s",
-                              self._signing_file, exc)
-        self._persisted_s = self._clock()

@@ -14,7 +14,7 @@ from collections.abc import Callable, Iterator
 
 import pytest
 
-from dovesei.controller import mavlink as mv
+from dovesei.controller import mavlink_proto as mv
 from dovesei.testing.fake_autopilot import FakeAutopilot
 from dovesei.controller.mavlink import MavlinkVehicle, NotSteerableError, VehicleConnectError
 from dovesei.shared.errors import ConfigError
