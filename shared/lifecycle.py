@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import re
 import signal
 import threading
 import time
@@ -129,6 +130,8 @@ REJECT_OVERFLOW = "arrived faster than validated"
 # decoded and refused instead of pushing the last valid sample out (and bounded in bytes, so a
 # flood of large payloads cannot take the memory instead).
 FLOOD_DEPTH = 4096
+MAX_REASONS = 32
+_NUMBER_RE = re.compile(r"[-+]?\d+(?:\.\d+)?(?:e[-+]?\d+)?")
 
 
 class Inbox(Generic[M]):
@@ -192,7 +195,7 @@ class Inbox(Generic[M]):
         try:
             msg = decode(sample.payload.to_bytes(), self.expected, key=key, max_bytes=self.max_bytes)
         except ProtocolError as exc:
-            return self._reject(exc.problem.split(":")[0][:60], f"{key}: {exc.problem}")
+            return self._reject(_reason(exc.problem), f"{key}: {exc.problem}")
         # Stamps are judged per vehicle: a ground segmenter serves vehicles whose clocks differ.
         # (A message whose vehicle id differs from its key's is the service's to count as foreign.)
         source = _vehicle_in(key)
@@ -205,7 +208,10 @@ class Inbox(Generic[M]):
         return msg
 
     def _reject(self, reason: str, detail: str) -> None:
-        self.rejected[reason] += 1
+        with self._lock:  # the callback counts overflows into the same counter
+            if reason not in self.rejected and len(self.rejected) >= MAX_REASONS:
+                reason = "other"  # a sender choosing its errors must not grow the counter (or the log) without end
+            self.rejected[reason] += 1
         self._reject_log.warn(reason, detail)
         return None
 
@@ -278,6 +284,11 @@ class Inbox(Generic[M]):
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def _reason(problem: str) -> str:
+    """A reject's kind: the problem before any detail, numbers folded, so one flood is one kind."""
+    return _NUMBER_RE.sub("N", problem.split(":")[0])[:60]
 
 
 def _vehicle_in(key: str) -> str | None:

@@ -22,7 +22,7 @@ from dovesei.shared import keys
 from dovesei.shared.clock import Arrival, DataClock, StampBound, own_time
 from dovesei.shared.codec import decode, encode, jpeg_header_size
 from dovesei.shared.errors import ProtocolError
-from dovesei.shared.lifecycle import FLOOD_DEPTH, REJECT_STAMP, Inbox, RateLimitedLog, wait_until
+from dovesei.shared.lifecycle import FLOOD_DEPTH, MAX_REASONS, REJECT_STAMP, Inbox, RateLimitedLog, wait_until
 from dovesei.shared.messages import (
     SCHEMAS, FieldError, PromptSetMsg, Record, SafetyHeatmap, Stamp, VehicleState, VelocityCommand, field_hints, field_range,
     replace,
@@ -298,6 +298,24 @@ def test_a_flood_of_bad_prompts_logs_a_few_lines_not_one_per_message(zenoh_pair,
         assert got is not None and got.positive == ("meadow",)
         assert sum(inbox.rejected.values()) == 500
         assert len([r for r in caplog.records if "rejected on" in r.getMessage()]) <= 3
+
+
+def test_a_sender_choosing_its_errors_cannot_grow_the_counters(zenoh_pair, caplog) -> None:
+    a, b = zenoh_pair
+    key = keys.state("uav1")
+    state = sample_messages()[1]
+    with Inbox(b, key, VehicleState, newest_only=False) as inbox:
+        _warm_up(a, inbox, key, state)
+        caplog.set_level(logging.WARNING, logger="dovesei.shared.lifecycle")
+        caplog.clear()
+        for i in range(300):  # every payload a different unknown schema, and numbers that differ
+            a.put(key, msgpack.packb({"_schema": f"evil-{i}", "_v": 1}) if i % 2 else
+                  _tamper(state, alt_agl_m=1e6 + i), congestion_control=BLOCK)
+        a.put(key, encode(replace(state, seq=77)), congestion_control=BLOCK)
+        got = inbox.recv(5.0)
+        assert got is not None and got.seq == 77
+        assert sum(inbox.rejected.values()) == 300 and len(inbox.rejected) <= MAX_REASONS + 1
+        assert len([r for r in caplog.records if "rejected on" in r.getMessage()]) <= MAX_REASONS + 1
 
 
 def test_rate_limited_log_says_the_first_of_each_kind_then_summarises(caplog) -> None:
