@@ -41,6 +41,7 @@ from typing import Any, Protocol
 import zenoh
 
 from dovesei.controller.core import HANDOVER_ACTIONS, ControllerConfig, ControllerCore, ControllerInputError, Mode
+from dovesei.controller.mavlink_proto import SpeedLimits, load_signing_key
 from dovesei.controller.policies.base import policy_names
 from dovesei.shared import keys, validate
 from dovesei.shared.cliconfig import CommandLine, Flag, non_blank
@@ -132,14 +133,13 @@ def open_vehicle(session: zenoh.Session, config: ControllerConfig) -> Vehicle:
         # Subscribers are declared now so no state published after start-up is missed.
         return ZenohVehicle(session, config.vehicle_id, lockstep=config.lockstep)
     try:
-        from dovesei.controller.mavlink import MavlinkVehicle
+        from dovesei.controller.mavlink import MavlinkVehicle  # lazy: only a real vehicle needs it; a broken
+        # pymavlink install then fails here with one clear line, never the sim's runs
     except ModuleNotFoundError as exc:
         raise ConfigError(
             f"--vehicle-url {config.vehicle_url!r} needs the MAVLink adapter, which cannot be imported "
             f"(missing module {exc.name!r}); install the package with pymavlink or use --vehicle-url zenoh"
         ) from None
-    from dovesei.controller.mavlink_proto import SpeedLimits, load_signing_key
-
     key_file = config.mavlink_signing_key_file
     limits = SpeedLimits(horizontal_m_s=config.mavlink_max_horizontal_m_s, up_m_s=config.mavlink_max_up_m_s,
                          down_m_s=config.mavlink_max_down_m_s)
