@@ -293,6 +293,11 @@ class FakeAutopilot:
             return tuple(self._pos_ned_m)  # type: ignore[return-value]
 
     @property
+    def velocity_ned_m_s(self) -> tuple[float, float, float]:
+        with self._lock:
+            return tuple(self._vel_ned_m_s)  # type: ignore[return-value]
+
+    @property
     def yaw_rad(self) -> float:
         with self._lock:
             return self._yaw_rad

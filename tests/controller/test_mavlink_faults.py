@@ -11,6 +11,7 @@ import io
 import logging
 import math
 import socket
+import time
 from collections.abc import Callable, Iterator
 
 import pytest
@@ -283,3 +284,32 @@ def test_arming_is_retried_with_backoff_until_the_autopilot_accepts(fly: Fly) ->
     assert gaps[0] >= 0.9 and (len(gaps) < 2 or gaps[1] >= 1.9)  # 1 s, then 2 s
     assert fake.armed and -fake.position_ned_m[2] >= 2.8
     assert "Arm: Throttle too high" in vehicle.readiness.reasons()
+
+
+# ---------------------------------------------------------------------- the personalities' own rules
+
+
+def test_px4_leaves_offboard_one_second_after_our_stream_stops(fly: Fly) -> None:
+    fake, vehicle = fly(flavour="px4", mode="LOITER", allow_mode_switch=True, handover="none")
+    with pytest.raises(NotSteerableError, match="switch to OFFBOARD requested"):
+        vehicle.send(command(fwd=1.0))
+    assert wait_until(lambda: vehicle.mode == "OFFBOARD", 5.0)  # only after the zero pre-stream
+    vehicle.send(command(fwd=1.0))
+    vehicle.handover()  # 'none': our stream stops, PX4's COM_OF_LOSS_T (1 s) failsafe follows
+    stopped_s = fake.received()[0][-1].recv_s
+    assert wait_until(lambda: fake.mode == "LOITER", 5.0)
+    lost_after_s = fake.received()[0][-1].recv_s - stopped_s
+    assert lost_after_s < 0.2  # no setpoint after the hand-over ('none' means none)
+
+
+def test_ardupilot_stops_a_guided_velocity_after_guid_timeout(fly: Fly) -> None:
+    fake, vehicle = fly(mode="GUIDED", handover="none", fake_kw={"alt_m": 50.0})
+    vehicle.send(command(fwd=2.0))
+    assert wait_until(lambda: fake.position_ned_m[0] > 1.0, 5.0)
+    vehicle.handover()
+    last_sp_s = fake.received()[0][-1].recv_s
+    # Within GUID_TIMEOUT (3 s) it keeps flying the last velocity, then it stops where it is.
+    assert wait_until(lambda: fake.velocity_ned_m_s == (0.0, 0.0, 0.0), 8.0)
+    stopped_after_s = time.monotonic() - last_sp_s
+    assert 2.9 <= stopped_after_s <= 4.0, stopped_after_s
+    assert fake.received()[0][-1].recv_s == last_sp_s  # 'none' sent nothing more
