@@ -113,7 +113,7 @@ class Setup:
 
 
 @dataclass(frozen=True)
-class Timing:
+class RunTiming:
     wall_time_s: float
     episode_wall_s: float | None
     latency: Mapping[str, Percentiles]  # by stage
@@ -150,7 +150,7 @@ class Trajectory:
 class RunReport:
     episode: Episode
     setup: Setup
-    timing: Timing
+    timing: RunTiming
     counts: Counts
     trajectory: Trajectory
     service_stats: Mapping[str, Any]  # each service's own --stats-out JSON, as it wrote it
@@ -282,7 +282,7 @@ def build_report(options: UpOptions, rec: Recorder, start: tuple[float, float, f
                   options.vehicle_url or "sim", options.vehicle_id, 2.0, options.time_limit_s)
     episode_wall_s = (round(rec.result_wall_s - rec.first_state_wall_s, 3)
                       if rec.result_wall_s is not None and rec.first_state_wall_s is not None else None)
-    timing = Timing(round(wall_time_s, 3), episode_wall_s, _latency(options, rec, cmd_to_sim),
+    timing = RunTiming(round(wall_time_s, 3), episode_wall_s, _latency(options, rec, cmd_to_sim),
                     Percentiles.of_seconds(rec.transport_overhead_s(cmd_by_frame, options.lockstep),
                                            definition=TRANSPORT_DEFINITION),
                     Percentiles.of_seconds(rec.zenoh_delivery_overhead_s(), definition=DELIVERY_DEFINITION),

@@ -361,31 +361,34 @@ def test_ctrl_c_leaves_no_process_behind(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
-def test_a_hung_segmenter_is_named_and_up_fails(tmp_path: Path) -> None:
+@pytest.mark.parametrize(("service", "stream"), [("segmenter", "heatmap"), ("controller", "status")])
+def test_a_hung_service_is_named_and_up_fails(tmp_path: Path, service: str, stream: str) -> None:
     out = tmp_path / "run"
     # A stopped process keeps its pid and, for a while, its liveliness token: only its silence shows.
     up = _Up(out, "--no-video", "--stall-s", "3", "--after-failure-s", "2", "--heatmap-wait-s", "1",
              "--heatmap-hold-after-s", "0.25")
-    seg_pid = None
+    pid = None
     try:
         m = up.wait_for_line(r"alt ([2-8]\d|9[0-4])\.\d m: controller", timeout_s=90)
         assert m is not None, "\n".join(up.lines[-30:])
-        seg_pid = _pids(out)["segmenter"]
-        os.kill(seg_pid, signal.SIGSTOP)
+        pid = _pids(out)[service]
+        os.kill(pid, signal.SIGSTOP)
         code, _stdout, stderr = up.finish(timeout_s=90)
     finally:
-        if seg_pid is not None and not _gone(seg_pid):
-            os.kill(seg_pid, signal.SIGCONT)
+        if pid is not None and not _gone(pid):
+            os.kill(pid, signal.SIGCONT)
         up.kill()
     assert code == 1, stderr[-3000:]
     last = stderr.splitlines()[-1]
-    assert "segmenter" in last and "hung" in last and "no heatmap message for" in last, last
+    assert f"{service} (pid {pid}) hung: no {stream} message for" in last, last
     report = json.loads((out / "report.json").read_text())
-    assert report["failure"]["child"] == "segmenter" and report["outcome"] == "error"
-    watchdog = np.asarray(report["trajectory"]["watchdog"])
-    held = np.arange(int(np.flatnonzero(watchdog == "ok").max()) + 1, len(watchdog))
-    assert held.size > 0 and np.all(watchdog[held] == "hold")
-    assert np.all(np.asarray(report["trajectory"]["cmd_down_m_s"])[held] <= 0.0), "descent commanded while blind"
+    assert report["failure"]["child"] == service and report["outcome"] == "error"
+    if service == "segmenter":
+        # Blind: the controller held and commanded no descent from then on.
+        watchdog = np.asarray(report["trajectory"]["watchdog"])
+        held = np.arange(int(np.flatnonzero(watchdog == "ok").max()) + 1, len(watchdog))
+        assert held.size > 0 and np.all(watchdog[held] == "hold")
+        assert np.all(np.asarray(report["trajectory"]["cmd_down_m_s"])[held] <= 0.0), "descent commanded while blind"
 
 
 @pytest.mark.slow
