@@ -93,7 +93,7 @@ class SyntheticParams:
             ("gsd_m", self.gsd_m, GSD_RANGE_M),
         ):
             try:
-                validate.in_range(name, float(value) if isinstance(value, np.floating) else value, lo, hi)
+                validate.in_range(name, float(value) if isinstance(value, (np.floating, np.integer)) else value, lo, hi)
             except ConfigError as exc:
                 raise SyntheticWorldError(str(exc)) from None
         if self.style not in STYLES:
