@@ -20,6 +20,7 @@ from typing import Any
 from dovesei.shared import keys, validate
 from dovesei.shared.errors import ConfigError
 from dovesei.shared.timing import DEFAULT_TIMING, TIMING_NAMES, timing
+from dovesei.sim.service import parse_start as sim_parse_start
 
 SEGMENTERS = ("auto", "clipseg", "sim")
 LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR")
@@ -157,15 +158,15 @@ class UpOptions:
 
 
 def parse_start(text: str) -> tuple[float, float, float | None]:
-    """`X,Y` or `X,Y,ALT` in world metres (x east, y north)."""
-    parts = [p.strip() for p in text.split(",")]
+    """`X,Y` or `X,Y,ALT` in world metres (x east, y north); ALT None when not given (--start-alt-m then).
+
+    The sim's own parser reads it, so `up` and the sim accept exactly the same forms.
+    """
     try:
-        values = [float(p) for p in parts]
-    except ValueError:
-        raise ConfigError(f"--start {text!r}: expected X,Y or X,Y,ALT in metres") from None
-    if len(values) not in (2, 3) or not all(validate.is_number(v) for v in values):
-        raise ConfigError(f"--start {text!r}: expected two or three finite numbers X,Y[,ALT]")
-    return values[0], values[1], (values[2] if len(values) == 3 else None)
+        x_m, y_m, alt_m = sim_parse_start(text)
+    except ValueError as exc:
+        raise ConfigError(f"--start {text!r}: {exc}") from None
+    return x_m, y_m, (alt_m if text.count(",") == 2 else None)
 
 
 def resolve_start(world: Any, options: UpOptions) -> tuple[float, float, float]:
