@@ -218,6 +218,7 @@ class ControllerCore:
         self._policy_offset_s = 0.0  # policy clock = heatmap stamp + offset (changes only at jumps)
         self._last_policy_t_s: float | None = None
         self._policy_fault: str | None = None  # why the newest policy step cannot be followed
+        self._refused_decision: Decision | None = None  # the terminal decision refused above hand-over
 
     def _maybe_new_episode(self, state: VehicleState) -> None:
         """Time running backwards is a new sim episode only in lockstep with a restarted state
@@ -457,7 +458,9 @@ class ControllerCore:
             return Mode.POLICY_FAULT, f"{self._policy_fault}: holding position"
         decision = self._decision
         if decision is not None and decision.state in TERMINAL_STATES:
-            self.rejected["terminal above hand-over"] += 1
+            if decision is not self._refused_decision:  # counted once per decision, not per tick
+                self._refused_decision = decision
+                self.rejected["terminal above hand-over"] += 1
             return Mode.POLICY_FAULT, (f"policy declared {decision.state} at {state.alt_agl_m:.1f} m, above the "
                                        f"hand-over altitude {cfg.handover_alt_m:g} m: refused, holding position")
         age_s = self.heatmap_age_s(state)

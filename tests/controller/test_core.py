@@ -262,8 +262,9 @@ def test_landed_above_the_handover_altitude_is_refused(terminal: str) -> None:
     cmd, status = core.tick(state(0, 0.05, alt_m=93.0, await_seq=0))  # measured altitude: 93 m
     assert core.mode is Mode.POLICY_FAULT and status.watchdog == "hold"
     assert f"declared {terminal} at 93.0 m" in status.reason and cmd.vel_body_frd_m_s == (0.0, 0.0, 0.0)
-    assert core.rejected["terminal above hand-over"] == 1
-    _, status = core.tick(state(1, 0.10, alt_m=19.5))  # at the hand-over altitude it is the real thing
+    core.tick(state(1, 0.07, alt_m=93.0))  # the same decision again: still refused, counted once
+    assert core.rejected["terminal above hand-over"] == 1 and core.mode is Mode.POLICY_FAULT
+    _, status = core.tick(state(2, 0.10, alt_m=19.5))  # at the hand-over altitude it is the real thing
     assert core.mode is Mode.HANDOVER and status.state == "HANDOVER"
 
 
