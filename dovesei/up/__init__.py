@@ -44,6 +44,7 @@ import zenoh
 from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.shared.lifecycle import install_stop_handlers
 from dovesei.shared.zconfig import free_port, zenoh_config
+from dovesei.sim.world import WorldError, load_world
 from dovesei.up.children import Children, describe_exit, last_error_line
 from dovesei.up.launch import (
     SERVICES, ChildConfigs, check_endpoint_free, check_link_owners, child_commands, child_configs, child_env,
@@ -57,7 +58,7 @@ from dovesei.up.report import RunReport, build_report, read_stats, write_outputs
 from dovesei.up.watch import RESULT_AFTER_EXIT_S, Watcher, WatchEnd, wait_for_takeoff
 
 __all__ = ["SERVICES", "EXIT_OK", "EXIT_FAILED", "EXIT_USAGE", "EXIT_UNSAFE", "EXIT_INTERRUPTED", "Recorder",
-           "Sample", "UpOptions", "UpError", "build_report", "child_commands", "last_error_line", "main",
+           "Sample", "UpOptions", "build_report", "child_commands", "last_error_line", "main",
            "parse_start", "run", "zenoh_flags"]
 
 log = logging.getLogger("dovesei.up")
@@ -65,10 +66,6 @@ log = logging.getLogger("dovesei.up")
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_UNSAFE, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
 TAKEOFF_CLIMB_M_S = 1.0  # slowest climb rate allowed for when waiting for --takeoff (ArduCopter's default is 2.5)
 TAKEOFF_MARGIN_S = 30.0
-
-
-class UpError(DoveseiError):
-    """`dovesei up` could not start or run the episode; the message says what and why."""
 
 
 def exit_code(report: RunReport) -> int:
@@ -83,8 +80,6 @@ def exit_code(report: RunReport) -> int:
 
 def preflight(options: UpOptions) -> tuple[object, tuple[float, float, float], ChildConfigs]:
     """Everything that can be wrong before a process starts: policy, world, start, the link's endpoint."""
-    from dovesei.sim.world import load_world
-
     check_policy(options.policy)
     if options.out.exists() and not options.out.is_dir():
         raise ConfigError(f"--out {str(options.out)!r} is a file; give a folder for the report")
@@ -116,7 +111,7 @@ def run(options: UpOptions, *, stop: threading.Event,
     t0 = time.monotonic()
     world, start, configs = preflight(options) if checked is None else checked
     out = options.out
-    created = [p for p in (*reversed(out.parents), out) if not p.exists()]
+    created = [p for p in (*reversed(out.parents), out, out / "logs", out / "stats") if not p.exists()]
     (out / "logs").mkdir(parents=True, exist_ok=True)
     (out / "stats").mkdir(exist_ok=True)
     try:
@@ -201,8 +196,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=args.log_level, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     stop = install_stop_handlers()
-    from dovesei.sim.world import WorldError
-
     try:
         options = options_from_args(args)
         checked = preflight(options)

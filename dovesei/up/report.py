@@ -67,6 +67,8 @@ class Percentiles:
 
 @dataclass(frozen=True)
 class Position:
+    """A point in world metres (x east, y north) and its altitude above ground."""
+
     x_m: float
     y_m: float
     alt_m: float

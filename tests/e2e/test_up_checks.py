@@ -270,3 +270,22 @@ def test_the_watcher_ends_the_run_naming_a_silent_service(tmp_path: Path) -> Non
     assert "segmenter (pid 12) hung: no heatmap message for" in end.failure.message
     assert "still visible" in end.failure.message
     assert 0.5 <= time.monotonic() - t0 < 5.0  # found at once (the heatmap was already 2 s old) + 0.5 s after
+
+
+def test_a_run_that_fails_before_writing_leaves_no_folder(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import dovesei.up as up
+    from dovesei.shared.errors import DoveseiError
+
+    def no_session(*_args, **_kwargs) -> int:
+        raise DoveseiError("the monitor's Zenoh session could not open")
+
+    monkeypatch.setattr(up, "_fly", no_session)
+    checked = (None, (1.0, 2.0, 100.0), None)  # what preflight would hand over; _fly never looks
+    with pytest.raises(DoveseiError):
+        up.run(UpOptions(world=WORLD, out=tmp_path / "new" / "run"), stop=threading.Event(), checked=checked)
+    assert not (tmp_path / "new").exists()
+    mine = tmp_path / "mine"  # a folder the user made stays, and stays as it was
+    mine.mkdir()
+    with pytest.raises(DoveseiError):
+        up.run(UpOptions(world=WORLD, out=mine), stop=threading.Event(), checked=checked)
+    assert mine.is_dir() and list(mine.iterdir()) == []
