@@ -8,6 +8,7 @@ vehicle states a controller of a MAVLink vehicle would, and the flags. Every wai
 
 from __future__ import annotations
 
+import ast
 import json
 import signal
 import threading
@@ -20,6 +21,7 @@ import numpy as np
 import pytest
 import zenoh
 
+import dovesei.sim
 from dovesei.shared import keys
 from dovesei.shared.codec import decode, encode
 from dovesei.shared.lifecycle import is_alive, wait_until
@@ -458,3 +460,12 @@ def test_main_exits_1_when_the_episode_ends_in_error(tmp_path: Path) -> None:
     finally:
         for sig, handler in saved.items():
             signal.signal(sig, handler)
+
+
+def test_no_sim_module_talks_mavlink() -> None:
+    # Only the controller opens MAVLink (issue 9): the sim neither imports pymavlink nor the controller.
+    for path in Path(dovesei.sim.__file__).parent.glob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else \
+                [node.module or ""] if isinstance(node, ast.ImportFrom) else []
+            assert not any(n.startswith(("pymavlink", "dovesei.controller")) for n in names), f"{path.name}: {names}"
