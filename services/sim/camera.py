@@ -60,7 +60,7 @@ class CameraModel:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or not 1 <= value <= 8192:
                 raise CameraError(f"CameraModel.{name} must be an integer in 1..8192, got {value!r}")
-        if not (isinstance(self.hfov_deg, (int, float)) and 0.0 < self.hfov_deg < 180.0):
+        if not (is_number(self.hfov_deg) and 0.0 < self.hfov_deg < 180.0):
             raise CameraError(f"CameraModel.hfov_deg must be in (0, 180), got {self.hfov_deg!r}")
 
     @property
