@@ -10,7 +10,7 @@ work is done by concern in
     synth_canvas   the drawing surface (image, labels, heights with one polygon) and geometry
     synth_layout   road grid, blocks, river (`CityStyle` sets the mix of block kinds)
     synth_objects, synth_blocks, synth_parks, synth_streets   what is drawn
-    synth_styles   the styles that are not a street grid of blocks (desert, coast)
+    synth_styles   the suite's styles: other block mixes, the coast's sea, the open desert
     synth_render   shadows, textures, colour grading, blur
 
 Data flow of `generate_city` (the city styles):
