@@ -20,8 +20,11 @@ from typing import Any
 from dovesei.shared import keys, validate
 from dovesei.shared.errors import ConfigError
 from dovesei.shared.timing import DEFAULT_TIMING, TIMING_NAMES, timing
+from dovesei.controller.policies import policy_names
 from dovesei.sim.service import parse_start as sim_parse_start
+from dovesei.sim.starts import generate_starts
 
+DESCRIPTION = "`dovesei up`: fly one episode with the three services as separate OS processes on Zenoh."
 SEGMENTERS = ("auto", "clipseg", "sim")
 LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR")
 SEED_MAX = 2**32 - 1  # numpy's SeedSequence takes any int >= 0; the services' seeds fit 32 bits
@@ -175,8 +178,6 @@ def resolve_start(world: Any, options: UpOptions) -> tuple[float, float, float]:
     Without --start it is the first of `generate_starts(world, n, seed)`, i.e. exactly the bench's
     start 0 for the same seed.
     """
-    from dovesei.sim.starts import generate_starts
-
     if options.start is not None:
         x_m, y_m, alt_m = options.start
         if not world.contains(x_m, y_m):
@@ -189,15 +190,11 @@ def resolve_start(world: Any, options: UpOptions) -> tuple[float, float, float]:
 
 
 def check_policy(name: str) -> None:
-    from dovesei.controller.policies import policy_names
-
     validate.one_of("--policy", name, policy_names())
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from dovesei import up
-
-    p = argparse.ArgumentParser(prog="dovesei up", description=up.__doc__.split("\n\n")[0],
+    p = argparse.ArgumentParser(prog="dovesei up", description=DESCRIPTION,
                                 epilog="exit codes: 0 landed safely, 3 the episode ran but ended unsafe, timed out "
                                        "or left the world, 1 an error (a service died or hung), 2 bad usage, "
                                        "130 interrupted",
@@ -206,7 +203,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--segmenter", default="auto", choices=SEGMENTERS,
                    help="auto: CLIPSeg when its weights load locally, else the simulated perception")
     p.add_argument("--model", help="CLIPSeg Hub id or local directory (default: the segmenter's)")
-    p.add_argument("--policy", default="dovesei", help="landing policy (dovesei, dovesei-nofocus)")
+    p.add_argument("--policy", default="dovesei", help=f"landing policy: {', '.join(policy_names())}")
     p.add_argument("--timing", choices=TIMING_NAMES,
                    help=f"timing preset (default: {DEFAULT_TIMING}; real with --vehicle)")
     p.add_argument("--seed", type=int, default=0, help="seed of the perception noise and of the start")
