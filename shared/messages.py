@@ -298,8 +298,12 @@ class GroundTruth(Record):
     """Sim-only: the world's labels seen through the same camera (255 = outside the world)."""
 
     ARRAYS: ClassVar[dict[str, ArraySpec]] = {"labels": ArraySpec(("uint8",), 2)}
+    RANGES: ClassVar[dict[str, tuple[float, float]]] = {"centre_world_m": (-1e7, 1e7)}
     labels: np.ndarray
     classes: tuple[ClassEntry, ...]
+    # The optical axis on the ground, world metres (x east, y north): the simulated perception
+    # anchors its misreadings to the ground with it (the same ground misread the same way).
+    centre_world_m: tuple[float, float] | None = None
 
 
 @message("dovesei.camera_frame", 1)

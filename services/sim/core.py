@@ -201,7 +201,7 @@ class SimCore:
                                        with_labels=cfg.attach_truth)  # labels unused: skip their warp
         if image is None:
             image = self._blank_image()
-        truth = GroundTruth(labels, self._classes) if cfg.attach_truth and labels is not None else None
+        truth = GroundTruth(labels, self._classes, (pose.x_m, pose.y_m)) if cfg.attach_truth and labels is not None else None
         self._frame_seq += 1
         return CameraFrame(cfg.vehicle_id, self._frame_seq, Stamp(pose.t_s, "sim"), image, cfg.camera.hfov_rad,
                            pose.alt_agl_m, yaw_rad=pose.yaw_rad, sent_wall_s=wall_time_s(), truth=truth)

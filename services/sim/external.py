@@ -51,7 +51,7 @@ class PoseCamera:
         cam = self.sim.camera
         # A vehicle on the ground still needs a view; 0.1 m keeps the pinhole model defined.
         image, labels, _valid = render(self.world, pose.x_m, pose.y_m, max(pose.alt_agl_m, 0.1), pose.yaw_rad, cam)
-        truth = GroundTruth(labels, self.classes) if self.sim.attach_truth and labels is not None else None
+        truth = GroundTruth(labels, self.classes, (pose.x_m, pose.y_m)) if self.sim.attach_truth and labels is not None else None
         self.seq += 1
         return CameraFrame(self.sim.vehicle_id, self.seq, state.stamp, image, cam.hfov_rad, pose.alt_agl_m,
                            roll_rad=state.roll_rad, pitch_rad=state.pitch_rad, yaw_rad=pose.yaw_rad,
