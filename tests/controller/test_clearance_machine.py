@@ -128,6 +128,11 @@ def test_abort_climbs_back_to_the_search_altitude_then_searches_or_gives_up() ->
     assert mem.phase is Phase.SEARCH  # the climb's timeout
 
 
+def test_a_long_search_does_not_count_against_the_approach() -> None:
+    mem, _ = step(at(Phase.SEARCH, since_s=0.0), inp(CFG.approach_timeout_s + 50.0, best=spot()), CFG)
+    assert mem.phase is Phase.APPROACH and mem.since_s == CFG.approach_timeout_s + 50.0
+
+
 def test_timeouts_of_approach_and_descent() -> None:
     target = spot()
     mem, _ = step(at(Phase.APPROACH, target=target), inp(CFG.approach_timeout_s + 1.0, check=target), CFG)

@@ -223,7 +223,7 @@ def test_noisy_biased_odometry_and_wind_still_land_on_the_chosen_spot() -> None:
     assert math.hypot(flight.north_m - 35.0, flight.east_m + 50.0) < 4.0
     info = flight.decision.info
     # Registration kept the estimate on the truth (the start is (0, 0) in both frames) ...
-    assert math.hypot(info["est_north_m"] - flight.north_m, info["est_east_m"] - flight.east_m) < 2.0
+    assert math.hypot(info["est_north_m"] - flight.north_m, info["est_east_m"] - flight.east_m) < 3.0
     # ... and learnt the velocity error: truth - estimate = wind - bias = (-0.5, +1.1) m/s.
     assert info["bias_north_m_s"] < -0.1 and info["bias_east_m_s"] > 0.5
 

@@ -38,13 +38,16 @@ class ClearanceConfig:
     looks_full: float = 6.0  # confidence = 1 - exp(-looks / looks_full)
 
     # --- ego-motion ---
-    reg_size_px: int = 96  # registration image side
-    reg_min_response: float = 0.08  # phase-correlation peak quality to accept a shift
+    reg_size_px: int = 128  # registration image side
+    reg_min_response: float = 0.3  # phase-correlation peak quality to accept a shift ...
+    reg_full_response: float = 0.7  # ... to trust it fully and learn the velocity bias from it
     reg_min_std: float = 0.03  # minimum heatmap texture (std of P) to try registering
     reg_min_eigen_ratio: float = 0.2  # a direction is constrained when its texture is this share of the best
-    reg_gate_m: float = 4.0  # innovation gate: base, plus reg_gate_frac x footprint width
-    reg_gate_frac: float = 0.1
+    reg_gate_m: float = 2.0  # innovation gate: base, plus reg_gate_frac x footprint width, plus
+    reg_gate_frac: float = 0.05  # reg_gate_m_s x the time since the last accepted shift
+    reg_gate_m_s: float = 1.0
     reg_pos_gain: float = 0.6  # share of an accepted innovation applied to the position
+    static_tau_s: float = 10.0  # learning time of the image-fixed pattern (while moving)
     bias_tau_s: float = 6.0  # velocity-bias estimator time constant
     bias_max_m_s: float = 3.0
     cmd_weight: float = 0.2  # blend of the commanded velocity into the prediction
@@ -88,7 +91,7 @@ class ClearanceConfig:
     def __post_init__(self) -> None:
         positive = (
             "decision_period_s", "safety_radius_m", "handover_alt_m", "cell_per_alt", "cell_min_m", "cell_max_m",
-            "look_period_s", "decay_tau_s", "looks_min", "looks_full", "reg_gate_m", "bias_tau_s",
+            "look_period_s", "decay_tau_s", "looks_min", "looks_full", "reg_gate_m", "static_tau_s", "bias_tau_s",
             "key_scale_ratio", "dt_cap_s", "search_radius_m", "search_spacing_frac", "search_speed_m_s",
             "approach_gain_per_s", "max_speed_m_s", "lock_in_m", "lock_out_m",
             "refine_radius_m", "descent_gain_per_s", "descent_min_m_s", "descent_max_m_s", "climb_speed_m_s",
@@ -97,9 +100,9 @@ class ClearanceConfig:
         )
         for name in positive:
             validate.positive(f"ClearanceConfig.{name}", getattr(self, name))
-        for name in ("margin_m", "reg_gate_frac", "bias_max_m_s", "switch_gain"):
+        for name in ("margin_m", "reg_gate_frac", "reg_gate_m_s", "bias_max_m_s", "switch_gain"):
             validate.non_negative(f"ClearanceConfig.{name}", getattr(self, name))
-        for name in ("p_clip", "p_safe_min", "reg_min_response", "reg_min_std", "reg_min_eigen_ratio", "reg_pos_gain", "cmd_weight",
+        for name in ("p_clip", "p_safe_min", "reg_min_response", "reg_full_response", "reg_min_std", "reg_min_eigen_ratio", "reg_pos_gain", "cmd_weight",
                      "key_shift_frac", "recheck_hysteresis"):
             validate.in_range(f"ClearanceConfig.{name}", getattr(self, name), 0.0, 1.0)
         if self.cell_min_m > self.cell_max_m:

@@ -127,7 +127,7 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
     t, p = inp.t_s, mem.phase
     if p in TERMINAL:
         return mem, (0.0, 0.0, 0.0)
-    elapsed = t - mem.since_s
+    elapsed = t - mem.since_s  # time in the phase; recomputed after a transition within this step
 
     # --- perception gap: freeze and hold, from any live state ---
     if inp.gap and p is not Phase.GAP_HOLD:
@@ -207,7 +207,7 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
     mem = dataclasses.replace(mem, target=target, fails=fails)
 
     if p is Phase.APPROACH:
-        if elapsed > cfg.approach_timeout_s:
+        if t - mem.since_s > cfg.approach_timeout_s:
             return _go(mem, Phase.SEARCH, t, f"approach took over {cfg.approach_timeout_s:g} s: rejected",
                        target=None, blacklist=_blacklisted(mem, target)), (0.0, 0.0, 0.0)
         best = inp.best

@@ -115,12 +115,16 @@ class EgoMotion:
         self._key_yaw = 0.0
         self._key_cc = (0.0, 0.0)  # ground point the keyframe's centre looked at
         self._fails = 0
+        self._unregistered_s = 0.0
+        self._static: np.ndarray | None = None  # image-fixed pattern of the registration images
+        self._last_pred_m = (0.0, 0.0)  # the last prediction's displacement (north, east)
 
     def predict(self, dt_s: float, vel_body_frd_m_s: tuple[float, float, float], yaw_rad: float) -> None:
         dt = min(max(dt_s, 0.0), self.cfg.dt_cap_s)
         vn, ve = to_ne(vel_body_frd_m_s[0], vel_body_frd_m_s[1], yaw_rad)
-        self.north_m += (vn + self.bias_n_m_s) * dt
-        self.east_m += (ve + self.bias_e_m_s) * dt
+        self._last_pred_m = ((vn + self.bias_n_m_s) * dt, (ve + self.bias_e_m_s) * dt)
+        self.north_m += self._last_pred_m[0]
+        self.east_m += self._last_pred_m[1]
 
     def correct(self, prob: np.ndarray, dt_s: float, alt_agl_m: float, hfov_rad: float, yaw_rad: float,
                 roll_rad: float = 0.0, pitch_rad: float = 0.0) -> MotionStep:
@@ -133,23 +137,50 @@ class EgoMotion:
         tn, te = tilt_offset_ne(alt_agl_m, roll_rad, pitch_rad, yaw_rad)
         textured = float(img.std()) >= cfg.reg_min_std
         registered, response, innovation, new_key = False, 0.0, 0.0, False
+        # The image-fixed part of the heatmaps (artefacts that move with the camera) is learnt
+        # as a slow average while the ground moves through the view, and removed before
+        # correlating; while hovering it is frozen (the ground would be learnt instead).
+        moving_px = math.hypot(*self._last_pred_m) / gsd
+        if self._static is None:
+            self._static = np.zeros_like(img)
+        elif moving_px > 1.0 and dt_s > 0.0:
+            alpha = np.float32(min(1.0, min(dt_s, cfg.dt_cap_s) / cfg.static_tau_s))
+            self._static += alpha * (img - self._static)
         if self._key is not None and textured:
             scale = self._key_gsd_m / gsd  # keyframe pixels cover more ground when it was higher
             angle = math.degrees(yaw_rad - self._key_yaw)
             m = cv2.getRotationMatrix2D(((n - 1) / 2.0, (n - 1) / 2.0), angle, scale)
-            ref = cv2.warpAffine(self._key, m, (n, n), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REFLECT)
-            dx, dy, response = phase_shift(ref, img, self._window)
+            # The keyframe is moved by the PREDICTED motion too, so the correlation measures the
+            # residual. A pattern fixed in the image (perception artefacts over water or bare
+            # ground, which move with the camera) then peaks at minus the prediction, not at zero,
+            # and is recognised and refused instead of reading as "no motion".
+            f_pred, r_pred = to_body(self.north_m + tn - self._key_cc[0], self.east_m + te - self._key_cc[1], yaw_rad)
+            pdx, pdy = -r_pred / gsd, f_pred / gsd
+            m[0, 2] += pdx
+            m[1, 2] += pdy
+            ref = cv2.warpAffine(self._key - self._static, m, (n, n), flags=cv2.INTER_LINEAR,
+                                 borderMode=cv2.BORDER_REFLECT)
+            rdx, rdy, response = phase_shift(ref, img - self._static, self._window)
+            static = math.hypot(pdx, pdy) > 1.5 and math.hypot(rdx + pdx, rdy + pdy) < 1.0
+            dx, dy = pdx + rdx, pdy + rdy
             # Content moving down the image = the camera moved forward.
             dn, de = to_ne(dy * gsd, -dx * gsd, yaw_rad)
             meas_n = self._key_cc[0] + dn - tn
             meas_e = self._key_cc[1] + de - te
             inn_n, inn_e = meas_n - self.north_m, meas_e - self.east_m
             innovation = math.hypot(inn_n, inn_e)
-            gate = cfg.reg_gate_m + cfg.reg_gate_frac * width_m
-            if response >= cfg.reg_min_response and innovation <= gate:
+            # The prediction's own uncertainty grows with the time since the last accepted shift.
+            self._unregistered_s += dt_s
+            gate = cfg.reg_gate_m + cfg.reg_gate_frac * width_m + cfg.reg_gate_m_s * self._unregistered_s
+            if response >= cfg.reg_min_response and innovation <= gate and not static:
                 registered = True
                 self._fails = 0
-                k = cfg.reg_pos_gain
+                self._unregistered_s = 0.0
+                # A mediocre peak moves the estimate a little; only a clear one fully (phase
+                # correlation over weak texture is pulled towards whatever moves with the camera).
+                trust = min(1.0, (response - cfg.reg_min_response) / max(cfg.reg_full_response - cfg.reg_min_response,
+                                                                           1e-6))
+                k = cfg.reg_pos_gain * trust
                 # Aperture problem: along a straight edge or strip a shift is unobservable, and
                 # phase correlation then says "no motion". Only directions the texture constrains
                 # are corrected; the others keep the prediction.
@@ -157,7 +188,7 @@ class EgoMotion:
                 self.north_m += k * inn_n
                 self.east_m += k * inn_e
                 # The innovation accrued over dt: a velocity error; learnt over bias_tau.
-                if dt_s > 0.0:
+                if dt_s > 0.0 and response >= cfg.reg_full_response:
                     rate = min(1.0, min(dt_s, cfg.dt_cap_s) / cfg.bias_tau_s) / max(min(dt_s, cfg.dt_cap_s), 1e-3)
                     self.bias_n_m_s += rate * inn_n * (1.0 - k)
                     self.bias_e_m_s += rate * inn_e * (1.0 - k)
