@@ -162,3 +162,26 @@ def test_split_services_connect_and_their_acl_holds(pki, ground_router) -> None:
             sub.undeclare()
         for s in sessions.values():
             s.close()
+
+
+def test_readme_onboard_commands_are_secured_clients() -> None:
+    """The README's by-hand onboard commands: TLS clients without multicast, flags the parsers accept."""
+    import re
+    import shlex
+
+    text = (ROOT / "README.md").read_text()
+    section = text.split("## Flying a real autopilot", 1)[1].split("\n## ", 1)[0]
+    blocks = [b.split("```", 1)[0] for b in section.split("```sh")[1:]]
+    block = next(b for b in blocks if ".venv/bin/dovesei-controller" in b).replace("\\\n", " ")
+    variables = dict(re.findall(r'^(\w+)="([^"]*)"$', block, flags=re.M))
+    commands = [line for line in block.splitlines() if line.startswith(".venv/bin/dovesei-")]
+    assert {c.split()[0] for c in commands} == {".venv/bin/dovesei-controller", ".venv/bin/dovesei-camera"}
+    for line in commands:
+        argv = shlex.split(re.sub(r"\$(\w+)", lambda m: variables[m.group(1)], line))
+        script = argv[0].removeprefix(".venv/bin/")
+        module = importlib.import_module(SCRIPTS[script].split(":")[0])
+        args = module.build_parser().parse_args(argv[1:])
+        assert args.mode == "client" and args.no_multicast_scouting, line
+        assert args.connect and all(ep.startswith("tls/") for ep in args.connect), line
+        role = script.removeprefix("dovesei-")
+        assert str(args.tls_cert).endswith(f"{role}.pem") and str(args.tls_key).endswith(f"{role}.key"), line
