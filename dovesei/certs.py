@@ -92,6 +92,9 @@ def acl_config(vehicle: str = keys.ANY_VEHICLE, roles: dict[str, Role] | None = 
         own: list[str] = []
         if role.puts:
             own.append(rule(f"{name}-put", ["put"], "ingress", _topic_keys(vehicle, role.puts)))
+            # A publisher learns who subscribes to its key from the router, and sends nothing
+            # when it hears of nobody: the subscribers' declarations must reach it.
+            own.append(rule(f"{name}-put-matching", ["declare_subscriber"], "egress", _topic_keys(vehicle, role.puts)))
         if role.subscribes:
             # Declaring the subscription comes in; the samples it asked for go out to it.
             own.append(rule(f"{name}-subscribe", ["declare_subscriber"], "ingress", _topic_keys(vehicle, role.subscribes)))
@@ -102,6 +105,7 @@ def acl_config(vehicle: str = keys.ANY_VEHICLE, roles: dict[str, Role] | None = 
             own.append(rule(f"{name}-queried", ["query"], "egress", _topic_keys(vehicle, role.answers)))
         if role.asks:
             own.append(rule(f"{name}-ask", ["query"], "ingress", _topic_keys(vehicle, role.asks)))
+            own.append(rule(f"{name}-ask-matching", ["declare_queryable"], "egress", _topic_keys(vehicle, role.asks)))
             own.append(rule(f"{name}-answered", ["reply"], "egress", _topic_keys(vehicle, role.asks)))
         if role.alive_as:
             own.append(rule(f"{name}-alive", ["liveliness_token"], "ingress",
