@@ -158,6 +158,14 @@ def test_allowed_roles_work_end_to_end(pki, router) -> None:
         assert _delivered(sessions["controller"], keys.cmd(VEHICLE), on_sim, cmd)
         assert _delivered(sessions["operator"], keys.prompts(VEHICLE), on_prompts, encode(sample_messages()[6]))
         assert _delivered(sessions["sim"], keys.episode(VEHICLE), on_episode, encode(sample_messages()[7]))
+        # Request-reply segmentation: the operator asks, the segmenter answers; nobody else may answer.
+        queryable = sessions["segmenter"].declare_queryable(
+            keys.segment(keys.ANY_VEHICLE), lambda q: q.reply(str(q.key_expr), b"heatmap-reply"))
+        try:
+            assert wait_until(lambda: any(r.ok is not None and r.ok.payload.to_bytes() == b"heatmap-reply"
+                                          for r in sessions["operator"].get(keys.segment(VEHICLE), timeout=0.5)), 5.0)
+        finally:
+            queryable.undeclare()
         token = sessions["controller"].liveliness().declare_token(keys.alive(VEHICLE, "controller"))
         try:
             with _client(pki, router, "monitor") as monitor:
@@ -197,6 +205,26 @@ def test_a_role_cannot_put_another_roles_key(pki, router, forger: str, topic: st
             assert not [p for p in catcher.got if p.startswith(b"forged")], f"{forger} put {topic}"
         finally:
             catcher.close()
+
+
+def test_only_the_segmenter_may_answer_segment_queries(pki, router) -> None:
+    with _client(pki, router, "operator") as asker, _client(pki, router, "segmenter") as seg, \
+            _client(pki, router, "controller") as impostor:
+        real = seg.declare_queryable(keys.segment(VEHICLE), lambda q: q.reply(str(q.key_expr), b"real"))
+        fake = impostor.declare_queryable(keys.segment(VEHICLE), lambda q: q.reply(str(q.key_expr), b"fake"))
+        try:
+            answers: list[bytes] = []
+
+            def ask() -> bool:
+                answers.extend(r.ok.payload.to_bytes() for r in asker.get(keys.segment(VEHICLE), timeout=0.5,
+                                                                       consolidation=zenoh.ConsolidationMode.NONE)
+                               if r.ok is not None)
+                return b"real" in answers
+            assert wait_until(ask, 5.0)
+            assert b"fake" not in answers
+        finally:
+            fake.undeclare()
+            real.undeclare()
 
 
 def test_an_unlisted_name_reads_nothing(pki, router) -> None:
