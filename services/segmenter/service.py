@@ -11,10 +11,14 @@
 One loop thread does all the work (CLIPSeg is not thread-safe and a second inference thread
 would only compete for the same cores): Zenoh callbacks just fill channels, and the loop takes,
 in turn, every pending prompt change, one query and one frame. With `--all-vehicles` the keys use
-the `*` chunk and the vehicle id of the sample's key says whose frame it is. In real-time mode the
-camera channel holds one frame, so a slow model always works on the newest frame and never
-builds a backlog; in lockstep mode every frame is answered in order, because the controller
-waits for the heatmap of a named frame.
+the `*` chunk and the vehicle id of the sample's key says whose frame it is. In real-time mode
+every vehicle has its own newest-frame slot (`fair.FairSlots`): the loop moves every validated
+frame into its vehicle's slot (a newer one supersedes the waiting one) and serves the slots
+round-robin, so a slow model always works on a newest frame, never builds a backlog, and no
+vehicle can starve another; per-vehicle offered/served/superseded counts go into the stats, and
+an overload (frames superseded, or a long wait) is logged at WARNING at most every 10 s. In
+lockstep mode every frame is answered in order, because the controller waits for the heatmap of
+a named frame.
 
 Bad input never stops the service: undecodable payloads (garbage, broken JPEG) are counted by
 the inbox, frames the core refuses (size, no ground truth for the simulated backend, key naming
@@ -46,13 +50,18 @@ from .core import (
     BACKENDS, DTYPES, HEATMAP_DTYPES, REJECT_VEHICLE, FrameBackend, FrameRejected, SegmenterConfig, SegmenterCore,
     make_backend,
 )
+from .fair import OVERLOAD_REPORT_INTERVAL_S, FairSlots
 from .fusion import FUSION_MODES
 from .prompts import PromptError, PromptSet
+from .simulated import PROFILE_NAMES
 
 log = logging.getLogger(__name__)
 
 SERVICE = "segmenter"
 LOCKSTEP_FRAME_DEPTH = 64  # frames queued in lockstep; the sim waits on us, so a few suffice
+# Real time: validated frames waiting to be moved into their vehicle's slot. The loop empties it
+# every turn (between two inferences), so it only has to hold what arrives during one inference.
+REALTIME_FRAME_DEPTH = 256
 QUERY_DEPTH = 16
 IDLE_WAIT_S = 0.002  # longest idle sleep: frames and prompts wake the loop, queries are polled
 REJECT_DECODE = "decode"  # payloads the codec refused (garbage, broken JPEG, wrong schema)
@@ -66,9 +75,11 @@ class ServiceConfig:
     vehicle_id: str = "uav1"
     all_vehicles: bool = False  # serve every vehicle's camera key (a ground-station segmenter)
     lockstep: bool = False  # answer every frame in order instead of the newest one
+    overload_report_s: float = OVERLOAD_REPORT_INTERVAL_S  # shortest interval between overload warnings
 
     def __post_init__(self) -> None:
         keys.check_vehicle_id(self.vehicle_id)
+        validate.positive("ServiceConfig.overload_report_s", self.overload_report_s)
 
     @property
     def key_vehicle(self) -> str:
@@ -92,8 +103,12 @@ class SegmenterService:
         self.segment_key = keys.segment(keys.ANY_VEHICLE)
         # Frames and prompts wake the loop at once; queries are polled (see IDLE_WAIT_S).
         self.wakeup = threading.Event()
-        self.frames = Inbox(session, self.camera_key, CameraFrame, newest_only=not config.lockstep,
-                            depth=LOCKSTEP_FRAME_DEPTH, wakeup=self.wakeup)
+        # FIFO in both modes: in real time the loop itself keeps the newest frame per vehicle (one
+        # shared newest-only slot let one vehicle's frames starve another's).
+        self.frames = Inbox(session, self.camera_key, CameraFrame, newest_only=False,
+                            depth=LOCKSTEP_FRAME_DEPTH if config.lockstep else REALTIME_FRAME_DEPTH,
+                            wakeup=self.wakeup)
+        self.slots: FairSlots[tuple[CameraFrame, str, float]] = FairSlots(report_interval_s=config.overload_report_s)
         self.prompt_inbox = Inbox(session, self.prompts_key, PromptSetMsg, newest_only=False, wakeup=self.wakeup)
         self.queryable = session.declare_queryable(self.segment_key, zenoh.handlers.FifoChannel(QUERY_DEPTH))
         # Declared last: when the token is visible, every subscription above already exists.
@@ -114,7 +129,7 @@ class SegmenterService:
         return {**self.core.stats(), "rejected": dict(self.rejected), "decode_problems": dict(self.frames.rejected),
                 "heatmaps_published": self.heatmaps_published,
                 "queries_answered": self.queries_answered, "queries_refused": self.queries_refused,
-                "prompt_errors": self.prompt_errors}
+                "prompt_errors": self.prompt_errors, "vehicles": self.slots.stats()}
 
     # -- the loop --------------------------------------------------------------------------------
 
@@ -141,20 +156,40 @@ class SegmenterService:
                 log.warning("prompt set refused, keeping %s: %s", self.core.prompts.set_id, exc)
         return busy
 
+    def _collect_frames(self) -> bool:
+        """Move every validated frame into its vehicle's slot; True when any arrived."""
+        got_any = False
+        while (got := self.frames.poll_keyed()) is not None:
+            got_any = True
+            frame, key = got
+            recv_wall_s = self.frames.last_recv_wall_s  # transport latency only; nothing is decided on it
+            try:
+                vehicle = self._vehicle_of_key(key, frame)
+            except FrameRejected as exc:
+                log.warning("%s on %s", exc, key)
+                continue
+            self.slots.offer(vehicle, (frame, key, recv_wall_s), time.monotonic())
+            if self.config.lockstep:
+                break  # lockstep: one frame at a time, in arrival order (the FIFO keeps the rest)
+        return got_any
+
     def _serve_one_frame(self) -> bool:
-        got = self.frames.poll_keyed()
-        if got is None:
-            return False
-        recv_wall_s = self.frames.last_recv_wall_s  # transport latency only; nothing is decided on it
-        frame, key = got
+        busy = self._collect_frames()
+        report = self.slots.overload_report(time.monotonic())
+        if report is not None:
+            log.warning("%s", report)
+        taken = self.slots.take()
+        if taken is None:
+            return busy
+        vehicle, (frame, key, recv_wall_s) = taken
         try:
-            vehicle = self._vehicle_of_key(key, frame)
             heatmap = self.core.process(frame)
         except FrameRejected as exc:
             log.warning("%s on %s", exc, key)
             return True
         self._publisher(vehicle).put(encode(self._stamped(heatmap, frame, recv_wall_s)))
         self.heatmaps_published += 1
+        log.debug("heatmap %s/%d published", vehicle, frame.seq)
         return True
 
     def _serve_one_query(self) -> bool:
@@ -299,6 +334,8 @@ CLI = CommandLine(ServiceConfig, {
     "vehicle_id": Flag("--vehicle-id", "vehicle id of the keys", check=lambda _w, v: keys.check_vehicle_id(v)),
     "all_vehicles": Flag("--all-vehicles", "serve every vehicle's camera key (ground station)"),
     "lockstep": Flag("--lockstep", "answer every frame in order (lockstep benchmarks)"),
+    "overload_report_s": Flag("--overload-report-s", "shortest interval between overload warnings (vehicles "
+                              "offering more frames than are served)", check=validate.positive),
     "segmenter.backend": Flag("--backend", "auto: CLIPSeg, else simulated perception with a warning",
                               choices=BACKENDS),
     "segmenter.model": Flag("--model", "CLIPSeg Hub id or local directory", check=non_blank),
@@ -310,8 +347,9 @@ CLI = CommandLine(ServiceConfig, {
                              "(the reference)", choices=FUSION_MODES),
     "segmenter.fusion_temperature": Flag("--fusion-temperature", "softmax temperature of the fusion",
                                          check=validate.positive),
-    "segmenter.sim_noise": Flag("--sim-noise", "simulated perception error scale, 0 = clean labels (default: "
-                                "the calibrated one)", check=in_range(0.0, 4.0)),
+    "segmenter.sim_profile": Flag("--perception", "simulated perception profile", choices=PROFILE_NAMES),
+    "segmenter.sim_noise": Flag("--noise", "error scale within the simulated perception profile, 0 = no "
+                                "misreadings (default 1, the calibrated one)", check=in_range(0.0, 4.0)),
     "segmenter.sim_seed": Flag("--sim-seed", "seed of the simulated perception", check=integer_at_least(0)),
     "segmenter.heatmap_dtype": Flag("--heatmap-dtype", "heatmap pixels on the wire", choices=HEATMAP_DTYPES),
     "segmenter.expected_size_px": Flag("--frame-size", "accept only frames of this size, e.g. 352x352",

@@ -90,7 +90,8 @@ def first_heatmap(client: zenoh.Session, inbox: Inbox, key: str, frame: CameraFr
     def attempt() -> bool:
         client.put(key, encode(frame))
         hm = inbox.recv(0.1)
-        if hm is not None and hm.seq == frame.seq:
+        # Both ids: heatmaps of an earlier vehicle's repeated frames may still be arriving.
+        if hm is not None and (hm.vehicle_id, hm.seq) == (frame.vehicle_id, frame.seq):
             got.append(hm)
         return bool(got)
 
