@@ -67,6 +67,25 @@ def test_search_gives_up_after_its_time_and_after_its_passes() -> None:
     assert mem2.phase is Phase.NO_SPOT and vel == (0.0, 0.0, 0.0)
 
 
+def test_each_search_pass_flies_lower_and_an_abort_restarts_at_the_top() -> None:
+    lower = dataclasses.replace(inp(0.0), lower_alts_m=(60.0, 40.0))
+    last = len(WAYPOINTS) - 1
+    mem = at(Phase.SEARCH, waypoint=last)
+    home = WAYPOINTS[last]
+    mem, vel = step(mem, dataclasses.replace(lower, t_s=1.0, north_m=home[0], east_m=home[1]), CFG)
+    assert mem.waypoint == last + 1 and "searching lower, at 60 m" in mem.reason
+    mem, vel = step(mem, dataclasses.replace(lower, t_s=2.0, north_m=home[0], east_m=home[1]), CFG)
+    assert vel[2] > 0.0  # descending to the next level (FRD: + down), never below it
+    mem, vel = step(mem, dataclasses.replace(lower, t_s=3.0, alt_agl_m=58.0), CFG)
+    assert vel[2] < 0.0
+    # Passes: top, 60 m, 40 m, then pattern_repeats - 1 more at 40 m; then NO_SPOT.
+    passes = 2 + CFG.pattern_repeats
+    mem, _ = step(at(Phase.SEARCH, waypoint=passes * len(WAYPOINTS)), lower, CFG)
+    assert mem.phase is Phase.NO_SPOT and f"{passes} search passes" in mem.reason
+    mem, _ = step(at(Phase.ABORT, waypoint=2 * len(WAYPOINTS)), inp(1.0, alt=99.0), CFG)
+    assert mem.phase is Phase.SEARCH and mem.waypoint == 0
+
+
 def test_approach_locks_with_hysteresis_and_descends() -> None:
     target = spot(20.0, 0.0)
     mem = at(Phase.APPROACH, target=target)

@@ -61,6 +61,7 @@ class ClearancePolicy:
         self._last_t_s: float | None = None  # last heatmap
         self._search_alt_m: float | None = None
         self._waypoints: tuple[tuple[float, float], ...] = ()
+        self._lower_alts: tuple[float, ...] = ()
         self._cmd: tuple[float, float, float] = (0.0, 0.0, 0.0)
         self._last_motion: MotionStep | None = None
         self._decision = Decision((0.0, 0.0, 0.0), 0.0, Phase.WARMUP.value, None, 0.0, None, {}, "starting")
@@ -80,6 +81,9 @@ class ClearancePolicy:
                 float(obs.alt_agl_m), cfg.handover_alt_m + 10.0)
             spacing = cfg.search_spacing_frac * footprint_width_m(self._search_alt_m, obs.hfov_rad)
             self._waypoints = search_pattern(spacing, cfg.search_radius_m)
+            floor = cfg.handover_alt_m + 15.0
+            self._lower_alts = tuple(a for a in (max(f * self._search_alt_m, floor) for f in cfg.lower_search_fracs)
+                                     if a < self._search_alt_m - 5.0)
         if prob is None:
             # No new heatmap: nothing moves on the map; only a perception gap changes the decision.
             if (self._last_t_s is not None and obs.t_s - self._last_t_s > cfg.gap_s
@@ -129,6 +133,7 @@ class ClearancePolicy:
         pn, pe = self.motion.north_m, self.motion.east_m
         inp = Inputs(t_s=obs.t_s, alt_agl_m=float(obs.alt_agl_m), north_m=pn, east_m=pe, yaw_rad=obs.yaw_rad,
                      fresh=fresh, gap=gap, search_alt_m=self._search_alt_m, waypoints=self._waypoints,
+                     lower_alts_m=self._lower_alts,
                      best=best, check=check)
         prev = self.memory
         mem, vel = step(prev, inp, cfg)

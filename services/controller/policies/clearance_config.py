@@ -59,7 +59,10 @@ class ClearanceConfig:
     search_radius_m: float = 150.0  # never fly further than this from the start
     search_spacing_frac: float = 0.6  # pattern spacing = this x footprint width at search altitude
     search_speed_m_s: float = 6.0
-    pattern_repeats: int = 2
+    pattern_repeats: int = 2  # passes at the lowest search altitude
+    # Later passes fly lower (fractions of the top search altitude, never below hand-over + 15 m):
+    # at 100 m CLIPSeg's token grid smears anything under ~7 m, at 40 m under ~2.7 m.
+    lower_search_fracs: tuple[float, ...] = (0.6, 0.4)
 
     # --- approach / descent ---
     approach_gain_per_s: float = 0.5  # lateral velocity = gain x error (capped)
@@ -105,6 +108,8 @@ class ClearanceConfig:
         for name in ("p_clip", "p_safe_min", "reg_min_response", "reg_full_response", "reg_min_std", "reg_min_eigen_ratio", "reg_pos_gain", "cmd_weight",
                      "key_shift_frac", "recheck_hysteresis"):
             validate.in_range(f"ClearanceConfig.{name}", getattr(self, name), 0.0, 1.0)
+        for frac in self.lower_search_fracs:
+            validate.in_range("ClearanceConfig.lower_search_fracs item", frac, 0.05, 1.0)
         if self.cell_min_m > self.cell_max_m:
             raise ConfigError(f"ClearanceConfig.cell_min_m {self.cell_min_m} exceeds cell_max_m {self.cell_max_m}")
         if self.lock_out_m < self.lock_in_m:

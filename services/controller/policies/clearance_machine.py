@@ -1,7 +1,8 @@
 """The `clearance` policy's state machine: an enum and one pure step function.
 
     WARMUP --3 frames / 10 s--> SEARCH --spot with clearance >= radius + margin--> APPROACH
-    SEARCH  --pattern flown (x repeats) or 900 s--> NO_SPOT (hold: "no safe spot found")
+    SEARCH  --each pass flown: the next one lower (100 -> 60 -> 40 m), where detail resolves
+    SEARCH  --all passes flown or 900 s--> NO_SPOT (hold: "no safe spot found")
     APPROACH --within the lock radius--> DESCEND --measured alt <= hand-over alt--> HANDOVER
     APPROACH --target fails 3 re-checks / 90 s--> blacklist it; SEARCH (or ABORT below search alt)
     DESCEND  --target fails 3 re-checks / 180 s--> ABORT (blacklist)
@@ -73,10 +74,11 @@ class Inputs:
     yaw_rad: float
     fresh: bool  # a new heatmap this step
     gap: bool  # no heatmap for more than gap_s
-    search_alt_m: float
+    search_alt_m: float  # the top search altitude (where an abort climbs back to)
     waypoints: tuple[tuple[float, float], ...]  # one pass of the search pattern
     best: Spot | None  # the best spot on the map now (not blacklisted, inside the radius)
     check: Spot | None  # the target re-checked and refined (None: it fails), when there is one
+    lower_alts_m: tuple[float, ...] = ()  # later search passes fly lower, where detail resolves
 
 
 def search_pattern(spacing_m: float, radius_m: float) -> tuple[tuple[float, float], ...]:
@@ -97,6 +99,12 @@ def search_pattern(spacing_m: float, radius_m: float) -> tuple[tuple[float, floa
         leg += 1
     points.append((0.0, 0.0))
     return tuple(points)
+
+
+def search_level_alt(waypoint: int, inp: Inputs) -> float:
+    """The altitude of the search pass `waypoint` belongs to: the top first, then each lower one."""
+    levels = (inp.search_alt_m, *inp.lower_alts_m)
+    return levels[min(waypoint // max(len(inp.waypoints), 1), len(levels) - 1)]
 
 
 def _go(mem: Memory, phase: Phase, t_s: float, reason: str, **changes: object) -> Memory:
@@ -161,17 +169,21 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
         elif t - mem.start_s > cfg.no_spot_after_s:
             return _go(mem, Phase.NO_SPOT, t, f"no safe spot found in {cfg.no_spot_after_s:g} s"), (0.0, 0.0, 0.0)
         else:
-            total = len(inp.waypoints) * cfg.pattern_repeats
+            passes = len(inp.lower_alts_m) + cfg.pattern_repeats
             wp = mem.waypoint
-            if wp >= total:
+            if wp >= passes * len(inp.waypoints):
                 return _go(mem, Phase.NO_SPOT, t, f"no safe spot found within {cfg.search_radius_m:g} m "
-                                                  f"({cfg.pattern_repeats} search passes)"), (0.0, 0.0, 0.0)
+                                                  f"({passes} search passes)"), (0.0, 0.0, 0.0)
             goal_n, goal_e = inp.waypoints[wp % len(inp.waypoints)]
             err_n, err_e = goal_n - inp.north_m, goal_e - inp.east_m
-            if math.hypot(err_n, err_e) < 5.0:
+            level_alt = search_level_alt(wp, inp)
+            if math.hypot(err_n, err_e) < 5.0 and abs(inp.alt_agl_m - level_alt) < 5.0:
                 mem = dataclasses.replace(mem, waypoint=wp + 1)
+                if search_level_alt(wp + 1, inp) != level_alt:
+                    mem = dataclasses.replace(mem, reason=f"no spot at {level_alt:.0f} m: searching lower, at "
+                                                          f"{search_level_alt(wp + 1, inp):.0f} m")
             vf, vr = _toward(err_n, err_e, cfg.approach_gain_per_s, cfg.search_speed_m_s, inp.yaw_rad)
-            return mem, (vf, vr, _hold_alt(inp.alt_agl_m, inp.search_alt_m, cfg))
+            return mem, (vf, vr, _hold_alt(inp.alt_agl_m, level_alt, cfg))
 
     if p is Phase.ABORT:
         back = inp.alt_agl_m >= inp.search_alt_m - 2.0
@@ -179,7 +191,7 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
             why = "back at the search altitude" if back else f"climb took over {cfg.abort_timeout_s:g} s"
             if mem.aborts >= cfg.max_aborts:
                 return _go(mem, Phase.NO_SPOT, t, f"no safe spot found: {mem.aborts} aborts ({why})"), (0.0, 0.0, 0.0)
-            return _go(mem, Phase.SEARCH, t, f"{why}: searching again"), (0.0, 0.0, 0.0)
+            return _go(mem, Phase.SEARCH, t, f"{why}: searching again", waypoint=0), (0.0, 0.0, 0.0)
         return mem, (0.0, 0.0, -cfg.climb_speed_m_s)
 
     # --- APPROACH and DESCEND: a target is held ---
@@ -194,7 +206,7 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
             target = inp.check  # refined: the best clearance near the target, as resolution improves
     if fails >= cfg.fail_frames:
         why = f"target failed {fails} re-checks (clearance or confidence too low at {inp.alt_agl_m:.0f} m)"
-        below = inp.alt_agl_m < inp.search_alt_m - 2.0
+        below = inp.alt_agl_m < search_level_alt(mem.waypoint, inp) - 5.0
         if p is Phase.DESCEND or below:
             return _go(mem, Phase.ABORT, t, why + ": abort, climbing back", target=None, aborts=mem.aborts + 1,
                        blacklist=_blacklisted(mem, target)), (0.0, 0.0, -cfg.climb_speed_m_s)
