@@ -52,7 +52,7 @@ def _world_sheet(world, path: Path, panel_px: int = 900) -> None:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
-    from dovesei.segmenter.simulated import render_noise_preview
+    from dovesei.pictures.perception import render_noise_preview
 
     try:
         world = load_world(args.world)

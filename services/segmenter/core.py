@@ -45,13 +45,15 @@ from dovesei.shared.messages import CameraFrame, PromptSetMsg, SafetyHeatmap
 from .fusion import FUSION_MODES, FusionConfig
 from .options import DEFAULT_MODEL, DTYPES
 from .prompts import REFERENCE_PROMPTS, PromptError, PromptSet
-from .simulated import CALIBRATED_NOISE, MissingTruthError, SimPerceptionParams, SimulatedBackend
+from .simulated import (
+    DEFAULT_NOISE, DEFAULT_PROFILE, PROFILE_NAMES, MissingTruthError, SimPerception, profile_params, view_of,
+)
 
 log = logging.getLogger(__name__)
 
 BACKENDS = ("auto", "clipseg", "sim")
 HEATMAP_DTYPES = ("uint8", "float16")
-# The heatmap's `fusion` field for the simulated backend: it has no prompt logits to fuse.
+# The heatmap's `fusion` field for a backend that has no prompt logits to fuse.
 SIM_FUSION = "none"
 
 # Reasons a frame is refused; the service counts them under these names.
@@ -82,7 +84,7 @@ class SegmenterConfig:
     `fusion`: "grouped" (our default, independent of the number of negative prompts) or
     "dovesei" (the reference's softmax over all prompts). Frame sides outside
     [min_side_px, max_side_px], or different from `expected_size_px` (height, width) when it is
-    set, are rejected. `sim_noise`/`sim_seed` drive the simulated backend only.
+    set, are rejected. `sim_profile`/`sim_noise`/`sim_seed` drive the simulated backend only.
     """
 
     backend: str = "auto"
@@ -93,7 +95,8 @@ class SegmenterConfig:
     threads: int | None = None  # torch intra-op threads (None: torch's default)
     fusion: str = "grouped"
     fusion_temperature: float = 1.0
-    sim_noise: float = CALIBRATED_NOISE  # see dovesei.segmenter.simulated
+    sim_profile: str = DEFAULT_PROFILE  # clean | realistic | harsh, see dovesei.segmenter.simulated
+    sim_noise: float = DEFAULT_NOISE  # error scale within the profile
     sim_seed: int = 0
     heatmap_dtype: str = "uint8"
     min_side_px: int = 16
@@ -114,6 +117,7 @@ class SegmenterConfig:
             raise ConfigError(f"SegmenterConfig.threads: expected an integer >= 1 or None, got {self.threads!r}")
         if not (_is_number(self.fusion_temperature) and self.fusion_temperature > 0):
             raise ConfigError(f"SegmenterConfig.fusion_temperature: expected a number > 0, got {self.fusion_temperature!r}")
+        _choice("sim_profile", self.sim_profile, PROFILE_NAMES)
         if not (_is_number(self.sim_noise) and 0.0 <= self.sim_noise <= 4.0):
             raise ConfigError(f"SegmenterConfig.sim_noise: expected a number in [0, 4], got {self.sim_noise!r}")
         if not (_is_int(self.sim_seed) and self.sim_seed >= 0):
@@ -179,7 +183,7 @@ class ClipSegFrameBackend:
     fuses = True
 
     def __init__(self, model: object, reason: str = "configured") -> None:
-        from .clipseg import ImageError  # torch is already loaded: `model` is a ClipSegBackend
+        from .clipseg import ImageError  # lazy: torch; already loaded here, `model` is a ClipSegBackend
 
         self._image_error = ImageError
         self.model = model
@@ -201,40 +205,40 @@ class ClipSegFrameBackend:
 
 
 class SimFrameBackend:
-    """Simulated perception from the frame's ground-truth labels; prompts do not change it."""
+    """Simulated perception: per-prompt logits from the frame's truth labels, then the fusion."""
 
     name = "simulated"
     simulated = True
-    fuses = False
+    fuses = True  # the same fusion as after CLIPSeg: the heatmap names its mode
 
-    def __init__(self, model: SimulatedBackend, reason: str = "configured") -> None:
+    def __init__(self, model: SimPerception, reason: str = "configured") -> None:
         self.model = model
         self.reason = reason
 
     def describe(self) -> str:
-        return (f"SIMULATED perception (test instrument, needs sim ground truth) "
-                f"noise={self.model.params.noise:g} seed={self.model.seed}")
+        return f"{self.model.describe()} (test instrument, needs sim ground truth)"
 
     def prepare(self, prompts: PromptSet) -> None:
-        """Nothing to rebuild: the simulated errors do not depend on the words."""
+        """Build the prompt response table now, so a new prompt set is checked before it is used."""
+        self.model.responses(prompts)
 
     def safe_probability(self, frame: CameraFrame, prompts: PromptSet, fusion: FusionConfig) -> np.ndarray:
         if frame.truth is None:
             # A real camera never carries truth: this is what keeps the sim backend off a vehicle.
             raise FrameRejected(REJECT_NO_TRUTH, f"{MissingTruthError()} (vehicle {frame.vehicle_id}, seq {frame.seq})")
         try:
-            return self.model.safe_probability(frame.truth.labels, frame.truth.classes, frame.seq,
-                                               out_size=frame.image_rgb.shape[:2])
+            return self.model.safe_probability(frame.truth.labels, frame.truth.classes, view_of(frame), frame.seq,
+                                               prompts, fusion, out_size=frame.image_rgb.shape[:2])
         except ValueError as exc:
             raise FrameRejected(REJECT_BAD_TRUTH, str(exc)) from None
 
 
 def as_frame_backend(backend: object) -> FrameBackend:
-    """Wrap a raw ClipSegBackend / SimulatedBackend; pass a FrameBackend through unchanged."""
+    """Wrap a raw ClipSegBackend / SimPerception; pass a FrameBackend through unchanged."""
     clipseg = sys.modules.get(f"{__package__}.clipseg")  # not imported: cannot be a ClipSegBackend
     if clipseg is not None and isinstance(backend, clipseg.ClipSegBackend):
         return ClipSegFrameBackend(backend)
-    if isinstance(backend, SimulatedBackend):
+    if isinstance(backend, SimPerception):
         return SimFrameBackend(backend)
     if all(hasattr(backend, a) for a in ("name", "simulated", "fuses", "prepare", "safe_probability")):
         return backend  # type: ignore[return-value]
@@ -263,7 +267,7 @@ def make_backend(config: SegmenterConfig) -> FrameBackend:
 
 def _make_clipseg(config: SegmenterConfig, reason: str) -> ClipSegFrameBackend:
     try:
-        from .clipseg import ModelUnavailableError, load_clipseg
+        from .clipseg import ModelUnavailableError, load_clipseg  # lazy: torch, absent onboard
     except ImportError as exc:
         raise BackendUnavailableError(f"the CLIPSeg backend needs torch and transformers "
                                       f"(pip install 'dovesei[segmenter]'): {exc}") from exc
@@ -276,7 +280,7 @@ def _make_clipseg(config: SegmenterConfig, reason: str) -> ClipSegFrameBackend:
 
 
 def _make_sim(config: SegmenterConfig, reason: str) -> SimFrameBackend:
-    model = SimulatedBackend(SimPerceptionParams(noise=float(config.sim_noise)), seed=int(config.sim_seed))
+    model = SimPerception(profile_params(config.sim_profile, float(config.sim_noise)), seed=int(config.sim_seed))
     return SimFrameBackend(model, reason)
 
 

@@ -53,6 +53,7 @@ from .core import (
 from .fair import OVERLOAD_REPORT_INTERVAL_S, FairSlots
 from .fusion import FUSION_MODES
 from .prompts import PromptError, PromptSet
+from .simulated import PROFILE_NAMES
 
 log = logging.getLogger(__name__)
 
@@ -346,8 +347,9 @@ CLI = CommandLine(ServiceConfig, {
                              "(the reference)", choices=FUSION_MODES),
     "segmenter.fusion_temperature": Flag("--fusion-temperature", "softmax temperature of the fusion",
                                          check=validate.positive),
-    "segmenter.sim_noise": Flag("--sim-noise", "simulated perception error scale, 0 = clean labels (default: "
-                                "the calibrated one)", check=in_range(0.0, 4.0)),
+    "segmenter.sim_profile": Flag("--perception", "simulated perception profile", choices=PROFILE_NAMES),
+    "segmenter.sim_noise": Flag("--noise", "error scale within the simulated perception profile, 0 = no "
+                                "misreadings (default 1, the calibrated one)", check=in_range(0.0, 4.0)),
     "segmenter.sim_seed": Flag("--sim-seed", "seed of the simulated perception", check=integer_at_least(0)),
     "segmenter.heatmap_dtype": Flag("--heatmap-dtype", "heatmap pixels on the wire", choices=HEATMAP_DTYPES),
     "segmenter.expected_size_px": Flag("--frame-size", "accept only frames of this size, e.g. 352x352",

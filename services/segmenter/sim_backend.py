@@ -179,11 +179,13 @@ class View:
 _M1, _M2, _M3 = np.uint64(0x9E3779B97F4A7C15), np.uint64(0xBF58476D1CE4E5B9), np.uint64(0x94D049BB133111EB)
 
 
-def _hash_unit(ix: np.ndarray, iy: np.ndarray, iz: np.ndarray, key: int) -> np.ndarray:
-    """Uniform [-1, 1) from integer lattice coordinates and a key (splitmix64 finaliser)."""
+def _hash_unit(ix: np.ndarray, iy: np.ndarray, iz: np.ndarray, key: np.ndarray) -> np.ndarray:
+    """Uniform [-1, 1) from integer lattice coordinates and keys (splitmix64 finaliser).
+
+    ``key`` is an int64 array broadcast against the coordinates (one key per field)."""
     with np.errstate(over="ignore"):
         h = (ix.astype(np.uint64) * _M1) ^ (iy.astype(np.uint64) * _M2) ^ (iz.astype(np.uint64) * _M3)
-        h ^= np.uint64(key & 0xFFFFFFFFFFFFFFFF) * _M1
+        h = h ^ ((key.astype(np.uint64) + np.uint64(0x632BE59BD9B4E019)) * _M2)  # broadcasts to (keys, points)
         h ^= h >> np.uint64(30)
         h *= _M2
         h ^= h >> np.uint64(27)
@@ -192,13 +194,13 @@ def _hash_unit(ix: np.ndarray, iy: np.ndarray, iz: np.ndarray, key: int) -> np.n
     return (h >> np.uint64(11)).astype(np.float64) * (2.0 / 2.0**53) - 1.0
 
 
-def _value_noise(x: np.ndarray, y: np.ndarray, z: np.ndarray, key: int) -> np.ndarray:
+def _value_noise(x: np.ndarray, y: np.ndarray, z: np.ndarray, key: np.ndarray) -> np.ndarray:
     """Smooth noise on a unit lattice (trilinear with smoothstep weights); about uniform in [-1, 1]."""
     fx, fy, fz = np.floor(x), np.floor(y), np.floor(z)
     tx, ty, tz = x - fx, y - fy, z - fz
     tx, ty, tz = (t * t * (3.0 - 2.0 * t) for t in (tx, ty, tz))
     ix, iy, iz = fx.astype(np.int64), fy.astype(np.int64), fz.astype(np.int64)
-    out = np.zeros_like(x)
+    out = np.zeros(np.broadcast_shapes(x.shape, key.shape))
     for dx in (0, 1):
         wx = tx if dx else 1.0 - tx
         for dy in (0, 1):
@@ -214,12 +216,14 @@ def _value_noise(x: np.ndarray, y: np.ndarray, z: np.ndarray, key: int) -> np.nd
 _FIELD_STD = 0.33
 
 
-def world_field(east_m: np.ndarray, north_m: np.ndarray, alt_m: float, key: int, params: PerceptionParams) -> np.ndarray:
-    """A seeded smooth field over the ground and log-altitude, about unit std."""
+def world_field(east_m: np.ndarray, north_m: np.ndarray, alt_m: float, keys: np.ndarray,
+                params: PerceptionParams) -> np.ndarray:
+    """Seeded smooth fields over the ground and log-altitude, about unit std: (len(keys),) + east_m.shape."""
+    keys = np.asarray(keys, dtype=np.int64).reshape((-1,) + (1,) * east_m.ndim)
     z = math.log2(max(alt_m, 0.5)) * params.field_octaves_per_doubling
     length = params.field_length_m
-    coarse = _value_noise(east_m / length, north_m / length, np.full_like(east_m, z), key)
-    fine = _value_noise(east_m / (0.4 * length), north_m / (0.4 * length), np.full_like(east_m, z + 17.3), key + 7)
+    coarse = _value_noise(east_m / length, north_m / length, np.full_like(east_m, z), keys)
+    fine = _value_noise(east_m / (0.4 * length), north_m / (0.4 * length), np.full_like(east_m, z + 17.3), keys + 7)
     return (0.75 * coarse + 0.45 * fine) / _FIELD_STD
 
 
@@ -411,20 +415,21 @@ class SimPerception:
         p = self.params
         out = g.copy()
         top = g.max(axis=(0, 1))
-        for a_name, partners in CONFUSIONS.items():
-            a = INDEX[a_name]
-            if top[a] < 0.02:
-                continue  # not in view: no field to evaluate
-            total = sum(partners.values())
-            for b_name, w in partners.items():
-                b = INDEX[b_name]
-                key = self.seed * 1_000_003 + a * 97 + b
-                z = world_field(east, north, view.alt_agl_m, key, p).astype(np.float32)
-                z = cv2.resize(z, (self.grid, self.grid), interpolation=cv2.INTER_LINEAR)
-                share = self._strength["confusion"] * (w / total) * np.clip(z - p.confusion_onset, 0.0, 1.0)
-                moved = g[..., a] * share
-                out[..., a] -= moved
-                out[..., b] += moved
+        # Only appearances in view need their fields (not in view: nothing to misread).
+        pairs = [(INDEX[a], INDEX[b], w / sum(partners.values()))
+                 for a, partners in CONFUSIONS.items() if top[INDEX[a]] >= 0.02 for b, w in partners.items()]
+        if not pairs:
+            return out
+        keys = np.array([self.seed * 1_000_003 + a * 97 + b for a, b, _ in pairs])
+        z = world_field(east, north, view.alt_agl_m, keys, p).astype(np.float32)  # (n, F, F)
+        z = cv2.resize(np.ascontiguousarray(z.transpose(1, 2, 0)), (self.grid, self.grid),
+                       interpolation=cv2.INTER_LINEAR).reshape(self.grid, self.grid, len(pairs))
+        share = np.clip(z - p.confusion_onset, 0.0, 1.0) * (self._strength["confusion"] *
+                                                             np.array([w for _, _, w in pairs], np.float32))
+        for i, (a, b, _) in enumerate(pairs):
+            moved = g[..., a] * share[..., i]
+            out[..., a] -= moved
+            out[..., b] += moved
         return out
 
     def _shadow_mask(self, lab: np.ndarray, tables: _Classes, view: View, frame_shape: tuple[int, int]) -> np.ndarray:

@@ -44,7 +44,8 @@ NON_DEFAULT = {
     "segmenter": ServiceConfig(
         segmenter=SegmenterConfig(
             backend="sim", model="models/clipseg-rd64-refined", device="cuda:1", dtype="bfloat16", compile=True,
-            threads=3, fusion="dovesei", fusion_temperature=0.5, sim_noise=0.3, sim_seed=9, heatmap_dtype="float16",
+            threads=3, fusion="dovesei", fusion_temperature=0.5, sim_profile="harsh", sim_noise=0.3, sim_seed=9,
+            heatmap_dtype="float16",
             expected_size_px=(240, 320), max_side_px=2048,
             prompts=PromptSet(positive=["grass, \"soft\""], negative=["road", "car"], template="a photo of {}.")),
         vehicle_id="base", all_vehicles=True, lockstep=True),
@@ -157,7 +158,8 @@ BAD = [
     ("sim", ["--timing", "fast"], "--timing", "reference"),
     ("sim", ["--seed", "1.5"], "--seed", "not an integer"),
     ("sim", ["--vehicle-id", "a/b"], "--vehicle-id", "letters, digits"),
-    ("segmenter", ["--sim-noise", "5"], "--sim-noise", "[0, 4]"),
+    ("segmenter", ["--noise", "5"], "--noise", "[0, 4]"),
+    ("segmenter", ["--perception", "dreamy"], "--perception", "realistic"),
     ("segmenter", ["--frame-size", "352"], "--frame-size", "WIDTHxHEIGHT"),
     ("segmenter", ["--threads", "0"], "--threads", ">= 1"),
     ("segmenter", ["--prompts", "/nonexistent/prompts.json"], "--prompts", "cannot read"),
