@@ -17,6 +17,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -26,7 +27,7 @@ from dovesei.segmenter.core import SegmenterConfig, SegmenterCore, make_backend
 from dovesei.segmenter.prompts import REFERENCE_PROMPTS, PromptSet
 from dovesei.segmenter.simulated import CALIBRATED_NOISE
 from dovesei.shared.errors import ConfigError
-from dovesei.shared.messages import EpisodeResult, SafetyHeatmap
+from dovesei.shared.messages import EpisodeResult, Message, SafetyHeatmap
 from dovesei.sim.core import SimConfig, SimCore
 from dovesei.sim.starts import Start
 from dovesei.sim.world import World
@@ -124,8 +125,11 @@ def segmenter_config(spec: EpisodeSpec) -> SegmenterConfig:
     return SegmenterConfig(backend="sim", sim_noise=noise, sim_seed=spec.seed, prompts=spec.prompts, **extra)
 
 
-def run_episode(world: World, spec: EpisodeSpec, *, record_track: bool = True) -> EpisodeRecord:
-    """Fly one episode to the judge's verdict, in this process."""
+def run_episode(world: World, spec: EpisodeSpec, *, record_track: bool = True,
+                record: Callable[[Message], None] | None = None) -> EpisodeRecord:
+    """Fly one episode to the judge's verdict, in this process; `record` sees every message
+    (e.g. `dovesei.shared.recording.FlightRecorder.write`), in the order the services would."""
+    record = record or (lambda msg: None)
     t0 = time.perf_counter()
     sim, seg, ctrl = build_cores(world, spec)
     pending: dict[int, SafetyHeatmap] = {}  # heatmaps computed but not yet due
@@ -133,12 +137,16 @@ def run_episode(world: World, spec: EpisodeSpec, *, record_track: bool = True) -
     states: list[str] = []
     out = sim.reset()
     while True:
+        record(out.state)
         if out.frame is not None:
+            record(out.frame)
             pending[out.frame.seq] = seg.process(out.frame)
+            record(pending[out.frame.seq])
         if record_track:
             x_m, y_m = sim.position_m()
             rows.append((out.state.stamp.t_s, x_m, y_m, out.state.alt_agl_m))
         if out.result is not None:
+            record(out.result)
             break
         due = out.state.await_frame_seq
         if due >= 0:
@@ -147,6 +155,8 @@ def run_episode(world: World, spec: EpisodeSpec, *, record_track: bool = True) -
             for seq in [s for s in pending if s < due]:
                 del pending[seq]
         cmd, status = ctrl.tick(out.state)
+        record(cmd)
+        record(status)
         states.append(status.state)
         out = sim.step(cmd)
     if record_track:

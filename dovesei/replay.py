@@ -1,0 +1,199 @@
+"""`dovesei replay <recording.mcap>`: a recorded flight's inputs run again through a policy.
+
+    recording.mcap --FlightRecording--> states, frames, heatmaps (as recorded, checked by the codec)
+        [--segmenter sim|clipseg: frames --SegmenterCore--> new heatmaps, same seq]
+        --ControllerCore (the recording's timing, lockstep or real time)--> commands, statuses
+        --> <out>/replay.json (decisions, agreement with the recorded ones), <out>/replay.mcap
+
+Replay is open loop: the vehicle's states are the recorded ones, so a different policy's commands
+are what it *would* have sent at each moment, not a new trajectory. With the recorded policy and
+heatmaps a lockstep recording replays to the very same decisions (the test checks it), which is
+what makes a recording from a real drone with real CLIPSeg a fair input for comparing policies or
+prompt sets offline. Lockstep: each state is one tick, and the heatmap it awaits is handed over
+first (as the sim protocol does). Real time: heatmaps and ticks in the order the recorder saw them,
+a tick at each recorded status, on the recorded wall clock.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+from dovesei.controller.core import ControllerConfig, ControllerCore
+from dovesei.controller.policies.base import policy_names
+from dovesei.episode import EpisodeSpec, segmenter_config
+from dovesei.segmenter.core import SegmenterConfig, SegmenterCore, make_backend
+from dovesei.segmenter.prompts import PromptSet
+from dovesei.shared.errors import ConfigError
+from dovesei.shared.messages import (
+    CameraFrame, ControllerStatus, EpisodeResult, Message, SafetyHeatmap, VehicleState, VelocityCommand,
+)
+from dovesei.shared.recording import FlightRecorder, FlightRecording, RecordingError
+
+log = logging.getLogger("dovesei.replay")
+
+
+def episode_metadata(spec: EpisodeSpec, world: str = "") -> dict[str, dict[str, Any]]:
+    """The metadata records of an in-process episode's recording (what replay needs to rebuild it)."""
+    seg = segmenter_config(spec)
+    return {
+        "run": {"policy": spec.policy, "timing": spec.timing, "lockstep": True, "vehicle_id": spec.vehicle_id,
+                "seed": spec.seed, "world": world, "start": [spec.start.x_m, spec.start.y_m, spec.start.alt_m]},
+        "segmenter": segmenter_metadata(seg),
+        "prompts": {"positive": list(seg.prompts.positive), "negative": list(seg.prompts.negative),
+                    "template": seg.prompts.template},
+    }
+
+
+def segmenter_metadata(seg: SegmenterConfig) -> dict[str, Any]:
+    return {"backend": seg.backend, "fusion": seg.fusion, "sim_profile": seg.sim_profile, "sim_noise": seg.sim_noise,
+            "sim_seed": seg.sim_seed, "model": seg.model, "heatmap_dtype": seg.heatmap_dtype}
+
+
+@dataclass(frozen=True)
+class ReplayResult:
+    """What a replay decided, and how it compares with the decisions in the recording."""
+
+    policy: str
+    segmenter: str  # "recorded" or the backend that made new heatmaps
+    lockstep: bool
+    ticks: int
+    heatmaps: int
+    compared: int  # ticks with a recorded decision to compare against
+    same: int  # of those, identical state, target, focus and command
+    first_difference: str  # "" when every compared decision matched
+    recorded_outcome: str
+    states: tuple[str, ...]
+
+    def to_dict(self) -> dict[str, Any]:
+        out = asdict(self)
+        out["state_changes"] = sum(1 for a, b in zip(self.states, self.states[1:]) if a != b)
+        del out["states"]
+        return out
+
+
+def _decision(st: ControllerStatus) -> tuple:
+    return (st.state, st.watchdog, st.target_valid, st.target_row_px, st.target_col_px, st.focus_radius_px,
+            st.vel_body_frd_m_s)
+
+
+def replay(recording: FlightRecording, *, policy: str | None = None, segmenter: SegmenterConfig | None = None,
+           record: FlightRecorder | None = None) -> ReplayResult:
+    """Run `policy` (default: the recorded one) on the recording's inputs; see the module docstring."""
+    run = recording.meta("run")
+    if not run:
+        raise RecordingError(f"recording {recording.path}: no 'run' metadata (not a dovesei flight recording)")
+    recorded_policy = str(run.get("policy", ""))
+    policy = policy or recorded_policy
+    if policy not in policy_names():
+        raise ConfigError(f"--policy {policy!r}: choose one of {', '.join(policy_names())}")
+    lockstep = bool(run.get("lockstep", True))
+    ctrl = ControllerCore(ControllerConfig(vehicle_id=str(run.get("vehicle_id", "uav1")), policy=policy,
+                                           timing=str(run.get("timing", "reference")), lockstep=lockstep))
+    seg = SegmenterCore(make_backend(segmenter), segmenter) if segmenter is not None else None
+    events = list(recording.messages((VehicleState, CameraFrame, SafetyHeatmap, ControllerStatus, EpisodeResult)))
+    recorded = {st.stamp.t_s: st for _, st in events if isinstance(st, ControllerStatus)}
+    # The sim's last state comes with the verdict; the live controller may never have ticked on it.
+    end_s = min((r.sim_time_s for _, r in events if isinstance(r, EpisodeResult)), default=float("inf"))
+    heatmaps: dict[int, tuple[SafetyHeatmap, float]] = {}
+    outcome, states, compared, same, first = "", [], 0, 0, ""
+    latest: VehicleState | None = None
+
+    def tick(state: VehicleState, wall_s: float | None) -> None:
+        nonlocal compared, same, first
+        cmd, status = ctrl.tick(state, wall_s)
+        states.append(status.state)
+        if record is not None:
+            record.write(cmd)
+            record.write(status)
+        old = recorded.get(status.stamp.t_s)
+        if old is not None and policy == recorded_policy:
+            compared += 1
+            if _decision(old) == _decision(status):
+                same += 1
+            elif not first:
+                first = (f"t={status.stamp.t_s:.2f} s: recorded {_decision(old)}, replayed {_decision(status)}")
+
+    for wall_s, msg in events:
+        if isinstance(msg, CameraFrame) and seg is not None:
+            hm = seg.process(msg)
+            heatmaps[hm.seq] = (hm, wall_s)
+            if not lockstep:
+                ctrl.on_heatmap(hm, wall_s)
+        elif isinstance(msg, SafetyHeatmap) and seg is None:
+            heatmaps[msg.seq] = (msg, wall_s)
+            if not lockstep:
+                ctrl.on_heatmap(msg, wall_s)
+        elif isinstance(msg, VehicleState):
+            latest = msg
+            if lockstep:
+                due = msg.await_frame_seq
+                if due >= 0 and due in heatmaps:
+                    ctrl.on_heatmap(*heatmaps.pop(due))
+                if msg.stamp.t_s < end_s or msg.stamp.t_s in recorded:
+                    tick(msg, None)
+        elif isinstance(msg, ControllerStatus) and not lockstep and latest is not None:
+            tick(latest, wall_s)  # the live controller ticked here, on its own clock
+        elif isinstance(msg, EpisodeResult):
+            outcome = msg.outcome
+        if record is not None and isinstance(msg, (VehicleState, EpisodeResult)):
+            record.write(msg, recv_wall_s=wall_s)
+    n_heatmaps = sum(1 for _, m in events if isinstance(m, CameraFrame if seg is not None else SafetyHeatmap))
+    return ReplayResult(policy=policy, segmenter=segmenter.backend if segmenter is not None else "recorded",
+                        lockstep=lockstep, ticks=len(states), heatmaps=n_heatmaps, compared=compared, same=same,
+                        first_difference=first, recorded_outcome=outcome, states=tuple(states))
+
+
+def _segmenter(args: argparse.Namespace, recording: FlightRecording) -> SegmenterConfig | None:
+    if args.segmenter is None:
+        return None
+    seg_meta, prompts = recording.meta("segmenter"), recording.meta("prompts")
+    try:
+        prompt_set = PromptSet(positive=tuple(prompts["positive"]), negative=tuple(prompts["negative"]),
+                               template=prompts.get("template", "{}")) if prompts else None
+    except (KeyError, TypeError, ValueError) as exc:
+        raise RecordingError(f"recording {recording.path}: bad 'prompts' metadata: {exc}") from None
+    extra: dict[str, Any] = {} if prompt_set is None else {"prompts": prompt_set}
+    if args.segmenter == "sim":
+        # The live run's simulated perception: same profile, noise and seed give the same heatmaps.
+        for name in ("fusion", "sim_profile", "sim_noise", "sim_seed"):
+            if name in seg_meta:
+                extra[name] = seg_meta[name]
+        return SegmenterConfig(backend="sim", **extra)
+    return SegmenterConfig(backend="clipseg", model=args.model, device=args.device,
+                           **({"fusion": seg_meta["fusion"]} if "fusion" in seg_meta else {}), **extra)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="dovesei replay", description=__doc__.split("\n")[0])
+    parser.add_argument("recording", help="a flight recording (.mcap) written by dovesei up or a service")
+    parser.add_argument("--policy", help=f"the policy to run (default: the recorded one): {', '.join(policy_names())}")
+    parser.add_argument("--segmenter", choices=("sim", "clipseg"),
+                        help="make new heatmaps from the recorded frames (default: use the recorded heatmaps)")
+    parser.add_argument("--model", default=SegmenterConfig.model, help="CLIPSeg model (Hub id or directory)")
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--out", help="report folder (default: <recording>-replay)")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    recording = FlightRecording(args.recording)
+    out = Path(args.out) if args.out else recording.path.with_name(recording.path.stem + "-replay")
+    out.mkdir(parents=True, exist_ok=True)
+    seg = _segmenter(args, recording)
+    run = {**recording.metadata.get("run", {}), "policy": args.policy or recording.meta("run").get("policy", ""),
+           "replay_of": str(recording.path)}
+    metadata = {**recording.metadata, "run": run}
+    if seg is not None:
+        metadata["segmenter"] = segmenter_metadata(seg)
+    with FlightRecorder(out / "replay.mcap", metadata=metadata) as rec:
+        result = replay(recording, policy=args.policy, segmenter=seg, record=rec)
+    doc = {"recording": str(recording.path), "open_loop": True, **result.to_dict()}
+    (out / "replay.json").write_text(json.dumps(doc, indent=2) + "\n")
+    agree = f", {result.same}/{result.compared} decisions as recorded" if result.compared else ""
+    print(f"replayed {result.ticks} ticks with {result.policy} on {result.segmenter} heatmaps{agree}; "
+          f"report in {out}")
+    return 0
