@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
@@ -96,20 +97,54 @@ class Arrival:
     own_s: float | None = None
 
 
+LEARN_WINDOW_S = 10.0  # how long an on-time sample keeps vouching for the sender's clock
+RELEARN_GRACE_S = 1.0  # after a silence longer than the window, how long the clock is learnt afresh
+
+
+class _Learnt:
+    """One sender clock as the receiver learnt it: a sliding-window maximum of on-time samples.
+
+    Each on-time sample (t, a) projects the sender's clock to t + rate * (a' - a) at a later
+    arrival a'; the projection is the largest over the samples of the last `LEARN_WINDOW_S`, kept
+    as a monotonic deque of t - rate * a (the largest value at the front).
+    """
+
+    __slots__ = ("rate", "window", "relearn_until_s")
+
+    def __init__(self, rate: float) -> None:
+        self.rate = rate
+        self.window: deque[tuple[float, float]] = deque()  # (t_s - rate * mono_s, mono_s)
+        self.relearn_until_s = -1.0
+
+    def add(self, t_s: float, mono_s: float) -> None:
+        v = t_s - self.rate * mono_s
+        while self.window and self.window[-1][0] <= v:
+            self.window.pop()
+        self.window.append((v, mono_s))
+
+    def projected(self, mono_s: float) -> float | None:
+        while self.window and self.window[0][1] < mono_s - LEARN_WINDOW_S:
+            self.window.popleft()
+        return self.window[0][0] + self.rate * mono_s if self.window else None
+
+
 class StampBound:
     """Judges sender stamps against the receiver's own clock at arrival; refuses the future.
 
     With `own` (a callable giving the receiver's time on `own_clock`, e.g. the sim's own sim time)
-    a stamp may lead that time by at most `tolerance_s`. Without it the receiver's clock is learnt
-    per (source, clock) from on-time samples: the newest stamp that did not lead the projection of
-    the previous one (its stamp plus `MAX_DATA_RATE` x the monotonic time since it arrived) becomes
-    the anchor, and a stamp may lead the projection by `tolerance_s`. Samples inside the tolerance
-    are accepted but never move the anchor, so a sender cannot ratchet the clock forward by a
-    tolerance per message; an honest sample pulls it back. A stamp in the past is always accepted
-    here (a restarted sim, a reordered sample): what is too old is the receiver's decision.
+    a stamp may lead that time by at most `tolerance_s`. Without it the receiver learns each
+    (source, clock) from the samples themselves: every on-time sample projects the sender's clock
+    forward at the clock's largest rate (`rates`), the projection is the largest of those of the
+    last `LEARN_WINDOW_S`, and a stamp may lead it by `tolerance_s`. A late, stale sample never
+    lowers it (a backlog after an outage stays accepted); samples inside the tolerance are
+    accepted but do not vouch, so a sender cannot ratchet the clock forward a tolerance per
+    message. A stamp in the past is always accepted here (a restarted sim, a reordered sample):
+    what is too old is the receiver's decision. The first sample of a source is trusted; after a
+    silence longer than the window, so is everything in the next `RELEARN_GRACE_S` (a backlog
+    flushed at once, then live samples, must relearn the clock rather than be refused).
 
     Thread-safe; one instance may be shared by several inboxes of a service, so a fast stream
-    (states at 20 Hz) keeps the anchor fresh for a slow one (heatmaps) on the same clock.
+    (states at 20 Hz) keeps the clock fresh for a slow one (heatmaps) on the same clock.
     """
 
     def __init__(self, tolerance_s: float = DEFAULT_FUTURE_TOLERANCE_S, *,
@@ -126,7 +161,7 @@ class StampBound:
                 raise ValueError(f"rate of clock {clock!r} must be > 0 data seconds per second, got {rate!r}")
         self.tolerance_s, self._own, self.own_clock = float(tolerance_s), own, own_clock
         self._rates = dict(rates)
-        self._anchors: dict[tuple[str, str], tuple[float, float]] = {}  # (source, clock) -> (t_s, mono_s)
+        self._learnt: dict[tuple[str, str], _Learnt] = {}
         self._lock = threading.Lock()
 
     def arrive(self) -> Arrival:
@@ -144,27 +179,29 @@ class StampBound:
         rate = self._rates.get(stamp.clock)
         if rate is None:
             return None
-        key = (source, stamp.clock)
+        t_s, mono_s = stamp.t_s, arrival.mono_s
         with self._lock:
-            anchor = self._anchors.get(key)
-            if anchor is None:
-                self._anchors[key] = (stamp.t_s, arrival.mono_s)
+            learnt = self._learnt.get((source, stamp.clock))
+            if learnt is None:
+                learnt = self._learnt[(source, stamp.clock)] = _Learnt(rate)
+                learnt.add(t_s, mono_s)
                 return None
-            # max(0, ...): samples judged out of arrival order never shrink the projection below the anchor.
-            projected = anchor[0] + rate * max(0.0, arrival.mono_s - anchor[1])
-            if stamp.t_s <= projected:
-                self._anchors[key] = (stamp.t_s, arrival.mono_s)
+            projected = learnt.projected(mono_s)
+            if projected is None:  # silent for longer than the window: learn afresh
+                learnt.relearn_until_s = mono_s + RELEARN_GRACE_S
+            if projected is None or mono_s <= learnt.relearn_until_s or t_s <= projected:
+                learnt.add(t_s, mono_s)
                 return None
-        if stamp.t_s <= projected + self.tolerance_s:
+        if t_s <= projected + self.tolerance_s:
             return None
-        return (f"stamp {stamp.t_s:.3f} s ({stamp.clock}) leads the receiver's clock "
+        return (f"stamp {t_s:.3f} s ({stamp.clock}) leads the receiver's clock "
                 f"(~{projected:.3f} s at arrival) by more than {self.tolerance_s:g} s")
 
     def forget(self, source: str | None = None) -> None:
-        """Drop the learnt anchors (of one source, or all): the next sample anchors afresh."""
+        """Drop what was learnt (of one source, or all): the next sample is trusted afresh."""
         with self._lock:
-            for key in [k for k in self._anchors if source is None or k[0] == source]:
-                del self._anchors[key]
+            for key in [k for k in self._learnt if source is None or k[0] == source]:
+                del self._learnt[key]
 
 
 def own_time(clock: DataClock | WallClock) -> Callable[[], float | None]:

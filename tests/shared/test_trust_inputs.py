@@ -167,6 +167,23 @@ def test_a_learnt_clock_refuses_the_future_and_cannot_be_ratcheted() -> None:
     assert bound.judge("uav2", Stamp(5000.0, "vehicle"), Arrival(t0 + 0.3)) is None
 
 
+def test_a_backlog_after_an_outage_is_accepted_and_live_samples_keep_coming() -> None:
+    bound = StampBound(1.0)
+    for k in range(20):  # 5 Hz, honest, small latency
+        assert bound.judge("uav1", Stamp(100.0 + 0.2 * k, "vehicle"), Arrival(10.0 + 0.2 * k + 0.01)) is None
+    # A 3 s outage, then the link flushes its backlog within a few ms, oldest first, then live again.
+    t_last, a_back = 100.0 + 0.2 * 19, 10.0 + 0.2 * 19 + 3.0
+    for k in range(1, 16):
+        assert bound.judge("uav1", Stamp(t_last + 0.2 * k, "vehicle"), Arrival(a_back + 0.001 * k)) is None
+    assert bound.judge("uav1", Stamp(t_last + 3.2, "vehicle"), Arrival(a_back + 0.2)) is None
+    # Longer than the learning window: the clock is learnt afresh from the flushed backlog.
+    a_long = a_back + 0.2 + 30.0
+    for k in range(1, 150):
+        assert bound.judge("uav1", Stamp(t_last + 3.2 + 0.2 * k, "vehicle"), Arrival(a_long + 0.001 * k)) is None
+    assert bound.judge("uav1", Stamp(t_last + 3.2 + 30.2, "vehicle"), Arrival(a_long + 0.2)) is None
+    assert bound.judge("uav1", Stamp(t_last + 3.2 + 60.0, "vehicle"), Arrival(a_long + 2.0)) is not None
+
+
 def test_lockstep_sim_time_is_not_bounded_by_rate() -> None:
     bound = StampBound(1.0)
     assert bound.judge("uav1", Stamp(0.0, "sim"), Arrival(0.0)) is None
