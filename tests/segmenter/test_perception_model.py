@@ -9,6 +9,7 @@ import math
 import numpy as np
 import pytest
 
+from dovesei.segmenter.appearance import INDEX as APPEARANCE_INDEX
 from dovesei.segmenter.appearance import appearance_mix
 from dovesei.segmenter.fusion import FusionConfig
 from dovesei.segmenter.prompts import REFERENCE_PROMPTS, PromptSet
@@ -196,3 +197,34 @@ def test_profiles_and_bad_params() -> None:
         profile_params("realistic", 9.0)
     with pytest.raises(ValueError, match="frame_seq"):
         SimPerception().safe_probability(_scene(), CLASSES, View(None, 50.0, HFOV), -1, REFERENCE_PROMPTS)
+
+
+def _only(**errors) -> SimPerception:
+    """The realistic profile with every error off except the named ones."""
+    off = dict(confusion=0.0, context_local=0.0, context_global=0.0, flicker_logit=0.0, flicker_offset=0.0, shadow=0.0)
+    return SimPerception(dataclasses.replace(profile_params("realistic"), **{**off, **errors}), seed=1)
+
+
+def test_buildings_cast_shadows_on_one_side_fixed_in_the_world() -> None:
+    labels = np.full((352, 352), 3, np.uint8)
+    labels[136:216, 136:216] = 1  # a flat roof on a lawn
+    shadow = APPEARANCE_INDEX["shadow"]
+    perception = _only(shadow=0.5)
+    north_up = perception.fractions(labels, CLASSES, View((0.0, 0.0), 40.0, HFOV, 0.0))[..., shadow]
+    assert north_up.max() > 0.2  # some lawn lies in the roof's shadow
+    assert north_up[17:27, 17:27].max() == 0.0  # not on the roof itself
+    # Turning the camera turns the shadow with the ground: the sun stays where it is.
+    turned = perception.fractions(labels, CLASSES, View((0.0, 0.0), 40.0, HFOV, math.pi))[..., shadow]
+    assert np.allclose(np.rot90(north_up, 2), turned, atol=0.05)
+    assert _only().fractions(labels, CLASSES, View((0.0, 0.0), 40.0, HFOV))[..., shadow].max() == 0.0
+
+
+def test_a_patch_reads_differently_in_different_surroundings() -> None:
+    def centre(surround: int) -> float:
+        labels = np.full((352, 352), surround, np.uint8)
+        labels[146:206, 146:206] = 6  # the same sidewalk patch
+        prob = _only(context_local=0.25, context_global=0.12).safe_probability(
+            labels, CLASSES, View((0.0, 0.0), 100.0, HFOV), 0, REFERENCE_PROMPTS, SOFTMAX)
+        return float(prob[176, 176])
+
+    assert centre(3) - centre(2) > 0.03  # among lawns it looks safer than among roads
