@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import importlib
 import json
+import re
+import shlex
 import subprocess
 import threading
 from pathlib import Path
@@ -166,9 +168,6 @@ def test_split_services_connect_and_their_acl_holds(pki, ground_router) -> None:
 
 def test_readme_onboard_commands_are_secured_clients() -> None:
     """The README's by-hand onboard commands: TLS clients without multicast, flags the parsers accept."""
-    import re
-    import shlex
-
     text = (ROOT / "README.md").read_text()
     section = text.split("## Flying a real autopilot", 1)[1].split("\n## ", 1)[0]
     blocks = [b.split("```", 1)[0] for b in section.split("```sh")[1:]]

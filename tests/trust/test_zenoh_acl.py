@@ -15,8 +15,9 @@ from pathlib import Path
 
 import pytest
 import zenoh
+from cryptography import x509
 
-from dovesei.certs import ROLES, Issued, make_leaf, router_config, write_pki
+from dovesei.certs import ROLES, Issued, acl_config, main, make_leaf, router_config, write_pki
 from dovesei.shared import keys
 from dovesei.shared.codec import encode
 from dovesei.shared.errors import ConfigError
@@ -245,7 +246,6 @@ def test_an_unlisted_name_reads_nothing(pki, router) -> None:
 
 
 def test_acl_is_deny_by_default_with_one_subject_per_role() -> None:
-    from dovesei.certs import acl_config
     acl = acl_config()
     assert acl["enabled"] is True and acl["default_permission"] == "deny"
     assert [s["cert_common_names"] for s in acl["subjects"]] == [[r] for r in ROLES]
@@ -260,7 +260,6 @@ def test_acl_is_deny_by_default_with_one_subject_per_role() -> None:
 
 
 def test_dovesei_certs_command_writes_a_usable_pki(tmp_path) -> None:
-    from dovesei.certs import main
     out = tmp_path / "certs"
     assert main(["--out", str(out), "--router-name", "ground.local", "--router-name", "10.0.0.2"]) == 0
     for role in ("router", *ROLES):
@@ -268,7 +267,6 @@ def test_dovesei_certs_command_writes_a_usable_pki(tmp_path) -> None:
     assert (out / "ca.key").stat().st_mode & 0o077 == 0
     conf = zenoh.Config.from_file(str(out / "router.json5"))
     assert json.loads(conf.get_json("access_control/default_permission")) == "deny"
-    from cryptography import x509
     router_cert = x509.load_pem_x509_certificate((out / "router.pem").read_bytes())
     san = router_cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
     assert "ground.local" in san.get_values_for_type(x509.DNSName)
@@ -281,7 +279,6 @@ def test_dovesei_certs_command_writes_a_usable_pki(tmp_path) -> None:
 
 
 def test_dovesei_certs_refuses_bad_input(tmp_path, capsys) -> None:
-    from dovesei.certs import main
     assert main(["--out", str(tmp_path / "c"), "--days", "0"]) == 1
     assert "--days 0" in capsys.readouterr().err
     assert main(["--out", str(tmp_path / "c"), "--vehicle-id", "a/b"]) == 1
