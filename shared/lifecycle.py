@@ -159,7 +159,7 @@ class Inbox(Generic[M]):
         self.stamps = stamps if stamps is not None else StampBound()
         self.rejected: Counter[str] = Counter()
         self.received = 0
-        self.dropped = 0  # valid messages lost to FIFO overflow, or raw samples lost to a flood
+        self.dropped = 0  # valid messages lost to FIFO overflow (a flood overflowing: rejected[REJECT_OVERFLOW])
         self.superseded = 0  # newest-only: raw samples behind a newer valid one, never decoded
         self._reported_drops = 0
         self._reject_log = RateLimitedLog(log, f"rejected on {key_expr}")
