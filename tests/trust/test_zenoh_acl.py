@@ -283,3 +283,18 @@ def test_dovesei_certs_refuses_bad_input(tmp_path, capsys) -> None:
     assert "--days 0" in capsys.readouterr().err
     assert main(["--out", str(tmp_path / "c"), "--vehicle-id", "a/b"]) == 1
     assert "vehicle id" in capsys.readouterr().err
+
+
+def test_a_role_cannot_declare_another_services_liveliness(pki, router) -> None:
+    # A fake "controller alive" would let the sim start an episode nobody steers.
+    with _client(pki, router, "segmenter") as seg, _client(pki, router, "monitor") as monitor:
+        own = seg.liveliness().declare_token(keys.alive(VEHICLE, "segmenter"))
+        fake = seg.liveliness().declare_token(keys.alive(VEHICLE, "controller"))
+        try:
+            def alive(service: str) -> bool:
+                return any(r.ok is not None for r in monitor.liveliness().get(keys.alive(VEHICLE, service), timeout=0.5))
+            assert wait_until(lambda: alive("segmenter"), 5.0)  # the path is live
+            assert not alive("controller")
+        finally:
+            fake.undeclare()
+            own.undeclare()
