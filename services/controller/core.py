@@ -49,13 +49,14 @@ from dovesei.controller.policies.config import TIMING_PRESETS
 from dovesei.shared import keys, validate
 from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.shared.messages import ControllerStatus, SafetyHeatmap, StageLatency, VehicleState, VelocityCommand
-from dovesei.shared.timing import DEFAULT_TIMING
+from dovesei.shared.timing import DEFAULT_TIMING, timing
 
 log = logging.getLogger(__name__)
 
 HANDOVER_ACTIONS = ("hold", "land", "precland", "none")
 # Decisions that end the policy's job; accepted only at/below the hand-over altitude.
 TERMINAL_STATES = ("LANDED", "HANDOVER")
+DT_CAP_PERIODS = 2.0  # a perception gap advances the policy's clock by at most this many nominal periods
 # The vehicle clock runs on true seconds; 5 % margin for crystal drift and latency jitter.
 _DATA_RATE_MARGIN = 1.05
 
@@ -199,6 +200,11 @@ class ControllerCore:
         self.adopted_count = 0
         self._tick_seq = 0
         self.policy_errors = 0
+        # A gap is worth at most this much policy time: the configured cap, and never more than
+        # DT_CAP_PERIODS nominal decision periods of the preset. Under `reference` (0.05 s periods,
+        # timers x 1/0.065) a 1 s step was 15 reference seconds, and the dovesei policy's descent
+        # estimate (speed x dt) declared LANDED at 45 m after a 4 s segmenter hang (dovesei faults).
+        self._policy_dt_max_s = min(config.policy_dt_max_s, DT_CAP_PERIODS * timing(config.timing).decision_period_s)
         self._reset_episode()
 
     # ---- episode bookkeeping -------------------------------------------------------------
@@ -257,8 +263,13 @@ class ControllerCore:
         projected = self._projected_now_s()
         if projected is None or state.stamp.t_s <= projected:
             # On time: re-anchor. A stamp inside the tolerance never moves the anchor, so a sender
-            # cannot ratchet the clock forward one tolerance per message.
-            self._state_anchor = (state.stamp.t_s, self._mono())
+            # cannot ratchet the clock forward one tolerance per message. Only a state that
+            # advanced moves it: the loop re-ticks the last state through an outage, and anchoring
+            # that old stamp to "now" froze the projection, so after a 3 s router restart every
+            # state looked 3 s early and was refused for a minute (dovesei faults, router-restart).
+            anchor = self._state_anchor
+            if anchor is None or state.stamp.t_s > anchor[0]:
+                self._state_anchor = (state.stamp.t_s, self._mono())
             return None
         if state.stamp.t_s <= projected + self.config.future_tolerance_s:
             return None
@@ -391,8 +402,9 @@ class ControllerCore:
         last = self._last_policy_t_s
         if last is not None:
             dt_s = t_s - last
-            if dt_s > self.config.policy_dt_max_s or dt_s <= 0.0:
-                capped_s = self.config.policy_dt_max_s if dt_s > 0.0 else min(1e-3, self.config.policy_dt_max_s)
+            dt_max_s = self._policy_dt_max_s
+            if dt_s > dt_max_s or dt_s <= 0.0:
+                capped_s = dt_max_s if dt_s > 0.0 else min(1e-3, dt_max_s)
                 self._policy_offset_s = last + capped_s - hm.stamp.t_s
                 log.info("controller %s: heatmap %d is %.3f s after the previous one: the policy's clock "
                          "advances %.3f s", self.config.vehicle_id, hm.seq, dt_s, capped_s)
@@ -401,6 +413,15 @@ class ControllerCore:
         return t_s
 
     def _run_policy(self, hm: SafetyHeatmap, recv_wall_s: float, state: VehicleState) -> None:
+        if self._decision is not None and self._decision is self._refused_decision:
+            # A terminal decision refused above the hand-over altitude would hold the vehicle for
+            # good (a policy that has LANDED never steers again): the mission starts over from
+            # here with the policy's initial state, the vehicle holding until it decides.
+            log.warning("controller %s: restarting the policy after its refused %s (alt %.1f m)",
+                        self.config.vehicle_id, self._decision.state, state.alt_agl_m)
+            self.policy.reset()
+            self.rejected["policy restarted"] += 1
+            self._decision = None
         # Altitude and camera model at capture come with the heatmap; attitude and the autopilot's
         # velocity estimate from the state of this tick (the heatmap carries none). Never a position.
         obs = Observation(t_s=self._policy_time_s(hm), alt_agl_m=hm.alt_agl_m, prob_safe=hm.probability(), hfov_rad=hm.hfov_rad,

@@ -269,7 +269,7 @@ def test_landed_above_the_handover_altitude_is_refused(terminal: str) -> None:
 
 
 def test_the_policy_dt_is_capped_across_a_perception_gap() -> None:
-    core, policy = make_core(lockstep=True, policy_dt_max_s=1.0)
+    core, policy = make_core(lockstep=True, timing="real", policy_dt_max_s=1.0)  # 0.5 s periods: the 1 s cap rules
     for seq, t_s in enumerate((0.0, 0.5, 14.5, 15.0)):  # a 14 s gap between the 2nd and 3rd heatmap
         core.on_heatmap(heatmap(seq, t_s), 0.0)
         core.tick(state(seq, t_s + 0.05, await_seq=seq))
