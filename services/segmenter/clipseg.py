@@ -39,6 +39,7 @@ directories of ``random_model.py`` follow one path.
 from __future__ import annotations
 
 import logging
+import math
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -278,7 +279,8 @@ class ClipSegBackend:
         n_tokens, reduce_dim = output.shape[2:]
         # Drop the class token, then tokens -> a square patch grid for the transposed convolutions.
         grid = output.reshape(n_frames * n_prompts, n_tokens, reduce_dim)[:, 1:, :].transpose(1, 2)
-        side = int(round((n_tokens - 1) ** 0.5))
+        # int(): under ONNX tracing shapes are tensors; the grid side is fixed by the 352 px input.
+        side = math.isqrt(int(n_tokens) - 1)
         grid = grid.reshape(n_frames * n_prompts, reduce_dim, side, side)
         if self._upsample_as_matmul:
             logits = self._upsample_matmul(grid)

@@ -6,3 +6,6 @@
 
 DEFAULT_MODEL = "CIDAS/clipseg-rd64-refined"  # Hub id of the reference's weights
 DTYPES = ("float32", "bfloat16")  # inference dtypes the fast path supports
+# CLIPSeg variants (see backends.py): `auto` times the ones this host can run and keeps the fastest
+# that passes the decision gate; a name pins one.
+CLIPSEG_VARIANTS = ("auto", "fp32", "bf16", "onnx-int8", "cuda-fp16")

@@ -47,11 +47,12 @@ from dovesei.shared.lifecycle import Inbox, declare_alive, install_stop_handlers
 from dovesei.shared.messages import CameraFrame, PromptSetMsg, SafetyHeatmap, replace
 
 from .core import (
-    BACKENDS, DTYPES, HEATMAP_DTYPES, REJECT_VEHICLE, FrameBackend, FrameRejected, SegmenterConfig, SegmenterCore,
-    make_backend,
+    BACKENDS, DTYPES, HEATMAP_DTYPES, REJECT_VEHICLE, BackendUnavailableError, ClipSegFrameBackend, FrameBackend,
+    FrameRejected, SegmenterConfig, SegmenterCore, make_backend,
 )
 from .fair import OVERLOAD_REPORT_INTERVAL_S, FairSlots
 from .fusion import FUSION_MODES
+from .options import CLIPSEG_VARIANTS
 from .prompts import PromptError, PromptSet
 from .simulated import PROFILE_NAMES
 
@@ -76,10 +77,14 @@ class ServiceConfig:
     all_vehicles: bool = False  # serve every vehicle's camera key (a ground-station segmenter)
     lockstep: bool = False  # answer every frame in order instead of the newest one
     overload_report_s: float = OVERLOAD_REPORT_INTERVAL_S  # shortest interval between overload warnings
+    # CLIPSeg only: `auto` times the variants this host can run and keeps the fastest passing the gate.
+    variant: str = "auto"
 
     def __post_init__(self) -> None:
         keys.check_vehicle_id(self.vehicle_id)
         validate.positive("ServiceConfig.overload_report_s", self.overload_report_s)
+        if self.variant not in CLIPSEG_VARIANTS:
+            raise ConfigError(f"ServiceConfig.variant: {self.variant!r} is not one of {CLIPSEG_VARIANTS}")
 
     @property
     def key_vehicle(self) -> str:
@@ -272,13 +277,30 @@ class SegmenterService:
 def run(session: zenoh.Session, *, config: ServiceConfig, stop: threading.Event,
         backend: FrameBackend | None = None) -> dict[str, object]:
     """Serve until `stop` is set; returns the final counters. Builds the backend when none is given."""
-    core = SegmenterCore(backend if backend is not None else make_backend(config.segmenter), config.segmenter)
+    core = SegmenterCore(backend if backend is not None else build_backend(config), config.segmenter)
     with SegmenterService(session, config, core) as service:
         _log_start(service)
         service.run(stop)
         stats = service.stats()
     log.info("segmenter stopped: %s", stats)
     return stats
+
+
+def build_backend(config: ServiceConfig) -> FrameBackend:
+    """The configured backend; for CLIPSeg, in the variant `config.variant` names or the picker picks."""
+    backend = make_backend(config.segmenter)
+    if not isinstance(backend, ClipSegFrameBackend):
+        return backend
+    # lazy: the picker imports torch, which only a CLIPSeg backend has (and has loaded by now).
+    from .backends import VariantUnavailable
+    from .picker import choose
+
+    try:
+        model, pick = choose(backend.model, config.variant, config.segmenter.prompts,
+                             config.segmenter.fusion_config, threads=config.segmenter.threads)
+    except VariantUnavailable as exc:
+        raise BackendUnavailableError(str(exc)) from None
+    return ClipSegFrameBackend(model, f"{backend.reason}; {pick.describe()}")
 
 
 def _log_start(service: SegmenterService) -> None:
@@ -334,6 +356,9 @@ CLI = CommandLine(ServiceConfig, {
     "vehicle_id": Flag("--vehicle-id", "vehicle id of the keys", check=lambda _w, v: keys.check_vehicle_id(v)),
     "all_vehicles": Flag("--all-vehicles", "serve every vehicle's camera key (ground station)"),
     "lockstep": Flag("--lockstep", "answer every frame in order (lockstep benchmarks)"),
+    "variant": Flag("--variant", "CLIPSeg variant: auto = time those this host can run (fp32, bf16 with native "
+                    "BF16, onnx-int8 with the onnx extra, cuda-fp16 with a GPU) and keep the fastest passing "
+                    "the decision gate; a name pins one", choices=CLIPSEG_VARIANTS),
     "overload_report_s": Flag("--overload-report-s", "shortest interval between overload warnings (vehicles "
                               "offering more frames than are served)", check=validate.positive),
     "segmenter.backend": Flag("--backend", "auto: CLIPSeg, else simulated perception with a warning",
@@ -371,7 +396,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     stop = install_stop_handlers()
     try:
         # Weights load before the session opens: a missing model fails fast, before any key is declared.
-        backend = make_backend(config.segmenter)
+        backend = build_backend(config)
     except (DoveseiError, ValueError) as exc:
         log.error("segmenter not started: %s", exc)
         return 2
