@@ -27,6 +27,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "perception-stats": ("dovesei.perception_stats", "simulated perception vs real CLIPSeg statistics (threshold, precision)"),
     "preview": ("dovesei.preview", "PNG pictures of a world, the camera's view and the simulated perception"),
     "health": ("dovesei.health", "exit 0 when a service's liveliness token is visible"),
+    "faults": ("dovesei.faults", "the fault suite: hangs, kills, a router restart, message loss, skew, floods, forgeries"),
     "certs": ("dovesei.certs", "a CA, one certificate per role and the router's ACL for the secured Zenoh mode"),
     "replay": ("dovesei.replay", "run a policy (and optionally a segmenter) again on a flight recording (.mcap)"),
     "bench-codec": ("dovesei.benchmarks.codec", "encode/decode time of a 352x352 frame and heatmap"),

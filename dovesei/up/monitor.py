@@ -26,6 +26,7 @@ import zenoh
 from dovesei.shared import keys
 from dovesei.shared.codec import decode
 from dovesei.shared.errors import ProtocolError
+from dovesei.shared.lifecycle import RateLimitedLog
 from dovesei.shared.messages import (
     CameraFrame, ControllerStatus, EpisodeResult, SafetyHeatmap, VehicleState, VelocityCommand,
 )
@@ -93,6 +94,8 @@ class Recorder:
         self._next_video_t_s = 0.0
         self.video_frames: dict[int, dict[str, Any]] = {}
         self._latency_seen: set[int] = set()
+        # A flood of garbage on a key (dovesei faults: ~400/s) logged one line per message.
+        self._reject_log = RateLimitedLog(log, "monitor rejected messages")
 
     def handle(self, s: Sample) -> None:
         if s.topic == LIVELINESS:
@@ -107,7 +110,7 @@ class Recorder:
             msg = decode(s.payload, _TYPES[s.topic], key=s.topic)
         except ProtocolError as exc:
             self.rejected += 1
-            log.warning("monitor rejected a %s message: %s", s.topic, exc.problem)
+            self._reject_log.warn(s.topic, f"a {s.topic} message: {exc.problem}")
             return
         if getattr(msg, "vehicle_id", self.vehicle_id) != self.vehicle_id:
             self.foreign += 1  # on our key but about another vehicle: never ours to record

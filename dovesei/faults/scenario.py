@@ -1,0 +1,508 @@
+"""One fault scenario: a short `up`-like episode through a loopback router, one fault, the checks.
+
+    Router A (+ Router B and the lossy Relay for `loss`) --> the three services as subprocesses
+    (command lines from `dovesei.up.launch`, clients of the router) --> up's own Watcher and
+    Recorder decide the report (exit code, the failure naming a service), exactly as in `up`
+    --> an Observer session records every status, state, command and heatmap with its arrival
+    --> the fault's script waits for the descent, injects, waits for recovery, ends the run
+    --> check_run: the safety rules below, each failure one line in `violations`
+
+The rules, per run (data clock = the sim's seconds; one tick = 1/20 s):
+
+- blind: a status whose heatmap is older than the hold limit plus one tick, by the controller's
+  own count or by the genuine heatmaps the observer saw (forged ones do not count), must not be
+  `ok` (hold within one tick) and must command no descent;
+- after `BRAKE_S` of a blind (or silent-controller) stretch the vehicle's altitude never drops;
+- no LANDED or HANDOVER status, and no judged result, above the hand-over altitude (+ release);
+- after a fault that ends, the controller is `ok` again on a newer heatmap (resumption);
+- the run's report names the service the fault should name (or none), and never takes a forged
+  episode result.
+"""
+
+from __future__ import annotations
+
+import bisect
+import logging
+import math
+import os
+import random
+import signal
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import zenoh
+
+from dovesei.faults.inject import FORGED_RESULT_DETAIL, FORGED_SEQ_BASE, SKEW_S, Intruder
+from dovesei.faults.network import LossProfile, Relay, Router, client_config
+from dovesei.shared.codec import decode
+from dovesei.shared.errors import ProtocolError
+from dovesei.shared.messages import ControllerStatus, EpisodeResult, SafetyHeatmap, VehicleState, VelocityCommand
+from dovesei.up import exit_code, preflight
+from dovesei.up.children import Children
+from dovesei.up.launch import SERVICES, child_commands, child_env
+from dovesei.up.monitor import LIVELINESS, Monitor, Recorder, Sample
+from dovesei.up.options import UpOptions
+from dovesei.up.report import build_report, read_stats
+from dovesei.up.watch import Watcher
+
+log = logging.getLogger("dovesei.faults")
+
+WORLD = "synthetic:size_m=400,seed=1"  # generated in about a second, cached on disk after
+START_ALT_M = 50.0
+TICK_S = 0.05  # the controller's 20 Hz loop
+HOLD_S = 1.5  # ControllerConfig.heatmap_hold_after_s (the default the services run with)
+HANDOVER_M, RELEASE_M = 20.0, 2.0  # ControllerConfig.handover_alt_m, handover_release_m
+ARRIVAL_MARGIN_S = 0.15  # the observer and the controller see a heatmap a few ms apart, under load more
+BRAKE_S = 1.5  # the sim's velocity loop (0.3 s, 3 m/s^2) stops a 2.5 m/s descent well within this
+CLIMB_TOLERANCE_M = 0.05
+TRIGGER_MAX_S = 40.0  # wall seconds to wait for a descent before injecting anyway
+RESUMED_FOR_S = 2.0  # `ok` on new heatmaps this long after the fault ends counts as resumed
+RESUME_WINDOW_S = 12.0
+FORGED_DOWN_M_S = 4.0  # faster than any policy descends: only a forged command flies this
+
+
+@dataclass(frozen=True)
+class Fault:
+    """One fault: what to inject and what the report should say about it."""
+
+    name: str
+    text: str
+    names: str | None  # the service the report must name as failed (None: the run must not fail)
+    resumes: bool = True  # the fault ends, so the mission must resume
+    relay: bool = False
+    stall_s: float = 8.0
+    after_failure_s: float = 8.0
+    duration_s: float = 4.0
+
+
+FAULTS: dict[str, Fault] = {f.name: f for f in (
+    Fault("segmenter-kill", "SIGKILL the segmenter mid-descent", "segmenter", resumes=False, after_failure_s=4.0),
+    Fault("segmenter-hang", "SIGSTOP the segmenter 4 s, then SIGCONT", "segmenter", stall_s=3.0),
+    Fault("controller-hang", "SIGSTOP the controller 4 s, then SIGCONT", "controller", stall_s=3.0),
+    Fault("router-restart", "close the router 3 s, then open it on the same port", None, duration_s=3.0),
+    Fault("loss", "a relay drops 10-30 % of camera/heatmap samples, delays <= 50 ms, duplicates 5 %", None,
+          relay=True, duration_s=8.0),
+    Fault("clock-skew", "forged heatmaps and states stamped 30 s ahead and behind, 10 Hz for 4 s", None),
+    Fault("garbage", "random bytes and nonsense maps on heatmap and state, ~400/s for 4 s", None),
+    Fault("forged", "forged descent commands (stamped 1e9, +5 s, -5 s), a forged 'safe' result, bad prompts", None),
+)}
+
+
+class Observer:
+    """The fault suite's own record (Monitor calls `handle`): every message with its arrival time."""
+
+    TYPES = {"state": VehicleState, "status": ControllerStatus, "cmd": VelocityCommand, "heatmap": SafetyHeatmap,
+             "episode": EpisodeResult}
+
+    def __init__(self, vehicle_id: str) -> None:
+        self.vehicle_id = vehicle_id
+        self.states: list[tuple[float, VehicleState]] = []
+        self.statuses: list[tuple[float, ControllerStatus]] = []
+        self.heatmaps: list[tuple[float, int, float]] = []  # (arrival wall s, seq, stamp t_s): genuine ones
+        self.forged_heatmaps = 0
+        self.rejected = 0
+        self.lock = threading.Lock()  # the script thread drains, the checks read after the run
+
+    def handle(self, s: Sample) -> None:
+        if s.topic == LIVELINESS or s.topic not in self.TYPES:
+            return
+        try:
+            msg = decode(s.payload, self.TYPES[s.topic], key=s.topic)
+        except ProtocolError:
+            self.rejected += 1
+            return
+        if getattr(msg, "vehicle_id", self.vehicle_id) != self.vehicle_id:
+            return
+        if s.topic == "state" and msg.seq < FORGED_SEQ_BASE:
+            self.states.append((s.recv_wall_s, msg))
+        elif s.topic == "status":
+            self.statuses.append((s.recv_wall_s, msg))
+        elif s.topic == "heatmap":
+            if msg.seq >= FORGED_SEQ_BASE:
+                self.forged_heatmaps += 1
+            else:
+                self.heatmaps.append((s.recv_wall_s, msg.seq, msg.stamp.t_s))
+
+    @property
+    def last_status(self) -> ControllerStatus | None:
+        return self.statuses[-1][1] if self.statuses else None
+
+    @property
+    def last_state(self) -> VehicleState | None:
+        return self.states[-1][1] if self.states else None
+
+
+@dataclass
+class Context:
+    """What a fault's script can reach while the run goes on."""
+
+    fault: Fault
+    seed: int
+    children: Children
+    router: Router
+    observer: Observer
+    monitor: Monitor
+    intruder: Intruder | None
+    start: tuple[float, float, float]
+    done: threading.Event  # the watcher ended the run (a result, or a failure's deadline)
+    stop: threading.Event  # set by the script: the run has shown what it had to show
+    fault_start_wall_s: float | None = None
+    fault_end_wall_s: float | None = None
+    notes: list[str] = field(default_factory=list)
+
+    def drain(self) -> None:
+        with self.observer.lock:
+            self.monitor.drain()
+
+    def wait(self, seconds: float) -> bool:
+        """Drain for `seconds`; False when the run ended meanwhile."""
+        deadline = time.monotonic() + seconds
+        while time.monotonic() < deadline:
+            self.drain()
+            if self.done.is_set():
+                return False
+            self.done.wait(min(0.02, max(0.0, deadline - time.monotonic())))
+        return not self.done.is_set()
+
+    def every(self, seconds: float, period_s: float, action: Callable[[], None]) -> None:
+        deadline = time.monotonic() + seconds
+        while time.monotonic() < deadline and not self.done.is_set():
+            self.drain()
+            action()
+            self.done.wait(period_s)
+
+    def now_s(self) -> float:
+        st = self.observer.last_state
+        return st.stamp.t_s if st is not None else 0.0
+
+    def alt_m(self) -> float:
+        st = self.observer.last_state
+        return st.alt_agl_m if st is not None else START_ALT_M
+
+    def pid(self, name: str) -> int:
+        return self.children.procs[name].pid
+
+
+# ---- the faults' scripts: each runs from the trigger until the fault is over -------------------
+
+
+def _pause(ctx: Context, name: str) -> None:
+    os.kill(ctx.pid(name), signal.SIGSTOP)
+    try:
+        ctx.wait(ctx.fault.duration_s)
+    finally:
+        os.kill(ctx.pid(name), signal.SIGCONT)
+
+
+def _kill(ctx: Context) -> None:
+    os.kill(ctx.pid("segmenter"), signal.SIGKILL)
+    ctx.wait(30.0)  # until the watcher's after-failure window ends the run
+
+
+def _router(ctx: Context) -> None:
+    ctx.router.restart(ctx.fault.duration_s, ctx.done)
+
+
+def _skew(ctx: Context) -> None:
+    intr = ctx.intruder
+
+    def burst() -> None:
+        now, alt = ctx.now_s(), ctx.alt_m()
+        intr.skewed_heatmap(now, SKEW_S, alt)
+        intr.skewed_heatmap(now, -SKEW_S, alt)
+        intr.skewed_state(now, SKEW_S, alt)
+        intr.skewed_state(now, -SKEW_S, alt)
+
+    ctx.every(ctx.fault.duration_s, 0.1, burst)
+
+
+def _garbage(ctx: Context) -> None:
+    intr = ctx.intruder
+
+    def burst() -> None:
+        for _ in range(4):
+            intr.garbage("heatmap")
+            intr.garbage("state")
+
+    ctx.every(ctx.fault.duration_s, 0.02, burst)
+
+
+def _forged(ctx: Context) -> None:
+    intr = ctx.intruder
+    intr.forged_result(ctx.observer.last_state, ctx.start)
+    intr.bad_prompts()
+
+    def burst() -> None:
+        now = ctx.now_s()
+        for stamp_s in (1e9, now + 5.0, now - 5.0):
+            intr.forged_command(stamp_s)
+
+    ctx.every(ctx.fault.duration_s, 0.02, burst)
+
+
+def _loss(ctx: Context) -> None:
+    ctx.wait(ctx.fault.duration_s)  # the relay has been lossy since the start
+
+
+SCRIPTS: dict[str, Callable[[Context], None]] = {
+    "segmenter-kill": _kill, "segmenter-hang": lambda c: _pause(c, "segmenter"),
+    "controller-hang": lambda c: _pause(c, "controller"), "router-restart": _router, "loss": _loss,
+    "clock-skew": _skew, "garbage": _garbage, "forged": _forged,
+}
+
+
+def _descending(ctx: Context) -> bool:
+    st = ctx.observer.last_status
+    return st is not None and st.watchdog == "ok" and st.vel_body_frd_m_s[2] > 0.3 and st.alt_agl_m > 28.0
+
+
+def _script(ctx: Context) -> None:
+    try:
+        deadline = time.monotonic() + TRIGGER_MAX_S
+        while not _descending(ctx) and time.monotonic() < deadline:
+            if not ctx.wait(0.05):
+                ctx.notes.append("the run ended before the fault was injected")
+                return
+        ctx.fault_start_wall_s = time.time()
+        st = ctx.observer.last_status
+        log.info("%s: injecting at t=%.2f s, alt %.1f m", ctx.fault.name, ctx.now_s(), ctx.alt_m())
+        seq0 = st.frame_seq if st is not None else -1
+        SCRIPTS[ctx.fault.name](ctx)
+        ctx.fault_end_wall_s = time.time()
+        if not ctx.fault.resumes:
+            return
+        # Resumed: `ok` on heatmaps newer than the one held at injection, for RESUMED_FOR_S.
+        deadline = time.monotonic() + RESUME_WINDOW_S
+        ok_since = None
+        while time.monotonic() < deadline and not ctx.done.is_set():
+            ctx.wait(0.05)
+            st = ctx.observer.last_status
+            good = st is not None and (st.watchdog == "ok" or st.state == "HANDOVER") and st.frame_seq > seq0
+            ok_since = (ok_since or time.monotonic()) if good else None
+            if ok_since is not None and time.monotonic() - ok_since >= RESUMED_FOR_S:
+                return
+    except Exception as exc:  # noqa: BLE001 - a broken script must end the run and be reported, not hang it
+        log.exception("fault script %s failed", ctx.fault.name)
+        ctx.notes.append(f"fault script raised {type(exc).__name__}: {exc}")
+    finally:
+        ctx.stop.set()
+
+
+# ---- running one scenario -----------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class RunResult:
+    fault: str
+    seed: int
+    exit_code: int
+    outcome: str
+    failure_child: str | None
+    failure: str
+    violations: tuple[str, ...]
+    unsafe: bool
+    mid_air_handover: bool
+    held: bool
+    resumed: bool | None
+    wall_s: float
+    details: dict[str, Any]
+
+    def to_dict(self) -> dict[str, Any]:
+        return {**{k: getattr(self, k) for k in self.__dataclass_fields__ if k != "details"}, **self.details,
+                "violations": list(self.violations)}
+
+
+def _retarget(argv: list[str], endpoint: str) -> list[str]:
+    """The same command line with its Zenoh flags (always last, see launch.zenoh_flags) replaced."""
+    i = argv.index("--mode")
+    return [*argv[:i], "--mode", "client", "--connect", endpoint]
+
+
+def run_scenario(fault: Fault, seed: int, out: Path, *, world: str = WORLD) -> RunResult:
+    t0 = time.monotonic()
+    vid = "uav1"
+    rng = random.Random(seed)
+    router = Router()
+    side = Router() if fault.relay else None
+    relay = None
+    if side is not None:
+        relay = Relay(router.endpoint, side.endpoint, vid, LossProfile(drop=rng.uniform(0.1, 0.3)), seed)
+    options = UpOptions(world=world, segmenter="sim", noise=0.0, start_seed=seed, start_alt_m=START_ALT_M, out=out,
+                        realtime=True, connect=(router.endpoint,), video=False, stall_s=fault.stall_s,
+                        after_failure_s=fault.after_failure_s, startup_timeout_s=60.0, log_level="INFO")
+    _, start, configs = preflight(options)
+    (out / "logs").mkdir(parents=True, exist_ok=True)
+    (out / "stats").mkdir(exist_ok=True)
+    commands = child_commands(options, configs, {n: 0 for n in (*SERVICES, "monitor")}, out)
+    if side is not None:
+        commands["segmenter"] = _retarget(commands["segmenter"], side.endpoint)
+    session = zenoh.open(client_config(router.endpoint))
+    intruder = Intruder(client_config(router.endpoint), vid, seed) if fault.name in ("clock-skew", "garbage",
+                                                                                     "forged") else None
+    rec = Recorder(start, video=False, vehicle_id=vid)
+    observer = Observer(vid)
+    children = Children(out / "logs")
+    up_monitor = Monitor(session, vid, rec, with_camera=False)
+    obs_monitor = Monitor(session, vid, observer, with_camera=False)
+    done, stop = threading.Event(), threading.Event()
+    ctx = Context(fault, seed, children, router, observer, obs_monitor, intruder, start, done, stop)
+    script = threading.Thread(target=_script, args=(ctx,), name=f"fault-{fault.name}", daemon=True)
+    end = None
+    try:
+        for name in SERVICES:
+            children.start(name, commands[name], child_env(name, options))
+        script.start()
+        # A short confirmation window: a forged result must be seen refused within the run.
+        end = Watcher(options, rec, up_monitor, children, stop, t0, confirm_s=3.0).run()
+    finally:
+        done.set()
+        if script.is_alive():
+            script.join(timeout=30)
+        rec.expect_exits = True
+        children.stop_all()
+        up_monitor.drain()
+        ctx.drain()
+        up_monitor.close()
+        obs_monitor.close()
+        if intruder is not None:
+            intruder.close()
+        session.close()
+        if relay is not None:
+            relay.close()
+        for r in (side, router):
+            if r is not None:
+                r.close()
+    failure = end.failure if end is not None else None
+    # Stopped by the suite once it had seen what it needed: 'interrupted' (130), as a Ctrl-C in up.
+    interrupted = end is not None and end.interrupted
+    report = build_report(options, rec, start, configs.noise, read_stats(out), failure, interrupted,
+                          time.monotonic() - t0)
+    code = exit_code(report)
+    violations, facts = check_run(fault, observer, rec, ctx, failure)
+    violations += ctx.notes
+    if relay is not None:
+        facts["relay"] = relay.totals()
+    if intruder is not None:
+        facts["intruder_sent"] = intruder.sent
+    mid_air = any(v.startswith("mid-air") for v in violations)
+    unsafe = (any(v.startswith(("blind", "descent", "forged command")) for v in violations)
+              or (rec.result is not None and rec.result.outcome == "unsafe"))
+    return RunResult(fault.name, seed, code, report.outcome, failure.child if failure else None,
+                     failure.message if failure else "", tuple(violations), unsafe, mid_air, facts["held"],
+                     facts["resumed"], round(time.monotonic() - t0, 2), facts)
+
+
+# ---- the checks ------------------------------------------------------------------------------
+
+
+def check_run(fault: Fault, obs: Observer, rec: Recorder, ctx: Context, failure: Any) -> tuple[list[str], dict]:
+    """Every rule of the module docstring; returns (violations, facts for the record)."""
+    v: list[str] = []
+    statuses = sorted(obs.statuses, key=lambda p: p[1].stamp.t_s)
+    hm_arrivals = sorted(obs.heatmaps)
+    arr_wall = [a for a, _, _ in hm_arrivals]
+    newest_t, best = [], -math.inf
+    for _, _, t_s in hm_arrivals:
+        best = max(best, t_s)
+        newest_t.append(best)
+    limit_s = HOLD_S + TICK_S
+    held = False
+    blind_t: list[tuple[float, bool]] = []  # per status: (t_s, blind)
+    for recv_s, st in statuses:
+        if st.state == "HANDOVER" or st.alt_agl_m <= HANDOVER_M + RELEASE_M:
+            blind_t.append((st.stamp.t_s, False))
+            continue
+        i = bisect.bisect_right(arr_wall, recv_s) - 1
+        true_age = st.stamp.t_s - newest_t[i] if i >= 0 else math.inf
+        own_blind = st.heatmap_age_s > limit_s or st.heatmap_age_s < 0
+        true_blind = true_age > limit_s + ARRIVAL_MARGIN_S
+        blind = own_blind or true_blind or st.watchdog != "ok"
+        blind_t.append((st.stamp.t_s, blind))
+        if st.watchdog != "ok" and ctx.fault_start_wall_s is not None and recv_s >= ctx.fault_start_wall_s:
+            held = True
+        if (own_blind or true_blind) and st.watchdog == "ok" and st.heatmap_age_s >= 0:
+            v.append(f"blind but ok at t={st.stamp.t_s:.2f} s: heatmap age {st.heatmap_age_s:.2f} s (own), "
+                     f"{true_age:.2f} s (genuine), limit {HOLD_S:g} s + one tick")
+        if blind and st.vel_body_frd_m_s[2] > 1e-6:
+            v.append(f"blind descent commanded at t={st.stamp.t_s:.2f} s ({st.vel_body_frd_m_s[2]:.2f} m/s down, "
+                     f"watchdog {st.watchdog})")
+        if st.state in ("LANDED", "HANDOVER") and st.alt_agl_m > HANDOVER_M + RELEASE_M:
+            # Followed (watchdog ok) it is a hand-over in mid-air; refused by the core it still
+            # breaks the recovery rule (the policy must not think it has landed up here).
+            kind = "mid-air" if st.watchdog == "ok" else "refused terminal:"
+            v.append(f"{kind} {st.state} at {st.alt_agl_m:.1f} m (t={st.stamp.t_s:.2f} s, watchdog {st.watchdog})")
+        if st.frame_seq >= FORGED_SEQ_BASE:
+            v.append(f"blind: a forged heatmap ({st.frame_seq}) was adopted at t={st.stamp.t_s:.2f} s")
+    v += _physical(obs, blind_t)
+    if rec.result is not None and rec.result.outcome in ("safe", "unsafe") and \
+            rec.result.final_alt_m > HANDOVER_M + RELEASE_M:
+        v.append(f"mid-air judged end: {rec.result.outcome} at {rec.result.final_alt_m:.1f} m")
+    for _, st in obs.states:
+        if st.vel_body_frd_m_s[2] > FORGED_DOWN_M_S:
+            v.append(f"forged command obeyed: descending {st.vel_body_frd_m_s[2]:.1f} m/s at t={st.stamp.t_s:.2f} s")
+            break
+    # The report.
+    named = failure.child if failure is not None else None
+    if named != fault.names:
+        v.append(f"report: expected {'a failure naming ' + fault.names if fault.names else 'no failure'}, got "
+                 f"{failure.message if failure is not None else 'none'}")
+    if rec.result is not None and rec.result.detail == FORGED_RESULT_DETAIL:
+        v.append("report: the forged episode result was taken as the sim's")
+    if fault.name == "forged" and rec.results_refused < 1 and ctx.fault_start_wall_s is not None:
+        v.append("report: the forged episode result was not refused")
+    if ctx.fault_start_wall_s is None:
+        v.append("the fault was never injected")
+    elif fault.names is not None or fault.name == "segmenter-kill":
+        if not held and fault.name != "controller-hang":
+            v.append("no hold after the fault (the controller never stopped following the policy)")
+    resumed = None
+    if fault.resumes and ctx.fault_end_wall_s is not None:
+        after = [st for recv_s, st in obs.statuses if recv_s > ctx.fault_end_wall_s]
+        seq0 = max((st.frame_seq for recv_s, st in obs.statuses if recv_s <= ctx.fault_start_wall_s
+                    and st.frame_seq < FORGED_SEQ_BASE), default=-1)
+        resumed = any((st.watchdog == "ok" or st.state == "HANDOVER") and seq0 < st.frame_seq < FORGED_SEQ_BASE
+                      for st in after)
+        if not resumed:
+            v.append("no resumption: the controller was never ok on a new heatmap after the fault ended")
+    facts = {"held": held, "resumed": resumed, "statuses": len(statuses), "heatmaps": len(hm_arrivals),
+             "forged_heatmaps_seen": obs.forged_heatmaps, "monitor_rejected": rec.rejected,
+             "results_refused": rec.results_refused,
+             "min_alt_m": round(min((st.alt_agl_m for _, st in obs.states), default=math.nan), 2)}
+    return v, facts
+
+
+def _physical(obs: Observer, blind_t: list[tuple[float, bool]]) -> list[str]:
+    """The vehicle's true altitude (the sim's states) never drops after BRAKE_S of blindness or silence."""
+    if not obs.states:
+        return []
+    st_t = [t for t, _ in blind_t]
+    out: list[str] = []
+    since: float | None = None  # data time at which the current blind stretch began
+    ref_alt: float | None = None
+    for _, s in sorted(obs.states, key=lambda p: p[1].stamp.t_s):
+        t = s.stamp.t_s
+        i = bisect.bisect_right(st_t, t) - 1
+        silent = i < 0 or t - st_t[i] > HOLD_S  # the controller said nothing for longer than the hold limit
+        blind = silent or blind_t[i][1]
+        if i < 0 or s.alt_agl_m <= HANDOVER_M + RELEASE_M:
+            blind = False  # before the first status the vehicle waits; at hand-over nothing is judged
+        if not blind:
+            since, ref_alt = None, None
+            continue
+        if since is None:
+            since = t
+        if t - since < BRAKE_S:
+            continue
+        if ref_alt is None:
+            ref_alt = s.alt_agl_m
+        elif s.alt_agl_m < ref_alt - CLIMB_TOLERANCE_M:
+            out.append(f"descent while blind: {ref_alt - s.alt_agl_m:.2f} m lost between t={since + BRAKE_S:.2f} "
+                       f"and {t:.2f} s")
+            since, ref_alt = None, None
+        else:
+            ref_alt = max(ref_alt, s.alt_agl_m)  # a climb is welcome; coming back down from it is not
+    return out
