@@ -5,25 +5,14 @@
     Recorder decide the report (exit code, the failure naming a service), exactly as in `up`
     --> an Observer session records every status, state, command and heatmap with its arrival
     --> the fault's script waits for the descent, injects, waits for recovery, ends the run
-    --> check_run: the safety rules below, each failure one line in `violations`
+    --> check_run (dovesei.faults.checks): the safety rules, each failure one line in `violations`
 
-The rules, per run (data clock = the sim's seconds; one tick = 1/20 s):
-
-- blind: a status whose heatmap is older than the hold limit plus one tick, by the controller's
-  own count or by the genuine heatmaps the observer saw (forged ones do not count), must not be
-  `ok` (hold within one tick) and must command no descent;
-- after `BRAKE_S` of a blind (or silent-controller) stretch the vehicle's altitude never drops;
-- no LANDED or HANDOVER status, and no judged result, above the hand-over altitude (+ release);
-- after a fault that ends, the controller is `ok` again on a newer heatmap (resumption);
-- the run's report names the service the fault should name (or none), and never takes a forged
-  episode result.
+The rules each run is held to are in `dovesei.faults.checks`.
 """
 
 from __future__ import annotations
 
-import bisect
 import logging
-import math
 import os
 import random
 import signal
@@ -36,15 +25,13 @@ from typing import Any
 
 import zenoh
 
-from dovesei.faults.inject import FORGED_RESULT_DETAIL, FORGED_SEQ_BASE, SKEW_S, Intruder
+from dovesei.faults.checks import Observer, check_run
+from dovesei.faults.inject import SKEW_S, Intruder
 from dovesei.faults.network import LossProfile, Relay, Router, client_config
-from dovesei.shared.codec import decode
-from dovesei.shared.errors import ProtocolError
-from dovesei.shared.messages import ControllerStatus, EpisodeResult, SafetyHeatmap, VehicleState, VelocityCommand
 from dovesei.up import exit_code, preflight
 from dovesei.up.children import Children
 from dovesei.up.launch import SERVICES, child_commands, child_env
-from dovesei.up.monitor import LIVELINESS, Monitor, Recorder, Sample
+from dovesei.up.monitor import Monitor, Recorder
 from dovesei.up.options import UpOptions
 from dovesei.up.report import build_report, read_stats
 from dovesei.up.watch import Watcher
@@ -53,16 +40,9 @@ log = logging.getLogger("dovesei.faults")
 
 WORLD = "synthetic:size_m=400,seed=1"  # generated in about a second, cached on disk after
 START_ALT_M = 50.0
-TICK_S = 0.05  # the controller's 20 Hz loop
-HOLD_S = 1.5  # ControllerConfig.heatmap_hold_after_s (the default the services run with)
-HANDOVER_M, RELEASE_M = 20.0, 2.0  # ControllerConfig.handover_alt_m, handover_release_m
-ARRIVAL_MARGIN_S = 0.15  # the observer and the controller see a heatmap a few ms apart, under load more
-BRAKE_S = 1.5  # the sim's velocity loop (0.3 s, 3 m/s^2) stops a 2.5 m/s descent well within this
-CLIMB_TOLERANCE_M = 0.05
 TRIGGER_MAX_S = 40.0  # wall seconds to wait for a descent before injecting anyway
 RESUMED_FOR_S = 2.0  # `ok` on new heatmaps this long after the fault ends counts as resumed
 RESUME_WINDOW_S = 12.0
-FORGED_DOWN_M_S = 4.0  # faster than any policy descends: only a forged command flies this
 
 
 @dataclass(frozen=True)
@@ -90,50 +70,6 @@ FAULTS: dict[str, Fault] = {f.name: f for f in (
     Fault("garbage", "random bytes and nonsense maps on heatmap and state, ~400/s for 4 s", None),
     Fault("forged", "forged descent commands (stamped 1e9, +5 s, -5 s), a forged 'safe' result, bad prompts", None),
 )}
-
-
-class Observer:
-    """The fault suite's own record (Monitor calls `handle`): every message with its arrival time."""
-
-    TYPES = {"state": VehicleState, "status": ControllerStatus, "cmd": VelocityCommand, "heatmap": SafetyHeatmap,
-             "episode": EpisodeResult}
-
-    def __init__(self, vehicle_id: str) -> None:
-        self.vehicle_id = vehicle_id
-        self.states: list[tuple[float, VehicleState]] = []
-        self.statuses: list[tuple[float, ControllerStatus]] = []
-        self.heatmaps: list[tuple[float, int, float]] = []  # (arrival wall s, seq, stamp t_s): genuine ones
-        self.forged_heatmaps = 0
-        self.rejected = 0
-        self.lock = threading.Lock()  # the script thread drains, the checks read after the run
-
-    def handle(self, s: Sample) -> None:
-        if s.topic == LIVELINESS or s.topic not in self.TYPES:
-            return
-        try:
-            msg = decode(s.payload, self.TYPES[s.topic], key=s.topic)
-        except ProtocolError:
-            self.rejected += 1
-            return
-        if getattr(msg, "vehicle_id", self.vehicle_id) != self.vehicle_id:
-            return
-        if s.topic == "state" and msg.seq < FORGED_SEQ_BASE:
-            self.states.append((s.recv_wall_s, msg))
-        elif s.topic == "status":
-            self.statuses.append((s.recv_wall_s, msg))
-        elif s.topic == "heatmap":
-            if msg.seq >= FORGED_SEQ_BASE:
-                self.forged_heatmaps += 1
-            else:
-                self.heatmaps.append((s.recv_wall_s, msg.seq, msg.stamp.t_s))
-
-    @property
-    def last_status(self) -> ControllerStatus | None:
-        return self.statuses[-1][1] if self.statuses else None
-
-    @property
-    def last_state(self) -> VehicleState | None:
-        return self.states[-1][1] if self.states else None
 
 
 @dataclass
@@ -382,7 +318,7 @@ def run_scenario(fault: Fault, seed: int, out: Path, *, world: str = WORLD) -> R
     report = build_report(options, rec, start, configs.noise, read_stats(out), failure, interrupted,
                           time.monotonic() - t0)
     code = exit_code(report)
-    violations, facts = check_run(fault, observer, rec, ctx, failure)
+    violations, facts = check_run(fault, observer, rec, failure, ctx.fault_start_wall_s, ctx.fault_end_wall_s)
     violations += ctx.notes
     if relay is not None:
         facts["relay"] = relay.totals()
@@ -394,115 +330,3 @@ def run_scenario(fault: Fault, seed: int, out: Path, *, world: str = WORLD) -> R
     return RunResult(fault.name, seed, code, report.outcome, failure.child if failure else None,
                      failure.message if failure else "", tuple(violations), unsafe, mid_air, facts["held"],
                      facts["resumed"], round(time.monotonic() - t0, 2), facts)
-
-
-# ---- the checks ------------------------------------------------------------------------------
-
-
-def check_run(fault: Fault, obs: Observer, rec: Recorder, ctx: Context, failure: Any) -> tuple[list[str], dict]:
-    """Every rule of the module docstring; returns (violations, facts for the record)."""
-    v: list[str] = []
-    statuses = sorted(obs.statuses, key=lambda p: p[1].stamp.t_s)
-    hm_arrivals = sorted(obs.heatmaps)
-    arr_wall = [a for a, _, _ in hm_arrivals]
-    newest_t, best = [], -math.inf
-    for _, _, t_s in hm_arrivals:
-        best = max(best, t_s)
-        newest_t.append(best)
-    limit_s = HOLD_S + TICK_S
-    held = False
-    blind_t: list[tuple[float, bool]] = []  # per status: (t_s, blind)
-    for recv_s, st in statuses:
-        if st.state == "HANDOVER" or st.alt_agl_m <= HANDOVER_M + RELEASE_M:
-            blind_t.append((st.stamp.t_s, False))
-            continue
-        i = bisect.bisect_right(arr_wall, recv_s) - 1
-        true_age = st.stamp.t_s - newest_t[i] if i >= 0 else math.inf
-        own_blind = st.heatmap_age_s > limit_s or st.heatmap_age_s < 0
-        true_blind = true_age > limit_s + ARRIVAL_MARGIN_S
-        blind = own_blind or true_blind or st.watchdog != "ok"
-        blind_t.append((st.stamp.t_s, blind))
-        if st.watchdog != "ok" and ctx.fault_start_wall_s is not None and recv_s >= ctx.fault_start_wall_s:
-            held = True
-        if (own_blind or true_blind) and st.watchdog == "ok" and st.heatmap_age_s >= 0:
-            v.append(f"blind but ok at t={st.stamp.t_s:.2f} s: heatmap age {st.heatmap_age_s:.2f} s (own), "
-                     f"{true_age:.2f} s (genuine), limit {HOLD_S:g} s + one tick")
-        if blind and st.vel_body_frd_m_s[2] > 1e-6:
-            v.append(f"blind descent commanded at t={st.stamp.t_s:.2f} s ({st.vel_body_frd_m_s[2]:.2f} m/s down, "
-                     f"watchdog {st.watchdog})")
-        if st.state in ("LANDED", "HANDOVER") and st.alt_agl_m > HANDOVER_M + RELEASE_M:
-            # Followed (watchdog ok) it is a hand-over in mid-air; refused by the core it still
-            # breaks the recovery rule (the policy must not think it has landed up here).
-            kind = "mid-air" if st.watchdog == "ok" else "refused terminal:"
-            v.append(f"{kind} {st.state} at {st.alt_agl_m:.1f} m (t={st.stamp.t_s:.2f} s, watchdog {st.watchdog})")
-        if st.frame_seq >= FORGED_SEQ_BASE:
-            v.append(f"blind: a forged heatmap ({st.frame_seq}) was adopted at t={st.stamp.t_s:.2f} s")
-    v += _physical(obs, blind_t)
-    if rec.result is not None and rec.result.outcome in ("safe", "unsafe") and \
-            rec.result.final_alt_m > HANDOVER_M + RELEASE_M:
-        v.append(f"mid-air judged end: {rec.result.outcome} at {rec.result.final_alt_m:.1f} m")
-    for _, st in obs.states:
-        if st.vel_body_frd_m_s[2] > FORGED_DOWN_M_S:
-            v.append(f"forged command obeyed: descending {st.vel_body_frd_m_s[2]:.1f} m/s at t={st.stamp.t_s:.2f} s")
-            break
-    # The report.
-    named = failure.child if failure is not None else None
-    if named != fault.names:
-        v.append(f"report: expected {'a failure naming ' + fault.names if fault.names else 'no failure'}, got "
-                 f"{failure.message if failure is not None else 'none'}")
-    if rec.result is not None and rec.result.detail == FORGED_RESULT_DETAIL:
-        v.append("report: the forged episode result was taken as the sim's")
-    if fault.name == "forged" and rec.results_refused < 1 and ctx.fault_start_wall_s is not None:
-        v.append("report: the forged episode result was not refused")
-    if ctx.fault_start_wall_s is None:
-        v.append("the fault was never injected")
-    elif fault.names is not None or fault.name == "segmenter-kill":
-        if not held and fault.name != "controller-hang":
-            v.append("no hold after the fault (the controller never stopped following the policy)")
-    resumed = None
-    if fault.resumes and ctx.fault_end_wall_s is not None:
-        after = [st for recv_s, st in obs.statuses if recv_s > ctx.fault_end_wall_s]
-        seq0 = max((st.frame_seq for recv_s, st in obs.statuses if recv_s <= ctx.fault_start_wall_s
-                    and st.frame_seq < FORGED_SEQ_BASE), default=-1)
-        resumed = any((st.watchdog == "ok" or st.state == "HANDOVER") and seq0 < st.frame_seq < FORGED_SEQ_BASE
-                      for st in after)
-        if not resumed:
-            v.append("no resumption: the controller was never ok on a new heatmap after the fault ended")
-    facts = {"held": held, "resumed": resumed, "statuses": len(statuses), "heatmaps": len(hm_arrivals),
-             "forged_heatmaps_seen": obs.forged_heatmaps, "monitor_rejected": rec.rejected,
-             "results_refused": rec.results_refused,
-             "min_alt_m": round(min((st.alt_agl_m for _, st in obs.states), default=math.nan), 2)}
-    return v, facts
-
-
-def _physical(obs: Observer, blind_t: list[tuple[float, bool]]) -> list[str]:
-    """The vehicle's true altitude (the sim's states) never drops after BRAKE_S of blindness or silence."""
-    if not obs.states:
-        return []
-    st_t = [t for t, _ in blind_t]
-    out: list[str] = []
-    since: float | None = None  # data time at which the current blind stretch began
-    ref_alt: float | None = None
-    for _, s in sorted(obs.states, key=lambda p: p[1].stamp.t_s):
-        t = s.stamp.t_s
-        i = bisect.bisect_right(st_t, t) - 1
-        silent = i < 0 or t - st_t[i] > HOLD_S  # the controller said nothing for longer than the hold limit
-        blind = silent or blind_t[i][1]
-        if i < 0 or s.alt_agl_m <= HANDOVER_M + RELEASE_M:
-            blind = False  # before the first status the vehicle waits; at hand-over nothing is judged
-        if not blind:
-            since, ref_alt = None, None
-            continue
-        if since is None:
-            since = t
-        if t - since < BRAKE_S:
-            continue
-        if ref_alt is None:
-            ref_alt = s.alt_agl_m
-        elif s.alt_agl_m < ref_alt - CLIMB_TOLERANCE_M:
-            out.append(f"descent while blind: {ref_alt - s.alt_agl_m:.2f} m lost between t={since + BRAKE_S:.2f} "
-                       f"and {t:.2f} s")
-            since, ref_alt = None, None
-        else:
-            ref_alt = max(ref_alt, s.alt_agl_m)  # a climb is welcome; coming back down from it is not
-    return out

@@ -4,7 +4,6 @@ three services as real processes through a loopback router (about 15 s each)."""
 from __future__ import annotations
 
 import json
-import threading
 import time
 from pathlib import Path
 
@@ -15,7 +14,8 @@ from dovesei.faults import main as faults_main
 from dovesei.faults import parse_faults
 from dovesei.faults.inject import FORGED_SEQ_BASE, restamped
 from dovesei.faults.network import LossProfile, Relay, Router, client_config
-from dovesei.faults.scenario import FAULTS, HOLD_S, Context, Observer, check_run, run_scenario
+from dovesei.faults.checks import HOLD_S, Observer, check_run
+from dovesei.faults.scenario import FAULTS, run_scenario
 from dovesei.shared import keys
 from dovesei.shared.codec import decode, encode
 from dovesei.shared.errors import ConfigError
@@ -82,9 +82,7 @@ def _checked(statuses: list[ControllerStatus]) -> list[str]:
     for st in statuses:
         obs.handle(Sample("status", st.stamp.t_s, encode(st)))
     obs.heatmaps.append((0.0, 1, 0.0))
-    ctx = Context(FAULTS["loss"], 0, None, None, obs, None, None, (0.0, 0.0, 50.0), threading.Event(),
-                  threading.Event(), fault_start_wall_s=0.0, fault_end_wall_s=100.0)
-    violations, _ = check_run(FAULTS["loss"], obs, Recorder((0.0, 0.0, 50.0), video=False), ctx, None)
+    violations, _ = check_run(FAULTS["loss"], obs, Recorder((0.0, 0.0, 50.0), video=False), None, 0.0, 100.0)
     return violations
 
 
