@@ -57,9 +57,11 @@ def test_statistics_are_in_range_and_the_judge_side_alone_reads_the_flags() -> N
     assert stats.target_precision > 0.6 and flipped.target_precision < 0.4
 
 
-def test_clean_perception_targets_the_lawns() -> None:
+def test_clean_perception_targets_the_lawns_and_nears_the_oracle() -> None:
     stats = world_stats(_blocks_world(), profile_params("clean"), 6, 2, seed=0)
     assert stats.target_precision > 0.9 and stats.core_precision == 1.0
+    assert stats.oracle_precision > 0.9
+    assert stats.target_precision > stats.oracle_precision - 0.05
 
 
 def test_command_line_json_and_bad_flags(tmp_path, capsys, monkeypatch) -> None:
