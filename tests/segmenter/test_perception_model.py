@@ -228,3 +228,14 @@ def test_a_patch_reads_differently_in_different_surroundings() -> None:
         return float(prob[176, 176])
 
     assert centre(3) - centre(2) > 0.03  # among lawns it looks safer than among roads
+
+
+def test_misreadings_drift_slowly_with_altitude() -> None:
+    from dovesei.segmenter.sim_backend import world_field
+
+    rng = np.random.default_rng(0)
+    east, north = rng.uniform(-2000, 2000, 4000), rng.uniform(-2000, 2000, 4000)
+    params = profile_params("realistic")
+    at = {alt: world_field(east, north, alt, np.array([11]), params)[0] for alt in (100.0, 95.0, 25.0)}
+    assert np.corrcoef(at[100.0], at[95.0])[0, 1] > 0.9  # a few metres of descent: the same misreading
+    assert abs(np.corrcoef(at[100.0], at[25.0])[0, 1]) < 0.5  # two octaves lower: another one
