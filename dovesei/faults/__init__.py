@@ -59,14 +59,14 @@ def totals(results: Sequence[RunResult]) -> dict:
 
 
 def table(summary: dict) -> str:
-    rows = [f"{'fault':<16} {'runs':>4} {'unsafe':>6} {'mid-air':>7} {'viol.':>5} {'held':>4} {'resumed':>7}  "
+    rows = [f"{'fault':<24} {'runs':>4} {'unsafe':>6} {'mid-air':>7} {'viol.':>5} {'held':>4} {'resumed':>7}  "
             "exit codes"]
     for name, p in summary["per_fault"].items():
         codes = ", ".join(f"{c}x{n}" for c, n in sorted(p["exit_codes"].items()))
         resumed = str(p["resumed"]) if FAULTS[name].resumes else "-"
-        rows.append(f"{name:<16} {p['runs']:>4} {p['unsafe']:>6} {p['mid_air_handovers']:>7} {p['violations']:>5} "
+        rows.append(f"{name:<24} {p['runs']:>4} {p['unsafe']:>6} {p['mid_air_handovers']:>7} {p['violations']:>5} "
                     f"{p['held']:>4} {resumed:>7}  {codes}")
-    rows.append(f"{'total':<16} {summary['runs']:>4} {summary['unsafe']:>6} {summary['mid_air_handovers']:>7} "
+    rows.append(f"{'total':<24} {summary['runs']:>4} {summary['unsafe']:>6} {summary['mid_air_handovers']:>7} "
                 f"{summary['violations']:>5}")
     return "\n".join(rows)
 

@@ -1,6 +1,7 @@
 """The fault suite's network on loopback: a restartable router and a lossy relay between two routers.
 
-    sim, controller, observers --client--> Router A ──Relay (drops, delays, duplicates)──> Router B <--client-- segmenter
+    sim, controller, observers --> Router A ──Relay (drops, delays, duplicates)──> Router B <-- segmenter
+                     (all Zenoh clients of their router)
                                                     camera, prompts  A -> B
                                                     heatmap          B -> A
                                                     liveliness of the segmenter mirrored on A

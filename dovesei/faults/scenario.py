@@ -54,6 +54,8 @@ class Fault:
     names: str | None  # the service the report must name as failed (None: the run must not fail)
     resumes: bool = True  # the fault ends, so the mission must resume
     relay: bool = False
+    lockstep: bool = False  # the sim waits for every command (up's default); else real time as in flight
+    heatmap_wait_s: float | None = None  # lockstep: the controller's wait for a due heatmap (None: its default)
     stall_s: float = 8.0
     after_failure_s: float = 8.0
     duration_s: float = 4.0
@@ -63,6 +65,12 @@ FAULTS: dict[str, Fault] = {f.name: f for f in (
     Fault("segmenter-kill", "SIGKILL the segmenter mid-descent", "segmenter", resumes=False, after_failure_s=4.0),
     Fault("segmenter-hang", "SIGSTOP the segmenter 4 s, then SIGCONT", "segmenter", stall_s=3.0),
     Fault("controller-hang", "SIGSTOP the controller 4 s, then SIGCONT", "controller", stall_s=3.0),
+    # Lockstep, up's default: the hung service stops the sim's clock too (the mid-air LANDED).
+    # 10 s with a 1 s heatmap wait: the controller decides blind every 0.25 s wall, data time reaches the hold.
+    Fault("segmenter-hang-lockstep", "lockstep: SIGSTOP the segmenter 10 s, then SIGCONT", "segmenter",
+          stall_s=3.0, after_failure_s=12.0, duration_s=10.0, lockstep=True, heatmap_wait_s=1.0),
+    Fault("controller-hang-lockstep", "lockstep: SIGSTOP the controller 4 s, then SIGCONT", "controller",
+          stall_s=3.0, lockstep=True),
     Fault("router-restart", "close the router 3 s, then open it on the same port", None, duration_s=3.0),
     Fault("loss", "a relay drops 10-30 % of camera/heatmap samples, delays <= 50 ms, duplicates 5 %", None,
           relay=True, duration_s=8.0),
@@ -186,6 +194,8 @@ def _loss(ctx: Context) -> None:
 
 SCRIPTS: dict[str, Callable[[Context], None]] = {
     "segmenter-kill": _kill, "segmenter-hang": lambda c: _pause(c, "segmenter"),
+    "segmenter-hang-lockstep": lambda c: _pause(c, "segmenter"),
+    "controller-hang-lockstep": lambda c: _pause(c, "controller"),
     "controller-hang": lambda c: _pause(c, "controller"), "router-restart": _router, "loss": _loss,
     "clock-skew": _skew, "garbage": _garbage, "forged": _forged,
 }
@@ -268,8 +278,9 @@ def run_scenario(fault: Fault, seed: int, out: Path, *, world: str = WORLD) -> R
     if side is not None:
         relay = Relay(router.endpoint, side.endpoint, vid, LossProfile(drop=rng.uniform(0.1, 0.3)), seed)
     options = UpOptions(world=world, segmenter="sim", noise=0.0, start_seed=seed, start_alt_m=START_ALT_M, out=out,
-                        realtime=True, connect=(router.endpoint,), video=False, stall_s=fault.stall_s,
-                        after_failure_s=fault.after_failure_s, startup_timeout_s=60.0, log_level="INFO")
+                        realtime=not fault.lockstep, connect=(router.endpoint,), video=False, stall_s=fault.stall_s,
+                        after_failure_s=fault.after_failure_s, heatmap_wait_s=fault.heatmap_wait_s,
+                        startup_timeout_s=60.0, log_level="INFO")
     _, start, configs = preflight(options)
     (out / "logs").mkdir(parents=True, exist_ok=True)
     (out / "stats").mkdir(exist_ok=True)
