@@ -56,6 +56,7 @@ log = logging.getLogger(__name__)
 HANDOVER_ACTIONS = ("hold", "land", "precland", "none")
 # Decisions that end the policy's job; accepted only at/below the hand-over altitude.
 TERMINAL_STATES = ("LANDED", "HANDOVER")
+MAX_POLICY_SPEED = 100.0  # m/s and rad/s: a policy asking for more is faulty (messages allow 300)
 DT_CAP_PERIODS = 2.0  # a perception gap advances the policy's clock by at most this many nominal periods
 # The vehicle clock runs on true seconds; 5 % margin for crystal drift and latency jitter.
 _DATA_RATE_MARGIN = 1.05
@@ -439,6 +440,15 @@ class ControllerCore:
             self._refuse("policy error", "%s (holding)", self._policy_fault, level=logging.ERROR)
             if self.policy_errors == 1:
                 log.error("first policy error, with its traceback", exc_info=True)
+            self._decision = None
+            return
+        speeds = (*decision.vel_body_frd_m_s, decision.yaw_rate_rad_s)
+        if not all(math.isfinite(v) and abs(v) <= MAX_POLICY_SPEED for v in speeds):
+            # Sent as it is, the command fails its own field check and the exception ends the
+            # loop (the dovesei policy's integrator once wound up to 18 km/s over a static view).
+            self.policy_errors += 1
+            self._policy_fault = f"policy commanded {speeds} (limit {MAX_POLICY_SPEED:g}) on heatmap {hm.seq}"
+            self._refuse("policy error", "%s (holding)", self._policy_fault, level=logging.ERROR)
             self._decision = None
             return
         self._policy_fault = None

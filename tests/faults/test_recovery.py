@@ -112,3 +112,23 @@ def test_an_outage_does_not_make_every_later_state_look_early() -> None:
     except ControllerInputError as exc:
         raise AssertionError(f"an on-time state after the outage was refused: {exc}") from None
     assert core.rejected["state from the future"] == 0
+
+
+class WindsUp:
+    """A policy whose integrator runs away: its command would not even pass the message's own checks."""
+
+    name = "double"
+
+    def step(self, obs: Observation) -> Decision:
+        return Decision((18497.8, 0.0, 1.0), 0.0, "RESTARTING", None, 0.0, None, {})
+
+    def reset(self) -> None:
+        pass
+
+
+def test_a_runaway_policy_command_holds_instead_of_ending_the_loop() -> None:
+    core = ControllerCore(ControllerConfig(lockstep=True), policy=WindsUp())
+    core.on_heatmap(heatmap(0, 0.0, 60.0), 0.0)
+    cmd, status = core.tick(state(0, 0.01, 60.0, await_seq=0))  # raised FieldError before
+    assert core.mode is Mode.POLICY_FAULT and cmd.vel_body_frd_m_s == (0.0, 0.0, 0.0)
+    assert "policy commanded" in status.reason and core.policy_errors == 1
