@@ -1,5 +1,9 @@
 """`dovesei calibrate`: success rates of the policies against the simulated perception's noise.
 
+The perception profiles are calibrated against real CLIPSeg statistics (`dovesei perception-stats`),
+never against success counts; this command shows how landing success responds when the errors of
+one profile (`--perception`) are scaled by `--noise` (1 = the profile as calibrated).
+
 For each timing preset and noise level, a full `dovesei bench` (resumable, in its own folder
 under --out) with the same starts for every policy; then one table and one plot:
 
@@ -23,7 +27,7 @@ import os
 import sys
 from pathlib import Path
 
-from dovesei.bench import DEFAULT_POLICIES, OneLineParser, paper_time_limit_s, parse_policies, run_bench
+from dovesei.bench import DEFAULT_POLICIES, OneLineParser, check_perception, paper_time_limit_s, parse_policies, run_bench
 from dovesei.bench.run import episode_seed
 from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.shared.validate import in_range
@@ -41,7 +45,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = OneLineParser(prog="dovesei calibrate", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--world", default="synthetic")
-    p.add_argument("--noise", default="0,0.5,1,1.5,2", help="comma-separated noise levels")
+    p.add_argument("--perception", default=None, help="simulated perception profile (default: realistic)")
+    p.add_argument("--noise", default="0,0.5,1,1.5,2", help="comma-separated error scales within the profile")
     p.add_argument("--noise-real", default=None,
                    help="noise levels under real timing (default: --noise); its episodes cost ~20x more")
     p.add_argument("--timing", default="reference,real", help="comma-separated timing presets")
@@ -144,6 +149,7 @@ def check_args(args: argparse.Namespace) -> tuple[list[str], list[float], list[f
     if args.seed < 0 or args.seed == REPORTED_BENCH_SEED:
         raise ConfigError(f"--seed {args.seed}: calibrate on a seed >= 0 other than {REPORTED_BENCH_SEED}, "
                           "the reported bench's (tuning on the starts you report is fitting, not calibrating)")
+    args.perception = check_perception(args.perception)
     generate_starts(load_world(args.world), 1, args.seed)  # the world loads and fits starts at 100 m
     return policies, noises, noises_real, timings
 
@@ -170,7 +176,8 @@ def _calibrate(args: argparse.Namespace, policies: list[str], noises: list[float
             log.info("calibration cell: timing %s, noise %g, %d starts", t, n, episodes)
             doc = run_bench(world_spec=args.world, episodes=episodes, seed=args.seed, policies=policies, noise=n,
                             timing=t, time_limit_s=paper_time_limit_s(t), start_alt_m=100.0, jobs=args.jobs,
-                            out=args.out / f"{t}-noise{n:g}", progress=sys.stderr.isatty(), seed_note=note)
+                            out=args.out / f"{t}-noise{n:g}", progress=sys.stderr.isatty(), seed_note=note,
+                            perception=args.perception)
             for pol, s in doc["summary"].items():
                 cells.append({"timing": t, "noise": n, "policy": pol, **s})
             (args.out / "calibration.json").write_text(json.dumps({"cells": cells}, indent=1))
@@ -179,8 +186,9 @@ def _calibrate(args: argparse.Namespace, policies: list[str], noises: list[float
     all_noises = sorted(set(noises) | (set(noises_real) if "real" in timings else set()))
     table = table_markdown(cells, all_noises, timings, policies)
     text = ["# Calibration of the simulated perception", "",
-            f"World `{args.world}`, start seed {args.seed}, limit = the paper's 1200 s on each preset's clock "
-            f"(60 s of sim time under reference timing, 1200 s under real timing); {args.episodes} starts per cell"
+            f"World `{args.world}`, perception `{args.perception}`, start seed {args.seed}, limit = the paper's 1200 s on each preset's clock "
+            f"({paper_time_limit_s('reference'):g} s of sim time under reference timing, 1200 s under real timing); "
+            f"{args.episodes} starts per cell"
             + (f" ({args.episodes_real} under real timing)" if args.episodes_real and "real" in timings else "")
             + "; each cell flies both policies from the same starts.", "",
             f"Seeds: {note}.", "",

@@ -25,7 +25,7 @@ import numpy as np
 from dovesei.controller.core import ControllerConfig, ControllerCore
 from dovesei.segmenter.core import SegmenterConfig, SegmenterCore, make_backend
 from dovesei.segmenter.prompts import REFERENCE_PROMPTS, PromptSet
-from dovesei.segmenter.simulated import CALIBRATED_NOISE
+from dovesei.segmenter.simulated import DEFAULT_NOISE, DEFAULT_PROFILE, PROFILE_NAMES
 from dovesei.shared.errors import ConfigError
 from dovesei.shared.messages import EpisodeResult, Message, SafetyHeatmap
 from dovesei.sim.core import SimConfig, SimCore
@@ -38,12 +38,12 @@ log = logging.getLogger(__name__)
 # backend: their thresholds were tuned on its output. Other policies get the segmenter's default.
 REFERENCE_FUSION_POLICIES = ("dovesei", "dovesei-nofocus")
 REFERENCE_FUSION = "dovesei"
-DEFAULT_PERCEPTION = "realistic"
+DEFAULT_PERCEPTION = DEFAULT_PROFILE
 
 
 def perception_names() -> tuple[str, ...]:
-    """The simulated perception profiles this install offers."""
-    return (DEFAULT_PERCEPTION,)
+    """The simulated perception profiles (dovesei.segmenter.simulated)."""
+    return PROFILE_NAMES
 
 
 def fusion_for(policy: str) -> str | None:
@@ -72,7 +72,7 @@ class EpisodeSpec:
     start: Start
     timing: str = "reference"
     seed: int = 0  # seeds the simulated perception and the vehicle's disturbances
-    noise: float | None = None  # simulated perception noise scale (None: the profile's own)
+    noise: float | None = None  # error scale within the perception profile (None: DEFAULT_NOISE, 1)
     time_limit_s: float = 1200.0
     vehicle_id: str = "uav1"
     perception: str = DEFAULT_PERCEPTION  # simulated perception profile
@@ -119,10 +119,9 @@ def segmenter_config(spec: EpisodeSpec) -> SegmenterConfig:
     reference fusion for the paper's policies."""
     fusion = fusion_for(spec.policy)
     extra = {} if fusion is None else {"fusion": fusion}
-    if spec.perception != DEFAULT_PERCEPTION:
-        raise ConfigError(f"perception profile {spec.perception!r}: only {DEFAULT_PERCEPTION!r} is available")
-    noise = CALIBRATED_NOISE if spec.noise is None else spec.noise
-    return SegmenterConfig(backend="sim", sim_noise=noise, sim_seed=spec.seed, prompts=spec.prompts, **extra)
+    noise = DEFAULT_NOISE if spec.noise is None else spec.noise
+    return SegmenterConfig(backend="sim", sim_profile=spec.perception, sim_noise=noise, sim_seed=spec.seed,
+                           prompts=spec.prompts, **extra)
 
 
 def run_episode(world: World, spec: EpisodeSpec, *, record_track: bool = True,

@@ -237,7 +237,7 @@ def summary_markdown(doc: dict, *, title: str = "dovesei bench") -> str:
     config = doc["config"]
     worlds = config["worlds"]
     where = f"World `{worlds[0]}`" if len(worlds) == 1 else f"{len(worlds)} worlds (`{config['world']}`)"
-    noise = "the profile's own noise" if config["noise"] is None else f"noise x{config['noise']:g}"
+    noise = "noise 1, as calibrated" if config["noise"] is None else f"noise x{config['noise']:g}"
     lines = [
         f"# {title}", "",
         f"{where}, {config['episodes']} starts{' per world' if len(worlds) > 1 else ''} at "

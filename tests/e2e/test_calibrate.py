@@ -22,6 +22,7 @@ WORLD = "synthetic:size_m=400,seed=1"
     (["--noise", "9"], "--noise"),
     (["--timing", "fast"], "fast"),
     (["--episodes", "many"], "--episodes"),
+    (["--perception", "dreamy"], "--perception"),
 ])
 def test_bad_flags_are_one_line_and_leave_no_folder(tmp_path: Path, args: list[str], needle: str) -> None:
     out = tmp_path / "cal"
