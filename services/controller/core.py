@@ -257,7 +257,7 @@ class ControllerCore:
             return None
         return anchor[0] + _DATA_RATE_MARGIN * max(0.0, self._mono() - anchor[1])
 
-    def _state_from_future(self, state: VehicleState) -> str | None:
+    def _state_from_future(self, state: VehicleState, wall_s: float | None) -> str | None:
         """Real time: does the state lead the controller's own clock? Learns it from on-time states."""
         if self.config.lockstep:
             return None  # lockstep: the sim's states are the clock
@@ -273,6 +273,19 @@ class ControllerCore:
                 self._state_anchor = (state.stamp.t_s, self._mono())
             return None
         if state.stamp.t_s <= projected + self.config.future_tolerance_s:
+            return None
+        last_wall_s = self._state_advanced_wall_s
+        since_s = wall_s - last_wall_s if wall_s is not None and last_wall_s is not None else 0.0
+        if since_s > self.config.state_stale_after_s:
+            # Nothing accepted for a while: the anchor itself is suspect. After a hang of our own
+            # the backlog arrives first and anchored a 4 s old stamp to "now", so every live state
+            # was refused for a minute (dovesei faults, controller-hang). Re-synchronise on this
+            # one; a forged lead taken here shows as a backward jump at the next genuine state,
+            # which holds until a fresh heatmap and re-anchors.
+            log.warning("controller %s: no vehicle state accepted for %.1f s: clock re-synchronised on state %d "
+                        "(%.3f s, ~%.3f s expected)", self.config.vehicle_id, since_s, state.seq, state.stamp.t_s,
+                        projected)
+            self._state_anchor = (state.stamp.t_s, self._mono())
             return None
         return (f"state {state.seq} stamped {state.stamp.t_s:.3f} s leads the controller's clock "
                 f"(~{projected:.3f} s) by more than {self.config.future_tolerance_s:g} s")
@@ -334,7 +347,7 @@ class ControllerCore:
         if state.vehicle_id != cfg.vehicle_id:
             self.rejected["other vehicle"] += 1
             raise ControllerInputError(f"state for vehicle {state.vehicle_id!r} sent to controller {cfg.vehicle_id!r}")
-        future = self._state_from_future(state)
+        future = self._state_from_future(state, wall_s)
         if future is not None:
             self._refuse("state from the future", "%s: refused", future)
             raise ControllerInputError(future)

@@ -132,3 +132,24 @@ def test_a_runaway_policy_command_holds_instead_of_ending_the_loop() -> None:
     cmd, status = core.tick(state(0, 0.01, 60.0, await_seq=0))  # raised FieldError before
     assert core.mode is Mode.POLICY_FAULT and cmd.vel_body_frd_m_s == (0.0, 0.0, 0.0)
     assert "policy commanded" in status.reason and core.policy_errors == 1
+
+
+def test_after_a_hang_of_its_own_the_controller_resynchronises_on_live_states() -> None:
+    """Was: the backlog came first, anchored a 4 s old stamp to 'now', and every live state was refused."""
+    now = [0.0]
+    core = ControllerCore(ControllerConfig(lockstep=False, timing="reference"), mono=lambda: now[0])
+    for k in range(20):
+        now[0] = 0.05 * k
+        core.tick(state(k, 0.05 * k, 50.0), wall_s=now[0])
+    now[0] = 5.0  # SIGSTOP for 4 s: the first state polled after SIGCONT is from the backlog
+    core.tick(state(21, 1.05, 50.0), wall_s=now[0])
+    refused, accepted = 0, 0
+    for k in range(40):  # then the live ones, 4 s ahead of that stale anchor
+        now[0] = 5.05 + 0.05 * k
+        try:
+            core.tick(state(100 + k, 5.05 + 0.05 * k, 50.0), wall_s=now[0])
+            accepted += 1
+        except ControllerInputError:
+            refused += 1
+            assert accepted == 0, "once re-synchronised, live states are never refused again"
+    assert accepted > 25 and refused <= 11, (accepted, refused)  # within state_stale_after_s (0.5 s) + a tick
