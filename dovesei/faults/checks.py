@@ -101,7 +101,9 @@ def check_run(fault: Any, obs: Observer, rec: Recorder, failure: Any, fault_star
             blind_t.append((st.stamp.t_s, False))
             continue
         i = bisect.bisect_right(arr_wall, recv_s) - 1
-        true_age = st.stamp.t_s - newest_t[i] if i >= 0 else math.inf
+        # Before the observer's first heatmap the genuine age is unknown (its subscription may reach
+        # the router a moment after the controller's), not infinite.
+        true_age = st.stamp.t_s - newest_t[i] if i >= 0 else -math.inf
         own_blind = st.heatmap_age_s > limit_s or st.heatmap_age_s < 0
         true_blind = true_age > limit_s + ARRIVAL_MARGIN_S
         blind = own_blind or true_blind or st.watchdog != "ok"
