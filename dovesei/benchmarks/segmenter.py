@@ -6,7 +6,16 @@ One run on one machine times, on the same frame and the reference's 13 prompts:
   (processor on 13 copies of the frame, every prompt re-tokenised and re-encoded, full vision
   tower 13 times);
 - the fast path (``ClipSegBackend.logits``) in a few CPU configurations (decoder batch size,
-  optionally bf16 and torch.compile), keeping the fastest float32 one as ``fast``.
+  optionally bf16 and torch.compile), keeping the fastest float32 one as ``fast``;
+- every CLIPSeg variant this host can run (``dovesei.segmenter.picker``: fp32, bf16 with native
+  BF16, onnx-int8 with the onnx extra, cuda-fp16 with a GPU), timed on camera views rendered from
+  the sim worlds (``synthetic`` and ``dubai``) and gated on decisions against fp32 (dynamic-
+  threshold mask IoU >= 0.95, target pixel shift <= 2 % of the width): the picked one is the
+  fastest that passes, as the segmenter itself picks at start. ``picked_speedup`` is the stock
+  forward's s/frame over the picked variant's, measured in the same run.
+
+The gate figures mean numerics with ``--random-weights``; with ``--model <real weights>`` the same
+command says whether a variant decides like fp32 on the real model (README: run it once).
 
 With ``--random-weights`` the real rd64-refined architecture is built with random weights in a
 temporary directory and loaded through ``load_clipseg``, the path real weights take: the FLOPs
@@ -79,6 +88,28 @@ def _sim_backend_hz() -> float | None:
     return float(bench_hz()) if callable(bench_hz) else None
 
 
+GATE_WORLDS = ("synthetic", "dubai")
+# (x, y) as fractions of the world's extent, altitude AGL m, yaw rad: high, middle and low views.
+GATE_POSES = ((0.35, 0.40, 100.0, 0.0), (0.55, 0.55, 60.0, 0.7), (0.70, 0.35, 35.0, 2.0))
+
+
+def camera_views() -> list[np.ndarray]:
+    """The gate's frames: 352 px nadir camera views of the sim worlds (GATE_WORLDS x GATE_POSES)."""
+    from dovesei.sim.camera import CameraModel, render
+    from dovesei.sim.world import load_world
+
+    cam = CameraModel()
+    views = []
+    for name in GATE_WORLDS:
+        world = load_world(name)
+        height_px, width_px = world.image_rgb.shape[:2]
+        for fx, fy, alt_m, yaw_rad in GATE_POSES:
+            image, _, _ = render(world, fx * width_px * world.gsd_m, fy * height_px * world.gsd_m, alt_m, yaw_rad,
+                                 cam, with_labels=False)
+            views.append(image)
+    return views
+
+
 def _parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(
         prog="dovesei bench-segmenter",
@@ -98,6 +129,8 @@ def _parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--reference-repeats", type=int, default=3, help="timed reference frames (slow)")
     parser.add_argument("--bf16", action="store_true", help="also time the fast path in bfloat16")
     parser.add_argument("--compile", action="store_true", help="also time the fast path under torch.compile")
+    parser.add_argument("--variant", default="auto", help="CLIPSeg variant to report as picked: auto (measure "
+                        "and gate every one this host can run) or one name to pin")
     args = parser.parse_args(argv)
     for name in ("threads", "repeats", "reference_repeats"):
         value = getattr(args, name)
@@ -214,6 +247,7 @@ def run(args: argparse.Namespace, model_dir: str) -> dict:
             model_dir, dtype, compile_graph, threads, best["decoder_chunk"], frame, reference_logits, args.repeats
         )
         candidates.append(record)
+    picked = _pick_variant(backend, args, threads)
     sim_hz = _sim_backend_hz()
     speedup = reference_s_per_frame / fast_s_per_frame
     result = {
@@ -243,6 +277,8 @@ def run(args: argparse.Namespace, model_dir: str) -> dict:
         "peak_rss_mb": _peak_rss_mb(),
         "peak_rss_fast_only_mb": peak_rss_fast_mb,
         "sim_backend_hz": sim_hz,
+        **picked,
+        "picked_speedup": reference_s_per_frame / picked["picked_s_per_frame"],
         # Other jobs on a shared machine slow every figure; the load says how much to trust them.
         "load_avg_1min": [load_at_start, os.getloadavg()[0]],
     }
@@ -255,7 +291,44 @@ def run(args: argparse.Namespace, model_dir: str) -> dict:
         result["max_abs_diff_vs_reference"],
         logit_range,
     )
+    _say("picked %s: %.3f s/frame (%.2f Hz), %.1fx the stock forward; gate %s", result["picked"],
+         result["picked_s_per_frame"], result["picked_hz"], result["picked_speedup"],
+         {k: v["gate"]["passed"] for k, v in result["backends"].items()})
     return result
+
+
+def _pick_variant(backend, args: argparse.Namespace, threads: int) -> dict:
+    """Time and gate the CLIPSeg variants on the sim worlds' camera views, as the segmenter picks."""
+    from dovesei.segmenter import cpu_features
+    from dovesei.segmenter.fusion import FusionConfig
+    from dovesei.segmenter.picker import choose, measure
+
+    views = camera_views()
+    _say("variants: timing and gating on %d camera views of %s ...", len(views), ", ".join(GATE_WORLDS))
+    model, pick = choose(backend, args.variant, _bench_prompts(), FusionConfig(), threads=threads, frames=views)
+    timed = {c.name: c.as_dict() for c in pick.timed}
+    if pick.chosen not in timed:  # pinned: time it (and gate it) on the same views
+        from dovesei.segmenter.gate import gate
+
+        _, reference_probs = measure(backend, views, _bench_prompts(), FusionConfig())
+        s_per_frame, probs = measure(model, views, _bench_prompts(), FusionConfig())
+        result = gate(reference_probs, probs)
+        timed[pick.chosen] = {"s_per_frame": s_per_frame, "hz": 1.0 / s_per_frame, "gate": result.as_dict()}
+    for name, figures in timed.items():
+        _say("variant %s: %.3f s/frame (%.2f Hz), gate %s", name, figures["s_per_frame"], figures["hz"],
+             figures["gate"])
+    flags = cpu_features.cpu_flags()
+    return {
+        "backends": timed,
+        "backends_refused": dict(pick.refused),
+        "picked": pick.chosen,
+        "picked_how": pick.how,
+        "picked_s_per_frame": timed[pick.chosen]["s_per_frame"],
+        "picked_hz": timed[pick.chosen]["hz"],
+        "gate_views": len(views),
+        "gate": timed[pick.chosen]["gate"],
+        "cpu": cpu_features.summary(flags),
+    }
 
 
 def main(argv: list[str] | None = None) -> int:

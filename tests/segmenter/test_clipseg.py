@@ -211,11 +211,12 @@ def test_directory_without_weights_is_unavailable(tmp_path):
 
 
 
-def test_bench_smoke_prints_one_json_record(capsys):
+def test_bench_smoke_prints_one_json_record(capsys, monkeypatch, tmp_path):
     import json
 
     from dovesei.benchmarks.segmenter import main
 
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))  # the ONNX export goes there, not to ~/.cache
     code = main(["--random-weights", "--size", "tiny", "--json", "--repeats", "1", "--reference-repeats", "1"])
     assert code == 0
     record = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
@@ -225,6 +226,16 @@ def test_bench_smoke_prints_one_json_record(capsys):
     assert record["prompts"] == 13
     assert record["max_abs_diff_vs_reference"] < LOGIT_ATOL
     assert record["speedup"] == pytest.approx(record["reference_s_per_frame"] / record["fast_s_per_frame"])
+    # Every variant this host can run is timed and gated on the sim worlds' camera views; the
+    # rest are named with the reason; the picked one passes the gate and is the fastest that does.
+    backends, refused = record["backends"], record["backends_refused"]
+    assert set(backends) | set(refused) == {"fp32", "bf16", "onnx-int8", "cuda-fp16"}
+    assert backends["fp32"]["gate"]["passed"] and backends["fp32"]["gate"]["min_mask_iou"] == 1.0
+    assert record["gate_views"] == 6 and record["gate"] == backends[record["picked"]]["gate"]
+    passing = {name: b["s_per_frame"] for name, b in backends.items() if b["gate"]["passed"]}
+    assert record["picked"] == min(passing, key=passing.get)
+    assert record["picked_speedup"] == pytest.approx(record["reference_s_per_frame"] / record["picked_s_per_frame"])
+    assert isinstance(record["cpu"]["flags"], list) and isinstance(record["cpu"]["native_bf16"], bool)
 
 
 def test_bench_refuses_a_missing_model_with_exit_code_2(tmp_path, capsys):
