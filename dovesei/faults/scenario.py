@@ -226,8 +226,11 @@ def _script(ctx: Context) -> None:
         ok_since = None
         while time.monotonic() < deadline and not ctx.done.is_set():
             ctx.wait(0.05)
-            st = ctx.observer.last_status
-            good = st is not None and (st.watchdog == "ok" or st.state == "HANDOVER") and st.frame_seq > seq0
+            # Only statuses that arrived after the fault count: the last one from before an outage
+            # may still read `ok`.
+            recv_s, st = ctx.observer.statuses[-1] if ctx.observer.statuses else (0.0, None)
+            fresh = recv_s > max(ctx.fault_end_wall_s, time.time() - 0.5)  # and still arriving
+            good = fresh and st is not None and (st.watchdog == "ok" or st.state == "HANDOVER") and st.frame_seq > seq0
             ok_since = (ok_since or time.monotonic()) if good else None
             if ok_since is not None and time.monotonic() - ok_since >= RESUMED_FOR_S:
                 return
