@@ -48,7 +48,8 @@ NON_DEFAULT = {
             heatmap_dtype="float16",
             expected_size_px=(240, 320), max_side_px=2048,
             prompts=PromptSet(positive=["grass, \"soft\""], negative=["road", "car"], template="a photo of {}.")),
-        vehicle_id="base", all_vehicles=True, lockstep=True, overload_report_s=2.5),
+        vehicle_id="base", all_vehicles=True, lockstep=True, overload_report_s=2.5,
+        variant="onnx-int8"),
     "controller": ControllerConfig(
         vehicle_id="uav3", policy="dovesei-nofocus", timing="real", lockstep=False, rate_hz=12.5,
         heatmap_hold_after_s=2.0, heatmap_climb_after_s=12.0, state_stale_after_s=0.8, climb_speed_m_s=1.5,
