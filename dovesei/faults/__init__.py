@@ -1,7 +1,8 @@
-"""`dovesei faults`: the fault suite. Each run flies a short real-time episode with the three services
-as real processes through a loopback router, injects one fault mid-descent and checks the rules of
-`dovesei.faults.scenario` (no descent while blind, hold within one tick, resumption, no hand-over
-above the hand-over altitude, a report that names the fault when it should).
+"""`dovesei faults`: the fault suite. Each run flies a short episode (real time; lockstep for the
+`-lockstep` variants) with the three services as real processes through a loopback router, injects
+one fault mid-descent and checks the rules of `dovesei.faults.checks` (no descent while blind, hold
+within one tick, resumption, no hand-over above the hand-over altitude, a report that names the
+fault when it should).
 
     dovesei faults [--runs N] [--fault NAME,...] [--seed S] [--out DIR] [--json]
 

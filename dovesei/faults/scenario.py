@@ -156,10 +156,13 @@ def _skew(ctx: Context) -> None:
 
     def burst() -> None:
         now, alt = ctx.now_s(), ctx.alt_m()
+        # Behind: a stamp the codec accepts (>= 0), else the decoder alone refuses it and the
+        # controller's clock-jump handling is never probed.
+        behind_s = -min(SKEW_S, now)
         intr.skewed_heatmap(now, SKEW_S, alt)
-        intr.skewed_heatmap(now, -SKEW_S, alt)
+        intr.skewed_heatmap(now, behind_s, alt)
         intr.skewed_state(now, SKEW_S, alt)
-        intr.skewed_state(now, -SKEW_S, alt)
+        intr.skewed_state(now, behind_s, alt)
 
     ctx.every(ctx.fault.duration_s, 0.1, burst)
 
