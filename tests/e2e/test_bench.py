@@ -110,6 +110,19 @@ def test_suite_default_flies_every_world_of_the_suite(tmp_path: Path, capsys) ->
     assert "## Per world" in capsys.readouterr().out
 
 
+def test_real_timing_with_clean_perception_lands_a_pinned_share(tmp_path: Path) -> None:
+    # Fixed seeds, true seconds, 2 Hz perception, a 300 s limit: measured 2/3 safe, 1 out of the
+    # (small) world, none unsafe. The range allows one start to change either way; clean perception
+    # must never put the vehicle down on unsafe ground.
+    doc = run_bench(world_spec="synthetic:size_m=600,seed=1", episodes=3, seed=0, policies=["dovesei"], noise=None,
+                    timing="real", time_limit_s=300.0, start_alt_m=100.0, jobs=1, out=tmp_path, perception="clean",
+                    progress=False)
+    s = doc["summary"]["dovesei"]
+    assert 1 <= s["safe"] <= 3 and s["unsafe"] == 0 and s["error"] == 0, s
+    assert all(e["sim_time_s"] <= 300.0 for e in doc["episodes"])
+    assert s["success_by_limit"]["300"]["safe"] == s["safe"] and "600" not in s["success_by_limit"]
+
+
 def test_summary_means_are_over_successful_episodes() -> None:
     eps = [{"policy": "p", "outcome": "safe", "sim_time_s": 40.0, "path_length_m": 10.0, "wall_time_s": 1.0},
            {"policy": "p", "outcome": "timeout", "sim_time_s": 60.0, "path_length_m": 99.0, "wall_time_s": 1.0}]
