@@ -305,7 +305,8 @@ def _pick_variant(backend, args: argparse.Namespace, threads: int) -> dict:
 
     views = camera_views()
     _say("variants: timing and gating on %d camera views of %s ...", len(views), ", ".join(GATE_WORLDS))
-    model, pick = choose(backend, args.variant, _bench_prompts(), FusionConfig(), threads=threads, frames=views)
+    model, pick = choose(backend, args.variant, _bench_prompts(), FusionConfig(), threads=threads, frames=views,
+                         export=True)
     timed = {c.name: c.as_dict() for c in pick.timed}
     if pick.chosen not in timed:  # pinned: time it (and gate it) on the same views
         from dovesei.segmenter.gate import gate

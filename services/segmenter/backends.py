@@ -85,17 +85,26 @@ def build_variant(name: str, base: ClipSegBackend, *, threads: int | None = None
     return OnnxClipSeg(base, threads=threads)
 
 
-def candidates(base: ClipSegBackend) -> tuple[list[str], dict[str, str]]:
-    """(variants that can run here, {variant: why not} for the others), without building any."""
+def candidates(base: ClipSegBackend, *, export: bool = False) -> tuple[list[str], dict[str, str]]:
+    """(variants that can run here, {variant: why not} for the others), without building any.
+
+    onnx-int8 counts only once its export is cached, unless `export`: the one-time export takes
+    about a minute on two cores, which a service start (watched by `dovesei up`'s start-up
+    timeout) should not pay unasked; `dovesei bench-segmenter` and `--variant onnx-int8` export.
+    """
     runnable, refused = ["fp32"], {}
     native, why = bf16_native()
     (runnable.append("bf16") if native else refused.__setitem__("bf16", f"no native BF16 ({why})"))
     ok, why = cuda_available()
     (runnable.append("cuda-fp16") if ok else refused.__setitem__("cuda-fp16", why))
     try:
-        import onnxruntime  # noqa: F401  (only whether it is installed)
+        from . import onnx_backend
     except ImportError:
         refused["onnx-int8"] = "ONNX Runtime not installed (pip install 'dovesei[onnx]')"
     else:
-        runnable.append("onnx-int8")
+        if export or onnx_backend.is_exported(base):
+            runnable.append("onnx-int8")
+        else:
+            refused["onnx-int8"] = ("not exported yet for these weights (one-time, about a minute: run "
+                                    "`dovesei bench-segmenter --model <weights>` or start once with --variant onnx-int8)")
     return runnable, refused

@@ -126,13 +126,23 @@ def _session(path: Path, threads: int | None) -> ort.InferenceSession:
     return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
 
 
+def export_folder(base: ClipSegBackend, cache_dir: Path | None = None) -> Path:
+    return (cache_dir or default_cache_dir()) / weights_digest(base)
+
+
+def is_exported(base: ClipSegBackend, cache_dir: Path | None = None) -> bool:
+    """True when the export of these weights is in the cache (building the variant is then quick)."""
+    folder = export_folder(base, cache_dir)
+    return (folder / "encoder_int8.onnx").is_file() and (folder / "decoder.onnx").is_file()
+
+
 class OnnxClipSeg(ClipSegBackend):
     """The ONNX int8 variant of a loaded fp32 ``ClipSegBackend`` (shares its torch model for texts)."""
 
     def __init__(self, base: ClipSegBackend, *, cache_dir: Path | None = None, threads: int | None = None) -> None:
         super().__init__(base._model, base._processor, model_id=base.model_id, device="cpu", dtype="float32")
         self.dtype = "onnx-int8"  # what describe() and the heatmap logs name
-        folder = (cache_dir or default_cache_dir()) / weights_digest(base)
+        folder = export_folder(base, cache_dir)
         encoder, decoder = folder / "encoder_int8.onnx", folder / "decoder.onnx"
         if encoder.is_file() and decoder.is_file():
             LOG.info("ONNX export found in %s", folder)

@@ -103,12 +103,13 @@ def measure(model: ClipSegBackend, frames: Sequence[np.ndarray], prompts: Prompt
 
 def choose(base: ClipSegBackend, variant: str, prompts: PromptSet, fusion: FusionConfig, *,
            threads: int | None = None, frames: Sequence[np.ndarray] | None = None,
-           repeats: int = 1) -> tuple[ClipSegBackend, Pick]:
-    """The model to serve with and how it was chosen. `variant` is `auto` or one of VARIANTS."""
+           repeats: int = 1, export: bool = False) -> tuple[ClipSegBackend, Pick]:
+    """The model to serve with and how it was chosen. `variant` is `auto` or one of VARIANTS;
+    `export` lets `auto` export onnx-int8 when its export is not cached yet (see `candidates`)."""
     if variant != AUTO:
         return build_variant(variant, base, threads=threads), Pick(chosen=variant, how="pinned")
     frames = list(frames) if frames is not None else calibration_frames()
-    runnable, refused = candidates(base)
+    runnable, refused = candidates(base, export=export)
     models: dict[str, ClipSegBackend] = {}
     timed: list[Candidate] = []
     reference_probs: list[np.ndarray] = []

@@ -145,8 +145,8 @@ def test_onnx_int8_is_exported_once_and_close_to_fp32(base, onnx_cache, caplog) 
 
 def test_auto_times_every_runnable_variant_and_keeps_the_fastest_passing(base, onnx_cache, monkeypatch) -> None:
     monkeypatch.setattr("dovesei.segmenter.onnx_backend.default_cache_dir", lambda: onnx_cache)
-    model, pick = picker.choose(base, "auto", REFERENCE_PROMPTS, FUSION, threads=1, frames=FRAMES)
-    runnable, refused = backends.candidates(base)
+    model, pick = picker.choose(base, "auto", REFERENCE_PROMPTS, FUSION, threads=1, frames=FRAMES, export=True)
+    runnable, refused = backends.candidates(base, export=True)
     timed = {c.name: c for c in pick.timed}
     assert set(timed) | set(pick.refused) == set(backends.VARIANTS)
     assert set(timed) == set(runnable) - set(pick.refused)
@@ -159,6 +159,14 @@ def test_auto_times_every_runnable_variant_and_keeps_the_fastest_passing(base, o
     assert "picked by measurement" in pick.describe()
     for name, why in refused.items():
         assert pick.refused[name] == why
+
+
+def test_auto_does_not_export_onnx_unasked(base, tmp_path, monkeypatch) -> None:
+    monkeypatch.setattr("dovesei.segmenter.onnx_backend.default_cache_dir", lambda: tmp_path)
+    _, refused = backends.candidates(base)
+    assert "not exported yet" in refused["onnx-int8"] and "bench-segmenter" in refused["onnx-int8"]
+    _, pick = picker.choose(base, "auto", REFERENCE_PROMPTS, FUSION, threads=1, frames=FRAMES[:1])
+    assert "onnx-int8" not in {c.name for c in pick.timed} and not any(tmp_path.iterdir())
 
 
 def test_a_pinned_variant_that_cannot_run_here_is_one_clear_error(tiny_dir) -> None:
