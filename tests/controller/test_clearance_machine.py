@@ -121,12 +121,12 @@ def test_failed_rechecks_reject_in_approach_and_abort_in_descent() -> None:
     mem = at(Phase.APPROACH, target=target)
     for i in range(CFG.fail_frames):
         mem, _ = step(mem, inp(float(i), check=None), CFG)
-    assert mem.phase is Phase.SEARCH and mem.blacklist == ((20.0, 0.0),) and mem.aborts == 0
+    assert mem.phase is Phase.SEARCH and mem.blacklist == ((20.0, 0.0, 100.0),) and mem.aborts == 0
     assert "rejected" in mem.reason
     mem = at(Phase.DESCEND, target=target)
     for i in range(CFG.fail_frames):
         mem, vel = step(mem, inp(float(i), alt=50.0, n=20.0, check=None), CFG)
-    assert mem.phase is Phase.ABORT and mem.aborts == 1 and mem.blacklist == ((20.0, 0.0),)
+    assert mem.phase is Phase.ABORT and mem.aborts == 1 and mem.blacklist == ((20.0, 0.0, 50.0),)
     assert vel[2] < 0.0  # climbing
     # Ticks without a new heatmap do not count as failures.
     mem = at(Phase.DESCEND, target=target)

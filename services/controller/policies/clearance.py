@@ -118,7 +118,10 @@ class ClearancePolicy:
             self.map.fuse(prob, obs.alt_agl_m, obs.hfov_rad, obs.yaw_rad, pn + tn, pe + te,
                           weight=min(1.0, dt_c / cfg.look_period_s))
         clearance = self.map.clearance_m()
-        best = find_spot(self.map, clearance, cfg, north_m=pn, east_m=pe, blacklist=self.memory.blacklist)
+        # A spot rejected high up is looked at again once well below that altitude (finer detail
+        # may show it is fine, or why not); one rejected low down stays rejected.
+        blacklist = tuple((n, e) for n, e, alt in self.memory.blacklist if obs.alt_agl_m >= 0.8 * alt)
+        best = find_spot(self.map, clearance, cfg, north_m=pn, east_m=pe, blacklist=blacklist)
         check = None
         target = self.memory.target
         if target is not None:

@@ -57,7 +57,7 @@ class Memory:
     target: Spot | None = None
     fails: int = 0  # consecutive failed re-checks of the target
     aborts: int = 0
-    blacklist: tuple[tuple[float, float], ...] = ()
+    blacklist: tuple[tuple[float, float, float], ...] = ()  # rejected spots: north, east, altitude seen
     waypoint: int = 0  # index into the search pattern (counts repeats)
     descending: bool = False  # inside the lock (hysteresis state)
     reason: str = "starting"
@@ -112,8 +112,8 @@ def _go(mem: Memory, phase: Phase, t_s: float, reason: str, **changes: object) -
                                **changes)
 
 
-def _blacklisted(mem: Memory, spot: Spot) -> tuple[tuple[float, float], ...]:
-    return mem.blacklist + ((spot.north_m, spot.east_m),)
+def _blacklisted(mem: Memory, spot: Spot, alt_m: float) -> tuple[tuple[float, float, float], ...]:
+    return mem.blacklist + ((spot.north_m, spot.east_m, alt_m),)
 
 
 def _toward(north_err: float, east_err: float, gain: float, vmax: float, yaw: float) -> tuple[float, float]:
@@ -209,9 +209,9 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
         below = inp.alt_agl_m < search_level_alt(mem.waypoint, inp) - 5.0
         if p is Phase.DESCEND or below:
             return _go(mem, Phase.ABORT, t, why + ": abort, climbing back", target=None, aborts=mem.aborts + 1,
-                       blacklist=_blacklisted(mem, target)), (0.0, 0.0, -cfg.climb_speed_m_s)
+                       blacklist=_blacklisted(mem, target, inp.alt_agl_m)), (0.0, 0.0, -cfg.climb_speed_m_s)
         return _go(mem, Phase.SEARCH, t, why + ": rejected", target=None,
-                   blacklist=_blacklisted(mem, target)), (0.0, 0.0, 0.0)
+                   blacklist=_blacklisted(mem, target, inp.alt_agl_m)), (0.0, 0.0, 0.0)
     err_n, err_e = target.north_m - inp.north_m, target.east_m - inp.east_m
     err = math.hypot(err_n, err_e)
     lock_in = cfg.lock_in_m + cfg.lock_alt_frac * inp.alt_agl_m
@@ -221,7 +221,7 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
     if p is Phase.APPROACH:
         if t - mem.since_s > cfg.approach_timeout_s:
             return _go(mem, Phase.SEARCH, t, f"approach took over {cfg.approach_timeout_s:g} s: rejected",
-                       target=None, blacklist=_blacklisted(mem, target)), (0.0, 0.0, 0.0)
+                       target=None, blacklist=_blacklisted(mem, target, inp.alt_agl_m)), (0.0, 0.0, 0.0)
         best = inp.best
         if (best is not None and best.score > target.score + cfg.switch_gain
                 and math.hypot(best.north_m - target.north_m, best.east_m - target.east_m) > cfg.refine_radius_m):
@@ -245,7 +245,7 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
                                            f"clearance {target.clearance_m:.1f} m)"), (0.0, 0.0, 0.0)
     if t - mem.since_s > cfg.descend_timeout_s:
         return _go(mem, Phase.ABORT, t, f"descent took over {cfg.descend_timeout_s:g} s: abort", target=None,
-                   aborts=mem.aborts + 1, blacklist=_blacklisted(mem, target)), (0.0, 0.0, -cfg.climb_speed_m_s)
+                   aborts=mem.aborts + 1, blacklist=_blacklisted(mem, target, inp.alt_agl_m)), (0.0, 0.0, -cfg.climb_speed_m_s)
     if err > 3.0 * lock_out:
         return _go(mem, Phase.APPROACH, t, f"lock lost ({err:.1f} m off): approaching again"), (0.0, 0.0, 0.0)
     descending = err < lock_in or (mem.descending and err <= lock_out)
