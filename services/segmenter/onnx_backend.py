@@ -113,6 +113,9 @@ def export_split(base: ClipSegBackend, out_dir: Path, *, optimize: bool = True) 
     # every weight here is float32, so say so.
     quantize_dynamic(str(to_quantize), str(encoder_int8), weight_type=QuantType.QInt8,
                      extra_options={"DefaultTensorType": onnx.TensorProto.FLOAT})
+    # Only the int8 encoder and the decoder are served; the fp32 intermediates are ~0.7 GB for rd64.
+    for intermediate in {encoder_fp32, to_quantize}:
+        intermediate.unlink(missing_ok=True)
     LOG.info("exported the split CLIPSeg to ONNX in %.1f s (%s)", time.perf_counter() - start_s, out_dir)
     return encoder_int8, decoder
 
