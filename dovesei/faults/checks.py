@@ -88,11 +88,10 @@ def check_run(fault: Any, obs: Observer, rec: Recorder, failure: Any, fault_star
     v: list[str] = []
     statuses = sorted(obs.statuses, key=lambda p: p[1].stamp.t_s)
     hm_arrivals = sorted(obs.heatmaps)
-    arr_wall = [a for a, _, _ in hm_arrivals]
-    newest_t, best = [], -math.inf
-    for _, _, t_s in hm_arrivals:
-        best = max(best, t_s)
-        newest_t.append(best)
+    # The genuine capture time of each heatmap seq, as the segmenter stamped it (first seen wins).
+    genuine_t: dict[int, float] = {}
+    for _, seq, t_s in hm_arrivals:
+        genuine_t.setdefault(seq, t_s)
     limit_s = HOLD_S + TICK_S
     held = False
     blind_t: list[tuple[float, bool]] = []  # per status: (t_s, blind)
@@ -100,10 +99,10 @@ def check_run(fault: Any, obs: Observer, rec: Recorder, failure: Any, fault_star
         if st.state == "HANDOVER" or st.alt_agl_m <= HANDOVER_M + RELEASE_M:
             blind_t.append((st.stamp.t_s, False))
             continue
-        i = bisect.bisect_right(arr_wall, recv_s) - 1
-        # Before the observer's first heatmap the genuine age is unknown (its subscription may reach
-        # the router a moment after the controller's), not infinite.
-        true_age = st.stamp.t_s - newest_t[i] if i >= 0 else -math.inf
+        # The adopted heatmap's age by its genuine stamp: a skewed copy of a real seq shows here. A
+        # seq the observer missed (its own subscription lagging after a router restart) is unknown.
+        adopted_t = genuine_t.get(st.frame_seq)
+        true_age = st.stamp.t_s - adopted_t if adopted_t is not None else -math.inf
         own_blind = st.heatmap_age_s > limit_s or st.heatmap_age_s < 0
         true_blind = true_age > limit_s + ARRIVAL_MARGIN_S
         blind = own_blind or true_blind or st.watchdog != "ok"
