@@ -34,20 +34,40 @@ from dovesei.shared.messages import (
     CameraFrame, ControllerStatus, EpisodeResult, Message, SafetyHeatmap, VehicleState, VelocityCommand,
 )
 from dovesei.shared.recording import FlightRecorder, FlightRecording, RecordingError
+from dovesei.sim.camera import CameraModel
 
 log = logging.getLogger("dovesei.replay")
 
 
 def episode_metadata(spec: EpisodeSpec, world: str = "") -> dict[str, dict[str, Any]]:
     """The metadata records of an in-process episode's recording (what replay needs to rebuild it)."""
-    seg = segmenter_config(spec)
-    return {
-        "run": {"policy": spec.policy, "timing": spec.timing, "lockstep": True, "vehicle_id": spec.vehicle_id,
-                "seed": spec.seed, "world": world, "start": [spec.start.x_m, spec.start.y_m, spec.start.alt_m]},
+    return flight_metadata(segmenter_config(spec), policy=spec.policy, timing=spec.timing, lockstep=True,
+                           vehicle_id=spec.vehicle_id, seed=spec.seed, world=world,
+                           start=(spec.start.x_m, spec.start.y_m, spec.start.alt_m), camera=CameraModel())
+
+
+def flight_metadata(seg: SegmenterConfig, *, policy: str, timing: str, lockstep: bool, vehicle_id: str, seed: int,
+                    world: str, start: tuple[float, float, float], camera: Any = None) -> dict[str, dict[str, Any]]:
+    """Metadata records of a recording: the run, the segmenter, the prompt set and the camera model."""
+    out = {
+        "run": {"policy": policy, "timing": timing, "lockstep": lockstep, "vehicle_id": vehicle_id, "seed": seed,
+                "world": world, "start": list(start)},
         "segmenter": segmenter_metadata(seg),
         "prompts": {"positive": list(seg.prompts.positive), "negative": list(seg.prompts.negative),
                     "template": seg.prompts.template},
     }
+    if camera is not None:
+        out["camera"] = {k: v for k, v in asdict(camera).items() if isinstance(v, (int, float, str, bool))}
+    return out
+
+
+def up_recorder(out: Path, configs: Any, options: Any, start: tuple[float, float, float]) -> FlightRecorder:
+    """`dovesei up`'s recording, <out>/recording.mcap, with its services' own configs as metadata."""
+    sim = configs.sim.sim
+    meta = flight_metadata(configs.segmenter.segmenter, policy=configs.controller.policy, timing=sim.timing,
+                           lockstep=bool(options.lockstep), vehicle_id=options.vehicle_id, seed=sim.seed,
+                           world=str(options.world), start=start, camera=sim.camera)
+    return FlightRecorder(Path(out) / "recording.mcap", metadata=meta)
 
 
 def segmenter_metadata(seg: SegmenterConfig) -> dict[str, Any]:
@@ -119,16 +139,20 @@ def replay(recording: FlightRecording, *, policy: str | None = None, segmenter: 
             elif not first:
                 first = (f"t={status.stamp.t_s:.2f} s: recorded {_decision(old)}, replayed {_decision(status)}")
 
+    if lockstep:
+        # The sim waits for each command, so the heatmap a state awaits may arrive after it (over
+        # Zenoh it does): all heatmaps first, then one tick per state with the one it awaits.
+        for wall_s, msg in events:
+            if isinstance(msg, CameraFrame) and seg is not None:
+                hm = seg.process(msg)
+                heatmaps[hm.seq] = (hm, wall_s)
+            elif isinstance(msg, SafetyHeatmap) and seg is None:
+                heatmaps[msg.seq] = (msg, wall_s)
     for wall_s, msg in events:
-        if isinstance(msg, CameraFrame) and seg is not None:
-            hm = seg.process(msg)
-            heatmaps[hm.seq] = (hm, wall_s)
-            if not lockstep:
-                ctrl.on_heatmap(hm, wall_s)
-        elif isinstance(msg, SafetyHeatmap) and seg is None:
-            heatmaps[msg.seq] = (msg, wall_s)
-            if not lockstep:
-                ctrl.on_heatmap(msg, wall_s)
+        if not lockstep and isinstance(msg, CameraFrame) and seg is not None:
+            ctrl.on_heatmap(seg.process(msg), wall_s)
+        elif not lockstep and isinstance(msg, SafetyHeatmap) and seg is None:
+            ctrl.on_heatmap(msg, wall_s)
         elif isinstance(msg, VehicleState):
             latest = msg
             if lockstep:

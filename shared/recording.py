@@ -148,7 +148,7 @@ class FlightRecorder:
             self._channels[topic] = cid
         return cid
 
-    def write(self, msg: Message, *, recv_wall_s: float | None = None) -> None:
+    def write(self, msg: Message, recv_wall_s: float | None = None) -> None:
         """Record one message (its images on their image channels, with the same sequence)."""
         topic = TOPICS.get(type(msg))
         if topic is None:

@@ -1,7 +1,13 @@
-"""The episode video: camera | heatmap side by side, with the controller's focus circle, target,
-state and altitude (mp4v, MJPG .avi fallback). Needs only OpenCV.
+"""The episode video: camera | heatmap | the policy's view, a text bar and a legend on every frame.
 
-    [VideoFrame] --write_video--> episode.mp4
+    [VideoFrame] --write_video--> episode.mp4 (H.264, yuv420p, faststart: plays in browsers and IDE
+                                  previews; PyAV's libx264, extra 'video'), else OpenCV mp4v / MJPG
+
+The policy's view is what the decision was made on: the heatmap thresholded at the policy's
+threshold (when it had one), dimmed outside the dynamic-focus circle, with the chosen spot. Frames
+before the first heatmap are not shown at the start (the controller is blind then and says
+SENSOR_ERROR, which is not what the flight was about); the focus circle is never drawn where
+there is no heatmap.
 """
 
 from __future__ import annotations
@@ -10,6 +16,7 @@ import logging
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from fractions import Fraction
 from pathlib import Path
 
 import cv2
@@ -17,7 +24,16 @@ import numpy as np
 
 from dovesei.pictures.common import ReportError
 
+try:  # optional extra 'video': without it the video is MPEG-4 Part 2, which browsers do not play
+    import av
+except ImportError:  # pragma: no cover - depends on the install
+    av = None
+
 log = logging.getLogger(__name__)
+
+BAR_PX = 34  # the text bar under the panels
+LEGEND_PX = 30  # the legend row under the text bar
+PANELS = 3  # camera | heatmap | policy view
 
 
 @dataclass(frozen=True)
@@ -37,6 +53,7 @@ class VideoFrame:
     focus_radius_px: float = 0.0
     target_px: tuple[float, float] | None = None
     perception: str = ""  # e.g. "simulated perception (noise 0)": a simulated run says so on screen
+    threshold: float | None = None  # the policy's segmentation threshold on P(safe), when it had one
 
 
 def _safety_lut() -> np.ndarray:
@@ -50,51 +67,127 @@ def _safety_lut() -> np.ndarray:
 _LUT_BGR = _safety_lut()
 
 
-def _compose(frame: VideoFrame, side_px: int) -> np.ndarray:
-    """camera | heatmap side by side (BGR), with focus circle, target and a text bar."""
+def _caption(panel: np.ndarray, text: str) -> None:
+    cv2.rectangle(panel, (0, 0), (panel.shape[1], 22), (0, 0, 0), -1)
+    cv2.putText(panel, text, (6, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
+
+
+def _legend(width_px: int) -> np.ndarray:
+    """P(safe) colour bar and the marks' meanings (drawn once, the same on every frame)."""
+    row = np.full((LEGEND_PX, width_px, 3), 24, np.uint8)
+    bar_w = 160
+    ramp = np.repeat(_LUT_BGR[np.linspace(0, 255, bar_w).astype(np.uint8)][None], 12, axis=0)
+    row[9:21, 60:60 + bar_w] = ramp
+    font, white = cv2.FONT_HERSHEY_SIMPLEX, (255, 255, 255)
+    cv2.putText(row, "P(safe) 0", (4, 20), font, 0.4, white, 1, cv2.LINE_AA)
+    cv2.putText(row, "1", (64 + bar_w, 20), font, 0.4, white, 1, cv2.LINE_AA)
+    x = 90 + bar_w
+    cv2.circle(row, (x + 8, 15), 8, (255, 255, 0), 2, cv2.LINE_AA)
+    cv2.putText(row, "focus circle", (x + 22, 20), font, 0.4, white, 1, cv2.LINE_AA)
+    x += 120
+    cv2.drawMarker(row, (x + 8, 15), (255, 0, 255), cv2.MARKER_TILTED_CROSS, 14, 2, cv2.LINE_AA)
+    cv2.putText(row, "chosen spot", (x + 22, 20), font, 0.4, white, 1, cv2.LINE_AA)
+    x += 115
+    cv2.rectangle(row, (x, 8), (x + 14, 22), (60, 60, 60), -1)
+    cv2.putText(row, "policy view: below threshold / outside focus", (x + 20, 20), font, 0.4, white, 1, cv2.LINE_AA)
+    return row
+
+
+def _compose(frame: VideoFrame, side_px: int, legend: np.ndarray | None = None) -> np.ndarray:
+    """camera | heatmap | policy view (BGR), with focus circle, target, a text bar and the legend."""
     cam = cv2.resize(cv2.cvtColor(np.ascontiguousarray(frame.image_rgb), cv2.COLOR_RGB2BGR), (side_px, side_px),
                      interpolation=cv2.INTER_AREA)
-    if frame.prob_safe is not None:
+    has_heatmap = frame.prob_safe is not None
+    if has_heatmap:
         prob = np.asarray(frame.prob_safe, dtype=np.float32)
         hm_h, hm_w = prob.shape
-        idx = np.clip(prob * 255.0 + 0.5, 0, 255).astype(np.uint8)
-        heat = cv2.resize(_LUT_BGR[idx], (side_px, side_px), interpolation=cv2.INTER_NEAREST)
-    else:
-        hm_h, hm_w = frame.image_rgb.shape[:2]
-        heat = np.full((side_px, side_px, 3), 40, np.uint8)
-        cv2.putText(heat, "no heatmap", (side_px // 4, side_px // 2), cv2.FONT_HERSHEY_SIMPLEX, 0.7,
-                    (200, 200, 200), 1, cv2.LINE_AA)
-    sy, sx = side_px / hm_h, side_px / hm_w
-    for panel in (cam, heat):
+        prob_big = cv2.resize(prob, (side_px, side_px), interpolation=cv2.INTER_NEAREST)
+        heat = _LUT_BGR[np.clip(prob_big * 255.0 + 0.5, 0, 255).astype(np.uint8)]
+        policy = heat.copy()
+        keep = np.ones((side_px, side_px), bool)
+        if frame.threshold is not None:
+            keep &= prob_big >= frame.threshold
+        sy, sx = side_px / hm_h, side_px / hm_w
         if frame.focus_radius_px > 0:
-            # The dynamic-focus circle; when it covers the whole image it is clipped to the frame.
-            radius = int(round(frame.focus_radius_px * sx))
-            cv2.circle(panel, (side_px // 2, side_px // 2), radius, (255, 255, 0), 2, cv2.LINE_AA)
-        if frame.target_px is not None:
-            row, col = frame.target_px
-            centre = (int(round((col + 0.5) * sx)), int(round((row + 0.5) * sy)))
-            cv2.drawMarker(panel, centre, (255, 0, 255), cv2.MARKER_TILTED_CROSS, 18, 3, cv2.LINE_AA)
-    bar = np.zeros((34, 2 * side_px, 3), np.uint8)
-    text = f"t {frame.t_s:7.2f} s   alt {frame.alt_agl_m:6.1f} m   {frame.state or '-'}"
-    if frame.watchdog and frame.watchdog != "ok":
-        text += f"   WATCHDOG {frame.watchdog.upper()}"
-    cv2.putText(bar, text, (8, 23), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 1, cv2.LINE_AA)
+            yy, xx = np.mgrid[0:side_px, 0:side_px]
+            keep &= (yy - side_px / 2) ** 2 + (xx - side_px / 2) ** 2 <= (frame.focus_radius_px * sx) ** 2
+        policy[~keep] = (policy[~keep] * 0.25).astype(np.uint8)
+    else:
+        heat = np.full((side_px, side_px, 3), 40, np.uint8)
+        policy = heat.copy()
+        for panel in (heat, policy):
+            cv2.putText(panel, "no heatmap yet", (side_px // 4, side_px // 2), cv2.FONT_HERSHEY_SIMPLEX, 0.7,
+                        (200, 200, 200), 1, cv2.LINE_AA)
+    if has_heatmap:  # marks belong to a heatmap: none over "no heatmap"
+        for panel in (cam, heat, policy):
+            if frame.focus_radius_px > 0:
+                # The dynamic-focus circle; when it covers the whole image it is clipped to the frame.
+                radius = int(round(frame.focus_radius_px * sx))
+                cv2.circle(panel, (side_px // 2, side_px // 2), radius, (255, 255, 0), 2, cv2.LINE_AA)
+            if frame.target_px is not None:
+                row, col = frame.target_px
+                centre = (int(round((col + 0.5) * sx)), int(round((row + 0.5) * sy)))
+                cv2.drawMarker(panel, centre, (255, 0, 255), cv2.MARKER_TILTED_CROSS, 18, 3, cv2.LINE_AA)
+    _caption(cam, "camera")
+    _caption(heat, "heatmap P(safe)")
+    thr = f" >= {frame.threshold:.2f}" if frame.threshold is not None else ""
+    _caption(policy, f"policy view: P{thr}, in focus")
     if frame.perception:
         cv2.putText(heat, frame.perception, (8, side_px - 10), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1,
                     cv2.LINE_AA)
-    cv2.putText(heat, "P(safe): red 0 .. green 1", (8, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1,
-                cv2.LINE_AA)
-    return np.vstack([np.hstack([cam, heat]), bar])
+    width = PANELS * side_px
+    bar = np.zeros((BAR_PX, width, 3), np.uint8)
+    text = f"t {frame.t_s:7.2f} s   alt {frame.alt_agl_m:6.1f} m AGL   state {frame.state or '-'}"
+    if frame.watchdog and frame.watchdog != "ok":
+        text += f"   WATCHDOG {frame.watchdog.upper()}"
+    cv2.putText(bar, text, (8, 23), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 1, cv2.LINE_AA)
+    return np.vstack([np.hstack([cam, heat, policy]), bar, _legend(width) if legend is None else legend])
+
+
+def _opening(frames: Sequence[VideoFrame]) -> int:
+    """Index of the first frame worth opening on: the first with a heatmap (0 when none has one)."""
+    for i, frame in enumerate(frames):
+        if frame.prob_safe is not None:
+            return i
+    return 0
 
 
 def write_video(frames: Sequence[VideoFrame], out: Path | str, fps: float = 10.0, side_px: int = 352) -> Path:
-    """Write camera | heatmap frames as mp4 ('mp4v'); falls back to MJPG .avi. Returns the file written."""
+    """Write the frames as H.264 MP4 (PyAV), else OpenCV mp4v or MJPG .avi. Returns the file written."""
     if not frames:
         raise ReportError("no frames to write: the video needs at least one camera frame")
     if not (math.isfinite(fps) and fps > 0):
         raise ReportError(f"fps must be > 0, got {fps!r}")
+    side_px += side_px % 2  # H.264 in yuv420p needs even sides
+    frames = frames[_opening(frames):]
+    legend = _legend(PANELS * side_px)
+    images = (_compose(f, side_px, legend) for f in frames)
     out = Path(out)
-    first = _compose(frames[0], side_px)
+    if av is not None:
+        return _write_h264(images, out.with_suffix(".mp4"), fps)
+    log.warning("PyAV is not installed (extra 'video'): writing MPEG-4 Part 2, which browsers do not play")
+    return _write_opencv(images, out, fps)
+
+
+def _write_h264(images, path: Path, fps: float) -> Path:
+    # faststart puts the index first: a browser plays the file while it loads.
+    with av.open(str(path), mode="w", options={"movflags": "faststart"}) as container:
+        stream = None
+        for bgr in images:
+            if stream is None:
+                stream = container.add_stream("libx264", rate=Fraction(fps).limit_denominator(1000))
+                stream.width, stream.height = bgr.shape[1], bgr.shape[0]
+                stream.pix_fmt = "yuv420p"
+                stream.options = {"crf": "23", "preset": "veryfast"}
+            frame = av.VideoFrame.from_ndarray(np.ascontiguousarray(bgr), format="bgr24")
+            container.mux(stream.encode(frame))
+        container.mux(stream.encode(None))
+    return path
+
+
+def _write_opencv(images, out: Path, fps: float) -> Path:
+    images = iter(images)
+    first = next(images)
     size = (first.shape[1], first.shape[0])
     writer = None
     for path, fourcc in ((out.with_suffix(".mp4"), "mp4v"), (out.with_suffix(".avi"), "MJPG")):
@@ -109,8 +202,8 @@ def write_video(frames: Sequence[VideoFrame], out: Path | str, fps: float = 10.0
         raise ReportError(f"OpenCV can write neither mp4v nor MJPG video next to {out}")
     try:
         writer.write(first)
-        for frame in frames[1:]:
-            writer.write(_compose(frame, side_px))
+        for image in images:
+            writer.write(image)
     finally:
         writer.release()
     return out

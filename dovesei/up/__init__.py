@@ -41,6 +41,7 @@ from pathlib import Path
 
 import zenoh
 
+from dovesei.replay import up_recorder
 from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.shared.lifecycle import install_stop_handlers
 from dovesei.shared.zconfig import free_port, zenoh_config
@@ -139,12 +140,15 @@ def _fly(options: UpOptions, world: object, start: tuple[float, float, float], c
                     zenoh_config(mode="peer", listen=[f"tcp/127.0.0.1:{ports['monitor']}"], multicast_scouting=False,
                                  env={}))
     rec = Recorder(start, video=options.video, vehicle_id=options.vehicle_id)
+    taps = _open_taps(options, configs, start, world)
+    rec.taps = [tap.write for tap in taps]
     children = Children(out / "logs")
     session = zenoh.open(monitor_conf)
     monitor = None
     try:
         # Subscribed before any child starts: the first state the sim publishes is recorded.
-        monitor = Monitor(session, options.vehicle_id, rec, with_camera=options.video or bool(options.vehicle_url))
+        monitor = Monitor(session, options.vehicle_id, rec,
+                          with_camera=options.video or bool(options.vehicle_url) or bool(taps))
         end = WatchEnd(None, False)
         if options.takeoff:
             # The sim would judge the climb as a landing: it starts once the controller steers.
@@ -165,6 +169,8 @@ def _fly(options: UpOptions, world: object, start: tuple[float, float, float], c
             monitor.drain()
             monitor.close()
         session.close()
+        for tap in taps:
+            tap.close()
     log.info("children stopped: %s", ", ".join(f"{n} {describe_exit(c)}" for n, c in codes.items()))
 
     report = build_report(options, rec, start, noise, read_stats(out), end.failure, end.interrupted,
@@ -182,6 +188,19 @@ def _fly(options: UpOptions, world: object, start: tuple[float, float, float], c
               f"{t.episode_wall_s or t.wall_time_s:.1f} s wall, path {report.episode.path_length_m:.0f} m, "
               f"{report.perception_text()}); transport overhead p50 {t.transport_overhead.p50_ms} ms")
     return code
+
+
+def _open_taps(options: UpOptions, configs: ChildConfigs, start: tuple[float, float, float], world: object) -> list:
+    """What sees every message besides the report: the flight recording and the live view."""
+    taps: list = []
+    if options.record:
+        taps.append(up_recorder(options.out, configs, options, start))
+        log.info("recording the flight to %s", taps[-1].path)
+    if options.view or options.rrd:
+        from dovesei.view import LiveView  # lazy: rerun-sdk is the optional extra 'view'
+
+        taps.append(LiveView(world, start, spawn=options.view, rrd=options.rrd, vehicle_id=options.vehicle_id))
+    return taps
 
 
 def _start(children: Children, names: Sequence[str], commands: dict[str, list[str]], options: UpOptions) -> None:

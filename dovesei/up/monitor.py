@@ -96,6 +96,8 @@ class Recorder:
         self._latency_seen: set[int] = set()
         # A flood of garbage on a key (dovesei faults: ~400/s) logged one line per message.
         self._reject_log = RateLimitedLog(log, "monitor rejected messages")
+        # Taps see every valid message of ours with its arrival time: the flight recording, the live view.
+        self.taps: list[Any] = []
 
     def handle(self, s: Sample) -> None:
         if s.topic == LIVELINESS:
@@ -116,6 +118,8 @@ class Recorder:
             self.foreign += 1  # on our key but about another vehicle: never ours to record
             return
         self.last_recv_wall_s[s.topic] = s.recv_wall_s
+        for tap in self.taps:
+            tap(msg, s.recv_wall_s)
         sent = getattr(msg, "sent_wall_s", 0.0)
         if sent > 0 and s.topic in self.delivery_s:
             self.delivery_s[s.topic].append(s.recv_wall_s - sent)

@@ -109,6 +109,9 @@ class UpOptions:
     takeoff: bool = False
     time_limit_s: float = 1200.0
     video: bool = True
+    record: bool = True  # recording.mcap in the report folder (dovesei.shared.recording)
+    view: bool = False  # stream to a Rerun viewer on loopback (dovesei.view)
+    rrd: Path | None = None  # also save the Rerun recording here
     model: str | None = None
     vehicle_id: str = "uav1"
     heatmap_wait_s: float | None = None
@@ -224,6 +227,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "GUIDED/OFFBOARD unless --takeoff")
     p.add_argument("--takeoff", action="store_true", help="with --vehicle: arm and climb to the start altitude first")
     p.add_argument("--video", action=argparse.BooleanOptionalAction, default=True, help="write episode.mp4")
+    p.add_argument("--record", action=argparse.BooleanOptionalAction, default=True,
+                   help="record the flight to recording.mcap (replay with `dovesei replay`)")
+    p.add_argument("--view", action="store_true", help="live view in Rerun (viewer on loopback; extra 'view')")
+    p.add_argument("--rrd", type=Path, metavar="PATH", help="save a Rerun recording (.rrd) of the flight here")
     p.add_argument("--vehicle-id", default="uav1", help="vehicle id in the Zenoh keys (default: uav1)")
     p.add_argument("--heatmap-wait-s", type=float,
                    help="controller, lockstep: wall seconds to wait for a due heatmap (default: the controller's)")
@@ -249,6 +256,7 @@ def options_from_args(args: argparse.Namespace) -> UpOptions:
                      seed=args.seed, noise=args.noise, start=start, start_seed=args.start_seed,
                      start_alt_m=args.start_alt_m, out=out, realtime=args.realtime, connect=tuple(args.connect),
                      vehicle_url=args.vehicle_url, takeoff=args.takeoff, time_limit_s=limit_s, video=args.video,
+                     record=args.record, view=args.view, rrd=args.rrd,
                      model=args.model, vehicle_id=args.vehicle_id, heatmap_wait_s=args.heatmap_wait_s,
                      heatmap_hold_after_s=args.heatmap_hold_after_s, after_failure_s=args.after_failure_s,
                      stall_s=args.stall_s, log_level=args.log_level)

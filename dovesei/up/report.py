@@ -332,5 +332,6 @@ def video_frames(rec: Recorder, perception: str) -> list[videos.VideoFrame]:
             state=st.state if st else "", watchdog=st.watchdog if st else "",
             focus_radius_px=st.focus_radius_px if st else 0.0,
             target_px=(st.target_row_px, st.target_col_px) if st and st.target_valid else None,
+            threshold=st.threshold if st and st.threshold_valid else None,
             perception=perception))
     return frames
