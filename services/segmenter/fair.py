@@ -33,6 +33,9 @@ T = TypeVar("T")
 OVERLOAD_REPORT_INTERVAL_S = 10.0
 # A frame waiting this long is called out even when nothing was superseded (a stuck loop).
 STARVE_AFTER_S = 5.0
+# Vehicles one segmenter keeps slots and counters for: a sender inventing vehicle ids must not
+# grow them without end (frames of further vehicles are refused, and the service counts them).
+MAX_VEHICLES = 64
 
 
 @dataclass
@@ -62,15 +65,19 @@ class FairSlots(Generic[T]):
 
     report_interval_s: float = OVERLOAD_REPORT_INTERVAL_S
     starve_after_s: float = STARVE_AFTER_S
+    max_vehicles: int = MAX_VEHICLES
     counts: dict[str, VehicleCounts] = field(default_factory=dict)
     _slots: dict[str, _Slot[T]] = field(default_factory=dict)
     _order: list[str] = field(default_factory=list)  # vehicles in order of first appearance
     _next: int = 0  # index in _order where the round-robin search starts
     _last_report_s: float | None = None
 
-    def offer(self, vehicle: str, item: T, now_s: float) -> None:
+    def offer(self, vehicle: str, item: T, now_s: float) -> bool:
+        """Put `item` in `vehicle`'s slot; False (nothing kept) for a vehicle beyond `max_vehicles`."""
         counts = self.counts.get(vehicle)
         if counts is None:
+            if len(self._order) >= self.max_vehicles:
+                return False
             counts = self.counts[vehicle] = VehicleCounts()
             self._order.append(vehicle)
         counts.offered += 1
@@ -82,6 +89,7 @@ class FairSlots(Generic[T]):
             counts.superseded += 1
             counts.superseded_since_report += 1
             slot.item = item  # the wait keeps counting from the first unserved frame
+        return True
 
     def take(self) -> tuple[str, T] | None:
         """The next vehicle's newest frame (round-robin), or None when every slot is empty."""

@@ -43,7 +43,7 @@ from dovesei.shared.cliconfig import (
 )
 from dovesei.shared.codec import decode, encode
 from dovesei.shared.errors import ConfigError, DoveseiError, ProtocolError
-from dovesei.shared.lifecycle import Inbox, declare_alive, install_stop_handlers, write_stats
+from dovesei.shared.lifecycle import Inbox, RateLimitedLog, declare_alive, install_stop_handlers, write_stats
 from dovesei.shared.messages import CameraFrame, PromptSetMsg, SafetyHeatmap, replace
 
 from .core import (
@@ -66,6 +66,7 @@ REALTIME_FRAME_DEPTH = 256
 QUERY_DEPTH = 16
 IDLE_WAIT_S = 0.002  # longest idle sleep: frames and prompts wake the loop, queries are polled
 REJECT_DECODE = "decode"  # payloads the codec refused (garbage, broken JPEG, wrong schema)
+REJECT_TOO_MANY_VEHICLES = "too_many_vehicles"  # beyond fair.MAX_VEHICLES distinct vehicle ids
 
 
 @dataclass(frozen=True)
@@ -114,6 +115,7 @@ class SegmenterService:
                             depth=LOCKSTEP_FRAME_DEPTH if config.lockstep else REALTIME_FRAME_DEPTH,
                             wakeup=self.wakeup)
         self.slots: FairSlots[tuple[CameraFrame, str, float]] = FairSlots(report_interval_s=config.overload_report_s)
+        self._vehicle_log = RateLimitedLog(log, "segmenter")
         self.prompt_inbox = Inbox(session, self.prompts_key, PromptSetMsg, newest_only=False, wakeup=self.wakeup)
         self.queryable = session.declare_queryable(self.segment_key, zenoh.handlers.FifoChannel(QUERY_DEPTH))
         # Declared last: when the token is visible, every subscription above already exists.
@@ -173,7 +175,11 @@ class SegmenterService:
             except FrameRejected as exc:
                 log.warning("%s on %s", exc, key)
                 continue
-            self.slots.offer(vehicle, (frame, key, recv_wall_s), time.monotonic())
+            if not self.slots.offer(vehicle, (frame, key, recv_wall_s), time.monotonic()):
+                self.core.count_rejected(REJECT_TOO_MANY_VEHICLES)
+                self._vehicle_log.warn(REJECT_TOO_MANY_VEHICLES, f"frame of {vehicle!r} refused: already serving "
+                                                                 f"{self.slots.max_vehicles} vehicles")
+                continue
             if self.config.lockstep:
                 break  # lockstep: one frame at a time, in arrival order (the FIFO keeps the rest)
         return got_any

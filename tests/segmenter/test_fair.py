@@ -57,6 +57,14 @@ def test_round_robin_resumes_after_the_last_vehicle_served() -> None:
     assert [slots.take()[0] for _ in range(3)] == ["b", "c", "a"]
 
 
+def test_vehicles_beyond_the_cap_are_refused_not_kept() -> None:
+    slots: FairSlots[int] = FairSlots(max_vehicles=2)
+    assert slots.offer("a", 1, 0.0) and slots.offer("b", 1, 0.0)
+    assert not slots.offer("c", 1, 0.0)
+    assert slots.offer("a", 2, 0.0)  # known vehicles still served
+    assert set(slots.stats()) == {"a", "b"} and slots.waiting() == 2
+
+
 def test_overload_is_reported_once_per_interval_with_per_vehicle_rates() -> None:
     slots: FairSlots[int] = FairSlots(report_interval_s=10.0)
     assert slots.overload_report(0.0) is None  # starts the interval
