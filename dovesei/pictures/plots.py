@@ -143,7 +143,8 @@ def plot_trajectory(world: Any, report: Mapping[str, Any], out_png: Path | str) 
 
     box = _crop_box_m(xs, ys, world)
     crop, extent = _world_crop(world, box)
-    fig, ax = plt.subplots(figsize=(8.5, 8.0), dpi=110)
+    # The map above, the altitude profile below: seen from above a descent shrinks to a dot.
+    fig, (ax, ax_alt) = plt.subplots(2, 1, figsize=(8.5, 10.4), dpi=110, gridspec_kw={"height_ratios": [4.0, 1.25]})
     ax.imshow(crop, extent=extent, interpolation="bilinear")
 
     # One polyline per run of ticks in the same state (thousands of ticks, far fewer runs),
@@ -190,11 +191,36 @@ def plot_trajectory(world: Any, report: Mapping[str, Any], out_png: Path | str) 
     detail = str(report.get("detail", ""))
     detail = detail if len(detail) <= 90 else detail[:87] + "..."  # the full text is in report.json
     ax.set_title(f"{outcome.upper()}: {detail}\n{subtitle}", fontsize=10)
+    _altitude_profile(ax_alt, traj, states, report)
     out_png = Path(out_png)
     fig.tight_layout()
     fig.savefig(out_png)
     plt.close(fig)
     return out_png
+
+
+def _altitude_profile(ax: Any, traj: Mapping[str, Any], states: Sequence[str], report: Mapping[str, Any]) -> None:
+    """Altitude over sim time, coloured by the controller's state as the path is, with the hand-over line."""
+    from matplotlib.collections import LineCollection
+
+    ts = np.asarray(traj.get("t_s", []), dtype=np.float64)
+    alts = np.asarray(traj.get("alt_m", []), dtype=np.float64)
+    if ts.size < 2 or ts.shape != alts.shape:
+        ax.set_axis_off()
+        ax.text(0.5, 0.5, "no altitude profile recorded", ha="center", va="center", transform=ax.transAxes)
+        return
+    pts = np.column_stack([ts, alts])
+    segs = [pts[i:i + 2] for i in range(len(pts) - 1)]
+    colours = [STATE_COLOURS.get(s, OTHER_STATE_COLOUR) for s in list(states)[:len(segs)]]
+    ax.add_collection(LineCollection(segs, colors=colours, linewidths=2.0))
+    handover_m = float(report.get("handover_alt_m", 20.0))
+    ax.axhline(handover_m, color="black", ls="--", lw=1.0)
+    ax.text(ts[0], handover_m, f" hand-over {handover_m:g} m", va="bottom", fontsize=8)
+    ax.set_xlim(ts[0], ts[-1] if ts[-1] > ts[0] else ts[0] + 1.0)
+    ax.set_ylim(0.0, max(float(alts.max()), handover_m) * 1.1)
+    ax.set_xlabel("sim time (s)")
+    ax.set_ylabel("altitude AGL (m)")
+    ax.grid(alpha=0.3)
 
 
 # Corner name -> the inset's [left, bottom] in axes fractions (the inset is 0.34 wide and high).
@@ -242,10 +268,12 @@ def _footprint_inset(ax: Any, world: Any, x_m: float, y_m: float, radius_m: floa
     ins.set_ylim(box[2], box[3])
     ins.set_xticks([])
     ins.set_yticks([])
-    ins.set_title(f"{2 * radius_m:g} m footprint (red: unsafe)", fontsize=7, color="white",
-                  backgroundcolor="#000000a0")
+    ins.set_title(f"zoom {2 * half_m:.0f} m wide: {2 * radius_m:g} m footprint (red: unsafe)", fontsize=7,
+                  color="white", backgroundcolor="#000000a0")
     for spine in ins.spines.values():
         spine.set_edgecolor("yellow")
+    # The zoomed box drawn on the map, with connectors: the inset reads as a zoom, not as a second map.
+    ax.indicate_inset_zoom(ins, edgecolor="yellow", alpha=0.9)
 
 
 # ---------------------------------------------------------------- the bench: paths.png

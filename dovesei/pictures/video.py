@@ -34,6 +34,7 @@ log = logging.getLogger(__name__)
 BAR_PX = 34  # the text bar under the panels
 LEGEND_PX = 30  # the legend row under the text bar
 PANELS = 3  # camera | heatmap | policy view
+BLIND_STATES = ("", "INIT", "SENSOR_ERROR")  # the controller has not used a heatmap yet
 
 
 @dataclass(frozen=True)
@@ -116,7 +117,7 @@ def _compose(frame: VideoFrame, side_px: int, legend: np.ndarray | None = None) 
         heat = np.full((side_px, side_px, 3), 40, np.uint8)
         policy = heat.copy()
         for panel in (heat, policy):
-            cv2.putText(panel, "no heatmap yet", (side_px // 4, side_px // 2), cv2.FONT_HERSHEY_SIMPLEX, 0.7,
+            cv2.putText(panel, "no heatmap kept", (side_px // 4, side_px // 2), cv2.FONT_HERSHEY_SIMPLEX, 0.7,
                         (200, 200, 200), 1, cv2.LINE_AA)
     if has_heatmap:  # marks belong to a heatmap: none over "no heatmap"
         for panel in (cam, heat, policy):
@@ -145,7 +146,11 @@ def _compose(frame: VideoFrame, side_px: int, legend: np.ndarray | None = None) 
 
 
 def _opening(frames: Sequence[VideoFrame]) -> int:
-    """Index of the first frame worth opening on: the first with a heatmap (0 when none has one)."""
+    """Index of the first frame worth opening on: the first with a heatmap that the controller has
+    acted on (not blind: SENSOR_ERROR, INIT or no status); else the first with a heatmap; else 0."""
+    for i, frame in enumerate(frames):
+        if frame.prob_safe is not None and frame.state not in BLIND_STATES:
+            return i
     for i, frame in enumerate(frames):
         if frame.prob_safe is not None:
             return i
