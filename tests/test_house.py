@@ -5,7 +5,8 @@
   (`dovesei.cli`, `dovesei.up`, `dovesei.testing`, `dovesei.benchmarks`, `dovesei.pictures`, ...).
   `dovesei.shared` imports no service at all.
 - Imports of project modules sit at module top; one inside a function needs a reason on its line
-  (``# lazy: <why>``). Third-party imports inside functions (torch, transformers, cv2, pymavlink
+  or just above it (``# lazy: <why>``), or an `except ImportError` around it (an optional
+  dependency, named by the handler). Third-party imports inside functions (torch, transformers, cv2, pymavlink
   when a mode needs them) are the usual optional-dependency pattern and are not counted here.
 - Nothing tracked refers to the team's machines: no `../shared`, no `/work/`, no home folders.
 - Packaging matches the tree: every declared package exists, every package folder is declared,
@@ -92,6 +93,20 @@ def test_a_service_imports_only_shared_and_itself(path: Path) -> None:
     assert not bad, f"{path.relative_to(ROOT)} ({package}) imports outside dovesei.shared and itself: {bad}"
 
 
+def _guarded_imports(tree: ast.AST) -> set[int]:
+    """ids of imports in the body of a `try` that catches ImportError: an optional dependency,
+    whose handler says what is missing, which is reason enough to import late."""
+    names = {"ImportError", "ModuleNotFoundError"}
+    guarded: set[int] = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Try) and any(
+                isinstance(h.type, ast.Name) and h.type.id in names
+                or isinstance(h.type, ast.Tuple) and any(isinstance(e, ast.Name) and e.id in names for e in h.type.elts)
+                for h in node.handlers):
+            guarded |= {id(n) for stmt in node.body for n in ast.walk(stmt) if isinstance(n, (ast.Import, ast.ImportFrom))}
+    return guarded
+
+
 def _has_lazy_reason(lines: list[str], node: ast.stmt) -> bool:
     """A '# lazy:' comment on the import's own lines, or in the comment just above it (which may
     head a group of imports: the lines between are comments or imports)."""
@@ -114,8 +129,9 @@ def test_project_imports_inside_functions_state_a_reason(path: Path) -> None:
     lines = path.read_text(encoding="utf-8").splitlines()
     tree = ast.parse("\n".join(lines), filename=str(path))
     hidden = []
+    guarded = _guarded_imports(tree)
     for node, module, in_function in _imports(tree, package):
-        if not in_function or not (module == "dovesei" or module.startswith("dovesei.")):
+        if not in_function or not (module == "dovesei" or module.startswith("dovesei.")) or id(node) in guarded:
             continue
         if not _has_lazy_reason(lines, node):
             hidden.append(f"line {node.lineno}: {module}")
@@ -141,6 +157,9 @@ def test_the_checker_sees_what_it_should() -> None:
     tree = ast.parse("\n".join(lines))
     reasons = [_has_lazy_reason(lines, node) for node, _, _ in _imports(tree, "dovesei.segmenter")]
     assert reasons == [True, True, False]
+    optional = ast.parse("def f():\n    try:\n        from . import onnx\n    except ImportError:\n        pass\n"
+                         "    from . import other\n")
+    assert [id(n) in _guarded_imports(optional) for n, _, _ in _imports(optional, "dovesei.segmenter")] == [True, False]
 
 
 # ---------------------------------------------------------------------------------- paths
