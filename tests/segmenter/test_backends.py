@@ -89,6 +89,17 @@ def test_dynamic_threshold_keeps_about_the_best_tenth() -> None:
     assert not gate.dynamic_threshold_mask(np.zeros((10, 10), np.float32)).any()
 
 
+def test_gate_mask_is_the_controllers_dynamic_threshold() -> None:
+    from dovesei.controller.policies.dovesei import DoveseiConfig, dynamic_threshold
+
+    rng = np.random.default_rng(3)
+    for scale in (1.0, 0.5, 0.05, 0.002):  # from easy frames to ones needing a low threshold, or none
+        prob = (rng.random((60, 80)) ** 3 * scale).astype(np.float32)
+        theirs = dynamic_threshold(prob, DoveseiConfig()).mask_u8
+        ours = gate.dynamic_threshold_mask(prob)
+        assert np.array_equal(ours, np.zeros_like(ours) if theirs is None else theirs > 0), scale
+
+
 # --- variants ---------------------------------------------------------------------------------
 
 
