@@ -6,8 +6,8 @@
   `dovesei.shared` imports no service at all.
 - Imports of project modules sit at module top; one inside a function needs a reason on its line
   or just above it (``# lazy: <why>``), or an `except ImportError` around it (an optional
-  dependency, named by the handler). Third-party imports inside functions (torch, transformers, cv2, pymavlink
-  when a mode needs them) are the usual optional-dependency pattern and are not counted here.
+  dependency, named by the handler). Third-party imports inside functions (torch, transformers,
+  cv2, pymavlink when a mode needs them) are the usual optional-dependency pattern, not counted.
 - Nothing tracked refers to the team's machines: no `../shared`, no `/work/`, no home folders.
 - Packaging matches the tree: every declared package exists, every package folder is declared,
   every package-data pattern matches a file.
