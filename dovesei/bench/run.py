@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from dovesei.bench import engines, stats
+from dovesei.pictures.html import write_bench_page
 from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.sim.starts import generate_starts
 from dovesei.sim.world import load_world
@@ -230,6 +231,7 @@ def _run(grid: Grid, jobs: list[dict], todo: list[dict], done: dict, worlds: dic
     (out / "results.json").write_text(json.dumps(doc, indent=1))
     (out / "summary.md").write_text(summary_markdown(doc, title=title))
     _plot_paths(grid, worlds, doc, out)
+    write_bench_page(out, doc, title=title)  # after the pictures: the page embeds them
     return doc
 
 
