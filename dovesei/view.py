@@ -29,6 +29,7 @@ from typing import Any
 import cv2
 import numpy as np
 import rerun as rr
+from rerun.chunk import RrdReader
 
 from dovesei.shared.errors import ConfigError
 from dovesei.shared.messages import (
@@ -196,8 +197,6 @@ class LiveView:
 
 def rrd_entities(path: str | Path) -> dict[str, int]:
     """Entity path -> rows in an .rrd, read back with the Rerun SDK's own reader."""
-    from rerun.chunk import RrdReader  # the SDK's reader module; only tests and checks need it
-
     rows: dict[str, int] = {}
     for chunk in RrdReader(path).store().stream():
         rows[str(chunk.entity_path)] = rows.get(str(chunk.entity_path), 0) + chunk.num_rows

@@ -279,6 +279,10 @@ def _footprint_inset(ax: Any, world: Any, x_m: float, y_m: float, radius_m: floa
 # ---------------------------------------------------------------- the bench: paths.png
 
 
+def _noise_text(noise: Any) -> str:
+    return "1 (as calibrated)" if noise is None else f"x{noise:g}" if isinstance(noise, (int, float)) else str(noise)
+
+
 def plot_bench_paths(world: Any, doc: Mapping[str, Any], tracks_dir: Path | str, out_png: Path | str,
                      max_starts: int = 4) -> Path | None:
     """Every policy's path from the same starts, one panel per start (the paper's figure of paths).
@@ -327,9 +331,13 @@ def plot_bench_paths(world: Any, doc: Mapping[str, Any], tracks_dir: Path | str,
             # ablation must not bury it.
             top = 3 + len(policies) - rank
             ax.plot(track[:, 1], track[:, 2], color=colour[pol], lw=1.8, alpha=0.85, zorder=top)
+            # The end: a disc in the policy's colour under an X in the outcome's, white-edged, so it
+            # stands out on any ground and says both whose end it is and how it ended.
+            ax.plot(track[-1, 1], track[-1, 2], marker="o", ms=17, color=colour[pol], markeredgecolor="white",
+                    markeredgewidth=1.5, zorder=10 + top)
             ax.plot(track[-1, 1], track[-1, 2], marker="X", ms=11, color=OUTCOME_COLOURS.get(ep["outcome"], "black"),
-                    markeredgecolor=colour[pol], markeredgewidth=1.5, zorder=10 + top)
-            handles.append(Line2D([], [], color=colour[pol], lw=2,
+                    markeredgecolor="white", markeredgewidth=1.2, zorder=11 + top)
+            handles.append(Line2D([], [], color=colour[pol], lw=2, marker="o", ms=8, markeredgecolor="white",
                                   label=f"{pol}: {ep['outcome']}, {ep.get('sim_time_s', 0):.0f} s, "
                                         f"{ep.get('path_length_m', 0):.0f} m"))
         first = next(iter(runs.values()))[1]
@@ -337,17 +345,19 @@ def plot_bench_paths(world: Any, doc: Mapping[str, Any], tracks_dir: Path | str,
         ax.set_xlim(extent[0], extent[1])
         ax.set_ylim(extent[2], extent[3])
         ax.set_title(f"start {index} ({first[0, 1]:.0f}, {first[0, 2]:.0f}) m", fontsize=10)
+        ax.set_xlabel("x east (m)", fontsize=8)
+        ax.set_ylabel("y north (m)", fontsize=8)
         ax.legend(handles=handles, loc="upper left", fontsize=8, framealpha=0.85)
         ax.tick_params(labelsize=7)
     for ax in list(axes.flat)[len(chosen):]:
         ax.axis("off")
     config = doc.get("config", {})
     fig.suptitle(f"Paths from the same starts: {config.get('world', 'world')}, {config.get('timing', '?')} timing, "
-                 f"simulated perception noise {config.get('noise', '?')}\n"
-                 "triangle = start, X = end coloured by outcome (green safe, red unsafe, orange timeout, "
-                 "grey out of world)", fontsize=10)
-    fig.tight_layout()
+                 f"simulated perception noise {_noise_text(config.get('noise', '?'))}\n"
+                 "triangle = start; end = disc in the policy's colour with an X coloured by outcome (green safe, "
+                 "red unsafe, orange timeout, grey out of world)", fontsize=10)
+    fig.tight_layout(rect=(0.0, 0.0, 1.0, 0.94))  # room for the two-line title above the panels
     out_png = Path(out_png)
-    fig.savefig(out_png)
+    fig.savefig(out_png, bbox_inches="tight")  # axis labels are never cut off
     plt.close(fig)
     return out_png
