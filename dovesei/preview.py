@@ -14,10 +14,7 @@ import logging
 import sys
 from pathlib import Path
 
-import cv2
-import numpy as np
-
-from dovesei.pictures.world import colourise_labels, render_preview, render_views
+from dovesei.pictures.world import render_preview, render_views, world_sheet
 from dovesei.shared.errors import DoveseiError
 from dovesei.sim.camera import CameraModel, render
 from dovesei.sim.synthetic import parse_spec
@@ -35,18 +32,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, default=Path("runs/preview"))
     p.add_argument("--no-perception", action="store_true", help="skip the simulated perception sheet")
     return p
-
-
-def _world_sheet(world, path: Path, panel_px: int = 900) -> None:
-    image = world.image_rgb
-    scale = panel_px / max(image.shape[:2])
-    size = (max(1, int(image.shape[1] * scale)), max(1, int(image.shape[0] * scale)))
-    left = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
-    parts = [left]
-    if world.labels is not None:
-        parts += [np.full((size[1], 8, 3), 255, np.uint8),
-                  cv2.resize(colourise_labels(world, world.labels), size, interpolation=cv2.INTER_NEAREST)]
-    cv2.imwrite(str(path), np.ascontiguousarray(np.hstack(parts)[:, :, ::-1]))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -70,7 +55,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.world.startswith("synthetic"):
         written.append(render_preview(parse_spec(args.world), args.out / "world.png"))
     else:
-        _world_sheet(world, args.out / "world.png")
+        world_sheet(world, args.out / "world.png")
         written.append(args.out / "world.png")
     written.append(render_views(world, x_m, y_m, args.out / "camera.png"))
     if not args.no_perception and world.labels is not None:

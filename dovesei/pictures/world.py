@@ -7,6 +7,7 @@ Reads worlds and renders camera views through `dovesei.sim`; nothing here is use
 from __future__ import annotations
 
 import colorsys
+import math
 from pathlib import Path
 
 import cv2
@@ -49,6 +50,8 @@ def render_preview(params: SyntheticParams, path: Path | str, crop_m: float = 30
     interp = cv2.INTER_AREA if crop > panel_px else cv2.INTER_NEAREST
     ci = cv2.resize(ci, (panel_px, panel_px), interpolation=interp)
     cl = cv2.resize(cl, (panel_px, panel_px), interpolation=cv2.INTER_NEAREST)
+    for panel in (ci, cl):
+        scale_bar(panel, crop * params.gsd_m / panel_px)
     legend = np.full((panel_px, 330, 3), 255, np.uint8)
     frac = safe_fraction(labels)
     lines = [f"{params.style}  seed {params.seed}  {params.size_m:g} m  {params.gsd_m:g} m/px",
@@ -111,6 +114,7 @@ def render_views(world: World, x_m: float, y_m: float, path: str | Path,
         image, labels, _ = render(world, x_m, y_m, alt_m, yaw_rad, cam)
         tile = image.copy()
         _caption(tile, f"{alt_m:.0f} m AGL  {2 * cam.half_width_m(alt_m):.0f} m wide")
+        scale_bar(tile, 2 * cam.half_width_m(alt_m) / cam.width_px)
         parts = [tile]
         if labels is not None:
             lab = colourise_labels(world, labels)
@@ -126,6 +130,45 @@ def render_views(world: World, x_m: float, y_m: float, path: str | Path,
     if not cv2.imwrite(str(path), np.ascontiguousarray(sheet[:, :, ::-1])):
         raise OSError(f"could not write {path}")
     return path
+
+
+def world_sheet(world: World, path: str | Path, panel_px: int = 900) -> Path:
+    """Write world.png for a world folder: the image beside its colour-coded labels, a scale bar
+    on each and the class legend under them (a label picture without its key says nothing)."""
+    image = world.image_rgb
+    scale = panel_px / max(image.shape[:2])
+    size = (max(1, int(image.shape[1] * scale)), max(1, int(image.shape[0] * scale)))
+    left = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+    parts = [left]
+    if world.labels is not None:
+        parts += [np.full((size[1], 8, 3), 255, np.uint8),
+                  cv2.resize(colourise_labels(world, world.labels), size, interpolation=cv2.INTER_NEAREST)]
+    m_per_px = world.gsd_m / scale
+    for panel in (parts[0], parts[-1]):
+        scale_bar(panel, m_per_px)
+    body = np.hstack(parts)
+    legend = _legend(world, body.shape[1])
+    sheet = np.vstack([body, legend]) if legend is not None else body
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(path), np.ascontiguousarray(sheet[:, :, ::-1])):
+        raise OSError(f"could not write {path}")
+    return path
+
+
+def scale_bar(img: np.ndarray, m_per_px: float, max_frac: float = 0.3) -> None:
+    """A round-length scale bar in the lower left corner (in place; RGB)."""
+    target_m = img.shape[1] * max_frac * m_per_px
+    if not (target_m > 0 and math.isfinite(target_m)):
+        return
+    step = 10 ** math.floor(math.log10(target_m))
+    length_m = max(m for m in (step, 2 * step, 5 * step) if m <= target_m)
+    length_px = int(round(length_m / m_per_px))
+    x0, y0 = 12, img.shape[0] - 14
+    cv2.rectangle(img, (x0 - 6, y0 - 24), (x0 + length_px + 6, y0 + 8), (255, 255, 255), -1)
+    cv2.rectangle(img, (x0, y0 - 3), (x0 + length_px, y0 + 3), (0, 0, 0), -1)
+    text = f"{length_m:g} m" if length_m < 1000 else f"{length_m / 1000:g} km"
+    cv2.putText(img, text, (x0, y0 - 8), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
 
 
 def _caption(img: np.ndarray, text: str) -> None:
