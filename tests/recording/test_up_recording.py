@@ -1,5 +1,6 @@
 """`dovesei up` records the flight by default: three processes on Zenoh, the monitor's recorder
-writes recording.mcap, and a replay of it gives the controller's own decisions back."""
+writes recording.mcap, and a replay of it gives the controller's own decisions back; `--rrd` saves
+the live Rerun view of the same stream."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ import pytest
 from dovesei.replay import replay
 from dovesei.shared.messages import CameraFrame, ControllerStatus, SafetyHeatmap, VehicleState
 from dovesei.shared.recording import FlightRecording
+from dovesei.view import rrd_entities
 
 REPO = Path(__file__).resolve().parents[2]
 WORLD = "synthetic:size_m=400,seed=1"
@@ -23,7 +25,7 @@ WORLD = "synthetic:size_m=400,seed=1"
 def test_up_records_and_the_recording_replays_to_the_same_decisions(tmp_path: Path) -> None:
     out = tmp_path / "run"
     argv = [sys.executable, "-m", "dovesei.cli", "up", "--world", WORLD, "--segmenter", "sim", "--start", "200,200,35",
-            "--time-limit-s", "20", "--no-video", "--out", str(out)]
+            "--time-limit-s", "20", "--no-video", "--rrd", str(tmp_path / "live.rrd"), "--out", str(out)]
     proc = subprocess.run(argv, cwd=REPO, capture_output=True, text=True, timeout=240,
                           env={**os.environ, "HF_HUB_OFFLINE": "1"})
     assert proc.returncode in (0, 3), proc.stderr[-3000:]
@@ -41,3 +43,6 @@ def test_up_records_and_the_recording_replays_to_the_same_decisions(tmp_path: Pa
     assert result.compared == kinds[ControllerStatus] > 0
     assert result.same == result.compared, result.first_difference
     assert result.recorded_outcome == report["outcome"]
+    # The live view's tap saw the same stream: the .rrd holds one altitude sample per state.
+    rows = rrd_entities(tmp_path / "live.rrd")
+    assert rows["/plots/alt_agl_m"] == kinds[VehicleState] and rows["/camera/heatmap"] == kinds[SafetyHeatmap]
