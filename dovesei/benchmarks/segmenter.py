@@ -93,21 +93,22 @@ GATE_WORLDS = ("synthetic", "dubai")
 GATE_POSES = ((0.35, 0.40, 100.0, 0.0), (0.55, 0.55, 60.0, 0.7), (0.70, 0.35, 35.0, 2.0))
 
 
-def camera_views() -> list[np.ndarray]:
-    """The gate's frames: 352 px nadir camera views of the sim worlds (GATE_WORLDS x GATE_POSES)."""
+def camera_views(n: int = len(GATE_WORLDS) * len(GATE_POSES)) -> list[np.ndarray]:
+    """The gate's frames: `n` 352 px nadir camera views of the sim worlds, alternating worlds
+    pose by pose (GATE_POSES x GATE_WORLDS), so any `n` >= 2 sees both worlds."""
     from dovesei.sim.camera import CameraModel, render
     from dovesei.sim.world import load_world
 
     cam = CameraModel()
+    worlds = [load_world(name) for name in GATE_WORLDS]
     views = []
-    for name in GATE_WORLDS:
-        world = load_world(name)
-        height_px, width_px = world.image_rgb.shape[:2]
-        for fx, fy, alt_m, yaw_rad in GATE_POSES:
+    for fx, fy, alt_m, yaw_rad in GATE_POSES:
+        for world in worlds:
+            height_px, width_px = world.image_rgb.shape[:2]
             image, _, _ = render(world, fx * width_px * world.gsd_m, fy * height_px * world.gsd_m, alt_m, yaw_rad,
                                  cam, with_labels=False)
             views.append(image)
-    return views
+    return views[:n]
 
 
 def _parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -129,9 +130,13 @@ def _parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--reference-repeats", type=int, default=3, help="timed reference frames (slow)")
     parser.add_argument("--bf16", action="store_true", help="also time the fast path in bfloat16")
     parser.add_argument("--compile", action="store_true", help="also time the fast path under torch.compile")
+    parser.add_argument("--views", type=int, default=len(GATE_WORLDS) * len(GATE_POSES),
+                        help="camera views the variants are timed and gated on (default: all, 3 per world)")
     parser.add_argument("--variant", default="auto", help="CLIPSeg variant to report as picked: auto (measure "
                         "and gate every one this host can run) or one name to pin")
     args = parser.parse_args(argv)
+    if not 1 <= args.views <= len(GATE_WORLDS) * len(GATE_POSES):
+        parser.error(f"--views must be in 1..{len(GATE_WORLDS) * len(GATE_POSES)}, got {args.views}")
     for name in ("threads", "repeats", "reference_repeats"):
         value = getattr(args, name)
         if value is not None and value < 1:
@@ -303,7 +308,7 @@ def _pick_variant(backend, args: argparse.Namespace, threads: int) -> dict:
     from dovesei.segmenter.fusion import FusionConfig
     from dovesei.segmenter.picker import choose, measure
 
-    views = camera_views()
+    views = camera_views(args.views)
     _say("variants: timing and gating on %d camera views of %s ...", len(views), ", ".join(GATE_WORLDS))
     model, pick = choose(backend, args.variant, _bench_prompts(), FusionConfig(), threads=threads, frames=views,
                          export=True)

@@ -217,7 +217,8 @@ def test_bench_smoke_prints_one_json_record(capsys, monkeypatch, tmp_path):
     from dovesei.benchmarks.segmenter import main
 
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))  # the ONNX export goes there, not to ~/.cache
-    code = main(["--random-weights", "--size", "tiny", "--json", "--repeats", "1", "--reference-repeats", "1"])
+    code = main(["--random-weights", "--size", "tiny", "--json", "--repeats", "1", "--reference-repeats", "1",
+                 "--views", "2"])
     assert code == 0
     record = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     for key in ("prompts", "threads", "reference_s_per_frame", "fast_s_per_frame", "speedup", "fast_hz",
@@ -231,7 +232,7 @@ def test_bench_smoke_prints_one_json_record(capsys, monkeypatch, tmp_path):
     backends, refused = record["backends"], record["backends_refused"]
     assert set(backends) | set(refused) == {"fp32", "bf16", "onnx-int8", "cuda-fp16"}
     assert backends["fp32"]["gate"]["passed"] and backends["fp32"]["gate"]["min_mask_iou"] == 1.0
-    assert record["gate_views"] == 6 and record["gate"] == backends[record["picked"]]["gate"]
+    assert record["gate_views"] == 2 and record["gate"] == backends[record["picked"]]["gate"]
     passing = {name: b["s_per_frame"] for name, b in backends.items() if b["gate"]["passed"]}
     assert record["picked"] == min(passing, key=passing.get)
     assert record["picked_speedup"] == pytest.approx(record["reference_s_per_frame"] / record["picked_s_per_frame"])
