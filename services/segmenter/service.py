@@ -363,8 +363,9 @@ CLI = CommandLine(ServiceConfig, {
     "all_vehicles": Flag("--all-vehicles", "serve every vehicle's camera key (ground station)"),
     "lockstep": Flag("--lockstep", "answer every frame in order (lockstep benchmarks)"),
     "variant": Flag("--variant", "CLIPSeg variant: auto = time those this host can run (fp32, bf16 with native "
-                    "BF16, onnx-int8 with the onnx extra, cuda-fp16 with a GPU) and keep the fastest passing "
-                    "the decision gate; a name pins one", choices=CLIPSEG_VARIANTS),
+                    "BF16, onnx-int8 with the onnx extra once exported, cuda-fp16 with a GPU) and keep the fastest "
+                    "passing the decision gate; a name pins one (onnx-int8 exports itself once)",
+                    choices=CLIPSEG_VARIANTS),
     "overload_report_s": Flag("--overload-report-s", "shortest interval between overload warnings (vehicles "
                               "offering more frames than are served)", check=validate.positive),
     "segmenter.backend": Flag("--backend", "auto: CLIPSeg, else simulated perception with a warning",
