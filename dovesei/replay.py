@@ -24,17 +24,22 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from dovesei.controller.core import ControllerConfig, ControllerCore
 from dovesei.controller.policies.base import policy_names
 from dovesei.episode import EpisodeSpec, segmenter_config
+from dovesei.pictures import plots
+from dovesei.pictures.common import ReportError
 from dovesei.segmenter.core import SegmenterConfig, SegmenterCore, make_backend
 from dovesei.segmenter.prompts import PromptSet
 from dovesei.shared.errors import ConfigError
 from dovesei.shared.messages import (
-    CameraFrame, ControllerStatus, EpisodeResult, Message, SafetyHeatmap, VehicleState, VelocityCommand,
+    CameraFrame, ControllerStatus, EpisodeResult, SafetyHeatmap, VehicleState,
 )
 from dovesei.shared.recording import FlightRecorder, FlightRecording, RecordingError
 from dovesei.sim.camera import CameraModel
+from dovesei.sim.world import WorldError, load_world
 
 log = logging.getLogger("dovesei.replay")
 
@@ -193,6 +198,47 @@ def _segmenter(args: argparse.Namespace, recording: FlightRecording) -> Segmente
                            **({"fusion": seg_meta["fusion"]} if "fusion" in seg_meta else {}), **extra)
 
 
+def _plot(recording: FlightRecording, result: ReplayResult, png: Path) -> bool:
+    """The recorded path over the world, labelled with the replayed policy's states (open loop)."""
+    run = recording.meta("run")
+    try:
+        world = load_world(str(run.get("world", "")))
+    except (WorldError, ConfigError) as exc:
+        log.warning("no trajectory plot: world %r not loaded (%s)", run.get("world"), exc)
+        return False
+    x0, y0, alt0 = (list(run.get("start") or (0.0, 0.0, 0.0)) + [0.0, 0.0, 0.0])[:3]
+    traj: dict[str, list] = {"t_s": [], "x_m": [], "y_m": [], "alt_m": []}
+    result_msg = None
+    for _, msg in recording.messages((VehicleState, EpisodeResult)):
+        if isinstance(msg, EpisodeResult):
+            result_msg = msg
+            continue
+        north_m, east_m, _ = msg.pos_local_ned_m
+        for key, value in (("t_s", msg.stamp.t_s), ("x_m", x0 + east_m), ("y_m", y0 + north_m),
+                           ("alt_m", msg.alt_agl_m)):
+            traj[key].append(value)
+    if not traj["t_s"]:
+        return False
+    n = len(traj["t_s"])
+    traj["state"] = (list(result.states) + [result.states[-1] if result.states else "INIT"] * n)[:n]
+    seg = recording.meta("segmenter")
+    report = {"trajectory": traj, "start": {"x_m": x0, "y_m": y0, "alt_m": alt0},
+              "outcome": result.recorded_outcome or "no outcome", "policy": f"{result.policy} (replayed)",
+              "backend": "simulated" if (seg.get("backend") == "sim") else str(seg.get("backend", "")),
+              "simulated": seg.get("backend") == "sim", "noise": seg.get("sim_noise"), "timing": run.get("timing"),
+              "sim_time_s": traj["t_s"][-1] - traj["t_s"][0],
+              "path_length_m": float(np.sum(np.hypot(np.diff(traj["x_m"]), np.diff(traj["y_m"])))),
+              "detail": f"recorded flight replayed; {result.same}/{result.compared} decisions as recorded"}
+    if result_msg is not None:
+        report["final"] = {"x_m": result_msg.final_x_m, "y_m": result_msg.final_y_m, "alt_m": result_msg.final_alt_m}
+    try:
+        plots.plot_trajectory(world, report, png)
+    except (ImportError, ReportError) as exc:  # matplotlib is a dev extra
+        log.warning("no trajectory plot: %s", exc)
+        return False
+    return True
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="dovesei replay", description=__doc__.split("\n")[0])
     parser.add_argument("recording", help="a flight recording (.mcap) written by dovesei up or a service")
@@ -216,6 +262,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     with FlightRecorder(out / "replay.mcap", metadata=metadata) as rec:
         result = replay(recording, policy=args.policy, segmenter=seg, record=rec)
     doc = {"recording": str(recording.path), "open_loop": True, **result.to_dict()}
+    doc["files"] = {"replay": "replay.json", "recording": "replay.mcap"}
+    if _plot(recording, result, out / "trajectory.png"):
+        doc["files"]["trajectory_plot"] = "trajectory.png"
     (out / "replay.json").write_text(json.dumps(doc, indent=2) + "\n")
     agree = f", {result.same}/{result.compared} decisions as recorded" if result.compared else ""
     print(f"replayed {result.ticks} ticks with {result.policy} on {result.segmenter} heatmaps{agree}; "

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import logging
 import math
+import textwrap
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -188,6 +189,7 @@ def plot_trajectory(world: Any, report: Mapping[str, Any], out_png: Path | str) 
     subtitle = (f"policy {report.get('policy', '?')}, {perception}, {report.get('timing', '?')} timing; "
                 f"{report.get('sim_time_s', 0.0):.1f} s sim, path {report.get('path_length_m', 0.0):.0f} m"
                 + (f", final alt {final_alt:.1f} m" if isinstance(final_alt, (int, float)) else ""))
+    subtitle = "\n".join(textwrap.wrap(subtitle, 100))  # a long policy or backend name is never cut off
     detail = str(report.get("detail", ""))
     detail = detail if len(detail) <= 90 else detail[:87] + "..."  # the full text is in report.json
     ax.set_title(f"{outcome.upper()}: {detail}\n{subtitle}", fontsize=10)

@@ -99,6 +99,7 @@ def test_replay_command_writes_its_report(flight, tmp_path: Path, capsys) -> Non
     assert replay_main([str(path), "--segmenter", "sim", "--out", str(tmp_path / "r")]) == 0
     doc = json.loads((tmp_path / "r" / "replay.json").read_text())
     assert doc["same"] == doc["compared"] > 0 and doc["segmenter"] == "sim"
+    assert doc["files"]["trajectory_plot"] == "trajectory.png" and (tmp_path / "r" / "trajectory.png").stat().st_size > 10_000
     again = FlightRecording(tmp_path / "r" / "replay.mcap")
     assert sum(1 for _ in again.messages((ControllerStatus,))) == doc["ticks"]
     assert sum(1 for _ in again.messages((VehicleState,))) >= doc["ticks"]
