@@ -30,6 +30,9 @@ architecture, 13 prompts): fast path 0.61-0.64 s/frame vs 9-15 s for the stock f
 range). torch.compile took 70-106 s to compile and was not faster (two runs, both with other
 jobs on the machine). Both stay options for GPUs and bf16-capable CPUs; the default is
 float32, eager.
+The service runs this backend, or a variant built from it (bf16 with native BF16, ONNX Runtime
+int8, CUDA fp16: ``backends.py``), picked at start by measurement behind a decision gate
+(``picker.py``, ``gate.py``).
 
 Nothing is loaded at import: ``load_clipseg`` is the factory. It takes a Hub id or a local
 directory through the same ``from_pretrained`` calls, so real weights and the random-weight

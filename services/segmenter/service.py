@@ -20,6 +20,9 @@ an overload (frames superseded, or a long wait) is logged at WARNING at most eve
 lockstep mode every frame is answered in order, because the controller waits for the heatmap of
 a named frame.
 
+At start `build_backend` turns a CLIPSeg backend into the variant `--variant` names, or with
+`auto` into the fastest one this host runs that decides like fp32 (`picker.py`), and logs why.
+
 Bad input never stops the service: undecodable payloads (garbage, broken JPEG) are counted by
 the inbox, frames the core refuses (size, no ground truth for the simulated backend, key naming
 another vehicle) are counted by reason; each is logged at WARNING with the reason.
