@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from fractions import Fraction
 from pathlib import Path
@@ -34,6 +34,7 @@ log = logging.getLogger(__name__)
 BAR_PX = 34  # the text bar under the panels
 LEGEND_PX = 30  # the legend row under the text bar
 PANELS = 3  # camera | heatmap | policy view
+STATE_WINDOW_S = 1.0  # sim seconds: the window of the state-change count on each frame
 BLIND_STATES = ("", "INIT", "SENSOR_ERROR")  # the controller has not used a heatmap yet
 
 
@@ -55,6 +56,7 @@ class VideoFrame:
     target_px: tuple[float, float] | None = None
     perception: str = ""  # e.g. "simulated perception (noise 0)": a simulated run says so on screen
     threshold: float | None = None  # the policy's segmentation threshold on P(safe), when it had one
+    recent_changes: int = 0  # controller state changes in the STATE_WINDOW_S before this frame
 
 
 def _safety_lut() -> np.ndarray:
@@ -139,10 +141,25 @@ def _compose(frame: VideoFrame, side_px: int, legend: np.ndarray | None = None) 
     width = PANELS * side_px
     bar = np.zeros((BAR_PX, width, 3), np.uint8)
     text = f"t {frame.t_s:7.2f} s   alt {frame.alt_agl_m:6.1f} m AGL   state {frame.state or '-'}"
+    if frame.recent_changes > 1:
+        # Frames are a sample; a policy that flips state between them would look erratic unexplained.
+        text += f" ({frame.recent_changes} state changes in the last {STATE_WINDOW_S:g} s)"
     if frame.watchdog and frame.watchdog != "ok":
         text += f"   WATCHDOG {frame.watchdog.upper()}"
     cv2.putText(bar, text, (8, 23), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 1, cv2.LINE_AA)
     return np.vstack([np.hstack([cam, heat, policy]), bar, _legend(width) if legend is None else legend])
+
+
+def state_change_times(states_by_t: Mapping[float, str]) -> np.ndarray:
+    """Sorted sim times at which the state differs from the one before (from {t_s: state})."""
+    times = sorted(states_by_t)
+    return np.asarray([t for prev, t in zip(times, times[1:]) if states_by_t[t] != states_by_t[prev]],
+                      dtype=np.float64)
+
+
+def changes_before(change_times_s: np.ndarray, t_s: float, window_s: float = STATE_WINDOW_S) -> int:
+    """How many state changes fall in (t_s - window_s, t_s]."""
+    return int(np.searchsorted(change_times_s, t_s, "right") - np.searchsorted(change_times_s, t_s - window_s, "right"))
 
 
 def _opening(frames: Sequence[VideoFrame]) -> int:

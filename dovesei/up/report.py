@@ -319,6 +319,7 @@ def write_outputs(world: Any, report: RunReport, rec: Recorder, out: Path, video
 
 def video_frames(rec: Recorder, perception: str) -> list[videos.VideoFrame]:
     frames = []
+    changes = videos.state_change_times({t: st.state for t, st in rec.statuses.items()})
     for seq in sorted(rec.video_frames):
         kept = rec.video_frames[seq]
         image = cv2.cvtColor(cv2.imdecode(kept["jpeg"], cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
@@ -333,5 +334,6 @@ def video_frames(rec: Recorder, perception: str) -> list[videos.VideoFrame]:
             focus_radius_px=st.focus_radius_px if st else 0.0,
             target_px=(st.target_row_px, st.target_col_px) if st and st.target_valid else None,
             threshold=st.threshold if st and st.threshold_valid else None,
+            recent_changes=videos.changes_before(changes, kept["t_s"]),
             perception=perception))
     return frames

@@ -50,3 +50,16 @@ def test_no_focus_circle_over_no_heatmap() -> None:
     assert not cyan.any()
     with_hm = _compose(_frames(1)[0], SIDE_PX)[30:SIDE_PX, SIDE_PX:2 * SIDE_PX]
     assert ((with_hm[..., 0] > 200) & (with_hm[..., 1] > 200) & (with_hm[..., 2] < 80)).any()
+
+
+def test_state_changes_between_frames_are_counted_and_shown() -> None:
+    from dovesei.pictures.video import changes_before, state_change_times
+
+    states = {0.0: "AIMING", 0.05: "LANDING", 0.1: "AIMING", 0.15: "AIMING", 0.2: "LANDING", 2.0: "LANDING"}
+    times = state_change_times(states)
+    assert list(times) == [0.05, 0.1, 0.2]
+    assert changes_before(times, 0.25) == 3 and changes_before(times, 1.15) == 1 and changes_before(times, 2.0) == 0
+    quiet = _compose(_frames(1)[0], SIDE_PX)
+    busy = _compose(VideoFrame(**{**_frames(1)[0].__dict__, "recent_changes": 5}), SIDE_PX)
+    bar = slice(SIDE_PX, SIDE_PX + BAR_PX)
+    assert (busy[bar] > 128).sum() > (quiet[bar] > 128).sum()  # the count is written in the bar
