@@ -7,15 +7,18 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytest
+
 from dovesei.bench import main, run_bench
 
 WORLD = "synthetic:size_m=400,seed=1"
+LIMIT_S = 3.0  # 60 decisions per episode: enough for paths to differ, cheap enough for a loaded CI
 
 
 def _bench(out: Path, engine: str, episodes: int = 10) -> dict:
     # 10 starts x 2 policies = 20 episodes, on a small world with a short limit.
     return run_bench(world_spec=WORLD, episodes=episodes, seed=5, policies=["dovesei", "dovesei-nofocus"], noise=None,
-                     timing="reference", time_limit_s=8.0, start_alt_m=100.0, jobs=2, out=out, engine=engine,
+                     timing="reference", time_limit_s=LIMIT_S, start_alt_m=100.0, jobs=2, out=out, engine=engine,
                      progress=False)
 
 
@@ -23,6 +26,7 @@ def _strip(doc: dict) -> list[dict]:
     return [{k: v for k, v in e.items() if k != "wall_time_s"} for e in doc["episodes"]]
 
 
+@pytest.mark.timeout(900)  # two engines x 20 episodes plus Ray's start on 2 shared cores
 def test_ray_bench_matches_the_process_pool_record_for_record(tmp_path: Path) -> None:
     pool = _bench(tmp_path / "pool", "local")
     ray = _bench(tmp_path / "ray", "ray")
@@ -35,6 +39,6 @@ def test_ray_bench_matches_the_process_pool_record_for_record(tmp_path: Path) ->
     # The journal is the same resumable one: a second run finds everything done and changes nothing.
     journal = (tmp_path / "ray" / "episodes.jsonl").read_text()
     assert main(["--engine", "ray", "--jobs", "2", "--world", WORLD, "--episodes", "10", "--seed", "5",
-                 "--time-limit-s", "8", "--out", str(tmp_path / "ray"), "--no-progress"]) == 0
+                 "--time-limit-s", str(LIMIT_S), "--out", str(tmp_path / "ray"), "--no-progress"]) == 0
     assert (tmp_path / "ray" / "episodes.jsonl").read_text() == journal
     assert json.loads((tmp_path / "ray" / "results.json").read_text())["episodes"] == ray["episodes"]
