@@ -193,13 +193,16 @@ def _fly(options: UpOptions, world: object, start: tuple[float, float, float], c
 def _open_taps(options: UpOptions, configs: ChildConfigs, start: tuple[float, float, float], world: object) -> list:
     """What sees every message besides the report: the flight recording and the live view."""
     taps: list = []
+    # The view first: when its extra is missing nothing has been opened yet.
+    if options.view or options.rrd:
+        try:
+            from dovesei.view import LiveView  # lazy: rerun-sdk is the optional extra 'view'
+        except ImportError as exc:
+            raise ConfigError(f"--view/--rrd need the extra 'view' (pip install 'dovesei[view]'): {exc}") from None
+        taps.append(LiveView(world, start, spawn=options.view, rrd=options.rrd, vehicle_id=options.vehicle_id))
     if options.record:
         taps.append(up_recorder(options.out, configs, options, start))
         log.info("recording the flight to %s", taps[-1].path)
-    if options.view or options.rrd:
-        from dovesei.view import LiveView  # lazy: rerun-sdk is the optional extra 'view'
-
-        taps.append(LiveView(world, start, spawn=options.view, rrd=options.rrd, vehicle_id=options.vehicle_id))
     return taps
 
 
