@@ -27,7 +27,7 @@ import numpy as np
 
 MIN_MASK_IOU = 0.95
 MAX_TARGET_SHIFT_FRAC = 0.02
-# The reference's dynamic threshold (see shared REFERENCE.md): start, step, share of pixels wanted.
+# The reference's dynamic threshold (see docs/REFERENCE.md): start, step, share of pixels wanted.
 THRESHOLD_START = 0.85
 THRESHOLD_STEP = 0.0085
 THRESHOLD_STEPS = 100

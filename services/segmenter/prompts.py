@@ -115,7 +115,7 @@ class PromptSet:
         return tuple(self.template.format(p) for p in self.positive + self.negative)
 
 
-# The reference's aerial prompts and template, verbatim (see shared/REFERENCE.md).
+# The reference's aerial prompts and template, verbatim (see docs/REFERENCE.md).
 REFERENCE_TEMPLATE = "aerial view, drone footage photo of {}, shade, shadows, low resolution"
 REFERENCE_POSITIVE = (
     "grass, dead grass, backyard, frontyard, courtyard, lawn",

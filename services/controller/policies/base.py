@@ -69,19 +69,19 @@ class Policy(Protocol):
 
 
 def _build_dovesei(config: Any) -> Policy:
-    from dovesei.controller.policies.dovesei import DoveseiPolicy
+    from dovesei.controller.policies.dovesei import DoveseiPolicy  # lazy: the policy modules import this one (cycle)
 
     return DoveseiPolicy(config, name="dovesei")
 
 
 def _build_dovesei_nofocus(config: Any) -> Policy:
-    from dovesei.controller.policies.dovesei import DoveseiPolicy
+    from dovesei.controller.policies.dovesei import DoveseiPolicy  # lazy: the policy modules import this one (cycle)
 
     return DoveseiPolicy(config, name="dovesei-nofocus", dynamic_focus=False)
 
 
 def _build_clearance(config: Any) -> Policy:
-    from dovesei.controller.policies.clearance import ClearancePolicy
+    from dovesei.controller.policies.clearance import ClearancePolicy  # lazy: the policy modules import this one (cycle)
 
     return ClearancePolicy(config)
 

@@ -1,4 +1,4 @@
-"""The `dovesei` policy: the DOVESEI (2023) lander, faithful to ../shared/REFERENCE.md.
+"""The `dovesei` policy: the DOVESEI (2023) lander, faithful to docs/REFERENCE.md.
 
 One decision cycle per heatmap, exactly like the reference (its cycle = one segmentation answer).
 Data flows one way through a cycle:
