@@ -12,7 +12,7 @@ from dovesei.controller.policies.clearance_machine import Inputs, Memory, Phase,
 from dovesei.controller.policies.clearance_map import Spot
 
 CFG = ClearanceConfig()
-WAYPOINTS = search_pattern(80.0, CFG.search_radius_m)
+WAYPOINTS = search_pattern(CFG.search_spacing_radius_frac * CFG.search_radius_m, CFG.search_radius_m)
 
 
 def spot(n: float = 20.0, e: float = 0.0, score: float = 1.5) -> Spot:

@@ -31,7 +31,7 @@ from dovesei.controller.policies.base import Decision, Observation, PolicyInputE
 from dovesei.controller.policies.clearance_config import ClearanceConfig, clearance_preset
 from dovesei.controller.policies.clearance_machine import TERMINAL, Inputs, Memory, Phase, search_pattern, step
 from dovesei.controller.policies.clearance_map import GroundMap, clearance_at, find_spot, footprint_width_m
-from dovesei.controller.policies.clearance_motion import EgoMotion, MotionStep, tilt_offset_ne, to_body
+from dovesei.controller.policies.clearance_motion import EgoMotion, MotionStep, tilt_offset_ne, to_body, to_ne
 
 log = logging.getLogger(__name__)
 
@@ -44,6 +44,29 @@ def _resolve(config: ClearanceConfig | str | None) -> ClearanceConfig:
     if isinstance(config, ClearanceConfig):
         return config
     raise TypeError(f"clearance config must be a ClearanceConfig, a preset name or None, got {type(config).__name__}")
+
+
+def fence(vel_body_frd_m_s: tuple[float, float, float], north_m: float, east_m: float, yaw_rad: float,
+          cfg: ClearanceConfig) -> tuple[tuple[float, float, float], bool]:
+    """The command with its outward (away from the start) horizontal speed capped so the
+    dead-reckoned position never passes search radius + fence margin; True when it was capped.
+
+    The cap is fence_gain x the distance left to the fence, so the vehicle slows down as it nears
+    the fence and, beyond it, is pulled back in; inward and tangential motion are untouched.
+    """
+    r = math.hypot(north_m, east_m)
+    if r < 1e-6:
+        return vel_body_frd_m_s, False
+    fwd, right, down = vel_body_frd_m_s
+    vn, ve = to_ne(fwd, right, yaw_rad)
+    un, ue = north_m / r, east_m / r
+    outward = vn * un + ve * ue
+    allowed = cfg.fence_gain_per_s * (cfg.search_radius_m + cfg.fence_margin_m - r)
+    if outward <= allowed:
+        return vel_body_frd_m_s, False
+    vn, ve = vn - (outward - allowed) * un, ve - (outward - allowed) * ue
+    f, rr = to_body(vn, ve, yaw_rad)
+    return (f, rr, down), True
 
 
 class ClearancePolicy:
@@ -79,7 +102,8 @@ class ClearancePolicy:
             self.memory = Memory(since_s=obs.t_s, start_s=obs.t_s)
             self._search_alt_m = cfg.search_alt_m if cfg.search_alt_m is not None else max(
                 float(obs.alt_agl_m), cfg.handover_alt_m + 10.0)
-            spacing = cfg.search_spacing_frac * footprint_width_m(self._search_alt_m, obs.hfov_rad)
+            spacing = min(cfg.search_spacing_frac * footprint_width_m(self._search_alt_m, obs.hfov_rad),
+                          cfg.search_spacing_radius_frac * cfg.search_radius_m)
             self._waypoints = search_pattern(spacing, cfg.search_radius_m)
             floor = cfg.handover_alt_m + 15.0
             self._lower_alts = tuple(a for a in (max(f * self._search_alt_m, floor) for f in cfg.lower_search_fracs)
@@ -140,6 +164,9 @@ class ClearancePolicy:
                      best=best, check=check)
         prev = self.memory
         mem, vel = step(prev, inp, cfg)
+        fenced = False
+        if mem.phase not in TERMINAL:  # a terminal state holds still: the operator takes over
+            vel, fenced = fence(vel, pn, pe, obs.yaw_rad, cfg)
         self.memory = mem
         self._cmd = vel
         if mem.phase is not prev.phase or mem.reason != prev.reason:
@@ -150,6 +177,7 @@ class ClearancePolicy:
             "bias_north_m_s": self.motion.bias_n_m_s, "bias_east_m_s": self.motion.bias_e_m_s,
             "cell_m": self.map.cell_m, "aborts": float(mem.aborts), "blacklisted": float(len(mem.blacklist)),
             "required_clearance_m": cfg.required_clearance_m, "waypoint": float(mem.waypoint),
+            "fenced": float(fenced),
         }
         m = self._last_motion
         if m is not None:

@@ -59,8 +59,18 @@ class ClearanceConfig:
     dt_cap_s: float = 2.0  # no single step integrates more than this
 
     # --- search ---
-    search_radius_m: float = 150.0  # never fly further than this from the start
-    search_spacing_frac: float = 0.6  # pattern spacing = this x footprint width at search altitude
+    # The search stays within this of the start. 75 m, not more: the bench worlds' starts lie
+    # ~79 m from the map edge, and at 100 m the footprint still sees ~74 m beyond the vehicle.
+    search_radius_m: float = 75.0
+    # A fence on every command: the dead-reckoned position never goes past radius + this margin
+    # (overshoot of the lagging vehicle and estimate drift eat into it); fence_gain_per_s is the
+    # largest outward speed per metre left to the fence (inside, the speed falls to zero at it).
+    fence_margin_m: float = 5.0
+    fence_gain_per_s: float = 0.5
+    # Pattern spacing = this x footprint width at search altitude, at most search_spacing_radius_frac
+    # x the radius (so a small radius still flies a pattern, not just a hover over the start).
+    search_spacing_frac: float = 0.6
+    search_spacing_radius_frac: float = 0.67
     search_speed_m_s: float = 6.0
     pattern_repeats: int = 2  # passes at the lowest search altitude
     # Later passes fly lower (fractions of the top search altitude, never below hand-over + 15 m):
@@ -98,7 +108,8 @@ class ClearanceConfig:
         positive = (
             "decision_period_s", "safety_radius_m", "handover_alt_m", "cell_per_alt", "cell_min_m", "cell_max_m",
             "look_period_s", "decay_tau_s", "looks_min", "looks_full", "reg_gate_m", "static_tau_s", "bias_tau_s",
-            "key_scale_ratio", "dt_cap_s", "search_radius_m", "search_spacing_frac", "search_speed_m_s",
+            "key_scale_ratio", "dt_cap_s", "search_radius_m", "search_spacing_frac", "search_spacing_radius_frac",
+            "search_speed_m_s", "fence_gain_per_s",
             "approach_gain_per_s", "max_speed_m_s", "lock_in_m", "lock_out_m",
             "refine_radius_m", "descent_gain_per_s", "descent_min_m_s", "descent_max_m_s", "climb_speed_m_s",
             "warmup_timeout_s", "approach_timeout_s", "descend_timeout_s", "abort_timeout_s", "gap_s",
@@ -106,7 +117,7 @@ class ClearanceConfig:
         )
         for name in positive:
             validate.positive(f"ClearanceConfig.{name}", getattr(self, name))
-        for name in ("margin_m", "reg_gate_frac", "reg_gate_m_s", "bias_max_m_s", "switch_gain"):
+        for name in ("margin_m", "fence_margin_m", "reg_gate_frac", "reg_gate_m_s", "bias_max_m_s", "switch_gain"):
             validate.non_negative(f"ClearanceConfig.{name}", getattr(self, name))
         for name in ("p_clip", "p_safe_min", "reg_min_response", "reg_full_response", "reg_min_std", "reg_min_eigen_ratio", "reg_pos_gain", "cmd_weight",
                      "key_shift_frac", "recheck_hysteresis"):

@@ -1,0 +1,85 @@
+"""The `clearance` search never runs away: a fence on every command bounds the dead-reckoned
+position to search radius + fence margin, and in closed loop (biased, noisy velocity estimate and
+a wind it cannot see) the true track stays inside that too."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from dovesei.controller.policies.base import Decision, Observation
+from dovesei.controller.policies.clearance import ClearancePolicy, fence
+from dovesei.controller.policies.clearance_config import ClearanceConfig
+from dovesei.controller.policies.clearance_motion import to_body, to_ne
+from tests.controller.test_clearance_scenarios import World, _textured, fly
+
+CFG = ClearanceConfig()
+FENCE_M = CFG.search_radius_m + CFG.fence_margin_m
+
+
+def test_default_radius_keeps_the_search_well_inside_the_bench_worlds() -> None:
+    # Bench starts lie ~79 m from the map edge: the fence must end before it.
+    assert FENCE_M <= 80.0
+
+
+def test_fence_caps_outward_speed_and_leaves_inward_alone() -> None:
+    yaw = 0.7
+    at_edge = (FENCE_M - 0.5) / math.sqrt(2.0)  # north-east of the start, half a metre from the fence
+    out = (*to_body(6.0 / math.sqrt(2.0), 6.0 / math.sqrt(2.0), yaw), 1.0)  # 6 m/s straight out, descending
+    vel, fenced = fence(out, at_edge, at_edge, yaw, CFG)
+    vn, ve = to_ne(vel[0], vel[1], yaw)
+    assert fenced and (vn + ve) / math.sqrt(2.0) <= CFG.fence_gain_per_s * 0.5 + 1e-9
+    assert vel[2] == 1.0  # vertical untouched
+    inward = (*to_body(-3.0, -3.0, yaw), 0.0)
+    assert fence(inward, at_edge, at_edge, yaw, CFG) == (inward, False)
+    # Beyond the fence even a hover command pulls back in.
+    vel, fenced = fence((0.0, 0.0, 0.0), 0.0, FENCE_M + 4.0, 0.0, CFG)
+    assert fenced and to_ne(vel[0], vel[1], 0.0)[1] < 0.0
+
+
+class _Recording(ClearancePolicy):
+    """The policy, keeping its own position estimate after every step (for the assertions)."""
+
+    def reset(self) -> None:
+        super().reset()
+        self.estimates: list[tuple[float, float]] = []
+        self.decision_fenced: list[bool] = []
+
+    def step(self, obs: Observation) -> Decision:
+        d = super().step(obs)
+        self.estimates.append((self.motion.north_m, self.motion.east_m))
+        self.decision_fenced.append(bool(d.info.get("fenced", 0.0)))
+        return d
+
+
+def _nowhere_to_land(config: ClearanceConfig, seed: int = 5):
+    rng = np.random.default_rng(seed)
+    world = World(_textured(rng, 4000))  # dense yards between roads and buildings, none wide enough
+    policy = _Recording(config)
+    # The estimate reads (1.0, -0.8) m/s too much and is noisy; a wind it cannot see blows too.
+    flight = fly(world, policy, t_max_s=900.0, bias_m_s=(1.0, -0.8), vel_noise_m_s=0.5, wind_m_s=(0.6, 0.4),
+                 seed=seed)
+    return policy, flight
+
+
+def test_biased_odometry_search_stays_inside_radius_plus_margin() -> None:
+    policy, flight = _nowhere_to_land(CFG)
+    assert flight.decision.state == "NO_SPOT", flight.decision.reason
+    assert flight.alt_m > 20.0
+    est = max(math.hypot(n, e) for n, e in policy.estimates)
+    assert est <= FENCE_M + 0.5, est
+    # It did search out to its radius (the pattern's corners sit at ~71 m) ...
+    assert flight.max_range_m > 0.8 * CFG.search_radius_m
+    # ... and the true track, drift and vehicle lag included, never left radius + margin.
+    assert flight.max_range_m < FENCE_M, flight.max_range_m
+
+
+def test_fence_bounds_the_estimate_even_when_registration_is_off() -> None:
+    """Without registration nothing can see the drift (the truth wanders with wind - bias), but
+    no command takes the dead-reckoned position past the fence."""
+    cfg = CFG.replace(reg_min_std=1.0)
+    policy, flight = _nowhere_to_land(cfg, seed=6)
+    est = max(math.hypot(n, e) for n, e in policy.estimates)
+    assert est <= FENCE_M + 0.5, est
+    assert flight.decision.state == "NO_SPOT"
