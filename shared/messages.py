@@ -426,6 +426,18 @@ class ControllerStatus(Message):
     threshold: float = 0.0
     vel_body_frd_m_s: tuple[float, float, float] = (0.0, 0.0, 0.0)
     alt_agl_m: float = 0.0
+    # Why the policy is in `state` (its last transition; `reason` is the watchdog's), and the spot
+    # it chose in its own north/east frame, with clearance and confidence (policies with a map).
+    policy_reason: str = ""
+    spot_valid: bool = False
+    spot_north_m: float = 0.0
+    spot_east_m: float = 0.0
+    spot_clearance_m: float = 0.0
+    spot_confidence: float = 0.0
+
+    RANGES: ClassVar[dict[str, tuple[float, float]]] = {
+        "spot_north_m": (-1e7, 1e7), "spot_east_m": (-1e7, 1e7), "spot_clearance_m": (0.0, 1e6),
+        "spot_confidence": (0.0, 1.0)}
 
 
 @message("dovesei.prompt_set", 1)
