@@ -21,6 +21,7 @@ from pathlib import Path
 
 from dovesei.controller import service as controller_service
 from dovesei.controller.core import ControllerConfig
+from dovesei.episode import fusion_for
 from dovesei.segmenter import service as segmenter_service
 from dovesei.segmenter.core import SegmenterConfig
 from dovesei.segmenter.service import ServiceConfig as SegmenterServiceConfig
@@ -70,7 +71,11 @@ def child_configs(options: UpOptions, start: tuple[float, float, float]) -> Chil
         # Camera mode: the sim renders at the autopilot's state, which the controller (the one owner
         # of the MAVLink link) publishes on the state key; the sim opens no link of its own.
         external_pose=bool(options.vehicle_url), wait_for=("segmenter", "controller"))
-    perception: dict[str, object] = {"backend": options.segmenter, "sim_seed": options.seed}
+    perception: dict[str, object] = {"backend": options.segmenter, "sim_seed": options.seed,
+                                     "sim_profile": options.perception}
+    fusion = fusion_for(options.policy)  # the paper's policies fly the reference's fusion, as in bench
+    if fusion is not None:
+        perception["fusion"] = fusion
     if options.noise is not None:
         perception["sim_noise"] = float(options.noise)
     if options.model:

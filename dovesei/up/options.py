@@ -21,6 +21,7 @@ from dovesei.shared import keys, validate
 from dovesei.shared.errors import ConfigError
 from dovesei.shared.timing import DEFAULT_TIMING, TIMING_NAMES, timing
 from dovesei.controller.policies import policy_names
+from dovesei.segmenter.simulated import DEFAULT_PROFILE, PROFILE_NAMES
 from dovesei.sim.service import parse_start as sim_parse_start
 from dovesei.sim.starts import generate_starts
 
@@ -99,6 +100,7 @@ class UpOptions:
     timing: str = DEFAULT_TIMING
     seed: int = 0
     noise: float | None = None  # None: the simulated perception's calibrated default
+    perception: str = DEFAULT_PROFILE  # simulated perception profile (clean | realistic | harsh)
     start: tuple[float, float, float] | None = None  # (x_m, y_m, alt_m); None: from start_seed
     start_seed: int | None = None  # None: --seed
     start_alt_m: float = 100.0
@@ -151,6 +153,7 @@ class UpOptions:
         validate.positive("startup_timeout_s", self.startup_timeout_s)
         if self.noise is not None:
             validate.non_negative("--noise", self.noise)
+        validate.one_of("--perception", self.perception, PROFILE_NAMES)
         validate.non_negative("--after-failure-s", self.after_failure_s)
         if self.model is not None:
             if self.segmenter == "sim":
@@ -210,7 +213,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--timing", choices=TIMING_NAMES,
                    help=f"timing preset (default: {DEFAULT_TIMING}; real with --vehicle)")
     p.add_argument("--seed", type=int, default=0, help="seed of the perception noise and of the start")
-    p.add_argument("--noise", type=float, help="simulated perception noise scale (default: calibrated)")
+    p.add_argument("--perception", default=DEFAULT_PROFILE, choices=PROFILE_NAMES,
+                   help=f"simulated perception profile (default: {DEFAULT_PROFILE}); a test instrument")
+    p.add_argument("--noise", type=float, help="error scale within the perception profile (default: 1)")
     where = p.add_mutually_exclusive_group()
     where.add_argument("--start", metavar="X,Y[,ALT]", help="start position in world metres (x east, y north)")
     where.add_argument("--start-seed", type=int, help="draw the start like the bench's start 0 with this seed")
@@ -253,7 +258,7 @@ def options_from_args(args: argparse.Namespace) -> UpOptions:
     out = args.out or Path("runs") / f"up-{datetime.now().strftime('%Y%m%d-%H%M%S')}"
     limit_s = timing(timing_name).time_limit_s if args.time_limit_s is None else args.time_limit_s
     return UpOptions(world=args.world, segmenter=args.segmenter, policy=args.policy, timing=timing_name,
-                     seed=args.seed, noise=args.noise, start=start, start_seed=args.start_seed,
+                     seed=args.seed, noise=args.noise, perception=args.perception, start=start, start_seed=args.start_seed,
                      start_alt_m=args.start_alt_m, out=out, realtime=args.realtime, connect=tuple(args.connect),
                      vehicle_url=args.vehicle_url, takeoff=args.takeoff, time_limit_s=limit_s, video=args.video,
                      record=args.record, view=args.view, rrd=args.rrd,
