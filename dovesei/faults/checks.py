@@ -93,6 +93,13 @@ def check_run(fault: Any, obs: Observer, rec: Recorder, failure: Any, fault_star
     for _, seq, t_s in hm_arrivals:
         genuine_t.setdefault(seq, t_s)
     limit_s = HOLD_S + TICK_S
+    # The vehicle's clock as the observer knew it at each arrival: the newest genuine state so far.
+    state_arr, state_newest, newest = [], [], -math.inf
+    for recv_s, st in sorted(obs.states, key=lambda p: p[0]):
+        newest = max(newest, st.stamp.t_s)
+        state_arr.append(recv_s)
+        state_newest.append(newest)
+    forged_adopted = 0  # ticks that held a forged heatmap without following it
     held = False
     blind_t: list[tuple[float, bool]] = []  # per status: (t_s, blind)
     for recv_s, st in statuses:
@@ -121,7 +128,15 @@ def check_run(fault: Any, obs: Observer, rec: Recorder, failure: Any, fault_star
             kind = "mid-air" if st.watchdog == "ok" else "refused terminal:"
             v.append(f"{kind} {st.state} at {st.alt_agl_m:.1f} m (t={st.stamp.t_s:.2f} s, watchdog {st.watchdog})")
         if st.frame_seq >= FORGED_SEQ_BASE:
-            v.append(f"blind: a forged heatmap ({st.frame_seq}) was adopted at t={st.stamp.t_s:.2f} s")
+            # Followed on the vehicle's own timeline, a forged heatmap steers it. Adopted on a forged
+            # (past-stamped) state's tick, its command carries that stale stamp and the sim drops it;
+            # counted as a fact, not a violation (plain mode cannot tell a forgery in time).
+            j = bisect.bisect_right(state_arr, recv_s) - 1
+            on_timeline = j < 0 or st.stamp.t_s >= state_newest[j] - 1.0  # not a forged past state's tick
+            if st.watchdog == "ok" and on_timeline:
+                v.append(f"blind: a forged heatmap ({st.frame_seq}) was followed at t={st.stamp.t_s:.2f} s")
+            else:
+                forged_adopted += 1
     v += _physical(obs, blind_t)
     if rec.result is not None and rec.result.outcome in ("safe", "unsafe") and \
             rec.result.final_alt_m > HANDOVER_M + RELEASE_M:
@@ -157,7 +172,7 @@ def check_run(fault: Any, obs: Observer, rec: Recorder, failure: Any, fault_star
             v.append("no resumption: the controller was never ok on a new heatmap after the fault ended")
     facts = {"held": held, "resumed": resumed, "statuses": len(statuses), "heatmaps": len(hm_arrivals),
              "forged_heatmaps_seen": obs.forged_heatmaps, "monitor_rejected": rec.rejected,
-             "results_refused": rec.results_refused,
+             "results_refused": rec.results_refused, "forged_heatmap_ticks_not_followed": forged_adopted,
              "min_alt_m": round(min((st.alt_agl_m for _, st in obs.states), default=math.nan), 2)}
     return v, facts
 

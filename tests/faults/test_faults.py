@@ -20,7 +20,7 @@ from dovesei.shared import keys
 from dovesei.shared.codec import decode, encode
 from dovesei.shared.errors import ConfigError
 from dovesei.shared.lifecycle import wait_until
-from dovesei.shared.messages import ControllerStatus, Stamp, VelocityCommand
+from dovesei.shared.messages import ControllerStatus, Stamp, VehicleState, VelocityCommand
 from dovesei.up.monitor import Recorder, Sample
 
 
@@ -77,8 +77,11 @@ def _status(t_s: float, age_s: float, watchdog: str, down_m_s: float, alt_m: flo
                             vel_body_frd_m_s=(0.0, 0.0, down_m_s), alt_agl_m=alt_m)
 
 
-def _checked(statuses: list[ControllerStatus]) -> list[str]:
+def _checked(statuses: list[ControllerStatus], genuine_state_t: float | None = None) -> list[str]:
     obs = Observer("uav1")
+    if genuine_state_t is not None:
+        obs.handle(Sample("state", 0.0, encode(VehicleState("uav1", 1, Stamp(genuine_state_t, "sim"), 40.0,
+                                                            (0.0, 0.0, 0.0)))))
     for st in statuses:
         obs.handle(Sample("status", st.stamp.t_s, encode(st)))
     obs.heatmaps.append((0.0, 1, 0.0))
@@ -93,8 +96,10 @@ def test_the_checks_catch_a_late_hold_a_blind_descent_and_a_mid_air_landing() ->
     assert not any(v.startswith("blind") for v in on_time), on_time
     mid_air = _checked([_status(0.05, 0.05, "ok", 0.0, alt_m=45.0, state="LANDED")])
     assert any(v.startswith("mid-air LANDED at 45.0 m") for v in mid_air)
-    forged = _checked([_status(0.05, 0.05, "ok", 0.0, frame_seq=FORGED_SEQ_BASE + 1)])
+    forged = _checked([_status(10.0, 0.05, "ok", 0.0, frame_seq=FORGED_SEQ_BASE + 1)], genuine_state_t=10.0)
     assert any("forged heatmap" in v for v in forged)
+    off_timeline = _checked([_status(1.0, 0.05, "ok", 0.0, frame_seq=FORGED_SEQ_BASE + 1)], genuine_state_t=10.0)
+    assert not any("forged heatmap" in v for v in off_timeline), "a tick on a forged past state is not followed"
 
 
 # ---------------------------------------------------------------- every fault, real processes
