@@ -26,6 +26,7 @@ policy.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import sys
 import threading
@@ -44,6 +45,7 @@ from dovesei.shared.codec import encode
 from dovesei.shared.errors import ConfigError
 from dovesei.shared.lifecycle import Inbox, declare_alive, install_stop_handlers
 from dovesei.shared.messages import CameraFrame, Stamp, VehicleState
+from dovesei.shared.recording import FlightRecorder
 
 log = logging.getLogger(__name__)
 
@@ -65,6 +67,7 @@ class CameraConfig:
     stall_timeout_s: float = 2.0
     state_timeout_s: float = 1.0
     loop_file: bool = False
+    record_path: str | None = None  # write the published frames and their states to this MCAP file
 
     def __post_init__(self) -> None:
         if not isinstance(self.source, str) or not self.source.strip():
@@ -120,8 +123,10 @@ class CameraPublisher:
 
     def __init__(self, config: CameraConfig, grabber: Grabber, state_source: StateSource,
                  put: Callable[[bytes], None], *, clock: Callable[[], float] = time.monotonic,
-                 stats: CameraStats | None = None) -> None:
+                 stats: CameraStats | None = None, recorder: FlightRecorder | None = None) -> None:
         self.config, self.grabber, self.state_source, self.put = config, grabber, state_source, put
+        self.recorder = recorder
+        self._recorded_state: VehicleState | None = None
         self.stats = stats if stats is not None else CameraStats()
         self._clock = clock
         self._states: deque[tuple[float, VehicleState]] = deque()
@@ -173,6 +178,12 @@ class CameraPublisher:
             hfov_rad=self._hfov(bgr.shape[1], bgr.shape[0]), alt_agl_m=state.alt_agl_m,
             roll_rad=state.roll_rad, pitch_rad=state.pitch_rad, yaw_rad=state.yaw_rad, sent_wall_s=time.time())
         self.put(encode(frame, jpeg_quality=self.config.jpeg_quality))
+        if self.recorder is not None:
+            # The state that tagged the frame goes first (once, however many frames it tags).
+            if state is not self._recorded_state:
+                self.recorder.write(state)
+                self._recorded_state = state
+            self.recorder.write(frame)
         self._seq += 1
         self.stats.published += 1
         log.debug("frame %d published (alt %.1f m)", frame.seq, frame.alt_agl_m)
@@ -215,13 +226,33 @@ class CameraPublisher:
 
 def run(session: zenoh.Session, *, config: CameraConfig, stop: threading.Event,
         state_source: StateSource | None = None, stats: CameraStats | None = None) -> CameraStats:
-    """Capture and publish until `stop` is set; returns what happened."""
+    """Capture and publish until `stop` is set; returns what happened (recording to `config.record_path`)."""
+    with open_recorder(config) as recorder:
+        return _serve(session, config, stop, state_source, stats, recorder)
+
+
+def open_recorder(config: CameraConfig) -> FlightRecorder | contextlib.nullcontext[None]:
+    """The MCAP recorder `config.record_path` asks for (a do-nothing context without one)."""
+    if config.record_path is None:
+        return contextlib.nullcontext()
+    meta = {"camera_service": {"source": config.source, "vehicle_id": config.vehicle_id, "width_px": config.width_px,
+                               "height_px": config.height_px, "hfov_deg": config.hfov_deg,
+                               "rotate_deg": config.rotate_deg, "rate_hz": config.rate_hz}}
+    try:
+        return FlightRecorder(config.record_path, metadata=meta)
+    except OSError as exc:
+        raise ConfigError(f"--record {config.record_path}: cannot write the recording "
+                          f"({exc.strerror or exc})") from None
+
+
+def _serve(session: zenoh.Session, config: CameraConfig, stop: threading.Event, state_source: StateSource | None,
+           stats: CameraStats | None, recorder: FlightRecorder | None) -> CameraStats:
     own_source = state_source is None
     if state_source is None:
         state_source = ZenohStateSource(session, config.vehicle_id)
     grabber = Grabber(config.source, loop_file=config.loop_file).start()
     publisher = session.declare_publisher(keys.camera(config.vehicle_id))
-    loop = CameraPublisher(config, grabber, state_source, publisher.put, stats=stats)
+    loop = CameraPublisher(config, grabber, state_source, publisher.put, stats=stats, recorder=recorder)
     log.info("camera %s (%s) -> %s at %.1f Hz, %dx%d, %s, state from %s", config.source, grabber.kind,
              keys.camera(config.vehicle_id), config.rate_hz, config.width_px, config.height_px,
              f"JPEG q{config.jpeg_quality}" if config.jpeg_quality else "raw RGB", keys.state(config.vehicle_id))
@@ -259,6 +290,8 @@ CLI = CommandLine(CameraConfig, {
     "state_timeout_s": Flag("--state-timeout", "max age of the state used to tag a frame, seconds",
                             check=validate.positive),
     "loop_file": Flag("--loop", "loop a video file"),
+    "record_path": Flag("--record", "write the published frames and their states as an MCAP recording to PATH",
+                        check=non_blank, metavar="PATH"),
 }, prog="dovesei-camera", description="Publish an onboard camera as dovesei frames.")
 
 

@@ -105,6 +105,7 @@ class ControllerConfig:
     lockstep_heatmap_wait_s: float = 5.0  # wall deadline for an awaited heatmap (lockstep)
     lockstep_heatmap_retry_s: float = 0.25  # shorter deadline while the segmenter seems down
     heatmap_buffer_len: int = 64  # lockstep: early heatmaps kept by seq
+    record_path: str | None = None  # write an MCAP flight recording here (states, heatmaps, commands, status)
 
     def __post_init__(self) -> None:
         keys.check_vehicle_id(self.vehicle_id)

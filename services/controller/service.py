@@ -28,6 +28,7 @@ failed takeoff ends `run` with the adapter's reason.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import logging
 import math
@@ -49,7 +50,8 @@ from dovesei.shared.clock import WallClock, wall_time_s
 from dovesei.shared.codec import encode
 from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.shared.lifecycle import Inbox, declare_alive, install_stop_handlers, write_stats
-from dovesei.shared.messages import SafetyHeatmap, VehicleState, VelocityCommand, replace
+from dovesei.shared.messages import ControllerStatus, SafetyHeatmap, VehicleState, VelocityCommand, replace
+from dovesei.shared.recording import FlightRecorder
 from dovesei.shared.timing import DEFAULT_TIMING, TIMING_NAMES
 
 log = logging.getLogger(__name__)
@@ -182,9 +184,15 @@ class _Loop:
     """The pieces both loops share: inboxes, publishers, the core and the per-tick plumbing."""
 
     def __init__(self, session: zenoh.Session, config: ControllerConfig, stop: threading.Event,
-                 vehicle: Vehicle, core: ControllerCore) -> None:
+                 vehicle: Vehicle, core: ControllerCore, recorder: FlightRecorder | None = None) -> None:
         self.config, self.stop, self.vehicle, self.core = config, stop, vehicle, core
         self.stats = RunStats()
+        self.recorder = recorder
+        # Heatmaps received, by seq, until the core adopts one (the status names it): only adopted
+        # ones are recorded, so a replay sees what this controller decided on.
+        self._received: dict[int, SafetyHeatmap] = {}
+        self._recorded_state: VehicleState | None = None
+        self._recorded_frame_seq = -1
         self.heatmaps: Inbox[SafetyHeatmap] = Inbox(session, keys.heatmap(config.vehicle_id), SafetyHeatmap,
                                                     newest_only=not config.lockstep,
                                                     wakeup=getattr(vehicle, "wakeup", None))
@@ -213,13 +221,43 @@ class _Loop:
         if self._state_pub is not None:
             self._state_pub.put(encode(replace(state, sent_wall_s=wall_time_s())))
             self.stats.states_published += 1
+            self._record_state(state)
+
+    def _record_state(self, state: VehicleState) -> None:
+        # The real-time loop re-uses the newest state over several ticks: each is recorded once.
+        if self.recorder is not None and state is not self._recorded_state:
+            self.recorder.write(state)
+            self._recorded_state = state
+
+    def on_heatmap(self, hm: SafetyHeatmap) -> None:
+        """Hand one received heatmap to the core (kept for the recording until it is adopted)."""
+        self.stats.heatmaps_received += 1
+        # Arrival time on the wall clock: only for the transport-latency figure, never decisions.
+        accepted = self.core.on_heatmap(hm, self.heatmaps.last_recv_wall_s)
+        if self.recorder is not None and accepted:  # a refused one (another vehicle's) is never adopted
+            self._received[hm.seq] = hm
+            while len(self._received) > self.config.heatmap_buffer_len:
+                del self._received[min(self._received)]
+
+    def _record_tick(self, state: VehicleState, cmd: VelocityCommand | None, status: ControllerStatus) -> None:
+        if self.recorder is None:
+            return
+        self._record_state(state)
+        if status.frame_seq >= 0 and status.frame_seq != self._recorded_frame_seq:
+            adopted = self._received.pop(status.frame_seq, None)
+            if adopted is not None:
+                self.recorder.write(adopted)
+            self._recorded_frame_seq = status.frame_seq
+            for seq in [s for s in self._received if s < status.frame_seq]:
+                del self._received[seq]  # older than the adopted one: never adopted now
+        if cmd is not None:
+            self.recorder.write(cmd)
+        self.recorder.write(status)
 
     def drain_heatmaps(self) -> None:
         """Hand every waiting heatmap to the core (never blocks)."""
         while (hm := self.heatmaps.poll()) is not None:
-            self.stats.heatmaps_received += 1
-            # Arrival time on the wall clock: only for the transport-latency figure, never decisions.
-            self.core.on_heatmap(hm, self.heatmaps.last_recv_wall_s)
+            self.on_heatmap(hm)
 
     def step(self, state: VehicleState, wall_s: float | None) -> bool:
         """Tick the core on `state`, send the command, publish the status; False if refused."""
@@ -242,9 +280,12 @@ class _Loop:
         if mode is Mode.HANDOVER and self.config.handover_action == "precland":
             self._stream_landing_target(state)
         # A MAVLink vehicle stops receiving setpoints at hand-over: its adapter does the action.
+        sent: VelocityCommand | None = None
         if mode is not Mode.HANDOVER or getattr(self.vehicle, "commands_during_handover", False):
             try:
-                self.vehicle.send(replace(cmd, sent_wall_s=wall_time_s()))
+                out = replace(cmd, sent_wall_s=wall_time_s())
+                self.vehicle.send(out)
+                sent = out
                 self.stats.commands_sent += 1
             except DoveseiError as exc:
                 # The adapter refused (wrong flight mode, link lost...): say so, keep the loop alive.
@@ -253,6 +294,7 @@ class _Loop:
                     log.warning("vehicle refused the command (%d so far): %s", self.stats.send_errors, exc)
         # Status goes out every tick, even at hand-over: operators see why nothing is commanded.
         self._status_pub.put(encode(status))
+        self._record_tick(state, sent, status)
         return True
 
     def _stream_landing_target(self, state: VehicleState) -> None:
@@ -304,8 +346,7 @@ def _run_lockstep(loop: _Loop) -> None:
                     break
                 hm = loop.heatmaps.recv(remaining_s, loop.stop)
                 if hm is not None:
-                    loop.stats.heatmaps_received += 1
-                    core.on_heatmap(hm, loop.heatmaps.last_recv_wall_s)
+                    loop.on_heatmap(hm)
             if not core.has_heatmap(awaited):
                 if loop.stop.is_set():
                     break
@@ -379,15 +420,36 @@ def run(session: zenoh.Session, *, config: ControllerConfig, stop: threading.Eve
         vehicle: Vehicle | None = None, core: ControllerCore | None = None) -> RunStats:
     """Serve until `stop` is set; the vehicle is told to hold before returning.
 
-    `vehicle` and `core` default to what `config` names (tests hand in doubles).
+    `vehicle` and `core` default to what `config` names (tests hand in doubles). With
+    `config.record_path` the flight is recorded there (closed whatever ends the run).
     """
     core = core if core is not None else ControllerCore(config)
+    with open_recorder(config) as recorder:
+        return _serve(session, config, stop, vehicle, core, recorder)
+
+
+def open_recorder(config: ControllerConfig) -> FlightRecorder | contextlib.nullcontext[None]:
+    """The MCAP recorder `config.record_path` asks for (a do-nothing context without one)."""
+    if config.record_path is None:
+        return contextlib.nullcontext()
+    # What `dovesei replay` needs to rebuild this controller (the same "run" record `up` writes).
+    run_meta = {"policy": config.policy, "timing": config.timing, "lockstep": config.lockstep,
+                "vehicle_id": config.vehicle_id, "vehicle_url": config.vehicle_url}
+    try:
+        return FlightRecorder(config.record_path, metadata={"run": run_meta})
+    except OSError as exc:
+        raise ConfigError(f"--record {config.record_path}: cannot write the recording "
+                          f"({exc.strerror or exc})") from None
+
+
+def _serve(session: zenoh.Session, config: ControllerConfig, stop: threading.Event, vehicle: Vehicle | None,
+           core: ControllerCore, recorder: FlightRecorder | None) -> RunStats:
     own_vehicle = vehicle is None
     vehicle = open_vehicle(session, config) if vehicle is None else vehicle
     loop: _Loop | None = None
     token = None
     try:
-        loop = _Loop(session, config, stop, vehicle, core)
+        loop = _Loop(session, config, stop, vehicle, core, recorder)
         # Declared last: whoever sees the token knows the subscribers are already in place.
         token = declare_alive(session, config.vehicle_id, "controller")
         log.info("controller %s up: policy %s (%s timing), %s, vehicle %s, keys %s -> %s",
@@ -478,6 +540,8 @@ CLI = CommandLine(ControllerConfig, {
                           check=lambda w, v: validate.in_range(w, v, 1.0, 500.0)),
     "takeoff_ready_timeout_s": Flag("--takeoff-ready-timeout-s", "takeoff: give up when the autopilot cannot arm "
                                     "within this, naming its pre-arm reasons", check=validate.positive),
+    "record_path": Flag("--record", "write an MCAP flight recording (states, adopted heatmaps, commands, status) "
+                        "to PATH", check=non_blank, metavar="PATH"),
 }, derive=_derived_defaults, prog="dovesei-controller", description=__doc__.splitlines()[0])
 
 
