@@ -58,7 +58,8 @@ def stream_owners(options: UpOptions) -> dict[str, str]:
     return owners
 
 
-def stalled_service(rec: Recorder, owners: dict[str, str], now_wall_s: float, stall_s: float) -> tuple[str, str] | None:
+def stalled_service(rec: Recorder, owners: dict[str, str], now_wall_s: float, stall_s: float,
+                    lockstep: bool = False) -> tuple[str, str] | None:
     """(service, stream) whose stream went silent first, once any watched stream is over `stall_s` old.
 
     Watching begins with the episode (the first state): before it every service may still load.
@@ -75,7 +76,17 @@ def stalled_service(rec: Recorder, owners: dict[str, str], now_wall_s: float, st
     if not any(age > stall_s for age in ages.values()):
         return None
     topic = max(ages, key=ages.get)
+    if lockstep and owners[topic] == "sim" and _owes_command(rec):
+        # In lockstep the sim waits for the answer to its last state: a controller that hung after
+        # its status but before its command silences the sim first, and is the one to name.
+        return "controller", "cmd"
     return owners[topic], topic
+
+
+def _owes_command(rec: Recorder) -> bool:
+    """True when the newest state arrived after the newest command (nobody answered it yet)."""
+    state_s, cmd_s = rec.last_recv_wall_s.get("state"), rec.last_recv_wall_s.get("cmd")
+    return state_s is not None and (cmd_s is None or cmd_s < state_s)
 
 
 def result_is_consistent(rec: Recorder, result: EpisodeResult) -> str:
@@ -211,7 +222,8 @@ class Watcher:
         return Failure(name, code, line, message)
 
     def _check_stalls(self) -> Failure | None:
-        stalled = stalled_service(self.rec, self.owners, time.time(), self.options.stall_s)
+        stalled = stalled_service(self.rec, self.owners, time.time(), self.options.stall_s,
+                                  lockstep=self.options.lockstep)
         if stalled is None:
             return None
         name, topic = stalled

@@ -229,6 +229,13 @@ def test_the_service_whose_stream_went_quiet_first_is_named() -> None:
     assert stalled_service(rec, owners, 205.0, 5.0) == ("controller", "status")
     rec.last_recv_wall_s = {"state": 210.0, "status": 210.0, "heatmap": 199.0}
     assert stalled_service(rec, owners, 210.0, 5.0) == ("segmenter", "heatmap")
+    # A controller that hung after its status but before its command: in lockstep the sim waits
+    # for that command and its state stream goes quiet first; the controller owes the answer.
+    rec.last_recv_wall_s = {"state": 200.0, "status": 200.5, "heatmap": 200.2, "cmd": 199.9}
+    assert stalled_service(rec, owners, 206.0, 5.0) == ("sim", "state")
+    assert stalled_service(rec, owners, 206.0, 5.0, lockstep=True) == ("controller", "cmd")
+    rec.last_recv_wall_s["cmd"] = 200.6  # the state was answered: the sim is the one that stopped
+    assert stalled_service(rec, owners, 206.0, 5.0, lockstep=True) == ("sim", "state")
     # A vehicle: the controller publishes the states, the sim only frames.
     assert stream_owners(UpOptions(world=WORLD, vehicle_url="udpin:127.0.0.1:1", timing="real"))["camera"] == "sim"
 
