@@ -4,7 +4,11 @@
                                   previews; PyAV's libx264, extra 'video'), else OpenCV mp4v / MJPG
 
 The policy's view is what the decision was made on: the heatmap thresholded at the policy's
-threshold (when it had one), dimmed outside the dynamic-focus circle, with the chosen spot. Frames
+threshold (when it had one), dimmed outside the dynamic-focus circle, with the chosen spot. A
+policy that picks a spot on a ground map (`clearance`) has no focus circle: its panel shows the
+spot as a circle of the spot's clearance radius where the spot lies relative to the vehicle (the
+status' target pixel; metres -> pixels with the camera footprint at the frame's altitude), and
+the policy's reason for its state. Frames
 before the first heatmap are not shown at the start (the controller is blind then and says
 SENSOR_ERROR, which is not what the flight was about); the focus circle is never drawn where
 there is no heatmap.
@@ -14,6 +18,7 @@ from __future__ import annotations
 
 import logging
 import math
+import textwrap
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from fractions import Fraction
@@ -36,6 +41,8 @@ LEGEND_PX = 30  # the legend row under the text bar
 PANELS = 3  # camera | heatmap | policy view
 STATE_WINDOW_S = 1.0  # sim seconds: the window of the state-change count on each frame
 BLIND_STATES = ("", "INIT", "SENSOR_ERROR")  # the controller has not used a heatmap yet
+MAP_POLICIES = ("clearance",)  # policies that choose a spot on a ground map (no focus circle)
+SPOT_BGR = (255, 0, 255)  # the chosen spot: magenta
 
 
 @dataclass(frozen=True)
@@ -57,6 +64,21 @@ class VideoFrame:
     perception: str = ""  # e.g. "simulated perception (noise 0)": a simulated run says so on screen
     threshold: float | None = None  # the policy's segmentation threshold on P(safe), when it had one
     recent_changes: int = 0  # controller state changes in the STATE_WINDOW_S before this frame
+    policy: str = ""  # the controller status' policy name
+    hfov_rad: float | None = None  # the camera's horizontal field of view (sizes the spot circle)
+    spot_clearance_m: float | None = None  # a map policy's chosen spot: its clearance radius (None: no spot)
+    policy_reason: str = ""  # why the policy is in its state (its last transition)
+
+    @property
+    def map_policy(self) -> bool:
+        return self.policy in MAP_POLICIES
+
+    def metres_to_heatmap_px(self, metres: float, width_px: int) -> float | None:
+        """A ground distance in heatmap pixels at this frame's altitude (flat ground, nadir camera)."""
+        if self.hfov_rad is None or not (self.alt_agl_m > 0 and 0 < self.hfov_rad < math.pi):
+            return None
+        footprint_m = 2.0 * self.alt_agl_m * math.tan(self.hfov_rad / 2.0)
+        return metres * width_px / footprint_m
 
 
 def _safety_lut() -> np.ndarray:
@@ -75,7 +97,7 @@ def _caption(panel: np.ndarray, text: str) -> None:
     cv2.putText(panel, text, (6, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
 
 
-def _legend(width_px: int) -> np.ndarray:
+def _legend(width_px: int, map_policy: bool = False) -> np.ndarray:
     """P(safe) colour bar and the marks' meanings (drawn once, the same on every frame)."""
     row = np.full((LEGEND_PX, width_px, 3), 24, np.uint8)
     bar_w = 160
@@ -85,19 +107,63 @@ def _legend(width_px: int) -> np.ndarray:
     cv2.putText(row, "P(safe) 0", (4, 20), font, 0.4, white, 1, cv2.LINE_AA)
     cv2.putText(row, "1", (64 + bar_w, 20), font, 0.4, white, 1, cv2.LINE_AA)
     x = 90 + bar_w
-    cv2.circle(row, (x + 8, 15), 8, (255, 255, 0), 2, cv2.LINE_AA)
-    cv2.putText(row, "focus circle", (x + 22, 20), font, 0.4, white, 1, cv2.LINE_AA)
-    x += 120
-    cv2.drawMarker(row, (x + 8, 15), (255, 0, 255), cv2.MARKER_TILTED_CROSS, 14, 2, cv2.LINE_AA)
-    cv2.putText(row, "chosen spot", (x + 22, 20), font, 0.4, white, 1, cv2.LINE_AA)
-    x += 115
+    if map_policy:
+        cv2.drawMarker(row, (x + 8, 15), SPOT_BGR, cv2.MARKER_TILTED_CROSS, 14, 2, cv2.LINE_AA)
+        cv2.circle(row, (x + 8, 15), 10, SPOT_BGR, 2, cv2.LINE_AA)
+        cv2.putText(row, "chosen spot and its clearance", (x + 24, 20), font, 0.4, white, 1, cv2.LINE_AA)
+        x += 235
+        dimmed = "policy view: below threshold"
+    else:
+        cv2.circle(row, (x + 8, 15), 8, (255, 255, 0), 2, cv2.LINE_AA)
+        cv2.putText(row, "focus circle", (x + 22, 20), font, 0.4, white, 1, cv2.LINE_AA)
+        x += 120
+        cv2.drawMarker(row, (x + 8, 15), SPOT_BGR, cv2.MARKER_TILTED_CROSS, 14, 2, cv2.LINE_AA)
+        cv2.putText(row, "chosen spot", (x + 22, 20), font, 0.4, white, 1, cv2.LINE_AA)
+        x += 115
+        dimmed = "policy view: below threshold / outside focus"
     cv2.rectangle(row, (x, 8), (x + 14, 22), (60, 60, 60), -1)
-    cv2.putText(row, "policy view: below threshold / outside focus", (x + 20, 20), font, 0.4, white, 1, cv2.LINE_AA)
+    cv2.putText(row, dimmed, (x + 20, 20), font, 0.4, white, 1, cv2.LINE_AA)
     return row
 
 
+def _spot(panel: np.ndarray, frame: VideoFrame, hm_w: int, sx: float, sy: float) -> None:
+    """A map policy's chosen spot: its clearance circle at its place in the view, and its figures."""
+    side_px = panel.shape[0]
+    if frame.target_px is None or frame.spot_clearance_m is None:
+        return
+    row, col = frame.target_px
+    centre = (int(round((col + 0.5) * sx)), int(round((row + 0.5) * sy)))
+    radius_hm = frame.metres_to_heatmap_px(frame.spot_clearance_m, hm_w)
+    if radius_hm is not None:
+        # Clipped by the panel when the spot lies near or beyond the edge of the view.
+        cv2.circle(panel, centre, max(2, int(round(radius_hm * sx))), SPOT_BGR, 2, cv2.LINE_AA)
+    inside = 0 <= centre[0] < side_px and 0 <= centre[1] < side_px
+    text = f"spot: clearance {frame.spot_clearance_m:.1f} m" + ("" if inside else " (outside the view)")
+    _text_lines(panel, [text], 40)  # under the caption bar
+
+
+def _text_lines(panel: np.ndarray, lines: Sequence[str], top_px: int) -> None:
+    """Small white lines on a dark band (readable over any heatmap colour)."""
+    font, scale = cv2.FONT_HERSHEY_SIMPLEX, 0.4
+    for i, line in enumerate(lines):
+        y = top_px + 14 * i
+        (w, h), _ = cv2.getTextSize(line, font, scale, 1)
+        cv2.rectangle(panel, (2, y - h - 3), (8 + w, y + 4), (0, 0, 0), -1)
+        cv2.putText(panel, line, (5, y), font, scale, (255, 255, 255), 1, cv2.LINE_AA)
+
+
+def _reason(panel: np.ndarray, reason: str) -> None:
+    """The policy's reason for its state, wrapped at the panel's bottom (at most three lines)."""
+    if not reason:
+        return
+    width_chars = max(20, panel.shape[1] // 7)
+    lines = textwrap.wrap(reason, width_chars, max_lines=3, placeholder=" ...")
+    _text_lines(panel, lines, panel.shape[0] - 8 - 14 * (len(lines) - 1))
+
+
 def _compose(frame: VideoFrame, side_px: int, legend: np.ndarray | None = None) -> np.ndarray:
-    """camera | heatmap | policy view (BGR), with focus circle, target, a text bar and the legend."""
+    """camera | heatmap | policy view (BGR), with focus circle (or a map policy's spot), target, a text
+    bar and the legend."""
     cam = cv2.resize(cv2.cvtColor(np.ascontiguousarray(frame.image_rgb), cv2.COLOR_RGB2BGR), (side_px, side_px),
                      interpolation=cv2.INTER_AREA)
     has_heatmap = frame.prob_safe is not None
@@ -111,7 +177,7 @@ def _compose(frame: VideoFrame, side_px: int, legend: np.ndarray | None = None) 
         if frame.threshold is not None:
             keep &= prob_big >= frame.threshold
         sy, sx = side_px / hm_h, side_px / hm_w
-        if frame.focus_radius_px > 0:
+        if frame.focus_radius_px > 0 and not frame.map_policy:
             yy, xx = np.mgrid[0:side_px, 0:side_px]
             keep &= (yy - side_px / 2) ** 2 + (xx - side_px / 2) ** 2 <= (frame.focus_radius_px * sx) ** 2
         policy[~keep] = (policy[~keep] * 0.25).astype(np.uint8)
@@ -123,18 +189,22 @@ def _compose(frame: VideoFrame, side_px: int, legend: np.ndarray | None = None) 
                         (200, 200, 200), 1, cv2.LINE_AA)
     if has_heatmap:  # marks belong to a heatmap: none over "no heatmap"
         for panel in (cam, heat, policy):
-            if frame.focus_radius_px > 0:
+            if frame.focus_radius_px > 0 and not frame.map_policy:
                 # The dynamic-focus circle; when it covers the whole image it is clipped to the frame.
                 radius = int(round(frame.focus_radius_px * sx))
                 cv2.circle(panel, (side_px // 2, side_px // 2), radius, (255, 255, 0), 2, cv2.LINE_AA)
             if frame.target_px is not None:
                 row, col = frame.target_px
                 centre = (int(round((col + 0.5) * sx)), int(round((row + 0.5) * sy)))
-                cv2.drawMarker(panel, centre, (255, 0, 255), cv2.MARKER_TILTED_CROSS, 18, 3, cv2.LINE_AA)
+                cv2.drawMarker(panel, centre, SPOT_BGR, cv2.MARKER_TILTED_CROSS, 18, 3, cv2.LINE_AA)
+        if frame.map_policy:
+            _spot(policy, frame, hm_w, sx, sy)
     _caption(cam, "camera")
     _caption(heat, "heatmap P(safe)")
     thr = f" >= {frame.threshold:.2f}" if frame.threshold is not None else ""
-    _caption(policy, f"policy view: P{thr}, in focus")
+    _caption(policy, f"policy view: P{thr}, chosen spot" if frame.map_policy else f"policy view: P{thr}, in focus")
+    if frame.map_policy:
+        _reason(policy, frame.policy_reason)
     if frame.perception:
         cv2.putText(heat, frame.perception, (8, side_px - 10), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1,
                     cv2.LINE_AA)
@@ -147,7 +217,9 @@ def _compose(frame: VideoFrame, side_px: int, legend: np.ndarray | None = None) 
     if frame.watchdog and frame.watchdog != "ok":
         text += f"   WATCHDOG {frame.watchdog.upper()}"
     cv2.putText(bar, text, (8, 23), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 1, cv2.LINE_AA)
-    return np.vstack([np.hstack([cam, heat, policy]), bar, _legend(width) if legend is None else legend])
+    if legend is None:
+        legend = _legend(width, frame.map_policy)
+    return np.vstack([np.hstack([cam, heat, policy]), bar, legend])
 
 
 def state_change_times(states_by_t: Mapping[float, str]) -> np.ndarray:
@@ -182,7 +254,7 @@ def write_video(frames: Sequence[VideoFrame], out: Path | str, fps: float = 10.0
         raise ReportError(f"fps must be > 0, got {fps!r}")
     side_px += side_px % 2  # H.264 in yuv420p needs even sides
     frames = frames[_opening(frames):]
-    legend = _legend(PANELS * side_px)
+    legend = _legend(PANELS * side_px, map_policy=any(f.map_policy for f in frames))
     images = (_compose(f, side_px, legend) for f in frames)
     out = Path(out)
     if av is not None:

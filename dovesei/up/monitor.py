@@ -193,7 +193,8 @@ class Recorder:
         bgr = cv2.cvtColor(frame.image_rgb, cv2.COLOR_RGB2BGR)
         ok, jpeg = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, 85])
         if ok:
-            self.video_frames[frame.seq] = {"t_s": frame.stamp.t_s, "alt": frame.alt_agl_m, "jpeg": jpeg}
+            self.video_frames[frame.seq] = {"t_s": frame.stamp.t_s, "alt": frame.alt_agl_m, "jpeg": jpeg,
+                                            "hfov": frame.hfov_rad}  # sizes a map policy's spot circle
         if len(self.video_frames) > MAX_VIDEO_FRAMES:
             # Long episode: keep every other frame and halve the rate from now on (bounded memory).
             for seq in sorted(self.video_frames)[1::2]:

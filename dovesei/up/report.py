@@ -335,5 +335,7 @@ def video_frames(rec: Recorder, perception: str) -> list[videos.VideoFrame]:
             target_px=(st.target_row_px, st.target_col_px) if st and st.target_valid else None,
             threshold=st.threshold if st and st.threshold_valid else None,
             recent_changes=videos.changes_before(changes, kept["t_s"]),
-            perception=perception))
+            perception=perception, policy=st.policy if st else "", hfov_rad=kept.get("hfov"),
+            spot_clearance_m=st.spot_clearance_m if st and st.spot_valid else None,
+            policy_reason=st.policy_reason if st else ""))
     return frames
