@@ -184,7 +184,8 @@ def plot_trajectory(world: Any, report: Mapping[str, Any], out_png: Path | str) 
     ax.legend(handles=handles, loc=corners[1], fontsize=8, framealpha=0.85)
 
     perception = backend_label(str(report.get("backend", "")), bool(report.get("simulated", False)),
-                               report.get("noise") if report.get("simulated") else None)
+                               report.get("noise") if report.get("simulated") else None,
+                               report.get("perception") if report.get("simulated") else None)
     final_alt = final.get("alt_m")
     subtitle = (f"policy {report.get('policy', '?')}, {perception}, {report.get('timing', '?')} timing; "
                 f"{report.get('sim_time_s', 0.0):.1f} s sim, path {report.get('path_length_m', 0.0):.0f} m"

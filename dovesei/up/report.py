@@ -104,6 +104,7 @@ class Setup:
     simulated: bool
     segmenter_option: str
     noise: float | None
+    perception: str | None  # the simulated perception's profile (None: not simulated)
     policy: str
     timing: str
     seed: int
@@ -186,7 +187,7 @@ class RunReport:
         return out
 
     def perception_text(self) -> str:
-        return backend_label(self.setup.backend, self.setup.simulated, self.setup.noise)
+        return backend_label(self.setup.backend, self.setup.simulated, self.setup.noise, self.setup.perception)
 
 
 def read_stats(out: Path) -> dict[str, Any]:
@@ -279,7 +280,8 @@ def build_report(options: UpOptions, rec: Recorder, start: tuple[float, float, f
         xy = np.column_stack([traj["x_m"], traj["y_m"]]) if traj["t_s"] else np.zeros((0, 2))
         path_length_m = float(np.linalg.norm(np.diff(xy, axis=0), axis=1).sum()) if len(xy) > 1 else 0.0
         episode = Episode("error", detail, False, sim_time_s, path_length_m, Position(*start), final, (), None)
-    setup = Setup(options.world, backend, simulated, options.segmenter, noise if simulated else None, options.policy,
+    setup = Setup(options.world, backend, simulated, options.segmenter, noise if simulated else None,
+                  options.perception if simulated else None, options.policy,
                   options.timing, options.seed, "lockstep" if options.lockstep else "realtime",
                   options.vehicle_url or "sim", options.vehicle_id, 2.0, options.time_limit_s)
     episode_wall_s = (round(rec.result_wall_s - rec.first_state_wall_s, 3)

@@ -118,11 +118,8 @@ class ControllerConfig:
                     "lockstep_heatmap_wait_s", "lockstep_heatmap_retry_s", "policy_dt_max_s",
                     "future_tolerance_s", "takeoff_ready_timeout_s")
         for name in positive:
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
-                raise ConfigError(f"ControllerConfig.{name} must be a finite number > 0, got {value!r}")
-        if not self.handover_release_m >= 0 or not math.isfinite(self.handover_release_m):
-            raise ConfigError(f"ControllerConfig.handover_release_m must be >= 0, got {self.handover_release_m!r}")
+            validate.positive(f"ControllerConfig.{name}", getattr(self, name))
+        validate.non_negative("ControllerConfig.handover_release_m", self.handover_release_m)
         if self.heatmap_climb_after_s <= self.heatmap_hold_after_s:
             raise ConfigError(
                 f"heatmap_climb_after_s ({self.heatmap_climb_after_s} s) must exceed "

@@ -35,11 +35,12 @@ follows.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
+
+from dovesei.shared import validate
 
 FUSION_MODES = ("grouped", "dovesei")
 DEFAULT_BLUR_PX = 15
@@ -65,7 +66,7 @@ class FusionConfig:
 def _check_params(mode: str, temperature: float, blur_px: int) -> None:
     if mode not in FUSION_MODES:
         raise FusionError(f"mode: unknown fusion mode {mode!r}, expected one of {FUSION_MODES}")
-    if not isinstance(temperature, (int, float)) or not math.isfinite(temperature) or temperature <= 0:
+    if not (validate.is_number(temperature) and temperature > 0):
         raise FusionError(f"temperature: must be a finite number > 0, got {temperature!r}")
     if isinstance(blur_px, bool) or not isinstance(blur_px, (int, np.integer)) or blur_px < 1:
         raise FusionError(f"blur_px: must be an integer >= 1, got {blur_px!r}")

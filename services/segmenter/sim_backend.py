@@ -39,6 +39,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from dovesei.shared import validate
 from dovesei.shared.errors import ConfigError
 
 from .appearance import APPEARANCES, INDEX, OFF_WORLD_LABEL, appearance_mix
@@ -119,10 +120,7 @@ class PerceptionParams:
                   "flicker_offset": (0.0, 5.0), "shadow": (0.0, 1.0), "sun_elevation_deg": (10.0, 90.0),
                   "token_sigma_px": (0.0, 40.0)}
         for key, (lo, hi) in checks.items():
-            value = getattr(self, key)
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value) \
-                    or not lo <= value <= hi:
-                raise ConfigError(f"perception {self.name}: {key} must be a number in [{lo:g}, {hi:g}], got {value!r}")
+            validate.in_range(f"perception {self.name}: {key}", getattr(self, key), lo, hi)
         if self.cell_px not in CELL_SIZES_PX:
             raise ConfigError(f"perception {self.name}: cell_px must be one of {CELL_SIZES_PX}, got {self.cell_px!r}")
         if self.fusion_grid_px not in (44, 88, 176, 352):

@@ -19,6 +19,7 @@ import math
 from dataclasses import dataclass
 
 from dovesei.shared import timing as shared_timing
+from dovesei.shared import validate
 from dovesei.shared.errors import ConfigError
 
 
@@ -80,9 +81,7 @@ class DoveseiConfig:
             "z_speed_landing_m_s",
         )
         for name in positive:
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
-                raise ConfigError(f"DoveseiConfig.{name} must be a finite number > 0, got {value!r}")
+            validate.positive(f"DoveseiConfig.{name}", getattr(self, name))
         if self.seg_threshold_steps < 1:
             raise ConfigError(f"DoveseiConfig.seg_threshold_steps must be >= 1, got {self.seg_threshold_steps}")
         if self.grid_rows_px < 3 or self.grid_cols_px < 3:
