@@ -191,9 +191,10 @@ class CameraPublisher:
 
     def _check_stall(self, now: float) -> None:
         if self.grabber.ended.is_set() and not self.stats.ended:
-            self.stats.ended = True
+            # Warn first: `ended` is what a watcher waits on, and the warning is part of ending.
             self._warn(f"camera source {self.config.source!r} reached its end: publishing stopped "
                        "(the controller's watchdog holds the vehicle)")
+            self.stats.ended = True
             return
         silent_s = now - self._last_new_frame_s
         if not self.stats.stalled and not self.stats.ended and silent_s > self.config.stall_timeout_s:
