@@ -220,6 +220,9 @@ class ControllerCore:
         self._mode: Mode | None = None
         self._last_state_seq: int | None = None
         self._state_anchor: tuple[float, float] | None = None  # (state t_s, own mono s): on-time state
+        # The on-time state that put the vehicle's clock furthest ahead of our own monotonic clock:
+        # no honest state can lead its projection, whatever gaps, backlogs or re-syncs came since.
+        self._best_anchor: tuple[float, float] | None = None
         self._policy_offset_s = 0.0  # policy clock = heatmap stamp + offset (changes only at jumps)
         self._last_policy_t_s: float | None = None
         self._policy_fault: str | None = None  # why the newest policy step cannot be followed
@@ -246,6 +249,7 @@ class ControllerCore:
         # The adopted decision's age can no longer be measured on the new timeline: hold until a
         # heatmap of the new one arrives (NO_HEATMAP), and judge stamps afresh.
         self._adopted, self._decision, self._pending, self._state_anchor = None, None, None, None
+        self._best_anchor = None
         self._buffer = {seq: item for seq, item in self._buffer.items() if item[0].stamp.t_s <= state.stamp.t_s}
 
     def _projected_now_s(self) -> float | None:
@@ -269,12 +273,18 @@ class ControllerCore:
             anchor = self._state_anchor
             if anchor is None or state.stamp.t_s > anchor[0]:
                 self._state_anchor = (state.stamp.t_s, self._mono())
+            best = self._best_anchor
+            if best is None or state.stamp.t_s - self._mono() > best[0] - best[1]:
+                self._best_anchor = (state.stamp.t_s, self._mono())
             return None
         if state.stamp.t_s <= projected + self.config.future_tolerance_s:
             return None
         last_wall_s = self._state_advanced_wall_s
         since_s = wall_s - last_wall_s if wall_s is not None and last_wall_s is not None else 0.0
-        if since_s > self.config.state_stale_after_s:
+        best = self._best_anchor
+        ceiling = None if best is None else best[0] + _DATA_RATE_MARGIN * max(0.0, self._mono() - best[1])
+        if since_s > self.config.state_stale_after_s and (
+                ceiling is None or state.stamp.t_s <= ceiling + self.config.future_tolerance_s):
             # Nothing accepted for a while: the anchor itself is suspect. After a hang of our own
             # the backlog arrives first and anchored a 4 s old stamp to "now", so every live state
             # was refused for a minute (dovesei faults, controller-hang). Re-synchronise on this
@@ -285,6 +295,9 @@ class ControllerCore:
                         projected)
             self._state_anchor = (state.stamp.t_s, self._mono())
             return None
+        # A lead beyond even the best projection is refused after a gap too: otherwise any pause of
+        # the genuine states (a loaded host) let a forged state set the clock 30 s ahead, and the
+        # forger's heatmaps stamped to match were then fresh (dovesei faults, clock-skew).
         return (f"state {state.seq} stamped {state.stamp.t_s:.3f} s leads the controller's clock "
                 f"(~{projected:.3f} s) by more than {self.config.future_tolerance_s:g} s")
 

@@ -153,3 +153,22 @@ def test_after_a_hang_of_its_own_the_controller_resynchronises_on_live_states() 
             refused += 1
             assert accepted == 0, "once re-synchronised, live states are never refused again"
     assert accepted > 25 and refused <= 11, (accepted, refused)  # within state_stale_after_s (0.5 s) + a tick
+
+
+def test_a_gap_in_the_states_does_not_let_a_forged_lead_set_the_clock() -> None:
+    """Was: after 0.5 s without an accepted state, the next state re-synchronised the clock whatever its
+    stamp, so a forger's state 30 s ahead (a loaded host pausing the genuine ones) made its matching
+    forged heatmaps fresh."""
+    now = [0.0]
+    core = ControllerCore(ControllerConfig(lockstep=False, timing="real"), mono=lambda: now[0])
+    for k in range(20):
+        now[0] = 0.05 * k
+        core.tick(state(k, 0.05 * k, 50.0), wall_s=now[0])
+    now[0] = 2.0  # the genuine states paused for a second
+    try:
+        core.tick(state(900, 2.0 + 30.0, 50.0), wall_s=now[0])
+        raise AssertionError("a state 30 s ahead of every projection was accepted after a gap")
+    except ControllerInputError:
+        pass
+    assert core.rejected["state from the future"] == 1
+    core.tick(state(40, 2.0, 50.0), wall_s=now[0])  # the genuine clock goes on being accepted
