@@ -58,6 +58,17 @@ class Decision:
     reason: str = ""  # why the policy is in `state` (the last transition's reason)
 
 
+def resolve_config(config: Any, config_type: type, preset: Callable[[str], Any], what: str) -> Any:
+    """A policy's config from a config object, a preset name, or None (the `real` preset)."""
+    if config is None:
+        return preset("real")
+    if isinstance(config, str):
+        return preset(config)
+    if isinstance(config, config_type):
+        return config
+    raise TypeError(f"{what} config must be a {config_type.__name__}, a preset name or None, got {type(config).__name__}")
+
+
 class Policy(Protocol):
     """A landing policy: one `step` per controller tick."""
 

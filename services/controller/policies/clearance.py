@@ -27,7 +27,7 @@ import math
 
 import numpy as np
 
-from dovesei.controller.policies.base import Decision, Observation, PolicyInputError
+from dovesei.controller.policies.base import Decision, Observation, PolicyInputError, resolve_config
 from dovesei.controller.policies.clearance_config import ClearanceConfig, clearance_preset
 from dovesei.controller.policies.clearance_machine import TERMINAL, Inputs, Memory, Phase, search_pattern, step
 from dovesei.controller.policies.clearance_map import GroundMap, clearance_at, find_spot, footprint_width_m
@@ -37,13 +37,7 @@ log = logging.getLogger(__name__)
 
 
 def _resolve(config: ClearanceConfig | str | None) -> ClearanceConfig:
-    if config is None:
-        return clearance_preset("real")
-    if isinstance(config, str):
-        return clearance_preset(config)
-    if isinstance(config, ClearanceConfig):
-        return config
-    raise TypeError(f"clearance config must be a ClearanceConfig, a preset name or None, got {type(config).__name__}")
+    return resolve_config(config, ClearanceConfig, clearance_preset, "clearance")
 
 
 def fence(vel_body_frd_m_s: tuple[float, float, float], north_m: float, east_m: float, yaw_rad: float,

@@ -44,7 +44,7 @@ from enum import Enum
 import cv2
 import numpy as np
 
-from dovesei.controller.policies.base import Decision, Observation, PolicyInputError
+from dovesei.controller.policies.base import Decision, Observation, PolicyInputError, resolve_config
 from dovesei.controller.policies.config import DoveseiConfig, timing_preset
 
 log = logging.getLogger(__name__)
@@ -394,13 +394,7 @@ class StateMachine:
 
 
 def _resolve_config(config: DoveseiConfig | str | None) -> DoveseiConfig:
-    if config is None:
-        return timing_preset("real")
-    if isinstance(config, str):
-        return timing_preset(config)
-    if isinstance(config, DoveseiConfig):
-        return config
-    raise TypeError(f"dovesei config must be a DoveseiConfig, a preset name or None, got {type(config).__name__}")
+    return resolve_config(config, DoveseiConfig, timing_preset, "dovesei")
 
 
 class DoveseiPolicy:
