@@ -58,6 +58,22 @@ class Decision:
     reason: str = ""  # why the policy is in `state` (the last transition's reason)
 
 
+def checked_prob_safe(prob: Any, min_side_px: int) -> np.ndarray:
+    """The observation's P(safe) as contiguous float32, or PolicyInputError saying what is wrong."""
+    if not isinstance(prob, np.ndarray) or prob.ndim != 2 or min(prob.shape) < min_side_px:
+        shape = getattr(prob, "shape", None)
+        kind = "a non-empty 2-D numpy array" if min_side_px <= 1 else \
+            f"a 2-D numpy array at least {min_side_px} px a side"
+        raise PolicyInputError(f"prob_safe must be {kind}, got shape {shape}")
+    if not np.issubdtype(prob.dtype, np.floating):
+        raise PolicyInputError(f"prob_safe must hold floats in [0, 1], got dtype {prob.dtype}")
+    prob = np.ascontiguousarray(prob, dtype=np.float32)
+    lo, hi = float(prob.min()), float(prob.max())
+    if not (math.isfinite(lo) and math.isfinite(hi)) or lo < 0.0 or hi > 1.0:
+        raise PolicyInputError(f"prob_safe must be finite and within [0, 1], got range [{lo}, {hi}]")
+    return prob
+
+
 def resolve_config(config: Any, config_type: type, preset: Callable[[str], Any], what: str) -> Any:
     """A policy's config from a config object, a preset name, or None (the `real` preset)."""
     if config is None:

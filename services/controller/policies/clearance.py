@@ -27,7 +27,7 @@ import math
 
 import numpy as np
 
-from dovesei.controller.policies.base import Decision, Observation, PolicyInputError, resolve_config
+from dovesei.controller.policies.base import Decision, Observation, PolicyInputError, checked_prob_safe, resolve_config
 from dovesei.controller.policies.clearance_config import ClearanceConfig, clearance_preset
 from dovesei.controller.policies.clearance_machine import TERMINAL, Inputs, Memory, Phase, search_pattern, step
 from dovesei.controller.policies.clearance_map import GroundMap, clearance_at, find_spot, footprint_width_m
@@ -239,13 +239,4 @@ class ClearancePolicy:
         if obs.prob_safe is None:
             return None
         prob = obs.prob_safe
-        if not isinstance(prob, np.ndarray) or prob.ndim != 2 or min(prob.shape) < 16:
-            raise PolicyInputError(f"prob_safe must be a 2-D numpy array at least 16 px a side, got shape "
-                                   f"{getattr(prob, 'shape', None)}")
-        if not np.issubdtype(prob.dtype, np.floating):
-            raise PolicyInputError(f"prob_safe must hold floats in [0, 1], got dtype {prob.dtype}")
-        prob = np.ascontiguousarray(prob, dtype=np.float32)
-        lo, hi = float(prob.min()), float(prob.max())
-        if not (math.isfinite(lo) and math.isfinite(hi)) or lo < 0.0 or hi > 1.0:
-            raise PolicyInputError(f"prob_safe must be finite and within [0, 1], got range [{lo}, {hi}]")
-        return prob
+        return checked_prob_safe(prob, min_side_px=16)

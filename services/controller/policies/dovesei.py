@@ -44,7 +44,7 @@ from enum import Enum
 import cv2
 import numpy as np
 
-from dovesei.controller.policies.base import Decision, Observation, PolicyInputError, resolve_config
+from dovesei.controller.policies.base import Decision, Observation, PolicyInputError, checked_prob_safe, resolve_config
 from dovesei.controller.policies.config import DoveseiConfig, timing_preset
 
 log = logging.getLogger(__name__)
@@ -530,13 +530,4 @@ class DoveseiPolicy:
         if obs.prob_safe is None:
             return None
         prob = obs.prob_safe
-        if not isinstance(prob, np.ndarray) or prob.ndim != 2 or prob.size == 0:
-            shape = getattr(prob, "shape", None)
-            raise PolicyInputError(f"prob_safe must be a non-empty 2-D numpy array, got shape {shape}")
-        if not np.issubdtype(prob.dtype, np.floating):
-            raise PolicyInputError(f"prob_safe must hold floats in [0, 1], got dtype {prob.dtype}")
-        prob = np.ascontiguousarray(prob, dtype=np.float32)
-        lo, hi = float(prob.min()), float(prob.max())
-        if not (math.isfinite(lo) and math.isfinite(hi)) or lo < 0.0 or hi > 1.0:
-            raise PolicyInputError(f"prob_safe must be finite and within [0, 1], got range [{lo}, {hi}]")
-        return prob
+        return checked_prob_safe(prob, min_side_px=1)
