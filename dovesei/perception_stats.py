@@ -13,8 +13,19 @@ that the `realistic` profile is calibrated against (never against landing succes
   where the reference aims) has a truly safe disk: PEACE's per-image reading of the same thing;
 - `oracle_precision` (a ceiling, judge side): the same figure for a map made of the judge's own
   flags (1 safe, 0 unsafe) through the same blur and threshold;
+- `below_floor_fraction` (judge side): share of frames whose truly disk-safe share of the view is
+  under the threshold loop's 10 % floor. On such a frame any map that does not fail the loop puts
+  target pixels on unsafe ground, however right it is about each class;
 - `frame_agreement`: mean IoU of the target masks of consecutive frames (the camera drifting
   0.2 m per frame at 100 m), i.e. how much of the map's choice survives one frame.
+
+Why even `clean` stays under the judge's flags (measured on the default suite, seed 0): the
+reference's 15-px box blur (6.3 m at 100 m) and its 10 % floor cap the oracle itself at 0.88
+(37 % of the frames have under 10 % disk-safe ground: 85 % of Dubai's, 40-50 % of downtown's,
+the villas' and the coast's); and the reference prompts name "sidewalk" and "asphalt" as places to land while the
+synthetic judge counts sidewalks unsafe, and Dubai's "vegetation (lawns and trees, not
+separated)" is half lawn by its own name but unsafe to its judge. A perception that answers the
+prompts faithfully is penalised for both; that is the prompts' and labels' error, not its own.
 
 All at 100 m over seeded starts, with the reference prompts, the reference fusion (softmax) and
 the dynamic threshold of `dovesei.controller.policies.dovesei`. This side is the JUDGE and may
@@ -47,6 +58,7 @@ from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.sim.camera import CameraModel, pixel_to_world_affine, render
 from dovesei.sim.judge import DEFAULT_ZERO_TOLERANCE_NAMES
 from dovesei.sim.starts import generate_starts
+from dovesei.sim.suite import suite
 from dovesei.sim.world import World, load_world
 
 log = logging.getLogger(__name__)
@@ -67,16 +79,13 @@ class WorldStats:
     target_precision: float
     core_precision: float
     oracle_precision: float
+    below_floor_fraction: float
     frame_agreement: float
 
 
 def default_worlds() -> list[str]:
-    """The world suite (`dovesei.sim.suite.DEFAULT_SUITE` when present), else Dubai + synthetic."""
-    try:
-        from dovesei.sim.suite import DEFAULT_SUITE  # helper module of the world suite, if shipped
-    except ImportError:
-        return ["dubai", "synthetic"]
-    return [str(getattr(w, "spec", w)) for w in DEFAULT_SUITE]
+    """The repository's world suite (`dovesei.sim.suite.DEFAULT_SUITE`)."""
+    return list(suite("default"))
 
 
 def disk_safe_map(world: World, radius_m: float = SAFETY_RADIUS_M, tolerance: float = TOLERANCE_FRAC) -> np.ndarray:
@@ -126,6 +135,7 @@ def world_stats(world: World, params: PerceptionParams, n_starts: int, frames_pe
     target_px = target_safe = 0
     cores = cores_safe = 0
     oracle_px = oracle_safe = 0
+    below_floor = 0
     safe_lut = world.safe_lut.astype(np.float32)
     for i, start in enumerate(generate_starts(world, n_starts, seed, ALT_M, cam)):
         heading = rng.uniform(0.0, 2.0 * math.pi)
@@ -137,6 +147,7 @@ def world_stats(world: World, params: PerceptionParams, n_starts: int, frames_pe
             view = View((x_m, y_m), ALT_M, cam.hfov_rad, 0.0)
             prob = perception.safe_probability(labels, names, view, i * 1000 + k, REFERENCE_PROMPTS, fusion)
             truth = _view_disk_safe(world, safe_map, x_m, y_m, cam)
+            below_floor += float(np.count_nonzero(truth)) / truth.size < policy_cfg.seg_min_safe_fraction
             # The ceiling: the judge's own class flags as P (1 safe, 0 unsafe), the same box blur
             # and threshold. What no perception can beat at 100 m with this pipeline.
             oracle = dynamic_threshold(blur_prob(safe_lut[labels], fusion.blur_px), policy_cfg)
@@ -170,6 +181,7 @@ def world_stats(world: World, params: PerceptionParams, n_starts: int, frames_pe
         target_precision=target_safe / target_px if target_px else float("nan"),
         core_precision=cores_safe / cores if cores else float("nan"),
         oracle_precision=oracle_safe / oracle_px if oracle_px else float("nan"),
+        below_floor_fraction=below_floor / frames,
         frame_agreement=float(np.mean(agreements)) if agreements else float("nan"))
 
 
@@ -193,6 +205,7 @@ def suite_stats(worlds: list[str], profile: str = DEFAULT_PROFILE, noise: float 
             "frames": frames, "median_threshold": mean("median_threshold"), "lowered_fraction": mean("lowered_fraction"),
             "failed_fraction": mean("failed_fraction"), "target_precision": mean("target_precision"),
             "core_precision": mean("core_precision"), "oracle_precision": mean("oracle_precision"),
+            "below_floor_fraction": mean("below_floor_fraction"),
             "frame_agreement": mean("frame_agreement"), "worlds": [asdict(s) for s in per_world]}
 
 
@@ -203,6 +216,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--noise", type=float, default=1.0, help="error scale within the profile (default 1)")
     p.add_argument("--world", action="append", default=None,
                    help="world spec (repeatable; default: the world suite)")
+    p.add_argument("--suite", default=None, help="a named world suite instead of --world (default suite: 'default')")
     p.add_argument("--starts", type=int, default=40, help="seeded starts per world (default 40)")
     p.add_argument("--frames", type=int, default=3, help="consecutive frames per start (default 3, >= 2)")
     p.add_argument("--seed", type=int, default=0, help="seed of the starts and of the perception")
@@ -217,7 +231,10 @@ def main(argv: list[str] | None = None) -> int:
         print("dovesei perception-stats: --starts must be >= 1, --frames >= 2 and --seed >= 0", file=sys.stderr)
         return 2
     try:
-        out = suite_stats(args.world or default_worlds(), args.perception, args.noise, args.starts, args.frames,
+        if args.suite is not None and args.world:
+            raise ConfigError("give --world or --suite, not both")
+        worlds = list(suite(args.suite)) if args.suite is not None else (args.world or default_worlds())
+        out = suite_stats(worlds, args.perception, args.noise, args.starts, args.frames,
                           args.seed)
     except (DoveseiError, ValueError) as exc:
         print(f"dovesei perception-stats: {exc}", file=sys.stderr)
@@ -227,9 +244,11 @@ def main(argv: list[str] | None = None) -> int:
     else:
         for w in out["worlds"]:
             print(f"{w['world']:<40} median thr {w['median_threshold']:.3f}  lowered {w['lowered_fraction']:.3f}  "
-                  f"precision {w['target_precision']:.3f}  core {w['core_precision']:.3f}  oracle {w['oracle_precision']:.3f}  agreement {w['frame_agreement']:.3f}")
+                  f"precision {w['target_precision']:.3f}  core {w['core_precision']:.3f}  oracle {w['oracle_precision']:.3f}  "
+                  f"below floor {w['below_floor_fraction']:.3f}  agreement {w['frame_agreement']:.3f}")
         print(f"{'ALL':<40} median thr {out['median_threshold']:.3f}  lowered {out['lowered_fraction']:.3f}  "
-              f"precision {out['target_precision']:.3f}  core {out['core_precision']:.3f}  oracle {out['oracle_precision']:.3f}  agreement {out['frame_agreement']:.3f}")
+              f"precision {out['target_precision']:.3f}  core {out['core_precision']:.3f}  oracle {out['oracle_precision']:.3f}  "
+              f"below floor {out['below_floor_fraction']:.3f}  agreement {out['frame_agreement']:.3f}")
     return 0
 
 

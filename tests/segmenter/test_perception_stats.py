@@ -75,3 +75,23 @@ def test_command_line_json_and_bad_flags(tmp_path, capsys, monkeypatch) -> None:
     with pytest.raises(SystemExit) as info:
         perception_stats.main(["--perception", "dreamy"])
     assert info.value.code == 2
+
+
+def test_below_floor_counts_views_with_under_a_tenth_of_disk_safe_ground() -> None:
+    # The lawn blocks fill most of any 148 m view; a world of road with one 20 m lawn never does.
+    assert world_stats(_blocks_world(), profile_params("clean"), 4, 2, seed=0).below_floor_fraction == 0.0
+    labels = np.full((600, 600), 2, np.uint8)
+    labels[290:310, 290:310] = 1
+    sparse = World(np.zeros((600, 600, 3), np.uint8), labels, 1.0,
+                   {1: ClassInfo("grass", True), 2: ClassInfo("road", False)}, name="sparse")
+    stats = world_stats(sparse, profile_params("clean"), 4, 2, seed=0)
+    assert stats.below_floor_fraction == 1.0
+    # The reference's 10 % floor then forces target pixels onto the road: precision stays low
+    # however right the perception is about each class (the oracle's own frames fail instead).
+    assert stats.target_precision < 0.5
+
+
+def test_suite_flag_names_the_suites(capsys) -> None:
+    assert perception_stats.main(["--suite", "nope"]) == 2
+    assert "suite 'nope'" in capsys.readouterr().err
+    assert perception_stats.main(["--suite", "default", "--world", "dubai"]) == 2
