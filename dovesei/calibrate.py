@@ -32,7 +32,7 @@ from dovesei.bench.run import episode_seed
 from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.shared.validate import in_range
 from dovesei.sim.starts import generate_starts
-from dovesei.sim.world import load_world
+from dovesei.sim.world import load_world, require_judged
 
 log = logging.getLogger(__name__)
 
@@ -150,6 +150,7 @@ def check_args(args: argparse.Namespace) -> tuple[list[str], list[float], list[f
         raise ConfigError(f"--seed {args.seed}: calibrate on a seed >= 0 other than {REPORTED_BENCH_SEED}, "
                           "the reported bench's (tuning on the starts you report is fitting, not calibrating)")
     args.perception = check_perception(args.perception)
+    require_judged(args.world)
     generate_starts(load_world(args.world), 1, args.seed)  # the world loads and fits starts at 100 m
     return policies, noises, noises_real, timings
 

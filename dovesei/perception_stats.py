@@ -59,7 +59,7 @@ from dovesei.sim.camera import CameraModel, pixel_to_world_affine, render
 from dovesei.sim.judge import DEFAULT_ZERO_TOLERANCE_NAMES
 from dovesei.sim.starts import generate_starts
 from dovesei.sim.suite import suite
-from dovesei.sim.world import World, load_world
+from dovesei.sim.world import World, load_world, require_judged
 
 log = logging.getLogger(__name__)
 
@@ -189,6 +189,8 @@ def suite_stats(worlds: list[str], profile: str = DEFAULT_PROFILE, noise: float 
                 frames_per_start: int = 3, seed: int = 0) -> dict:
     """Per-world statistics and their frame-weighted means over the worlds."""
     per_world = []
+    for spec in worlds:
+        require_judged(spec)
     for spec in worlds:
         world = load_world(spec)
         stats = world_stats(world, profile_params(profile, noise), n_starts, frames_per_start, seed)

@@ -458,7 +458,8 @@ class PromptSetMsg(Message):
             raise FieldError(f"field 'template': {self.template!r} has no '{{}}' placeholder")
 
 
-OUTCOMES = ("safe", "unsafe", "timeout", "out_of_world", "error")
+# "not_judged": the hand-over altitude was reached over a world without labels (tile worlds).
+OUTCOMES = ("safe", "unsafe", "timeout", "out_of_world", "error", "not_judged")
 
 
 @message("dovesei.episode_result", 1)

@@ -76,6 +76,8 @@ def exit_code(report: RunReport) -> int:
         return EXIT_INTERRUPTED
     if report.outcome == "safe":
         return EXIT_OK
+    if report.outcome == "not_judged":  # reached the hand-over altitude; nothing says it was safe
+        return EXIT_UNSAFE
     return EXIT_UNSAFE if report.episode.judged else EXIT_FAILED
 
 
@@ -89,6 +91,9 @@ def preflight(options: UpOptions) -> tuple[object, tuple[float, float, float], C
     if options.vehicle_url:
         check_endpoint_free(parse_mavlink_url(options.vehicle_url))
     world = load_world(options.world)
+    if world.labels is None and options.segmenter == "sim":
+        raise ConfigError(f"world {options.world!r} has no labels for the simulated perception to read: "
+                          "fly it with --segmenter clipseg")
     start = resolve_start(world, options)
     configs = child_configs(options, start)  # each service's own checks, now rather than in a child
     # The ports do not change which links the command lines open: placeholders suffice here.

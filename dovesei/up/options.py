@@ -190,6 +190,9 @@ def resolve_start(world: Any, options: UpOptions) -> tuple[float, float, float]:
             raise ConfigError(f"--start {x_m:g},{y_m:g} lies outside the world "
                               f"({world.width_m:.0f} x {world.height_m:.0f} m, x east, y north)")
         return float(x_m), float(y_m), float(alt_m)
+    home = getattr(world, "home_xy_m", None)
+    if home is not None:  # a preset built around one start (paper-paris): fly from it, as the paper did
+        return float(home[0]), float(home[1]), float(options.start_alt_m)
     seed = options.seed if options.start_seed is None else options.start_seed
     st = generate_starts(world, 1, seed, alt_m=options.start_alt_m)[0]
     return st.x_m, st.y_m, st.alt_m

@@ -237,7 +237,9 @@ def judge_result(vehicle_id: str, judge: EpisodeJudge, outcome: str, detail: str
     closest = v.closest_unsafe_m if v else None
     if not detail:
         detail = v.reason if v else {"timeout": f"no landing within {judge.time_limit_s:.0f} s of {clock} time",
-                                     "out_of_world": "the vehicle left the world"}.get(outcome, "")
+                                     "out_of_world": "the vehicle left the world",
+                                     "not_judged": "reached the hand-over altitude over a world without labels: "
+                                                   "not judged"}.get(outcome, "")
     t_s, x_m, y_m, alt_m = (pose.t_s, pose.x_m, pose.y_m, pose.alt_agl_m) if pose else (0.0, 0.0, 0.0, 0.0)
     return EpisodeResult(vehicle_id, Stamp(t_s, clock), outcome, judge.sim_time_s, judge.path_length_m,
                          x_m, y_m, alt_m, classes, closest is not None,

@@ -179,8 +179,8 @@ class EpisodeJudge:
         tolerance_frac: float = 0.01,
         search_radius_m: float = 50.0,
     ) -> None:
-        if world.labels is None:
-            raise JudgeError(f"world {world.name!r} has no label map: episodes on it cannot be judged")
+        # A world without labels (tiles, paper-paris) is flown to the hand-over altitude, the time
+        # limit or its edge like any other, but its landings end "not_judged": nothing says safe.
         if not (is_number(handover_alt_m) and handover_alt_m >= 0 and is_number(time_limit_s) and time_limit_s > 0):
             raise JudgeError(f"need handover_alt_m >= 0 and time_limit_s > 0, got {handover_alt_m}, {time_limit_s}")
         self.world = world
@@ -189,7 +189,7 @@ class EpisodeJudge:
         self.safety_radius_m = safety_radius_m
         self.tolerance_frac = tolerance_frac
         self.search_radius_m = search_radius_m
-        self.outcome: str | None = None  # "safe", "unsafe", "timeout", "out_of_world" once ended
+        self.outcome: str | None = None  # "safe", "unsafe", "timeout", "out_of_world", "not_judged" once ended
         self.verdict: Verdict | None = None  # set when the hand-over altitude was reached
         self.path_length_m = 0.0  # horizontal, summed over the states checked
         self.start_t_s: float | None = None
@@ -214,6 +214,8 @@ class EpisodeJudge:
         # altitude on the last tick still counts as a landing.
         if not self.world.contains(state.x_m, state.y_m):
             self.outcome = "out_of_world"
+        elif state.alt_agl_m <= self.handover_alt_m and self.world.labels is None:
+            self.outcome = "not_judged"
         elif state.alt_agl_m <= self.handover_alt_m:
             self.verdict = judge_landing(self.world, state.x_m, state.y_m, self.safety_radius_m,
                                          self.tolerance_frac, self.search_radius_m)

@@ -7,6 +7,7 @@ labels, the judge reads its labels and `safe_lut`, the start generator reads its
     "synthetic[:seed=N,...]"        -> synthetic.parse_spec + synthetic.load_or_generate (cached)
     "dubai" (a name in WORLD_ALIASES) -> the world folder shipped in `worlds/` beside this module
     "tiles:<url template>[,k=v...]" -> tiles.load_tile_world (web map tiles, no labels)
+    "paper-paris[:start=K,...]"     -> paris.load_paper_paris (the paper's IGN orthophotos, no labels)
     "<folder>" or ".../world.json"  -> world.json + image + labels (DESIGN.md section 8)
 
 World frame (metres, used by the whole simulator): x_m points east from the image's left edge,
@@ -16,6 +17,9 @@ x_m = (col + 0.5) * gsd_m, y_m = (H - row - 0.5) * gsd_m. The image's top is nor
 Label id 255 is reserved: the camera writes it where a view leaves the world. Ids a world does not
 list in `classes` count as unsafe; a world folder whose label image uses an unlisted id is
 refused at load time, because that is nearly always a mapping mistake rather than intent.
+
+Worlds without labels (tiles, paper-paris) can be flown but never judged: `require_judged(spec)`
+refuses them from the spec alone (before any download) for the commands that judge.
 """
 
 from __future__ import annotations
@@ -77,6 +81,8 @@ class World:
     gsd_m: float  # metres per pixel, same along both axes
     classes: Mapping[int, ClassInfo]
     name: str
+    home_xy_m: tuple[float, float] | None = None
+    """Where a preset built around one start puts it (world metres); None: the starts are drawn."""
 
     def __post_init__(self) -> None:
         img = self.image_rgb
@@ -91,6 +97,11 @@ class World:
             if lab.shape != img.shape[:2]:
                 raise WorldError(f"world {self.name!r}: labels {lab.shape} differ in size from image {img.shape[:2]}")
         _check_gsd(self.gsd_m, f"world {self.name!r}: gsd_m")
+        if self.home_xy_m is not None:
+            home = self.home_xy_m
+            if (not isinstance(home, tuple) or len(home) != 2 or not all(math.isfinite(float(v)) for v in home)
+                    or not self.contains(float(home[0]), float(home[1]))):
+                raise WorldError(f"world {self.name!r}: home_xy_m must be a finite (x, y) on the image, got {home!r}")
         for cid, info in self.classes.items():
             if not isinstance(cid, int) or isinstance(cid, bool) or not 0 <= cid <= 254:
                 raise WorldError(
@@ -172,6 +183,25 @@ def _check_gsd(gsd_m: Any, what: str) -> float:
         raise WorldError(str(exc)) from None
 
 
+def unjudged_reason(spec: str) -> str | None:
+    """Why the world a spec names can never be judged (it has no labels), or None; no I/O."""
+    spec = spec.strip()
+    if spec == "paper-paris" or spec.startswith("paper-paris:"):
+        return ("world 'paper-paris' (IGN orthophotos) has no labels, so nothing flown on it can be judged: "
+                "fly it with CLIPSeg, dovesei up --world paper-paris --segmenter clipseg")
+    if spec.startswith("tiles:"):
+        return ("a tiles: world has no labels, so nothing flown on it can be judged: "
+                "fly it with CLIPSeg, dovesei up --segmenter clipseg")
+    return None
+
+
+def require_judged(spec: str) -> None:
+    """WorldError (one line) for a command that judges what it flies, given a world without labels."""
+    reason = unjudged_reason(spec)
+    if reason is not None:
+        raise WorldError(reason)
+
+
 def load_world(spec: str) -> World:
     """Build the world a `--world` value names (see the module docstring for the forms)."""
     spec = spec.strip()  # specs often arrive from shells and config files with stray spaces
@@ -180,6 +210,10 @@ def load_world(spec: str) -> World:
                          f"{', '.join(repr(a) for a in WORLD_ALIASES)} or a world folder")
     if spec == "synthetic" or spec.startswith("synthetic:"):
         return _load_synthetic(spec)
+    if spec == "paper-paris" or spec.startswith("paper-paris:"):
+        from dovesei.sim.paris import load_paper_paris  # lazy: import cycle through tiles
+
+        return load_paper_paris(spec)
     if spec.startswith("tiles:"):
         # tiles imports this module (World, WorldError), and it pulls urllib and tile caching
         # that other worlds never need.

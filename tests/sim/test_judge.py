@@ -100,12 +100,16 @@ def test_unlisted_label_ids_are_unsafe() -> None:
     assert v.outcome == "unsafe" and v.classes[0].name == "unknown id 77"
 
 
-def test_world_without_labels_is_an_error() -> None:
+def test_world_without_labels_is_flown_but_never_judged() -> None:
     world = World(np.zeros((10, 10, 3), np.uint8), None, 1.0, {}, "tiles")
     with pytest.raises(JudgeError, match="no label map"):
         judge_landing(world, 5.0, 5.0)
-    with pytest.raises(JudgeError):
-        EpisodeJudge(world)
+    judge = EpisodeJudge(world, time_limit_s=100.0)
+    assert judge.check(Pose(5.0, 5.0, 60.0, t_s=0.0)) is None
+    assert judge.check(Pose(5.0, 5.0, 19.0, t_s=10.0)) == "not_judged" and judge.verdict is None
+    late = EpisodeJudge(world, time_limit_s=5.0)
+    late.check(Pose(5.0, 5.0, 60.0, t_s=0.0))
+    assert late.check(Pose(5.0, 5.0, 60.0, t_s=6.0)) == "timeout"
 
 
 def test_episode_ends_on_handover_with_a_verdict_and_path_length() -> None:

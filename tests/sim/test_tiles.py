@@ -9,6 +9,7 @@ from collections import Counter
 from collections.abc import Iterator
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
+from urllib.parse import parse_qs, urlsplit
 
 import cv2
 import numpy as np
@@ -23,10 +24,16 @@ LAT, LON = 48.8566, 2.3522
 
 
 class TileServer:
-    """Serves uniform tiles whose colour encodes their column (red) and row (green)."""
+    """Serves uniform tiles whose colour encodes their column (red) and row (green).
+
+    Paths `/<kind>/<z>/<x>/<y>.png` give 32-px PNG tiles; `/geopf/wmts?<WMTS KVP>` answers like the
+    Géoplateforme (256-px JPEG tiles, 400 for a request that is not a PM GetTile of one layer) and
+    keeps each query's parameters in `wmts_queries`.
+    """
 
     def __init__(self) -> None:
         self.requests: Counter[str] = Counter()
+        self.wmts_queries: list[dict[str, str]] = []
         self.missing: set[tuple[int, int]] = set()
         self.release = threading.Event()  # lets /slow/ requests finish when the test ends
         self._lock = threading.Lock()
@@ -41,6 +48,9 @@ class TileServer:
                     server.requests[self.path] += 1
                 if self.headers.get("User-Agent", "").startswith("Python-urllib"):
                     self.send_error(403, "set a User-Agent")
+                    return
+                if self.path.startswith("/geopf/wmts?"):
+                    self._wmts()
                     return
                 m = re.fullmatch(r"/(\w+)/(\d+)/(\d+)/(\d+)\.png", self.path)
                 if not m:
@@ -58,8 +68,29 @@ class TileServer:
                     tile = np.zeros((TILE_PX, TILE_PX, 3), np.uint8)
                     tile[:, :] = (z * 5 % 256, y % 256, x % 256)  # BGR: red = column, green = row
                     body = cv2.imencode(".png", tile)[1].tobytes()
+                self._send(body, "image/png")
+
+            def _wmts(self) -> None:
+                q = {k.upper(): v[0] for k, v in parse_qs(urlsplit(self.path).query).items()}
+                with server._lock:
+                    server.wmts_queries.append(q)
+                need = {"SERVICE": "WMTS", "REQUEST": "GetTile", "VERSION": "1.0.0", "TILEMATRIXSET": "PM"}
+                if any(q.get(k) != v for k, v in need.items()) or not q.get("LAYER") or not q.get("STYLE"):
+                    self.send_error(400, "not a PM GetTile")
+                    return
+                try:
+                    z, row, col = int(q["TILEMATRIX"]), int(q["TILEROW"]), int(q["TILECOL"])
+                except (KeyError, ValueError):
+                    self.send_error(400, "bad tile indices")
+                    return
+                tile = np.zeros((256, 256, 3), np.uint8)
+                tile[:, :] = (z * 5 % 256, row % 256, col % 256)
+                ext = ".jpg" if q.get("FORMAT") == "image/jpeg" else ".png"
+                self._send(cv2.imencode(ext, tile)[1].tobytes(), q.get("FORMAT", "image/png"))
+
+            def _send(self, body: bytes, content_type: str) -> None:
                 self.send_response(200)
-                self.send_header("Content-Type", "image/png")
+                self.send_header("Content-Type", content_type)
                 self.send_header("Content-Length", str(len(body)))
                 self.end_headers()
                 try:
