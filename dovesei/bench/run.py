@@ -27,7 +27,7 @@ from dovesei.bench import engines, stats
 from dovesei.pictures.html import write_bench_page
 from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.sim.starts import generate_starts
-from dovesei.sim.world import load_world
+from dovesei.sim.world import load_world, require_judged
 
 log = logging.getLogger(__name__)
 
@@ -133,6 +133,8 @@ class Progress:
 
 def load_worlds(specs: Sequence[str]) -> dict:
     """Every world of the run, loaded before anything is written (a bad one fails the run early)."""
+    for spec in specs:
+        require_judged(spec)  # before any download: a label-less world is never judged
     return {spec: load_world(spec) for spec in specs}
 
 
