@@ -135,9 +135,18 @@ def test_cuda_fp16_runs_on_a_gpu_and_is_refused_with_the_reason_without_one(base
 def test_onnx_int8_is_exported_once_and_close_to_fp32(base, onnx_cache, caplog) -> None:
     from dovesei.segmenter.onnx_backend import OnnxClipSeg
 
+    implementation = base._model.config.vision_config._attn_implementation
     model = OnnxClipSeg(base, cache_dir=onnx_cache, threads=1)
+    # The export traced eager attention; the torch path gets its own implementation back.
+    assert base._model.config.vision_config._attn_implementation == implementation
     exported = sorted(p.name for p in next(onnx_cache.iterdir()).iterdir())
-    assert exported == ["decoder.onnx", "encoder_int8.onnx"]  # the fp32 intermediates are removed
+    assert exported == ["decoder.onnx", "encoder_int8.onnx", "export.json"]  # the fp32 intermediates are removed
+    # The optimizer's fusions fired in every encoder layer, and the fused attention was quantised.
+    assert model.export["fused"]["Attention"] == base.encoder_depth
+    assert model.export["fused"]["SkipLayerNormalization"] >= base.encoder_depth
+    ops = model.export["encoder_int8_ops"]
+    assert ops.get("QAttention") == base.encoder_depth and "Attention" not in ops and ops.get("MatMulInteger", 0) > 0
+    assert "ConvInteger" not in ops  # the patch convolution stays fp32
     ref, got = base.logits(FRAMES[0], REFERENCE_PROMPTS), model.logits(FRAMES[0], REFERENCE_PROMPTS)
     assert got.shape == ref.shape == (REFERENCE_PROMPTS.n_prompts, 352, 352)
     # int8 weights: close, not equal (the gate judges whether it is close enough).
