@@ -112,7 +112,8 @@ def _report(opts: UpOptions, rec: Recorder, stats: dict | None = None):
 
 
 @pytest.mark.parametrize("outcome, code", [("safe", EXIT_OK), ("unsafe", EXIT_UNSAFE), ("timeout", EXIT_UNSAFE),
-                                           ("out_of_world", EXIT_UNSAFE), ("error", EXIT_FAILED)])
+                                           ("out_of_world", EXIT_UNSAFE), ("error", EXIT_FAILED),
+                                           ("not_judged", EXIT_UNSAFE)])
 def test_exit_code_follows_the_judge(tmp_path: Path, outcome: str, code: int) -> None:
     rec = Recorder((1.0, 2.0, 100.0), video=False)
     rec.accept_result(_result(outcome), 0.0)
