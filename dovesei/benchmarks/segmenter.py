@@ -12,7 +12,11 @@ One run on one machine times, on the same frame and the reference's 13 prompts:
   the sim worlds (``synthetic`` and ``dubai``) and gated on decisions against fp32 (dynamic-
   threshold mask IoU >= 0.95, target pixel shift <= 2 % of the width): the picked one is the
   fastest that passes, as the segmenter itself picks at start. ``picked_speedup`` is the stock
-  forward's s/frame over the picked variant's, measured in the same run.
+  forward's s/frame over the picked variant's, measured in the same run;
+- ``fairness``: four vehicles asking 2 Hz each from one segmenter serving ~3 Hz in total, through
+  the real service over in-process Zenoh (``dovesei.benchmarks.fair``): each vehicle's share of
+  the served heatmaps (target 25 % +/- 5 %), its served rate and the service's per-vehicle
+  offered/served/superseded counts (``--fair-s 0`` skips it).
 
 The gate figures mean numerics with ``--random-weights``; with ``--model <real weights>`` the same
 command says whether a variant decides like fp32 on the real model (README: run it once).
@@ -132,9 +136,13 @@ def _parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--compile", action="store_true", help="also time the fast path under torch.compile")
     parser.add_argument("--views", type=int, default=len(GATE_WORLDS) * len(GATE_POSES),
                         help="camera views the variants are timed and gated on (default: all, 3 per world)")
+    parser.add_argument("--fair-s", type=float, default=12.0, help="seconds of the four-vehicle fairness "
+                        "measurement (0: skip it)")
     parser.add_argument("--variant", default="auto", help="CLIPSeg variant to report as picked: auto (measure "
                         "and gate every one this host can run) or one name to pin")
     args = parser.parse_args(argv)
+    if not (args.fair_s == 0 or 3.0 <= args.fair_s <= 600.0):
+        parser.error(f"--fair-s must be 0 (skip) or in 3..600 s, got {args.fair_s}")
     if not 1 <= args.views <= len(GATE_WORLDS) * len(GATE_POSES):
         parser.error(f"--views must be in 1..{len(GATE_WORLDS) * len(GATE_POSES)}, got {args.views}")
     for name in ("threads", "repeats", "reference_repeats"):
@@ -254,6 +262,7 @@ def run(args: argparse.Namespace, model_dir: str) -> dict:
         candidates.append(record)
     picked = _pick_variant(backend, args, threads)
     sim_hz = _sim_backend_hz()
+    fairness = _fairness(args.fair_s)
     speedup = reference_s_per_frame / fast_s_per_frame
     result = {
         "prompts": prompts.n_prompts,
@@ -284,6 +293,7 @@ def run(args: argparse.Namespace, model_dir: str) -> dict:
         "sim_backend_hz": sim_hz,
         **picked,
         "picked_speedup": reference_s_per_frame / picked["picked_s_per_frame"],
+        "fairness": fairness,
         # Other jobs on a shared machine slow every figure; the load says how much to trust them.
         "load_avg_1min": [load_at_start, os.getloadavg()[0]],
     }
@@ -300,6 +310,21 @@ def run(args: argparse.Namespace, model_dir: str) -> dict:
          result["picked_s_per_frame"], result["picked_hz"], result["picked_speedup"],
          {k: v["gate"]["passed"] for k, v in result["backends"].items()})
     return result
+
+
+def _fairness(duration_s: float) -> dict | None:
+    """The four-vehicle fairness figure (None when skipped)."""
+    if duration_s == 0:
+        return None
+    from dovesei.benchmarks.fair import measure_fairness
+
+    _say("fairness: 4 vehicles x 2 Hz on one segmenter serving ~3 Hz, %.0f s ...", duration_s)
+    figures = measure_fairness(duration_s=duration_s).as_dict()
+    _say("fairness %s: %.2f Hz served in %.1f s; %s", "passed" if figures["passed"] else "FAILED",
+         figures["served_hz_total"], figures["counted_s"],
+         ", ".join(f"{v} {100 * f['share']:.0f} % ({f['served_hz']:.2f} Hz, {f.get('superseded', 0)} superseded)"
+                   for v, f in figures["per_vehicle"].items()))
+    return figures
 
 
 def _pick_variant(backend, args: argparse.Namespace, threads: int) -> dict:

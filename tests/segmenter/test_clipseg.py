@@ -218,9 +218,12 @@ def test_bench_smoke_prints_one_json_record(capsys, monkeypatch, tmp_path):
 
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))  # the ONNX export goes there, not to ~/.cache
     code = main(["--random-weights", "--size", "tiny", "--json", "--repeats", "1", "--reference-repeats", "1",
-                 "--views", "2"])
+                 "--views", "2", "--fair-s", "4"])
     assert code == 0
     record = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    fairness = record["fairness"]  # the four-vehicle figure (test_fair.py holds it to 25 % +/- 5 %)
+    assert set(fairness["per_vehicle"]) == {"uav1", "uav2", "uav3", "uav4"} and fairness["served_hz_total"] > 0
+    assert sum(f["share"] for f in fairness["per_vehicle"].values()) == pytest.approx(1.0)
     for key in ("prompts", "threads", "reference_s_per_frame", "fast_s_per_frame", "speedup", "fast_hz",
                 "max_abs_diff_vs_reference", "peak_rss_mb", "sim_backend_hz"):
         assert key in record
