@@ -261,6 +261,8 @@ def run(args: argparse.Namespace, model_dir: str) -> dict:
         )
         candidates.append(record)
     picked = _pick_variant(backend, args, threads)
+    for figures in picked["backends"].values():  # each variant's xN against the stock forward of this run
+        figures["speedup_vs_stock"] = reference_s_per_frame / figures["s_per_frame"]
     sim_hz = _sim_backend_hz()
     fairness = _fairness(args.fair_s)
     speedup = reference_s_per_frame / fast_s_per_frame
@@ -349,7 +351,13 @@ def _pick_variant(backend, args: argparse.Namespace, threads: int) -> dict:
         _say("variant %s: %.3f s/frame (%.2f Hz), gate %s", name, figures["s_per_frame"], figures["hz"],
              figures["gate"])
     flags = cpu_features.cpu_flags()
+    onnx_export = None
+    if "onnx-int8" in timed:  # which fusions fired and what was quantised (the export's own record)
+        from dovesei.segmenter.onnx_backend import export_folder, export_info
+
+        onnx_export = export_info(export_folder(backend))
     return {
+        "onnx_export": onnx_export,
         "backends": timed,
         "backends_refused": dict(pick.refused),
         "picked": pick.chosen,

@@ -28,7 +28,13 @@ Why each step (measured on 2 AVX2 cores of an AMD EPYC, loaded, ratios in one ru
   7-bit per channel and the patch convolution left in fp32, at the same speed (~0.72 CPU s).
 - The decoder runs one prompt per call (`DECODER_PROMPTS_PER_RUN`): its 485 x 2048 MLP
   activations then stay in cache; 0.28 CPU s per frame of 13 prompts against 0.38 all at once.
-  An int8 decoder saved another 0.05 s but moved logits by 2.8 % of their range: not done.
+  An int8 decoder (MatMul weights, per channel, 7-bit) saved 0.03 of 0.27 CPU s but moved
+  logits by 2.1 % of their range, and a decoder exported for a fixed single prompt (its shape
+  arithmetic folded) ran no faster: neither is done.
+- Not faster here: MatMulNBits weight-only int8/int4 (2-3x slower than DynamicQuantizeMatMul on
+  a 485 x 768 x 3072 MLP), torch's own dynamic int8 Linear (fbgemm; the encoder took 2x the CPU
+  time of this one), ORT fp32 with the same fusions (1.14 CPU s for the encoder vs 0.72 int8).
+  The int8 kernel itself is the limit: DynamicQuantizeMatMul ran ~1.8x the fp32 MatMul's rate.
 
 The text tower and the processor stay in torch (once per prompt set / cheap). The files are
 written once per model into a cache folder named by a digest of the weights, so the next start
