@@ -156,7 +156,10 @@ def test_onnx_int8_is_exported_once_and_close_to_fp32(base, onnx_cache, caplog) 
     fewer = REFERENCE_PROMPTS.__class__(positive=("grass",), negative=("road",), template="{}")
     assert model.logits(FRAMES[0], fewer).shape == (2, 352, 352)
     caplog.set_level(logging.INFO, logger="dovesei.segmenter.onnx_backend")
-    OnnxClipSeg(base, cache_dir=onnx_cache, threads=1)
+    # Two threads decode the prompts in parallel calls: same logits, in prompt order.
+    parallel = OnnxClipSeg(base, cache_dir=onnx_cache, threads=2)
+    assert parallel._decoder_pool is not None and model._decoder_pool is None
+    assert np.allclose(parallel.logits(FRAMES[0], REFERENCE_PROMPTS), got, atol=1e-4)
     assert any("ONNX export found" in r.getMessage() for r in caplog.records)
 
 
