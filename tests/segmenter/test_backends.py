@@ -175,6 +175,7 @@ def test_auto_times_every_runnable_variant_and_keeps_the_fastest_passing(base, o
     assert set(timed) == set(runnable) - set(pick.refused)
     assert "onnx-int8" in timed  # installed here with the onnx extra
     assert timed["fp32"].gate.passed and timed["fp32"].gate.min_mask_iou == 1.0
+    assert all(c.cpu_s_per_frame > 0 for c in pick.timed)  # the work, beside the wall time
     passing = [c for c in pick.timed if c.gate.passed]
     assert pick.chosen == min(passing, key=lambda c: c.s_per_frame).name
     assert model.dtype == {"fp32": "float32", "onnx-int8": "onnx-int8", "bf16": "bfloat16",

@@ -239,7 +239,10 @@ def test_bench_smoke_prints_one_json_record(capsys, monkeypatch, tmp_path):
     passing = {name: b["s_per_frame"] for name, b in backends.items() if b["gate"]["passed"]}
     assert record["picked"] == min(passing, key=passing.get)
     assert record["picked_speedup"] == pytest.approx(record["reference_s_per_frame"] / record["picked_s_per_frame"])
+    assert record["picked_speedup_cpu_time"] == pytest.approx(
+        record["reference_cpu_s_per_frame"] / record["picked_cpu_s_per_frame"])
     for figures in backends.values():
+        assert figures["cpu_s_per_frame"] > 0
         assert figures["speedup_vs_stock"] == pytest.approx(record["reference_s_per_frame"] / figures["s_per_frame"])
     if "onnx-int8" in backends:  # installed here with the onnx extra: the export says which fusions fired
         assert record["onnx_export"]["fused"]["Attention"] == record["onnx_export"]["encoder_layers"]
