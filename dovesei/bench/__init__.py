@@ -26,12 +26,13 @@ from pathlib import Path
 
 from dovesei.bench.run import Grid, Variant, run_grid, summary_markdown
 from dovesei.controller.policies import policy_names
+from dovesei.controller.policies.clearance_config import ClearanceConfig
 from dovesei.episode import DEFAULT_PERCEPTION
 from dovesei.episode import perception_names as _perception_names
 from dovesei.bench.stats import SUMMARY_KEYS, summarise, wilson_interval
 from dovesei.shared import timing as shared_timing
 from dovesei.shared.errors import ConfigError, DoveseiError
-from dovesei.shared.validate import in_range, positive
+from dovesei.shared.validate import in_range, non_negative, positive
 from dovesei.sim.suite import suite as world_suite
 
 __all__ = ["DEFAULT_POLICIES", "SUMMARY_KEYS", "build_parser", "main", "paper_time_limit_s", "parse_policies",
@@ -67,6 +68,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--time-limit-s", type=float, default=None,
                    help="sim-time limit of an episode (default: the paper's 1200 s on the preset's clock)")
     p.add_argument("--start-alt-m", type=float, default=100.0)
+    p.add_argument("--start-margin-m", type=float, default=None,
+                   help="starts lie this far inside the area where the start footprint is on the map "
+                        "(default: with `clearance` flown, its search radius + fence + a drift allowance, so its "
+                        "whole search area is on the map; else 5 m)")
     p.add_argument("--jobs", type=int, default=os.cpu_count() or 1,
                    help="episodes in parallel (local workers; with --engine ray and no --address, the local Ray CPUs)")
     p.add_argument("--engine", default="local", choices=("local", "ray"), help="local process pool or Ray tasks")
@@ -117,9 +122,23 @@ def _at_least_one(flag: str, value: int) -> int:
     return value
 
 
+# The true track should stay inside the search radius (the fence inside it allows for drift); the
+# starts allow as much again beyond it, so a broken promise is measured, not cut off by the edge.
+DRIFT_ALLOWANCE_M = 30.0
+PLAIN_START_MARGIN_M = 5.0
+
+
+def default_start_margin_m(policies) -> float:
+    """Where starts must lie so every bounded search flown keeps its search area on the map."""
+    if "clearance" in policies:
+        cfg = ClearanceConfig()
+        return cfg.search_radius_m + DRIFT_ALLOWANCE_M
+    return PLAIN_START_MARGIN_M
+
+
 def run_bench(*, world_spec: str | None = None, worlds: tuple[str, ...] | None = None, episodes: int, seed: int,
               policies, noise: float | None, timing: str, time_limit_s: float, start_alt_m: float, jobs: int,
-              out: Path, segmenter: str = "sim", perception: str | None = None, engine: str = "local",
+              out: Path, start_margin_m: float = 5.0, segmenter: str = "sim", perception: str | None = None, engine: str = "local",
               address: str | None = None, progress: bool = True, world_label: str = "",
               seed_note: str = "") -> dict:
     """Run (or resume) a bench into `out`; returns the results.json content."""
@@ -131,6 +150,7 @@ def run_bench(*, world_spec: str | None = None, worlds: tuple[str, ...] | None =
         in_range("--noise", noise, 0.0, 4.0)
     positive("--time-limit-s", time_limit_s)
     positive("--start-alt-m", start_alt_m)
+    non_negative("--start-margin-m", start_margin_m)
     shared_timing.timing(timing)
     if address and engine != "ray":
         raise ConfigError("--address names a Ray cluster: use it with --engine ray")
@@ -138,7 +158,7 @@ def run_bench(*, world_spec: str | None = None, worlds: tuple[str, ...] | None =
     grid = Grid(worlds=specs, episodes=episodes, seed=seed, policies=tuple(policies),
                 variants=(Variant(perception=check_perception(perception)),), noise=noise, timing=timing,
                 time_limit_s=float(time_limit_s), start_alt_m=float(start_alt_m), segmenter=segmenter,
-                world_label=world_label or specs[0], extra={"seed_note": seed_note} if seed_note else {})
+                start_margin_m=float(start_margin_m), world_label=world_label or specs[0], extra={"seed_note": seed_note} if seed_note else {})
     return run_grid(grid, out=out, workers=jobs, engine=engine, address=address, progress=progress)
 
 
@@ -151,7 +171,8 @@ def main(argv: list[str] | None = None) -> int:
         worlds = suite_worlds(args.suite.strip()) if args.suite is not None else None
         doc = run_bench(world_spec=args.world, worlds=worlds, episodes=args.episodes, seed=args.seed,
                         policies=policies, noise=args.noise, timing=args.timing, time_limit_s=limit_s,
-                        start_alt_m=args.start_alt_m, jobs=args.jobs, out=args.out, segmenter=args.segmenter,
+                        start_alt_m=args.start_alt_m, start_margin_m=(default_start_margin_m(policies) if args.start_margin_m is None
+                                        else args.start_margin_m), jobs=args.jobs, out=args.out, segmenter=args.segmenter,
                         perception=args.perception, engine=args.engine, address=args.address,
                         progress=not args.no_progress,
                         world_label=f"suite:{args.suite.strip()}" if args.suite is not None else "")

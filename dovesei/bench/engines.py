@@ -74,7 +74,13 @@ def run_job(job: dict) -> dict:
         return {**record_base(job), "outcome": "error", "sim_time_s": 0.0, "path_length_m": 0.0,
                 "wall_time_s": round(time.perf_counter() - t0, 3), "detail": f"{type(exc).__name__}: {exc}"}
     r = rec.result
-    return {**record_base(job), "outcome": r.outcome, "sim_time_s": round(r.sim_time_s, 3),
+    track = rec.track
+    # How far the vehicle truly got from its start (the judge's view; the policy never sees it).
+    max_range_m = float(np.max(np.hypot(track[:, 1] - spec.start.x_m, track[:, 2] - spec.start.y_m))) \
+        if len(track) else 0.0
+    return {**record_base(job), "outcome": r.outcome, "max_range_m": round(max_range_m, 1),
+            # The controller's own last word: a timeout that is a deliberate hold reads NO_SPOT here.
+            "final_state": rec.states[-1] if rec.states else "", "sim_time_s": round(r.sim_time_s, 3),
             "path_length_m": round(r.path_length_m, 3), "wall_time_s": round(rec.wall_time_s, 3),
             "final": {"x_m": round(r.final_x_m, 3), "y_m": round(r.final_y_m, 3), "alt_m": round(r.final_alt_m, 3)},
             "classes_found": list(r.classes_found), "detail": r.detail,

@@ -65,6 +65,7 @@ class Grid:
     time_limit_s: float
     start_alt_m: float
     world_label: str = ""  # what --world/--suite said, for the summary
+    start_margin_m: float = 5.0  # starts lie this far inside the footprint-on-the-map area
     segmenter: str = "sim"
     extra: dict = field(default_factory=dict)  # more settings that belong in the hash (e.g. the sweep file's)
 
@@ -72,6 +73,8 @@ class Grid:
         return {"world": self.world_label or self.worlds[0], "worlds": list(self.worlds), "episodes": self.episodes,
                 "seed": self.seed, "policies": list(self.policies), "noise": self.noise, "timing": self.timing,
                 "time_limit_s": self.time_limit_s, "start_alt_m": self.start_alt_m, "segmenter": self.segmenter,
+                # Only a non-default margin enters the settings (and their hash): older benches resume.
+                **({"start_margin_m": self.start_margin_m} if self.start_margin_m != 5.0 else {}),
                 "perception": [v.perception for v in self.variants] if len(self.variants) > 1 else self.variants[0].perception,
                 "prompts": {v.prompts_name: v.prompts for v in self.variants}, **self.extra}
 
@@ -142,7 +145,8 @@ def plan_jobs(grid: Grid, worlds: dict, out: Path) -> list[dict]:
     """Every episode of the grid as a job dict, in a fixed order (world, start, variant, policy)."""
     jobs = []
     for wi, spec in enumerate(grid.worlds):
-        starts = generate_starts(worlds[spec], grid.episodes, grid.seed, alt_m=grid.start_alt_m)
+        starts = generate_starts(worlds[spec], grid.episodes, grid.seed, alt_m=grid.start_alt_m,
+                                 margin_m=grid.start_margin_m)
         for i, st in enumerate(starts):
             for var in grid.variants:
                 for pol in grid.policies:
@@ -245,7 +249,9 @@ def summary_markdown(doc: dict, *, title: str = "dovesei bench") -> str:
     lines = [
         f"# {title}", "",
         f"{where}, {config['episodes']} starts{' per world' if len(worlds) > 1 else ''} at "
-        f"{config['start_alt_m']:.0f} m (seed {config['seed']}), limit {config['time_limit_s']:g} s of sim time, "
+        f"{config['start_alt_m']:.0f} m (seed {config['seed']}"
+        f"{', at least %g m inside the edge beyond the footprint' % config['start_margin_m'] if 'start_margin_m' in config else ''}"
+        f"), limit {config['time_limit_s']:g} s of sim time, "
         f"timing preset `{config['timing']}`, simulated perception `{config['perception']}` ({noise}). "
         "Success = reaching the hand-over altitude (20 m) with the 2 m footprint disk on safe classes, judged on "
         "the label map. Intervals are Wilson 95 %.", "",
