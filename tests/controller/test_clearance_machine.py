@@ -8,11 +8,13 @@ import math
 import pytest
 
 from dovesei.controller.policies.clearance_config import ClearanceConfig
-from dovesei.controller.policies.clearance_machine import Inputs, Memory, Phase, search_pattern, step
+from dovesei.controller.policies.clearance_machine import Inputs, Memory, Phase, search_pattern, search_route, step
 from dovesei.controller.policies.clearance_map import Spot
 
 CFG = ClearanceConfig()
-WAYPOINTS = search_pattern(CFG.search_spacing_radius_frac * CFG.search_radius_m, CFG.search_radius_m)
+SPACING_M = CFG.search_spacing_radius_frac * CFG.fence_m
+WAYPOINTS = search_pattern(SPACING_M, CFG.fence_m)
+ROUTE = search_route(((100.0, SPACING_M, CFG.fence_m),))
 
 
 def spot(n: float = 20.0, e: float = 0.0, score: float = 1.5) -> Spot:
@@ -23,7 +25,7 @@ def spot(n: float = 20.0, e: float = 0.0, score: float = 1.5) -> Spot:
 def inp(t: float, *, alt: float = 100.0, n: float = 0.0, e: float = 0.0, fresh: bool = True, gap: bool = False,
         best: Spot | None = None, check: Spot | None = None) -> Inputs:
     return Inputs(t_s=t, alt_agl_m=alt, north_m=n, east_m=e, yaw_rad=0.0, fresh=fresh, gap=gap, search_alt_m=100.0,
-                  waypoints=WAYPOINTS, best=best, check=check)
+                  route=ROUTE, best=best, check=check)
 
 
 def at(phase: Phase, **kw: object) -> Memory:
@@ -59,7 +61,7 @@ def test_warmup_times_out_without_frames() -> None:
 def test_search_gives_up_after_its_time_and_after_its_passes() -> None:
     mem, vel = step(at(Phase.SEARCH), inp(CFG.no_spot_after_s + 1.0), CFG)
     assert mem.phase is Phase.NO_SPOT and "no safe spot found" in mem.reason and vel == (0.0, 0.0, 0.0)
-    done = at(Phase.SEARCH, waypoint=len(WAYPOINTS) * CFG.pattern_repeats)
+    done = at(Phase.SEARCH, waypoint=len(ROUTE))
     mem, _ = step(done, inp(10.0), CFG)
     assert mem.phase is Phase.NO_SPOT and "search passes" in mem.reason
     # NO_SPOT is an end: it holds whatever comes.
@@ -67,8 +69,19 @@ def test_search_gives_up_after_its_time_and_after_its_passes() -> None:
     assert mem2.phase is Phase.NO_SPOT and vel == (0.0, 0.0, 0.0)
 
 
+def test_search_route_flies_each_pass_at_its_altitude_in_order() -> None:
+    route = search_route(((100.0, 80.0, 140.0), (60.0, 50.0, 108.0), (40.0, 30.0, 88.0)))
+    alts = [a for _, _, a in route]
+    assert alts == sorted(alts, reverse=True) and set(alts) == {100.0, 60.0, 40.0}
+    for alt, radius in ((100.0, 140.0), (60.0, 108.0), (40.0, 88.0)):
+        legs = [(n, e) for n, e, a in route if a == alt]
+        assert legs[-1] == (0.0, 0.0) and all(math.hypot(n, e) <= radius for n, e in legs)
+
+
 def test_each_search_pass_flies_lower_and_an_abort_restarts_at_the_top() -> None:
-    lower = dataclasses.replace(inp(0.0), lower_alts_m=(60.0, 40.0))
+    passes = ((100.0, SPACING_M, CFG.fence_m), (60.0, SPACING_M, CFG.fence_m), (40.0, SPACING_M, CFG.fence_m),
+              (40.0, SPACING_M, CFG.fence_m))
+    lower = dataclasses.replace(inp(0.0), route=search_route(passes), passes=len(passes))
     last = len(WAYPOINTS) - 1
     mem = at(Phase.SEARCH, waypoint=last)
     home = WAYPOINTS[last]
@@ -78,10 +91,9 @@ def test_each_search_pass_flies_lower_and_an_abort_restarts_at_the_top() -> None
     assert vel[2] > 0.0  # descending to the next level (FRD: + down), never below it
     mem, vel = step(mem, dataclasses.replace(lower, t_s=3.0, alt_agl_m=58.0), CFG)
     assert vel[2] < 0.0
-    # Passes: top, 60 m, 40 m, then pattern_repeats - 1 more at 40 m; then NO_SPOT.
-    passes = 2 + CFG.pattern_repeats
-    mem, _ = step(at(Phase.SEARCH, waypoint=passes * len(WAYPOINTS)), lower, CFG)
-    assert mem.phase is Phase.NO_SPOT and f"{passes} search passes" in mem.reason
+    # Passes: top, 60 m, 40 m, 40 m again; then NO_SPOT.
+    mem, _ = step(at(Phase.SEARCH, waypoint=len(passes) * len(WAYPOINTS)), lower, CFG)
+    assert mem.phase is Phase.NO_SPOT and f"{len(passes)} search passes" in mem.reason
     mem, _ = step(at(Phase.ABORT, waypoint=2 * len(WAYPOINTS)), inp(1.0, alt=99.0), CFG)
     assert mem.phase is Phase.SEARCH and mem.waypoint == 0
 

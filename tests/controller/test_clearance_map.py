@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from dovesei.controller.policies.clearance_config import ClearanceConfig
-from dovesei.controller.policies.clearance_map import GroundMap, clearance_at, find_spot, footprint_width_m
+from dovesei.controller.policies.clearance_map import (GroundMap, clearance_at, emphasise_dips, find_spot,
+                                                      footprint_width_m, look_weight)
 
 HFOV = math.radians(73.0)
 CFG = ClearanceConfig()
@@ -109,9 +110,9 @@ def test_spots_respect_the_blacklist_and_the_search_radius() -> None:
     again = find_spot(lawn, clear, CFG, north_m=0.0, east_m=0.0, blacklist=((spot.north_m, spot.east_m),))
     assert again is None or math.hypot(again.north_m - spot.north_m, again.east_m - spot.east_m) > (
         CFG.required_clearance_m + CFG.refine_radius_m)
-    tight = CFG.replace(search_radius_m=1.0)
+    tight = CFG.replace(search_radius_m=6.0, fence_margin_m=1.0)
     near = find_spot(lawn, clear, tight, north_m=0.0, east_m=0.0, blacklist=())
-    assert near is None or math.hypot(near.north_m, near.east_m) <= 1.0
+    assert near is None or math.hypot(near.north_m, near.east_m) <= tight.fence_m - tight.lock_out_m
 
 
 def test_unknown_ground_is_never_a_spot() -> None:
@@ -121,3 +122,44 @@ def test_unknown_ground_is_never_a_spot() -> None:
     assert find_spot(gmap, gmap.clearance_m(), CFG, north_m=0.0, east_m=0.0, blacklist=()) is None
     _fuse(gmap, np.full((352, 352), 0.95, np.float32), alt=30.0, times=3)
     assert find_spot(gmap, gmap.clearance_m(), CFG, north_m=0.0, east_m=0.0, blacklist=()) is not None
+
+
+LAWN = CFG.p_safe_min + 0.05
+
+
+def _blob_view(size: int = 352, blob_px: int = 6, depth: float = 0.045, seed: int = 0) -> np.ndarray:
+    """A lawn a little above the safe threshold with a person-sized shallow dip (after CLIPSeg's
+    smear, still above the threshold) and mild pixel noise."""
+    rng = np.random.default_rng(seed)
+    p = np.full((size, size), LAWN, np.float32) + rng.normal(0.0, 0.005, (size, size)).astype(np.float32)
+    yy, xx = np.mgrid[:size, :size]
+    p -= (depth * np.exp(-((yy - 150) ** 2 + (xx - 170) ** 2) / (2.0 * blob_px ** 2))).astype(np.float32)
+    p[:, 300:] = 0.3  # a wide dark area (a road) at the side
+    return np.clip(p, 0.0, 1.0)
+
+
+def test_a_shallow_small_dip_is_deepened_below_the_safe_threshold_and_wide_areas_are_left() -> None:
+    p = _blob_view()
+    kernel = int(round(CFG.dip_kernel_frac * 352))
+    out = emphasise_dips(p, kernel, CFG.dip_gain, CFG.dip_floor)
+    assert p[150, 170] >= CFG.p_safe_min  # as seen: the absolute threshold misses the person
+    assert out[150, 170] < CFG.p_safe_min  # deepened: now it is an obstacle
+    # Flat lawn away from the dip and the edge keeps its reading (pixel noise is no dip) ...
+    assert abs(float(np.median(out[20:100, 20:100])) - LAWN) < 0.01
+    assert float(out[20:100, 20:100].min()) >= CFG.p_safe_min
+    # ... and the wide dark road is not made darker than it is.
+    assert abs(float(out[100:250, 320:340].mean()) - 0.3) < 0.02
+    # Off: gain 0 returns the map as it was.
+    assert emphasise_dips(p, kernel, 0.0) is p
+
+
+def test_low_looks_outweigh_high_ones_by_the_token_area() -> None:
+    assert look_weight(100.0, CFG) == pytest.approx(1.0)
+    assert look_weight(20.0, CFG) == pytest.approx(25.0)
+    assert look_weight(5.0, CFG) == CFG.look_weight_max
+    gmap = GroundMap(CFG)
+    gmap.follow(25.0, 0.0, 0.0)
+    # Ten smeared looks from 100 m say 0.85; three sharp ones from 25 m say 0.3: the sharp ones win.
+    _fuse(gmap, np.full((352, 352), 0.85, np.float32), alt=100.0, times=10, weight=look_weight(100.0, CFG))
+    _fuse(gmap, np.full((352, 352), 0.3, np.float32), alt=25.0, times=3, weight=look_weight(25.0, CFG))
+    assert gmap.at(0.0, 0.0)[0] < 0.45

@@ -159,7 +159,7 @@ def test_strip_alone_holds_no_safe_spot_and_stays_within_its_radius() -> None:
     assert flight.decision.vel_body_frd_m_s == (0.0, 0.0, 0.0)
     # It searched lower (60 m, then 40 m) but never descended below its lowest search level.
     assert min(alt for _, _, alt, _, _ in flight.track) > 38.0
-    assert flight.max_range_m < 120.0 + 15.0  # the pattern's radius plus tracking overshoot
+    assert flight.max_range_m < 120.0  # the promise: the true track stays inside the search radius
 
 
 def test_sea_with_a_small_island_lands_on_it_or_holds() -> None:
@@ -207,6 +207,12 @@ def test_perception_gap_without_heatmaps_at_all_holds_then_climbs() -> None:
     assert d.state == "ABORT" and d.vel_body_frd_m_s[2] < 0.0  # climbing (FRD: negative down)
 
 
+# The 12 m lawn of the odometry scenarios reads 0.82-0.84 after this harness's blur and noise, right
+# at the default threshold (set for the simulated CLIPSeg's lawns, ~0.86-0.89): these scenarios test
+# odometry, not the threshold, so they fly 0.8.
+ODOMETRY_P_SAFE_MIN = 0.8
+
+
 def _odometry_flight(config: ClearanceConfig) -> tuple[World, Flight]:
     rng = np.random.default_rng(3)
     safe = _textured(rng)
@@ -218,7 +224,7 @@ def _odometry_flight(config: ClearanceConfig) -> tuple[World, Flight]:
 
 
 def test_noisy_biased_odometry_and_wind_still_land_on_the_chosen_spot() -> None:
-    world, flight = _odometry_flight(ClearanceConfig())
+    world, flight = _odometry_flight(ClearanceConfig(p_safe_min=ODOMETRY_P_SAFE_MIN))
     assert flight.alt_m <= 20.0
     assert world.disk_safe(flight.north_m, flight.east_m, 2.0)
     assert math.hypot(flight.north_m - 35.0, flight.east_m + 50.0) < 4.0
@@ -232,7 +238,7 @@ def test_noisy_biased_odometry_and_wind_still_land_on_the_chosen_spot() -> None:
 def test_without_registration_the_estimate_drifts() -> None:
     """The same flight with registration off (no heatmap ever counts as textured): the position
     estimate drifts metres off, so the test above passes because of the registration."""
-    _, flight = _odometry_flight(ClearanceConfig(reg_min_std=1.0))
+    _, flight = _odometry_flight(ClearanceConfig(reg_min_std=1.0, p_safe_min=ODOMETRY_P_SAFE_MIN))
     info = flight.decision.info
     assert math.hypot(info["est_north_m"] - flight.north_m, info["est_east_m"] - flight.east_m) > 4.0
     assert info["bias_north_m_s"] == 0.0 and info["bias_east_m_s"] == 0.0

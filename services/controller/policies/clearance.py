@@ -29,8 +29,9 @@ import numpy as np
 
 from dovesei.controller.policies.base import Decision, Observation, PolicyInputError, checked_prob_safe, resolve_config
 from dovesei.controller.policies.clearance_config import ClearanceConfig, clearance_preset
-from dovesei.controller.policies.clearance_machine import TERMINAL, Inputs, Memory, Phase, search_pattern, step
-from dovesei.controller.policies.clearance_map import GroundMap, clearance_at, find_spot, footprint_width_m
+from dovesei.controller.policies.clearance_machine import TERMINAL, Inputs, Memory, Phase, search_route, step
+from dovesei.controller.policies.clearance_map import (GroundMap, clearance_at, emphasise_dips, find_spot,
+                                                      footprint_width_m, look_weight)
 from dovesei.controller.policies.clearance_motion import EgoMotion, MotionStep, tilt_offset_ne, to_body, to_ne
 
 log = logging.getLogger(__name__)
@@ -43,7 +44,7 @@ def _resolve(config: ClearanceConfig | str | None) -> ClearanceConfig:
 def fence(vel_body_frd_m_s: tuple[float, float, float], north_m: float, east_m: float, yaw_rad: float,
           cfg: ClearanceConfig) -> tuple[tuple[float, float, float], bool]:
     """The command with its outward (away from the start) horizontal speed capped so the
-    dead-reckoned position never passes search radius + fence margin; True when it was capped.
+    dead-reckoned position never passes the fence (search radius - fence margin); True when capped.
 
     The cap is fence_gain x the distance left to the fence, so the vehicle slows down as it nears
     the fence and, beyond it, is pulled back in; inward and tangential motion are untouched.
@@ -55,7 +56,7 @@ def fence(vel_body_frd_m_s: tuple[float, float, float], north_m: float, east_m: 
     vn, ve = to_ne(fwd, right, yaw_rad)
     un, ue = north_m / r, east_m / r
     outward = vn * un + ve * ue
-    allowed = cfg.fence_gain_per_s * (cfg.search_radius_m + cfg.fence_margin_m - r)
+    allowed = cfg.fence_gain_per_s * (cfg.fence_m - r)
     if outward <= allowed:
         return vel_body_frd_m_s, False
     vn, ve = vn - (outward - allowed) * un, ve - (outward - allowed) * ue
@@ -77,8 +78,8 @@ class ClearancePolicy:
         self.memory: Memory | None = None
         self._last_t_s: float | None = None  # last heatmap
         self._search_alt_m: float | None = None
-        self._waypoints: tuple[tuple[float, float], ...] = ()
-        self._lower_alts: tuple[float, ...] = ()
+        self._route: tuple[tuple[float, float, float], ...] = ()
+        self._passes = 0
         self._cmd: tuple[float, float, float] = (0.0, 0.0, 0.0)
         self._last_motion: MotionStep | None = None
         self._decision = Decision((0.0, 0.0, 0.0), 0.0, Phase.WARMUP.value, None, 0.0, None, {}, "starting")
@@ -86,6 +87,27 @@ class ClearancePolicy:
     @property
     def state(self) -> Phase:
         return self.memory.phase if self.memory is not None else Phase.WARMUP
+
+    def _plan(self, hfov_rad: float) -> tuple[tuple[tuple[float, float, float], ...], int]:
+        """The search route: a pass at the top search altitude, one at each lower level, the
+        lowest flown `pattern_repeats` times. Each pass is an expanding square spaced by its own
+        footprint; lower passes cover a radius shrinking as sqrt(altitude / top), so a pass
+        takes about as long as the first (radius^2 / spacing is constant) and they stay near the
+        start, where the high pass saw most."""
+        cfg = self.config
+        assert self._search_alt_m is not None
+        top = self._search_alt_m
+        floor = cfg.handover_alt_m + 15.0
+        lower = tuple(a for a in (max(f * top, floor) for f in cfg.lower_search_fracs) if a < top - 5.0)
+        levels = (top, *lower, *(lower[-1:] if lower else (top,)) * (cfg.pattern_repeats - 1))
+        outer = cfg.fence_m - 5.0  # the corners stay a little inside the fence (the vehicle overshoots)
+        passes = []
+        for alt in levels:
+            radius = outer * math.sqrt(alt / top)
+            spacing = min(cfg.search_spacing_frac * footprint_width_m(alt, hfov_rad),
+                          cfg.search_spacing_radius_frac * radius)
+            passes.append((alt, spacing, radius))
+        return search_route(tuple(passes)), len(passes)
 
     # ---- the step ----------------------------------------------------------------------
 
@@ -96,12 +118,7 @@ class ClearancePolicy:
             self.memory = Memory(since_s=obs.t_s, start_s=obs.t_s)
             self._search_alt_m = cfg.search_alt_m if cfg.search_alt_m is not None else max(
                 float(obs.alt_agl_m), cfg.handover_alt_m + 10.0)
-            spacing = min(cfg.search_spacing_frac * footprint_width_m(self._search_alt_m, obs.hfov_rad),
-                          cfg.search_spacing_radius_frac * cfg.search_radius_m)
-            self._waypoints = search_pattern(spacing, cfg.search_radius_m)
-            floor = cfg.handover_alt_m + 15.0
-            self._lower_alts = tuple(a for a in (max(f * self._search_alt_m, floor) for f in cfg.lower_search_fracs)
-                                     if a < self._search_alt_m - 5.0)
+            self._route, self._passes = self._plan(obs.hfov_rad)
         if prob is None:
             # No new heatmap: nothing moves on the map; only a perception gap changes the decision.
             if (self._last_t_s is not None and obs.t_s - self._last_t_s > cfg.gap_s
@@ -133,8 +150,9 @@ class ClearancePolicy:
         blind = gap or self.memory.phase is Phase.GAP_HOLD
         if not blind or motion.registered:
             tn, te = tilt_offset_ne(obs.alt_agl_m, obs.roll_rad, obs.pitch_rad, obs.yaw_rad)
-            self.map.fuse(prob, obs.alt_agl_m, obs.hfov_rad, obs.yaw_rad, pn + tn, pe + te,
-                          weight=min(1.0, dt_c / cfg.look_period_s))
+            seen = emphasise_dips(prob, int(round(cfg.dip_kernel_frac * prob.shape[1])), cfg.dip_gain, cfg.dip_floor)
+            self.map.fuse(seen, obs.alt_agl_m, obs.hfov_rad, obs.yaw_rad, pn + tn, pe + te,
+                          weight=min(1.0, dt_c / cfg.look_period_s) * look_weight(obs.alt_agl_m, cfg))
         clearance = self.map.clearance_m()
         # A spot rejected high up is looked at again once well below that altitude (finer detail
         # may show it is fine, or why not); one rejected low down stays rejected.
@@ -153,8 +171,8 @@ class ClearancePolicy:
         assert self.memory is not None and self._search_alt_m is not None
         pn, pe = self.motion.north_m, self.motion.east_m
         inp = Inputs(t_s=obs.t_s, alt_agl_m=float(obs.alt_agl_m), north_m=pn, east_m=pe, yaw_rad=obs.yaw_rad,
-                     fresh=fresh, gap=gap, search_alt_m=self._search_alt_m, waypoints=self._waypoints,
-                     lower_alts_m=self._lower_alts,
+                     fresh=fresh, gap=gap, search_alt_m=self._search_alt_m, route=self._route,
+                     passes=self._passes,
                      best=best, check=check)
         prev = self.memory
         mem, vel = step(prev, inp, cfg)

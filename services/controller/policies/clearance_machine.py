@@ -2,7 +2,9 @@
 
     WARMUP --3 frames / 10 s--> SEARCH --spot with clearance >= radius + margin--> APPROACH
     SEARCH  --each pass flown: the next one lower (100 -> 60 -> 40 m), where detail resolves
-    SEARCH  --all passes flown or 900 s--> NO_SPOT (hold: "no safe spot found")
+            (each pass its own expanding square: spacing from its footprint, radius shrinking
+            as sqrt(altitude), so every pass takes about as long as the first)
+    SEARCH  --the whole route flown or 900 s--> NO_SPOT (hold: "no safe spot found")
     APPROACH --within the lock radius--> DESCEND --measured alt <= hand-over alt--> HANDOVER
     APPROACH --target fails 3 re-checks / 90 s--> blacklist it; SEARCH (or ABORT below search alt)
     DESCEND  --target fails 3 re-checks / 180 s--> ABORT (blacklist)
@@ -75,10 +77,10 @@ class Inputs:
     fresh: bool  # a new heatmap this step
     gap: bool  # no heatmap for more than gap_s
     search_alt_m: float  # the top search altitude (where an abort climbs back to)
-    waypoints: tuple[tuple[float, float], ...]  # one pass of the search pattern
+    route: tuple[tuple[float, float, float], ...]  # every search pass in order: north, east, altitude
     best: Spot | None  # the best spot on the map now (not blacklisted, inside the radius)
     check: Spot | None  # the target re-checked and refined (None: it fails), when there is one
-    lower_alts_m: tuple[float, ...] = ()  # later search passes fly lower, where detail resolves
+    passes: int = 1  # how many passes the route holds (for the reason)
 
 
 def search_pattern(spacing_m: float, radius_m: float) -> tuple[tuple[float, float], ...]:
@@ -101,10 +103,20 @@ def search_pattern(spacing_m: float, radius_m: float) -> tuple[tuple[float, floa
     return tuple(points)
 
 
+def search_route(passes: tuple[tuple[float, float, float], ...]) -> tuple[tuple[float, float, float], ...]:
+    """The search route from its passes, each (altitude, spacing, radius): one expanding square
+    per pass at its altitude, flown in order."""
+    route: list[tuple[float, float, float]] = []
+    for alt, spacing, radius in passes:
+        route.extend((n, e, alt) for n, e in search_pattern(spacing, radius))
+    return tuple(route)
+
+
 def search_level_alt(waypoint: int, inp: Inputs) -> float:
-    """The altitude of the search pass `waypoint` belongs to: the top first, then each lower one."""
-    levels = (inp.search_alt_m, *inp.lower_alts_m)
-    return levels[min(waypoint // max(len(inp.waypoints), 1), len(levels) - 1)]
+    """The altitude of the search pass `waypoint` belongs to (the last one's past the end)."""
+    if not inp.route:
+        return inp.search_alt_m
+    return inp.route[min(waypoint, len(inp.route) - 1)][2]
 
 
 def _go(mem: Memory, phase: Phase, t_s: float, reason: str, **changes: object) -> Memory:
@@ -169,17 +181,15 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
         elif t - mem.start_s > cfg.no_spot_after_s:
             return _go(mem, Phase.NO_SPOT, t, f"no safe spot found in {cfg.no_spot_after_s:g} s"), (0.0, 0.0, 0.0)
         else:
-            passes = len(inp.lower_alts_m) + cfg.pattern_repeats
             wp = mem.waypoint
-            if wp >= passes * len(inp.waypoints):
+            if wp >= len(inp.route):
                 return _go(mem, Phase.NO_SPOT, t, f"no safe spot found within {cfg.search_radius_m:g} m "
-                                                  f"({passes} search passes)"), (0.0, 0.0, 0.0)
-            goal_n, goal_e = inp.waypoints[wp % len(inp.waypoints)]
+                                                  f"({inp.passes} search passes)"), (0.0, 0.0, 0.0)
+            goal_n, goal_e, level_alt = inp.route[wp]
             err_n, err_e = goal_n - inp.north_m, goal_e - inp.east_m
-            level_alt = search_level_alt(wp, inp)
             if math.hypot(err_n, err_e) < 5.0 and abs(inp.alt_agl_m - level_alt) < 5.0:
                 mem = dataclasses.replace(mem, waypoint=wp + 1)
-                if search_level_alt(wp + 1, inp) != level_alt:
+                if wp + 1 < len(inp.route) and search_level_alt(wp + 1, inp) != level_alt:
                     mem = dataclasses.replace(mem, reason=f"no spot at {level_alt:.0f} m: searching lower, at "
                                                           f"{search_level_alt(wp + 1, inp):.0f} m")
             vf, vr = _toward(err_n, err_e, cfg.approach_gain_per_s, cfg.search_speed_m_s, inp.yaw_rad)

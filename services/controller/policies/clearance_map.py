@@ -53,6 +53,43 @@ def footprint_width_m(alt_agl_m: float, hfov_rad: float) -> float:
     return 2.0 * max(alt_agl_m, 0.1) * math.tan(hfov_rad / 2.0)
 
 
+def look_weight(alt_agl_m: float, cfg: ClearanceConfig) -> float:
+    """How much one look at this altitude counts: (reference altitude / altitude)^2, at most
+    `look_weight_max`.
+
+    A CLIPSeg token covers ground in proportion to the altitude squared, so a patch's own
+    reading is diluted by its surroundings in that proportion: one look from 20 m says as much
+    about a 1 m patch as 25 looks from 100 m (which, erring the same way each time, say even
+    less). Without this the many early looks from high up outvote the few late, sharp ones of
+    the descent, which are the only ones that see people and cars.
+    """
+    return min((cfg.look_ref_alt_m / max(alt_agl_m, 1.0)) ** 2, cfg.look_weight_max)
+
+
+def emphasise_dips(prob: np.ndarray, kernel_px: int, gain: float, floor: float = 0.0) -> np.ndarray:
+    """P with small dark features deepened: P - gain x max(closing(P) - P - floor, 0), in [0, 1].
+
+    CLIPSeg reads the image on a 22 x 22 token grid and upsamples: a person or a car under one
+    token survives only as a shallow local dip (0.05-0.1 below the lawn around it at 20 m), which
+    an absolute threshold never sees. A greyscale closing with a disk of about two tokens fills
+    exactly the dips narrower than it, so closing - P is the dip depth and nothing else (a wide
+    dark area, or the dark side of an edge, is left as it is); subtracting `gain` times it makes
+    a dip as deep as the object would read if it filled its tokens. Dips shallower than `floor`
+    are the map's own ripple (noise, flicker), not objects, and are left alone.
+    """
+    if gain <= 0.0 or kernel_px < 3:
+        return prob
+    k = kernel_px | 1
+    # Depth is measured on the map smoothed at a quarter of the disk (half a token): pixel noise
+    # would otherwise read as dips everywhere (a closing lifts every local minimum).
+    smooth = cv2.GaussianBlur(prob, (0, 0), sigmaX=max(kernel_px / 8.0, 0.5), borderType=cv2.BORDER_REPLICATE)
+    disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
+    closed = cv2.morphologyEx(smooth, cv2.MORPH_CLOSE, disk, borderType=cv2.BORDER_REPLICATE)
+    dip = np.maximum(closed - smooth - np.float32(floor), 0.0)
+    out = prob - np.float32(gain) * dip
+    return np.clip(out, 0.0, 1.0, out=out)
+
+
 def _logit(p: np.ndarray, clip: float) -> np.ndarray:
     q = np.clip(p, clip, 1.0 - clip)
     return np.log(q / (1.0 - q)).astype(np.float32)
@@ -218,7 +255,7 @@ class GroundMap:
 def find_spot(gmap: GroundMap, clearance: np.ndarray, cfg: ClearanceConfig, *, north_m: float, east_m: float,
               blacklist: tuple[tuple[float, float], ...], within_m: float | None = None,
               near: tuple[float, float] | None = None, need_m: float | None = None) -> Spot | None:
-    """The best spot: clearance >= safety radius + margin, inside the search radius around the
+    """The best spot: clearance >= safety radius + margin, inside the fence around the
     start (0, 0), away from blacklisted spots; ranked by clearance, confidence and distance.
 
     `near` + `within_m` restrict the search to a disk (re-checking and refining a target), and
@@ -245,7 +282,8 @@ def find_spot(gmap: GroundMap, clearance: np.ndarray, cfg: ClearanceConfig, *, n
     c = gmap.cell_m
     north = gmap.north0_m - rows * c
     east = gmap.east0_m + cols * c
-    keep = north * north + east * east <= cfg.search_radius_m ** 2
+    # A spot's centre lies inside the fence with room for the lock's error around it.
+    keep = north * north + east * east <= max(cfg.fence_m - cfg.lock_out_m, 0.0) ** 2
     for bn, be in blacklist:
         keep &= (north - bn) ** 2 + (east - be) ** 2 > (need + cfg.refine_radius_m) ** 2
     if near is not None and within_m is not None:
