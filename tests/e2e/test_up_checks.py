@@ -297,3 +297,15 @@ def test_a_run_that_fails_before_writing_leaves_no_folder(tmp_path: Path, monkey
     with pytest.raises(DoveseiError):
         up.run(UpOptions(world=WORLD, out=mine), stop=threading.Event(), checked=checked)
     assert mine.is_dir() and list(mine.iterdir()) == []
+
+
+@pytest.mark.parametrize(("argv", "expected"), [
+    ([], "reference"),
+    (["--policy", "clearance"], "real"),  # its own true-second timers: the 78 sim s limit would cut it short
+    (["--policy", "clearance", "--timing", "reference"], "reference"),  # an explicit choice stands
+    (["--policy", "dovesei-nofocus"], "reference"),
+])
+def test_timing_default_follows_the_policy(argv: list[str], expected: str) -> None:
+    from dovesei.up.options import build_parser, options_from_args  # lazy: only this test parses
+
+    assert options_from_args(build_parser().parse_args(argv)).timing == expected
