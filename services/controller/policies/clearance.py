@@ -119,6 +119,11 @@ class ClearancePolicy:
             self._search_alt_m = cfg.search_alt_m if cfg.search_alt_m is not None else max(
                 float(obs.alt_agl_m), cfg.handover_alt_m + 10.0)
             self._route, self._passes = self._plan(obs.hfov_rad)
+        if self.memory.phase in TERMINAL:
+            # NO_SPOT and HANDOVER hold still until someone else takes over: the map no longer
+            # decides anything, so it is not worked on (a held vehicle would otherwise spend a
+            # core for as long as it hovers).
+            return self._decision
         if prob is None:
             # No new heatmap: nothing moves on the map; only a perception gap changes the decision.
             if (self._last_t_s is not None and obs.t_s - self._last_t_s > cfg.gap_s

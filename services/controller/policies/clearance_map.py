@@ -79,13 +79,20 @@ def emphasise_dips(prob: np.ndarray, kernel_px: int, gain: float, floor: float =
     """
     if gain <= 0.0 or kernel_px < 3:
         return prob
-    k = kernel_px | 1
+    # A dip is a token-sized, smooth feature: find it at a quarter of the resolution (16x fewer
+    # pixels; the full-size closing cost 12 ms a frame) and bring its depth back up bilinearly.
+    h, w = prob.shape
+    f = 4 if min(h, w) >= 8 * 4 and kernel_px >= 12 else 1
+    small = cv2.resize(prob, (w // f, h // f), interpolation=cv2.INTER_AREA) if f > 1 else prob
+    k = max(3, int(round(kernel_px / f))) | 1
     # Depth is measured on the map smoothed at a quarter of the disk (half a token): pixel noise
     # would otherwise read as dips everywhere (a closing lifts every local minimum).
-    smooth = cv2.GaussianBlur(prob, (0, 0), sigmaX=max(kernel_px / 8.0, 0.5), borderType=cv2.BORDER_REPLICATE)
+    smooth = cv2.GaussianBlur(small, (0, 0), sigmaX=max(kernel_px / 8.0 / f, 0.5), borderType=cv2.BORDER_REPLICATE)
     disk = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
     closed = cv2.morphologyEx(smooth, cv2.MORPH_CLOSE, disk, borderType=cv2.BORDER_REPLICATE)
     dip = np.maximum(closed - smooth - np.float32(floor), 0.0)
+    if f > 1:
+        dip = cv2.resize(dip, (w, h), interpolation=cv2.INTER_LINEAR)
     out = prob - np.float32(gain) * dip
     return np.clip(out, 0.0, 1.0, out=out)
 
