@@ -35,6 +35,7 @@ log = logging.getLogger("dovesei.up")
 
 STAGES = ("frame_to_segmenter", "inference", "heatmap_to_controller", "policy", "command_to_sim")
 MAX_VIDEO_FRAMES = 900
+EARLY_SLOTS = 64  # heatmaps/statuses held for camera frames still on their way
 PROGRESS_EVERY_S = 10.0  # sim seconds between progress lines (state changes are logged at once)
 STATE_LOG_MIN_S = 1.0  # sim seconds: faster state changes are counted, not logged one by one
 LIVELINESS = "alive"  # the Sample topic of a liveliness change (payload: the service name)
@@ -93,6 +94,10 @@ class Recorder:
         self.video_period_s = video_period_s
         self._next_video_t_s = 0.0
         self.video_frames: dict[int, dict[str, Any]] = {}
+        # A heatmap or status can arrive before its (much larger) camera frame: held here by frame
+        # seq until the frame comes, so the video does not lose them (bounded: the newest only).
+        self._early: dict[int, dict[str, Any]] = {}
+        self._last_camera_seq = -1
         self._latency_seen: set[int] = set()
         # A flood of garbage on a key (dovesei faults: ~400/s) logged one line per message.
         self._reject_log = RateLimitedLog(log, "monitor rejected messages")
@@ -138,6 +143,8 @@ class Recorder:
             self.steering_statuses += 1
         self.statuses[st.stamp.t_s] = st
         kept = self.video_frames.get(st.frame_seq)
+        if kept is None and self.video and st.frame_seq >= 0:
+            kept = self._early_slot(st.frame_seq)
         if kept is not None and "status" not in kept:
             kept["status"] = st  # the first decision taken with this frame's heatmap
         changed = st.state != self.last_state_name or st.watchdog != self.last_watchdog
@@ -181,11 +188,25 @@ class Recorder:
         if hm.sent_wall_s > 0:
             self.heatmap_delivery_by_seq[hm.seq] = s.recv_wall_s - hm.sent_wall_s
         kept = self.video_frames.get(hm.seq)
+        if kept is None and self.video:
+            kept = self._early_slot(hm.seq)
         if kept is not None:
             kept["prob"] = (np.asarray(hm.prob_safe).copy(), hm.prob_safe.dtype == np.uint8)
 
+    def _early_slot(self, seq: int) -> dict[str, Any] | None:
+        """The holding slot of a frame not seen yet (None for one already passed over)."""
+        if seq <= self._last_camera_seq:
+            return None  # its frame came and was not kept for the video
+        if seq not in self._early and len(self._early) >= EARLY_SLOTS:
+            del self._early[min(self._early)]
+        return self._early.setdefault(seq, {})
+
     def _on_camera(self, frame: CameraFrame, s: Sample) -> None:
         self.frames += 1
+        self._last_camera_seq = max(self._last_camera_seq, frame.seq)
+        early = self._early.pop(frame.seq, {})
+        for seq in [q for q in self._early if q < frame.seq]:
+            del self._early[seq]  # frames that never came (dropped on the way)
         if not self.video or frame.stamp.t_s + 1e-9 < self._next_video_t_s:
             return
         self._next_video_t_s = frame.stamp.t_s + self.video_period_s
@@ -193,7 +214,7 @@ class Recorder:
         bgr = cv2.cvtColor(frame.image_rgb, cv2.COLOR_RGB2BGR)
         ok, jpeg = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, 85])
         if ok:
-            self.video_frames[frame.seq] = {"t_s": frame.stamp.t_s, "alt": frame.alt_agl_m, "jpeg": jpeg,
+            self.video_frames[frame.seq] = {**early, "t_s": frame.stamp.t_s, "alt": frame.alt_agl_m, "jpeg": jpeg,
                                             "hfov": frame.hfov_rad}  # sizes a map policy's spot circle
         if len(self.video_frames) > MAX_VIDEO_FRAMES:
             # Long episode: keep every other frame and halve the rate from now on (bounded memory).

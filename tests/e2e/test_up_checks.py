@@ -8,6 +8,7 @@ sim's; the report's command count for a MAVLink vehicle and its nearest-time sta
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import subprocess
@@ -16,10 +17,11 @@ import threading
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from dovesei.shared.codec import encode
-from dovesei.shared.messages import ControllerStatus, EpisodeResult, Stamp, VehicleState
+from dovesei.shared.messages import CameraFrame, ControllerStatus, EpisodeResult, SafetyHeatmap, Stamp, VehicleState
 from dovesei.up import EXIT_FAILED, EXIT_OK, EXIT_UNSAFE, UpOptions, build_report, exit_code
 from dovesei.up.monitor import Recorder, Sample
 from dovesei.up.watch import Watcher, stalled_service, stream_owners
@@ -309,3 +311,31 @@ def test_timing_default_follows_the_policy(argv: list[str], expected: str) -> No
     from dovesei.up.options import build_parser, options_from_args  # lazy: only this test parses
 
     assert options_from_args(build_parser().parse_args(argv)).timing == expected
+
+
+def test_a_heatmap_and_status_that_overtake_their_camera_frame_still_reach_the_video() -> None:
+    rec = Recorder((0.0, 0.0, 50.0), video=True, video_period_s=0.5)
+    img = np.zeros((64, 64, 3), np.uint8)
+    prob = np.full((64, 64), 200, np.uint8)
+
+    def heatmap(seq: int) -> bytes:
+        return encode(SafetyHeatmap("uav1", seq, Stamp(0.5 * seq, "sim"), prob, 50.0, 1.2, "simulated", True,
+                                    "p", "dovesei", 0.01))
+
+    def status(seq: int) -> bytes:
+        return encode(dataclasses.replace(_status(seq, 0.5 * seq + 0.1, "SEARCHING"), frame_seq=seq))
+
+    def frame(seq: int) -> bytes:
+        return encode(CameraFrame("uav1", seq, Stamp(0.5 * seq, "sim"), img, 1.2, 50.0))
+
+    # Frame 0 in order; frame 1's heatmap and status arrive before the frame itself.
+    for topic, payload in (("camera", frame(0)), ("heatmap", heatmap(0)), ("status", status(0)),
+                           ("heatmap", heatmap(1)), ("status", status(1)), ("camera", frame(1))):
+        rec.handle(Sample(topic, 0.0, payload))
+    for seq in (0, 1):
+        kept = rec.video_frames[seq]
+        assert "prob" in kept and kept["status"].frame_seq == seq and "jpeg" in kept
+    # A heatmap of a frame that already went by unkept is not held forever.
+    rec.handle(Sample("heatmap", 0.0, heatmap(0)))
+    assert 0 not in rec._early
+
