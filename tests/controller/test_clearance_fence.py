@@ -96,3 +96,21 @@ def test_fence_bounds_the_estimate_even_when_registration_is_off() -> None:
     est = max(math.hypot(n, e) for n, e in policy.estimates)
     assert est <= FENCE_M + 0.5, est
     assert flight.decision.state == "NO_SPOT"
+
+
+def test_no_spot_holds_its_point_by_vision_against_wind_and_a_biased_estimate() -> None:
+    """A zero-velocity command is no hold without GNSS: here the wind alone would carry the vehicle
+    0.72 m/s x 300 s = 216 m. The registered position holds it where the search gave up."""
+    rng = np.random.default_rng(5)
+    world = World(_textured(rng, 4000))
+    policy = _Recording(CFG)
+    flight = fly(world, policy, t_max_s=1500.0, bias_m_s=(1.0, -0.8), vel_noise_m_s=0.5, wind_m_s=(0.6, 0.4),
+                 seed=5, hold_s=300.0)
+    assert flight.decision.state == "NO_SPOT"
+    held = [(n, e) for n, e, _, state, _ in flight.track if state == "NO_SPOT"]
+    assert len(held) >= 500  # 300 s of holding at 2 Hz
+    n0, e0 = held[0]
+    drift = max(math.hypot(n - n0, e - e0) for n, e in held)
+    assert drift < 15.0, drift
+    assert flight.max_range_m < CFG.search_radius_m
+    assert flight.decision.info["hold_error_m"] < 10.0

@@ -75,7 +75,7 @@ class Flight:
 def fly(world: World, policy: ClearancePolicy, *, t_max_s: float = 400.0, dt_s: float = 0.5,
         bias_m_s: tuple[float, float] = (0.0, 0.0), vel_noise_m_s: float = 0.0,
         wind_m_s: tuple[float, float] = (0.0, 0.0), gap_s: tuple[float, float] | None = None,
-        seed: int = 0, start: tuple[float, float] = (0.0, 0.0)) -> Flight:
+        seed: int = 0, start: tuple[float, float] = (0.0, 0.0), hold_s: float = 0.0) -> Flight:
     rng = np.random.default_rng(seed)
     n, e = start
     alt, t = 100.0, 0.0
@@ -84,6 +84,7 @@ def fly(world: World, policy: ClearancePolicy, *, t_max_s: float = 400.0, dt_s: 
     track = []
     max_range = 0.0
     decision = None
+    hold_until: float | None = None  # NO_SPOT reached: fly on this long to see the hold
     while t < t_max_s:
         fresh = gap_s is None or not (gap_s[0] <= t < gap_s[1])
         prob = perceive(world.view(n, e, alt), rng) if fresh else None
@@ -101,8 +102,12 @@ def fly(world: World, policy: ClearancePolicy, *, t_max_s: float = 400.0, dt_s: 
             alt -= v[2] * dt_s / 5
         max_range = max(max_range, math.hypot(n - start[0], e - start[1]))
         t += dt_s
-        if alt <= 20.0 or decision.state in ("NO_SPOT", "HANDOVER"):
+        if alt <= 20.0 or decision.state == "HANDOVER":
             break
+        if decision.state == "NO_SPOT":
+            hold_until = t + hold_s if hold_until is None else hold_until
+            if t >= hold_until:
+                break
     return Flight(n, e, alt, t, states, track, decision, max_range)
 
 

@@ -22,6 +22,7 @@ Never reads a true position: the Observation has none.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 
@@ -79,6 +80,7 @@ class ClearancePolicy:
         self._last_t_s: float | None = None  # last heatmap
         self._search_alt_m: float | None = None
         self._route: tuple[tuple[float, float, float], ...] = ()
+        self._hold_ne: tuple[float, float] | None = None  # NO_SPOT's hold point, in the local frame
         self._passes = 0
         self._cmd: tuple[float, float, float] = (0.0, 0.0, 0.0)
         self._last_motion: MotionStep | None = None
@@ -119,15 +121,15 @@ class ClearancePolicy:
             self._search_alt_m = cfg.search_alt_m if cfg.search_alt_m is not None else max(
                 float(obs.alt_agl_m), cfg.handover_alt_m + 10.0)
             self._route, self._passes = self._plan(obs.hfov_rad)
-        if self.memory.phase in TERMINAL:
-            # NO_SPOT and HANDOVER hold still until someone else takes over: the map no longer
-            # decides anything, so it is not worked on (a held vehicle would otherwise spend a
-            # core for as long as it hovers).
-            return self._decision
+        phase = self.memory.phase
+        if phase is Phase.HANDOVER:
+            return self._decision  # the short-range sensors have it
         if prob is None:
+            if phase is Phase.NO_SPOT:
+                return self._decision
             # No new heatmap: nothing moves on the map; only a perception gap changes the decision.
             if (self._last_t_s is not None and obs.t_s - self._last_t_s > cfg.gap_s
-                    and self.memory.phase not in TERMINAL and self.memory.phase is not Phase.GAP_HOLD):
+                    and phase is not Phase.GAP_HOLD):
                 return self._decide(obs, fresh=False, gap=True, best=None, check=None, clearance=None)
             return self._decision
         dt_s = cfg.decision_period_s if self._last_t_s is None else obs.t_s - self._last_t_s
@@ -147,6 +149,10 @@ class ClearancePolicy:
                                      obs.pitch_rad)
         self._last_motion = motion
         pn, pe = motion.north_m, motion.east_m
+        if phase is Phase.NO_SPOT:
+            # The map decides nothing any more and is not worked on (a held vehicle would spend a
+            # core on it for as long as it hovers); the ego-motion still runs, for the hold.
+            return self._hold(obs, pn, pe)
 
         # Map: frozen across a gap (no decay); after one, only registered frames are fused.
         if not gap:
@@ -171,6 +177,31 @@ class ClearancePolicy:
                               need_m=cfg.required_clearance_m * cfg.recheck_hysteresis)
         return self._decide(obs, fresh=True, gap=gap, best=best, check=check, clearance=clearance)
 
+    def _hold(self, obs: Observation, pn: float, pe: float) -> Decision:
+        """NO_SPOT: stay over the point where the search gave up, by vision.
+
+        Without GNSS a zero-velocity command is no hold: the autopilot holds its own, biased,
+        velocity estimate at zero, so the vehicle drifts at the bias for as long as it waits
+        (up to 200 m in 1200 s with `harsh` perception). The registered position says where it
+        went; this steers back, slowly, inside the fence, at a constant altitude.
+        """
+        cfg = self.config
+        if self._hold_ne is None:
+            self._hold_ne = (pn, pe)
+        dn, de = self._hold_ne[0] - pn, self._hold_ne[1] - pe
+        vn, ve = cfg.hold_gain_per_s * dn, cfg.hold_gain_per_s * de
+        speed = math.hypot(vn, ve)
+        if speed > cfg.hold_speed_max_m_s:
+            vn, ve = vn * cfg.hold_speed_max_m_s / speed, ve * cfg.hold_speed_max_m_s / speed
+        f, r = to_body(vn, ve, obs.yaw_rad)
+        vel, fenced = fence((f, r, 0.0), pn, pe, obs.yaw_rad, cfg)
+        self._cmd = vel
+        info = {**self._decision.info, "est_north_m": pn, "est_east_m": pe, "hold_error_m": math.hypot(dn, de),
+                "fenced": float(fenced)}
+        self._decision = dataclasses.replace(self._decision, vel_body_frd_m_s=tuple(float(v) for v in vel),
+                                             info={k: float(v) for k, v in info.items()})
+        return self._decision
+
     def _decide(self, obs: Observation, *, fresh: bool, gap: bool, best, check, clearance) -> Decision:
         cfg = self.config
         assert self.memory is not None and self._search_alt_m is not None
@@ -185,6 +216,8 @@ class ClearancePolicy:
         if mem.phase not in TERMINAL:  # a terminal state holds still: the operator takes over
             vel, fenced = fence(vel, pn, pe, obs.yaw_rad, cfg)
         self.memory = mem
+        if mem.phase is Phase.NO_SPOT and self._hold_ne is None:
+            self._hold_ne = (pn, pe)  # where the search gave up: held there by vision from now on
         self._cmd = vel
         if mem.phase is not prev.phase or mem.reason != prev.reason:
             log.info("clearance: %s -> %s at t=%.2f s, alt %.1f m: %s", prev.phase.value, mem.phase.value, obs.t_s,

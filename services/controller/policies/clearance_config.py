@@ -118,6 +118,8 @@ class ClearanceConfig:
     gap_hold_timeout_s: float = 30.0  # still blind after this: climb back (ABORT)
     max_aborts: int = 4
     no_spot_after_s: float = 900.0  # searching this long: hold and report "no safe spot found"
+    hold_gain_per_s: float = 0.3  # NO_SPOT holds its point by vision: speed = gain x error ...
+    hold_speed_max_m_s: float = 2.0  # ... at most this
 
     def __post_init__(self) -> None:
         positive = (
@@ -128,7 +130,7 @@ class ClearanceConfig:
             "approach_gain_per_s", "max_speed_m_s", "lock_in_m", "lock_out_m",
             "refine_radius_m", "descent_gain_per_s", "descent_min_m_s", "descent_max_m_s", "climb_speed_m_s",
             "warmup_timeout_s", "approach_timeout_s", "descend_timeout_s", "abort_timeout_s", "gap_s",
-            "gap_hold_timeout_s", "no_spot_after_s",
+            "gap_hold_timeout_s", "no_spot_after_s", "hold_gain_per_s", "hold_speed_max_m_s",
         )
         for name in positive:
             validate.positive(f"ClearanceConfig.{name}", getattr(self, name))
