@@ -192,3 +192,14 @@ def test_engine_ray_without_ray_names_the_install_command(tmp_path: Path, monkey
 def test_results_json_round_trips(tmp_path: Path) -> None:
     doc = _bench(tmp_path)
     assert json.loads((tmp_path / "results.json").read_text()) == doc
+
+
+def test_the_start_margin_shrinks_to_what_a_small_world_leaves_room_for() -> None:
+    from dovesei.bench.run import fitting_margin_m  # lazy: this test only
+    from dovesei.sim.world import load_world
+
+    small = load_world("synthetic:size_m=400,seed=1")
+    fitted = fitting_margin_m(small, 40.0, 180.0)
+    assert 5.0 <= fitted < 180.0
+    assert fitting_margin_m(small, 40.0, 20.0) == 20.0  # a margin that fits is kept
+    assert fitting_margin_m(small, 40.0, 180.0, floor_m=fitted + 1.0) == 180.0  # no room even at the floor
