@@ -83,6 +83,17 @@ def stalled_service(rec: Recorder, owners: dict[str, str], now_wall_s: float, st
     return owners[topic], topic
 
 
+def process_stopped(pid: int) -> bool:
+    """True when the kernel says the process is stopped (SIGSTOP, a debugger): Linux /proc only;
+    False wherever that cannot be read."""
+    try:
+        stat = open(f"/proc/{pid}/stat", encoding="ascii", errors="replace").read()
+    except OSError:
+        return False
+    # "pid (comm) state ...": comm may hold spaces and parentheses, the state follows the last ')'.
+    return stat[stat.rfind(")") + 2:stat.rfind(")") + 3] in ("T", "t")
+
+
 def _owes_command(rec: Recorder) -> bool:
     """True when the newest state arrived after the newest command (nobody answered it yet)."""
     state_s, cmd_s = rec.last_recv_wall_s.get("state"), rec.last_recv_wall_s.get("cmd")
@@ -227,6 +238,14 @@ class Watcher:
         if stalled is None:
             return None
         name, topic = stalled
+        stopped = [n for n, proc in self.children.procs.items() if process_stopped(proc.pid)]
+        if stopped and name not in stopped:
+            # In lockstep one stopped process silences the others that wait for it; which stream
+            # falls silent first is then a race. A child the kernel reports as stopped is the one.
+            name = stopped[0]
+            own = [t for t, owner in self.owners.items() if owner == name]
+            ages = {t: time.time() - self.rec.last_recv_wall_s.get(t, time.time()) for t in own}
+            topic = max(ages, key=ages.get) if ages else topic
         last = self.rec.last_recv_wall_s.get(topic)
         silent = f"no {topic} message for {time.time() - last:.1f} s" if last is not None else f"no {topic} message yet"
         token = {True: "its liveliness token is still visible: alive but stuck",

@@ -307,6 +307,9 @@ def test_ardupilot_stops_a_guided_velocity_after_guid_timeout(fly: Fly) -> None:
     vehicle.send(command(fwd=2.0))
     assert wait_until(lambda: fake.position_ned_m[0] > 1.0, 5.0)
     vehicle.handover()
+    # A setpoint already on its way when handover() returned still lands: wait until the stream
+    # has been quiet for a while, then time GUID_TIMEOUT from the true last one.
+    assert wait_until(lambda: time.monotonic() - fake.received()[0][-1].recv_s > 0.3, 3.0)
     last_sp_s = fake.received()[0][-1].recv_s
     # Within GUID_TIMEOUT (3 s) it keeps flying the last velocity, then it stops where it is.
     assert wait_until(lambda: fake.velocity_ned_m_s == (0.0, 0.0, 0.0), 8.0)

@@ -339,3 +339,23 @@ def test_a_heatmap_and_status_that_overtake_their_camera_frame_still_reach_the_v
     rec.handle(Sample("heatmap", 0.0, heatmap(0)))
     assert 0 not in rec._early
 
+
+
+def test_a_stopped_child_is_told_apart_from_a_running_one() -> None:
+    import signal  # lazy: only this test signals a process
+
+    from dovesei.up.watch import process_stopped  # lazy: only this test reads process states
+
+    proc = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
+    try:
+        assert not process_stopped(proc.pid)
+        os.kill(proc.pid, signal.SIGSTOP)
+        deadline = time.monotonic() + 5.0
+        while not process_stopped(proc.pid) and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert process_stopped(proc.pid)
+        os.kill(proc.pid, signal.SIGCONT)
+    finally:
+        proc.kill()
+        proc.wait()
+    assert not process_stopped(proc.pid)  # gone: nothing to read
