@@ -59,10 +59,13 @@ def stream_owners(options: UpOptions) -> dict[str, str]:
 
 
 def stalled_service(rec: Recorder, owners: dict[str, str], now_wall_s: float, stall_s: float,
-                    lockstep: bool = False) -> tuple[str, str] | None:
+                    lockstep: bool = False, stopped: frozenset[str] = frozenset()) -> tuple[str, str] | None:
     """(service, stream) whose stream went silent first, once any watched stream is over `stall_s` old.
 
     Watching begins with the episode (the first state): before it every service may still load.
+    `stopped` names services the kernel reports stopped: in lockstep one stopped process silences
+    the others waiting for it and which stream falls silent first is a race, so a stopped one is
+    named first (its oldest stream).
     """
     if rec.first_state_wall_s is None:
         return None
@@ -75,6 +78,10 @@ def stalled_service(rec: Recorder, owners: dict[str, str], now_wall_s: float, st
         ages[topic] = now_wall_s - last
     if not any(age > stall_s for age in ages.values()):
         return None
+    own = {t: age for t, age in ages.items() if owners[t] in stopped}
+    if own:
+        topic = max(own, key=own.get)
+        return owners[topic], topic
     topic = max(ages, key=ages.get)
     if lockstep and owners[topic] == "sim" and _owes_command(rec):
         # In lockstep the sim waits for the answer to its last state: a controller that hung after
@@ -87,7 +94,8 @@ def process_stopped(pid: int) -> bool:
     """True when the kernel says the process is stopped (SIGSTOP, a debugger): Linux /proc only;
     False wherever that cannot be read."""
     try:
-        stat = open(f"/proc/{pid}/stat", encoding="ascii", errors="replace").read()
+        with open(f"/proc/{pid}/stat", encoding="ascii", errors="replace") as f:
+            stat = f.read()
     except OSError:
         return False
     # "pid (comm) state ...": comm may hold spaces and parentheses, the state follows the last ')'.
@@ -233,19 +241,12 @@ class Watcher:
         return Failure(name, code, line, message)
 
     def _check_stalls(self) -> Failure | None:
+        stopped = frozenset(n for n, proc in self.children.procs.items() if process_stopped(proc.pid))
         stalled = stalled_service(self.rec, self.owners, time.time(), self.options.stall_s,
-                                  lockstep=self.options.lockstep)
+                                  lockstep=self.options.lockstep, stopped=stopped)
         if stalled is None:
             return None
         name, topic = stalled
-        stopped = [n for n, proc in self.children.procs.items() if process_stopped(proc.pid)]
-        if stopped and name not in stopped:
-            # In lockstep one stopped process silences the others that wait for it; which stream
-            # falls silent first is then a race. A child the kernel reports as stopped is the one.
-            name = stopped[0]
-            own = [t for t, owner in self.owners.items() if owner == name]
-            ages = {t: time.time() - self.rec.last_recv_wall_s.get(t, time.time()) for t in own}
-            topic = max(ages, key=ages.get) if ages else topic
         last = self.rec.last_recv_wall_s.get(topic)
         silent = f"no {topic} message for {time.time() - last:.1f} s" if last is not None else f"no {topic} message yet"
         token = {True: "its liveliness token is still visible: alive but stuck",

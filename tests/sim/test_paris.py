@@ -11,7 +11,6 @@ import math
 import os
 import subprocess
 import sys
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -21,21 +20,9 @@ from dovesei.sim import paris
 from dovesei.sim.paris import IGN_ORTHO_WMTS, N_STARTS, parse_spec, start_latlon
 from dovesei.sim.tiles import TileError
 from dovesei.sim.world import load_world, unjudged_reason
-from tests.sim.test_tiles import TileServer
+from tests.sim.test_tiles import TileServer, server  # noqa: F401  (the local tile server fixture)
 
 REPO = Path(__file__).resolve().parents[2]
-
-
-@pytest.fixture()
-def server() -> Iterator[TileServer]:
-    srv = TileServer()
-    srv.thread.start()
-    try:
-        yield srv
-    finally:
-        srv.release.set()
-        srv.httpd.shutdown()
-        srv.httpd.server_close()
 
 
 def local_url(server: TileServer) -> str:

@@ -30,7 +30,7 @@ import numpy as np
 
 from dovesei.controller.policies.base import Decision, Observation, PolicyInputError, checked_prob_safe, resolve_config
 from dovesei.controller.policies.clearance_config import ClearanceConfig, clearance_preset
-from dovesei.controller.policies.clearance_machine import TERMINAL, Inputs, Memory, Phase, search_route, step
+from dovesei.controller.policies.clearance_machine import TERMINAL, Inputs, Memory, Phase, search_route, step, toward
 from dovesei.controller.policies.clearance_map import (GroundMap, clearance_at, emphasise_dips, find_spot,
                                                       footprint_width_m, look_weight)
 from dovesei.controller.policies.clearance_motion import EgoMotion, MotionStep, tilt_offset_ne, to_body, to_ne
@@ -189,11 +189,7 @@ class ClearancePolicy:
         if self._hold_ne is None:
             self._hold_ne = (pn, pe)
         dn, de = self._hold_ne[0] - pn, self._hold_ne[1] - pe
-        vn, ve = cfg.hold_gain_per_s * dn, cfg.hold_gain_per_s * de
-        speed = math.hypot(vn, ve)
-        if speed > cfg.hold_speed_max_m_s:
-            vn, ve = vn * cfg.hold_speed_max_m_s / speed, ve * cfg.hold_speed_max_m_s / speed
-        f, r = to_body(vn, ve, obs.yaw_rad)
+        f, r = toward(dn, de, cfg.hold_gain_per_s, cfg.hold_speed_max_m_s, obs.yaw_rad)
         vel, fenced = fence((f, r, 0.0), pn, pe, obs.yaw_rad, cfg)
         self._cmd = vel
         info = {**self._decision.info, "est_north_m": pn, "est_east_m": pe, "hold_error_m": math.hypot(dn, de),

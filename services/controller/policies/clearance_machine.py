@@ -128,7 +128,8 @@ def _blacklisted(mem: Memory, spot: Spot, alt_m: float) -> tuple[tuple[float, fl
     return mem.blacklist + ((spot.north_m, spot.east_m, alt_m),)
 
 
-def _toward(north_err: float, east_err: float, gain: float, vmax: float, yaw: float) -> tuple[float, float]:
+def toward(north_err: float, east_err: float, gain: float, vmax: float, yaw: float) -> tuple[float, float]:
+    """Body forward/right velocity = gain x the north/east error, capped at vmax."""
     vn, ve = gain * north_err, gain * east_err
     speed = math.hypot(vn, ve)
     if speed > vmax:
@@ -192,7 +193,7 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
                 if wp + 1 < len(inp.route) and search_level_alt(wp + 1, inp) != level_alt:
                     mem = dataclasses.replace(mem, reason=f"no spot at {level_alt:.0f} m: searching lower, at "
                                                           f"{search_level_alt(wp + 1, inp):.0f} m")
-            vf, vr = _toward(err_n, err_e, cfg.approach_gain_per_s, cfg.search_speed_m_s, inp.yaw_rad)
+            vf, vr = toward(err_n, err_e, cfg.approach_gain_per_s, cfg.search_speed_m_s, inp.yaw_rad)
             return mem, (vf, vr, _hold_alt(inp.alt_agl_m, level_alt, cfg))
 
     if p is Phase.ABORT:
@@ -246,7 +247,7 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
                       target=target)
             p = Phase.DESCEND
         if p is Phase.APPROACH:
-            vf, vr = _toward(err_n, err_e, cfg.approach_gain_per_s, cfg.max_speed_m_s, inp.yaw_rad)
+            vf, vr = toward(err_n, err_e, cfg.approach_gain_per_s, cfg.max_speed_m_s, inp.yaw_rad)
             return mem, (vf, vr, _hold_alt(inp.alt_agl_m, max(inp.alt_agl_m, cfg.handover_alt_m + 5.0), cfg))
 
     # DESCEND
@@ -261,7 +262,7 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
     descending = err < lock_in or (mem.descending and err <= lock_out)
     if descending != mem.descending:
         mem = dataclasses.replace(mem, descending=descending)
-    vf, vr = _toward(err_n, err_e, cfg.approach_gain_per_s, cfg.max_speed_m_s, inp.yaw_rad)
+    vf, vr = toward(err_n, err_e, cfg.approach_gain_per_s, cfg.max_speed_m_s, inp.yaw_rad)
     vz = 0.0
     if descending:
         vz = min(max(cfg.descent_gain_per_s * (inp.alt_agl_m - cfg.handover_alt_m) + cfg.descent_min_m_s,
