@@ -181,9 +181,10 @@ class ClearancePolicy:
         """NO_SPOT: stay over the point where the search gave up, by vision.
 
         Without GNSS a zero-velocity command is no hold: the autopilot holds its own, biased,
-        velocity estimate at zero, so the vehicle drifts at the bias for as long as it waits
-        (up to 200 m in 1200 s with `harsh` perception). The registered position says where it
-        went; this steers back, slowly, inside the fence, at a constant altitude.
+        velocity estimate at zero, so wind and the estimate's bias carry the vehicle away for as
+        long as it waits (138 m in a 300 s hold in the wind test of test_clearance_fence). The
+        registered position says where it went; this steers back, slowly, inside the fence, at
+        a constant altitude.
         """
         cfg = self.config
         if self._hold_ne is None:
