@@ -114,3 +114,33 @@ def test_no_spot_holds_its_point_by_vision_against_wind_and_a_biased_estimate() 
     assert drift < 15.0, drift
     assert flight.max_range_m < CFG.search_radius_m
     assert flight.decision.info["hold_error_m"] < 10.0
+
+
+def test_the_fence_shrinks_while_the_estimate_is_uncertain() -> None:
+    policy = ClearancePolicy()
+    assert policy.fence_m() == FENCE_M  # a fresh estimate: the fence margin covers it
+    policy.motion.uncertainty_m = 40.0
+    assert policy.fence_m() == CFG.search_radius_m - 40.0
+    # The same outward command at 115 m from the start: free under the full fence, pulled back
+    # under the shrunk one.
+    out = (6.0, 0.0, 0.0)
+    assert fence(out, 115.0, 0.0, 0.0, CFG, FENCE_M)[1] is False
+    vel, fenced = fence(out, 115.0, 0.0, 0.0, CFG, policy.fence_m())
+    assert fenced and vel[0] < 0.0
+
+
+def test_a_waypoint_beyond_a_shrunk_fence_is_flown_to_its_edge_and_passed() -> None:
+    import dataclasses  # lazy: only here
+
+    from dovesei.controller.policies.clearance_machine import Inputs, Memory, Phase, search_route, step
+
+    route = search_route(((100.0, 100.0, 140.0),))  # its first point: 100 m north
+    mem = dataclasses.replace(Memory(), phase=Phase.SEARCH)
+    base = dict(t_s=1.0, alt_agl_m=100.0, yaw_rad=0.0, fresh=True, gap=False, search_alt_m=100.0, route=route,
+                best=None, check=None)
+    # Under the full fence the vehicle at 55 m north still has 45 m to go ...
+    mem1, vel = step(mem, Inputs(north_m=55.0, east_m=0.0, **base), CFG)
+    assert mem1.waypoint == 0 and vel[0] > 0.0
+    # ... under a 60 m fence the point is pulled to 55 m: it has arrived and flies on.
+    mem2, _ = step(mem, Inputs(north_m=55.0, east_m=0.0, fence_m=60.0, **base), CFG)
+    assert mem2.waypoint == 1

@@ -100,3 +100,47 @@ def test_drift_of_a_biased_noisy_velocity_estimate_stays_bounded() -> None:
     assert errs[-1] < 3.0
     # The bias was learnt (the truth minus the estimate is about (-0.8, +0.6) m/s).
     assert with_reg.bias_n_m_s < -0.3 and with_reg.bias_e_m_s > 0.2
+
+
+def _loop_error(cfg: ClearanceConfig) -> tuple[float, EgoMotion, bool]:
+    """Fly 80 m north, 40 m east and back to the start over textured ground, with a chain that
+    errs where it does not cancel: on the eastward leg the views are 25 % wider than the
+    altitude says (a baro error: registration measures those steps short), and the velocity
+    estimate is 0.6 m/s biased. Returns the error back at the start, the ego-motion, and
+    whether an anchor fix happened."""
+    ground = _ground(3)
+    rng = np.random.default_rng(1)
+    ego = EgoMotion(cfg)
+    legs = [((4.0, 0.0), 20, 1.0), ((0.0, 4.0), 10, 1.25), ((-4.0, 0.0), 20, 1.0), ((0.0, -4.0), 10, 1.0)]
+    n = e = 0.0
+    anchored = False
+    ego.correct(_view(ground, n, e, 60.0), 0.5, 60.0, HFOV, 0.0)
+    for (vn, ve), steps, wide in legs:
+        for _ in range(steps * 2):
+            n, e = n + vn * 0.5, e + ve * 0.5
+            ego.predict(0.5, (vn + 0.6 + rng.normal(0, 0.2), ve - 0.6 + rng.normal(0, 0.2), 0.0), 0.0)
+            anchored |= ego.correct(_view(ground, n, e, 60.0 * wide), 0.5, 60.0, HFOV, 0.0).anchored
+    for _ in range(6):  # hovering back over the start
+        ego.predict(0.5, (0.6, -0.6, 0.0), 0.0)
+        anchored |= ego.correct(_view(ground, n, e, 60.0), 0.5, 60.0, HFOV, 0.0).anchored
+    return math.hypot(ego.north_m - n, ego.east_m - e), ego, anchored
+
+
+def test_an_anchor_closes_the_loop_that_a_keyframe_chain_leaves_open() -> None:
+    cfg = ClearanceConfig()
+    chained, _, never = _loop_error(cfg.replace(anchor_reach_frac=1e-6))  # no anchor is ever in reach
+    closed, ego, anchored = _loop_error(cfg)
+    assert not never and anchored
+    assert chained > 4.0  # the chain's error stays in the estimate
+    assert closed < 0.5 * chained and closed < 3.0
+    assert ego.anchors >= 2
+    # The bound it keeps on itself came back down with the fix (it had grown with the 240 m flown).
+    assert ego.uncertainty_m < cfg.drift_frac * 240.0
+
+
+def test_uncertainty_grows_with_distance_dead_reckoned() -> None:
+    cfg = ClearanceConfig()
+    ego = EgoMotion(cfg)
+    for _ in range(20):
+        ego.predict(0.5, (6.0, 0.0, 0.0), 0.0)  # 60 m, nothing registered
+    assert ego.uncertainty_m == pytest.approx(cfg.drift_frac * 60.0 + cfg.drift_m_s * 10.0)

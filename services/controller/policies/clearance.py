@@ -43,9 +43,10 @@ def _resolve(config: ClearanceConfig | str | None) -> ClearanceConfig:
 
 
 def fence(vel_body_frd_m_s: tuple[float, float, float], north_m: float, east_m: float, yaw_rad: float,
-          cfg: ClearanceConfig) -> tuple[tuple[float, float, float], bool]:
+          cfg: ClearanceConfig, fence_m: float | None = None) -> tuple[tuple[float, float, float], bool]:
     """The command with its outward (away from the start) horizontal speed capped so the
-    dead-reckoned position never passes the fence (search radius - fence margin); True when capped.
+    dead-reckoned position never passes the fence (`fence_m`, by default the config's search
+    radius - fence margin); True when capped.
 
     The cap is fence_gain x the distance left to the fence, so the vehicle slows down as it nears
     the fence and, beyond it, is pulled back in; inward and tangential motion are untouched.
@@ -57,7 +58,7 @@ def fence(vel_body_frd_m_s: tuple[float, float, float], north_m: float, east_m: 
     vn, ve = to_ne(fwd, right, yaw_rad)
     un, ue = north_m / r, east_m / r
     outward = vn * un + ve * ue
-    allowed = cfg.fence_gain_per_s * (cfg.fence_m - r)
+    allowed = cfg.fence_gain_per_s * ((cfg.fence_m if fence_m is None else fence_m) - r)
     if outward <= allowed:
         return vel_body_frd_m_s, False
     vn, ve = vn - (outward - allowed) * un, ve - (outward - allowed) * ue
@@ -85,6 +86,14 @@ class ClearancePolicy:
         self._cmd: tuple[float, float, float] = (0.0, 0.0, 0.0)
         self._last_motion: MotionStep | None = None
         self._decision = Decision((0.0, 0.0, 0.0), 0.0, Phase.WARMUP.value, None, 0.0, None, {}, "starting")
+
+    def fence_m(self) -> float:
+        """The fence for the estimate now: the search radius less the larger of the fence margin
+        and the estimate's own uncertainty, so the true track keeps inside the radius while the
+        error stays within that bound (it shrinks as the estimate drifts, and widens again
+        after an anchor fix)."""
+        cfg = self.config
+        return max(cfg.search_radius_m - max(cfg.fence_margin_m, self.motion.uncertainty_m), 0.0)
 
     @property
     def state(self) -> Phase:
@@ -168,13 +177,14 @@ class ClearancePolicy:
         # A spot rejected high up is looked at again once well below that altitude (finer detail
         # may show it is fine, or why not); one rejected low down stays rejected.
         blacklist = tuple((n, e) for n, e, alt in self.memory.blacklist if obs.alt_agl_m >= 0.8 * alt)
-        best = find_spot(self.map, clearance, cfg, north_m=pn, east_m=pe, blacklist=blacklist)
+        fence_m = self.fence_m()
+        best = find_spot(self.map, clearance, cfg, north_m=pn, east_m=pe, blacklist=blacklist, fence_m=fence_m)
         check = None
         target = self.memory.target
         if target is not None:
             check = find_spot(self.map, clearance, cfg, north_m=pn, east_m=pe, blacklist=(),
                               near=(target.north_m, target.east_m), within_m=cfg.refine_radius_m,
-                              need_m=cfg.required_clearance_m * cfg.recheck_hysteresis)
+                              need_m=cfg.required_clearance_m * cfg.recheck_hysteresis, fence_m=fence_m)
         return self._decide(obs, fresh=True, gap=gap, best=best, check=check, clearance=clearance)
 
     def _hold(self, obs: Observation, pn: float, pe: float) -> Decision:
@@ -191,7 +201,7 @@ class ClearancePolicy:
             self._hold_ne = (pn, pe)
         dn, de = self._hold_ne[0] - pn, self._hold_ne[1] - pe
         f, r = toward(dn, de, cfg.hold_gain_per_s, cfg.hold_speed_max_m_s, obs.yaw_rad)
-        vel, fenced = fence((f, r, 0.0), pn, pe, obs.yaw_rad, cfg)
+        vel, fenced = fence((f, r, 0.0), pn, pe, obs.yaw_rad, cfg, self.fence_m())
         self._cmd = vel
         info = {**self._decision.info, "est_north_m": pn, "est_east_m": pe, "hold_error_m": math.hypot(dn, de),
                 "fenced": float(fenced)}
@@ -205,13 +215,13 @@ class ClearancePolicy:
         pn, pe = self.motion.north_m, self.motion.east_m
         inp = Inputs(t_s=obs.t_s, alt_agl_m=float(obs.alt_agl_m), north_m=pn, east_m=pe, yaw_rad=obs.yaw_rad,
                      fresh=fresh, gap=gap, search_alt_m=self._search_alt_m, route=self._route,
-                     passes=self._passes,
+                     passes=self._passes, fence_m=self.fence_m(),
                      best=best, check=check)
         prev = self.memory
         mem, vel = step(prev, inp, cfg)
         fenced = False
         if mem.phase not in TERMINAL:  # a terminal state holds still: the operator takes over
-            vel, fenced = fence(vel, pn, pe, obs.yaw_rad, cfg)
+            vel, fenced = fence(vel, pn, pe, obs.yaw_rad, cfg, self.fence_m())
         self.memory = mem
         if mem.phase is Phase.NO_SPOT and self._hold_ne is None:
             self._hold_ne = (pn, pe)  # where the search gave up: held there by vision from now on
@@ -224,11 +234,13 @@ class ClearancePolicy:
             "bias_north_m_s": self.motion.bias_n_m_s, "bias_east_m_s": self.motion.bias_e_m_s,
             "cell_m": self.map.cell_m, "aborts": float(mem.aborts), "blacklisted": float(len(mem.blacklist)),
             "required_clearance_m": cfg.required_clearance_m, "waypoint": float(mem.waypoint),
-            "fenced": float(fenced),
+            "fenced": float(fenced), "fence_m": self.fence_m(), "uncertainty_m": self.motion.uncertainty_m,
+            "anchors": float(self.motion.anchors),
         }
         m = self._last_motion
         if m is not None:
-            info.update(registered=float(m.registered), reg_response=m.response, reg_innovation_m=m.innovation_m)
+            info.update(registered=float(m.registered), reg_response=m.response, reg_innovation_m=m.innovation_m,
+                        anchored=float(m.anchored))
         target_px = None
         spot = mem.target
         if spot is not None:

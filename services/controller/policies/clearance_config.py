@@ -70,6 +70,22 @@ class ClearanceConfig:
     key_shift_frac: float = 0.2  # new keyframe beyond this share of the image, or ...
     key_scale_ratio: float = 1.25  # ... this altitude ratio
     dt_cap_s: float = 2.0  # no single step integrates more than this
+    # The estimate's own error bound grows by drift_frac of every metre it dead-reckons or chains
+    # through keyframes (the chain's error measured under the simulated CLIPSeg on the suite's
+    # Dubai world: ~2 % of the distance flown) plus drift_m_s per second (a velocity estimate's
+    # bias the registration has not learnt yet).
+    drift_frac: float = 0.02
+    drift_m_s: float = 0.02
+    # Anchors: keyframes kept with the uncertainty they were taken with; a view within
+    # anchor_reach_frac x its footprint of one, at a scale ratio up to anchor_scale_ratio, is
+    # registered against it when that cuts the uncertainty by anchor_gain_m or more.
+    anchor_reach_frac: float = 0.25
+    anchor_spacing_frac: float = 0.15
+    anchor_scale_ratio: float = 1.8
+    anchor_min_response: float = 0.4
+    anchor_gate_frac: float = 0.2  # an anchor's innovation gate: reg_gate_m + this x footprint + 2 x uncertainty
+    anchor_gain_m: float = 2.0
+    anchor_max: int = 600
 
     # --- search ---
     # The search stays within this of the start. On the suite a spot with 4 m of true clearance lies
@@ -126,7 +142,7 @@ class ClearanceConfig:
             "decision_period_s", "safety_radius_m", "look_ref_alt_m", "look_weight_max", "handover_alt_m", "cell_per_alt", "cell_min_m", "cell_max_m",
             "look_period_s", "decay_tau_s", "looks_min", "looks_full", "reg_gate_m", "static_tau_s", "bias_tau_s",
             "key_scale_ratio", "dt_cap_s", "search_radius_m", "search_spacing_frac", "search_spacing_radius_frac",
-            "search_speed_m_s", "fence_gain_per_s",
+            "search_speed_m_s", "fence_gain_per_s", "anchor_scale_ratio", "anchor_reach_frac", "anchor_spacing_frac",
             "approach_gain_per_s", "max_speed_m_s", "lock_in_m", "lock_out_m",
             "refine_radius_m", "descent_gain_per_s", "descent_min_m_s", "descent_max_m_s", "climb_speed_m_s",
             "warmup_timeout_s", "approach_timeout_s", "descend_timeout_s", "abort_timeout_s", "gap_s",
@@ -134,9 +150,9 @@ class ClearanceConfig:
         )
         for name in positive:
             validate.positive(f"ClearanceConfig.{name}", getattr(self, name))
-        for name in ("margin_m", "dip_gain", "fence_margin_m", "reg_gate_frac", "reg_gate_m_s", "bias_max_m_s", "switch_gain"):
+        for name in ("drift_frac", "drift_m_s", "anchor_gain_m", "margin_m", "dip_gain", "fence_margin_m", "reg_gate_frac", "reg_gate_m_s", "bias_max_m_s", "switch_gain"):
             validate.non_negative(f"ClearanceConfig.{name}", getattr(self, name))
-        for name in ("p_clip", "p_safe_min", "reg_min_response", "reg_full_response", "reg_min_std", "reg_min_eigen_ratio", "reg_pos_gain", "cmd_weight",
+        for name in ("anchor_min_response", "anchor_gate_frac", "p_clip", "p_safe_min", "reg_min_response", "reg_full_response", "reg_min_std", "reg_min_eigen_ratio", "reg_pos_gain", "cmd_weight",
                      "key_shift_frac", "recheck_hysteresis", "dip_kernel_frac", "dip_floor"):
             validate.in_range(f"ClearanceConfig.{name}", getattr(self, name), 0.0, 1.0)
         for frac in self.lower_search_fracs:
@@ -149,7 +165,7 @@ class ClearanceConfig:
         if self.lock_out_m < self.lock_in_m:
             raise ConfigError(f"ClearanceConfig.lock_out_m {self.lock_out_m} must be >= lock_in_m {self.lock_in_m}")
         for name in ("map_cells", "reg_size_px", "pattern_repeats", "fail_frames", "warmup_frames",
-                     "gap_recover_frames", "max_aborts"):
+                     "gap_recover_frames", "max_aborts", "anchor_max"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ConfigError(f"ClearanceConfig.{name} must be an integer >= 1, got {value!r}")

@@ -81,6 +81,7 @@ class Inputs:
     best: Spot | None  # the best spot on the map now (not blacklisted, inside the radius)
     check: Spot | None  # the target re-checked and refined (None: it fails), when there is one
     passes: int = 1  # how many passes the route holds (for the reason)
+    fence_m: float | None = None  # the fence now (None: the config's); route points beyond it are pulled in
 
 
 def search_pattern(spacing_m: float, radius_m: float) -> tuple[tuple[float, float], ...]:
@@ -187,6 +188,12 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
                 return _go(mem, Phase.NO_SPOT, t, f"no safe spot found within {cfg.search_radius_m:g} m "
                                                   f"({inp.passes} search passes)"), (0.0, 0.0, 0.0)
             goal_n, goal_e, level_alt = inp.route[wp]
+            # A waypoint beyond the fence (shrunk while the estimate is uncertain) is flown to the
+            # fence's edge instead: the vehicle would otherwise press on the fence and never arrive.
+            reach = max((cfg.fence_m if inp.fence_m is None else inp.fence_m) - 5.0, 0.0)
+            r_goal = math.hypot(goal_n, goal_e)
+            if r_goal > reach:
+                goal_n, goal_e = goal_n * reach / r_goal, goal_e * reach / r_goal
             err_n, err_e = goal_n - inp.north_m, goal_e - inp.east_m
             if math.hypot(err_n, err_e) < 5.0 and abs(inp.alt_agl_m - level_alt) < 5.0:
                 mem = dataclasses.replace(mem, waypoint=wp + 1)

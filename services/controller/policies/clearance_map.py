@@ -261,12 +261,14 @@ class GroundMap:
 
 def find_spot(gmap: GroundMap, clearance: np.ndarray, cfg: ClearanceConfig, *, north_m: float, east_m: float,
               blacklist: tuple[tuple[float, float], ...], within_m: float | None = None,
-              near: tuple[float, float] | None = None, need_m: float | None = None) -> Spot | None:
+              near: tuple[float, float] | None = None, need_m: float | None = None,
+              fence_m: float | None = None) -> Spot | None:
     """The best spot: clearance >= safety radius + margin, inside the fence around the
     start (0, 0), away from blacklisted spots; ranked by clearance, confidence and distance.
 
     `near` + `within_m` restrict the search to a disk (re-checking and refining a target), and
-    `need_m` replaces the required clearance (a locked target's hysteresis). Distances count
+    `need_m` replaces the required clearance (a locked target's hysteresis), `fence_m` the
+    config's fence (the policy shrinks it while its estimate is uncertain). Distances count
     from the vehicle, so scores compare across calls.
     """
     need = cfg.required_clearance_m
@@ -290,7 +292,8 @@ def find_spot(gmap: GroundMap, clearance: np.ndarray, cfg: ClearanceConfig, *, n
     north = gmap.north0_m - rows * c
     east = gmap.east0_m + cols * c
     # A spot's centre lies inside the fence with room for the lock's error around it.
-    keep = north * north + east * east <= max(cfg.fence_m - cfg.lock_out_m, 0.0) ** 2
+    fence_m = cfg.fence_m if fence_m is None else fence_m
+    keep = north * north + east * east <= max(fence_m - cfg.lock_out_m, 0.0) ** 2
     for bn, be in blacklist:
         keep &= (north - bn) ** 2 + (east - be) ** 2 > (need + cfg.refine_radius_m) ** 2
     if near is not None and within_m is not None:

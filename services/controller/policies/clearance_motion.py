@@ -94,10 +94,39 @@ class MotionStep:
     response: float
     innovation_m: float  # |measured - predicted| when a shift was measured, else 0
     new_keyframe: bool
+    anchored: bool = False  # an anchor (a view registered when the estimate was good) was matched
+    uncertainty_m: float = 0.0  # the position error the estimate allows itself (see EgoMotion)
+
+
+@dataclass
+class _View:
+    """A registration image and where it was taken: its ground scale, heading and the ground
+    point its centre looked at (in the estimate's frame), plus, for anchors, the estimate's own
+    uncertainty when it was taken."""
+
+    img: np.ndarray
+    gsd_m: float
+    yaw_rad: float
+    cc: tuple[float, float]
+    uncertainty_m: float = 0.0
 
 
 class EgoMotion:
-    """Dead reckoning corrected by keyframe registration; north/east metres from the start."""
+    """Dead reckoning corrected by keyframe registration and anchored to views of the start
+    area; north/east metres from the start.
+
+    Registering each frame against a keyframe, and each keyframe against the one before, is a
+    chain: whatever a link measures wrong stays in the estimate for good. Under the simulated
+    CLIPSeg that error is systematic (about 2 % of the distance flown, mostly across the track on
+    the suite's Dubai world), so a 600 s search drifted 70 m. Anchors close the loop: a keyframe
+    taken while the estimate's uncertainty is small is kept, and whenever a later view falls on
+    it again (the search returns over the same ground, each pass to the start) the frame is also
+    registered against the anchor, and that absolute fix pulls the estimate back.
+
+    The uncertainty is a bound the estimate keeps on itself: it grows by `drift_frac` of every
+    metre dead-reckoned or chained (the error measured above, with margin) and is reset to an
+    anchor's own after an anchor fix. The fence shrinks by what it exceeds the fence margin.
+    """
 
     def __init__(self, config: ClearanceConfig) -> None:
         self.cfg = config
@@ -110,14 +139,17 @@ class EgoMotion:
         self.east_m = 0.0
         self.bias_n_m_s = 0.0
         self.bias_e_m_s = 0.0
-        self._key: np.ndarray | None = None
-        self._key_gsd_m = 1.0
-        self._key_yaw = 0.0
-        self._key_cc = (0.0, 0.0)  # ground point the keyframe's centre looked at
+        self.uncertainty_m = 0.0
+        self._key: _View | None = None
+        self._anchors: list[_View] = []
         self._fails = 0
         self._unregistered_s = 0.0
         self._static: np.ndarray | None = None  # image-fixed pattern of the registration images
         self._last_pred_m = (0.0, 0.0)  # the last prediction's displacement (north, east)
+
+    @property
+    def anchors(self) -> int:
+        return len(self._anchors)
 
     def predict(self, dt_s: float, vel_body_frd_m_s: tuple[float, float, float], yaw_rad: float) -> None:
         dt = min(max(dt_s, 0.0), self.cfg.dt_cap_s)
@@ -125,10 +157,76 @@ class EgoMotion:
         self._last_pred_m = ((vn + self.bias_n_m_s) * dt, (ve + self.bias_e_m_s) * dt)
         self.north_m += self._last_pred_m[0]
         self.east_m += self._last_pred_m[1]
+        self.uncertainty_m += self.cfg.drift_frac * math.hypot(*self._last_pred_m) + self.cfg.drift_m_s * dt
+
+    def _measure(self, ref: _View, img: np.ndarray, gsd: float, yaw_rad: float, tn: float,
+                 te: float) -> tuple[float, float, float, bool, float]:
+        """Register `img` against `ref`: (measured north, east, response, static, scale)."""
+        n = self.cfg.reg_size_px
+        scale = ref.gsd_m / gsd  # the reference's pixels cover more ground when it was higher
+        angle = math.degrees(yaw_rad - ref.yaw_rad)
+        m = cv2.getRotationMatrix2D(((n - 1) / 2.0, (n - 1) / 2.0), angle, scale)
+        # The reference is moved by the PREDICTED motion too, so the correlation measures the
+        # residual. A pattern fixed in the image (perception artefacts over water or bare
+        # ground, which move with the camera) then peaks at minus the prediction, not at zero,
+        # and is recognised and refused instead of reading as "no motion".
+        f_pred, r_pred = to_body(self.north_m + tn - ref.cc[0], self.east_m + te - ref.cc[1], yaw_rad)
+        pdx, pdy = -r_pred / gsd, f_pred / gsd
+        m[0, 2] += pdx
+        m[1, 2] += pdy
+        assert self._static is not None
+        warped = cv2.warpAffine(ref.img - self._static, m, (n, n), flags=cv2.INTER_LINEAR,
+                                borderMode=cv2.BORDER_REFLECT)
+        rdx, rdy, response = phase_shift(warped, img - self._static, self._window)
+        static = math.hypot(pdx, pdy) > 1.5 and math.hypot(rdx + pdx, rdy + pdy) < 1.0
+        dx, dy = pdx + rdx, pdy + rdy
+        # Content moving down the image = the camera moved forward.
+        dn, de = to_ne(dy * gsd, -dx * gsd, yaw_rad)
+        return ref.cc[0] + dn - tn, ref.cc[1] + de - te, response, static, scale
+
+    def _trust(self, response: float) -> float:
+        """A mediocre peak moves the estimate a little; only a clear one fully (phase correlation
+        over weak texture is pulled towards whatever moves with the camera)."""
+        cfg = self.cfg
+        return min(1.0, (response - cfg.reg_min_response) / max(cfg.reg_full_response - cfg.reg_min_response, 1e-6))
+
+    def _nearest_anchor(self, cn: float, ce: float, gsd: float, reach_m: float) -> _View | None:
+        """The best-known anchor (least uncertainty) of about this scale within reach."""
+        best = None
+        for a in self._anchors:
+            ratio = max(a.gsd_m / gsd, gsd / a.gsd_m)
+            if (ratio <= self.cfg.anchor_scale_ratio and math.hypot(a.cc[0] - cn, a.cc[1] - ce) < reach_m
+                    and (best is None or a.uncertainty_m < best.uncertainty_m)):
+                best = a
+        return best
+
+    def _anchor_fix(self, img: np.ndarray, gsd: float, width_m: float, yaw_rad: float, tn: float,
+                    te: float) -> bool:
+        """Register against the best anchor in view; an accepted match corrects the position."""
+        cfg = self.cfg
+        a = self._nearest_anchor(self.north_m + tn, self.east_m + te, gsd, cfg.anchor_reach_frac * width_m)
+        if a is None or a.uncertainty_m >= self.uncertainty_m:
+            return False  # the estimate is already as good as the anchor would make it
+        meas_n, meas_e, response, static, _ = self._measure(a, img, gsd, yaw_rad, tn, te)
+        inn_n, inn_e = meas_n - self.north_m, meas_e - self.east_m
+        # An absolute fix: the gate is wide (the uncertainty bound is a model and the chain's
+        # error can outgrow it while the vehicle slows down and descends).
+        gate = cfg.reg_gate_m + cfg.anchor_gate_frac * width_m + 2.0 * self.uncertainty_m
+        if static or response < cfg.anchor_min_response or math.hypot(inn_n, inn_e) > gate:
+            return False
+        k = self._trust(response)
+        inn_n, inn_e = _constrained(img, inn_n, inn_e, yaw_rad, cfg.reg_min_eigen_ratio)
+        self.north_m += k * inn_n
+        self.east_m += k * inn_e
+        # The fix is as good as the anchor plus the match (a share of the gate); a weak one keeps
+        # part of the old uncertainty.
+        self.uncertainty_m = min(self.uncertainty_m, a.uncertainty_m + cfg.reg_gate_m
+                                 + (1.0 - k) * (self.uncertainty_m - a.uncertainty_m))
+        return True
 
     def correct(self, prob: np.ndarray, dt_s: float, alt_agl_m: float, hfov_rad: float, yaw_rad: float,
                 roll_rad: float = 0.0, pitch_rad: float = 0.0) -> MotionStep:
-        """Register `prob` (taken at the predicted position) against the keyframe."""
+        """Register `prob` (taken at the predicted position) against the keyframe, then an anchor."""
         cfg = self.cfg
         n = cfg.reg_size_px
         img = cv2.resize(prob, (n, n), interpolation=cv2.INTER_AREA).astype(np.float32, copy=False)
@@ -136,7 +234,7 @@ class EgoMotion:
         gsd = width_m / n
         tn, te = tilt_offset_ne(alt_agl_m, roll_rad, pitch_rad, yaw_rad)
         textured = float(img.std()) >= cfg.reg_min_std
-        registered, response, innovation, new_key = False, 0.0, 0.0, False
+        registered, anchored, response, innovation, new_key = False, False, 0.0, 0.0, False
         # The image-fixed part of the heatmaps (artefacts that move with the camera) is learnt
         # as a slow average while the ground moves through the view, and removed before
         # correlating; while hovering it is frozen (the ground would be learnt instead).
@@ -146,27 +244,9 @@ class EgoMotion:
         elif moving_px > 1.0 and dt_s > 0.0:
             alpha = np.float32(min(1.0, min(dt_s, cfg.dt_cap_s) / cfg.static_tau_s))
             self._static += alpha * (img - self._static)
-        if self._key is not None and textured:
-            scale = self._key_gsd_m / gsd  # keyframe pixels cover more ground when it was higher
-            angle = math.degrees(yaw_rad - self._key_yaw)
-            m = cv2.getRotationMatrix2D(((n - 1) / 2.0, (n - 1) / 2.0), angle, scale)
-            # The keyframe is moved by the PREDICTED motion too, so the correlation measures the
-            # residual. A pattern fixed in the image (perception artefacts over water or bare
-            # ground, which move with the camera) then peaks at minus the prediction, not at zero,
-            # and is recognised and refused instead of reading as "no motion".
-            f_pred, r_pred = to_body(self.north_m + tn - self._key_cc[0], self.east_m + te - self._key_cc[1], yaw_rad)
-            pdx, pdy = -r_pred / gsd, f_pred / gsd
-            m[0, 2] += pdx
-            m[1, 2] += pdy
-            ref = cv2.warpAffine(self._key - self._static, m, (n, n), flags=cv2.INTER_LINEAR,
-                                 borderMode=cv2.BORDER_REFLECT)
-            rdx, rdy, response = phase_shift(ref, img - self._static, self._window)
-            static = math.hypot(pdx, pdy) > 1.5 and math.hypot(rdx + pdx, rdy + pdy) < 1.0
-            dx, dy = pdx + rdx, pdy + rdy
-            # Content moving down the image = the camera moved forward.
-            dn, de = to_ne(dy * gsd, -dx * gsd, yaw_rad)
-            meas_n = self._key_cc[0] + dn - tn
-            meas_e = self._key_cc[1] + de - te
+        key = self._key
+        if key is not None and textured:
+            meas_n, meas_e, response, static, scale = self._measure(key, img, gsd, yaw_rad, tn, te)
             inn_n, inn_e = meas_n - self.north_m, meas_e - self.east_m
             innovation = math.hypot(inn_n, inn_e)
             # The prediction's own uncertainty grows with the time since the last accepted shift.
@@ -176,11 +256,7 @@ class EgoMotion:
                 registered = True
                 self._fails = 0
                 self._unregistered_s = 0.0
-                # A mediocre peak moves the estimate a little; only a clear one fully (phase
-                # correlation over weak texture is pulled towards whatever moves with the camera).
-                trust = min(1.0, (response - cfg.reg_min_response) / max(cfg.reg_full_response - cfg.reg_min_response,
-                                                                           1e-6))
-                k = cfg.reg_pos_gain * trust
+                k = cfg.reg_pos_gain * self._trust(response)
                 # Aperture problem: along a straight edge or strip a shift is unobservable, and
                 # phase correlation then says "no motion". Only directions the texture constrains
                 # are corrected; the others keep the prediction.
@@ -199,17 +275,35 @@ class EgoMotion:
             else:
                 self._fails += 1
             # Motion since the keyframe by the estimate (a measured shift can be blind along a strip).
-            moved_px = math.hypot(self.north_m + tn - self._key_cc[0], self.east_m + te - self._key_cc[1]) / gsd
+            moved_px = math.hypot(self.north_m + tn - key.cc[0], self.east_m + te - key.cc[1]) / gsd
             ratio = max(scale, 1.0 / scale)
             if moved_px > cfg.key_shift_frac * n or ratio > cfg.key_scale_ratio or self._fails >= 3:
                 new_key = True
-        elif self._key is None or (not textured and self._fails >= 3):
+        elif key is None or (not textured and self._fails >= 3):
             new_key = True
+        if textured and self._anchors:
+            anchored = self._anchor_fix(img, gsd, width_m, yaw_rad, tn, te)
         if new_key or self._key is None:
-            self._key = img.copy()
-            self._key_gsd_m = gsd
-            self._key_yaw = yaw_rad
-            self._key_cc = (self.north_m + tn, self.east_m + te)
+            self._key = _View(img.copy(), gsd, yaw_rad, (self.north_m + tn, self.east_m + te))
             self._fails = 0
             new_key = True
-        return MotionStep(self.north_m, self.east_m, registered, response, innovation, new_key)
+            self._maybe_anchor(self._key, textured)
+        return MotionStep(self.north_m, self.east_m, registered, response, innovation, new_key, anchored,
+                          self.uncertainty_m)
+
+    def _maybe_anchor(self, key: _View, textured: bool) -> None:
+        """Keep a new keyframe as an anchor unless an anchor of about its scale, known at least
+        as well, lies near; a worse-known one there is replaced (the anchors tile the ground
+        seen, each with the best estimate it was ever seen with)."""
+        cfg = self.cfg
+        if not textured:
+            return
+        reach = cfg.anchor_spacing_frac * key.gsd_m * cfg.reg_size_px
+        for i, a in enumerate(self._anchors):
+            if (max(a.gsd_m / key.gsd_m, key.gsd_m / a.gsd_m) < cfg.key_scale_ratio
+                    and math.hypot(a.cc[0] - key.cc[0], a.cc[1] - key.cc[1]) < reach):
+                if a.uncertainty_m > self.uncertainty_m + cfg.anchor_gain_m:
+                    self._anchors[i] = _View(key.img, key.gsd_m, key.yaw_rad, key.cc, self.uncertainty_m)
+                return
+        if len(self._anchors) < cfg.anchor_max:
+            self._anchors.append(_View(key.img, key.gsd_m, key.yaw_rad, key.cc, self.uncertainty_m))
