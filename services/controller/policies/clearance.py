@@ -139,7 +139,8 @@ class ClearancePolicy:
             # No new heatmap: nothing moves on the map; only a perception gap changes the decision.
             if (self._last_t_s is not None and obs.t_s - self._last_t_s > cfg.gap_s
                     and phase is not Phase.GAP_HOLD):
-                return self._decide(obs, fresh=False, gap=True, best=None, check=None, clearance=None)
+                return self._decide(obs, fresh=False, gap=True, best=None, check=None, clearance=None,
+                                    fence_m=self.fence_m())
             return self._decision
         dt_s = cfg.decision_period_s if self._last_t_s is None else obs.t_s - self._last_t_s
         if self._last_t_s is not None and dt_s == 0.0:
@@ -185,7 +186,7 @@ class ClearancePolicy:
             check = find_spot(self.map, clearance, cfg, north_m=pn, east_m=pe, blacklist=(),
                               near=(target.north_m, target.east_m), within_m=cfg.refine_radius_m,
                               need_m=cfg.required_clearance_m * cfg.recheck_hysteresis, fence_m=fence_m)
-        return self._decide(obs, fresh=True, gap=gap, best=best, check=check, clearance=clearance)
+        return self._decide(obs, fresh=True, gap=gap, best=best, check=check, clearance=clearance, fence_m=fence_m)
 
     def _hold(self, obs: Observation, pn: float, pe: float) -> Decision:
         """NO_SPOT: stay over the point where the search gave up, by vision.
@@ -209,19 +210,20 @@ class ClearancePolicy:
                                              info={k: float(v) for k, v in info.items()})
         return self._decision
 
-    def _decide(self, obs: Observation, *, fresh: bool, gap: bool, best, check, clearance) -> Decision:
+    def _decide(self, obs: Observation, *, fresh: bool, gap: bool, best, check, clearance,
+                fence_m: float) -> Decision:
         cfg = self.config
         assert self.memory is not None and self._search_alt_m is not None
         pn, pe = self.motion.north_m, self.motion.east_m
         inp = Inputs(t_s=obs.t_s, alt_agl_m=float(obs.alt_agl_m), north_m=pn, east_m=pe, yaw_rad=obs.yaw_rad,
                      fresh=fresh, gap=gap, search_alt_m=self._search_alt_m, route=self._route,
-                     passes=self._passes, fence_m=self.fence_m(),
+                     passes=self._passes, fence_m=fence_m,
                      best=best, check=check)
         prev = self.memory
         mem, vel = step(prev, inp, cfg)
         fenced = False
         if mem.phase not in TERMINAL:  # a terminal state holds still: the operator takes over
-            vel, fenced = fence(vel, pn, pe, obs.yaw_rad, cfg, self.fence_m())
+            vel, fenced = fence(vel, pn, pe, obs.yaw_rad, cfg, fence_m)
         self.memory = mem
         if mem.phase is Phase.NO_SPOT and self._hold_ne is None:
             self._hold_ne = (pn, pe)  # where the search gave up: held there by vision from now on
@@ -234,7 +236,7 @@ class ClearancePolicy:
             "bias_north_m_s": self.motion.bias_n_m_s, "bias_east_m_s": self.motion.bias_e_m_s,
             "cell_m": self.map.cell_m, "aborts": float(mem.aborts), "blacklisted": float(len(mem.blacklist)),
             "required_clearance_m": cfg.required_clearance_m, "waypoint": float(mem.waypoint),
-            "fenced": float(fenced), "fence_m": self.fence_m(), "uncertainty_m": self.motion.uncertainty_m,
+            "fenced": float(fenced), "fence_m": fence_m, "uncertainty_m": self.motion.uncertainty_m,
             "anchors": float(self.motion.anchors),
         }
         m = self._last_motion
