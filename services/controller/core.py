@@ -45,6 +45,7 @@ from enum import Enum
 from typing import Any
 
 from dovesei.controller.policies.base import Decision, Observation, Policy, PolicyInputError, make_policy, policy_names
+from dovesei.controller.odometry import VelocityTrack
 from dovesei.controller.policies.config import TIMING_PRESETS
 from dovesei.shared import keys, validate
 from dovesei.shared.errors import ConfigError, DoveseiError
@@ -227,6 +228,8 @@ class ControllerCore:
         self._last_policy_t_s: float | None = None
         self._policy_fault: str | None = None  # why the newest policy step cannot be followed
         self._refused_decision: Decision | None = None  # the terminal decision refused above hand-over
+        self._track = VelocityTrack()  # the velocity estimate integrated, to read between capture stamps
+        self._last_capture_t_s: float | None = None  # capture stamp of the heatmap the policy last took
 
     def _maybe_new_episode(self, state: VehicleState) -> None:
         """Time running backwards is a new sim episode only in lockstep with a restarted state
@@ -249,7 +252,7 @@ class ControllerCore:
         # The adopted decision's age can no longer be measured on the new timeline: hold until a
         # heatmap of the new one arrives (NO_HEATMAP), and judge stamps afresh.
         self._adopted, self._decision, self._pending, self._state_anchor = None, None, None, None
-        self._best_anchor = None
+        self._best_anchor, self._last_capture_t_s = None, None
         self._buffer = {seq: item for seq, item in self._buffer.items() if item[0].stamp.t_s <= state.stamp.t_s}
 
     def _projected_now_s(self) -> float | None:
@@ -367,6 +370,7 @@ class ControllerCore:
         if self._last_state_t_s is None or now_s > self._last_state_t_s or self._state_advanced_wall_s is None:
             self._state_advanced_wall_s = wall_s
         self._last_state_t_s, self._last_state_seq = now_s, state.seq
+        self._track.add(now_s, state.vel_body_frd_m_s, state.yaw_rad)
         if self._first_alt_m is None:
             self._first_alt_m = state.alt_agl_m
 
@@ -445,13 +449,18 @@ class ControllerCore:
             log.warning("controller %s: restarting the policy after its refused %s (alt %.1f m)",
                         self.config.vehicle_id, self._decision.state, state.alt_agl_m)
             self.policy.reset()
+            self._last_capture_t_s = None
             self.rejected["policy restarted"] += 1
             self._decision = None
         # Altitude and camera model at capture come with the heatmap; attitude and the autopilot's
-        # velocity estimate from the state of this tick (the heatmap carries none). Never a position.
+        # velocity estimate from the state of this tick (the heatmap carries none), and that
+        # estimate integrated between the two capture stamps. Never a position.
+        odom = None
+        if self._last_capture_t_s is not None:
+            odom = self._track.displacement_ne_m(self._last_capture_t_s, hm.stamp.t_s)
         obs = Observation(t_s=self._policy_time_s(hm), alt_agl_m=hm.alt_agl_m, prob_safe=hm.probability(), hfov_rad=hm.hfov_rad,
                           roll_rad=state.roll_rad, pitch_rad=state.pitch_rad, yaw_rad=state.yaw_rad,
-                          vel_est_body_frd_m_s=state.vel_body_frd_m_s)
+                          vel_est_body_frd_m_s=state.vel_body_frd_m_s, odom_delta_ne_m=odom)
         start = time.perf_counter()
         try:
             decision = self.policy.step(obs)
@@ -476,6 +485,7 @@ class ControllerCore:
             self._decision = None
             return
         self._policy_fault = None
+        self._last_capture_t_s = hm.stamp.t_s
         policy_s = time.perf_counter() - start
         # Transport latency only means something when the sender stamped its wall time.
         to_controller_s = recv_wall_s - hm.sent_wall_s if hm.sent_wall_s > 0.0 else 0.0

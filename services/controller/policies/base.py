@@ -42,6 +42,10 @@ class Observation:
     yaw_rad: float = 0.0
     vel_est_body_frd_m_s: tuple[float, float, float] | None = None  # autopilot estimate; None = none
     cmd_vel_body_frd_m_s: tuple[float, float, float] | None = None  # last command sent; None = unknown
+    # The velocity estimate integrated from the previous observation's capture to this one's (level
+    # north/east metres, the autopilot's heading); None = unknown (the policy falls back on
+    # velocity x dt, which lags by the perception latency whenever the vehicle accelerates).
+    odom_delta_ne_m: tuple[float, float] | None = None
 
 
 @dataclass(frozen=True)

@@ -151,10 +151,18 @@ class EgoMotion:
     def anchors(self) -> int:
         return len(self._anchors)
 
-    def predict(self, dt_s: float, vel_body_frd_m_s: tuple[float, float, float], yaw_rad: float) -> None:
+    def predict(self, dt_s: float, vel_body_frd_m_s: tuple[float, float, float], yaw_rad: float,
+                displacement_ne_m: tuple[float, float] | None = None) -> None:
+        """Dead-reckon one step: the estimate's own displacement over the step when the
+        controller integrated it between the capture stamps, else velocity x dt (capped); plus
+        the learnt bias x dt."""
         dt = min(max(dt_s, 0.0), self.cfg.dt_cap_s)
-        vn, ve = to_ne(vel_body_frd_m_s[0], vel_body_frd_m_s[1], yaw_rad)
-        self._last_pred_m = ((vn + self.bias_n_m_s) * dt, (ve + self.bias_e_m_s) * dt)
+        if displacement_ne_m is not None:
+            dn, de = displacement_ne_m
+        else:
+            vn, ve = to_ne(vel_body_frd_m_s[0], vel_body_frd_m_s[1], yaw_rad)
+            dn, de = vn * dt, ve * dt
+        self._last_pred_m = (dn + self.bias_n_m_s * dt, de + self.bias_e_m_s * dt)
         self.north_m += self._last_pred_m[0]
         self.east_m += self._last_pred_m[1]
         self.uncertainty_m += self.cfg.drift_frac * math.hypot(*self._last_pred_m) + self.cfg.drift_m_s * dt
