@@ -44,6 +44,7 @@ STATE_COLOURS: dict[str, str] = {
     # The `clearance` policy's phases (the same hue for the same role as the paper's states).
     "WARMUP": "#c7c7c7",
     "SEARCH": "#1f77b4",
+    "PROBE": "#aec7e8",
     "APPROACH": "#ff7f0e",
     "DESCEND": "#2ca02c",
     "ABORT": "#8c564b",

@@ -14,7 +14,9 @@ from dovesei.controller.policies.clearance_config import ClearanceConfig
 from dovesei.controller.policies.clearance_motion import to_body, to_ne
 from tests.controller.test_clearance_scenarios import World, _textured, fly
 
-CFG = ClearanceConfig()
+# The closed-loop flights search a 150 m radius: the whole route fits their 900 s (the default
+# radius is larger), and the fence works the same at any radius.
+CFG = ClearanceConfig(search_radius_m=150.0)
 FENCE_M = CFG.fence_m
 
 
@@ -26,14 +28,15 @@ def test_bench_starts_keep_the_whole_fenced_search_area_on_every_suite_world() -
     from dovesei.sim.suite import DEFAULT_SUITE
     from dovesei.sim.world import load_world
 
+    radius_m = ClearanceConfig().search_radius_m
     margin = default_start_margin_m(("dovesei", "clearance"))
-    assert margin >= CFG.search_radius_m + 20.0
+    assert margin >= radius_m + 20.0
     assert default_start_margin_m(("dovesei",)) < margin  # the paper's runs keep their starts
     for spec in DEFAULT_SUITE[:2]:
         world = load_world(spec)
         for st in generate_starts(world, 50, 0, margin_m=margin):
             edge = min(st.x_m, st.y_m, world.width_m - st.x_m, world.height_m - st.y_m)
-            assert edge >= CFG.search_radius_m + 20.0
+            assert edge >= radius_m + 20.0
 
 
 def test_fence_caps_outward_speed_and_leaves_inward_alone() -> None:
@@ -117,7 +120,7 @@ def test_no_spot_holds_its_point_by_vision_against_wind_and_a_biased_estimate() 
 
 
 def test_the_fence_shrinks_while_the_estimate_is_uncertain() -> None:
-    policy = ClearancePolicy()
+    policy = ClearancePolicy(CFG)
     assert policy.fence_m() == FENCE_M  # a fresh estimate: the fence margin covers it
     policy.motion.uncertainty_m = 40.0
     assert policy.fence_m() == CFG.search_radius_m - 40.0

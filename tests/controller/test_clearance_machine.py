@@ -23,9 +23,9 @@ def spot(n: float = 20.0, e: float = 0.0, score: float = 1.5) -> Spot:
 
 
 def inp(t: float, *, alt: float = 100.0, n: float = 0.0, e: float = 0.0, fresh: bool = True, gap: bool = False,
-        best: Spot | None = None, check: Spot | None = None) -> Inputs:
+        best: Spot | None = None, check: Spot | None = None, candidate: Spot | None = None) -> Inputs:
     return Inputs(t_s=t, alt_agl_m=alt, north_m=n, east_m=e, yaw_rad=0.0, fresh=fresh, gap=gap, search_alt_m=100.0,
-                  route=ROUTE, best=best, check=check)
+                  route=ROUTE, best=best, check=check, candidate=candidate)
 
 
 def at(phase: Phase, **kw: object) -> Memory:
@@ -67,6 +67,40 @@ def test_search_gives_up_after_its_time_and_after_its_passes() -> None:
     # NO_SPOT is an end: it holds whatever comes.
     mem2, vel = step(mem, inp(20.0, best=spot()), CFG)
     assert mem2.phase is Phase.NO_SPOT and vel == (0.0, 0.0, 0.0)
+
+
+def test_a_probe_flies_over_promising_ground_looks_from_low_down_and_remembers_it() -> None:
+    area = dataclasses.replace(spot(120.0, 0.0), p_safe=0.75, clearance_m=0.0)
+    mem, vel = step(at(Phase.SEARCH, waypoint=3), inp(1.0, candidate=area), CFG)
+    assert mem.phase is Phase.PROBE and mem.probe == area and "closer look" in mem.reason
+    # Beyond half a footprint: flies there at the search speed, holding altitude.
+    mem, vel = step(mem, inp(2.0, candidate=area), CFG)
+    assert vel[0] > 0.0 and abs(vel[2]) < 1e-9 and math.hypot(vel[0], vel[1]) <= CFG.search_speed_m_s + 1e-9
+    # Over it: down to the probe altitude, frames counted only once there.
+    mem, vel = step(mem, inp(3.0, n=119.0), CFG)
+    assert mem.phase is Phase.PROBE and vel[2] > 0.0 and mem.frames == 0
+    t = 4.0
+    for _ in range(CFG.probe_frames - 1):
+        mem, vel = step(mem, inp(t, n=120.0, alt=CFG.probe_alt_m), CFG)
+        assert mem.phase is Phase.PROBE
+        t += 0.5
+    mem, vel = step(mem, inp(t, n=120.0, alt=CFG.probe_alt_m), CFG)
+    assert mem.phase is Phase.SEARCH and mem.probed == ((120.0, 0.0),) and mem.probe is None
+    assert "no spot" in mem.reason and mem.waypoint == 3  # the route resumes where it was left
+    # A spot during the probe is taken at once.
+    mem, _ = step(at(Phase.PROBE, probe=area), inp(1.0, n=90.0, best=spot(122.0, 0.0)), CFG)
+    assert mem.phase is Phase.APPROACH and mem.target == spot(122.0, 0.0) and mem.probe is None
+
+
+def test_probes_time_out_and_stop_after_their_maximum() -> None:
+    area = dataclasses.replace(spot(60.0, 0.0), p_safe=0.75)
+    mem, _ = step(at(Phase.PROBE, probe=area, since_s=0.0), inp(CFG.probe_timeout_s + 1.0), CFG)
+    assert mem.phase is Phase.SEARCH and mem.probed == ((60.0, 0.0),) and "took over" in mem.reason
+    full = at(Phase.SEARCH, probed=((1.0, 1.0),) * CFG.probe_max)
+    mem, _ = step(full, inp(1.0, candidate=area), CFG)
+    assert mem.phase is Phase.SEARCH  # no more probes: the route goes on
+    mem, _ = step(at(Phase.SEARCH), inp(CFG.no_spot_after_s + 1.0, candidate=area), CFG)
+    assert mem.phase is Phase.NO_SPOT  # nor after the search's time is up
 
 
 def test_search_route_flies_each_pass_at_its_altitude_in_order() -> None:
@@ -216,7 +250,8 @@ def test_search_never_commands_beyond_its_speed_or_below_search_altitude() -> No
 @pytest.mark.parametrize("phase", list(Phase))
 def test_every_phase_has_a_way_out_or_is_an_end(phase: Phase) -> None:
     """Stepping any phase long enough with nothing useful happening leaves it (or it is an end)."""
-    mem = at(phase, target=spot() if phase in (Phase.APPROACH, Phase.DESCEND) else None, since_s=0.0)
+    mem = at(phase, target=spot() if phase in (Phase.APPROACH, Phase.DESCEND) else None,
+             probe=spot() if phase is Phase.PROBE else None, since_s=0.0)
     t = 0.0
     for _ in range(4000):
         t += 0.5

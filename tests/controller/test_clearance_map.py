@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from dovesei.controller.policies.clearance_config import ClearanceConfig
-from dovesei.controller.policies.clearance_map import (GroundMap, clearance_at, emphasise_dips, find_spot,
-                                                      footprint_width_m, look_weight)
+from dovesei.controller.policies.clearance_map import (GroundMap, clearance_at, emphasise_dips, find_candidate,
+                                                      find_spot, footprint_width_m, look_weight)
 
 HFOV = math.radians(73.0)
 CFG = ClearanceConfig()
@@ -122,6 +122,34 @@ def test_unknown_ground_is_never_a_spot() -> None:
     assert find_spot(gmap, gmap.clearance_m(), CFG, north_m=0.0, east_m=0.0, blacklist=()) is None
     _fuse(gmap, np.full((352, 352), 0.95, np.float32), alt=30.0, times=3)
     assert find_spot(gmap, gmap.clearance_m(), CFG, north_m=0.0, east_m=0.0, blacklist=()) is not None
+
+
+def test_a_promising_area_is_a_candidate_until_probed_and_a_poor_one_never() -> None:
+    # From 100 m: a band reading 0.78 (a lawn smeared by the token grid: below the spot test,
+    # above the probe threshold) 40 m east, and a 0.6 band 40 m west.
+    gmap = GroundMap(CFG)
+    gmap.follow(100.0, 0.0, 0.0)
+    width_m = footprint_width_m(100.0, HFOV)
+    cols = (np.arange(352) - 175.5) * width_m / 352
+    prob = np.full(352, 0.1, np.float32)
+    prob[np.abs(cols - 40.0) <= 8.0] = 0.78
+    prob[np.abs(cols + 40.0) <= 8.0] = 0.6
+    _fuse(gmap, np.tile(prob, (352, 1)), alt=100.0, times=3)
+    clear = gmap.clearance_m()
+    assert find_spot(gmap, clear, CFG, north_m=0.0, east_m=0.0, blacklist=()) is None
+    cand = find_candidate(gmap, CFG, north_m=0.0, east_m=0.0, skip=(), fence_m=CFG.fence_m, within_m=200.0)
+    assert cand is not None and abs(cand.east_m - 40.0) <= 4.0
+    assert 0.7 <= cand.p_safe <= 0.8 and cand.distance_m == pytest.approx(math.hypot(cand.north_m, cand.east_m))
+    # The nearest part of the band is preferred (the band runs north-south through the view).
+    assert abs(cand.north_m) <= 2.0
+    # Once probed, the band near that point is skipped; far along it, it is a candidate again.
+    again = find_candidate(gmap, CFG, north_m=0.0, east_m=0.0, skip=((cand.north_m, cand.east_m),),
+                           fence_m=CFG.fence_m, within_m=200.0)
+    assert again is not None and math.hypot(again.north_m - cand.north_m, again.east_m - cand.east_m) > CFG.probe_skip_m
+    assert abs(again.east_m - 40.0) <= 4.0  # never the 0.6 band
+    # Out of reach or beyond the fence: none.
+    assert find_candidate(gmap, CFG, north_m=0.0, east_m=0.0, skip=(), fence_m=CFG.fence_m, within_m=20.0) is None
+    assert find_candidate(gmap, CFG, north_m=0.0, east_m=0.0, skip=(), fence_m=30.0, within_m=200.0) is None
 
 
 LAWN = CFG.p_safe_min + 0.05

@@ -252,7 +252,7 @@ def test_without_registration_the_estimate_drifts() -> None:
 def test_the_observation_has_no_position_field() -> None:
     fields = {f.name for f in dataclasses.fields(Observation)}
     assert fields == {"t_s", "alt_agl_m", "prob_safe", "hfov_rad", "roll_rad", "pitch_rad", "yaw_rad",
-                      "vel_est_body_frd_m_s", "cmd_vel_body_frd_m_s"}
+                      "vel_est_body_frd_m_s", "cmd_vel_body_frd_m_s", "odom_delta_ne_m"}
     assert not any("pos" in f or f.endswith(("_x_m", "_y_m")) for f in fields)
 
 
@@ -263,3 +263,25 @@ def test_make_policy_builds_clearance_for_both_presets() -> None:
         assert policy.config.timing_name == preset
     with pytest.raises(TypeError, match="ClearanceConfig"):
         make_policy("clearance", 3.0)
+
+
+def test_a_lawn_too_blurred_from_100_m_is_probed_and_landed_on() -> None:
+    """A 10 m lawn 70 m away: from 100 m the token grid smears it below the spot test, but its
+    disk reads promising; a probe at 35 m confirms it long before a lower search pass would
+    pass over it."""
+    rng = np.random.default_rng(4)
+    safe = _textured(rng)
+    _lawn(safe, 50.0, -50.0, 10.0)
+    world = World(safe)
+    flight = fly(world, ClearancePolicy(ClearanceConfig(p_safe_min=ODOMETRY_P_SAFE_MIN)), seed=4)
+    assert flight.alt_m <= 20.0
+    assert world.disk_safe(flight.north_m, flight.east_m, 2.0)
+    assert math.hypot(flight.north_m - 50.0, flight.east_m + 50.0) < 4.0
+    first_probe = flight.states.index("PROBE")
+    chosen = next(i for i, s in enumerate(flight.states) if s in ("APPROACH", "DESCEND"))
+    assert first_probe < chosen
+    # Still on the first, 100 m pass when it went for a closer look, and never below the probe
+    # altitude before a spot was chosen.
+    assert all(alt > 95.0 for _, _, alt, _, _ in flight.track[:first_probe])
+    before = flight.track[:chosen]
+    assert min(alt for _, _, alt, _, _ in before) >= ClearanceConfig().probe_alt_m - 3.0

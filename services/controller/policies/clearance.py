@@ -31,8 +31,8 @@ import numpy as np
 from dovesei.controller.policies.base import Decision, Observation, PolicyInputError, checked_prob_safe, resolve_config
 from dovesei.controller.policies.clearance_config import ClearanceConfig, clearance_preset
 from dovesei.controller.policies.clearance_machine import TERMINAL, Inputs, Memory, Phase, search_route, step, toward
-from dovesei.controller.policies.clearance_map import (GroundMap, clearance_at, emphasise_dips, find_spot,
-                                                      footprint_width_m, look_weight)
+from dovesei.controller.policies.clearance_map import (GroundMap, clearance_at, emphasise_dips, find_candidate,
+                                                      find_spot, footprint_width_m, look_weight)
 from dovesei.controller.policies.clearance_motion import EgoMotion, MotionStep, tilt_offset_ne, to_body, to_ne
 
 log = logging.getLogger(__name__)
@@ -149,12 +149,14 @@ class ClearancePolicy:
         gap = dt_s > cfg.gap_s
         dt_c = min(dt_s, cfg.dt_cap_s)
 
-        # Ego-motion: predict with the estimate blended with what was commanded, then register.
+        # Ego-motion: predict with the estimate's own displacement between the capture stamps when
+        # the controller integrated it, else with the estimate blended with what was commanded;
+        # then register.
         cmd = obs.cmd_vel_body_frd_m_s if obs.cmd_vel_body_frd_m_s is not None else self._cmd
         est = obs.vel_est_body_frd_m_s if obs.vel_est_body_frd_m_s is not None else cmd
         w = cfg.cmd_weight
         vel = tuple((1.0 - w) * e + w * c for e, c in zip(est, cmd))
-        self.motion.predict(dt_c, vel, obs.yaw_rad)  # type: ignore[arg-type]
+        self.motion.predict(dt_c, vel, obs.yaw_rad, obs.odom_delta_ne_m)  # type: ignore[arg-type]
         motion = self.motion.correct(prob, dt_s, obs.alt_agl_m, obs.hfov_rad, obs.yaw_rad, obs.roll_rad,
                                      obs.pitch_rad)
         self._last_motion = motion
@@ -180,13 +182,20 @@ class ClearancePolicy:
         blacklist = tuple((n, e) for n, e, alt in self.memory.blacklist if obs.alt_agl_m >= 0.8 * alt)
         fence_m = self.fence_m()
         best = find_spot(self.map, clearance, cfg, north_m=pn, east_m=pe, blacklist=blacklist, fence_m=fence_m)
+        # A closer look is planned only while searching with nothing good enough in view.
+        candidate = None
+        if best is None and self.memory.phase is Phase.SEARCH:
+            skip = self.memory.probed + tuple((n, e) for n, e, _ in self.memory.blacklist)
+            candidate = find_candidate(self.map, cfg, north_m=pn, east_m=pe, skip=skip, fence_m=fence_m,
+                                       within_m=cfg.probe_reach_m)
         check = None
         target = self.memory.target
         if target is not None:
             check = find_spot(self.map, clearance, cfg, north_m=pn, east_m=pe, blacklist=(),
                               near=(target.north_m, target.east_m), within_m=cfg.refine_radius_m,
                               need_m=cfg.required_clearance_m * cfg.recheck_hysteresis, fence_m=fence_m)
-        return self._decide(obs, fresh=True, gap=gap, best=best, check=check, clearance=clearance, fence_m=fence_m)
+        return self._decide(obs, fresh=True, gap=gap, best=best, check=check, clearance=clearance, fence_m=fence_m,
+                            candidate=candidate)
 
     def _hold(self, obs: Observation, pn: float, pe: float) -> Decision:
         """NO_SPOT: stay over the point where the search gave up, by vision.
@@ -211,14 +220,14 @@ class ClearancePolicy:
         return self._decision
 
     def _decide(self, obs: Observation, *, fresh: bool, gap: bool, best, check, clearance,
-                fence_m: float) -> Decision:
+                fence_m: float, candidate=None) -> Decision:
         cfg = self.config
         assert self.memory is not None and self._search_alt_m is not None
         pn, pe = self.motion.north_m, self.motion.east_m
         inp = Inputs(t_s=obs.t_s, alt_agl_m=float(obs.alt_agl_m), north_m=pn, east_m=pe, yaw_rad=obs.yaw_rad,
                      fresh=fresh, gap=gap, search_alt_m=self._search_alt_m, route=self._route,
                      passes=self._passes, fence_m=fence_m,
-                     best=best, check=check)
+                     best=best, check=check, candidate=candidate, hfov_rad=obs.hfov_rad)
         prev = self.memory
         mem, vel = step(prev, inp, cfg)
         fenced = False
@@ -237,8 +246,10 @@ class ClearancePolicy:
             "cell_m": self.map.cell_m, "aborts": float(mem.aborts), "blacklisted": float(len(mem.blacklist)),
             "required_clearance_m": cfg.required_clearance_m, "waypoint": float(mem.waypoint),
             "fenced": float(fenced), "fence_m": fence_m, "uncertainty_m": self.motion.uncertainty_m,
-            "anchors": float(self.motion.anchors),
+            "anchors": float(self.motion.anchors), "probes": float(len(mem.probed)),
         }
+        if mem.probe is not None:
+            info.update(probe_north_m=mem.probe.north_m, probe_east_m=mem.probe.east_m, probe_p_safe=mem.probe.p_safe)
         m = self._last_motion
         if m is not None:
             info.update(registered=float(m.registered), reg_response=m.response, reg_innovation_m=m.innovation_m,

@@ -91,7 +91,7 @@ class ClearanceConfig:
     # The search stays within this of the start. On the suite a spot with 4 m of true clearance lies
     # within 75 m of half of Dubai's starts, within 150 m of 79 % (coast: 73 %, 79 %; the other
     # styles >= 92 %, 100 %). Bench starts for it need `--start-margin-m` >= radius + fence + drift.
-    search_radius_m: float = 150.0
+    search_radius_m: float = 300.0
     # A fence on every command keeps the dead-reckoned position inside search radius - fence margin:
     # the margin is what drift of the estimate (and the lagging vehicle's overshoot) may add, so the
     # TRUE track stays inside the radius. fence_gain_per_s is the largest outward speed per metre
@@ -107,6 +107,22 @@ class ClearanceConfig:
     # Later passes fly lower (fractions of the top search altitude, never below hand-over + 15 m):
     # at 100 m CLIPSeg's token grid smears anything under ~7 m, at 40 m under ~2.7 m.
     lower_search_fracs: tuple[float, ...] = (0.6, 0.4)
+
+    # --- probes: a closer look at promising ground ---
+    # From 100 m CLIPSeg's tokens (6.7 m) smear a lawn a few tokens wide into its surroundings:
+    # ground that passes the spot test from 35 m reads a few tenths lower. While searching, an
+    # area whose fused P averaged over the clearance disk is at least probe_p_min, within
+    # probe_reach_m, is flown to and looked at from probe_alt_m (never below hand-over + 10 m)
+    # for probe_frames heatmaps; if no spot shows, it is remembered as probed and the search goes
+    # on. Areas within probe_skip_m of a probed or rejected point are not probed again.
+    probe_p_min: float = 0.7
+    probe_alt_m: float = 35.0
+    probe_frames: int = 4
+    probe_reach_m: float = 120.0
+    probe_skip_m: float = 20.0
+    probe_dist_m: float = 400.0  # ranking: 0.1 of promise is worth 40 m of extra flight
+    probe_timeout_s: float = 60.0
+    probe_max: int = 12  # probes per search (each costs ~30-60 s)
 
     # --- approach / descent ---
     approach_gain_per_s: float = 0.5  # lateral velocity = gain x error (capped)
@@ -143,7 +159,8 @@ class ClearanceConfig:
             "look_period_s", "decay_tau_s", "looks_min", "looks_full", "reg_gate_m", "static_tau_s", "bias_tau_s",
             "key_scale_ratio", "dt_cap_s", "search_radius_m", "search_spacing_frac", "search_spacing_radius_frac",
             "search_speed_m_s", "fence_gain_per_s", "anchor_scale_ratio", "anchor_reach_frac", "anchor_spacing_frac",
-            "approach_gain_per_s", "max_speed_m_s", "lock_in_m", "lock_out_m",
+            "approach_gain_per_s", "max_speed_m_s", "lock_in_m", "lock_out_m", "probe_alt_m", "probe_reach_m",
+            "probe_skip_m", "probe_dist_m", "probe_timeout_s",
             "refine_radius_m", "descent_gain_per_s", "descent_min_m_s", "descent_max_m_s", "climb_speed_m_s",
             "warmup_timeout_s", "approach_timeout_s", "descend_timeout_s", "abort_timeout_s", "gap_s",
             "gap_hold_timeout_s", "no_spot_after_s", "hold_gain_per_s", "hold_speed_max_m_s",
@@ -152,7 +169,7 @@ class ClearanceConfig:
             validate.positive(f"ClearanceConfig.{name}", getattr(self, name))
         for name in ("drift_frac", "drift_m_s", "anchor_gain_m", "margin_m", "dip_gain", "fence_margin_m", "reg_gate_frac", "reg_gate_m_s", "bias_max_m_s", "switch_gain"):
             validate.non_negative(f"ClearanceConfig.{name}", getattr(self, name))
-        for name in ("anchor_min_response", "anchor_gate_frac", "p_clip", "p_safe_min", "reg_min_response", "reg_full_response", "reg_min_std", "reg_min_eigen_ratio", "reg_pos_gain", "cmd_weight",
+        for name in ("probe_p_min", "anchor_min_response", "anchor_gate_frac", "p_clip", "p_safe_min", "reg_min_response", "reg_full_response", "reg_min_std", "reg_min_eigen_ratio", "reg_pos_gain", "cmd_weight",
                      "key_shift_frac", "recheck_hysteresis", "dip_kernel_frac", "dip_floor"):
             validate.in_range(f"ClearanceConfig.{name}", getattr(self, name), 0.0, 1.0)
         for frac in self.lower_search_fracs:
@@ -165,12 +182,17 @@ class ClearanceConfig:
         if self.lock_out_m < self.lock_in_m:
             raise ConfigError(f"ClearanceConfig.lock_out_m {self.lock_out_m} must be >= lock_in_m {self.lock_in_m}")
         for name in ("map_cells", "reg_size_px", "pattern_repeats", "fail_frames", "warmup_frames",
-                     "gap_recover_frames", "max_aborts", "anchor_max"):
+                     "gap_recover_frames", "max_aborts", "anchor_max", "probe_frames"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ConfigError(f"ClearanceConfig.{name} must be an integer >= 1, got {value!r}")
         if self.map_cells < 32 or self.reg_size_px < 16:
             raise ConfigError("ClearanceConfig: map_cells must be >= 32 and reg_size_px >= 16")
+        if isinstance(self.probe_max, bool) or not isinstance(self.probe_max, int) or self.probe_max < 0:
+            raise ConfigError(f"ClearanceConfig.probe_max must be an integer >= 0, got {self.probe_max!r}")
+        if not self.probe_alt_m >= self.handover_alt_m + 10.0:
+            raise ConfigError(f"ClearanceConfig.probe_alt_m {self.probe_alt_m!r} must be at least 10 m above the "
+                              f"hand-over altitude {self.handover_alt_m} m")
         if self.search_alt_m is not None and not self.search_alt_m > self.handover_alt_m:
             raise ConfigError(f"ClearanceConfig.search_alt_m {self.search_alt_m!r} must be above the hand-over "
                               f"altitude {self.handover_alt_m} m")

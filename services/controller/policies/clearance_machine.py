@@ -4,6 +4,9 @@
     SEARCH  --each pass flown: the next one lower (100 -> 60 -> 40 m), where detail resolves
             (each pass its own expanding square: spacing from its footprint, radius shrinking
             as sqrt(altitude), so every pass takes about as long as the first)
+    SEARCH  --promising ground within reach (a disk that reads well but not yet well enough)-->
+            PROBE: fly there, look from 35 m; a spot --> APPROACH; else remember it probed --> SEARCH
+            (at most 12 probes; a probe times out after 60 s)
     SEARCH  --the whole route flown or 900 s--> NO_SPOT (hold: "no safe spot found")
     APPROACH --within the lock radius--> DESCEND --measured alt <= hand-over alt--> HANDOVER
     APPROACH --target fails 3 re-checks / 90 s--> blacklist it; SEARCH (or ABORT below search alt)
@@ -30,13 +33,14 @@ from dataclasses import dataclass
 from enum import Enum
 
 from dovesei.controller.policies.clearance_config import ClearanceConfig
-from dovesei.controller.policies.clearance_map import Spot
+from dovesei.controller.policies.clearance_map import Spot, footprint_width_m
 from dovesei.controller.policies.clearance_motion import to_body
 
 
 class Phase(str, Enum):
     WARMUP = "WARMUP"
     SEARCH = "SEARCH"
+    PROBE = "PROBE"
     APPROACH = "APPROACH"
     DESCEND = "DESCEND"
     ABORT = "ABORT"
@@ -61,6 +65,8 @@ class Memory:
     aborts: int = 0
     blacklist: tuple[tuple[float, float, float], ...] = ()  # rejected spots: north, east, altitude seen
     waypoint: int = 0  # index into the search pattern (counts repeats)
+    probe: Spot | None = None  # the area being probed
+    probed: tuple[tuple[float, float], ...] = ()  # areas looked at closely without a spot showing
     descending: bool = False  # inside the lock (hysteresis state)
     reason: str = "starting"
 
@@ -80,6 +86,8 @@ class Inputs:
     route: tuple[tuple[float, float, float], ...]  # every search pass in order: north, east, altitude
     best: Spot | None  # the best spot on the map now (not blacklisted, inside the radius)
     check: Spot | None  # the target re-checked and refined (None: it fails), when there is one
+    candidate: Spot | None = None  # the most promising area worth a closer look (SEARCH only)
+    hfov_rad: float = math.radians(73.0)  # the camera's (how much ground a view covers)
     passes: int = 1  # how many passes the route holds (for the reason)
     fence_m: float | None = None  # the fence now (None: the config's); route points beyond it are pulled in
 
@@ -174,12 +182,39 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
         else:
             return dataclasses.replace(mem, frames=frames), (0.0, 0.0, 0.0)
 
+    if p is Phase.PROBE:
+        probe = mem.probe
+        assert probe is not None
+        if inp.best is not None:
+            p = Phase.SEARCH  # a spot: taken below, as from the search
+        else:
+            looked = mem.frames + (1 if inp.fresh else 0)
+            err_n, err_e = probe.north_m - inp.north_m, probe.east_m - inp.east_m
+            over = math.hypot(err_n, err_e) < cfg.lock_out_m + cfg.lock_alt_frac * inp.alt_agl_m
+            low = inp.alt_agl_m <= cfg.probe_alt_m + 3.0
+            done = over and low and looked >= cfg.probe_frames
+            if done or elapsed > cfg.probe_timeout_s:
+                why = (f"probed from {inp.alt_agl_m:.0f} m: no spot" if done
+                       else f"probe took over {cfg.probe_timeout_s:g} s")
+                return _go(mem, Phase.SEARCH, t, why + ": searching on", probe=None,
+                           probed=mem.probed + ((probe.north_m, probe.east_m),)), (0.0, 0.0, 0.0)
+            mem = dataclasses.replace(mem, frames=looked if over and low else 0)
+            vf, vr = toward(err_n, err_e, cfg.approach_gain_per_s, cfg.search_speed_m_s, inp.yaw_rad)
+            # Down only once nearly over it (the view from above covers it on the way).
+            goal = cfg.probe_alt_m if math.hypot(err_n, err_e) < 0.5 * footprint_width_m(inp.alt_agl_m, inp.hfov_rad) else inp.alt_agl_m
+            return mem, (vf, vr, _hold_alt(inp.alt_agl_m, goal, cfg))
+
     if p is Phase.SEARCH:
         if inp.best is not None:
             s = inp.best
             mem = _go(mem, Phase.APPROACH, t, f"spot {s.distance_m:.0f} m away: clearance {s.clearance_m:.1f} m, "
-                                              f"confidence {s.confidence:.2f}", target=s)
+                                              f"confidence {s.confidence:.2f}", target=s, probe=None)
             p = Phase.APPROACH
+        elif (inp.candidate is not None and len(mem.probed) < cfg.probe_max
+              and t - mem.start_s <= cfg.no_spot_after_s):
+            c = inp.candidate
+            return _go(mem, Phase.PROBE, t, f"promising ground {c.distance_m:.0f} m away (P {c.p_safe:.2f} over the "
+                                            f"disk): a closer look from {cfg.probe_alt_m:.0f} m", probe=c), (0.0, 0.0, 0.0)
         elif t - mem.start_s > cfg.no_spot_after_s:
             return _go(mem, Phase.NO_SPOT, t, f"no safe spot found in {cfg.no_spot_after_s:g} s"), (0.0, 0.0, 0.0)
         else:

@@ -313,6 +313,46 @@ def find_spot(gmap: GroundMap, clearance: np.ndarray, cfg: ClearanceConfig, *, n
                 confidence=float(conf[best]), p_safe=p_safe, distance_m=float(dist[best]), score=float(score[best]))
 
 
+def find_candidate(gmap: GroundMap, cfg: ClearanceConfig, *, north_m: float, east_m: float,
+                   skip: tuple[tuple[float, float], ...], fence_m: float, within_m: float) -> Spot | None:
+    """The most promising area that is not yet a spot: worth a closer look from lower down.
+
+    From high up CLIPSeg's tokens smear a lawn narrower than about two of them into its
+    surroundings, so ground that would pass the spot test at 35 m reads a few tenths lower at
+    100 m. A candidate is a cell whose fused P, averaged over the required clearance disk, is at
+    least `probe_p_min`, with at least `looks_min` looks, inside the fence, within `within_m` of
+    the vehicle and farther than `probe_skip_m` from every point in `skip` (areas probed or
+    rejected already). Ranked by that mean P less distance / `probe_dist_m`.
+    """
+    need_cells = max(1, int(round(cfg.required_clearance_m / gmap.cell_m)))
+    known = gmap.looks >= np.float32(cfg.looks_min)
+    mean = np.divide(gmap.evidence, gmap.looks, out=np.zeros_like(gmap.evidence), where=known)
+    # The disk mean in log-odds, unknown cells counting as an even 0.5 (logit 0): unknown ground
+    # around a candidate lowers its promise instead of being ignored.
+    k = 2 * need_cells + 1
+    promise = cv2.blur(mean, (k, k), borderType=cv2.BORDER_CONSTANT)
+    lt = np.float32(math.log(cfg.probe_p_min / (1.0 - cfg.probe_p_min)))
+    rows, cols = np.nonzero((promise >= lt) & known)
+    if rows.size == 0:
+        return None
+    c = gmap.cell_m
+    north = gmap.north0_m - rows * c
+    east = gmap.east0_m + cols * c
+    dist = np.hypot(north - north_m, east - east_m)
+    keep = (north * north + east * east <= max(fence_m - cfg.lock_out_m, 0.0) ** 2) & (dist <= within_m)
+    for sn, se in skip:
+        keep &= (north - sn) ** 2 + (east - se) ** 2 > cfg.probe_skip_m ** 2
+    if not keep.any():
+        return None
+    rows, cols, north, east, dist = rows[keep], cols[keep], north[keep], east[keep], dist[keep]
+    p = 1.0 / (1.0 + np.exp(-promise[rows, cols]))
+    score = p - dist / cfg.probe_dist_m
+    best = int(np.argmax(score))
+    conf = 1.0 - math.exp(-float(gmap.looks[rows[best], cols[best]]) / cfg.looks_full)
+    return Spot(north_m=float(north[best]), east_m=float(east[best]), clearance_m=0.0, confidence=conf,
+                p_safe=float(p[best]), distance_m=float(dist[best]), score=float(score[best]))
+
+
 def clearance_at(gmap: GroundMap, clearance: np.ndarray, north_m: float, east_m: float) -> float:
     """The clearance of the cell containing a point (0 off the map)."""
     row, col = gmap.cell_of(north_m, east_m)
