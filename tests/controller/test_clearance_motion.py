@@ -144,3 +144,58 @@ def test_uncertainty_grows_with_distance_dead_reckoned() -> None:
     for _ in range(20):
         ego.predict(0.5, (6.0, 0.0, 0.0), 0.0)  # 60 m, nothing registered
     assert ego.uncertainty_m == pytest.approx(cfg.drift_frac * 60.0 + cfg.drift_m_s * 10.0)
+
+
+def test_an_anchor_fix_moves_the_estimate_once_and_teaches_no_bias() -> None:
+    """The keyframe chain has drifted 5 m while an anchor of the ground below knows better; the
+    vehicle creeps north at 0.2 m/s with an exact velocity estimate. The anchor fix pulls the
+    estimate back, and the keyframe is re-taken there: the fix moved the estimate, not the
+    vehicle. (A keyframe kept from before the fix read the jump as motion at every registration,
+    the anchor pulled back again, and the bias learner took the tug of war for a 2.6 m/s
+    velocity error: a hover held by vision then ran away at 0.7 m/s.)"""
+    cfg = ClearanceConfig()
+    ground = _ground(3)
+    ego = EgoMotion(cfg)
+    ego.correct(_view(ground, 0.0, 0.0, 40.0), 0.5, 40.0, HFOV, 0.0)  # keyframe and anchor at the truth
+    assert ego.anchors == 1
+    n = 0.0
+    for _ in range(4):
+        n += 0.1
+        ego.predict(0.5, (0.2, 0.0, 0.0), 0.0)
+        ego.correct(_view(ground, n, 0.0, 40.0), 0.5, 40.0, HFOV, 0.0)
+    # The chain's drift: the estimate and its keyframe 5 m off together, and known to be uncertain.
+    ego.north_m += 5.0
+    ego._key.cc = (ego._key.cc[0] + 5.0, ego._key.cc[1])
+    ego.uncertainty_m = 20.0
+    fixed, errors, biases = False, [], []
+    for _ in range(60):  # 30 s
+        n += 0.1
+        ego.predict(0.5, (0.2, 0.0, 0.0), 0.0)
+        step = ego.correct(_view(ground, n, 0.0, 40.0), 0.5, 40.0, HFOV, 0.0)
+        fixed |= step.anchored
+        errors.append(abs(ego.north_m - n))
+        biases.append(math.hypot(ego.bias_n_m_s, ego.bias_e_m_s))
+    assert fixed
+    assert errors[-1] < 1.5 and max(errors[30:]) < 1.5, errors
+    assert max(biases) < 0.3, max(biases)
+
+
+def test_hovering_after_a_loop_closure_keeps_the_estimate_and_learns_only_the_true_bias() -> None:
+    """After the loop above closes with an anchor fix, 60 s of hovering over the start with the
+    same biased estimate: the fix moved the estimate, not the vehicle, so the next registrations
+    must not read the jump as motion (they once learnt it as a 2.6 m/s velocity bias, and a hover
+    held by vision ran away at 0.7 m/s)."""
+    cfg = ClearanceConfig()
+    _, ego, anchored = _loop_error(cfg)
+    assert anchored
+    ground = _ground(3)
+    n = e = 0.0  # where the loop ended: over the start
+    errors, biases = [], []
+    for _ in range(120):
+        ego.predict(0.5, (0.6, -0.6, 0.0), 0.0)
+        ego.correct(_view(ground, n, e, 60.0), 0.5, 60.0, HFOV, 0.0)
+        errors.append(math.hypot(ego.north_m - n, ego.east_m - e))
+        biases.append((ego.bias_n_m_s, ego.bias_e_m_s))
+    assert max(errors) < 3.0, max(errors)
+    # Whatever it learns is towards the truth - estimate = (-0.6, +0.6) m/s, never beyond it.
+    assert all(-0.9 < bn < 0.1 and -0.1 < be < 0.9 for bn, be in biases), biases[-1]

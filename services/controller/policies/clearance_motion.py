@@ -271,8 +271,10 @@ class EgoMotion:
                 inn_n, inn_e = _constrained(img, inn_n, inn_e, yaw_rad, cfg.reg_min_eigen_ratio)
                 self.north_m += k * inn_n
                 self.east_m += k * inn_e
-                # The innovation accrued over dt: a velocity error; learnt over bias_tau.
-                if dt_s > 0.0 and response >= cfg.reg_full_response:
+                # The innovation accrued over dt: a velocity error; learnt over bias_tau. One
+                # larger than any bias the estimator may have is a jump, not a velocity error.
+                if (dt_s > 0.0 and response >= cfg.reg_full_response
+                        and math.hypot(inn_n, inn_e) <= cfg.bias_max_m_s * min(dt_s, cfg.dt_cap_s)):
                     rate = min(1.0, min(dt_s, cfg.dt_cap_s) / cfg.bias_tau_s) / max(min(dt_s, cfg.dt_cap_s), 1e-3)
                     self.bias_n_m_s += rate * inn_n * (1.0 - k)
                     self.bias_e_m_s += rate * inn_e * (1.0 - k)
@@ -291,6 +293,10 @@ class EgoMotion:
             new_key = True
         if textured and self._anchors:
             anchored = self._anchor_fix(img, gsd, width_m, yaw_rad, tn, te)
+            # The fix moved the estimate, not the vehicle: a keyframe taken before it would read
+            # the jump as motion at the next registration, and the bias learner as a velocity
+            # error (a 5 m fix learnt 2.6 m/s in 4 s while hovering, and the hold ran away).
+            new_key = new_key or anchored
         if new_key or self._key is None:
             self._key = _View(img.copy(), gsd, yaw_rad, (self.north_m + tn, self.east_m + te))
             self._fails = 0
