@@ -191,3 +191,21 @@ def test_low_looks_outweigh_high_ones_by_the_token_area() -> None:
     _fuse(gmap, np.full((352, 352), 0.85, np.float32), alt=100.0, times=10, weight=look_weight(100.0, CFG))
     _fuse(gmap, np.full((352, 352), 0.3, np.float32), alt=25.0, times=3, weight=look_weight(25.0, CFG))
     assert gmap.at(0.0, 0.0)[0] < 0.45
+
+
+def test_a_mask_lands_on_another_grid_where_its_ground_is() -> None:
+    # A coarse map (1 m cells) and a fine one (0.25 m) centred elsewhere: a 10 m square marked on
+    # the coarse grid covers the same ground on the fine one.
+    coarse, fine = GroundMap(CFG), GroundMap(CFG)
+    coarse.follow(100.0, 0.0, 0.0)
+    fine.follow(20.0, 12.0, -7.0)
+    assert (coarse.cell_m, fine.cell_m) == (1.0, 0.25)
+    mask = np.zeros((coarse.n, coarse.n), np.uint8)
+    r0, c0 = (int(round(v)) for v in coarse.cell_of(20.0, -10.0))  # north-west corner of the square
+    mask[r0:r0 + 10, c0:c0 + 10] = 1
+    onto = coarse.mask_onto(mask, fine)
+    rows, cols = np.nonzero(onto)
+    north, east = fine.point_of(rows, cols)
+    assert north.max() == pytest.approx(20.0 + 0.375, abs=0.13) and north.min() == pytest.approx(11.0 - 0.375, abs=0.13)
+    assert east.min() == pytest.approx(-10.0 - 0.375, abs=0.13) and east.max() == pytest.approx(-1.0 + 0.375, abs=0.13)
+    assert rows.size == pytest.approx(40 * 40, rel=0.1)

@@ -273,7 +273,10 @@ def test_a_lawn_too_blurred_from_100_m_is_probed_and_landed_on() -> None:
     safe = _textured(rng)
     _lawn(safe, 50.0, -50.0, 10.0)
     world = World(safe)
-    flight = fly(world, ClearancePolicy(ClearanceConfig(p_safe_min=ODOMETRY_P_SAFE_MIN)), seed=4)
+    # This harness's unsafe ground reads 0.1 (the simulated CLIPSeg's 0.5-0.6), which drags the
+    # lawn's log-odds disk mean from 100 m down to 0.72: the confirmation gate is set below it.
+    cfg = ClearanceConfig(p_safe_min=ODOMETRY_P_SAFE_MIN, confirm_p_min=0.7)
+    flight = fly(world, ClearancePolicy(cfg), seed=4)
     assert flight.alt_m <= 20.0
     assert world.disk_safe(flight.north_m, flight.east_m, 2.0)
     assert math.hypot(flight.north_m - 50.0, flight.east_m + 50.0) < 4.0
@@ -285,3 +288,34 @@ def test_a_lawn_too_blurred_from_100_m_is_probed_and_landed_on() -> None:
     assert all(alt > 95.0 for _, _, alt, _, _ in flight.track[:first_probe])
     before = flight.track[:chosen]
     assert min(alt for _, _, alt, _, _ in before) >= ClearanceConfig().probe_alt_m - 3.0
+
+
+class _LowTrap(World):
+    """A world whose `trap` ground (unsafe) reads as a clear lawn from below 50 m only: a
+    misreading that persists at one scale and not at another, as CLIPSeg's do."""
+
+    def __init__(self, safe: np.ndarray, trap: np.ndarray) -> None:
+        super().__init__(safe)
+        self.trap = World(trap)
+
+    def view(self, north_m: float, east_m: float, alt_m: float, size: int = 352) -> np.ndarray:
+        v = super().view(north_m, east_m, alt_m, size)
+        return np.maximum(v, self.trap.view(north_m, east_m, alt_m, size)) if alt_m < 50.0 else v
+
+
+def _trap_flight(config: ClearanceConfig) -> tuple[World, Flight]:
+    safe = np.zeros((SIDE, SIDE), bool)
+    trap = np.zeros((SIDE, SIDE), bool)
+    _lawn(trap, 0.0, 0.0, 24.0)  # 24 m of "lawn" that is not one, under the start
+    world = _LowTrap(safe, trap)
+    return world, fly(world, ClearancePolicy(config), t_max_s=900.0, seed=2)
+
+
+def test_ground_that_reads_safe_only_from_low_down_is_never_landed_on() -> None:
+    cfg = ClearanceConfig(search_radius_m=80.0)
+    world, flight = _trap_flight(cfg)
+    assert flight.decision.state == "NO_SPOT", flight.decision.reason
+    assert "DESCEND" not in flight.states
+    # Without the confirmation from high up, the 40 m pass finds the trap and lands on it.
+    world, flight = _trap_flight(cfg.replace(confirm_p_min=0.0))
+    assert flight.alt_m <= 20.0 and not world.disk_safe(flight.north_m, flight.east_m, 2.0)

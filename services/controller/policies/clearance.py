@@ -32,7 +32,7 @@ from dovesei.controller.policies.base import Decision, Observation, PolicyInputE
 from dovesei.controller.policies.clearance_config import ClearanceConfig, clearance_preset
 from dovesei.controller.policies.clearance_machine import TERMINAL, Inputs, Memory, Phase, search_route, step, toward
 from dovesei.controller.policies.clearance_map import (GroundMap, clearance_at, emphasise_dips, find_candidate,
-                                                      find_spot, footprint_width_m, look_weight)
+                                                      find_spot, footprint_width_m, look_weight, promising)
 from dovesei.controller.policies.clearance_motion import EgoMotion, MotionStep, tilt_offset_ne, to_body, to_ne
 
 log = logging.getLogger(__name__)
@@ -76,6 +76,9 @@ class ClearancePolicy:
 
     def reset(self) -> None:
         self.map = GroundMap(self.config)
+        # The looks from high up only, at the coarsest cell, never decayed: the confirmation gate
+        # and where probes are planned from.
+        self.high = GroundMap(self.config)
         self.motion = EgoMotion(self.config)
         self.memory: Memory | None = None
         self._last_t_s: float | None = None  # last heatmap
@@ -171,29 +174,38 @@ class ClearancePolicy:
             self.map.decay(dt_c)
         self.map.follow(obs.alt_agl_m, pn, pe)
         blind = gap or self.memory.phase is Phase.GAP_HOLD
+        self.high.follow(obs.alt_agl_m, pn, pe, cell_m=cfg.cell_max_m)
         if not blind or motion.registered:
             tn, te = tilt_offset_ne(obs.alt_agl_m, obs.roll_rad, obs.pitch_rad, obs.yaw_rad)
             seen = emphasise_dips(prob, int(round(cfg.dip_kernel_frac * prob.shape[1])), cfg.dip_gain, cfg.dip_floor)
-            self.map.fuse(seen, obs.alt_agl_m, obs.hfov_rad, obs.yaw_rad, pn + tn, pe + te,
-                          weight=min(1.0, dt_c / cfg.look_period_s) * look_weight(obs.alt_agl_m, cfg))
+            weight = min(1.0, dt_c / cfg.look_period_s) * look_weight(obs.alt_agl_m, cfg)
+            self.map.fuse(seen, obs.alt_agl_m, obs.hfov_rad, obs.yaw_rad, pn + tn, pe + te, weight=weight)
+            if obs.alt_agl_m >= min(cfg.confirm_alt_m, 0.8 * self._search_alt_m):
+                self.high.fuse(seen, obs.alt_agl_m, obs.hfov_rad, obs.yaw_rad, pn + tn, pe + te, weight=weight)
         clearance = self.map.clearance_m()
+        # A spot only where the area looked promising from high up too (those looks err apart
+        # from the low ones).
+        gate = self._confirmed()
         # A spot rejected high up is looked at again once well below that altitude (finer detail
         # may show it is fine, or why not); one rejected low down stays rejected.
         blacklist = tuple((n, e) for n, e, alt in self.memory.blacklist if obs.alt_agl_m >= 0.8 * alt)
         fence_m = self.fence_m()
-        best = find_spot(self.map, clearance, cfg, north_m=pn, east_m=pe, blacklist=blacklist, fence_m=fence_m)
-        # A closer look is planned only while searching with nothing good enough in view.
+        best = find_spot(self.map, clearance, cfg, north_m=pn, east_m=pe, blacklist=blacklist, fence_m=fence_m,
+                         gate=gate)
+        # A closer look is planned only while searching with nothing good enough in view, at what
+        # looked promising from high up.
         candidate = None
         if best is None and self.memory.phase is Phase.SEARCH:
             skip = self.memory.probed + tuple((n, e) for n, e, _ in self.memory.blacklist)
-            candidate = find_candidate(self.map, cfg, north_m=pn, east_m=pe, skip=skip, fence_m=fence_m,
+            candidate = find_candidate(self.high, cfg, north_m=pn, east_m=pe, skip=skip, fence_m=fence_m,
                                        within_m=cfg.probe_reach_m)
         check = None
         target = self.memory.target
         if target is not None:
             check = find_spot(self.map, clearance, cfg, north_m=pn, east_m=pe, blacklist=(),
                               near=(target.north_m, target.east_m), within_m=cfg.refine_radius_m,
-                              need_m=cfg.required_clearance_m * cfg.recheck_hysteresis, fence_m=fence_m)
+                              need_m=cfg.required_clearance_m * cfg.recheck_hysteresis, fence_m=fence_m,
+                              gate=gate)
         return self._decide(obs, fresh=True, gap=gap, best=best, check=check, clearance=clearance, fence_m=fence_m,
                             candidate=candidate)
 
@@ -282,6 +294,13 @@ class ClearancePolicy:
             return self._decision.focus_radius_px
         gsd = footprint_width_m(obs.alt_agl_m, obs.hfov_rad) / obs.prob_safe.shape[1]
         return self.config.required_clearance_m / gsd
+
+    def _confirmed(self) -> np.ndarray | None:
+        """The confirmation gate on the map's grid: 1 where the area looked promising enough from
+        high up (None: confirm_p_min 0 turns it off)."""
+        if self.config.confirm_p_min <= 0.0:
+            return None
+        return self.high.mask_onto(promising(self.high, self.config, self.config.confirm_p_min), self.map)
 
     # ---- views for reports and videos ---------------------------------------------------
 

@@ -140,9 +140,10 @@ class GroundMap:
             cell /= 2.0
         return cell
 
-    def follow(self, alt_agl_m: float, north_m: float, east_m: float) -> bool:
-        """Keep the vehicle near the centre and the cell at the altitude's size; True if resampled."""
-        cell = self.desired_cell_m(alt_agl_m)
+    def follow(self, alt_agl_m: float, north_m: float, east_m: float, cell_m: float | None = None) -> bool:
+        """Keep the vehicle near the centre and the cell at the altitude's size (or `cell_m`);
+        True if resampled."""
+        cell = self.desired_cell_m(alt_agl_m) if cell_m is None else cell_m
         row, col = self.cell_of(north_m, east_m)
         half = (self.n - 1) / 2.0
         off_centre = max(abs(row - half), abs(col - half)) > self.n / 4.0
@@ -231,14 +232,28 @@ class GroundMap:
     def confidence(self) -> np.ndarray:
         return (1.0 - np.exp(-self.looks / np.float32(self.cfg.looks_full))).astype(np.float32)
 
-    def safe_mask(self) -> np.ndarray:
-        """uint8 1 where the cell is known and safe (L >= logit(p_min) x W, W >= looks_min)."""
+    def safe_mask(self, p_min: float | None = None, looks_min: float | None = None) -> np.ndarray:
+        """uint8 1 where the cell is known and safe (L >= logit(p_min) x W, W >= looks_min; by
+        default the config's p_safe_min and looks_min)."""
         cfg = self.cfg
-        lt = np.float32(math.log(cfg.p_safe_min / (1.0 - cfg.p_safe_min)))
-        mask = (self.evidence >= lt * self.looks) & (self.looks >= np.float32(cfg.looks_min))
+        p_min = min(max(cfg.p_safe_min if p_min is None else p_min, 1e-6), 1.0 - 1e-6)
+        lt = np.float32(math.log(p_min / (1.0 - p_min)))
+        mask = (self.evidence >= lt * self.looks) & (self.looks >= np.float32(cfg.looks_min if looks_min is None
+                                                                             else looks_min))
         mask = mask.view(np.uint8)
         mask[0, :] = mask[-1, :] = mask[:, 0] = mask[:, -1] = 0  # off the map is unknown
         return mask
+
+    def mask_onto(self, mask: np.ndarray, other: GroundMap) -> np.ndarray:
+        """This map's uint8 `mask` resampled onto `other`'s grid (nearest cell; 0 off this map)."""
+        s = other.cell_m / self.cell_m
+        # other's (col, row) -> this map's (col, row): a scale and an offset (both grids north-up).
+        # + 0.5: OpenCV's nearest lookup floors the mapped coordinate; the nearest cell centre is
+        # its rounding.
+        m = np.array([[s, 0.0, (other.east0_m - self.east0_m) / self.cell_m + 0.5],
+                      [0.0, s, (self.north0_m - other.north0_m) / self.cell_m + 0.5]], np.float64)
+        return cv2.warpAffine(mask, m, (other.n, other.n), flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
+                              borderMode=cv2.BORDER_CONSTANT, borderValue=0)
 
     def clearance_m(self) -> np.ndarray:
         """Metric distance of each cell to the nearest unsafe or unknown cell (0 on obstacles)."""
@@ -262,14 +277,15 @@ class GroundMap:
 def find_spot(gmap: GroundMap, clearance: np.ndarray, cfg: ClearanceConfig, *, north_m: float, east_m: float,
               blacklist: tuple[tuple[float, float], ...], within_m: float | None = None,
               near: tuple[float, float] | None = None, need_m: float | None = None,
-              fence_m: float | None = None) -> Spot | None:
+              fence_m: float | None = None, gate: np.ndarray | None = None) -> Spot | None:
     """The best spot: clearance >= safety radius + margin, inside the fence around the
     start (0, 0), away from blacklisted spots; ranked by clearance, confidence and distance.
 
     `near` + `within_m` restrict the search to a disk (re-checking and refining a target), and
     `need_m` replaces the required clearance (a locked target's hysteresis), `fence_m` the
-    config's fence (the policy shrinks it while its estimate is uncertain). Distances count
-    from the vehicle, so scores compare across calls.
+    config's fence (the policy shrinks it while its estimate is uncertain), and `gate` (uint8 on
+    the map's grid) admits only the cells where it is 1. Distances count from the vehicle, so
+    scores compare across calls.
     """
     need = cfg.required_clearance_m
     r0 = c0 = 0
@@ -288,6 +304,11 @@ def find_spot(gmap: GroundMap, clearance: np.ndarray, cfg: ClearanceConfig, *, n
     if rows.size == 0:
         return None
     rows, cols = rows + r0, cols + c0
+    if gate is not None:
+        inside = gate[rows, cols] > 0
+        rows, cols = rows[inside], cols[inside]
+        if rows.size == 0:
+            return None
     c = gmap.cell_m
     north = gmap.north0_m - rows * c
     east = gmap.east0_m + cols * c
@@ -313,26 +334,40 @@ def find_spot(gmap: GroundMap, clearance: np.ndarray, cfg: ClearanceConfig, *, n
                 confidence=float(conf[best]), p_safe=p_safe, distance_m=float(dist[best]), score=float(score[best]))
 
 
-def find_candidate(gmap: GroundMap, cfg: ClearanceConfig, *, north_m: float, east_m: float,
-                   skip: tuple[tuple[float, float], ...], fence_m: float, within_m: float) -> Spot | None:
-    """The most promising area that is not yet a spot: worth a closer look from lower down.
+def promise(gmap: GroundMap, cfg: ClearanceConfig) -> tuple[np.ndarray, np.ndarray]:
+    """(disk mean, known): per cell the fused log-odds averaged over the required clearance disk
+    (a box of its width; unknown cells count as an even 0.5, logit 0, so unknown ground around a
+    cell lowers its promise instead of being ignored), and where the cell has looks_min looks.
 
     From high up CLIPSeg's tokens smear a lawn narrower than about two of them into its
-    surroundings, so ground that would pass the spot test at 35 m reads a few tenths lower at
-    100 m. A candidate is a cell whose fused P, averaged over the required clearance disk, is at
-    least `probe_p_min`, with at least `looks_min` looks, inside the fence, within `within_m` of
-    the vehicle and farther than `probe_skip_m` from every point in `skip` (areas probed or
-    rejected already). Ranked by that mean P less distance / `probe_dist_m`.
+    surroundings, so its cells read a few tenths low; their mean over the disk still says
+    whether the area as a whole looks like landable ground.
     """
     need_cells = max(1, int(round(cfg.required_clearance_m / gmap.cell_m)))
     known = gmap.looks >= np.float32(cfg.looks_min)
     mean = np.divide(gmap.evidence, gmap.looks, out=np.zeros_like(gmap.evidence), where=known)
-    # The disk mean in log-odds, unknown cells counting as an even 0.5 (logit 0): unknown ground
-    # around a candidate lowers its promise instead of being ignored.
     k = 2 * need_cells + 1
-    promise = cv2.blur(mean, (k, k), borderType=cv2.BORDER_CONSTANT)
-    lt = np.float32(math.log(cfg.probe_p_min / (1.0 - cfg.probe_p_min)))
-    rows, cols = np.nonzero((promise >= lt) & known)
+    return cv2.blur(mean, (k, k), borderType=cv2.BORDER_CONSTANT), known
+
+
+def promising(gmap: GroundMap, cfg: ClearanceConfig, p_min: float) -> np.ndarray:
+    """uint8 1 where the cell is known and its disk's promise is at least p_min."""
+    disk, known = promise(gmap, cfg)
+    p_min = min(max(p_min, 1e-6), 1.0 - 1e-6)
+    return ((disk >= np.float32(math.log(p_min / (1.0 - p_min)))) & known).view(np.uint8)
+
+
+def find_candidate(gmap: GroundMap, cfg: ClearanceConfig, *, north_m: float, east_m: float,
+                   skip: tuple[tuple[float, float], ...], fence_m: float, within_m: float) -> Spot | None:
+    """The most promising area that is not yet a spot: worth a closer look from lower down.
+
+    A candidate is a cell whose promise (see `promise`) is at least `probe_p_min`, inside the
+    fence, within `within_m` of the vehicle and farther than `probe_skip_m` from every point in
+    `skip` (areas probed or rejected already). Ranked by that promise less distance /
+    `probe_dist_m`.
+    """
+    disk, _ = promise(gmap, cfg)
+    rows, cols = np.nonzero(promising(gmap, cfg, cfg.probe_p_min))
     if rows.size == 0:
         return None
     c = gmap.cell_m
@@ -345,7 +380,7 @@ def find_candidate(gmap: GroundMap, cfg: ClearanceConfig, *, north_m: float, eas
     if not keep.any():
         return None
     rows, cols, north, east, dist = rows[keep], cols[keep], north[keep], east[keep], dist[keep]
-    p = 1.0 / (1.0 + np.exp(-promise[rows, cols]))
+    p = 1.0 / (1.0 + np.exp(-disk[rows, cols]))
     score = p - dist / cfg.probe_dist_m
     best = int(np.argmax(score))
     conf = 1.0 - math.exp(-float(gmap.looks[rows[best], cols[best]]) / cfg.looks_full)
