@@ -70,7 +70,7 @@ def test_search_gives_up_after_its_time_and_after_its_passes() -> None:
 
 
 def test_a_probe_flies_over_promising_ground_looks_from_low_down_and_remembers_it() -> None:
-    area = dataclasses.replace(spot(120.0, 0.0), p_safe=0.75, clearance_m=0.0)
+    area = dataclasses.replace(spot(120.0, 0.0), p_safe=0.85, clearance_m=0.0)
     mem, vel = step(at(Phase.SEARCH, waypoint=3), inp(1.0, candidate=area), CFG)
     assert mem.phase is Phase.PROBE and mem.probe == area and "closer look" in mem.reason
     # Beyond half a footprint: flies there at the search speed, holding altitude.
@@ -90,6 +90,16 @@ def test_a_probe_flies_over_promising_ground_looks_from_low_down_and_remembers_i
     # A spot during the probe is taken at once.
     mem, _ = step(at(Phase.PROBE, probe=area), inp(1.0, n=90.0, best=spot(122.0, 0.0)), CFG)
     assert mem.phase is Phase.APPROACH and mem.target == spot(122.0, 0.0) and mem.probe is None
+
+
+def test_a_less_promising_area_waits_until_the_top_pass_is_flown() -> None:
+    route = search_route(((100.0, SPACING_M, CFG.fence_m), (60.0, SPACING_M, CFG.fence_m)))
+    area = dataclasses.replace(spot(120.0, 0.0), p_safe=0.75, clearance_m=0.0)
+    top = dataclasses.replace(inp(1.0, candidate=area), route=route, passes=2)
+    mem, _ = step(at(Phase.SEARCH, waypoint=3), top, CFG)
+    assert mem.phase is Phase.SEARCH  # during the top pass: the route goes on
+    mem, _ = step(at(Phase.SEARCH, waypoint=len(WAYPOINTS) + 1), dataclasses.replace(top, alt_agl_m=60.0), CFG)
+    assert mem.phase is Phase.PROBE and mem.probe == area
 
 
 def test_probes_time_out_and_stop_after_their_maximum() -> None:

@@ -4,9 +4,10 @@
     SEARCH  --each pass flown: the next one lower (100 -> 60 -> 40 m), where detail resolves
             (each pass its own expanding square: spacing from its footprint, radius shrinking
             as sqrt(altitude), so every pass takes about as long as the first)
-    SEARCH  --promising ground within reach (a disk that reads well but not yet well enough)-->
+    SEARCH  --promising ground within reach (a disk that reads well but not yet well enough;
+            during the top pass only the likely ones)-->
             PROBE: fly there, look from 35 m; a spot --> APPROACH; else remember it probed --> SEARCH
-            (at most 12 probes; a probe times out after 60 s)
+            (at most 16 probes; a probe times out after 60 s)
     SEARCH  --the whole route flown or 900 s--> NO_SPOT (hold: "no safe spot found")
     APPROACH --within the lock radius--> DESCEND --measured alt <= hand-over alt--> HANDOVER
     APPROACH --target fails 3 re-checks / 90 s--> blacklist it; SEARCH (or ABORT below search alt)
@@ -128,6 +129,11 @@ def search_level_alt(waypoint: int, inp: Inputs) -> float:
     return inp.route[min(waypoint, len(inp.route) - 1)][2]
 
 
+def _top_pass(waypoint: int, inp: Inputs) -> bool:
+    """Is the search still on its first pass (at the top level)?"""
+    return not inp.route or search_level_alt(waypoint, inp) >= inp.route[0][2]
+
+
 def _go(mem: Memory, phase: Phase, t_s: float, reason: str, **changes: object) -> Memory:
     return dataclasses.replace(mem, phase=phase, since_s=t_s, frames=0, fails=0, descending=False, reason=reason,
                                **changes)
@@ -211,7 +217,8 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
                                               f"confidence {s.confidence:.2f}", target=s, probe=None)
             p = Phase.APPROACH
         elif (inp.candidate is not None and len(mem.probed) < cfg.probe_max
-              and t - mem.start_s <= cfg.no_spot_after_s):
+              and t - mem.start_s <= cfg.no_spot_after_s
+              and (inp.candidate.p_safe >= cfg.probe_now_p_min or not _top_pass(mem.waypoint, inp))):
             c = inp.candidate
             return _go(mem, Phase.PROBE, t, f"promising ground {c.distance_m:.0f} m away (P {c.p_safe:.2f} over the "
                                             f"disk): a closer look from {cfg.probe_alt_m:.0f} m", probe=c), (0.0, 0.0, 0.0)
