@@ -209,3 +209,18 @@ def test_a_mask_lands_on_another_grid_where_its_ground_is() -> None:
     assert north.max() == pytest.approx(20.0 + 0.375, abs=0.13) and north.min() == pytest.approx(11.0 - 0.375, abs=0.13)
     assert east.min() == pytest.approx(-10.0 - 0.375, abs=0.13) and east.max() == pytest.approx(-1.0 + 0.375, abs=0.13)
     assert rows.size == pytest.approx(40 * 40, rel=0.1)
+
+
+def test_a_rechecked_target_stays_put_while_it_qualifies_and_moves_when_it_fails() -> None:
+    lawn = _built_mask_map(16.0)
+    clear = lawn.clearance_m()
+    need = CFG.required_clearance_m
+    # 2 m east of the lawn's centre line still has 6 m of clearance: the target stays there,
+    # even with the vehicle 3 m off to the west (the nearest qualifying cell would be west of it).
+    kept = find_spot(lawn, clear, CFG, north_m=0.0, east_m=-3.0, blacklist=(), near=(0.0, 2.0),
+                     within_m=CFG.refine_radius_m)
+    assert kept is not None and abs(kept.east_m - 2.0) <= lawn.cell_m and abs(kept.north_m) <= lawn.cell_m
+    # 6.5 m east has only ~1.5 m: it moves inwards, to a cell with the clearance needed.
+    moved = find_spot(lawn, clear, CFG, north_m=0.0, east_m=0.0, blacklist=(), near=(0.0, 6.5),
+                      within_m=CFG.refine_radius_m)
+    assert moved is not None and moved.east_m < 6.5 - 1.0 and moved.clearance_m >= need

@@ -281,7 +281,8 @@ def find_spot(gmap: GroundMap, clearance: np.ndarray, cfg: ClearanceConfig, *, n
     """The best spot: clearance >= safety radius + margin, inside the fence around the
     start (0, 0), away from blacklisted spots; ranked by clearance, confidence and distance.
 
-    `near` + `within_m` restrict the search to a disk (re-checking and refining a target), and
+    `near` + `within_m` restrict the search to a disk (re-checking a target: it stays where it
+    is while its own cell qualifies, else it moves to the best cell within the disk), and
     `need_m` replaces the required clearance (a locked target's hysteresis), `fence_m` the
     config's fence (the policy shrinks it while its estimate is uncertain), and `gate` (uint8 on
     the map's grid) admits only the cells where it is 1. Distances count from the vehicle, so
@@ -329,6 +330,15 @@ def find_spot(gmap: GroundMap, clearance: np.ndarray, cfg: ClearanceConfig, *, n
     # Clearance beyond twice the need buys little; 50 m of extra flight costs as much as it.
     score = np.minimum(clear / need, 2.0) + conf - dist / 50.0
     best = int(np.argmax(score))
+    if near is not None and within_m is not None:
+        # A re-checked target whose own cell still qualifies stays put. Sliding to the best score
+        # every frame made it follow the vehicle across a wide lawn (every cell's clearance
+        # saturates there and the nearest wins): the landing point became wherever the
+        # estimate's noise took the vehicle during the descent.
+        rn, cn = (int(round(v)) for v in gmap.cell_of(*near))
+        here = np.flatnonzero((rows == rn) & (cols == cn))
+        if here.size:
+            best = int(here[0])
     p_safe, _ = gmap.at(float(north[best]), float(east[best]))
     return Spot(north_m=float(north[best]), east_m=float(east[best]), clearance_m=float(clear[best]),
                 confidence=float(conf[best]), p_safe=p_safe, distance_m=float(dist[best]), score=float(score[best]))
