@@ -168,7 +168,9 @@ class ClearanceConfig:
     gap_s: float = 1.5  # no heatmap for this long = perception gap: hold, map frozen
     gap_recover_frames: int = 3  # fresh heatmaps needed before leaving GAP_HOLD
     gap_hold_timeout_s: float = 30.0  # still blind after this: climb back (ABORT)
-    max_aborts: int = 4
+    # Aborts before "no safe spot found" (each blacklists its spot and costs ~30 s of climbing;
+    # under harsh perception 4 ended searches with 570 s of their 900 s left).
+    max_aborts: int = 8
     no_spot_after_s: float = 900.0  # searching this long: hold and report "no safe spot found"
     hold_gain_per_s: float = 0.3  # NO_SPOT holds its point by vision: speed = gain x error ...
     hold_speed_max_m_s: float = 2.0  # ... at most this
