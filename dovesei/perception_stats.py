@@ -56,7 +56,7 @@ from dovesei.segmenter.sim_backend import (
 )
 from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.sim.camera import CameraModel, pixel_to_world_affine, render
-from dovesei.sim.judge import DEFAULT_ZERO_TOLERANCE_NAMES
+from dovesei.sim.judge import disk_safe_map
 from dovesei.sim.starts import generate_starts
 from dovesei.sim.suite import suite
 from dovesei.sim.world import World, load_world, require_judged
@@ -65,8 +65,6 @@ log = logging.getLogger(__name__)
 
 ALT_M = 100.0
 DRIFT_M_PER_FRAME = 0.2
-SAFETY_RADIUS_M = 2.0
-TOLERANCE_FRAC = 0.01  # the judge's
 
 
 @dataclass(frozen=True)
@@ -86,33 +84,6 @@ class WorldStats:
 def default_worlds() -> list[str]:
     """The repository's world suite (`dovesei.sim.suite.DEFAULT_SUITE`)."""
     return list(suite("default"))
-
-
-def disk_safe_map(world: World, radius_m: float = SAFETY_RADIUS_M, tolerance: float = TOLERANCE_FRAC) -> np.ndarray:
-    """uint8 map over the world: 1 where a landing disk of radius_m would be judged safe.
-
-    The judge's rule at every pixel at once: at most `tolerance` of the disk unsafe, no person at
-    all in it; beyond the world's edge is unsafe (the border of the filter counts as unsafe).
-    """
-    if world.labels is None:
-        raise ConfigError(f"world {world.name!r} has no labels: perception cannot be judged on it")
-    r_px = radius_m / world.gsd_m
-    n = int(math.ceil(r_px))
-    yy, xx = np.mgrid[-n:n + 1, -n:n + 1]
-    disk = ((xx * xx + yy * yy) <= r_px * r_px).astype(np.float32)
-    disk /= disk.sum()
-    unsafe = (~world.safe_lut[world.labels]).astype(np.float32)
-    unsafe_frac = cv2.filter2D(unsafe, -1, disk, borderType=cv2.BORDER_CONSTANT)
-    # Border: filter2D's constant border is 0 (safe); the world's edge is unsafe, so add the part
-    # of the disk that hangs outside.
-    outside = 1.0 - cv2.filter2D(np.ones_like(unsafe), -1, disk, borderType=cv2.BORDER_CONSTANT)
-    ok = (unsafe_frac + outside) <= tolerance + 1e-6
-    people = [cid for cid, c in world.classes.items()
-              if not c.safe and any(w in c.name.lower() for w in DEFAULT_ZERO_TOLERANCE_NAMES)]
-    if people:
-        person = np.isin(world.labels, people).astype(np.uint8)
-        ok &= cv2.dilate(person, (disk > 0).astype(np.uint8), borderType=cv2.BORDER_CONSTANT) == 0
-    return ok.astype(np.uint8)
 
 
 def _view_disk_safe(world: World, safe_map: np.ndarray, x_m: float, y_m: float, cam: CameraModel) -> np.ndarray:

@@ -21,6 +21,7 @@ import numpy as np
 
 from dovesei.episode import EpisodeSpec, run_episode
 from dovesei.shared.errors import ConfigError
+from dovesei.sim.judge import disk_safe_map, nearest_safe_m
 from dovesei.sim.starts import Start
 from dovesei.sim.world import load_world
 
@@ -62,6 +63,21 @@ def _world(spec: str):
     return _WORLDS[spec]
 
 
+_SAFE_MAPS: dict = {}
+NEAREST_SAFE_WITHIN_M = 500.0  # how far a record's nearest_safe_m looks
+
+
+def _nearest_safe_m(spec: str, world, start: Start) -> float | None:
+    """The judge's side: how far from the start the nearest ground a landing there would be
+    judged safe on lies (None: none within NEAREST_SAFE_WITHIN_M, or a world without labels)."""
+    if world.labels is None:
+        return None
+    if spec not in _SAFE_MAPS:
+        _SAFE_MAPS[spec] = disk_safe_map(world)
+    d = nearest_safe_m(world, _SAFE_MAPS[spec], start.x_m, start.y_m, NEAREST_SAFE_WITHIN_M)
+    return None if d is None else round(d, 1)
+
+
 def run_job(job: dict) -> dict:
     """Fly one job; always returns a record (a crashing episode becomes outcome 'error')."""
     _prepare_worker()
@@ -79,6 +95,7 @@ def run_job(job: dict) -> dict:
     max_range_m = float(np.max(np.hypot(track[:, 1] - spec.start.x_m, track[:, 2] - spec.start.y_m))) \
         if len(track) else 0.0
     return {**record_base(job), "outcome": r.outcome, "max_range_m": round(max_range_m, 1),
+            "nearest_safe_m": _nearest_safe_m(job["world"], _world(job["world"]), spec.start),
             # The controller's own last word: a timeout that is a deliberate hold reads NO_SPOT here.
             "final_state": rec.states[-1] if rec.states else "", "sim_time_s": round(r.sim_time_s, 3),
             "path_length_m": round(r.path_length_m, 3), "wall_time_s": round(rec.wall_time_s, 3),

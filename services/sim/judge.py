@@ -10,6 +10,9 @@ The paper judged landings by eye; here the label map does it. Two pieces:
   pixels at 0.25 m/px, under the 1 % allowance of a 2 m disk (~200 pixels), and landing on one is
   the worst failure there is. It also reports the classes in the disk and the distance from the
   landing point to the closest unsafe pixel (within `search_radius_m`).
+- `disk_safe_map(world)` is that rule at every pixel at once, and `nearest_safe_m` the distance
+  from a point to the nearest pixel where a landing would be judged safe (how far a perfect
+  lander would have had to fly: the bench's ceiling).
 - `EpisodeJudge` watches vehicle states during an episode and ends it: `out_of_world` when the
   vehicle leaves the image, the landing verdict when it reaches the hand-over altitude, `timeout`
   when the sim-time limit runs out. It accumulates the horizontal path length on the way.
@@ -23,6 +26,7 @@ import math
 from dataclasses import asdict, dataclass
 from typing import Any
 
+import cv2
 import numpy as np
 
 from dovesei.shared.errors import DoveseiError
@@ -165,6 +169,51 @@ def closest_unsafe_m(world: World, x_m: float, y_m: float, search_radius_m: floa
     best = float(np.sqrt(d2.min()))
     # The window is a square: its corners reach beyond the search radius.
     return best if best <= search_radius_m else None
+
+
+def disk_safe_map(world: World, radius_m: float = 2.0, tolerance_frac: float = 0.01,
+                  zero_tolerance_names: tuple[str, ...] = DEFAULT_ZERO_TOLERANCE_NAMES) -> np.ndarray:
+    """uint8 map over the world: 1 where `judge_landing` would say "safe" at the pixel's centre.
+
+    The same rule at every pixel at once: at most `tolerance_frac` of the disk unsafe, no person
+    in it at all, and beyond the world's edge is unsafe (the part of the disk that hangs outside
+    counts against it).
+    """
+    if world.labels is None:
+        raise JudgeError(f"world {world.name!r} has no label map: landings on it cannot be judged")
+    r_px = radius_m / world.gsd_m
+    n = int(math.ceil(r_px))
+    yy, xx = np.mgrid[-n:n + 1, -n:n + 1]
+    disk = ((xx * xx + yy * yy) <= r_px * r_px).astype(np.float32)
+    disk /= disk.sum()
+    unsafe = (~world.safe_lut[world.labels]).astype(np.float32)
+    unsafe_frac = cv2.filter2D(unsafe, -1, disk, borderType=cv2.BORDER_CONSTANT)
+    # filter2D's constant border is 0 (safe); the world's edge is unsafe, so add the part of the
+    # disk that hangs outside.
+    outside = 1.0 - cv2.filter2D(np.ones_like(unsafe), -1, disk, borderType=cv2.BORDER_CONSTANT)
+    ok = (unsafe_frac + outside) <= tolerance_frac + 1e-6
+    people = [cid for cid, c in world.classes.items()
+              if not c.safe and any(w in c.name.lower() for w in zero_tolerance_names)]
+    if people:
+        person = np.isin(world.labels, people).astype(np.uint8)
+        ok &= cv2.dilate(person, (disk > 0).astype(np.uint8), borderType=cv2.BORDER_CONSTANT) == 0
+    return ok.astype(np.uint8)
+
+
+def nearest_safe_m(world: World, safe_map: np.ndarray, x_m: float, y_m: float, within_m: float) -> float | None:
+    """Distance from the point to the nearest pixel of `safe_map` (from `disk_safe_map`) that is
+    1, looking no farther than `within_m` (None: none that close)."""
+    rows, cols = _pixel_window(world, x_m, y_m, within_m)
+    r0, r1 = max(int(rows[0]), 0), min(int(rows[-1]) + 1, world.height_px)
+    c0, c1 = max(int(cols[0]), 0), min(int(cols[-1]) + 1, world.width_px)
+    if r1 <= r0 or c1 <= c0:
+        return None
+    r_idx, c_idx = np.nonzero(safe_map[r0:r1, c0:c1])
+    if r_idx.size == 0:
+        return None
+    px, py = world.pixel_to_world(r_idx + r0, c_idx + c0)
+    best = float(np.sqrt(((px - x_m) ** 2 + (py - y_m) ** 2).min()))
+    return best if best <= within_m else None
 
 
 class EpisodeJudge:

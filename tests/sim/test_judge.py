@@ -149,3 +149,25 @@ def test_unsafe_handover() -> None:
     x_m, y_m = centre_of(world, 100, 150)
     assert judge.check(Pose(x_m, y_m, 19.0)) == "unsafe"
     assert judge.verdict.classes[0].name == "road"
+
+
+def test_nearest_safe_ground_is_where_the_judge_would_say_safe() -> None:
+    from dovesei.sim.judge import disk_safe_map, nearest_safe_m  # noqa: PLC0415 - only here
+
+    labels = np.full((400, 400), ROAD, np.uint8)  # 100 m of road ...
+    labels[100:140, 240:280] = GRASS  # ... with a 10 m lawn
+    labels[118, 258] = PERSON  # and somebody on it, near its middle
+    world = world_of(labels)
+    safe = disk_safe_map(world)
+    # Every pixel it calls safe, the judge calls safe, and the person's surroundings are not.
+    rows, cols = np.nonzero(safe)
+    assert rows.size > 0
+    for r, c in zip(rows[::97], cols[::97]):
+        assert judge_landing(world, *centre_of(world, int(r), int(c))).outcome == "safe"
+    assert judge_landing(world, *centre_of(world, 118, 256)).outcome == "unsafe" and not safe[118, 256]
+    # From the west edge of the map, level with the lawn's north edge: the lawn's 2 m disks begin
+    # 2 m inside its west edge (x = 60 m + 2 m), 2 m south of its north edge.
+    x_m, y_m = centre_of(world, 100, 0)
+    d = nearest_safe_m(world, safe, x_m, y_m, 100.0)
+    assert d == pytest.approx(math.hypot(62.0 - x_m, 2.0), abs=0.3)
+    assert nearest_safe_m(world, safe, x_m, y_m, 30.0) is None  # not that close
