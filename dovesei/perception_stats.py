@@ -229,4 +229,4 @@ if __name__ == "__main__":
     sys.exit(main())
 
 
-__all__ = ["WorldStats", "default_worlds", "disk_safe_map", "suite_stats", "world_stats"]
+__all__ = ["WorldStats", "default_worlds", "suite_stats", "world_stats"]

@@ -63,19 +63,24 @@ def _world(spec: str):
     return _WORLDS[spec]
 
 
-_SAFE_MAPS: dict = {}
+_SAFE_MAPS: dict = {}  # world spec -> the judge's disk-safe map
+_NEAREST: dict = {}  # (world spec, start) -> nearest_safe_m: every policy flies the same start
 NEAREST_SAFE_WITHIN_M = 500.0  # how far a record's nearest_safe_m looks
 
 
-def _nearest_safe_m(spec: str, world, start: Start) -> float | None:
+def _nearest_safe_m(spec: str, start: Start) -> float | None:
     """The judge's side: how far from the start the nearest ground a landing there would be
     judged safe on lies (None: none within NEAREST_SAFE_WITHIN_M, or a world without labels)."""
-    if world.labels is None:
-        return None
-    if spec not in _SAFE_MAPS:
-        _SAFE_MAPS[spec] = disk_safe_map(world)
-    d = nearest_safe_m(world, _SAFE_MAPS[spec], start.x_m, start.y_m, NEAREST_SAFE_WITHIN_M)
-    return None if d is None else round(d, 1)
+    key = (spec, start)
+    if key not in _NEAREST:
+        world = _world(spec)
+        if world.labels is None:
+            return None
+        if spec not in _SAFE_MAPS:
+            _SAFE_MAPS[spec] = disk_safe_map(world)
+        d = nearest_safe_m(world, _SAFE_MAPS[spec], start.x_m, start.y_m, NEAREST_SAFE_WITHIN_M)
+        _NEAREST[key] = None if d is None else round(d, 1)
+    return _NEAREST[key]
 
 
 def run_job(job: dict) -> dict:
@@ -89,13 +94,18 @@ def run_job(job: dict) -> dict:
         log.exception("episode %s/%s/%d failed", job["world"], job["policy"], job["index"])
         return {**record_base(job), "outcome": "error", "sim_time_s": 0.0, "path_length_m": 0.0,
                 "wall_time_s": round(time.perf_counter() - t0, 3), "detail": f"{type(exc).__name__}: {exc}"}
+    try:
+        nearest = _nearest_safe_m(job["world"], spec.start)
+    except Exception:  # noqa: BLE001 - a figure for the report: the episode's record stands without it
+        log.exception("nearest safe ground for %s/%d not measured", job["world"], job["index"])
+        nearest = None
     r = rec.result
     track = rec.track
     # How far the vehicle truly got from its start (the judge's view; the policy never sees it).
     max_range_m = float(np.max(np.hypot(track[:, 1] - spec.start.x_m, track[:, 2] - spec.start.y_m))) \
         if len(track) else 0.0
     return {**record_base(job), "outcome": r.outcome, "max_range_m": round(max_range_m, 1),
-            "nearest_safe_m": _nearest_safe_m(job["world"], _world(job["world"]), spec.start),
+            "nearest_safe_m": nearest,
             # The controller's own last word: a timeout that is a deliberate hold reads NO_SPOT here.
             "final_state": rec.states[-1] if rec.states else "", "sim_time_s": round(r.sim_time_s, 3),
             "path_length_m": round(r.path_length_m, 3), "wall_time_s": round(rec.wall_time_s, 3),

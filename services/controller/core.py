@@ -7,7 +7,9 @@ Data flow per tick:
 
     on_heatmap(hm, recv_wall_s) --> buffer (lockstep: kept by seq until due; real time: newest)
                                           |
-    tick(state) --> adopt the due / newest heatmap --> Policy.step(Observation) once per heatmap
+    tick(state) --> the state's velocity estimate into a short track (odometry.VelocityTrack)
+                --> adopt the due / newest heatmap --> Policy.step(Observation) once per heatmap,
+                    with the track's displacement since the previous heatmap's capture
                 --> watchdog on the DATA clock (state time - adopted heatmap's stamp)
                 --> VelocityCommand (every tick) + ControllerStatus (every tick)
 
@@ -465,9 +467,12 @@ class ControllerCore:
         try:
             decision = self.policy.step(obs)
         except PolicyInputError as exc:
+            # Refused before the policy took anything from it: the next displacement still counts
+            # from the heatmap before.
             self._refuse("policy refused", "policy refused heatmap %d: %s", hm.seq, exc)
             return
         except Exception as exc:  # noqa: BLE001 - caught once here: a policy bug must end in a hold
+            self._last_capture_t_s = None  # how much of it the policy took is unknown
             self.policy_errors += 1
             self._policy_fault = f"policy raised {type(exc).__name__} on heatmap {hm.seq}: {exc}"
             self._refuse("policy error", "%s (holding)", self._policy_fault, level=logging.ERROR)
@@ -475,6 +480,9 @@ class ControllerCore:
                 log.error("first policy error, with its traceback", exc_info=True)
             self._decision = None
             return
+        # The policy has taken this heatmap (even if its decision is refused below): the next
+        # displacement counts from it, or it would be dead-reckoned twice.
+        self._last_capture_t_s = hm.stamp.t_s
         speeds = (*decision.vel_body_frd_m_s, decision.yaw_rate_rad_s)
         if not all(math.isfinite(v) and abs(v) <= MAX_POLICY_SPEED for v in speeds):
             # Sent as it is, the command fails its own field check and the exception ends the
@@ -485,7 +493,6 @@ class ControllerCore:
             self._decision = None
             return
         self._policy_fault = None
-        self._last_capture_t_s = hm.stamp.t_s
         policy_s = time.perf_counter() - start
         # Transport latency only means something when the sender stamped its wall time.
         to_controller_s = recv_wall_s - hm.sent_wall_s if hm.sent_wall_s > 0.0 else 0.0

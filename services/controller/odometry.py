@@ -21,7 +21,8 @@ displacement is never invented across it.
 from __future__ import annotations
 
 import bisect
-import math
+
+from dovesei.controller.frames import to_ne
 
 
 class VelocityTrack:
@@ -38,11 +39,10 @@ class VelocityTrack:
         self._v: tuple[float, float] = (0.0, 0.0)  # the newest north/east velocity
 
     def add(self, t_s: float, vel_body_frd_m_s: tuple[float, float, float], yaw_rad: float) -> None:
-        """One vehicle state (its stamp, velocity estimate and heading); stamps must not repeat
-        backwards: an older or equal stamp is ignored, a backwards jump restarts the track."""
-        c, s = math.cos(yaw_rad), math.sin(yaw_rad)
-        fwd, right = vel_body_frd_m_s[0], vel_body_frd_m_s[1]
-        vn, ve = fwd * c - right * s, fwd * s + right * c
+        """One vehicle state (its stamp, velocity estimate and heading). The same stamp again is
+        ignored; an older one (time went back) or one after a gap of more than `max_gap_s`
+        restarts the track."""
+        vn, ve = to_ne(vel_body_frd_m_s[0], vel_body_frd_m_s[1], yaw_rad)
         if self._t:
             dt = t_s - self._t[-1]
             if dt == 0.0:

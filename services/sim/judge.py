@@ -36,6 +36,9 @@ from dovesei.sim.world import World
 
 OUTSIDE_WORLD_NAME = "outside the world"
 DEFAULT_ZERO_TOLERANCE_NAMES = ("person", "people", "pedestrian", "human")
+SAFETY_RADIUS_M = 2.0  # the landing disk the paper's criterion looks at
+TOLERANCE_FRAC = 0.01  # unsafe share of the disk forgiven (label anti-aliasing along edges)
+SEARCH_RADIUS_M = 50.0  # how far `closest_unsafe_m` looks
 
 
 class JudgeError(DoveseiError, ValueError):
@@ -73,9 +76,9 @@ def judge_landing(
     world: World,
     x_m: float,
     y_m: float,
-    safety_radius_m: float = 2.0,
-    tolerance_frac: float = 0.01,
-    search_radius_m: float = 50.0,
+    safety_radius_m: float = SAFETY_RADIUS_M,
+    tolerance_frac: float = TOLERANCE_FRAC,
+    search_radius_m: float = SEARCH_RADIUS_M,
     zero_tolerance_names: tuple[str, ...] = DEFAULT_ZERO_TOLERANCE_NAMES,
 ) -> Verdict:
     """Judge a landing at world point (x_m, y_m) from the world's label map."""
@@ -96,13 +99,13 @@ def judge_landing(
     unsafe_px = n_outside + int(counts[~world.safe_lut].sum())
     found: list[ClassFraction] = []
     critical: list[str] = []
+    never = _zero_tolerance_ids(world, zero_tolerance_names)
     for cid in np.flatnonzero(counts):
         info = world.classes.get(int(cid))
         name = info.name if info is not None else f"unknown id {int(cid)}"
         safe = bool(world.safe_lut[cid])
         found.append(ClassFraction(name, float(counts[cid] / n), safe))
-        # Matched by name: the world says what is unsafe, the judge only says what is never forgiven.
-        if not safe and any(word in name.lower() for word in zero_tolerance_names):
+        if int(cid) in never:
             critical.append(name)
     if n_outside:
         found.append(ClassFraction(OUTSIDE_WORLD_NAME, n_outside / n, False))
@@ -120,6 +123,12 @@ def judge_landing(
         disk_px=n, unsafe_frac=float(unsafe_frac), classes=tuple(found),
         closest_unsafe_m=closest_unsafe_m(world, x_m, y_m, search_radius_m), reason=reason,
     )
+
+
+def _zero_tolerance_ids(world: World, names: tuple[str, ...]) -> set[int]:
+    """The unsafe classes never forgiven in a disk, matched by name: the world says what is
+    unsafe, the judge only says what is never forgiven."""
+    return {cid for cid, c in world.classes.items() if not c.safe and any(w in c.name.lower() for w in names)}
 
 
 def _pixel_window(world: World, x_m: float, y_m: float, radius_m: float) -> tuple[np.ndarray, np.ndarray]:
@@ -148,30 +157,34 @@ def _disk_labels(world: World, x_m: float, y_m: float, radius_m: float) -> tuple
     return ids, inside
 
 
-def closest_unsafe_m(world: World, x_m: float, y_m: float, search_radius_m: float = 50.0) -> float | None:
+def _nearest_m(world: World, select, x_m: float, y_m: float, radius_m: float) -> float | None:
+    """Distance from the point to the nearest pixel centre that `select(rows, cols)` (slices of
+    the image) marks True, within radius_m (None: none that close)."""
+    rows, cols = _pixel_window(world, x_m, y_m, radius_m)
+    r0, r1 = max(int(rows[0]), 0), min(int(rows[-1]) + 1, world.height_px)
+    c0, c1 = max(int(cols[0]), 0), min(int(cols[-1]) + 1, world.width_px)
+    if r1 <= r0 or c1 <= c0:
+        return None
+    r_idx, c_idx = np.nonzero(select(slice(r0, r1), slice(c0, c1)))
+    if r_idx.size == 0:
+        return None
+    px, py = world.pixel_to_world(r_idx + r0, c_idx + c0)
+    best = float(np.sqrt(((px - x_m) ** 2 + (py - y_m) ** 2).min()))
+    # The window is a square: its corners reach beyond the radius.
+    return best if best <= radius_m else None
+
+
+def closest_unsafe_m(world: World, x_m: float, y_m: float, search_radius_m: float = SEARCH_RADIUS_M) -> float | None:
     """Distance from the point to the nearest unsafe pixel centre within the radius (None if none).
 
     Only labelled pixels count: the world's edge is not an obstacle here.
     """
     if world.labels is None:
         raise JudgeError(f"world {world.name!r} has no label map")
-    rows, cols = _pixel_window(world, x_m, y_m, search_radius_m)
-    rows = rows[(rows >= 0) & (rows < world.height_px)]
-    cols = cols[(cols >= 0) & (cols < world.width_px)]
-    if rows.size == 0 or cols.size == 0:
-        return None
-    unsafe = ~world.safe_lut[world.labels[rows[0]: rows[-1] + 1, cols[0]: cols[-1] + 1]]
-    r_idx, c_idx = np.nonzero(unsafe)
-    if r_idx.size == 0:
-        return None
-    px, py = world.pixel_to_world(rows[r_idx], cols[c_idx])
-    d2 = (px - x_m) ** 2 + (py - y_m) ** 2
-    best = float(np.sqrt(d2.min()))
-    # The window is a square: its corners reach beyond the search radius.
-    return best if best <= search_radius_m else None
+    return _nearest_m(world, lambda rs, cs: ~world.safe_lut[world.labels[rs, cs]], x_m, y_m, search_radius_m)
 
 
-def disk_safe_map(world: World, radius_m: float = 2.0, tolerance_frac: float = 0.01,
+def disk_safe_map(world: World, radius_m: float = SAFETY_RADIUS_M, tolerance_frac: float = TOLERANCE_FRAC,
                   zero_tolerance_names: tuple[str, ...] = DEFAULT_ZERO_TOLERANCE_NAMES) -> np.ndarray:
     """uint8 map over the world: 1 where `judge_landing` would say "safe" at the pixel's centre.
 
@@ -192,28 +205,26 @@ def disk_safe_map(world: World, radius_m: float = 2.0, tolerance_frac: float = 0
     # disk that hangs outside.
     outside = 1.0 - cv2.filter2D(np.ones_like(unsafe), -1, disk, borderType=cv2.BORDER_CONSTANT)
     ok = (unsafe_frac + outside) <= tolerance_frac + 1e-6
-    people = [cid for cid, c in world.classes.items()
-              if not c.safe and any(w in c.name.lower() for w in zero_tolerance_names)]
-    if people:
-        person = np.isin(world.labels, people).astype(np.uint8)
+    never = sorted(_zero_tolerance_ids(world, zero_tolerance_names))
+    if never:
+        person = np.isin(world.labels, never).astype(np.uint8)
         ok &= cv2.dilate(person, (disk > 0).astype(np.uint8), borderType=cv2.BORDER_CONSTANT) == 0
     return ok.astype(np.uint8)
 
 
 def nearest_safe_m(world: World, safe_map: np.ndarray, x_m: float, y_m: float, within_m: float) -> float | None:
     """Distance from the point to the nearest pixel of `safe_map` (from `disk_safe_map`) that is
-    1, looking no farther than `within_m` (None: none that close)."""
-    rows, cols = _pixel_window(world, x_m, y_m, within_m)
-    r0, r1 = max(int(rows[0]), 0), min(int(rows[-1]) + 1, world.height_px)
-    c0, c1 = max(int(cols[0]), 0), min(int(cols[-1]) + 1, world.width_px)
-    if r1 <= r0 or c1 <= c0:
-        return None
-    r_idx, c_idx = np.nonzero(safe_map[r0:r1, c0:c1])
-    if r_idx.size == 0:
-        return None
-    px, py = world.pixel_to_world(r_idx + r0, c_idx + c0)
-    best = float(np.sqrt(((px - x_m) ** 2 + (py - y_m) ** 2).min()))
-    return best if best <= within_m else None
+    1, looking no farther than `within_m` (None: none that close).
+
+    Squares of growing size around the point, so the usual answer (safe ground a few metres away)
+    never lists the millions of safe pixels of a wide window.
+    """
+    radius = min(25.0, within_m)
+    while True:
+        found = _nearest_m(world, lambda rs, cs: safe_map[rs, cs], x_m, y_m, radius)
+        if found is not None or radius >= within_m:
+            return found
+        radius = min(4.0 * radius, within_m)
 
 
 class EpisodeJudge:
@@ -224,9 +235,9 @@ class EpisodeJudge:
         world: World,
         handover_alt_m: float = 20.0,
         time_limit_s: float = 1200.0,
-        safety_radius_m: float = 2.0,
-        tolerance_frac: float = 0.01,
-        search_radius_m: float = 50.0,
+        safety_radius_m: float = SAFETY_RADIUS_M,
+        tolerance_frac: float = TOLERANCE_FRAC,
+        search_radius_m: float = SEARCH_RADIUS_M,
     ) -> None:
         # A world without labels (tiles, paper-paris) is flown to the hand-over altitude, the time
         # limit or its edge like any other, but its landings end "not_judged": nothing says safe.

@@ -140,7 +140,7 @@ def test_a_waypoint_beyond_a_shrunk_fence_is_flown_to_its_edge_and_passed() -> N
     route = search_route(((100.0, 100.0, 140.0),))  # its first point: 100 m north
     mem = dataclasses.replace(Memory(), phase=Phase.SEARCH)
     base = dict(t_s=1.0, alt_agl_m=100.0, yaw_rad=0.0, fresh=True, gap=False, search_alt_m=100.0, route=route,
-                best=None, check=None)
+                best=None, check=None, hfov_rad=math.radians(73.0))
     # Under the full fence the vehicle at 55 m north still has 45 m to go ...
     mem1, vel = step(mem, Inputs(north_m=55.0, east_m=0.0, **base), CFG)
     assert mem1.waypoint == 0 and vel[0] > 0.0

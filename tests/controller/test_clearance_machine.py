@@ -25,7 +25,7 @@ def spot(n: float = 20.0, e: float = 0.0, score: float = 1.5) -> Spot:
 def inp(t: float, *, alt: float = 100.0, n: float = 0.0, e: float = 0.0, fresh: bool = True, gap: bool = False,
         best: Spot | None = None, check: Spot | None = None, candidate: Spot | None = None) -> Inputs:
     return Inputs(t_s=t, alt_agl_m=alt, north_m=n, east_m=e, yaw_rad=0.0, fresh=fresh, gap=gap, search_alt_m=100.0,
-                  route=ROUTE, best=best, check=check, candidate=candidate)
+                  route=ROUTE, best=best, check=check, hfov_rad=math.radians(73.0), candidate=candidate)
 
 
 def at(phase: Phase, **kw: object) -> Memory:
@@ -94,23 +94,38 @@ def test_a_probe_flies_over_promising_ground_looks_from_low_down_and_remembers_i
 
 def test_a_less_promising_area_waits_until_the_top_pass_is_flown() -> None:
     route = search_route(((100.0, SPACING_M, CFG.fence_m), (60.0, SPACING_M, CFG.fence_m)))
-    area = dataclasses.replace(spot(120.0, 0.0), p_safe=0.75, clearance_m=0.0)
-    top = dataclasses.replace(inp(1.0, candidate=area), route=route, passes=2)
+    area = dataclasses.replace(spot(120.0, 0.0), p_safe=0.79, clearance_m=0.0)
+    top = dataclasses.replace(inp(1.0, candidate=area), route=route, passes=2, top_pass_end=len(WAYPOINTS))
     mem, _ = step(at(Phase.SEARCH, waypoint=3), top, CFG)
     assert mem.phase is Phase.SEARCH  # during the top pass: the route goes on
     mem, _ = step(at(Phase.SEARCH, waypoint=len(WAYPOINTS) + 1), dataclasses.replace(top, alt_agl_m=60.0), CFG)
     assert mem.phase is Phase.PROBE and mem.probe == area
 
 
-def test_probes_time_out_and_stop_after_their_maximum() -> None:
-    area = dataclasses.replace(spot(60.0, 0.0), p_safe=0.75)
+def test_probes_time_out_and_stop_after_their_maximum_or_the_search_time() -> None:
+    area = dataclasses.replace(spot(60.0, 0.0), p_safe=0.85)
     mem, _ = step(at(Phase.PROBE, probe=area, since_s=0.0), inp(CFG.probe_timeout_s + 1.0), CFG)
     assert mem.phase is Phase.SEARCH and mem.probed == ((60.0, 0.0),) and "took over" in mem.reason
-    full = at(Phase.SEARCH, probed=((1.0, 1.0),) * CFG.probe_max)
-    mem, _ = step(full, inp(1.0, candidate=area), CFG)
-    assert mem.phase is Phase.SEARCH  # no more probes: the route goes on
+    # One probe short of the maximum it still probes; at the maximum the route goes on.
+    mem, _ = step(at(Phase.SEARCH, probed=((1.0, 1.0),) * (CFG.probe_max - 1)), inp(1.0, candidate=area), CFG)
+    assert mem.phase is Phase.PROBE
+    mem, _ = step(at(Phase.SEARCH, probed=((1.0, 1.0),) * CFG.probe_max), inp(1.0, candidate=area), CFG)
+    assert mem.phase is Phase.SEARCH
+    # After the search's time: no new probe, and one under way ends (then "no safe spot found").
     mem, _ = step(at(Phase.SEARCH), inp(CFG.no_spot_after_s + 1.0, candidate=area), CFG)
-    assert mem.phase is Phase.NO_SPOT  # nor after the search's time is up
+    assert mem.phase is Phase.NO_SPOT
+    late = CFG.no_spot_after_s + 1.0
+    mem, _ = step(at(Phase.PROBE, probe=area, since_s=late - 5.0), inp(late), CFG)
+    assert mem.phase is Phase.SEARCH and "are up" in mem.reason and mem.probed == ((60.0, 0.0),)
+
+
+def test_a_gap_during_a_probe_drops_it_uncounted() -> None:
+    area = dataclasses.replace(spot(60.0, 0.0), p_safe=0.85)
+    mem, _ = step(at(Phase.PROBE, probe=area), inp(1.0, gap=True), CFG)
+    assert mem.phase is Phase.GAP_HOLD
+    for i in range(CFG.gap_recover_frames):
+        mem, _ = step(mem, inp(2.0 + i), CFG)
+    assert mem.phase is Phase.SEARCH and mem.probe is None and mem.probed == ()
 
 
 def test_search_route_flies_each_pass_at_its_altitude_in_order() -> None:
@@ -122,7 +137,7 @@ def test_search_route_flies_each_pass_at_its_altitude_in_order() -> None:
         assert legs[-1] == (0.0, 0.0) and all(math.hypot(n, e) <= radius for n, e in legs)
 
 
-def test_each_search_pass_flies_lower_and_an_abort_restarts_at_the_top() -> None:
+def test_each_search_pass_flies_lower_and_an_abort_resumes_the_route() -> None:
     passes = ((100.0, SPACING_M, CFG.fence_m), (60.0, SPACING_M, CFG.fence_m), (40.0, SPACING_M, CFG.fence_m),
               (40.0, SPACING_M, CFG.fence_m))
     lower = dataclasses.replace(inp(0.0), route=search_route(passes), passes=len(passes))
@@ -138,8 +153,9 @@ def test_each_search_pass_flies_lower_and_an_abort_restarts_at_the_top() -> None
     # Passes: top, 60 m, 40 m, 40 m again; then NO_SPOT.
     mem, _ = step(at(Phase.SEARCH, waypoint=len(passes) * len(WAYPOINTS)), lower, CFG)
     assert mem.phase is Phase.NO_SPOT and f"{len(passes)} search passes" in mem.reason
+    # An abort climbs back to the search altitude, and the route goes on where it was left.
     mem, _ = step(at(Phase.ABORT, waypoint=2 * len(WAYPOINTS)), inp(1.0, alt=99.0), CFG)
-    assert mem.phase is Phase.SEARCH and mem.waypoint == 0
+    assert mem.phase is Phase.SEARCH and mem.waypoint == 2 * len(WAYPOINTS)
 
 
 def test_approach_locks_with_hysteresis_and_descends() -> None:

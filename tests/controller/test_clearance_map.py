@@ -9,7 +9,7 @@ import pytest
 
 from dovesei.controller.policies.clearance_config import ClearanceConfig
 from dovesei.controller.policies.clearance_map import (GroundMap, clearance_at, emphasise_dips, find_candidate,
-                                                      find_spot, footprint_width_m, look_weight)
+                                                      find_spot, footprint_width_m, look_weight, promise)
 
 HFOV = math.radians(73.0)
 CFG = ClearanceConfig()
@@ -125,31 +125,41 @@ def test_unknown_ground_is_never_a_spot() -> None:
 
 
 def test_a_promising_area_is_a_candidate_until_probed_and_a_poor_one_never() -> None:
-    # From 100 m: a band reading 0.78 (a lawn smeared by the token grid: below the spot test,
-    # above the probe threshold) 40 m east, and a 0.6 band 40 m west.
+    # From 100 m: a band reading 0.82 (a lawn smeared by the token grid: below the spot test,
+    # above the probe threshold) 40 m east, and a 0.7 band 40 m west.
     gmap = GroundMap(CFG)
     gmap.follow(100.0, 0.0, 0.0)
     width_m = footprint_width_m(100.0, HFOV)
     cols = (np.arange(352) - 175.5) * width_m / 352
     prob = np.full(352, 0.1, np.float32)
-    prob[np.abs(cols - 40.0) <= 8.0] = 0.78
-    prob[np.abs(cols + 40.0) <= 8.0] = 0.6
+    prob[np.abs(cols - 40.0) <= 8.0] = 0.82
+    prob[np.abs(cols + 40.0) <= 8.0] = 0.7
     _fuse(gmap, np.tile(prob, (352, 1)), alt=100.0, times=3)
     clear = gmap.clearance_m()
     assert find_spot(gmap, clear, CFG, north_m=0.0, east_m=0.0, blacklist=()) is None
-    cand = find_candidate(gmap, CFG, north_m=0.0, east_m=0.0, skip=(), fence_m=CFG.fence_m, within_m=200.0)
+    around = promise(gmap, CFG, 0.0, 0.0, 150.0)
+
+    def candidate(skip=(), fence_m=CFG.fence_m, within_m=200.0, p=around):
+        return find_candidate(gmap, p, CFG, north_m=0.0, east_m=0.0, skip=skip, fence_m=fence_m, within_m=within_m)
+
+    cand = candidate()
     assert cand is not None and abs(cand.east_m - 40.0) <= 4.0
-    assert 0.7 <= cand.p_safe <= 0.8 and cand.distance_m == pytest.approx(math.hypot(cand.north_m, cand.east_m))
+    assert CFG.probe_p_min <= cand.p_safe <= 0.82 + 1e-6 and cand.distance_m == pytest.approx(math.hypot(cand.north_m, cand.east_m))
     # The nearest part of the band is preferred (the band runs north-south through the view).
     assert abs(cand.north_m) <= 2.0
     # Once probed, the band near that point is skipped; far along it, it is a candidate again.
-    again = find_candidate(gmap, CFG, north_m=0.0, east_m=0.0, skip=((cand.north_m, cand.east_m),),
-                           fence_m=CFG.fence_m, within_m=200.0)
+    again = candidate(skip=((cand.north_m, cand.east_m),))
     assert again is not None and math.hypot(again.north_m - cand.north_m, again.east_m - cand.east_m) > CFG.probe_skip_m
-    assert abs(again.east_m - 40.0) <= 4.0  # never the 0.6 band
-    # Out of reach or beyond the fence: none.
-    assert find_candidate(gmap, CFG, north_m=0.0, east_m=0.0, skip=(), fence_m=CFG.fence_m, within_m=20.0) is None
-    assert find_candidate(gmap, CFG, north_m=0.0, east_m=0.0, skip=(), fence_m=30.0, within_m=200.0) is None
+    assert abs(again.east_m - 40.0) <= 4.0  # never the 0.7 band
+    # Out of reach, beyond the fence, or outside the window the promise was read over: none.
+    assert candidate(within_m=20.0) is None
+    assert candidate(fence_m=30.0) is None
+    assert candidate(p=promise(gmap, CFG, 0.0, -40.0, 20.0)) is None
+    # The window's edge does not lower the promise: read over a small window round the band, a
+    # cell reads as it does over a wide one.
+    small = promise(gmap, CFG, 0.0, 40.0, 6.0)
+    r, c = (int(round(v)) for v in gmap.cell_of(0.0, 40.0))
+    assert small.disk[r - small.r0, c - small.c0] == pytest.approx(around.disk[r - around.r0, c - around.c0])
 
 
 LAWN = CFG.p_safe_min + 0.05
@@ -194,33 +204,46 @@ def test_low_looks_outweigh_high_ones_by_the_token_area() -> None:
 
 
 def test_a_mask_lands_on_another_grid_where_its_ground_is() -> None:
-    # A coarse map (1 m cells) and a fine one (0.25 m) centred elsewhere: a 10 m square marked on
-    # the coarse grid covers the same ground on the fine one.
+    # A coarse map (1 m cells) and a fine one (0.25 m) centred elsewhere: a 10 x 10 cell square
+    # marked on the coarse grid covers the same ground on the fine one.
     coarse, fine = GroundMap(CFG), GroundMap(CFG)
     coarse.follow(100.0, 0.0, 0.0)
     fine.follow(20.0, 12.0, -7.0)
     assert (coarse.cell_m, fine.cell_m) == (1.0, 0.25)
     mask = np.zeros((coarse.n, coarse.n), np.uint8)
-    r0, c0 = (int(round(v)) for v in coarse.cell_of(20.0, -10.0))  # north-west corner of the square
+    r0, c0 = (int(round(v)) for v in coarse.cell_of(20.0, -10.0))
     mask[r0:r0 + 10, c0:c0 + 10] = 1
+    # The square's ground: from the north-west cell's outer edges to the south-east cell's.
+    north_max, west = (v + d for v, d in zip(coarse.point_of(r0, c0), (0.5, -0.5)))
+    north_min, east_max = (v + d for v, d in zip(coarse.point_of(r0 + 9, c0 + 9), (-0.5, 0.5)))
     onto = coarse.mask_onto(mask, fine)
     rows, cols = np.nonzero(onto)
     north, east = fine.point_of(rows, cols)
-    assert north.max() == pytest.approx(20.0 + 0.375, abs=0.13) and north.min() == pytest.approx(11.0 - 0.375, abs=0.13)
-    assert east.min() == pytest.approx(-10.0 - 0.375, abs=0.13) and east.max() == pytest.approx(-1.0 + 0.375, abs=0.13)
-    assert rows.size == pytest.approx(40 * 40, rel=0.1)
+    # Fine cells whose centres lie inside it: 0.125 m within its edges.
+    assert north.max() == pytest.approx(north_max - 0.125) and north.min() == pytest.approx(north_min + 0.125)
+    assert east.min() == pytest.approx(west + 0.125) and east.max() == pytest.approx(east_max - 0.125)
+    assert rows.size == 40 * 40
+    # The same mask given as a window of the map (its cell (0, 0) at the map's (r0, c0)) lands alike.
+    assert np.array_equal(coarse.mask_onto(mask[r0:r0 + 10, c0:c0 + 10].copy(), fine, r0, c0), onto)
 
 
-def test_a_rechecked_target_stays_put_while_it_qualifies_and_moves_when_it_fails() -> None:
+def test_a_rechecked_target_stays_put_while_it_has_its_clearance_and_moves_when_it_lacks_it() -> None:
     lawn = _built_mask_map(16.0)
     clear = lawn.clearance_m()
     need = CFG.required_clearance_m
-    # 2 m east of the lawn's centre line still has 6 m of clearance: the target stays there,
-    # even with the vehicle 3 m off to the west (the nearest qualifying cell would be west of it).
-    kept = find_spot(lawn, clear, CFG, north_m=0.0, east_m=-3.0, blacklist=(), near=(0.0, 2.0),
-                     within_m=CFG.refine_radius_m)
+    hyst = need * CFG.recheck_hysteresis
+
+    def recheck(east_m: float, vehicle_east_m: float = 0.0):
+        return find_spot(lawn, clear, CFG, north_m=0.0, east_m=vehicle_east_m, blacklist=(), near=(0.0, east_m),
+                         within_m=CFG.refine_radius_m, need_m=hyst)
+
+    # 2 m east of the lawn's centre line has 6 m of clearance: the target stays there, even with
+    # the vehicle 3 m off to the west (the nearest qualifying cell would be west of it).
+    kept = recheck(2.0, vehicle_east_m=-3.0)
     assert kept is not None and abs(kept.east_m - 2.0) <= lawn.cell_m and abs(kept.north_m) <= lawn.cell_m
+    # 5 m east has ~3 m: enough to pass the re-check (hysteresis), not enough to stay: it moves in.
+    inner = recheck(5.0)
+    assert inner is not None and inner.east_m < 5.0 - 0.4 and inner.clearance_m >= need
     # 6.5 m east has only ~1.5 m: it moves inwards, to a cell with the clearance needed.
-    moved = find_spot(lawn, clear, CFG, north_m=0.0, east_m=0.0, blacklist=(), near=(0.0, 6.5),
-                      within_m=CFG.refine_radius_m)
+    moved = recheck(6.5)
     assert moved is not None and moved.east_m < 6.5 - 1.0 and moved.clearance_m >= need

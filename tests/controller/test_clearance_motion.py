@@ -149,10 +149,10 @@ def test_uncertainty_grows_with_distance_dead_reckoned() -> None:
 def test_an_anchor_fix_moves_the_estimate_once_and_teaches_no_bias() -> None:
     """The keyframe chain has drifted 5 m while an anchor of the ground below knows better; the
     vehicle creeps north at 0.2 m/s with an exact velocity estimate. The anchor fix pulls the
-    estimate back, and the keyframe is re-taken there: the fix moved the estimate, not the
-    vehicle. (A keyframe kept from before the fix read the jump as motion at every registration,
-    the anchor pulled back again, and the bias learner took the tug of war for a 2.6 m/s
-    velocity error: a hover held by vision then ran away at 0.7 m/s.)"""
+    estimate back, and the keyframe with it: the fix moved the estimate, not the vehicle. (A
+    keyframe left where it was read the jump as motion at every registration, the anchor pulled
+    back again, and the bias learner took the tug of war for a 2.6 m/s velocity error: a hover
+    held by vision then ran away at 0.7 m/s.)"""
     cfg = ClearanceConfig()
     ground = _ground(3)
     ego = EgoMotion(cfg)
@@ -167,15 +167,18 @@ def test_an_anchor_fix_moves_the_estimate_once_and_teaches_no_bias() -> None:
     ego.north_m += 5.0
     ego._key.cc = (ego._key.cc[0] + 5.0, ego._key.cc[1])
     ego.uncertainty_m = 20.0
-    fixed, errors, biases = False, [], []
+    key_north = ego._key.cc[0]
+    fixed, keys, errors, biases = False, 0, [], []
     for _ in range(60):  # 30 s
         n += 0.1
         ego.predict(0.5, (0.2, 0.0, 0.0), 0.0)
         step = ego.correct(_view(ground, n, 0.0, 40.0), 0.5, 40.0, HFOV, 0.0)
         fixed |= step.anchored
+        keys += step.new_keyframe
         errors.append(abs(ego.north_m - n))
         biases.append(math.hypot(ego.bias_n_m_s, ego.bias_e_m_s))
-    assert fixed
+    # The keyframe was never re-taken (the view hardly moved), yet it went back with the estimate.
+    assert fixed and keys == 0 and ego._key.cc[0] < key_north - 4.0
     assert errors[-1] < 1.5 and max(errors[30:]) < 1.5, errors
     assert max(biases) < 0.3, max(biases)
 

@@ -212,16 +212,16 @@ def test_perception_gap_without_heatmaps_at_all_holds_then_climbs() -> None:
     assert d.state == "ABORT" and d.vel_body_frd_m_s[2] < 0.0  # climbing (FRD: negative down)
 
 
-# The 12 m lawn of the odometry scenarios reads 0.82-0.84 after this harness's blur and noise, right
-# at the default threshold (set for the simulated CLIPSeg's lawns, ~0.86-0.89): these scenarios test
-# odometry, not the threshold, so they fly 0.8.
+# A 12 m lawn of this harness reads 0.82-0.84 after its blur and noise, right at the default
+# threshold (set for the simulated CLIPSeg's lawns, ~0.86-0.89): these scenarios test odometry, not
+# the threshold, so they fly 0.8, over a 14 m lawn (a 12 m one sat exactly on the clearance test).
 ODOMETRY_P_SAFE_MIN = 0.8
 
 
 def _odometry_flight(config: ClearanceConfig) -> tuple[World, Flight]:
     rng = np.random.default_rng(3)
     safe = _textured(rng)
-    _lawn(safe, 35.0, -50.0, 12.0)
+    _lawn(safe, 35.0, -50.0, 14.0)
     world = World(safe)
     # The estimate is biased (1.0, -0.8) m/s and noisy, and a wind it cannot see blows (0.5, 0.3).
     return world, fly(world, ClearancePolicy(config), bias_m_s=(1.0, -0.8), vel_noise_m_s=0.5,
@@ -274,8 +274,9 @@ def test_a_lawn_too_blurred_from_100_m_is_probed_and_landed_on() -> None:
     _lawn(safe, 50.0, -50.0, 10.0)
     world = World(safe)
     # This harness's unsafe ground reads 0.1 (the simulated CLIPSeg's 0.5-0.6), which drags the
-    # lawn's log-odds disk mean from 100 m down to 0.72: the confirmation gate is set below it.
-    cfg = ClearanceConfig(p_safe_min=ODOMETRY_P_SAFE_MIN, confirm_p_min=0.7)
+    # lawn's log-odds disk mean from 100 m down to 0.72: the probe and confirmation thresholds
+    # are set below it.
+    cfg = ClearanceConfig(p_safe_min=ODOMETRY_P_SAFE_MIN, confirm_p_min=0.7, probe_p_min=0.7, probe_now_p_min=0.7)
     flight = fly(world, ClearancePolicy(cfg), seed=4)
     assert flight.alt_m <= 20.0
     assert world.disk_safe(flight.north_m, flight.east_m, 2.0)
@@ -319,3 +320,19 @@ def test_ground_that_reads_safe_only_from_low_down_is_never_landed_on() -> None:
     # Without the confirmation from high up, the 40 m pass finds the trap and lands on it.
     world, flight = _trap_flight(cfg.replace(confirm_p_min=0.0))
     assert flight.alt_m <= 20.0 and not world.disk_safe(flight.north_m, flight.east_m, 2.0)
+
+
+def test_the_confirmation_map_remembers_the_whole_search_area() -> None:
+    """Looks from high up are kept wherever the search goes: flown 250 m east and then 250 m west
+    of the start at 100 m (the position from the velocity estimate alone: the heatmaps are
+    uniform, nothing to register), the ground seen at both ends is still known from high up."""
+    policy = ClearancePolicy()
+    prob = np.full((352, 352), 0.9, np.float32)
+    policy.step(Observation(t_s=0.0, alt_agl_m=100.0, prob_safe=prob, hfov_rad=HFOV))
+    for i, delta in enumerate([4.0] * 62 + [-4.0] * 125):
+        policy.step(Observation(t_s=0.5 * (i + 1), alt_agl_m=100.0, prob_safe=prob, hfov_rad=HFOV,
+                                vel_est_body_frd_m_s=(0.0, delta / 0.5, 0.0), odom_delta_ne_m=(0.0, delta)))
+    assert policy.motion.east_m == pytest.approx(4.0 * (62 - 125), abs=1e-6)
+    for e in (248.0, 0.0, -248.0):
+        p_safe, looks = policy.high.at(0.0, e)
+        assert looks > 0.0 and p_safe > 0.85, (e, p_safe, looks)

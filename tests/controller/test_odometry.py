@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -79,3 +80,25 @@ def test_the_policy_gets_the_estimate_integrated_between_capture_stamps_not_at_a
         # What velocity x dt at arrival would have said: the velocity 0.4 s late, not the mean over
         # the interval (0.25 s before its end): 0.65 m too much each time.
         assert o.vel_est_body_frd_m_s[0] * 0.5 - dn == pytest.approx(accel * (0.4 + 0.25) * 0.5, abs=1e-6)
+
+
+def test_a_decision_refused_after_the_policy_took_its_heatmap_still_moves_the_capture_stamp() -> None:
+    """The policy dead-reckoned the interval when it stepped; the next displacement must start
+    there even when the core refused the decision (too fast), or it is counted twice."""
+
+    class TooFast(RecordingPolicy):
+        def step(self, obs):
+            d = super().step(obs)
+            return d if len(self.observations) != 2 else dataclasses.replace(d, vel_body_frd_m_s=(500.0, 0.0, 0.0))
+
+    policy = TooFast()
+    core = ControllerCore(ControllerConfig(lockstep=True), policy=policy)
+    for k in range(31):  # 1.5 s at 1 m/s north; heatmaps every 0.5 s, due at once
+        t = round(0.05 * k, 9)
+        if k % 10 == 0:
+            core.on_heatmap(heatmap(k // 10, t), 0.0)
+        core.tick(VehicleState("uav1", k, Stamp(t, "sim"), 80.0, (1.0, 0.0, 0.0), await_frame_seq=k // 10 if k % 10 == 0 else -1))
+    assert core.policy_errors == 1  # the second decision was refused
+    deltas = [o.odom_delta_ne_m for o in policy.observations]
+    assert deltas[0] is None and len(deltas) == 4
+    assert all(d == pytest.approx((0.5, 0.0)) for d in deltas[1:])

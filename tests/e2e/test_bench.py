@@ -38,8 +38,9 @@ def test_results_contract_and_resume(tmp_path: Path) -> None:
         assert e["world"] == WORLD
         assert e["outcome"] in {"safe", "unsafe", "timeout", "out_of_world", "error"}
         assert set(e["start"]) == {"x_m", "y_m", "alt_m"} and e["start"]["alt_m"] == 100.0
-        # The judge's ceiling: how far the nearest ground judged safe lay from the start.
-        assert e["nearest_safe_m"] is None or 0.0 <= e["nearest_safe_m"] <= 500.0
+        # The judge's ceiling: how far the nearest ground judged safe lay from the start (the
+        # default synthetic city has lawns and plazas within a few hundred metres of anywhere).
+        assert e["nearest_safe_m"] is not None and 0.0 <= e["nearest_safe_m"] <= 500.0
     assert doc["episodes"][0]["nearest_safe_m"] == doc["episodes"][1]["nearest_safe_m"]  # the same start
     assert set(doc["summary"]) == {"dovesei", "dovesei-nofocus"}
     assert all(SUMMARY_KEYS <= set(s) and s["episodes"] == 1 for s in doc["summary"].values())

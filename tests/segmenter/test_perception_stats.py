@@ -1,4 +1,4 @@
-"""`dovesei perception-stats`: the judge's disk map, the statistics, and the command line."""
+"""`dovesei perception-stats`: the statistics and the command line."""
 
 from __future__ import annotations
 
@@ -9,46 +9,15 @@ import numpy as np
 import pytest
 
 from dovesei import perception_stats
-from dovesei.perception_stats import disk_safe_map, world_stats
+from dovesei.perception_stats import world_stats
 from dovesei.segmenter.sim_backend import profile_params
-from dovesei.sim.judge import judge_landing
 from dovesei.sim.world import ClassInfo, World
-
-
-def _blocks_world(flip: bool = False) -> World:
-    """600 x 600 m at 1 m/px: lawn blocks between roads, a flat-roof block, a pond, a few people."""
-    labels = np.full((600, 600), 2, np.uint8)  # road
-    for r in range(0, 600, 150):
-        for c in range(0, 600, 150):
-            labels[r + 12:r + 138, c + 12:c + 138] = 1  # lawn
-    labels[162:288, 312:438] = 3  # flat roof
-    labels[312:438, 162:288] = 4  # pond
-    labels[60, 60] = labels[400, 500] = 5  # people
-    classes = {1: ClassInfo("grass", True), 2: ClassInfo("road", False), 3: ClassInfo("roof_flat", False),
-               4: ClassInfo("water", False), 5: ClassInfo("person", False)}
-    if flip:
-        classes = {k: ClassInfo(v.name, not v.safe) for k, v in classes.items()}
-    image = np.zeros((600, 600, 3), np.uint8)
-    return World(image, labels, 1.0, classes, name="blocks-flipped" if flip else "blocks")
-
-
-def test_disk_safe_map_agrees_with_the_judge() -> None:
-    world = _blocks_world()
-    safe = disk_safe_map(world)
-    rng = np.random.default_rng(1)
-    # Pixel centres (the map holds one verdict per pixel), some next to class edges and people.
-    points = np.floor(rng.uniform(0.0, 600.0, (300, 2))) + 0.5
-    points = np.vstack([points, [[60.5, 539.5], [62.5, 539.5], [13.5, 300.5], [11.5, 300.5], [0.5, 0.5]]])
-    disagree = 0
-    for x_m, y_m in points:
-        row, col = world.pixel_index(x_m, y_m)
-        disagree += bool(safe[row, col]) != (judge_landing(world, float(x_m), float(y_m)).outcome == "safe")
-    assert disagree == 0
+from tests.sim.test_judge import blocks_world
 
 
 def test_statistics_are_in_range_and_the_judge_side_alone_reads_the_flags() -> None:
-    stats = world_stats(_blocks_world(), profile_params("realistic"), 6, 2, seed=3)
-    flipped = world_stats(_blocks_world(flip=True), profile_params("realistic"), 6, 2, seed=3)
+    stats = world_stats(blocks_world(), profile_params("realistic"), 6, 2, seed=3)
+    flipped = world_stats(blocks_world(flip=True), profile_params("realistic"), 6, 2, seed=3)
     assert stats.frames == 12 and 0.0 < stats.median_threshold < 0.85
     assert 0.0 <= stats.lowered_fraction <= 1.0 and 0.0 <= stats.frame_agreement <= 1.0
     # The perception is blind to the flags: same thresholds and masks; only the verdicts flip.
@@ -58,14 +27,14 @@ def test_statistics_are_in_range_and_the_judge_side_alone_reads_the_flags() -> N
 
 
 def test_clean_perception_targets_the_lawns_and_nears_the_oracle() -> None:
-    stats = world_stats(_blocks_world(), profile_params("clean"), 6, 2, seed=0)
+    stats = world_stats(blocks_world(), profile_params("clean"), 6, 2, seed=0)
     assert stats.target_precision > 0.9 and stats.core_precision == 1.0
     assert stats.oracle_precision > 0.9
     assert stats.target_precision > stats.oracle_precision - 0.05
 
 
 def test_command_line_json_and_bad_flags(tmp_path, capsys, monkeypatch) -> None:
-    monkeypatch.setattr(perception_stats, "load_world", lambda spec: _blocks_world())
+    monkeypatch.setattr(perception_stats, "load_world", lambda spec: blocks_world())
     assert perception_stats.main(["--world", "blocks", "--starts", "2", "--frames", "2", "--json"]) == 0
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     for key in ("median_threshold", "lowered_fraction", "target_precision", "frame_agreement"):
@@ -79,7 +48,7 @@ def test_command_line_json_and_bad_flags(tmp_path, capsys, monkeypatch) -> None:
 
 def test_below_floor_counts_views_with_under_a_tenth_of_disk_safe_ground() -> None:
     # The lawn blocks fill most of any 148 m view; a world of road with one 20 m lawn never does.
-    assert world_stats(_blocks_world(), profile_params("clean"), 4, 2, seed=0).below_floor_fraction == 0.0
+    assert world_stats(blocks_world(), profile_params("clean"), 4, 2, seed=0).below_floor_fraction == 0.0
     labels = np.full((600, 600), 2, np.uint8)
     labels[290:310, 290:310] = 1
     sparse = World(np.zeros((600, 600, 3), np.uint8), labels, 1.0,

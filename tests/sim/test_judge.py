@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from dovesei.sim.dynamics import Pose
-from dovesei.sim.judge import EpisodeJudge, JudgeError, closest_unsafe_m, judge_landing
+from dovesei.sim.judge import EpisodeJudge, JudgeError, closest_unsafe_m, disk_safe_map, judge_landing, nearest_safe_m
 from dovesei.sim.world import ClassInfo, World
 
 GRASS, ROAD, PERSON = 1, 2, 3
@@ -152,8 +152,6 @@ def test_unsafe_handover() -> None:
 
 
 def test_nearest_safe_ground_is_where_the_judge_would_say_safe() -> None:
-    from dovesei.sim.judge import disk_safe_map, nearest_safe_m  # noqa: PLC0415 - only here
-
     labels = np.full((400, 400), ROAD, np.uint8)  # 100 m of road ...
     labels[100:140, 240:280] = GRASS  # ... with a 10 m lawn
     labels[118, 258] = PERSON  # and somebody on it, near its middle
@@ -171,3 +169,34 @@ def test_nearest_safe_ground_is_where_the_judge_would_say_safe() -> None:
     d = nearest_safe_m(world, safe, x_m, y_m, 100.0)
     assert d == pytest.approx(math.hypot(62.0 - x_m, 2.0), abs=0.3)
     assert nearest_safe_m(world, safe, x_m, y_m, 30.0) is None  # not that close
+
+
+def blocks_world(flip: bool = False) -> World:
+    """600 x 600 m at 1 m/px: lawn blocks between roads, a flat-roof block, a pond, a few people."""
+    labels = np.full((600, 600), 2, np.uint8)  # road
+    for r in range(0, 600, 150):
+        for c in range(0, 600, 150):
+            labels[r + 12:r + 138, c + 12:c + 138] = 1  # lawn
+    labels[162:288, 312:438] = 3  # flat roof
+    labels[312:438, 162:288] = 4  # pond
+    labels[60, 60] = labels[400, 500] = 5  # people
+    classes = {1: ClassInfo("grass", True), 2: ClassInfo("road", False), 3: ClassInfo("roof_flat", False),
+               4: ClassInfo("water", False), 5: ClassInfo("person", False)}
+    if flip:
+        classes = {k: ClassInfo(v.name, not v.safe) for k, v in classes.items()}
+    image = np.zeros((600, 600, 3), np.uint8)
+    return World(image, labels, 1.0, classes, name="blocks-flipped" if flip else "blocks")
+
+
+def test_disk_safe_map_agrees_with_the_judge() -> None:
+    world = blocks_world()
+    safe = disk_safe_map(world)
+    rng = np.random.default_rng(1)
+    # Pixel centres (the map holds one verdict per pixel), some next to class edges and people.
+    points = np.floor(rng.uniform(0.0, 600.0, (300, 2))) + 0.5
+    points = np.vstack([points, [[60.5, 539.5], [62.5, 539.5], [13.5, 300.5], [11.5, 300.5], [0.5, 0.5]]])
+    disagree = 0
+    for x_m, y_m in points:
+        row, col = world.pixel_index(x_m, y_m)
+        disagree += bool(safe[row, col]) != (judge_landing(world, float(x_m), float(y_m)).outcome == "safe")
+    assert disagree == 0

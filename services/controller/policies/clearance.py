@@ -2,21 +2,27 @@
 
 Per heatmap, data flows one way:
 
-    Observation (P(safe), camera model, altitude + attitude at capture, velocity estimate, time)
-      -> EgoMotion   predict with the velocity estimate (+ commanded velocity, + learnt bias),
-                     correct by registering the heatmap against a keyframe    (clearance_motion)
+    Observation (P(safe), camera model, altitude + attitude at capture, velocity estimate and its
+                 displacement since the previous capture, time)
+      -> EgoMotion   predict with the estimate's displacement (+ learnt bias), correct by
+                     registering the heatmap against a keyframe and against anchors (clearance_motion)
       -> GroundMap   decay, follow the vehicle and the altitude's resolution, fuse the heatmap
                      in log-odds at the estimated pose                         (clearance_map)
+      -> high map    the looks from high up only, over the whole search area, never decayed:
+                     its promise (the log-odds mean over the clearance disk) confirms spots and
+                     plans probes                                              (clearance_map)
       -> spots       clearance = metric distance to the nearest unsafe/unknown cell; the best
-                     spot and the current target re-checked                    (clearance_map)
+                     confirmed spot, the current target re-checked, the most promising area
+                     worth a probe                                             (clearance_map)
       -> machine     one pure step: phase, target, reasons, velocity          (clearance_machine)
       -> Decision    body FRD velocity, state, target pixel, reason, info (spot, clearance,
-                     confidence, position estimate, bias, registration)
+                     confidence, position estimate, bias, registration, probes)
 
 Compared with `dovesei`: memory lives on the ground, not in the image (the drone's own motion is
-compensated); a spot's real size is checked in metres; the search is bounded and remembers
-rejected spots; an abort climbs back; a perception gap holds with the map frozen and never turns
-into a landing; dt is capped; time is true data-clock seconds under every timing preset.
+compensated); a spot's real size is checked in metres and confirmed by looks from another scale;
+the search is bounded, looks closer at promising ground and remembers rejected and probed areas;
+an abort climbs back; a perception gap holds with the map frozen and never turns into a landing;
+dt is capped; time is true data-clock seconds under every timing preset.
 Never reads a true position: the Observation has none.
 """
 
@@ -32,8 +38,9 @@ from dovesei.controller.policies.base import Decision, Observation, PolicyInputE
 from dovesei.controller.policies.clearance_config import ClearanceConfig, clearance_preset
 from dovesei.controller.policies.clearance_machine import TERMINAL, Inputs, Memory, Phase, search_route, step, toward
 from dovesei.controller.policies.clearance_map import (GroundMap, clearance_at, emphasise_dips, find_candidate,
-                                                      find_spot, footprint_width_m, look_weight, promising)
-from dovesei.controller.policies.clearance_motion import EgoMotion, MotionStep, tilt_offset_ne, to_body, to_ne
+                                                      find_spot, footprint_width_m, look_weight, promise)
+from dovesei.controller.frames import to_body, to_ne
+from dovesei.controller.policies.clearance_motion import EgoMotion, MotionStep, tilt_offset_ne
 
 log = logging.getLogger(__name__)
 
@@ -76,14 +83,15 @@ class ClearancePolicy:
 
     def reset(self) -> None:
         self.map = GroundMap(self.config)
-        # The looks from high up only, at the coarsest cell, never decayed: the confirmation gate
-        # and where probes are planned from.
+        # The looks from high up only: the confirmation gate and where probes are planned from.
+        # Sized to the whole search area on the first heatmap (see _plan).
         self.high = GroundMap(self.config)
         self.motion = EgoMotion(self.config)
         self.memory: Memory | None = None
         self._last_t_s: float | None = None  # last heatmap
         self._search_alt_m: float | None = None
         self._route: tuple[tuple[float, float, float], ...] = ()
+        self._top_pass_end = 0  # waypoints of the route's first (top) pass
         self._hold_ne: tuple[float, float] | None = None  # NO_SPOT's hold point, in the local frame
         self._passes = 0
         self._cmd: tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -102,12 +110,13 @@ class ClearancePolicy:
     def state(self) -> Phase:
         return self.memory.phase if self.memory is not None else Phase.WARMUP
 
-    def _plan(self, hfov_rad: float) -> tuple[tuple[tuple[float, float, float], ...], int]:
+    def _plan(self, hfov_rad: float) -> tuple[tuple[tuple[float, float, float], ...], int, int]:
         """The search route: a pass at the top search altitude, one at each lower level, the
         lowest flown `pattern_repeats` times. Each pass is an expanding square spaced by its own
         footprint; lower passes cover a radius shrinking as sqrt(altitude / top), so a pass
         takes about as long as the first (radius^2 / spacing is constant) and they stay near the
-        start, where the high pass saw most."""
+        start, where the high pass saw most. Returns the route, its number of passes and the
+        number of waypoints of the first pass."""
         cfg = self.config
         assert self._search_alt_m is not None
         top = self._search_alt_m
@@ -121,7 +130,7 @@ class ClearancePolicy:
             spacing = min(cfg.search_spacing_frac * footprint_width_m(alt, hfov_rad),
                           cfg.search_spacing_radius_frac * radius)
             passes.append((alt, spacing, radius))
-        return search_route(tuple(passes)), len(passes)
+        return search_route(tuple(passes)), len(passes), len(search_route(tuple(passes[:1])))
 
     # ---- the step ----------------------------------------------------------------------
 
@@ -132,7 +141,16 @@ class ClearancePolicy:
             self.memory = Memory(since_s=obs.t_s, start_s=obs.t_s)
             self._search_alt_m = cfg.search_alt_m if cfg.search_alt_m is not None else max(
                 float(obs.alt_agl_m), cfg.handover_alt_m + 10.0)
-            self._route, self._passes = self._plan(obs.hfov_rad)
+            self._route, self._passes, self._top_pass_end = self._plan(obs.hfov_rad)
+            # At the coarsest cell, centred on the start, covering every view the search can
+            # take from its top altitude; never decayed and never resampled, so an area seen
+            # from high up is remembered wherever the search goes (a map that followed the
+            # vehicle forgot it once it flew on, and the lower passes then found no spot at all).
+            reach_m = cfg.search_radius_m + footprint_width_m(self._search_alt_m, obs.hfov_rad) / 2.0
+            # An even side, as the map's: the two grids' cell centres coincide at the coarsest
+            # cell (an odd side put them half a cell apart, and the gate's nearest-cell lookup
+            # then shifted it by a whole cell at ties).
+            self.high = GroundMap(cfg, cells=2 * int(math.ceil(reach_m / cfg.cell_max_m)) + 2)
         phase = self.memory.phase
         if phase is Phase.HANDOVER:
             return self._decision  # the short-range sensors have it
@@ -174,18 +192,27 @@ class ClearancePolicy:
             self.map.decay(dt_c)
         self.map.follow(obs.alt_agl_m, pn, pe)
         blind = gap or self.memory.phase is Phase.GAP_HOLD
-        self.high.follow(obs.alt_agl_m, pn, pe, cell_m=cfg.cell_max_m)
         if not blind or motion.registered:
             tn, te = tilt_offset_ne(obs.alt_agl_m, obs.roll_rad, obs.pitch_rad, obs.yaw_rad)
             seen = emphasise_dips(prob, int(round(cfg.dip_kernel_frac * prob.shape[1])), cfg.dip_gain, cfg.dip_floor)
             weight = min(1.0, dt_c / cfg.look_period_s) * look_weight(obs.alt_agl_m, cfg)
             self.map.fuse(seen, obs.alt_agl_m, obs.hfov_rad, obs.yaw_rad, pn + tn, pe + te, weight=weight)
-            if obs.alt_agl_m >= min(cfg.confirm_alt_m, 0.8 * self._search_alt_m):
+            if obs.alt_agl_m >= min(cfg.confirm_alt_m, cfg.confirm_alt_frac * self._search_alt_m):
                 self.high.fuse(seen, obs.alt_agl_m, obs.hfov_rad, obs.yaw_rad, pn + tn, pe + te, weight=weight)
         clearance = self.map.clearance_m()
+        # What looked promising from high up, around the vehicle: as far as the map reaches (the
+        # gate) and as far as a probe may go.
+        mem = self.memory
+        plan_probe = mem.phase is Phase.SEARCH and len(mem.probed) < cfg.probe_max
+        high = None
+        if cfg.confirm_p_min > 0.0 or plan_probe:
+            half_m = max(self.map.n * self.map.cell_m / 2.0, cfg.probe_reach_m if plan_probe else 0.0)
+            high = promise(self.high, cfg, pn, pe, half_m)
         # A spot only where the area looked promising from high up too (those looks err apart
         # from the low ones).
-        gate = self._confirmed()
+        gate = None
+        if cfg.confirm_p_min > 0.0:
+            gate = self.high.mask_onto(high.at_least(cfg.confirm_p_min), self.map, high.r0, high.c0)
         # A spot rejected high up is looked at again once well below that altitude (finer detail
         # may show it is fine, or why not); one rejected low down stays rejected.
         blacklist = tuple((n, e) for n, e, alt in self.memory.blacklist if obs.alt_agl_m >= 0.8 * alt)
@@ -195,9 +222,9 @@ class ClearancePolicy:
         # A closer look is planned only while searching with nothing good enough in view, at what
         # looked promising from high up.
         candidate = None
-        if best is None and self.memory.phase is Phase.SEARCH:
-            skip = self.memory.probed + tuple((n, e) for n, e, _ in self.memory.blacklist)
-            candidate = find_candidate(self.high, cfg, north_m=pn, east_m=pe, skip=skip, fence_m=fence_m,
+        if best is None and plan_probe:
+            skip = mem.probed + tuple((n, e) for n, e, _ in mem.blacklist)
+            candidate = find_candidate(self.high, high, cfg, north_m=pn, east_m=pe, skip=skip, fence_m=fence_m,
                                        within_m=cfg.probe_reach_m)
         check = None
         target = self.memory.target
@@ -239,7 +266,8 @@ class ClearancePolicy:
         inp = Inputs(t_s=obs.t_s, alt_agl_m=float(obs.alt_agl_m), north_m=pn, east_m=pe, yaw_rad=obs.yaw_rad,
                      fresh=fresh, gap=gap, search_alt_m=self._search_alt_m, route=self._route,
                      passes=self._passes, fence_m=fence_m,
-                     best=best, check=check, candidate=candidate, hfov_rad=obs.hfov_rad)
+                     best=best, check=check, hfov_rad=obs.hfov_rad, candidate=candidate,
+                     top_pass_end=self._top_pass_end)
         prev = self.memory
         mem, vel = step(prev, inp, cfg)
         fenced = False
@@ -295,13 +323,6 @@ class ClearancePolicy:
         gsd = footprint_width_m(obs.alt_agl_m, obs.hfov_rad) / obs.prob_safe.shape[1]
         return self.config.required_clearance_m / gsd
 
-    def _confirmed(self) -> np.ndarray | None:
-        """The confirmation gate on the map's grid: 1 where the area looked promising enough from
-        high up (None: confirm_p_min 0 turns it off)."""
-        if self.config.confirm_p_min <= 0.0:
-            return None
-        return self.high.mask_onto(promising(self.high, self.config, self.config.confirm_p_min), self.map)
-
     # ---- views for reports and videos ---------------------------------------------------
 
     def map_view(self) -> dict[str, object]:
@@ -329,10 +350,10 @@ class ClearancePolicy:
             raise PolicyInputError(f"observation attitude beyond +/-1.2 rad (roll {obs.roll_rad}, pitch {obs.pitch_rad})")
         if not (isinstance(obs.hfov_rad, (int, float)) and 0.0 < obs.hfov_rad < math.pi):
             raise PolicyInputError(f"observation hfov_rad must be in (0, pi), got {obs.hfov_rad!r}")
-        for name in ("vel_est_body_frd_m_s", "cmd_vel_body_frd_m_s"):
+        for name, size in (("vel_est_body_frd_m_s", 3), ("cmd_vel_body_frd_m_s", 3), ("odom_delta_ne_m", 2)):
             v = getattr(obs, name)
-            if v is not None and (len(v) != 3 or not all(isinstance(x, (int, float)) and math.isfinite(x) for x in v)):
-                raise PolicyInputError(f"observation {name} must be 3 finite numbers or None, got {v!r}")
+            if v is not None and (len(v) != size or not all(isinstance(x, (int, float)) and math.isfinite(x) for x in v)):
+                raise PolicyInputError(f"observation {name} must be {size} finite numbers or None, got {v!r}")
         if obs.prob_safe is None:
             return None
         prob = obs.prob_safe

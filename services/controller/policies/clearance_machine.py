@@ -1,27 +1,33 @@
 """The `clearance` policy's state machine: an enum and one pure step function.
 
-    WARMUP --3 frames / 10 s--> SEARCH --spot with clearance >= radius + margin--> APPROACH
+    WARMUP --3 frames / 10 s--> SEARCH --a spot (clearance >= radius + margin, confirmed from
+            high up)--> APPROACH
     SEARCH  --each pass flown: the next one lower (100 -> 60 -> 40 m), where detail resolves
             (each pass its own expanding square: spacing from its footprint, radius shrinking
             as sqrt(altitude), so every pass takes about as long as the first)
-    SEARCH  --promising ground within reach (a disk that reads well but not yet well enough;
-            during the top pass only the likely ones)-->
-            PROBE: fly there, look from 35 m; a spot --> APPROACH; else remember it probed --> SEARCH
-            (at most 16 probes; a probe times out after 60 s)
-    SEARCH  --the whole route flown or 900 s--> NO_SPOT (hold: "no safe spot found")
+    SEARCH  --promising ground within reach (an area that reads well from high up but is not yet
+            a spot; during the top pass only the likely ones)--> PROBE
+    PROBE   --fly there, look from the probe altitude: a spot--> APPROACH
+    PROBE   --nothing after probe_frames, probe_timeout_s or the search's time--> SEARCH (the area
+            remembered as probed; at most probe_max probes)
+    SEARCH  --the whole route flown or no_spot_after_s--> NO_SPOT (hold: "no safe spot found")
     APPROACH --within the lock radius--> DESCEND --measured alt <= hand-over alt--> HANDOVER
-    APPROACH --target fails 3 re-checks / 90 s--> blacklist it; SEARCH (or ABORT below search alt)
-    DESCEND  --target fails 3 re-checks / 180 s--> ABORT (blacklist)
+    APPROACH --target fails fail_frames re-checks / approach_timeout_s--> SEARCH (blacklisted)
+    DESCEND  --target fails fail_frames re-checks / descend_timeout_s--> ABORT (blacklisted)
     DESCEND  --lock lost (error > 3 x lock-out)--> APPROACH
-    ABORT    --back at the search altitude / 60 s--> SEARCH, or NO_SPOT after max_aborts
+    ABORT    --back at the search altitude / abort_timeout_s--> SEARCH where the route was left,
+             or NO_SPOT after max_aborts
     any live state --no heatmap for gap_s--> GAP_HOLD (map frozen, zero velocity)
-    GAP_HOLD --3 fresh frames--> APPROACH (target kept, lock again) or SEARCH
-    GAP_HOLD --still blind after 30 s--> ABORT (climb to the search altitude, no blacklist)
+    GAP_HOLD --gap_recover_frames fresh frames--> APPROACH (target kept, lock again) or SEARCH
+             (a probe in progress is dropped, not counted)
+    GAP_HOLD --still blind after gap_hold_timeout_s--> ABORT (climb to the search altitude, no
+             blacklist)
 
 Every live state has a timeout and a way out; NO_SPOT and HANDOVER are the chain's two ends
 (the operator, or the short-range sensors, take over). Descent happens only in DESCEND, only with
 the lateral error inside the lock (hysteresis: lock_in to start, lock_out to stop), and HANDOVER
-only at the measured hand-over altitude. Every transition carries its reason.
+only at the measured hand-over altitude; a probe descends to its altitude, never below hand-over
++ 10 m. Every transition carries its reason.
 
 Positions are north/east metres in the policy's own frame; velocities come out body FRD.
 """
@@ -33,9 +39,9 @@ import math
 from dataclasses import dataclass
 from enum import Enum
 
+from dovesei.controller.frames import to_body
 from dovesei.controller.policies.clearance_config import ClearanceConfig
 from dovesei.controller.policies.clearance_map import Spot, footprint_width_m
-from dovesei.controller.policies.clearance_motion import to_body
 
 
 class Phase(str, Enum):
@@ -86,10 +92,11 @@ class Inputs:
     search_alt_m: float  # the top search altitude (where an abort climbs back to)
     route: tuple[tuple[float, float, float], ...]  # every search pass in order: north, east, altitude
     best: Spot | None  # the best spot on the map now (not blacklisted, inside the radius)
-    check: Spot | None  # the target re-checked and refined (None: it fails), when there is one
+    check: Spot | None  # the target re-checked (moved if it failed in place; None: it fails), if any
+    hfov_rad: float  # the camera's (how much ground a view covers)
     candidate: Spot | None = None  # the most promising area worth a closer look (SEARCH only)
-    hfov_rad: float = math.radians(73.0)  # the camera's (how much ground a view covers)
     passes: int = 1  # how many passes the route holds (for the reason)
+    top_pass_end: int | None = None  # the route's waypoints before this are the top pass (None: all)
     fence_m: float | None = None  # the fence now (None: the config's); route points beyond it are pulled in
 
 
@@ -131,7 +138,7 @@ def search_level_alt(waypoint: int, inp: Inputs) -> float:
 
 def _top_pass(waypoint: int, inp: Inputs) -> bool:
     """Is the search still on its first pass (at the top level)?"""
-    return not inp.route or search_level_alt(waypoint, inp) >= inp.route[0][2]
+    return waypoint < (len(inp.route) if inp.top_pass_end is None else inp.top_pass_end)
 
 
 def _go(mem: Memory, phase: Phase, t_s: float, reason: str, **changes: object) -> Memory:
@@ -177,7 +184,7 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
         if frames >= cfg.gap_recover_frames:
             if mem.target is not None:
                 return _go(mem, Phase.APPROACH, t, "perception back: re-locking on the target"), (0.0, 0.0, 0.0)
-            return _go(mem, Phase.SEARCH, t, "perception back: searching"), (0.0, 0.0, 0.0)
+            return _go(mem, Phase.SEARCH, t, "perception back: searching", probe=None), (0.0, 0.0, 0.0)
         return dataclasses.replace(mem, frames=frames), (0.0, 0.0, 0.0)
 
     if p is Phase.WARMUP:
@@ -196,19 +203,21 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
         else:
             looked = mem.frames + (1 if inp.fresh else 0)
             err_n, err_e = probe.north_m - inp.north_m, probe.east_m - inp.east_m
-            over = math.hypot(err_n, err_e) < cfg.lock_out_m + cfg.lock_alt_frac * inp.alt_agl_m
-            low = inp.alt_agl_m <= cfg.probe_alt_m + 3.0
+            err = math.hypot(err_n, err_e)
+            over = err < cfg.lock_out_m + cfg.lock_alt_frac * inp.alt_agl_m
+            low = inp.alt_agl_m <= cfg.probe_alt_m + cfg.probe_alt_tol_m
             done = over and low and looked >= cfg.probe_frames
-            if done or elapsed > cfg.probe_timeout_s:
+            if done or elapsed > cfg.probe_timeout_s or t - mem.start_s > cfg.no_spot_after_s:
                 why = (f"probed from {inp.alt_agl_m:.0f} m: no spot" if done
-                       else f"probe took over {cfg.probe_timeout_s:g} s")
+                       else f"probe took over {cfg.probe_timeout_s:g} s" if elapsed > cfg.probe_timeout_s
+                       else f"the search's {cfg.no_spot_after_s:g} s are up")
                 return _go(mem, Phase.SEARCH, t, why + ": searching on", probe=None,
                            probed=mem.probed + ((probe.north_m, probe.east_m),)), (0.0, 0.0, 0.0)
             mem = dataclasses.replace(mem, frames=looked if over and low else 0)
             vf, vr = toward(err_n, err_e, cfg.approach_gain_per_s, cfg.search_speed_m_s, inp.yaw_rad)
             # Down only once nearly over it (the view from above covers it on the way).
-            goal = cfg.probe_alt_m if math.hypot(err_n, err_e) < 0.5 * footprint_width_m(inp.alt_agl_m, inp.hfov_rad) else inp.alt_agl_m
-            return mem, (vf, vr, _hold_alt(inp.alt_agl_m, goal, cfg))
+            near = err < cfg.probe_descend_frac * footprint_width_m(inp.alt_agl_m, inp.hfov_rad)
+            return mem, (vf, vr, _hold_alt(inp.alt_agl_m, cfg.probe_alt_m if near else inp.alt_agl_m, cfg))
 
     if p is Phase.SEARCH:
         if inp.best is not None:
@@ -251,7 +260,9 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
             why = "back at the search altitude" if back else f"climb took over {cfg.abort_timeout_s:g} s"
             if mem.aborts >= cfg.max_aborts:
                 return _go(mem, Phase.NO_SPOT, t, f"no safe spot found: {mem.aborts} aborts ({why})"), (0.0, 0.0, 0.0)
-            return _go(mem, Phase.SEARCH, t, f"{why}: searching again", waypoint=0), (0.0, 0.0, 0.0)
+            # The route goes on where it was left: flown again from its start, every abort cost
+            # a whole pass (the top one alone takes ~280 s over a 300 m radius).
+            return _go(mem, Phase.SEARCH, t, f"{why}: searching again"), (0.0, 0.0, 0.0)
         return mem, (0.0, 0.0, -cfg.climb_speed_m_s)
 
     # --- APPROACH and DESCEND: a target is held ---
@@ -263,13 +274,14 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
             fails += 1
         else:
             fails = 0
-            target = inp.check  # refined: the best clearance near the target, as resolution improves
+            target = inp.check  # where it is, or moved within the refine radius if it failed in place
     if fails >= cfg.fail_frames:
         why = f"target failed {fails} re-checks (clearance or confidence too low at {inp.alt_agl_m:.0f} m)"
-        below = inp.alt_agl_m < search_level_alt(mem.waypoint, inp) - 5.0
-        if p is Phase.DESCEND or below:
+        if p is Phase.DESCEND:
             return _go(mem, Phase.ABORT, t, why + ": abort, climbing back", target=None, aborts=mem.aborts + 1,
                        blacklist=_blacklisted(mem, target, inp.alt_agl_m)), (0.0, 0.0, -cfg.climb_speed_m_s)
+        # Not yet descending (a spot a probe found fails at the probe altitude, say): rejected;
+        # the search takes the vehicle back to its route's altitude.
         return _go(mem, Phase.SEARCH, t, why + ": rejected", target=None,
                    blacklist=_blacklisted(mem, target, inp.alt_agl_m)), (0.0, 0.0, 0.0)
     err_n, err_e = target.north_m - inp.north_m, target.east_m - inp.east_m

@@ -4,7 +4,7 @@ Frame: north/east metres from where the policy started (its own dead-reckoned fr
 sim's). Map row 0 is the northern edge, column 0 the western one, so with yaw 0 the map and the
 camera image have the same orientation.
 
-Per cell the map keeps two sums, decayed with time:
+Per cell the map keeps two sums, decayed with time (unless the owner never calls `decay`):
 
     L = sum of w * logit(P)      (evidence)        W = sum of w      (looks)
 
@@ -21,7 +21,13 @@ edge resamples the map around the vehicle (mean values carry over; looks per cel
 Spots: a cell is safe when its fused P >= `p_safe_min` and its looks >= `looks_min`; everything
 else (unsafe, unknown, off the map) is an obstacle. The clearance of a cell is its metric
 distance to the nearest obstacle (one distance transform); a spot is a cell whose clearance is at
-least the safety radius + margin, i.e. the whole disk passes both thresholds.
+least the safety radius + margin, i.e. the whole disk passes both thresholds, and where a gate
+(the policy's confirmation from high up) admits it.
+
+Promise: the fused log-odds averaged over the clearance disk, per cell. From high up it says
+whether an area as a whole looks landable even where the token grid smears its cells below the
+spot test: the policy reads it off a second map that keeps only the high looks (sized to the
+whole search area, never decayed, never resampled), to confirm spots and to plan probes.
 """
 
 from __future__ import annotations
@@ -105,9 +111,9 @@ def _logit(p: np.ndarray, clip: float) -> np.ndarray:
 class GroundMap:
     """Decayed log-odds evidence and looks per cell; resampled as altitude and position change."""
 
-    def __init__(self, config: ClearanceConfig) -> None:
+    def __init__(self, config: ClearanceConfig, cells: int | None = None) -> None:
         self.cfg = config
-        self.n = config.map_cells
+        self.n = config.map_cells if cells is None else cells
         self.cell_m = config.cell_max_m
         self.north0_m = 0.0  # north coordinate of row 0's centre
         self.east0_m = 0.0  # east coordinate of column 0's centre
@@ -230,28 +236,28 @@ class GroundMap:
         return (1.0 / (1.0 + np.exp(-mean))).astype(np.float32)
 
     def confidence(self) -> np.ndarray:
-        return (1.0 - np.exp(-self.looks / np.float32(self.cfg.looks_full))).astype(np.float32)
+        return confidence_of(self.looks, self.cfg).astype(np.float32)
 
     def safe_mask(self, p_min: float | None = None, looks_min: float | None = None) -> np.ndarray:
         """uint8 1 where the cell is known and safe (L >= logit(p_min) x W, W >= looks_min; by
         default the config's p_safe_min and looks_min)."""
         cfg = self.cfg
-        p_min = min(max(cfg.p_safe_min if p_min is None else p_min, 1e-6), 1.0 - 1e-6)
-        lt = np.float32(math.log(p_min / (1.0 - p_min)))
+        lt = np.float32(_threshold_logit(cfg.p_safe_min if p_min is None else p_min))
         mask = (self.evidence >= lt * self.looks) & (self.looks >= np.float32(cfg.looks_min if looks_min is None
                                                                              else looks_min))
         mask = mask.view(np.uint8)
         mask[0, :] = mask[-1, :] = mask[:, 0] = mask[:, -1] = 0  # off the map is unknown
         return mask
 
-    def mask_onto(self, mask: np.ndarray, other: GroundMap) -> np.ndarray:
-        """This map's uint8 `mask` resampled onto `other`'s grid (nearest cell; 0 off this map)."""
+    def mask_onto(self, mask: np.ndarray, other: GroundMap, r0: int = 0, c0: int = 0) -> np.ndarray:
+        """A uint8 `mask` over this map's cells (its cell (0, 0) at this map's (r0, c0)) resampled
+        onto `other`'s grid: each of other's cells takes the mask's cell its centre falls in (0 off
+        the mask)."""
         s = other.cell_m / self.cell_m
-        # other's (col, row) -> this map's (col, row): a scale and an offset (both grids north-up).
-        # + 0.5: OpenCV's nearest lookup floors the mapped coordinate; the nearest cell centre is
-        # its rounding.
-        m = np.array([[s, 0.0, (other.east0_m - self.east0_m) / self.cell_m + 0.5],
-                      [0.0, s, (self.north0_m - other.north0_m) / self.cell_m + 0.5]], np.float64)
+        # other's (col, row) -> the mask's (col, row): a scale and an offset (both grids north-up).
+        # OpenCV's nearest lookup rounds the mapped coordinate: the cell the centre falls in.
+        m = np.array([[s, 0.0, (other.east0_m - self.east0_m) / self.cell_m - c0],
+                      [0.0, s, (self.north0_m - other.north0_m) / self.cell_m - r0]], np.float64)
         return cv2.warpAffine(mask, m, (other.n, other.n), flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
                               borderMode=cv2.BORDER_CONSTANT, borderValue=0)
 
@@ -274,6 +280,23 @@ class GroundMap:
         return 1.0 / (1.0 + math.exp(-float(self.evidence[r, c]) / looks)), looks
 
 
+def _threshold_logit(p: float) -> float:
+    """logit(p) for a threshold, with p kept inside (0, 1)."""
+    p = min(max(p, 1e-6), 1.0 - 1e-6)
+    return math.log(p / (1.0 - p))
+
+
+def confidence_of(looks: np.ndarray, cfg: ClearanceConfig) -> np.ndarray:
+    """1 - exp(-looks / looks_full): how sure the map is of a cell's reading."""
+    return 1.0 - np.exp(-looks / np.float32(cfg.looks_full))
+
+
+def _inside_fence(north: np.ndarray, east: np.ndarray, cfg: ClearanceConfig, fence_m: float | None) -> np.ndarray:
+    """A spot's centre lies inside the fence with room for the lock's error around it."""
+    fence_m = cfg.fence_m if fence_m is None else fence_m
+    return north * north + east * east <= max(fence_m - cfg.lock_out_m, 0.0) ** 2
+
+
 def find_spot(gmap: GroundMap, clearance: np.ndarray, cfg: ClearanceConfig, *, north_m: float, east_m: float,
               blacklist: tuple[tuple[float, float], ...], within_m: float | None = None,
               near: tuple[float, float] | None = None, need_m: float | None = None,
@@ -282,8 +305,8 @@ def find_spot(gmap: GroundMap, clearance: np.ndarray, cfg: ClearanceConfig, *, n
     start (0, 0), away from blacklisted spots; ranked by clearance, confidence and distance.
 
     `near` + `within_m` restrict the search to a disk (re-checking a target: it stays where it
-    is while its own cell qualifies, else it moves to the best cell within the disk), and
-    `need_m` replaces the required clearance (a locked target's hysteresis), `fence_m` the
+    is while its own cell has the full required clearance, else it moves to the best cell of the
+    disk), `need_m` replaces the required clearance (a locked target's hysteresis), `fence_m` the
     config's fence (the policy shrinks it while its estimate is uncertain), and `gate` (uint8 on
     the map's grid) admits only the cells where it is 1. Distances count from the vehicle, so
     scores compare across calls.
@@ -310,12 +333,8 @@ def find_spot(gmap: GroundMap, clearance: np.ndarray, cfg: ClearanceConfig, *, n
         rows, cols = rows[inside], cols[inside]
         if rows.size == 0:
             return None
-    c = gmap.cell_m
-    north = gmap.north0_m - rows * c
-    east = gmap.east0_m + cols * c
-    # A spot's centre lies inside the fence with room for the lock's error around it.
-    fence_m = cfg.fence_m if fence_m is None else fence_m
-    keep = north * north + east * east <= max(fence_m - cfg.lock_out_m, 0.0) ** 2
+    north, east = gmap.point_of(rows, cols)
+    keep = _inside_fence(north, east, cfg, fence_m)
     for bn, be in blacklist:
         keep &= (north - bn) ** 2 + (east - be) ** 2 > (need + cfg.refine_radius_m) ** 2
     if near is not None and within_m is not None:
@@ -324,19 +343,18 @@ def find_spot(gmap: GroundMap, clearance: np.ndarray, cfg: ClearanceConfig, *, n
         return None
     rows, cols, north, east = rows[keep], cols[keep], north[keep], east[keep]
     clear = clearance[rows, cols]
-    looks = gmap.looks[rows, cols]
-    conf = 1.0 - np.exp(-looks / cfg.looks_full)
+    conf = confidence_of(gmap.looks[rows, cols], cfg)
     dist = np.hypot(north - north_m, east - east_m)
     # Clearance beyond twice the need buys little; 50 m of extra flight costs as much as it.
     score = np.minimum(clear / need, 2.0) + conf - dist / 50.0
     best = int(np.argmax(score))
     if near is not None and within_m is not None:
-        # A re-checked target whose own cell still qualifies stays put. Sliding to the best score
-        # every frame made it follow the vehicle across a wide lawn (every cell's clearance
-        # saturates there and the nearest wins): the landing point became wherever the
+        # A re-checked target whose own cell still has the full clearance stays put. Sliding to
+        # the best score every frame made it follow the vehicle across a wide lawn (every cell's
+        # clearance saturates there and the nearest wins): the landing point became wherever the
         # estimate's noise took the vehicle during the descent.
         rn, cn = (int(round(v)) for v in gmap.cell_of(*near))
-        here = np.flatnonzero((rows == rn) & (cols == cn))
+        here = np.flatnonzero((rows == rn) & (cols == cn) & (clear >= need))
         if here.size:
             best = int(here[0])
     p_safe, _ = gmap.at(float(north[best]), float(east[best]))
@@ -344,57 +362,77 @@ def find_spot(gmap: GroundMap, clearance: np.ndarray, cfg: ClearanceConfig, *, n
                 confidence=float(conf[best]), p_safe=p_safe, distance_m=float(dist[best]), score=float(score[best]))
 
 
-def promise(gmap: GroundMap, cfg: ClearanceConfig) -> tuple[np.ndarray, np.ndarray]:
-    """(disk mean, known): per cell the fused log-odds averaged over the required clearance disk
-    (a box of its width; unknown cells count as an even 0.5, logit 0, so unknown ground around a
-    cell lowers its promise instead of being ignored), and where the cell has looks_min looks.
+@dataclass(frozen=True)
+class Promise:
+    """Per cell of a window of a map: the fused log-odds averaged over the required clearance
+    disk (`disk`), and whether the cell itself is known (`known`); the window starts at map
+    cell (r0, c0).
 
     From high up CLIPSeg's tokens smear a lawn narrower than about two of them into its
     surroundings, so its cells read a few tenths low; their mean over the disk still says
-    whether the area as a whole looks like landable ground.
+    whether the area as a whole looks like landable ground. Unknown cells count as an even 0.5
+    (logit 0): unknown ground around a cell lowers its promise instead of being ignored.
     """
+
+    disk: np.ndarray
+    known: np.ndarray
+    r0: int
+    c0: int
+
+    def at_least(self, p_min: float) -> np.ndarray:
+        """uint8 1 where the cell is known and its promise is at least p_min (window cells)."""
+        return ((self.disk >= np.float32(_threshold_logit(p_min))) & self.known).view(np.uint8)
+
+
+def promise(gmap: GroundMap, cfg: ClearanceConfig, north_m: float, east_m: float, half_m: float) -> Promise:
+    """The promise of the cells within `half_m` (a square) of a point."""
     need_cells = max(1, int(round(cfg.required_clearance_m / gmap.cell_m)))
-    known = gmap.looks >= np.float32(cfg.looks_min)
-    mean = np.divide(gmap.evidence, gmap.looks, out=np.zeros_like(gmap.evidence), where=known)
+    rc, cc = gmap.cell_of(north_m, east_m)
+    half = int(math.ceil(half_m / gmap.cell_m))
+    r0, c0 = max(int(rc) - half, 0), max(int(cc) - half, 0)
+    r1, c1 = min(int(rc) + half + 1, gmap.n), min(int(cc) + half + 1, gmap.n)
+    if r1 <= r0 or c1 <= c0:
+        empty = np.zeros((0, 0), np.float32)
+        return Promise(empty, empty.astype(bool), 0, 0)
+    # The box filter reads need_cells beyond the window: take them along, then cut them off.
+    pr0, pc0 = max(r0 - need_cells, 0), max(c0 - need_cells, 0)
+    pr1, pc1 = min(r1 + need_cells, gmap.n), min(c1 + need_cells, gmap.n)
+    looks = gmap.looks[pr0:pr1, pc0:pc1]
+    known = looks >= np.float32(cfg.looks_min)
+    mean = np.divide(gmap.evidence[pr0:pr1, pc0:pc1], looks, out=np.zeros_like(looks), where=known)
     k = 2 * need_cells + 1
-    return cv2.blur(mean, (k, k), borderType=cv2.BORDER_CONSTANT), known
+    disk = cv2.blur(mean, (k, k), borderType=cv2.BORDER_CONSTANT)
+    cut = (slice(r0 - pr0, r1 - pr0), slice(c0 - pc0, c1 - pc0))
+    return Promise(disk[cut], known[cut], r0, c0)
 
 
-def promising(gmap: GroundMap, cfg: ClearanceConfig, p_min: float) -> np.ndarray:
-    """uint8 1 where the cell is known and its disk's promise is at least p_min."""
-    disk, known = promise(gmap, cfg)
-    p_min = min(max(p_min, 1e-6), 1.0 - 1e-6)
-    return ((disk >= np.float32(math.log(p_min / (1.0 - p_min)))) & known).view(np.uint8)
-
-
-def find_candidate(gmap: GroundMap, cfg: ClearanceConfig, *, north_m: float, east_m: float,
+def find_candidate(gmap: GroundMap, promise_: Promise, cfg: ClearanceConfig, *, north_m: float, east_m: float,
                    skip: tuple[tuple[float, float], ...], fence_m: float, within_m: float) -> Spot | None:
     """The most promising area that is not yet a spot: worth a closer look from lower down.
 
-    A candidate is a cell whose promise (see `promise`) is at least `probe_p_min`, inside the
-    fence, within `within_m` of the vehicle and farther than `probe_skip_m` from every point in
-    `skip` (areas probed or rejected already). Ranked by that promise less distance /
+    A candidate is a cell of `promise_` (from `gmap`) whose promise is at least `probe_p_min`,
+    inside the fence, within `within_m` of the vehicle and farther than `probe_skip_m` from every
+    point in `skip` (areas probed or rejected already). Ranked by that promise less distance /
     `probe_dist_m`.
     """
-    disk, _ = promise(gmap, cfg)
-    rows, cols = np.nonzero(promising(gmap, cfg, cfg.probe_p_min))
+    rows, cols = np.nonzero(promise_.at_least(cfg.probe_p_min))
     if rows.size == 0:
         return None
-    c = gmap.cell_m
-    north = gmap.north0_m - rows * c
-    east = gmap.east0_m + cols * c
+    disk = promise_.disk[rows, cols]
+    rows, cols = rows + promise_.r0, cols + promise_.c0
+    north, east = gmap.point_of(rows, cols)
     dist = np.hypot(north - north_m, east - east_m)
-    keep = (north * north + east * east <= max(fence_m - cfg.lock_out_m, 0.0) ** 2) & (dist <= within_m)
+    keep = _inside_fence(north, east, cfg, fence_m) & (dist <= within_m)
     for sn, se in skip:
         keep &= (north - sn) ** 2 + (east - se) ** 2 > cfg.probe_skip_m ** 2
     if not keep.any():
         return None
-    rows, cols, north, east, dist = rows[keep], cols[keep], north[keep], east[keep], dist[keep]
-    p = 1.0 / (1.0 + np.exp(-disk[rows, cols]))
+    rows, cols, north, east, dist, disk = rows[keep], cols[keep], north[keep], east[keep], dist[keep], disk[keep]
+    p = 1.0 / (1.0 + np.exp(-disk))
     score = p - dist / cfg.probe_dist_m
     best = int(np.argmax(score))
-    conf = 1.0 - math.exp(-float(gmap.looks[rows[best], cols[best]]) / cfg.looks_full)
-    return Spot(north_m=float(north[best]), east_m=float(east[best]), clearance_m=0.0, confidence=conf,
+    return Spot(north_m=float(north[best]), east_m=float(east[best]), clearance_m=0.0,
+                confidence=float(confidence_of(gmap.looks[rows[best], cols[best]], cfg)),
                 p_safe=float(p[best]), distance_m=float(dist[best]), score=float(score[best]))
 
 

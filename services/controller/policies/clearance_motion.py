@@ -2,17 +2,19 @@
 
 Two sources, fused every heatmap:
 
-- prediction: the autopilot's velocity estimate (blended with the commanded velocity, which is
-  what the vehicle was told to do) rotated by yaw into north/east, plus an estimated bias, times
-  dt (capped). On its own this drifts: a real estimator without GNSS misses wind and its own
-  errors.
+- prediction: the autopilot's velocity estimate integrated between the two frames' capture
+  stamps (the controller's track of every vehicle state), or, without it, the estimate blended
+  with the commanded velocity, rotated by yaw into north/east, times dt (capped); plus an
+  estimated bias x dt. On its own this drifts: a real estimator without GNSS misses wind and its
+  own errors.
 - registration: phase correlation of the heatmap against a keyframe, both resampled to the same
   ground scale (metres per pixel from altitude and field of view), gives the camera's ground
   displacement since the keyframe. A keyframe (not the previous frame) keeps the error from
   piling up per frame; it is renewed once the view moved a share of the image or the altitude
   changed by a ratio. A shift is used only when the correlation peak is clear, the heatmap has
   texture and the innovation is inside a gate; then it corrects the position and, slowly, the
-  velocity bias (so a biased estimator is learnt, not just patched).
+  velocity bias (so a biased estimator is learnt, not just patched). Anchors (below) give
+  absolute fixes; the keyframe moves with the estimate a fix moves.
 
 Pure and deterministic: arrays in, numbers out, no clock but the observation's.
 """
@@ -25,6 +27,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from dovesei.controller.frames import to_body, to_ne
 from dovesei.controller.policies.clearance_config import ClearanceConfig
 from dovesei.controller.policies.clearance_map import footprint_width_m
 
@@ -35,18 +38,6 @@ def phase_shift(ref: np.ndarray, cur: np.ndarray, window: np.ndarray) -> tuple[f
     b = cur - np.float32(cur.mean())
     (dx, dy), response = cv2.phaseCorrelate(a, b, window)
     return float(dx), float(dy), float(response)
-
-
-def to_ne(forward: float, right: float, yaw_rad: float) -> tuple[float, float]:
-    """Body forward/right -> north/east for a heading `yaw_rad` (0 = north, + = towards east)."""
-    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
-    return forward * c - right * s, forward * s + right * c
-
-
-def to_body(north: float, east: float, yaw_rad: float) -> tuple[float, float]:
-    """North/east -> body forward/right."""
-    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
-    return north * c + east * s, -north * s + east * c
 
 
 def tilt_offset_ne(alt_agl_m: float, roll_rad: float, pitch_rad: float, yaw_rad: float) -> tuple[float, float]:
@@ -155,7 +146,9 @@ class EgoMotion:
                 displacement_ne_m: tuple[float, float] | None = None) -> None:
         """Dead-reckon one step: the estimate's own displacement over the step when the
         controller integrated it between the capture stamps, else velocity x dt (capped); plus
-        the learnt bias x dt."""
+        the learnt bias x dt. The displacement covers the whole interval, a perception gap
+        included (it is what the autopilot measured); the bias and the uncertainty's per-second
+        term use the capped dt."""
         dt = min(max(dt_s, 0.0), self.cfg.dt_cap_s)
         if displacement_ne_m is not None:
             dn, de = displacement_ne_m
@@ -209,19 +202,20 @@ class EgoMotion:
         return best
 
     def _anchor_fix(self, img: np.ndarray, gsd: float, width_m: float, yaw_rad: float, tn: float,
-                    te: float) -> bool:
-        """Register against the best anchor in view; an accepted match corrects the position."""
+                    te: float) -> tuple[float, float] | None:
+        """Register against the best anchor in view; an accepted match corrects the position.
+        Returns the correction applied (north, east metres), None when there was none."""
         cfg = self.cfg
         a = self._nearest_anchor(self.north_m + tn, self.east_m + te, gsd, cfg.anchor_reach_frac * width_m)
         if a is None or a.uncertainty_m >= self.uncertainty_m:
-            return False  # the estimate is already as good as the anchor would make it
+            return None  # the estimate is already as good as the anchor would make it
         meas_n, meas_e, response, static, _ = self._measure(a, img, gsd, yaw_rad, tn, te)
         inn_n, inn_e = meas_n - self.north_m, meas_e - self.east_m
         # An absolute fix: the gate is wide (the uncertainty bound is a model and the chain's
         # error can outgrow it while the vehicle slows down and descends).
         gate = cfg.reg_gate_m + cfg.anchor_gate_frac * width_m + 2.0 * self.uncertainty_m
         if static or response < cfg.anchor_min_response or math.hypot(inn_n, inn_e) > gate:
-            return False
+            return None
         k = self._trust(response)
         inn_n, inn_e = _constrained(img, inn_n, inn_e, yaw_rad, cfg.reg_min_eigen_ratio)
         self.north_m += k * inn_n
@@ -230,7 +224,7 @@ class EgoMotion:
         # part of the old uncertainty.
         self.uncertainty_m = min(self.uncertainty_m, a.uncertainty_m + cfg.reg_gate_m
                                  + (1.0 - k) * (self.uncertainty_m - a.uncertainty_m))
-        return True
+        return k * inn_n, k * inn_e
 
     def correct(self, prob: np.ndarray, dt_s: float, alt_agl_m: float, hfov_rad: float, yaw_rad: float,
                 roll_rad: float = 0.0, pitch_rad: float = 0.0) -> MotionStep:
@@ -259,7 +253,8 @@ class EgoMotion:
             innovation = math.hypot(inn_n, inn_e)
             # The prediction's own uncertainty grows with the time since the last accepted shift.
             self._unregistered_s += dt_s
-            gate = cfg.reg_gate_m + cfg.reg_gate_frac * width_m + cfg.reg_gate_m_s * self._unregistered_s
+            since_s = self._unregistered_s  # what the innovation accrued over
+            gate = cfg.reg_gate_m + cfg.reg_gate_frac * width_m + cfg.reg_gate_m_s * since_s
             if response >= cfg.reg_min_response and innovation <= gate and not static:
                 registered = True
                 self._fails = 0
@@ -271,11 +266,12 @@ class EgoMotion:
                 inn_n, inn_e = _constrained(img, inn_n, inn_e, yaw_rad, cfg.reg_min_eigen_ratio)
                 self.north_m += k * inn_n
                 self.east_m += k * inn_e
-                # The innovation accrued over dt: a velocity error; learnt over bias_tau. One
-                # larger than any bias the estimator may have is a jump, not a velocity error.
-                if (dt_s > 0.0 and response >= cfg.reg_full_response
-                        and math.hypot(inn_n, inn_e) <= cfg.bias_max_m_s * min(dt_s, cfg.dt_cap_s)):
-                    rate = min(1.0, min(dt_s, cfg.dt_cap_s) / cfg.bias_tau_s) / max(min(dt_s, cfg.dt_cap_s), 1e-3)
+                # The innovation accrued since the last accepted shift: a velocity error (it over
+                # that time), learnt over bias_tau. One larger than any bias the estimator may
+                # have is a jump, not a velocity error.
+                if (since_s > 0.0 and response >= cfg.reg_full_response
+                        and math.hypot(inn_n, inn_e) <= cfg.bias_max_m_s * since_s):
+                    rate = min(1.0, since_s / cfg.bias_tau_s) / max(since_s, 1e-3)
                     self.bias_n_m_s += rate * inn_n * (1.0 - k)
                     self.bias_e_m_s += rate * inn_e * (1.0 - k)
                     b = math.hypot(self.bias_n_m_s, self.bias_e_m_s)
@@ -292,11 +288,14 @@ class EgoMotion:
         elif key is None or (not textured and self._fails >= 3):
             new_key = True
         if textured and self._anchors:
-            anchored = self._anchor_fix(img, gsd, width_m, yaw_rad, tn, te)
-            # The fix moved the estimate, not the vehicle: a keyframe taken before it would read
-            # the jump as motion at the next registration, and the bias learner as a velocity
-            # error (a 5 m fix learnt 2.6 m/s in 4 s while hovering, and the hold ran away).
-            new_key = new_key or anchored
+            fix = self._anchor_fix(img, gsd, width_m, yaw_rad, tn, te)
+            anchored = fix is not None
+            if fix is not None and self._key is not None:
+                # The fix moved the estimate, not the vehicle, and the keyframe was placed with
+                # (nearly) the same error: it moves with it. Left where it was, the next
+                # registration read the fix as motion and the bias learner as a velocity error
+                # (a 5 m fix learnt 2.6 m/s in 4 s while hovering, and the hold ran away).
+                self._key.cc = (self._key.cc[0] + fix[0], self._key.cc[1] + fix[1])
         if new_key or self._key is None:
             self._key = _View(img.copy(), gsd, yaw_rad, (self.north_m + tn, self.east_m + te))
             self._fails = 0
