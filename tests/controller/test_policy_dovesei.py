@@ -427,3 +427,15 @@ def test_bench_prints_json_figures(capsys: pytest.CaptureFixture[str]) -> None:
     result = json.loads(capsys.readouterr().out)
     assert result["size_px"] == 352 and result["opencv_threads"] == 1
     assert 0.0 < result["median_ms"] <= result["p99_ms"] <= result["max_ms"]
+
+
+def test_bench_search_scene_times_clearance_searching(capsys: pytest.CaptureFixture[str]) -> None:
+    # Nothing in the search scene is safe enough for a spot: every timed cycle is a search or a
+    # probe, the states the landing scene never reaches.
+    assert bench.main(["--policy", "clearance", "--scene", "search", "--cycles", "30", "--warmup", "2", "--json"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert result["scene"] == "search"
+    assert set(result["states"]) <= {"SEARCH", "PROBE"} and sum(result["states"].values()) == 30
+    assert set(result["state_median_ms"]) == set(result["states"])
+    with pytest.raises(SystemExit):
+        bench.main(["--scene", "nowhere"])
