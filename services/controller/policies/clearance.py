@@ -84,8 +84,8 @@ class ClearancePolicy:
     def reset(self) -> None:
         self.map = GroundMap(self.config)
         # The looks from high up only: the confirmation gate and where probes are planned from.
-        # Sized to the whole search area on the first heatmap (see _plan).
-        self.high = GroundMap(self.config)
+        # Made on the first observation, sized to the whole search area (it needs the camera's view).
+        self.high: GroundMap | None = None
         self.motion = EgoMotion(self.config)
         self.memory: Memory | None = None
         self._last_t_s: float | None = None  # last heatmap
@@ -188,6 +188,7 @@ class ClearancePolicy:
             return self._hold(obs, pn, pe)
 
         # Map: frozen across a gap (no decay); after one, only registered frames are fused.
+        assert self.high is not None  # made with the memory, on the first observation
         if not gap:
             self.map.decay(dt_c)
         self.map.follow(obs.alt_agl_m, pn, pe)

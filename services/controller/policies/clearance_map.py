@@ -146,10 +146,9 @@ class GroundMap:
             cell /= 2.0
         return cell
 
-    def follow(self, alt_agl_m: float, north_m: float, east_m: float, cell_m: float | None = None) -> bool:
-        """Keep the vehicle near the centre and the cell at the altitude's size (or `cell_m`);
-        True if resampled."""
-        cell = self.desired_cell_m(alt_agl_m) if cell_m is None else cell_m
+    def follow(self, alt_agl_m: float, north_m: float, east_m: float) -> bool:
+        """Keep the vehicle near the centre and the cell at the altitude's size; True if resampled."""
+        cell = self.desired_cell_m(alt_agl_m)
         row, col = self.cell_of(north_m, east_m)
         half = (self.n - 1) / 2.0
         off_centre = max(abs(row - half), abs(col - half)) > self.n / 4.0
@@ -238,13 +237,11 @@ class GroundMap:
     def confidence(self) -> np.ndarray:
         return confidence_of(self.looks, self.cfg).astype(np.float32)
 
-    def safe_mask(self, p_min: float | None = None, looks_min: float | None = None) -> np.ndarray:
-        """uint8 1 where the cell is known and safe (L >= logit(p_min) x W, W >= looks_min; by
-        default the config's p_safe_min and looks_min)."""
+    def safe_mask(self) -> np.ndarray:
+        """uint8 1 where the cell is known and safe (L >= logit(p_safe_min) x W, W >= looks_min)."""
         cfg = self.cfg
-        lt = np.float32(_threshold_logit(cfg.p_safe_min if p_min is None else p_min))
-        mask = (self.evidence >= lt * self.looks) & (self.looks >= np.float32(cfg.looks_min if looks_min is None
-                                                                             else looks_min))
+        lt = np.float32(_threshold_logit(cfg.p_safe_min))
+        mask = (self.evidence >= lt * self.looks) & (self.looks >= np.float32(cfg.looks_min))
         mask = mask.view(np.uint8)
         mask[0, :] = mask[-1, :] = mask[:, 0] = mask[:, -1] = 0  # off the map is unknown
         return mask
