@@ -9,6 +9,7 @@ Per vehicle, under `dovesei/<vehicle>/`:
     status    ControllerStatus   controller -> operators, reports
     prompts   PromptSetMsg       operator -> segmenter
     episode   EpisodeResult      sim judge -> `dovesei up`, bench
+    odometry  VisualOdometry     onboard camera -> controller (visual velocity for the autopilot)
     segment   queryable: CameraFrame in, SafetyHeatmap out (request-reply segmentation)
     alive/<service>              liveliness tokens
 
@@ -25,7 +26,7 @@ from dovesei.shared.errors import ConfigError
 ROOT = "dovesei"
 ANY_VEHICLE = "*"
 SERVICES = ("sim", "segmenter", "controller", "camera", "mavlink")
-TOPICS = ("camera", "state", "heatmap", "cmd", "status", "prompts", "episode", "segment")
+TOPICS = ("camera", "state", "heatmap", "cmd", "status", "prompts", "episode", "segment", "odometry")
 _VEHICLE_RE = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
 
 
@@ -68,6 +69,10 @@ def prompts(vehicle: str) -> str:
 
 def episode(vehicle: str) -> str:
     return _key(vehicle, "episode")
+
+
+def odometry(vehicle: str) -> str:
+    return _key(vehicle, "odometry")
 
 
 def segment(vehicle: str) -> str:

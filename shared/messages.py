@@ -354,6 +354,34 @@ class VehicleState(Message):
     sent_wall_s: float = 0.0
 
 
+@message("dovesei.visual_odometry", 1)
+class VisualOdometry(Message):
+    """The vehicle's ground velocity measured from two consecutive camera frames (onboard, no torch).
+
+    `stamp` is the newer frame's capture stamp (the camera's clock); `prev_frame_seq`..`frame_seq`
+    are the two frames compared. The velocity is in the body frame at the newer frame (rotation
+    removed with the attitude, scaled by altitude and field of view). `quality` in [0, 1]: 0 means
+    no estimate (low texture, blur, a bad altitude); then `valid` is False and the velocity is 0.
+    `vel_var_m2_s2` is the variance per horizontal axis, what an EKF needs beside the value.
+    """
+
+    RANGES: ClassVar[dict[str, tuple[float, float]]] = {
+        "quality": (0.0, 1.0), "vel_var_m2_s2": (0.0, 1e6), "dt_s": (0.0, 10.0), "prev_frame_seq": SEQ,
+    }
+
+    vehicle_id: str
+    frame_seq: int
+    prev_frame_seq: int
+    stamp: Stamp
+    vel_body_frd_m_s: tuple[float, float, float]
+    vel_var_m2_s2: float
+    quality: float
+    valid: bool
+    dt_s: float
+    alt_agl_m: float
+    sent_wall_s: float = 0.0
+
+
 @message("dovesei.safety_heatmap", 1)
 class SafetyHeatmap(Message):
     """Per-pixel P(safe to land) for one camera frame; `seq` and `stamp` are the frame's."""
@@ -491,6 +519,6 @@ def replace(msg: Record, **changes: Any) -> Any:
 
 __all__ = [
     "ArraySpec", "CameraFrame", "ClassEntry", "ControllerStatus", "EpisodeResult", "FieldError",
-    "GroundTruth", "Message", "OUTCOMES", "PromptSetMsg", "Record", "SCHEMAS", "SafetyHeatmap",
+    "GroundTruth", "Message", "VisualOdometry", "OUTCOMES", "PromptSetMsg", "Record", "SCHEMAS", "SafetyHeatmap",
     "StageLatency", "Stamp", "VehicleState", "VelocityCommand", "field_range", "replace",
 ]

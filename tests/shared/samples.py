@@ -6,7 +6,7 @@ import numpy as np
 
 from dovesei.shared.messages import (
     CameraFrame, ClassEntry, ControllerStatus, EpisodeResult, GroundTruth, PromptSetMsg, SafetyHeatmap,
-    StageLatency, Stamp, VehicleState, VelocityCommand,
+    StageLatency, Stamp, VehicleState, VelocityCommand, VisualOdometry,
 )
 
 
@@ -29,4 +29,5 @@ def sample_messages(size_px: int = 32) -> list:
                          True, 0.51, (1.5, 0.0, 0.6), 99.0),
         PromptSetMsg(stamp, ("grass", "park"), ("building", "road"), "aerial photo of {}"),
         EpisodeResult("uav1", stamp, "safe", 410.0, 95.0, 300.0, 420.0, 19.9, ("grass",), True, 3.5, ""),
+        VisualOdometry("uav1", 7, 6, stamp, (2.0, -0.5, 0.1), 0.04, 0.8, True, 0.1, 99.0),
     ]
