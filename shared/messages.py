@@ -431,6 +431,10 @@ class VelocityCommand(Message):
     frame_seq: int = -1  # the frame whose heatmap produced it (-1: none yet)
     sent_wall_s: float = 0.0
     latency: StageLatency | None = None
+    # The controller hands over here (short-range sensors / the autopilot's landing take over):
+    # the only thing that ends a simulated episode as a landing (the judge never infers it from
+    # the altitude alone, see dovesei.sim.judge).
+    handover: bool = False
 
 
 @message("dovesei.controller_status", 1)
@@ -462,6 +466,7 @@ class ControllerStatus(Message):
     spot_east_m: float = 0.0
     spot_clearance_m: float = 0.0
     spot_confidence: float = 0.0
+    handover: bool = False  # handed over (as the command's `handover`): what a judge ends an episode on
 
     RANGES: ClassVar[dict[str, tuple[float, float]]] = {
         "spot_north_m": (-1e7, 1e7), "spot_east_m": (-1e7, 1e7), "spot_clearance_m": (0.0, 1e6),

@@ -16,7 +16,8 @@ Data flow per tick:
 Watchdog modes, highest priority first (each change is logged once at INFO with its reason):
 
     state_stale  the vehicle state stopped advancing (real time only, wall clock) -> zero velocity
-    handover     at/below the hand-over altitude: stop commanding, short-range sensors take over
+    handover     at/below the hand-over altitude with the policy landing (Decision.landing): stop
+                 commanding, short-range sensors take over; the command says so (`handover`)
     policy_fault the policy raised, or declared LANDED/HANDOVER above the hand-over altitude
                  (measured)                                                      -> zero velocity
     no_heatmap   nothing adopted yet                                             -> zero velocity
@@ -220,6 +221,7 @@ class ControllerCore:
         self._state_advanced_wall_s: float | None = None
         self._first_alt_m: float | None = None
         self._in_handover = False
+        self._below_uncommitted = False  # below the hand-over altitude without the policy landing
         self._mode: Mode | None = None
         self._last_state_seq: int | None = None
         self._state_anchor: tuple[float, float] | None = None  # (state t_s, own mono s): on-time state
@@ -390,7 +392,7 @@ class ControllerCore:
         cmd = VelocityCommand(
             vehicle_id=cfg.vehicle_id, seq=self._tick_seq, stamp=state.stamp, vel_body_frd_m_s=vel,
             yaw_rate_rad_s=yaw_rate, state_seq=state.seq, frame_seq=frame_seq,
-            latency=adopted.latency if adopted is not None else None,
+            latency=adopted.latency if adopted is not None else None, handover=mode is Mode.HANDOVER,
         )
         return cmd, self._status(mode, reason, state, vel)
 
@@ -518,11 +520,22 @@ class ControllerCore:
             if frozen_s > cfg.state_stale_after_s:
                 return Mode.STATE_STALE, (f"vehicle state not updated for more than {cfg.state_stale_after_s:g} s: "
                                           "zero velocity")
-        # Hysteresis so altitude noise around the hand-over altitude cannot flap the mode.
+        # Hysteresis so altitude noise around the hand-over altitude cannot flap the mode. Entry
+        # needs the policy's word: a descent it has aborted (WAITING, CLIMBING, ABORT) that sinks
+        # through the altitude on inertia is no landing; the policy keeps flying (it climbs back).
         if self._in_handover:
             self._in_handover = state.alt_agl_m <= cfg.handover_alt_m + cfg.handover_release_m
         else:
-            self._in_handover = state.alt_agl_m <= cfg.handover_alt_m
+            decision = self._decision
+            committed = (decision is not None and (decision.landing or decision.state in TERMINAL_STATES)
+                         and self._policy_fault is None)
+            self._in_handover = committed and state.alt_agl_m <= cfg.handover_alt_m
+            if state.alt_agl_m <= cfg.handover_alt_m and not committed and not self._below_uncommitted:
+                log.warning("controller %s: at %.1f m, below the hand-over altitude %g m, but the policy is not "
+                            "landing (%s): no hand-over, following the policy", cfg.vehicle_id, state.alt_agl_m,
+                            cfg.handover_alt_m, self._decision.state if self._decision is not None else "no decision")
+                self.rejected["below hand-over, not landing"] += 1
+            self._below_uncommitted = state.alt_agl_m <= cfg.handover_alt_m and not committed
         if self._in_handover:
             return Mode.HANDOVER, (f"at/below the hand-over altitude {cfg.handover_alt_m:g} m: "
                                    "short-range sensors take over")
@@ -610,4 +623,5 @@ class ControllerCore:
             spot_valid=spot is not None, spot_north_m=spot[0] if spot else 0.0, spot_east_m=spot[1] if spot else 0.0,
             spot_clearance_m=max(info.get("spot_clearance_m", 0.0), 0.0) if spot else 0.0,
             spot_confidence=min(max(info.get("spot_confidence", 0.0), 0.0), 1.0) if spot else 0.0,
+            handover=mode is Mode.HANDOVER,
         )

@@ -7,8 +7,8 @@ Each step k (t = k * dt) produces, in this order:
    needs them, a real camera never has them);
 2. the `VehicleState` of step k, whose `await_frame_seq` names the frame whose heatmap becomes
    available at this step (captured `latency_s` earlier; -1 when none does);
-3. the `EpisodeResult` once the judge ends the episode (hand-over altitude, time limit, or the
-   vehicle leaving the world).
+3. the `EpisodeResult` once the judge ends the episode (the controller's hand-over, the time
+   limit, the vehicle leaving the world or reaching the ground without a hand-over).
 
 `step(cmd)` applies the controller's answer to step k for dt and returns step k+1. A command
 counts only while it is fresh on the sim's own clock, as an autopilot's guided mode does
@@ -38,7 +38,7 @@ from dovesei.shared.messages import (
 )
 from dovesei.sim.camera import CameraModel, render
 from dovesei.sim.dynamics import Pose, Vehicle, VehicleParams
-from dovesei.sim.judge import EpisodeJudge
+from dovesei.sim.judge import NO_HANDOVER_REASON, EpisodeJudge
 from dovesei.sim.starts import Start
 from dovesei.sim.world import World
 
@@ -176,7 +176,8 @@ class SimCore:
         # time limits by a step depending on float luck.
         sched_t_s = round(self._k * cfg.dt_s, 9)
         pose = dataclasses.replace(self.vehicle.state, t_s=sched_t_s)
-        outcome = self.judge.check(pose)
+        # The hand-over is the controller's word on its newest fresh command, never the altitude.
+        outcome = self.judge.check(pose, handover=self._last_cmd is not None and self._last_cmd.handover)
         frame = None
         if outcome is None and sched_t_s >= (self._frame_seq + 1) * cfg.period_s - _EPS_S:
             frame = self._render(pose)
@@ -221,7 +222,7 @@ def unstarted_result(world: World, start: Start, config: SimConfig, detail: str,
     """The 'error' result of an episode that could not begin (`detail` says why), placed at the start."""
     judge = EpisodeJudge(world, handover_alt_m=config.handover_alt_m, time_limit_s=config.time_limit_s,
                          safety_radius_m=config.safety_radius_m)
-    judge.check(Pose(start.x_m, start.y_m, start.alt_m, yaw_rad=start.yaw_rad))
+    judge.check(Pose(start.x_m, start.y_m, start.alt_m, yaw_rad=start.yaw_rad), handover=False)
     return judge_result(config.vehicle_id, judge, "error", detail, clock=clock)
 
 
@@ -235,6 +236,8 @@ def judge_result(vehicle_id: str, judge: EpisodeJudge, outcome: str, detail: str
     pose, v = judge.last_state, judge.verdict
     classes = tuple(f"{c.name}:{c.fraction:.3f}" for c in v.classes) if v else ()
     closest = v.closest_unsafe_m if v else None
+    if not detail and judge.crashed:
+        detail = NO_HANDOVER_REASON
     if not detail:
         detail = v.reason if v else {"timeout": f"no landing within {judge.time_limit_s:.0f} s of {clock} time",
                                      "out_of_world": "the vehicle left the world",

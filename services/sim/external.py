@@ -5,7 +5,9 @@ autopilot's `VehicleState` on the state key. Here the sim only listens:
 
     state key --Inbox (newest wins)--> newest state of our vehicle with a local position
         -> pose in the world (local NED origin at the start: north = +y, east = +x)
-        -> judge (hand-over altitude, time limit, leaving the world) -> camera frame at the pose
+        -> judge (the controller's hand-over, time limit, leaving the world) -> camera frame at the pose
+    status key --Inbox (newest wins)--> the controller's `handover` (what ends the episode as a
+        landing; until a status is heard the judge falls back on the altitude crossing)
 
 Frames go out at the frame period of the wall clock, stamped with the state's own stamp (the
 vehicle's clock). No state within `wait_timeout_s` of the start, or none for `state_timeout_s`
@@ -22,7 +24,7 @@ from typing import Any
 from dovesei.shared import keys
 from dovesei.shared.clock import WallClock, wall_time_s
 from dovesei.shared.lifecycle import Inbox
-from dovesei.shared.messages import CameraFrame, ClassEntry, EpisodeResult, GroundTruth, VehicleState
+from dovesei.shared.messages import CameraFrame, ClassEntry, ControllerStatus, EpisodeResult, GroundTruth, VehicleState
 from dovesei.sim.camera import render
 from dovesei.sim.core import SimConfig, judge_result, unstarted_result
 from dovesei.sim.dynamics import Pose
@@ -77,13 +79,23 @@ def newest_state(states: Inbox[VehicleState], vehicle_id: str, stats: Any) -> Ve
     return newest
 
 
+def handover_heard(statuses: Inbox[ControllerStatus] | None, vehicle_id: str, last: bool | None) -> bool | None:
+    """The controller's newest word on the hand-over (its status's `handover`); `last` when no new
+    status of `vehicle_id` waits, None while none was ever heard."""
+    while statuses is not None and (status := statuses.poll()) is not None:
+        if status.vehicle_id == vehicle_id:
+            last = status.handover
+    return last
+
+
 def run_external_pose(states: Inbox[VehicleState], publish_frame: Callable[[CameraFrame], None], world: World,
                       start: Start, sim: SimConfig, *, wait_timeout_s: float, state_timeout_s: float,
-                      stop: threading.Event, stats: Any) -> EpisodeResult | None:
+                      stop: threading.Event, stats: Any,
+                      statuses: Inbox[ControllerStatus] | None = None) -> EpisodeResult | None:
     """Render at the states received until the judge ends the episode; None when `stop` ends it first.
 
     `stats` counts what happened (the service's SimStats: poses_received, states_foreign, steps,
-    overruns).
+    overruns). `statuses` carries the controller's hand-over.
     """
     judge = EpisodeJudge(world, handover_alt_m=sim.handover_alt_m, time_limit_s=sim.time_limit_s,
                          safety_radius_m=sim.safety_radius_m)
@@ -93,6 +105,7 @@ def run_external_pose(states: Inbox[VehicleState], publish_frame: Callable[[Came
     last_state_wall_s: float | None = None
     first_state_wall_s: float | None = None
     state: VehicleState | None = None
+    handover: bool | None = None
     due_s = clock.now_s()
     while clock.sleep_until(due_s, stop):
         due_s += sim.period_s
@@ -119,7 +132,8 @@ def run_external_pose(states: Inbox[VehicleState], publish_frame: Callable[[Came
         if last_state_wall_s - first_state_wall_s < POSE_WARMUP_S:
             continue
         pose = pose_in_world(state, start)
-        if judge.check(pose) is not None:
+        handover = handover_heard(statuses, sim.vehicle_id, handover)
+        if judge.check(pose, handover=handover) is not None:
             return judge_result(sim.vehicle_id, judge, judge.outcome, clock="vehicle")
         publish_frame(camera.frame(pose, state))
         stats.steps += 1

@@ -45,7 +45,7 @@ from dovesei.shared.clock import WallClock
 from dovesei.shared.codec import encode
 from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.shared.lifecycle import Inbox, declare_alive, install_stop_handlers, is_alive, write_stats
-from dovesei.shared.messages import CameraFrame, EpisodeResult, VehicleState, VelocityCommand
+from dovesei.shared.messages import CameraFrame, ControllerStatus, EpisodeResult, VehicleState, VelocityCommand
 from dovesei.shared.timing import TIMING_NAMES
 from dovesei.sim.core import SimConfig, SimCore, StepOut, unstarted_result
 from dovesei.sim.external import run_external_pose
@@ -155,9 +155,12 @@ class _Wire:
             self.camera = self._keep(session.declare_publisher(keys.camera(vid), congestion_control=flow))
             self.state = None
             self.states: Inbox[VehicleState] | None = None
+            self.statuses: Inbox[ControllerStatus] | None = None
             if config.external_pose:
                 # The controller publishes the autopilot's state here; the sim only listens.
                 self.states = self._keep(Inbox(session, keys.state(vid), VehicleState, newest_only=True))
+                # ... and its hand-over, which alone ends the episode as a landing (sim.judge).
+                self.statuses = self._keep(Inbox(session, keys.status(vid), ControllerStatus, newest_only=True))
             else:
                 self.state = self._keep(session.declare_publisher(keys.state(vid), congestion_control=flow))
             # The result is published once, just before the session closes: no batching delay.
@@ -221,7 +224,8 @@ def run(session: zenoh.Session, *, config: SimServiceConfig, stop: threading.Eve
         elif config.external_pose:
             result = run_external_pose(wire.states, lambda frame: wire.publish_frame(frame, stats), world, start,
                                        config.sim, wait_timeout_s=config.wait_timeout_s,
-                                       state_timeout_s=config.cmd_timeout_s, stop=stop, stats=stats)
+                                       state_timeout_s=config.cmd_timeout_s, stop=stop, stats=stats,
+                                       statuses=wire.statuses)
         else:
             core = SimCore(world, start, config.sim)
             if config.lockstep:

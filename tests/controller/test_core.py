@@ -20,13 +20,14 @@ class RecordingPolicy:
 
     name = "double"
 
-    def __init__(self) -> None:
+    def __init__(self, landing: bool = True) -> None:
         self.observations: list[Observation] = []
         self.resets = 0
+        self.landing = landing  # committed to landing: a hand-over at 20 m is its to declare
 
     def step(self, obs: Observation) -> Decision:
         self.observations.append(obs)
-        return Decision(VEL_FRD, 0.1, "AIMING", (10.0, 20.0), 123.0, 0.42, {})
+        return Decision(VEL_FRD, 0.1, "AIMING", (10.0, 20.0), 123.0, 0.42, {}, landing=self.landing)
 
     def reset(self) -> None:
         self.resets += 1
@@ -152,6 +153,26 @@ def test_handover_stops_commanding_with_hysteresis() -> None:
     assert status.state == "HANDOVER"
     _, status = core.tick(state(3, 0.20, alt_m=22.5))  # clearly above: control resumes
     assert status.state == "AIMING"
+
+
+def test_sinking_below_the_handover_altitude_without_the_policy_landing_is_no_handover() -> None:
+    # Twice under `harsh` an aborted descent sank through 20 m and was taken for a landing.
+    policy = RecordingPolicy(landing=False)
+    core = ControllerCore(ControllerConfig(lockstep=True, handover_alt_m=20.0), policy=policy)
+    core.on_heatmap(heatmap(0, 0.0), 0.0)
+    cmd, status = core.tick(state(0, 0.05, alt_m=21.0, await_seq=0))
+    assert not cmd.handover
+    for k in range(1, 4):
+        cmd, status = core.tick(state(k, 0.05 + 0.05 * k, alt_m=19.0))
+        assert core.mode is Mode.OK and status.state == "AIMING" and not cmd.handover
+        assert cmd.vel_body_frd_m_s == VEL_FRD  # still the policy's (it climbs back when it wants to)
+    assert core.rejected["below hand-over, not landing"] == 1  # once per sink, not per tick
+    # The policy commits: the very next tick is the hand-over, and the command says so.
+    policy.landing = True
+    core.on_heatmap(heatmap(1, 0.2), 0.0)
+    cmd, status = core.tick(state(4, 0.25, alt_m=19.0, await_seq=1))
+    assert core.mode is Mode.HANDOVER and status.state == "HANDOVER" and cmd.handover
+    assert cmd.vel_body_frd_m_s == (0.0, 0.0, 0.0)
 
 
 def test_other_vehicles_and_other_clocks_are_refused() -> None:
