@@ -41,13 +41,16 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from enum import Enum
 from typing import Any
 
 from dovesei.controller.policies.base import Decision, Observation, Policy, PolicyInputError, make_policy, policy_names
+from dovesei.controller.continuity import (
+    ALTITUDE_NOISE_M, MAX_VERTICAL_SPEED_M_S, STEP_CONFIRM_SAMPLES, AltitudeContinuity,
+)
 from dovesei.controller.odometry import VelocityTrack
 from dovesei.controller.policies.config import TIMING_PRESETS
 from dovesei.shared import keys, validate
@@ -64,6 +67,14 @@ MAX_POLICY_SPEED = 100.0  # m/s and rad/s: a policy asking for more is faulty (m
 DT_CAP_PERIODS = 2.0  # a perception gap advances the policy's clock by at most this many nominal periods
 # The vehicle clock runs on true seconds; 5 % margin for crystal drift and latency jitter.
 _DATA_RATE_MARGIN = 1.05
+# A heatmap's capture altitude must be one a camera can see the ground from: below 1 m a nadir
+# camera sees a blur and the paper's policy declared LANDED at alt 0 (and -999).
+MIN_HEATMAP_ALT_M, MAX_HEATMAP_ALT_M = 1.0, 1000.0
+# ... and agree with the vehicle's own states: within this share of the altitude (a frame may be
+# taken with the truth in the sim and the baro in the state), or this many times the noise.
+HEATMAP_ALT_FRAC = 0.25
+HEATMAP_ALT_NOISE_MULT = 5.0
+_ALT_TRACK_LEN = 200  # accepted (t, alt) states kept: 10 s at 20 Hz, covers any perception latency
 
 
 class ControllerInputError(DoveseiError, ValueError):
@@ -109,6 +120,19 @@ class ControllerConfig:
     lockstep_heatmap_wait_s: float = 5.0  # wall deadline for an awaited heatmap (lockstep)
     lockstep_heatmap_retry_s: float = 0.25  # shorter deadline while the segmenter seems down
     heatmap_buffer_len: int = 64  # lockstep: early heatmaps kept by seq
+    # The camera every heatmap must come from (its frame's field of view, size and altitude are
+    # checked before any policy sees it). The defaults are the sim's and the reference's camera;
+    # the tolerance lets a cropped output pass (a 4:3 source cut square reads 20 % narrower).
+    camera_hfov_deg: float = 73.0
+    camera_hfov_tolerance_frac: float = 0.25
+    camera_size_px: tuple[int, int] | None = None  # (height, width) exactly; None: any up to the limit
+    max_heatmap_side_px: int = 1024  # no camera we fly sends more; a 4096 px map only costs time
+    # What a multirotor's altitude can do between two states plus the altitude source's own noise:
+    # a larger step is refused (a forged or glitched state; dovesei.controller.continuity).
+    max_vertical_speed_m_s: float = MAX_VERTICAL_SPEED_M_S
+    altitude_noise_m: float = ALTITUDE_NOISE_M
+    altitude_step_confirm_states: int = STEP_CONFIRM_SAMPLES  # a step held this long is real
+    handover_confirm_states: int = 3  # states at/below the hand-over altitude before handing over
     record_path: str | None = None  # write an MCAP flight recording here (states, heatmaps, commands, status)
 
     def __post_init__(self) -> None:
@@ -140,6 +164,18 @@ class ControllerConfig:
             raise ConfigError(f"mavlink_yaw_control {self.mavlink_yaw_control!r}: choose 'rate' or 'autopilot'")
         if self.heatmap_buffer_len < 1:
             raise ConfigError(f"heatmap_buffer_len must be >= 1, got {self.heatmap_buffer_len}")
+        validate.in_range("ControllerConfig.camera_hfov_deg", self.camera_hfov_deg, 1.0, 179.0)
+        validate.in_range("ControllerConfig.camera_hfov_tolerance_frac", self.camera_hfov_tolerance_frac, 0.0, 0.9)
+        validate.in_range("ControllerConfig.max_heatmap_side_px", self.max_heatmap_side_px, 1, 8192)
+        if self.camera_size_px is not None:
+            validate.finite_vector("ControllerConfig.camera_size_px", self.camera_size_px, 2)
+            if not all(isinstance(v, int) and 1 <= v <= self.max_heatmap_side_px for v in self.camera_size_px):
+                raise ConfigError(f"ControllerConfig.camera_size_px must be two integers in 1..{self.max_heatmap_side_px}"
+                                  f", got {self.camera_size_px!r}")
+        for name in ("max_vertical_speed_m_s", "altitude_noise_m"):
+            validate.positive(f"ControllerConfig.{name}", getattr(self, name))
+        for name in ("altitude_step_confirm_states", "handover_confirm_states"):
+            validate.in_range(f"ControllerConfig.{name}", getattr(self, name), 1, 1000)
         if self.lockstep and self.vehicle_url != "zenoh":
             raise ConfigError("lockstep needs the simulator (--vehicle-url zenoh); a real vehicle runs in real time")
         for name in ("mavlink_max_horizontal_m_s", "mavlink_max_up_m_s", "mavlink_max_down_m_s"):
@@ -222,6 +258,11 @@ class ControllerCore:
         self._first_alt_m: float | None = None
         self._in_handover = False
         self._below_uncommitted = False  # below the hand-over altitude without the policy landing
+        self._low_states = 0  # consecutive accepted states at/below the hand-over altitude
+        self._alt_track: deque[tuple[float, float]] = deque(maxlen=_ALT_TRACK_LEN)  # (t_s, alt) accepted
+        cfg = self.config
+        self._altitude = AltitudeContinuity(cfg.max_vertical_speed_m_s, cfg.altitude_noise_m,
+                                            cfg.altitude_step_confirm_states, who=f"controller {cfg.vehicle_id}")
         self._mode: Mode | None = None
         self._last_state_seq: int | None = None
         self._state_anchor: tuple[float, float] | None = None  # (state t_s, own mono s): on-time state
@@ -315,6 +356,9 @@ class ControllerCore:
         if hm.vehicle_id != self.config.vehicle_id:
             return self._refuse("other vehicle", "heatmap for vehicle %r ignored (this is %r)",
                                 hm.vehicle_id, self.config.vehicle_id)
+        problem = self._camera_mismatch(hm)
+        if problem is not None:
+            return self._refuse("camera model", "heatmap %d refused: %s", hm.seq, problem)
         if self.config.lockstep:
             # Everything is kept by seq: the tick decides what is due (a new episode's seq 0 too).
             self._buffer[hm.seq] = (hm, recv_wall_s)
@@ -370,6 +414,13 @@ class ControllerCore:
             self._refuse("state from the future", "%s: refused", future)
             raise ControllerInputError(future)
         self._maybe_new_episode(state)
+        jump = self._altitude.check(state.stamp.t_s, state.alt_agl_m)
+        if jump is not None:
+            reason = f"state {state.seq}: {jump}"
+            self._refuse("altitude jump", "%s: refused", reason)
+            raise ControllerInputError(reason)
+        self._alt_track.append((state.stamp.t_s, state.alt_agl_m))
+        self._low_states = self._low_states + 1 if state.alt_agl_m <= cfg.handover_alt_m else 0
         now_s = state.stamp.t_s
         if self._last_state_t_s is None or now_s > self._last_state_t_s or self._state_advanced_wall_s is None:
             self._state_advanced_wall_s = wall_s
@@ -426,7 +477,46 @@ class ControllerCore:
             self._refuse("heatmap from the future", "heatmap %d stamped %.3f s after state %.3f s: ignored",
                          hm.seq, hm.stamp.t_s, state.stamp.t_s)
             return
+        problem = self._altitude_mismatch(hm)
+        if problem is not None:
+            self._refuse("heatmap altitude", "heatmap %d refused: %s", hm.seq, problem)
+            return
         self._run_policy(hm, recv_wall_s, state)
+
+    # ---- input checks against the camera model and the vehicle's own altitude ---------------
+
+    def _camera_mismatch(self, hm: SafetyHeatmap) -> str | None:
+        """Why a heatmap cannot come from the configured camera (None: it can). Valid on the wire
+        is not enough: hfov 1e-6 made the focus radius 1.5e6 px and the status could not be built."""
+        cfg = self.config
+        h, w = hm.prob_safe.shape
+        if cfg.camera_size_px is not None and (h, w) != tuple(cfg.camera_size_px):
+            return f"{w}x{h} px, the camera's heatmaps are {cfg.camera_size_px[1]}x{cfg.camera_size_px[0]} px"
+        if max(h, w) > cfg.max_heatmap_side_px:
+            return f"{w}x{h} px, more than {cfg.max_heatmap_side_px} px a side"
+        hfov_deg = math.degrees(hm.hfov_rad)
+        if abs(hfov_deg - cfg.camera_hfov_deg) > cfg.camera_hfov_tolerance_frac * cfg.camera_hfov_deg:
+            return (f"field of view {hfov_deg:.4g} deg, the camera's is {cfg.camera_hfov_deg:g} deg "
+                    f"(+-{cfg.camera_hfov_tolerance_frac:.0%})")
+        if not MIN_HEATMAP_ALT_M <= hm.alt_agl_m <= MAX_HEATMAP_ALT_M:
+            return f"altitude {hm.alt_agl_m:g} m outside {MIN_HEATMAP_ALT_M:g}..{MAX_HEATMAP_ALT_M:g} m"
+        return None
+
+    def _altitude_mismatch(self, hm: SafetyHeatmap) -> str | None:
+        """Why the heatmap's capture altitude disagrees with the vehicle's own states around its
+        capture stamp (None: it agrees, or no state is near enough to tell)."""
+        cfg = self.config
+        near = min(self._alt_track, key=lambda ta: abs(ta[0] - hm.stamp.t_s), default=None)
+        if near is None:
+            return None
+        t_s, alt_m = near
+        allowed_m = (max(cfg.altitude_noise_m * HEATMAP_ALT_NOISE_MULT, HEATMAP_ALT_FRAC * alt_m)
+                     + cfg.max_vertical_speed_m_s * abs(t_s - hm.stamp.t_s))
+        if abs(hm.alt_agl_m - alt_m) <= allowed_m:
+            return None
+        return (f"captured at {hm.alt_agl_m:.1f} m, the vehicle was at {alt_m:.1f} m (state at {t_s:.3f} s; "
+                f"at most {allowed_m:.1f} m apart)")
+
 
     def _policy_time_s(self, hm: SafetyHeatmap) -> float:
         """The policy's clock: the heatmap's stamp, shifted only when a step would exceed
@@ -529,7 +619,9 @@ class ControllerCore:
             decision = self._decision
             committed = (decision is not None and (decision.landing or decision.state in TERMINAL_STATES)
                          and self._policy_fault is None)
-            self._in_handover = committed and state.alt_agl_m <= cfg.handover_alt_m
+            # One low sample is no altitude: it must hold for a few states (a forged 19 m state
+            # handed over for a tick).
+            self._in_handover = committed and self._low_states >= cfg.handover_confirm_states
             if state.alt_agl_m <= cfg.handover_alt_m and not committed and not self._below_uncommitted:
                 log.warning("controller %s: at %.1f m, below the hand-over altitude %g m, but the policy is not "
                             "landing (%s): no hand-over, following the policy", cfg.vehicle_id, state.alt_agl_m,
@@ -542,6 +634,10 @@ class ControllerCore:
         if self._policy_fault is not None:
             return Mode.POLICY_FAULT, f"{self._policy_fault}: holding position"
         decision = self._decision
+        if decision is not None and decision.state in TERMINAL_STATES and state.alt_agl_m <= cfg.handover_alt_m:
+            # Declared at the altitude: the hand-over follows once the altitude has held.
+            return Mode.HOLD, (f"policy declared {decision.state} at {state.alt_agl_m:.1f} m: confirming the "
+                               f"altitude ({self._low_states} of {cfg.handover_confirm_states} states)")
         if decision is not None and decision.state in TERMINAL_STATES:
             if decision is not self._refused_decision:  # counted once per decision, not per tick
                 self._refused_decision = decision
