@@ -540,6 +540,8 @@ CLI = CommandLine(ControllerConfig, {
                           check=lambda w, v: validate.in_range(w, v, 1.0, 500.0)),
     "takeoff_ready_timeout_s": Flag("--takeoff-ready-timeout-s", "takeoff: give up when the autopilot cannot arm "
                                     "within this, naming its pre-arm reasons", check=validate.positive),
+    "camera_hfov_deg": Flag("--camera-hfov-deg", "the camera's horizontal field of view as published (after any "
+                            "crop): heatmaps more than 25 %% off it are refused", check=validate.positive),
     "record_path": Flag("--record", "write an MCAP flight recording (states, adopted heatmaps, commands, status) "
                         "to PATH", check=non_blank, metavar="PATH"),
 }, derive=_derived_defaults, prog="dovesei-controller", description=__doc__.splitlines()[0])
