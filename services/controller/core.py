@@ -259,6 +259,7 @@ class ControllerCore:
         self._in_handover = False
         self._below_uncommitted = False  # below the hand-over altitude without the policy landing
         self._low_states = 0  # consecutive accepted states at/below the hand-over altitude
+        self._low_t_s: float | None = None  # the newest of them
         self._alt_track: deque[tuple[float, float]] = deque(maxlen=_ALT_TRACK_LEN)  # (t_s, alt) accepted
         cfg = self.config
         self._altitude = AltitudeContinuity(cfg.max_vertical_speed_m_s, cfg.altitude_noise_m,
@@ -420,7 +421,11 @@ class ControllerCore:
             self._refuse("altitude jump", "%s: refused", reason)
             raise ControllerInputError(reason)
         self._alt_track.append((state.stamp.t_s, state.alt_agl_m))
-        self._low_states = self._low_states + 1 if state.alt_agl_m <= cfg.handover_alt_m else 0
+        if state.alt_agl_m > cfg.handover_alt_m:
+            self._low_states, self._low_t_s = 0, None
+        elif self._low_t_s is None or state.stamp.t_s > self._low_t_s:
+            # Distinct states only: the real-time loop re-ticks the newest one while none arrives.
+            self._low_states, self._low_t_s = self._low_states + 1, state.stamp.t_s
         now_s = state.stamp.t_s
         if self._last_state_t_s is None or now_s > self._last_state_t_s or self._state_advanced_wall_s is None:
             self._state_advanced_wall_s = wall_s

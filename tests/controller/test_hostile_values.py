@@ -120,6 +120,14 @@ def test_one_forged_low_state_never_hands_over() -> None:
     assert core.mode is Mode.OK and not cmd.handover and status.state == "LANDING"
     cmd, _ = core.tick(state(2, 0.15, alt_m=22.0))
     assert not cmd.handover
+    # Nor does one low state re-ticked by a real-time loop while no newer state comes.
+    rt = ControllerCore(ControllerConfig(lockstep=False, timing="real"), policy=Landing(), mono=lambda: 0.0)
+    rt.on_heatmap(heatmap(0, 10.0, alt_m=22.0), 0.0)
+    rt.tick(state(0, 10.0, alt_m=22.0), wall_s=0.0)
+    low = state(1, 10.05, alt_m=19.0)
+    for k in range(5):
+        cmd, _ = rt.tick(low, wall_s=0.05 + 0.01 * k)
+        assert not cmd.handover
     # A genuine descent holds below 20 m over several states: then it is the hand-over.
     for k, alt_m in enumerate((19.9, 19.8, 19.7), start=3):
         cmd, status = core.tick(state(k, 0.05 * (k + 1), alt_m=alt_m))
