@@ -274,64 +274,36 @@ def render(
                           f"roll_rad={roll_rad!r} pitch_rad={pitch_rad!r}")
     if interpolation not in ("auto", "linear"):
         raise CameraError(f"interpolation must be 'auto' or 'linear', got {interpolation!r}")
-    if roll_rad != 0.0 or pitch_rad != 0.0:
-        return _render_tilted(world, x_m, y_m, alt_agl_m, yaw_rad, roll_rad, pitch_rad, cam, with_labels=with_labels,
-                              with_image=with_image, interpolation=interpolation)
     size = (cam.width_px, cam.height_px)
-    m0 = pixel_to_world_affine(world, x_m, y_m, alt_agl_m, yaw_rad, cam)
-    k = cam.metres_per_px(alt_agl_m) / world.gsd_m  # world pixels per output pixel
+    if roll_rad == 0.0 and pitch_rad == 0.0:
+        m0 = pixel_to_world_affine(world, x_m, y_m, alt_agl_m, yaw_rad, cam)
+        k = cam.metres_per_px(alt_agl_m) / world.gsd_m  # world pixels per output pixel
+        warp = cv2.warpAffine
+    else:
+        m0 = pixel_to_world_homography(world, x_m, y_m, alt_agl_m, yaw_rad, roll_rad, pitch_rad, cam)
+        # The pyramid level follows the scale on the optical axis (slant range = alt / cos(tilt));
+        # the far edge of a strongly tilted view is then slightly aliased, the near edge soft.
+        k = cam.metres_per_px(alt_agl_m / float(tilt_rotation(roll_rad, pitch_rad)[2, 2])) / world.gsd_m
+        warp = cv2.warpPerspective
     # Border pixels are replicated (cheaper than a constant border in OpenCV's warp) and then
     # overwritten from the analytic mask below.
     image = None
     if with_image:
         src, geometry = _pyramid(world).level(_level_index(k))
         nearest = interpolation == "auto" and k / geometry[0] >= NEAREST_MIN_SCALE
-        rgba = cv2.warpAffine(src, _level_affine(m0, geometry), size,
-                              flags=(cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR) | cv2.WARP_INVERSE_MAP,
-                              borderMode=cv2.BORDER_REPLICATE)
+        rgba = warp(src, _level_affine(m0, geometry), size,
+                    flags=(cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR) | cv2.WARP_INVERSE_MAP,
+                    borderMode=cv2.BORDER_REPLICATE)
         image = cv2.cvtColor(rgba, cv2.COLOR_RGBA2RGB)
     labels = None
     if world.labels is not None and with_labels:
-        labels = cv2.warpAffine(world.labels, m0, size, flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
-                                borderMode=cv2.BORDER_CONSTANT, borderValue=OUT_OF_WORLD_LABEL)
+        labels = warp(world.labels, m0, size, flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
+                      borderMode=cv2.BORDER_CONSTANT, borderValue=OUT_OF_WORLD_LABEL)
     valid = _valid_mask(world, m0, cam)
     if valid is None:
         valid = np.ones((cam.height_px, cam.width_px), dtype=bool)
     else:
         # One source of truth for "outside": the analytic mask, not each warp's own border rounding.
-        if image is not None:
-            image[~valid] = OUT_OF_WORLD_RGB
-        if labels is not None:
-            labels[~valid] = OUT_OF_WORLD_LABEL
-    return image, labels, valid
-
-
-def _render_tilted(world: World, x_m: float, y_m: float, alt_agl_m: float, yaw_rad: float, roll_rad: float,
-                   pitch_rad: float, cam: CameraModel, *, with_labels: bool, with_image: bool,
-                   interpolation: str) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray]:
-    """`render` through the tilted pinhole's homography (same pyramid, borders and labels rules)."""
-    size = (cam.width_px, cam.height_px)
-    h0 = pixel_to_world_homography(world, x_m, y_m, alt_agl_m, yaw_rad, roll_rad, pitch_rad, cam)
-    # The pyramid level follows the scale on the optical axis (slant range = alt / cos(tilt)); the
-    # far edge of a strongly tilted view is then slightly aliased, the near edge slightly soft.
-    slant_m = alt_agl_m / float(tilt_rotation(roll_rad, pitch_rad)[2, 2])
-    k = cam.metres_per_px(slant_m) / world.gsd_m
-    image = None
-    if with_image:
-        src, geometry = _pyramid(world).level(_level_index(k))
-        nearest = interpolation == "auto" and k / geometry[0] >= NEAREST_MIN_SCALE
-        rgba = cv2.warpPerspective(src, _level_affine(h0, geometry), size,
-                                   flags=(cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR) | cv2.WARP_INVERSE_MAP,
-                                   borderMode=cv2.BORDER_REPLICATE)
-        image = cv2.cvtColor(rgba, cv2.COLOR_RGBA2RGB)
-    labels = None
-    if world.labels is not None and with_labels:
-        labels = cv2.warpPerspective(world.labels, h0, size, flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
-                                     borderMode=cv2.BORDER_CONSTANT, borderValue=OUT_OF_WORLD_LABEL)
-    valid = _valid_mask(world, h0, cam)
-    if valid is None:
-        valid = np.ones((cam.height_px, cam.width_px), dtype=bool)
-    else:
         if image is not None:
             image[~valid] = OUT_OF_WORLD_RGB
         if labels is not None:

@@ -91,3 +91,35 @@ def test_a_tilted_render_is_a_different_view_and_a_view_to_the_horizon_is_refuse
         render(world, CAM_X_M, CAM_Y_M, 50.0, 0.0, roll_rad=math.radians(60.0))
     with pytest.raises(CameraError, match="finite"):
         render(world, CAM_X_M, CAM_Y_M, 50.0, 0.0, roll_rad=float("nan"))
+
+
+def test_camera_mode_renders_at_the_attitude_the_frame_is_labelled_with(markers) -> None:
+    """Issue 26: the external-pose sim once rendered nadir but labelled frames with the autopilot's
+    roll and pitch, so a policy de-tilting by the label saw alt x tan(tilt) of false motion."""
+    from dovesei.shared.messages import Stamp, VehicleState
+    from dovesei.sim.core import SimConfig
+    from dovesei.sim.dynamics import Pose
+    from dovesei.sim.external import PoseCamera
+
+    world, centres = markers
+    camera = PoseCamera(world, SimConfig())
+    roll, pitch, yaw = math.radians(-8.0), math.radians(13.0), math.radians(40.0)
+    alt_m = 50.0
+    state = VehicleState(vehicle_id="uav1", seq=3, stamp=Stamp(1.0, "vehicle"), alt_agl_m=alt_m,
+                         vel_body_frd_m_s=(0.0, 0.0, 0.0), roll_rad=roll, pitch_rad=pitch, yaw_rad=yaw, pos_valid=True)
+    frame = camera.frame(Pose(CAM_X_M, CAM_Y_M, alt_m, yaw_rad=yaw), state)
+    assert (frame.roll_rad, frame.pitch_rad, frame.yaw_rad) == (roll, pitch, yaw)
+    cam = camera.sim.camera
+    compared = 0
+    for cid, (wx, wy) in centres.items():
+        want = projected_px(cam, CAM_X_M, CAM_Y_M, alt_m, roll, pitch, yaw, wx, wy)
+        rows, cols = np.nonzero(frame.truth.labels == cid)
+        if want is None or len(rows) == 0 or not (8 <= want[0] <= cam.height_px - 9 and 8 <= want[1] <= cam.width_px - 9):
+            continue
+        compared += 1
+        assert abs(rows.mean() - want[0]) < 1.5 and abs(cols.mean() - want[1]) < 1.5
+    assert compared >= 3
+    # The truth's optical-axis point is where the tilted axis meets the ground, not below the vehicle.
+    ax, ay = frame.truth.centre_world_m
+    assert math.hypot(ax - CAM_X_M, ay - CAM_Y_M) == pytest.approx(
+        alt_m * math.hypot(math.tan(pitch), math.tan(roll) / math.cos(pitch)), rel=1e-6)
