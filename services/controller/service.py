@@ -298,15 +298,14 @@ class _Loop:
         return True
 
     def _stream_landing_target(self, state: VehicleState) -> None:
-        """Precision landing: the policy's newest target as LANDING_TARGET angles, every tick."""
-        angles = self.core.landing_target_angles()
+        """Precision landing: the spot as LANDING_TARGET, refreshed every tick until the vehicle has
+        landed (the adapter streams it at 10 Hz while the autopilot is armed in LAND/PRECLAND)."""
         set_target = getattr(self.vehicle, "set_landing_target", None)
-        if angles is None or set_target is None:
+        target = self.core.landing_target(state)
+        if target is None or set_target is None:
             return
-        # Slant distance to the spot on flat ground below.
-        distance_m = state.alt_agl_m / max(1e-3, math.cos(angles[0]) * math.cos(angles[1]))
         try:
-            set_target(angles[0], angles[1], max(0.0, distance_m))
+            set_target(*target)
         except DoveseiError as exc:
             log.debug("landing target not set: %s", exc)
 
