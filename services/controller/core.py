@@ -159,6 +159,13 @@ class ControllerConfig:
     def period_s(self) -> float:
         return 1.0 / self.rate_hz
 
+    @property
+    def vehicle_speed_limits_m_s(self) -> tuple[float, float, float] | None:
+        """(horizontal, up, down) the MAVLink adapter flies at most; None with the sim (its own limits)."""
+        if self.vehicle_url == "zenoh":
+            return None
+        return self.mavlink_max_horizontal_m_s, self.mavlink_max_up_m_s, self.mavlink_max_down_m_s
+
 
 class Mode(str, Enum):
     """The loop's safety mode (see the module docstring for priorities)."""
@@ -197,7 +204,8 @@ class ControllerCore:
         self.config = config
         self._mono = mono  # the controller's own clock (stamps are judged on it in real time)
         # The real wiring always goes through the factory; tests may hand in a double.
-        self.policy = policy if policy is not None else make_policy(config.policy, config.timing)
+        self.policy = policy if policy is not None else make_policy(config.policy, config.timing,
+                                                                    config.vehicle_speed_limits_m_s)
         self.rejected: Counter[str] = Counter()  # reason -> count (heatmaps and states refused)
         self.adopted_count = 0
         self._tick_seq = 0

@@ -207,7 +207,9 @@ class MavlinkVehicle:
         self._next_setpoint_s = 0.0
         # Counters for tests, operators' logs and the run's stats.
         self.setpoints_sent = 0
-        self.setpoints_clamped = 0
+        self.setpoints_clamped = 0  # every setpoint written, stream repeats included
+        self.commands_steered = 0  # commands handed in by send() and flown
+        self.commands_clamped = 0  # ... of which asked for more than the limits
         self.messages_received = 0
         self.landing_targets_sent = 0
         self.samples_rejected: Counter[str] = Counter()  # reason -> count
@@ -301,6 +303,7 @@ class MavlinkVehicle:
     def counters(self) -> dict[str, Any]:
         """What the link did, for the run's stats and the operator."""
         return {"setpoints_sent": self.setpoints_sent, "setpoints_clamped": self.setpoints_clamped,
+                "commands_steered": self.commands_steered, "commands_clamped": self.commands_clamped,
                 "messages_received": self.messages_received, "landing_targets_sent": self.landing_targets_sent,
                 "samples_rejected": dict(self.samples_rejected), "intruder_heartbeats": dict(self.intruders),
                 "signing_rejected": dict(self.signing_rejected), "send_failures": self.send_failures,
@@ -324,6 +327,10 @@ class MavlinkVehicle:
         # Out at once (the stream only fills the gaps); the stream's next repeat is a period away.
         if not self._send_setpoint(cmd):
             raise NotSteerableError("setpoint not sent: the link's socket refused it (see the log)")
+        # Per command, not per repeat: how often the controller asked for more than the vehicle flies.
+        self.commands_steered += 1
+        if clamp_setpoint(cmd.vel_body_frd_m_s, 0.0, self.limits)[2]:
+            self.commands_clamped += 1
         with self._lock:
             self._next_setpoint_s = self._clock() + self.setpoint_period_s
 

@@ -564,6 +564,10 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     log.info("controller done: %d ticks, %d commands, %d heatmaps (%d payloads rejected)",
              stats.ticks, stats.commands_sent, stats.heatmaps_received, stats.heatmap_payloads_rejected)
+    steered, clamped = stats.vehicle_link.get("commands_steered"), stats.vehicle_link.get("commands_clamped")
+    if steered:
+        log.info("%d of %d commands (%.0f %%) asked for more than the vehicle's speed limits and were clamped",
+                 clamped, steered, 100.0 * clamped / steered)
     if process.stats_out is not None:
         write_stats(process.stats_out, dataclasses.asdict(stats))
     return 0
