@@ -167,6 +167,18 @@ def pixel_to_world_affine(
     )
 
 
+def ground_point_m(x_m: float, y_m: float, alt_agl_m: float, yaw_rad: float, row_px: float, col_px: float,
+                   cam: CameraModel) -> tuple[float, float]:
+    """World (x_m east, y_m north) of the ground an output pixel (row, col; integers at pixel
+    centres) shows from this pose: `pixel_to_world_affine`'s map in metres, for the judge to place
+    what a policy saw in a frame."""
+    g = cam.metres_per_px(alt_agl_m)
+    forward = -(row_px - (cam.height_px - 1) / 2.0) * g  # image up = body forward
+    right = (col_px - (cam.width_px - 1) / 2.0) * g
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    return x_m + c * right + s * forward, y_m + c * forward - s * right
+
+
 def _level_affine(m0: np.ndarray, geometry: tuple[float, float, float, float]) -> np.ndarray:
     # Output pixel -> level-0 pixel (m0), then level 0 -> level: cL = (c0 - offset) / scale.
     sx, ox, sy, oy = geometry
