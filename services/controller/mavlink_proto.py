@@ -25,6 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from dovesei.controller.frames import ned_to_body_frd
 from dovesei.shared import validate
 from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.shared.mavurl import check_serial_device, parse_mavlink_url
@@ -192,14 +193,7 @@ def open_link(url: str, *, source_system: int, source_component: int) -> Any:
 def ned_to_frd(vel_ned: tuple[float, ...], roll_rad: float, pitch_rad: float,
                yaw_rad: float) -> tuple[float, float, float]:
     """Rotate a NED vector into the body FRD frame (ZYX Euler angles, as MAVLink's ATTITUDE gives)."""
-    vn, ve, vd = (float(v) for v in vel_ned)
-    cr, sr, cp, sp = math.cos(roll_rad), math.sin(roll_rad), math.cos(pitch_rad), math.sin(pitch_rad)
-    cy, sy = math.cos(yaw_rad), math.sin(yaw_rad)
-    # Rows of R_body<-ned = (R_ned<-body)^T for R = Rz(yaw) Ry(pitch) Rx(roll).
-    f = cp * cy * vn + cp * sy * ve - sp * vd
-    r = (sr * sp * cy - cr * sy) * vn + (sr * sp * sy + cr * cy) * ve + sr * cp * vd
-    d = (cr * sp * cy + sr * sy) * vn + (cr * sp * sy - sr * cy) * ve + cr * cp * vd
-    return (f, r, d)
+    return ned_to_body_frd(vel_ned, roll_rad, pitch_rad, yaw_rad)
 
 
 # ---------------------------------------------------------------------- incoming samples

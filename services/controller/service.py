@@ -299,15 +299,14 @@ class _Loop:
         return True
 
     def _stream_landing_target(self, state: VehicleState) -> None:
-        """Precision landing: the policy's newest target as LANDING_TARGET angles, every tick."""
-        angles = self.core.landing_target_angles()
+        """Precision landing: the spot as LANDING_TARGET, refreshed every tick until the vehicle has
+        landed (the adapter streams it at 10 Hz while the autopilot is armed in LAND/PRECLAND)."""
         set_target = getattr(self.vehicle, "set_landing_target", None)
-        if angles is None or set_target is None:
+        target = self.core.landing_target(state)
+        if target is None or set_target is None:
             return
-        # Slant distance to the spot on flat ground below.
-        distance_m = state.alt_agl_m / max(1e-3, math.cos(angles[0]) * math.cos(angles[1]))
         try:
-            set_target(angles[0], angles[1], max(0.0, distance_m))
+            set_target(*target)
         except DoveseiError as exc:
             log.debug("landing target not set: %s", exc)
 
@@ -572,6 +571,10 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     log.info("controller done: %d ticks, %d commands, %d heatmaps (%d payloads rejected)",
              stats.ticks, stats.commands_sent, stats.heatmaps_received, stats.heatmap_payloads_rejected)
+    steered, clamped = stats.vehicle_link.get("commands_steered"), stats.vehicle_link.get("commands_clamped")
+    if steered:
+        log.info("%d of %d commands (%.0f %%) asked for more than the vehicle's speed limits and were clamped",
+                 clamped, steered, 100.0 * clamped / steered)
     if process.stats_out is not None:
         write_stats(process.stats_out, dataclasses.asdict(stats))
     return 0
