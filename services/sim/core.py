@@ -41,7 +41,7 @@ from dovesei.shared.timing import DEFAULT_TIMING, timing
 from dovesei.shared.messages import (
     CameraFrame, ClassEntry, ControllerStatus, EpisodeResult, GroundTruth, Stamp, VehicleState, VelocityCommand,
 )
-from dovesei.sim.camera import CameraModel, ground_point_m, render
+from dovesei.sim.camera import CameraError, CameraModel, ground_point_m, render
 from dovesei.sim.dynamics import Pose, Vehicle, VehicleParams
 from dovesei.sim.judge import EpisodeJudge
 from dovesei.sim.starts import Start
@@ -128,7 +128,8 @@ class SimCore:
         self._last_cmd: VelocityCommand | None = None
         self._result: EpisodeResult | None = None
         self.commands_dropped = 0
-        self._frame_poses: OrderedDict[int, Pose] = OrderedDict()  # frame seq -> true pose at capture
+        # frame seq -> the true pose it was rendered at: x, y, altitude, yaw, roll, pitch
+        self._frame_poses: OrderedDict[int, tuple[float, ...]] = OrderedDict()
         self._confirmed_look: tuple[int, float, float] | None = None
         return self._emit()
 
@@ -183,8 +184,13 @@ class SimCore:
                         len(self._frame_poses))
             self.judge.confirm(None)
             return
-        self.judge.confirm(ground_point_m(pose.x_m, pose.y_m, max(pose.alt_agl_m, 0.1), pose.yaw_rad, look[1],
-                                          look[2], self.config.camera))
+        x_m, y_m, alt_m, yaw_rad, roll_rad, pitch_rad = pose
+        try:
+            point = ground_point_m(x_m, y_m, alt_m, yaw_rad, look[1], look[2], self.config.camera, roll_rad, pitch_rad)
+        except CameraError as exc:
+            log.warning("confirming look (frame %d): %s: touchdown error unknown", look[0], exc)
+            point = None
+        self.judge.confirm(point)
 
     @property
     def result(self) -> EpisodeResult | None:
@@ -237,11 +243,14 @@ class SimCore:
             image = self._blank_image()
         truth = GroundTruth(labels, self._classes, (pose.x_m, pose.y_m)) if cfg.attach_truth and labels is not None else None
         self._frame_seq += 1
-        self._frame_poses[self._frame_seq] = pose
+        frame = CameraFrame(cfg.vehicle_id, self._frame_seq, Stamp(pose.t_s, "sim"), image, cfg.camera.hfov_rad,
+                            pose.alt_agl_m, yaw_rad=pose.yaw_rad, sent_wall_s=wall_time_s(), truth=truth)
+        # The pose the frame was rendered at, attitude included, for placing its pixels later.
+        self._frame_poses[frame.seq] = (pose.x_m, pose.y_m, max(pose.alt_agl_m, 0.1), pose.yaw_rad, frame.roll_rad,
+                                        frame.pitch_rad)
         if len(self._frame_poses) > FRAME_POSES_KEPT:
             self._frame_poses.popitem(last=False)
-        return CameraFrame(cfg.vehicle_id, self._frame_seq, Stamp(pose.t_s, "sim"), image, cfg.camera.hfov_rad,
-                           pose.alt_agl_m, yaw_rad=pose.yaw_rad, sent_wall_s=wall_time_s(), truth=truth)
+        return frame
 
     def _blank_image(self):
         if getattr(self, "_blank", None) is None:

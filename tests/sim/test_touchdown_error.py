@@ -13,7 +13,7 @@ from dovesei.controller.core import ControllerConfig, ControllerCore
 from dovesei.controller.policies.base import Confirmation, Decision, Observation
 from dovesei.episode import EpisodeSpec, run_episode
 from dovesei.shared.messages import ControllerStatus, FieldError, Stamp
-from dovesei.sim.camera import CameraModel, ground_point_m, pixel_to_world_affine
+from dovesei.sim.camera import CameraModel, ground_point_m, pixel_to_world_homography
 from dovesei.sim.core import SimConfig, SimCore
 from dovesei.sim.starts import Start
 from tests.sim.test_sim_core import MID_Y_M, WEST_M, command, split_world
@@ -25,15 +25,17 @@ def _status(seq: int, look: tuple[int, float, float] | None) -> ControllerStatus
     return ControllerStatus("uav1", seq, Stamp(0.0, "sim"), "clearance", "DESCEND", "ok", "", 0, 0.0, 1.0, **extra)
 
 
-@pytest.mark.parametrize("yaw_rad", [0.0, 0.7, -2.5])
-def test_ground_point_is_the_renderers_own_map(yaw_rad: float) -> None:
+@pytest.mark.parametrize("yaw_rad, roll_rad, pitch_rad", [(0.0, 0.0, 0.0), (0.7, 0.0, 0.0), (-2.5, 0.0, 0.0),
+                                                        (0.7, 0.15, -0.1)])
+def test_ground_point_is_the_renderers_own_map(yaw_rad: float, roll_rad: float, pitch_rad: float) -> None:
     world = split_world()
     cam = CameraModel()
-    m = pixel_to_world_affine(world, 120.0, 210.0, 47.0, yaw_rad, cam)
+    m = pixel_to_world_homography(world, 120.0, 210.0, 47.0, yaw_rad, roll_rad, pitch_rad, cam)
     for row, col in ((0.0, 0.0), (175.5, 175.5), (40.0, 300.0), (351.0, 12.0)):
-        wc, wr = m @ np.array([col, row, 1.0])
-        x_m, y_m = world.pixel_to_world(wr, wc)
-        assert ground_point_m(120.0, 210.0, 47.0, yaw_rad, row, col, cam) == pytest.approx((x_m, y_m), abs=1e-9)
+        wc, wr, wz = m @ np.array([col, row, 1.0])
+        x_m, y_m = world.pixel_to_world(wr / wz, wc / wz)
+        got = ground_point_m(120.0, 210.0, 47.0, yaw_rad, row, col, cam, roll_rad, pitch_rad)
+        assert got == pytest.approx((x_m, y_m), abs=1e-6)
 
 
 def test_touchdown_error_uses_the_confirming_frames_own_pose() -> None:
