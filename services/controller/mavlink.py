@@ -110,7 +110,9 @@ from dovesei.shared.messages import Stamp, VehicleState, VelocityCommand
 log = logging.getLogger(__name__)
 
 _ATTITUDE_FRESH_S = 1.0  # heading hold only corrects from an attitude younger than this
-_LANDING_TARGET_PERIOD_S = 0.1  # 10 Hz: ArduPilot's precland filter expects >= ~5 Hz
+# 10 Hz: ArduPilot's precland estimator initialises only on an update at least every 0.5 s for 2 s
+# and drops a target not updated for 2 s (AC_PrecLand EKF_INIT_*, LANDING_TARGET_TIMEOUT_MS).
+_LANDING_TARGET_PERIOD_S = 0.1
 _LANDING_TARGET_FRESH_S = 1.0  # a spot older than this is no longer streamed
 
 
@@ -768,8 +770,8 @@ class MavlinkVehicle:
 
     def _send_landing_target(self, now: float) -> None:
         with self._lock:
-            spot, mode = self._landing_target, self._mode
-        if spot is None or now - spot[3] > _LANDING_TARGET_FRESH_S or mode not in ("LAND", "PRECLAND"):
+            spot, mode, armed = self._landing_target, self._mode, self._armed
+        if spot is None or now - spot[3] > _LANDING_TARGET_FRESH_S or mode not in ("LAND", "PRECLAND") or not armed:
             return
         ax, ay, dist, _ = spot
         usec = int(now * 1e6)
