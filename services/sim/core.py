@@ -7,7 +7,10 @@ Each step k (t = k * dt) produces, in this order:
    needs them, a real camera never has them);
 2. the `VehicleState` of step k, whose `await_frame_seq` names the frame whose heatmap becomes
    available at this step (captured `latency_s` earlier; -1 when none does);
-3. the `EpisodeResult` once the judge ends the episode (hand-over altitude, time limit, or the
+3. with `odometry_rate_hz` > 0, a `VisualOdometry` when one is due: the onboard camera's visual
+   velocity from views rendered at the true pose, tagged with the state's altitude and attitude
+   (`dovesei.sim.odometry`; published before the state, so a controller has it when it decides);
+4. the `EpisodeResult` once the judge ends the episode (hand-over altitude, time limit, or the
    vehicle leaving the world).
 
 The true pose of each of the last `FRAME_POSES_KEPT` frames is kept: `note_status` places the spot
@@ -40,10 +43,12 @@ from dovesei.shared.errors import ConfigError
 from dovesei.shared.timing import DEFAULT_TIMING, timing
 from dovesei.shared.messages import (
     CameraFrame, ClassEntry, ControllerStatus, EpisodeResult, GroundTruth, Stamp, VehicleState, VelocityCommand,
+    VisualOdometry,
 )
 from dovesei.sim.camera import CameraError, CameraModel, ground_point_m, render
 from dovesei.sim.dynamics import Pose, Vehicle, VehicleParams
 from dovesei.sim.judge import EpisodeJudge
+from dovesei.sim.odometry import SimOdometry
 from dovesei.sim.starts import Start
 from dovesei.sim.world import World
 
@@ -77,12 +82,14 @@ class SimConfig:
     # False: frames carry a blank image (truth labels only). For the in-process bench with the
     # simulated perception, which reads only the labels: skips the costliest warp per frame.
     render_image: bool = True
+    odometry_rate_hz: float = 0.0  # visual odometry views per sim second (10 = the camera's); 0 = off
 
     def __post_init__(self) -> None:
         timing(self.timing)  # a ConfigError naming the presets
         for name in ("dt_s", "time_limit_s", "safety_radius_m"):
             validate.positive(f"sim {name}", getattr(self, name))
         validate.non_negative("sim handover_alt_m", self.handover_alt_m)
+        validate.in_range("sim odometry_rate_hz", self.odometry_rate_hz, 0.0, 100.0)
         for name in ("frame_period_s", "latency_s"):
             if getattr(self, name) is not None:
                 validate.non_negative(f"sim {name}", getattr(self, name))
@@ -105,6 +112,7 @@ class StepOut:
     state: VehicleState
     frame: CameraFrame | None
     result: EpisodeResult | None
+    odometry: VisualOdometry | None = None
 
 
 class SimCore:
@@ -122,6 +130,8 @@ class SimCore:
                                cfg.vehicle, seed=cfg.seed)
         self.judge = EpisodeJudge(self.world, handover_alt_m=cfg.handover_alt_m, time_limit_s=cfg.time_limit_s,
                                   safety_radius_m=cfg.safety_radius_m)
+        self._odometry = SimOdometry(self.world, cfg.camera, cfg.vehicle_id, cfg.odometry_rate_hz) \
+            if cfg.odometry_rate_hz > 0 else None
         self._k = 0
         self._frame_seq = -1
         self._in_flight: deque[tuple[int, float]] = deque()  # (frame seq, sim time its heatmap is due)
@@ -230,9 +240,13 @@ class SimCore:
             vel_body_frd_m_s=pose.vel_body_frd_m_s(), yaw_rad=pose.yaw_rad, armed=True, mode="SIM",
             pos_valid=True, pos_local_ned_m=(pose.y_m - self.start.y_m, pose.x_m - self.start.x_m, -pose.alt_agl_m),
             await_frame_seq=await_seq, sent_wall_s=wall_time_s())
+        odometry = None
+        if self._odometry is not None and outcome is None:
+            # Rendered where the vehicle truly is, told only what the state reports.
+            odometry = self._odometry.observe(pose.x_m, pose.y_m, pose.alt_agl_m, pose.yaw_rad, state)
         if outcome is not None:
             self._result = self._episode_result(outcome)
-        return StepOut(state, frame, self._result)
+        return StepOut(state, frame, self._result, odometry)
 
     def _render(self, pose: Pose) -> CameraFrame:
         cfg = self.config
