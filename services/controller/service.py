@@ -50,6 +50,7 @@ from dovesei.shared.clock import WallClock, wall_time_s
 from dovesei.shared.codec import encode
 from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.shared.lifecycle import Inbox, declare_alive, install_stop_handlers, write_stats
+from dovesei.shared.mavurl import parse_mavlink_url
 from dovesei.shared.messages import ControllerStatus, SafetyHeatmap, VehicleState, VelocityCommand, replace
 from dovesei.shared.recording import FlightRecorder
 from dovesei.shared.timing import DEFAULT_TIMING, TIMING_NAMES
@@ -478,6 +479,12 @@ def _serve(session: zenoh.Session, config: ControllerConfig, stop: threading.Eve
                 vehicle.close()
 
 
+def _check_vehicle_url(what: str, url: str) -> None:
+    """The form only (the one parser `dovesei up` uses too); whether a device opens is seen at connect."""
+    if url != "zenoh":
+        parse_mavlink_url(url, what)
+
+
 def _derived_defaults(given: Mapping[str, Any]) -> dict[str, Any]:
     """Defaults that follow the vehicle: the sim runs in lockstep (the sim's default too); a real
     vehicle runs in real time on true seconds."""
@@ -487,8 +494,9 @@ def _derived_defaults(given: Mapping[str, Any]) -> dict[str, Any]:
 
 # The one table of the controller's flags: `build_parser`, `config_from_args` and `to_argv` read it.
 CLI = CommandLine(ControllerConfig, {
-    "vehicle_url": Flag("--vehicle-url", "'zenoh' (the simulator) or a pymavlink URL, e.g. udpin:0.0.0.0:14550",
-                        check=non_blank, metavar="URL"),
+    "vehicle_url": Flag("--vehicle-url", "'zenoh' (the simulator) or a pymavlink URL: udpin:HOST:PORT, "
+                        "udpout:HOST:PORT, tcp:HOST:PORT or a serial DEVICE,BAUD such as /dev/ttyAMA0,921600",
+                        check=_check_vehicle_url, metavar="URL"),
     "vehicle_id": Flag("--vehicle-id", "vehicle id in the keys", check=lambda _w, v: keys.check_vehicle_id(v)),
     "policy": Flag("--policy", "landing policy", choices=policy_names()),
     "timing": Flag("--timing", f"policy timing preset ({DEFAULT_TIMING} with the sim, real with a MAVLink vehicle)",
