@@ -175,6 +175,7 @@ class RunStats:
     missed_ticks: int = 0  # real time: whole periods skipped after an overrun
     send_errors: int = 0
     states_published: int = 0  # MAVLink: vehicle states republished on the state key
+    geofence_clipped: int = 0  # commands the geofence capped (see core.py)
     core_refusals: dict[str, int] = field(default_factory=dict)
     vehicle_link: dict[str, Any] = field(default_factory=dict)  # the MAVLink adapter's counters
     wake_lateness_s: deque[float] = field(default_factory=lambda: deque(maxlen=_MAX_LATENESS_SAMPLES))
@@ -315,6 +316,7 @@ class _Loop:
         stats.heatmap_payloads_rejected = sum(self.heatmaps.rejected.values())
         stats.state_payloads_rejected = int(getattr(self.vehicle, "rejected", 0))
         stats.core_refusals = dict(self.core.rejected)
+        stats.geofence_clipped = self.core.geofence.clipped if self.core.geofence is not None else 0
         counters = getattr(self.vehicle, "counters", None)
         stats.vehicle_link = counters() if callable(counters) else {}
         return stats
@@ -547,6 +549,10 @@ CLI = CommandLine(ControllerConfig, {
                           check=lambda w, v: validate.in_range(w, v, 1.0, 500.0)),
     "takeoff_ready_timeout_s": Flag("--takeoff-ready-timeout-s", "takeoff: give up when the autopilot cannot arm "
                                     "within this, naming its pre-arm reasons", check=validate.positive),
+    "geofence_radius_m": Flag("--geofence-radius-m", "largest distance from the start, dead-reckoned from the "
+                              "velocity estimate, that any policy may fly (default: off with the sim, "
+                              "400 m with a MAVLink vehicle; 0: off)",
+                              check=lambda w, v: validate.in_range(w, v, 0.0, 100_000.0)),
     "record_path": Flag("--record", "write an MCAP flight recording (states, adopted heatmaps, commands, status) "
                         "to PATH", check=non_blank, metavar="PATH"),
 }, derive=_derived_defaults, prog="dovesei-controller", description=__doc__.splitlines()[0])
