@@ -462,6 +462,13 @@ class ControllerStatus(Message):
     spot_east_m: float = 0.0
     spot_clearance_m: float = 0.0
     spot_confidence: float = 0.0
+    # MAVLink navigation health (empty with the sim): which horizontal velocity the controller
+    # trusts ("autopilot", "external-nav", "visual", "none"), whether GNSS and the autopilot's
+    # position are lost, and why, in one line.
+    nav_source: str = ""
+    gnss_lost: bool = False
+    position_lost: bool = False
+    nav_reason: str = ""
 
     RANGES: ClassVar[dict[str, tuple[float, float]]] = {
         "spot_north_m": (-1e7, 1e7), "spot_east_m": (-1e7, 1e7), "spot_clearance_m": (0.0, 1e6),
