@@ -360,8 +360,10 @@ class VisualOdometry(Message):
 
     `stamp` is the newer frame's capture stamp (the camera's clock); `prev_frame_seq`..`frame_seq`
     are the two frames compared. The velocity is in the body frame at the newer frame (rotation
-    removed with the attitude, scaled by altitude and field of view). `quality` in [0, 1]: 0 means
-    no estimate (low texture, blur, a bad altitude); then `valid` is False and the velocity is 0.
+    removed with the attitude, scaled by altitude and field of view): FRD of the full attitude
+    `roll_rad`, `pitch_rad`, `yaw_rad` (ZYX, as MAVLink's ATTITUDE) that the newer frame was tagged
+    with, so R(roll, pitch, yaw) @ vel gives NED. `quality` in [0, 1]: 0 means no estimate (low
+    texture, blur, a bad altitude); an invalid estimate (`valid` False) has a zero velocity.
     `vel_var_m2_s2` is the variance per horizontal axis, what an EKF needs beside the value.
     """
 
@@ -380,6 +382,9 @@ class VisualOdometry(Message):
     dt_s: float
     alt_agl_m: float
     sent_wall_s: float = 0.0
+    roll_rad: float = 0.0
+    pitch_rad: float = 0.0
+    yaw_rad: float = 0.0
 
 
 @message("dovesei.safety_heatmap", 1)

@@ -5,7 +5,10 @@ autopilot's `VehicleState` on the state key. Here the sim only listens:
 
     state key --Inbox (newest wins)--> newest state of our vehicle with a local position
         -> pose in the world (local NED origin at the start: north = +y, east = +x)
-        -> judge (hand-over altitude, time limit, leaving the world) -> camera frame at the pose
+        -> judge (hand-over altitude, time limit, leaving the world) -> camera frame at the pose,
+           rendered tilted by the state's roll and pitch (the attitude the frame is labelled with:
+           a body-fixed camera sees what the autopilot's attitude says, and a policy that de-tilts
+           by that label finds the ground where it is)
 
 Frames go out at the frame period of the wall clock, stamped with the state's own stamp (the
 vehicle's clock). No state within `wait_timeout_s` of the start, or none for `state_timeout_s`
@@ -23,7 +26,7 @@ from dovesei.shared import keys
 from dovesei.shared.clock import WallClock, wall_time_s
 from dovesei.shared.lifecycle import Inbox
 from dovesei.shared.messages import CameraFrame, ClassEntry, EpisodeResult, GroundTruth, VehicleState
-from dovesei.sim.camera import render
+from dovesei.sim.camera import CameraError, optical_axis_ground_m, render
 from dovesei.sim.core import SimConfig, judge_result, unstarted_result
 from dovesei.sim.dynamics import Pose
 from dovesei.sim.judge import EpisodeJudge
@@ -48,10 +51,17 @@ class PoseCamera:
         self.seq = -1
 
     def frame(self, pose: Pose, state: VehicleState) -> CameraFrame:
+        """The view at `pose` tilted by the state's roll and pitch, labelled with that attitude.
+
+        CameraError when the attitude puts the view at the horizon (the caller skips that frame).
+        """
         cam = self.sim.camera
         # A vehicle on the ground still needs a view; 0.1 m keeps the pinhole model defined.
-        image, labels, _valid = render(self.world, pose.x_m, pose.y_m, max(pose.alt_agl_m, 0.1), pose.yaw_rad, cam)
-        truth = GroundTruth(labels, self.classes, (pose.x_m, pose.y_m)) if self.sim.attach_truth and labels is not None else None
+        alt_m = max(pose.alt_agl_m, 0.1)
+        image, labels, _valid = render(self.world, pose.x_m, pose.y_m, alt_m, pose.yaw_rad, cam,
+                                       roll_rad=state.roll_rad, pitch_rad=state.pitch_rad)
+        centre = optical_axis_ground_m(pose.x_m, pose.y_m, alt_m, pose.yaw_rad, state.roll_rad, state.pitch_rad)
+        truth = GroundTruth(labels, self.classes, centre) if self.sim.attach_truth and labels is not None else None
         self.seq += 1
         return CameraFrame(self.sim.vehicle_id, self.seq, state.stamp, image, cam.hfov_rad, pose.alt_agl_m,
                            roll_rad=state.roll_rad, pitch_rad=state.pitch_rad, yaw_rad=pose.yaw_rad,
@@ -83,7 +93,7 @@ def run_external_pose(states: Inbox[VehicleState], publish_frame: Callable[[Came
     """Render at the states received until the judge ends the episode; None when `stop` ends it first.
 
     `stats` counts what happened (the service's SimStats: poses_received, states_foreign, steps,
-    overruns).
+    overruns, frames_skipped).
     """
     judge = EpisodeJudge(world, handover_alt_m=sim.handover_alt_m, time_limit_s=sim.time_limit_s,
                          safety_radius_m=sim.safety_radius_m)
@@ -121,6 +131,12 @@ def run_external_pose(states: Inbox[VehicleState], publish_frame: Callable[[Came
         pose = pose_in_world(state, start)
         if judge.check(pose) is not None:
             return judge_result(sim.vehicle_id, judge, judge.outcome, clock="vehicle")
-        publish_frame(camera.frame(pose, state))
+        try:
+            frame = camera.frame(pose, state)
+        except CameraError as exc:  # an attitude no camera frame can show: skip it, keep serving
+            stats.frames_skipped += 1
+            log.warning("frame at state %d skipped: %s", state.seq, exc)
+            continue
+        publish_frame(frame)
         stats.steps += 1
     return None

@@ -108,6 +108,7 @@ class SimStats:
     poses_received: int = 0  # external pose: states of our vehicle with a local position used
     states_foreign: int = 0  # external pose: a vehicle id other than ours on our state key
     overruns: int = 0  # real time: schedule restarts after falling behind
+    frames_skipped: int = 0  # external pose: states whose attitude no frame can show (view at the horizon)
     # Transport latency of each command used (wall: received here - sent by the controller), and
     # of the first command made from each frame's heatmap (for `dovesei up`'s per-frame budget).
     command_to_sim_s: deque[float] = field(default_factory=lambda: deque(maxlen=_MAX_LATENCY_SAMPLES))
