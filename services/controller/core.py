@@ -502,7 +502,7 @@ class ControllerCore:
             odom = self._track.displacement_ne_m(self._last_capture_t_s, hm.stamp.t_s)
         obs = Observation(t_s=self._policy_time_s(hm), alt_agl_m=hm.alt_agl_m, prob_safe=hm.probability(), hfov_rad=hm.hfov_rad,
                           roll_rad=state.roll_rad, pitch_rad=state.pitch_rad, yaw_rad=state.yaw_rad,
-                          vel_est_body_frd_m_s=state.vel_body_frd_m_s, odom_delta_ne_m=odom)
+                          vel_est_body_frd_m_s=state.vel_body_frd_m_s, odom_delta_ne_m=odom, frame_seq=hm.seq)
         start = time.perf_counter()
         try:
             decision = self.policy.step(obs)
@@ -689,4 +689,16 @@ class ControllerCore:
             nav_source=nav.source if nav is not None else "", gnss_lost=nav.gnss_lost if nav is not None else False,
             position_lost=nav.position_lost if nav is not None else False,
             nav_reason=nav.reason if nav is not None else "",
+            **_confirmed_fields(decision),
         )
+
+
+def _confirmed_fields(decision: Decision | None) -> dict[str, Any]:
+    """The status fields of the decision's confirming look; none when it has none or its pixel is
+    not one a frame can have (a policy bug must not take the status message down with it)."""
+    c = decision.confirmed if decision is not None else None
+    lo, hi = ControllerStatus.RANGES["confirmed_row_px"]
+    if c is None or c.frame_seq < 0 or not all(math.isfinite(v) and lo <= v <= hi for v in (c.row_px, c.col_px)):
+        return {}
+    return {"confirmed_valid": True, "confirmed_frame_seq": int(c.frame_seq), "confirmed_row_px": float(c.row_px),
+            "confirmed_col_px": float(c.col_px)}

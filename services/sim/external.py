@@ -11,7 +11,9 @@ autopilot's `VehicleState` on the state key. Here the sim only listens:
            by that label finds the ground where it is)
 
 Frames go out at the frame period of the wall clock, stamped with the state's own stamp (the
-vehicle's clock). No state within `wait_timeout_s` of the start, or none for `state_timeout_s`
+vehicle's clock); with `odometry_rate_hz` the loop also runs at that rate and publishes the visual
+odometry of views rendered at the same pose (`dovesei.sim.odometry`), dated by the state's stamp
+moved on by the wall time since it arrived. No state within `wait_timeout_s` of the start, or none for `state_timeout_s`
 later, ends the episode as 'error' naming the key.
 """
 
@@ -25,11 +27,12 @@ from typing import Any
 from dovesei.shared import keys
 from dovesei.shared.clock import WallClock, wall_time_s
 from dovesei.shared.lifecycle import Inbox
-from dovesei.shared.messages import CameraFrame, ClassEntry, EpisodeResult, GroundTruth, VehicleState
+from dovesei.shared.messages import CameraFrame, ClassEntry, EpisodeResult, GroundTruth, VehicleState, VisualOdometry
 from dovesei.sim.camera import CameraError, optical_axis_ground_m, render
 from dovesei.sim.core import SimConfig, judge_result, unstarted_result
 from dovesei.sim.dynamics import Pose
 from dovesei.sim.judge import EpisodeJudge
+from dovesei.sim.odometry import SimOdometry
 from dovesei.sim.starts import Start
 from dovesei.sim.world import World
 
@@ -89,11 +92,14 @@ def newest_state(states: Inbox[VehicleState], vehicle_id: str, stats: Any) -> Ve
 
 def run_external_pose(states: Inbox[VehicleState], publish_frame: Callable[[CameraFrame], None], world: World,
                       start: Start, sim: SimConfig, *, wait_timeout_s: float, state_timeout_s: float,
-                      stop: threading.Event, stats: Any) -> EpisodeResult | None:
+                      stop: threading.Event, stats: Any,
+                      publish_odometry: Callable[[VisualOdometry], None] | None = None) -> EpisodeResult | None:
     """Render at the states received until the judge ends the episode; None when `stop` ends it first.
 
     `stats` counts what happened (the service's SimStats: poses_received, states_foreign, steps,
-    overruns, frames_skipped).
+    overruns, frames_skipped). With `sim.odometry_rate_hz` > 0 and `publish_odometry`, the loop
+    runs at the faster of the two rates and each new state also gives an odometry view, dated by
+    the state's own stamp (a state seen twice gives no second view: it would read as a hover).
     """
     judge = EpisodeJudge(world, handover_alt_m=sim.handover_alt_m, time_limit_s=sim.time_limit_s,
                          safety_radius_m=sim.safety_radius_m)
@@ -103,12 +109,15 @@ def run_external_pose(states: Inbox[VehicleState], publish_frame: Callable[[Came
     last_state_wall_s: float | None = None
     first_state_wall_s: float | None = None
     state: VehicleState | None = None
-    due_s = clock.now_s()
+    odometry = SimOdometry(world, sim.camera, sim.vehicle_id, sim.odometry_rate_hz) \
+        if sim.odometry_rate_hz > 0 and publish_odometry is not None else None
+    tick_s = sim.period_s if odometry is None else min(sim.period_s, odometry.period_s)
+    due_s = next_frame_s = clock.now_s()
     while clock.sleep_until(due_s, stop):
-        due_s += sim.period_s
+        due_s += tick_s
         if clock.now_s() - due_s > _MAX_BEHIND_S:
             stats.overruns += 1
-            due_s = clock.now_s() + sim.period_s
+            due_s = clock.now_s() + tick_s
         new = newest_state(states, sim.vehicle_id, stats)
         if new is not None:
             state = new
@@ -131,6 +140,15 @@ def run_external_pose(states: Inbox[VehicleState], publish_frame: Callable[[Came
         pose = pose_in_world(state, start)
         if judge.check(pose) is not None:
             return judge_result(sim.vehicle_id, judge, judge.outcome, clock="vehicle")
+        if odometry is not None:
+            odo = odometry.observe(pose.x_m, pose.y_m, pose.alt_agl_m, pose.yaw_rad, state,
+                                   roll_rad=state.roll_rad, pitch_rad=state.pitch_rad)
+            if odo is not None:
+                publish_odometry(odo)
+        if clock.now_s() < next_frame_s - 1e-6:
+            continue
+        next_frame_s = next_frame_s + sim.period_s if clock.now_s() - next_frame_s < _MAX_BEHIND_S \
+            else clock.now_s() + sim.period_s
         try:
             frame = camera.frame(pose, state)
         except CameraError as exc:  # an attitude no camera frame can show: skip it, keep serving

@@ -1,6 +1,7 @@
 """The simulator as a Zenoh service (`dovesei-sim`): `SimCore` on the wire, one episode per run.
 
     SimCore.reset/step --CameraFrame--> camera key     (JPEG on the wire with --jpeg-quality)
+                       --VisualOdometry-> odometry key (with --odometry-rate-hz; before the state)
                        --VehicleState-> state key
                        --EpisodeResult-> episode key   (once, at the end; also logged)
     cmd key --Inbox--> VelocityCommand --> SimCore.step
@@ -45,7 +46,7 @@ from dovesei.shared.clock import WallClock
 from dovesei.shared.codec import encode
 from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.shared.lifecycle import Inbox, declare_alive, install_stop_handlers, is_alive, write_stats
-from dovesei.shared.messages import CameraFrame, EpisodeResult, VehicleState, VelocityCommand
+from dovesei.shared.messages import CameraFrame, EpisodeResult, VehicleState, VelocityCommand, VisualOdometry
 from dovesei.shared.timing import TIMING_NAMES
 from dovesei.sim.core import SimConfig, SimCore, StepOut, unstarted_result
 from dovesei.sim.external import run_external_pose
@@ -98,6 +99,7 @@ class SimStats:
 
     steps: int = 0
     frames_sent: int = 0
+    odometry_sent: int = 0
     states_sent: int = 0
     commands_used: int = 0
     commands_stale: int = 0  # lockstep: answers to an earlier state (or the controller's hold)
@@ -154,6 +156,8 @@ class _Wire:
             # Real time prefers dropping an old frame to delaying the next one (Zenoh's default).
             flow = zenoh.CongestionControl.BLOCK if config.lockstep else zenoh.CongestionControl.DROP
             self.camera = self._keep(session.declare_publisher(keys.camera(vid), congestion_control=flow))
+            self.odometry = self._keep(session.declare_publisher(keys.odometry(vid), congestion_control=flow)) \
+                if config.sim.odometry_rate_hz > 0 else None
             self.state = None
             self.states: Inbox[VehicleState] | None = None
             if config.external_pose:
@@ -183,12 +187,19 @@ class _Wire:
         """Frame first, then state: the protocol's order for one step."""
         if out.frame is not None:
             self.publish_frame(out.frame, stats)
+        if out.odometry is not None:
+            self.publish_odometry(out.odometry, stats)
         self.state.put(encode(out.state))
         stats.states_sent += 1
 
     def publish_frame(self, frame: CameraFrame, stats: SimStats) -> None:
         self.camera.put(encode(frame, jpeg_quality=self.jpeg_quality))
         stats.frames_sent += 1
+
+    def publish_odometry(self, odometry: VisualOdometry, stats: SimStats) -> None:
+        if self.odometry is not None:
+            self.odometry.put(encode(odometry))
+            stats.odometry_sent += 1
 
     def close(self) -> None:
         for thing in reversed(self._closers):
@@ -221,7 +232,7 @@ def run(session: zenoh.Session, *, config: SimServiceConfig, stop: threading.Eve
             result = _never_started(world, start, config, missing)
         elif config.external_pose:
             result = run_external_pose(wire.states, lambda frame: wire.publish_frame(frame, stats), world, start,
-                                       config.sim, wait_timeout_s=config.wait_timeout_s,
+                                       config.sim, publish_odometry=lambda odo: wire.publish_odometry(odo, stats), wait_timeout_s=config.wait_timeout_s,
                                        state_timeout_s=config.cmd_timeout_s, stop=stop, stats=stats)
         else:
             core = SimCore(world, start, config.sim)
@@ -393,6 +404,9 @@ CLI = CommandLine(SimServiceConfig, {
     "sim.vehicle.cmd_timeout_s": Flag("--cmd-max-age-s", "drop a velocity command whose stamp is older than this "
                                       "on the sim clock, as ArduPilot's GUID_TIMEOUT (the vehicle then brakes to a "
                                       "hover)", check=validate.positive),
+    "sim.odometry_rate_hz": Flag("--odometry-rate-hz", "publish the camera's visual odometry (dovesei.shared."
+                                 "visual_velocity on views rendered at the true pose) on the odometry key at this "
+                                 "rate, e.g. 10 (0 = off)", check=lambda w, v: validate.in_range(w, v, 0.0, 100.0)),
     "sim.frame_period_s": Flag("--frame-period-s", "override the preset's frame period", check=validate.positive),
     "sim.latency_s": Flag("--latency-s", "override the preset's perception latency", check=validate.non_negative),
     "jpeg_quality": Flag("--jpeg-quality", "send frames JPEG-compressed at quality Q (1-100; default raw)",
