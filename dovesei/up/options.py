@@ -23,6 +23,7 @@ from dovesei.shared.timing import DEFAULT_TIMING, TIMING_NAMES, timing
 from dovesei.controller.policies import policy_names
 from dovesei.segmenter.simulated import DEFAULT_PROFILE, PROFILE_NAMES
 from dovesei.sim.service import parse_start as sim_parse_start
+from dovesei.sim.sitl_truth import parse_truth_url
 from dovesei.sim.starts import generate_starts
 
 DESCRIPTION = "`dovesei up`: fly one episode with the three services as separate OS processes on Zenoh."
@@ -108,6 +109,9 @@ class UpOptions:
     realtime: bool = False
     connect: tuple[str, ...] = ()
     vehicle_url: str | None = None  # MAVLink URL of a real autopilot (flag --vehicle); None: simulated
+    # ArduPilot SITL only: a SEPARATE SITL output (udpin:HOST:PORT) where the sim reads SIM_STATE, the
+    # simulator's true pose, to render and judge at; None: frames follow the controller's estimate.
+    sitl_truth: str | None = None
     takeoff: bool = False
     time_limit_s: float = 1200.0
     video: bool = True
@@ -134,6 +138,10 @@ class UpOptions:
                 raise ConfigError(f"{flag} {seed!r}: a seed is an integer in 0..{SEED_MAX}")
         if self.takeoff and not self.vehicle_url:
             raise ConfigError("--takeoff only applies with --vehicle (a real autopilot)")
+        if self.sitl_truth is not None:
+            if not self.vehicle_url:
+                raise ConfigError("--sitl-truth only applies with --vehicle (an ArduPilot SITL)")
+            parse_truth_url(self.sitl_truth)
         if self.vehicle_url:
             parse_mavlink_url(self.vehicle_url)
             if self.timing != "real":
@@ -234,6 +242,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"fly a real autopilot over MAVLink ({MAVLINK_FORMS}); it must already fly in "
                         "GUIDED/OFFBOARD unless --takeoff")
     p.add_argument("--takeoff", action="store_true", help="with --vehicle: arm and climb to the start altitude first")
+    p.add_argument("--sitl-truth", metavar="URL",
+                   help="with --vehicle against ArduPilot SITL: the camera renders and the judge judges at the "
+                        "simulator's TRUE pose (SIM_STATE), read on a SEPARATE SITL output (udpin:HOST:PORT, e.g. "
+                        "udpin:127.0.0.1:14552 for SITL's --serial2 udpclient:127.0.0.1:14552), never the "
+                        "controller's link; the policy still sees only the autopilot's estimate")
     p.add_argument("--video", action=argparse.BooleanOptionalAction, default=True, help="write episode.mp4")
     p.add_argument("--record", action=argparse.BooleanOptionalAction, default=True,
                    help="record the flight to recording.mcap (replay with `dovesei replay`)")
@@ -265,7 +278,7 @@ def options_from_args(args: argparse.Namespace) -> UpOptions:
     return UpOptions(world=args.world, segmenter=args.segmenter, policy=args.policy, timing=timing_name,
                      seed=args.seed, noise=args.noise, perception=args.perception, start=start, start_seed=args.start_seed,
                      start_alt_m=args.start_alt_m, out=out, realtime=args.realtime, connect=tuple(args.connect),
-                     vehicle_url=args.vehicle_url, takeoff=args.takeoff, time_limit_s=limit_s, video=args.video,
+                     vehicle_url=args.vehicle_url, sitl_truth=args.sitl_truth, takeoff=args.takeoff, time_limit_s=limit_s, video=args.video,
                      record=args.record, view=args.view, rrd=args.rrd,
                      model=args.model, vehicle_id=args.vehicle_id, heatmap_wait_s=args.heatmap_wait_s,
                      heatmap_hold_after_s=args.heatmap_hold_after_s, after_failure_s=args.after_failure_s,
