@@ -8,7 +8,8 @@ personality's documented rules, so the adapter meets the edges a real vehicle ha
                                             the heading, integrated into a NED position)
     peer --COMMAND_LONG / SET_MODE--------> COMMAND_ACK; modes, arming, takeoff, message intervals,
                                             REQUEST_MESSAGE(HOME_POSITION)
-    peer --LANDING_TARGET------------------> recorded; in LAND/PRECLAND the vehicle drifts towards it
+    peer --LANDING_TARGET------------------> recorded; in LAND/PRECLAND the precision-landing estimator
+                                            (below) takes it and, once initialised, lands on it
     fake --HEARTBEAT (mode, armed)--------> peer, at `heartbeat_hz` (stoppable: heartbeat-loss tests)
     fake --LOCAL_POSITION_NED, ATTITUDE, DISTANCE_SENSOR, GLOBAL_POSITION_INT, SYS_STATUS,
            EKF_STATUS_REPORT--> peer, only at the intervals asked for with SET_MESSAGE_INTERVAL
@@ -28,6 +29,12 @@ Personalities (`flavour`):
   OFFBOARD (and arming in it) only while setpoints stream and falls back to LOITER when they stop
   for COM_OF_LOSS_T (1 s).
 - `heading_drift_rad_s`: the heading wanders while airborne (the 5-23 degrees seen on ArduCopter).
+- Precision landing (`precland`, ArduPilot's PLND_ENABLED with PLND_TYPE 1, AC_PrecLand's
+  estimator): the first LANDING_TARGET in LAND says "PrecLand: Target Found"; the estimator
+  initialises only when targets keep coming at least every 0.5 s for 2 s ("PrecLand: Init
+  Complete"), else "PrecLand: Init Failed"; an initialised target not updated for 2 s is "PrecLand:
+  Target Lost". Only an acquired target is flown to (and no descent while it is more than
+  PLND_XY_DIST_MAX 2.5 m away); otherwise LAND descends straight down, blind.
 - `arm_refusals`: ARMs refused after boot by checks that run only at arming (a real case: the
   pre-arm bit says healthy, ARM still fails once).
 - `gcs_set_mode()`: a second ground station switching modes; `inject()`: one hand-made message
@@ -68,6 +75,9 @@ PX4_OFFBOARD_LOSS_S = 1.0  # PX4's COM_OF_LOSS_T default
 ARDUPILOT_GUIDED_VEL_TIMEOUT_S = 3.0  # ArduCopter's GUID_TIMEOUT default
 LAND_RATE_M_S = 1.0
 PRECLAND_GAIN_PER_S, PRECLAND_MAX_M_S = 0.5, 1.0
+# AC_PrecLand.cpp (ArduPilot 4.6): EKF_INIT_TIME_MS, EKF_INIT_SENSOR_MIN_UPDATE_MS,
+# LANDING_TARGET_TIMEOUT_MS; PLND_XY_DIST_MAX's default.
+PRECLAND_INIT_S, PRECLAND_INIT_GAP_S, PRECLAND_TIMEOUT_S, PRECLAND_XY_DIST_MAX_M = 2.0, 0.5, 2.0, 2.5
 DEFAULT_BOOT_S = 40.0
 ORIGIN_LAT_DEG, ORIGIN_LON_DEG = 47.3977, 8.5456  # any fixed point; only GLOBAL_POSITION_INT uses it
 
@@ -147,7 +157,8 @@ class FakeAutopilot:
                  rangefinder_max_m: float = 40.0, heartbeat_hz: float = 1.0, physics_hz: float = 50.0,
                  offboard_loss_s: float = PX4_OFFBOARD_LOSS_S, system: int = 1, component: int = 1,
                  boot_s: float = DEFAULT_BOOT_S, heading_drift_rad_s: float = 0.0,
-                 statustext_period_s: float = 2.0, signing_key: bytes | None = None, arm_refusals: int = 0) -> None:
+                 statustext_period_s: float = 2.0, signing_key: bytes | None = None, arm_refusals: int = 0,
+                 precland: bool = True) -> None:
         if flavour not in FLAVOURS:
             raise ValueError(f"flavour {flavour!r}: choose one of {FLAVOURS}")
         self.url, self.flavour, self.personality = url, flavour, PERSONALITIES[flavour]
@@ -178,7 +189,13 @@ class FakeAutopilot:
         self._intervals_s: dict[int, float] = {}
         self._next_send_s: dict[int, float] = {}
         self._last_setpoint: ReceivedSetpoint | None = None
-        self._landing_target: ReceivedLandingTarget | None = None
+        self._precland = precland
+        self._plnd_state = "none"  # none, init (Target Found, filling) or acquired (Init Complete)
+        self._plnd_init_s = self._plnd_last_s = 0.0  # time.monotonic of the init and of the newest target
+        self._plnd_target_ne_m: tuple[float, float] | None = None  # where the newest target puts it (NE)
+        self.touchdown_ne_m: tuple[float, float] | None = None  # where a LAND ended on the ground
+        self.touchdown_s: float | None = None  # when (time.monotonic)
+        self.precland_targets_ne: list[tuple[float, float, float]] = []  # (recv_s, north, east) per measurement
         self._outbox: list[Callable[[Any], None]] = []  # sends queued for the fake's own thread
         self._started_s = time.monotonic()
         self.setpoints: list[ReceivedSetpoint] = []
@@ -385,7 +402,8 @@ class FakeAutopilot:
             elif steering and sp is not None and now - sp.recv_s <= ARDUPILOT_GUIDED_VEL_TIMEOUT_S:
                 vel_ned, yaw_rate = self._setpoint_to_ned(sp)
             elif self._armed and name in ("LAND", "PRECLAND"):
-                vel_ned = self._landing_velocity(now)
+                self._precland_tick(now)
+                vel_ned = self._landing_velocity()
             vel_ned = self._capped(vel_ned)
             drift = self._heading_drift_rad_s if airborne and self._armed else 0.0
             self._yaw_rad = math.remainder(self._yaw_rad + (yaw_rate + drift) * dt_s, 2.0 * math.pi)
@@ -394,8 +412,10 @@ class FakeAutopilot:
             if self._pos_ned_m[2] > -self.terrain_height_m:
                 # On the ground: a landing ends with the motors disarmed, as both autopilots do.
                 self._pos_ned_m[2], vel_ned[2] = -self.terrain_height_m, 0.0
-                if name in ("LAND", "PRECLAND"):
+                if name in ("LAND", "PRECLAND") and self._armed:
                     self._armed = False
+                    self.touchdown_ne_m = (self._pos_ned_m[0], self._pos_ned_m[1])
+                    self.touchdown_s = now
             self._vel_ned_m_s, self._yaw_rate_rad_s = vel_ned, yaw_rate + drift
 
     def _capped(self, vel_ned: list[float]) -> list[float]:
@@ -406,19 +426,54 @@ class FakeAutopilot:
         down = min(max(vel_ned[2], -p.up_cap_m_s), p.down_cap_m_s)
         return [vel_ned[0] * scale, vel_ned[1] * scale, down]
 
-    def _landing_velocity(self, now: float) -> list[float]:
-        """LAND descends; with a fresh LANDING_TARGET it also moves over the target (precision landing)."""
+    def _landing_velocity(self) -> list[float]:
+        """LAND descends; with an acquired precision-landing target it also moves over it, and holds
+        its altitude while the target is more than PLND_XY_DIST_MAX away (caller holds the lock)."""
         vel = [0.0, 0.0, LAND_RATE_M_S]
-        target = self._landing_target
-        if target is None or now - target.recv_s > 1.0:
+        if self._plnd_state != "acquired" or self._plnd_target_ne_m is None:
             return vel
-        agl_m = max(0.0, -self._pos_ned_m[2] - self.terrain_height_m)
-        # Image x right, image y down (= body backward): the ArduPilot companion convention.
-        fwd_m, right_m = -math.tan(target.angle_y_rad) * agl_m, math.tan(target.angle_x_rad) * agl_m
-        c, s = math.cos(self._yaw_rad), math.sin(self._yaw_rad)
-        for i, offset_m in enumerate((c * fwd_m - s * right_m, s * fwd_m + c * right_m)):
+        offset = (self._plnd_target_ne_m[0] - self._pos_ned_m[0], self._plnd_target_ne_m[1] - self._pos_ned_m[1])
+        for i, offset_m in enumerate(offset):
             vel[i] = max(-PRECLAND_MAX_M_S, min(PRECLAND_MAX_M_S, PRECLAND_GAIN_PER_S * offset_m))
+        if math.hypot(*offset) > PRECLAND_XY_DIST_MAX_M:
+            vel[2] = 0.0
         return vel
+
+    def _precland_tick(self, now: float) -> None:
+        """AC_PrecLand's init and timeout checks, once per physics step in LAND (caller holds the lock)."""
+        if self._plnd_state == "init":
+            if now - self._plnd_last_s > PRECLAND_INIT_GAP_S:
+                self._plnd_state = "none"
+                self._queue_statustext(MAV_SEVERITY_CRITICAL, "PrecLand: Init Failed")
+            elif now - self._plnd_init_s > PRECLAND_INIT_S:
+                self._plnd_state = "acquired"
+                self._queue_statustext(MAV_SEVERITY_INFO, "PrecLand: Init Complete")
+        elif self._plnd_state == "acquired" and now - self._plnd_last_s > PRECLAND_TIMEOUT_S:
+            self._plnd_state = "none"
+            self._queue_statustext(MAV_SEVERITY_CRITICAL, "PrecLand: Target Lost")
+
+    def _precland_measure(self, target: ReceivedLandingTarget) -> None:
+        """One LANDING_TARGET in LAND: the target's ground position from the line of sight (caller holds the lock)."""
+        if not (self._precland and self._armed and mv.mode_name(self.flavour, self._custom_mode) in ("LAND", "PRECLAND")):
+            return
+        if not all(math.isfinite(v) for v in (target.angle_x_rad, target.angle_y_rad, target.distance_m)):
+            return
+        agl_m = max(0.0, -self._pos_ned_m[2] - self.terrain_height_m)
+        # Image x right, image y down (= body backward): the ArduPilot companion convention. The
+        # fake flies level, so the body line of sight is the level one; the distance, when given,
+        # is along it (AC_PrecLand), else the height sets it.
+        fwd, right, down = -math.tan(target.angle_y_rad), math.tan(target.angle_x_rad), 1.0
+        scale = (target.distance_m / math.sqrt(fwd * fwd + right * right + 1.0) if target.distance_m > 0.0
+                 else agl_m)
+        c, s = math.cos(self._yaw_rad), math.sin(self._yaw_rad)
+        fwd_m, right_m = fwd * scale, right * scale
+        self._plnd_target_ne_m = (self._pos_ned_m[0] + c * fwd_m - s * right_m,
+                                  self._pos_ned_m[1] + s * fwd_m + c * right_m)
+        self.precland_targets_ne.append((target.recv_s, *self._plnd_target_ne_m))
+        if self._plnd_state == "none":
+            self._plnd_state, self._plnd_init_s = "init", target.recv_s
+            self._queue_statustext(MAV_SEVERITY_INFO, "PrecLand: Target Found")
+        self._plnd_last_s = target.recv_s
 
     def _setpoint_to_ned(self, sp: ReceivedSetpoint) -> tuple[list[float], float]:
         """What the autopilot would fly for a setpoint (caller holds the lock)."""
@@ -456,7 +511,7 @@ class FakeAutopilot:
             target = ReceivedLandingTarget(recv_s, msg.frame, msg.angle_x, msg.angle_y, msg.distance)
             with self._lock:
                 self.landing_targets.append(target)
-                self._landing_target = target
+                self._precland_measure(target)
         elif kind == "SET_MODE":
             with self._lock:
                 self.set_mode_messages.append((recv_s, msg.base_mode, msg.custom_mode))

@@ -44,6 +44,7 @@ import zenoh
 from dovesei.replay import up_recorder
 from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.shared.lifecycle import install_stop_handlers
+from dovesei.shared.mavurl import check_serial_device
 from dovesei.shared.zconfig import free_port, zenoh_config
 from dovesei.sim.world import WorldError, load_world
 from dovesei.up.children import Children, describe_exit, last_error_line
@@ -89,7 +90,9 @@ def preflight(options: UpOptions) -> tuple[object, tuple[float, float, float], C
     if options.connect:
         zenoh_config(mode="client", connect=options.connect, env={})  # names a malformed --connect
     if options.vehicle_url:
-        check_endpoint_free(parse_mavlink_url(options.vehicle_url))
+        link = parse_mavlink_url(options.vehicle_url)
+        check_serial_device(link)
+        check_endpoint_free(link)
     if options.sitl_truth:
         check_endpoint_free(parse_mavlink_url(options.sitl_truth, "--sitl-truth"), "--sitl-truth")
     world = load_world(options.world)

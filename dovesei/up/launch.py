@@ -30,7 +30,9 @@ from dovesei.shared.errors import ConfigError
 from dovesei.sim import service as sim_service
 from dovesei.sim.core import SimConfig
 from dovesei.sim.service import SimServiceConfig
-from dovesei.up.options import MAVLINK_SCHEMES, MavlinkEndpoint, UpOptions, parse_mavlink_url
+from dovesei.shared.mavurl import SCHEMES as MAVLINK_SCHEMES
+from dovesei.shared.mavurl import MavlinkEndpoint, parse_mavlink_url
+from dovesei.up.options import UpOptions
 
 SERVICES = ("sim", "segmenter", "controller")  # start order: the sim waits for the other two
 MODULES = {"sim": "dovesei.sim.service", "segmenter": "dovesei.segmenter.service",
@@ -91,6 +93,13 @@ def child_configs(options: UpOptions, start: tuple[float, float, float]) -> Chil
     if options.takeoff:
         # The controller, the link's one owner, arms and climbs to the start before it steers.
         steering["takeoff_alt_m"] = float(start[2])
+    # The real autopilot's flags: each reaches the controller only when given (its defaults otherwise).
+    for field, value in (("handover_action", options.handover_action),
+                         ("mavlink_yaw_control", options.yaw_control),
+                         ("mavlink_signing_key_file", None if options.signing_key is None else str(options.signing_key)),
+                         ("mavlink_system_id", options.autopilot_system_id)):
+        if value is not None:
+            steering[field] = value
     controller = ControllerConfig(vehicle_id=options.vehicle_id, policy=options.policy, timing=options.timing,
                                   lockstep=options.lockstep, vehicle_url=options.vehicle_url or "zenoh", **steering)
     return ChildConfigs(sim, segmenter, controller)
@@ -141,7 +150,7 @@ def check_link_owners(commands: Mapping[str, Sequence[str]]) -> None:
                 continue
             other = owners.setdefault(ep.endpoint, name)
             if other != name:
-                raise ConfigError(f"--vehicle {ep.url!r}: both {other} and {name} would bind {ep.host}:{ep.port}; "
+                raise ConfigError(f"--vehicle-url {ep.url!r}: both {other} and {name} would bind {ep.host}:{ep.port}; "
                                   "only the controller may open the autopilot's link")
 
 

@@ -136,6 +136,10 @@ class Counts:
     rejected: int
     results_refused: int
     foreign: int
+    # MAVLink: commands that asked for more than the vehicle's speed limits (clamped by the adapter),
+    # of `commands_steered` flown; None with the sim or without the controller's stats.
+    commands_clamped: int | None = None
+    commands_steered: int | None = None
 
 
 @dataclass(frozen=True)
@@ -292,8 +296,10 @@ def build_report(options: UpOptions, rec: Recorder, start: tuple[float, float, f
                     Percentiles.of_seconds(rec.zenoh_delivery_overhead_s(), definition=DELIVERY_DEFINITION),
                     {k: Percentiles.of_seconds(v) for k, v in rec.delivery_s.items()})
     commands, commands_by = _commands(options, rec, stats)
+    link = (stats.get("controller") or {}).get("vehicle_link") or {}
     counts = Counts(rec.frames, rec.heatmaps, commands, commands_by, rec.status_count, len(rec.states),
-                    rec.rejected + sum(_rejected_in(st) for st in stats.values()), rec.results_refused, rec.foreign)
+                    rec.rejected + sum(_rejected_in(st) for st in stats.values()), rec.results_refused, rec.foreign,
+                    link.get("commands_clamped"), link.get("commands_steered"))
     trajectory = Trajectory(**{k: tuple(v) for k, v in traj.items()})
     return RunReport(episode, setup, timing, counts, trajectory, dict(stats), failure, interrupted)
 

@@ -143,6 +143,8 @@ def wait_for_takeoff(rec: Recorder, monitor: Monitor, children: Children, stop: 
             return WatchEnd(Failure("controller", None, "", f"the takeoff did not end within {timeout_s:.0f} s "
                                                            f"(last: {alt})"), False)
         stop.wait(0.02)
+    # The controller's first status answers its first tick after the climb: the mission starts there.
+    rec.mission_start_t_s = min(rec.statuses) if rec.statuses else None
     log.info("takeoff done at %.1f m: starting the sim", rec.states[-1].alt_agl_m if rec.states else float("nan"))
     return WatchEnd(None, False)
 

@@ -11,6 +11,11 @@ Data flow:
         aspect, resize -> tagged with the state received just before capture (altitude, attitude,
         a stamp on the vehicle's clock extrapolated to the capture instant) -> encode (JPEG when
         `jpeg_quality` is set, for a radio link to a ground-station segmenter) -> Zenoh put
+    odometry:      at up to `odometry_rate_hz` (10 Hz by default; 0 = off), every new grabbed frame
+        -> the same rotation and crop at the estimator's work width, tagged the same way ->
+        `dovesei.shared.visual_velocity` against the previous one -> VisualOdometry on
+        `dovesei/<vehicle>/odometry` (valid or not, with its reason logged at DEBUG); time between
+        frames from their capture instants. frame_seq counts grabbed frames, not published ones.
 
 Newest frame wins: grabbing runs continuously so the published frame is never older than one
 capture period; a segmenter slower than the camera sees fresh frames, not a backlog. Cropping
@@ -28,6 +33,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import sys
 import threading
 import time
@@ -46,6 +52,7 @@ from dovesei.shared.errors import ConfigError
 from dovesei.shared.lifecycle import Inbox, declare_alive, install_stop_handlers
 from dovesei.shared.messages import CameraFrame, Stamp, VehicleState
 from dovesei.shared.recording import FlightRecorder
+from dovesei.shared.visual_velocity import FrameMeta, VisualVelocity, odometry_message
 
 log = logging.getLogger(__name__)
 
@@ -68,6 +75,8 @@ class CameraConfig:
     state_timeout_s: float = 1.0
     loop_file: bool = False
     record_path: str | None = None  # write the published frames and their states to this MCAP file
+    odometry_rate_hz: float = 10.0  # visual velocity from consecutive grabbed frames; 0 = off
+    odometry_width_px: int = 320  # frames are cropped like the published ones and shrunk to this width
 
     def __post_init__(self) -> None:
         if not isinstance(self.source, str) or not self.source.strip():
@@ -83,6 +92,10 @@ class CameraConfig:
             raise ConfigError(f"camera rotate_deg must be one of {sorted(ROTATIONS)}, got {self.rotate_deg!r}")
         for name in ("rate_hz", "stall_timeout_s", "state_timeout_s"):
             validate.positive(f"camera {name}", getattr(self, name))
+        validate.in_range("camera odometry_rate_hz", self.odometry_rate_hz, 0.0, 200.0)
+        if isinstance(self.odometry_width_px, bool) or not isinstance(self.odometry_width_px, int) \
+                or not 64 <= self.odometry_width_px <= 1280:
+            raise ConfigError(f"camera odometry_width_px must be an integer in 64..1280, got {self.odometry_width_px!r}")
         if self.jpeg_quality is not None:
             validate.in_range("camera jpeg_quality", self.jpeg_quality, 1, 100)
 
@@ -94,6 +107,8 @@ class CameraStats:
     grabbed: int = 0
     published: int = 0
     withheld_no_state: int = 0
+    odometry_published: int = 0
+    odometry_valid: int = 0
     stalled: bool = False
     ended: bool = False
     warnings: list[str] = field(default_factory=list)
@@ -123,8 +138,12 @@ class CameraPublisher:
 
     def __init__(self, config: CameraConfig, grabber: Grabber, state_source: StateSource,
                  put: Callable[[bytes], None], *, clock: Callable[[], float] = time.monotonic,
-                 stats: CameraStats | None = None, recorder: FlightRecorder | None = None) -> None:
+                 stats: CameraStats | None = None, recorder: FlightRecorder | None = None,
+                 put_odometry: Callable[[bytes], None] | None = None) -> None:
         self.config, self.grabber, self.state_source, self.put = config, grabber, state_source, put
+        self.put_odometry = put_odometry
+        self._odometry = VisualVelocity()
+        self._odometry_index = 0
         self.recorder = recorder
         self._recorded_state: VehicleState | None = None
         self.stats = stats if stats is not None else CameraStats()
@@ -171,9 +190,7 @@ class CameraPublisher:
             self._no_state_reported = False
         recv_s, state = tagged
         frame = CameraFrame(
-            vehicle_id=self.config.vehicle_id, seq=self._seq,
-            # The state's clock, moved on by the time between its arrival and the capture.
-            stamp=Stamp(state.stamp.t_s + max(0.0, capture_s - recv_s), state.stamp.clock),
+            vehicle_id=self.config.vehicle_id, seq=self._seq, stamp=_capture_stamp(state, recv_s, capture_s),
             image_rgb=crop_resize(bgr, self.config.width_px, self.config.height_px, self.config.rotate_deg),
             hfov_rad=self._hfov(bgr.shape[1], bgr.shape[0]), alt_agl_m=state.alt_agl_m,
             roll_rad=state.roll_rad, pitch_rad=state.pitch_rad, yaw_rad=state.yaw_rad, sent_wall_s=time.time())
@@ -187,6 +204,46 @@ class CameraPublisher:
         self._seq += 1
         self.stats.published += 1
         log.debug("frame %d published (alt %.1f m)", frame.seq, frame.alt_agl_m)
+        return True
+
+    def odometry_tick(self) -> bool:
+        """Compare the newest grabbed frame with the one before and publish the velocity; True if sent.
+
+        A frame without a recent state is skipped and forgotten (the next one starts afresh): a
+        velocity scaled by an unknown altitude would be made up.
+        """
+        if self.put_odometry is None:
+            return False
+        newest = self.grabber.newest()
+        if newest is None or newest[2] == self._odometry_index:
+            return False
+        bgr, capture_s, index = newest
+        self._odometry_index = index
+        tagged = self._state_at(capture_s)
+        if tagged is None or capture_s - tagged[0] > self.config.state_timeout_s:
+            self._odometry.reset()
+            return False
+        recv_s, state = tagged
+        c = self.config
+        # The published frame's crop and field of view, at the estimator's width (never enlarged).
+        src_h, src_w = bgr.shape[:2]
+        width = min(c.odometry_width_px, src_w if c.rotate_deg in (0, 180) else src_h)
+        height = max(32, round(width * c.height_px / c.width_px))
+        meta = FrameMeta(index, capture_s, state.alt_agl_m, self._hfov(src_w, src_h), state.roll_rad,
+                         state.pitch_rad, state.yaw_rad)
+        est = self._odometry.update(crop_resize(bgr, width, height, c.rotate_deg), meta)
+        if est is None:
+            return False
+        msg = odometry_message(est, meta, vehicle_id=c.vehicle_id, stamp=_capture_stamp(state, recv_s, capture_s),
+                               sent_wall_s=time.time())
+        self.put_odometry(encode(msg))
+        self.stats.odometry_published += 1
+        self.stats.odometry_valid += int(msg.valid)
+        if msg.valid:
+            log.debug("odometry %d: (%.2f, %.2f, %.2f) m/s, quality %.2f", msg.frame_seq, *msg.vel_body_frd_m_s,
+                      msg.quality)
+        else:
+            log.debug("odometry %d invalid: %s", msg.frame_seq, est.reason)
         return True
 
     def _check_stall(self, now: float) -> None:
@@ -225,6 +282,11 @@ class CameraPublisher:
         log.warning("%s", text)
 
 
+def _capture_stamp(state: VehicleState, recv_s: float, capture_s: float) -> Stamp:
+    """The state's clock, moved on by the time between the state's arrival and the capture."""
+    return Stamp(state.stamp.t_s + max(0.0, capture_s - recv_s), state.stamp.clock)
+
+
 def run(session: zenoh.Session, *, config: CameraConfig, stop: threading.Event,
         state_source: StateSource | None = None, stats: CameraStats | None = None) -> CameraStats:
     """Capture and publish until `stop` is set; returns what happened (recording to `config.record_path`)."""
@@ -253,23 +315,33 @@ def _serve(session: zenoh.Session, config: CameraConfig, stop: threading.Event, 
         state_source = ZenohStateSource(session, config.vehicle_id)
     grabber = Grabber(config.source, loop_file=config.loop_file).start()
     publisher = session.declare_publisher(keys.camera(config.vehicle_id))
-    loop = CameraPublisher(config, grabber, state_source, publisher.put, stats=stats, recorder=recorder)
-    log.info("camera %s (%s) -> %s at %.1f Hz, %dx%d, %s, state from %s", config.source, grabber.kind,
+    odometry = session.declare_publisher(keys.odometry(config.vehicle_id)) if config.odometry_rate_hz > 0 else None
+    loop = CameraPublisher(config, grabber, state_source, publisher.put, stats=stats, recorder=recorder,
+                           put_odometry=odometry.put if odometry is not None else None)
+    log.info("camera %s (%s) -> %s at %.1f Hz, %dx%d, %s, state from %s; odometry %s", config.source, grabber.kind,
              keys.camera(config.vehicle_id), config.rate_hz, config.width_px, config.height_px,
-             f"JPEG q{config.jpeg_quality}" if config.jpeg_quality else "raw RGB", keys.state(config.vehicle_id))
+             f"JPEG q{config.jpeg_quality}" if config.jpeg_quality else "raw RGB", keys.state(config.vehicle_id),
+             f"-> {keys.odometry(config.vehicle_id)} at up to {config.odometry_rate_hz:g} Hz" if odometry else "off")
     period_s, poll_s = 1.0 / config.rate_hz, 0.01
+    odo_period_s = 1.0 / config.odometry_rate_hz if odometry is not None else math.inf
     try:
-        next_pub_s = time.monotonic()
+        next_pub_s = next_odo_s = time.monotonic()
         while not stop.is_set():
             now = time.monotonic()
+            loop.poll_state()  # keep state receive times accurate between publications
+            if now >= next_odo_s:
+                # A new frame is compared as soon as it is grabbed; without one, look again next poll.
+                if loop.odometry_tick():
+                    next_odo_s = max(next_odo_s + odo_period_s, now)
             if now >= next_pub_s:
                 loop.tick()
                 next_pub_s = max(next_pub_s + period_s, now)
-            else:
-                loop.poll_state()  # keep state receive times accurate between publications
+            # At most one poll period: odometry waiting for its next frame looks again then.
             stop.wait(min(poll_s, max(0.0, next_pub_s - time.monotonic())))
     finally:
         grabber.close()
+        if odometry is not None:
+            odometry.undeclare()
         publisher.undeclare()
         if own_source:
             state_source.close()
@@ -291,6 +363,10 @@ CLI = CommandLine(CameraConfig, {
     "state_timeout_s": Flag("--state-timeout", "max age of the state used to tag a frame, seconds",
                             check=validate.positive),
     "loop_file": Flag("--loop", "loop a video file"),
+    "odometry_rate_hz": Flag("--odometry-rate-hz", "visual velocity on the odometry key from consecutive frames, "
+                             "at most this often (0 = off)", check=lambda w, v: validate.in_range(w, v, 0.0, 200.0)),
+    "odometry_width_px": Flag("--odometry-width", "frames shrunk to this width for the visual velocity, pixels",
+                              check=integer_in(64, 1280)),
     "record_path": Flag("--record", "write the published frames and their states as an MCAP recording to PATH",
                         check=non_blank, metavar="PATH"),
 }, prog="dovesei-camera", description="Publish an onboard camera as dovesei frames.")

@@ -47,6 +47,7 @@ from enum import Enum
 from typing import Any
 
 from dovesei.controller.policies.base import Decision, Observation, Policy, PolicyInputError, make_policy, policy_names
+from dovesei.controller.frames import body_frd_to_ned, ned_to_body_frd
 from dovesei.controller.odometry import VelocityTrack
 from dovesei.controller.policies.config import TIMING_PRESETS
 from dovesei.shared import keys, validate
@@ -159,6 +160,13 @@ class ControllerConfig:
     def period_s(self) -> float:
         return 1.0 / self.rate_hz
 
+    @property
+    def vehicle_speed_limits_m_s(self) -> tuple[float, float, float] | None:
+        """(horizontal, up, down) the MAVLink adapter flies at most; None with the sim (its own limits)."""
+        if self.vehicle_url == "zenoh":
+            return None
+        return self.mavlink_max_horizontal_m_s, self.mavlink_max_up_m_s, self.mavlink_max_down_m_s
+
 
 class Mode(str, Enum):
     """The loop's safety mode (see the module docstring for priorities)."""
@@ -183,10 +191,12 @@ class Mode(str, Enum):
 
 @dataclass(frozen=True)
 class _Adopted:
-    """The heatmap the current decision was computed from, and what it cost."""
+    """The heatmap the current decision was computed from, what it cost, and the attitude (roll,
+    pitch, yaw) the policy was given with it."""
 
     hm: SafetyHeatmap
     latency: StageLatency
+    attitude_rad: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
 class ControllerCore:
@@ -197,7 +207,8 @@ class ControllerCore:
         self.config = config
         self._mono = mono  # the controller's own clock (stamps are judged on it in real time)
         # The real wiring always goes through the factory; tests may hand in a double.
-        self.policy = policy if policy is not None else make_policy(config.policy, config.timing)
+        self.policy = policy if policy is not None else make_policy(config.policy, config.timing,
+                                                                    config.vehicle_speed_limits_m_s)
         self.rejected: Counter[str] = Counter()  # reason -> count (heatmaps and states refused)
         self.adopted_count = 0
         self._tick_seq = 0
@@ -232,6 +243,10 @@ class ControllerCore:
         self._refused_decision: Decision | None = None  # the terminal decision refused above hand-over
         self._track = VelocityTrack()  # the velocity estimate integrated, to read between capture stamps
         self._last_capture_t_s: float | None = None  # capture stamp of the heatmap the policy last took
+        # Precision landing: the chosen spot relative to the vehicle (north, east, down metres) at
+        # data-clock time t_s, fixed at the hand-over and carried by dead reckoning from then on.
+        self._spot_rel_ned_m: tuple[float, float, float] | None = None
+        self._spot_t_s = 0.0
 
     def _maybe_new_episode(self, state: VehicleState) -> None:
         """Time running backwards is a new sim episode only in lockstep with a restarted state
@@ -384,6 +399,8 @@ class ControllerCore:
             self._mode = mode
 
         vel, yaw_rate = self._velocity(mode, state)
+        if mode is not Mode.HANDOVER:
+            self._spot_rel_ned_m = None  # a new hand-over fixes its own spot
         self._tick_seq += 1
         adopted = self._adopted
         frame_seq = adopted.hm.seq if adopted is not None else -1
@@ -462,7 +479,7 @@ class ControllerCore:
             odom = self._track.displacement_ne_m(self._last_capture_t_s, hm.stamp.t_s)
         obs = Observation(t_s=self._policy_time_s(hm), alt_agl_m=hm.alt_agl_m, prob_safe=hm.probability(), hfov_rad=hm.hfov_rad,
                           roll_rad=state.roll_rad, pitch_rad=state.pitch_rad, yaw_rad=state.yaw_rad,
-                          vel_est_body_frd_m_s=state.vel_body_frd_m_s, odom_delta_ne_m=odom)
+                          vel_est_body_frd_m_s=state.vel_body_frd_m_s, odom_delta_ne_m=odom, frame_seq=hm.seq)
         start = time.perf_counter()
         try:
             decision = self.policy.step(obs)
@@ -498,7 +515,7 @@ class ControllerCore:
         to_controller_s = recv_wall_s - hm.sent_wall_s if hm.sent_wall_s > 0.0 else 0.0
         latency = StageLatency(frame_to_segmenter_s=hm.frame_to_segmenter_s, inference_s=hm.inference_s,
                                heatmap_to_controller_s=to_controller_s, policy_s=policy_s)
-        self._adopted = _Adopted(hm, latency)
+        self._adopted = _Adopted(hm, latency, (state.roll_rad, state.pitch_rad, state.yaw_rad))
         self._decision = decision
         self.adopted_count += 1
         log.debug("adopted heatmap %d: policy %.2f ms, state %s", hm.seq, policy_s * 1e3, decision.state)
@@ -566,16 +583,49 @@ class ControllerCore:
     def mode(self) -> Mode | None:
         return self._mode
 
-    def landing_target_angles(self) -> tuple[float, float] | None:
-        """The decision's target as camera angles (image x right, image y down = body backward),
-        what MAVLink's LANDING_TARGET carries; None without a target."""
+    def landing_target(self, state: VehicleState) -> tuple[float, float, float] | None:
+        """The spot to land on as MAVLink's LANDING_TARGET sees it from the vehicle now: (angle_x,
+        angle_y, distance) in the body FRD frame (image x right, image y down = body backward);
+        None without a spot.
+
+        The spot is fixed on the ground the first time this is asked after the hand-over began:
+        the newest decision's target pixel, cast with the attitude it was decided with onto flat
+        ground at the heatmap's altitude. From then on it is carried by the autopilot's velocity
+        estimate integrated tick by tick (no position), never by the policy's later views: below
+        the hand-over altitude the camera's verdict is the short-range sensors' job, and a target
+        pixel re-sent as fixed angles would run away with the vehicle as it moves over it.
+        """
+        now_s = state.stamp.t_s
+        if self._spot_rel_ned_m is None:
+            spot = self._spot_at_capture()
+            if spot is None:
+                return None
+            self._spot_rel_ned_m, self._spot_t_s = spot
+        moved = self._track.displacement_ne_m(self._spot_t_s, now_s)
+        if moved is None:
+            return None  # the velocity track has a gap: better no target than a made-up one
+        n, e, d = self._spot_rel_ned_m
+        # The ground below is flat: the spot stays `alt` metres down whatever the descent did.
+        self._spot_rel_ned_m, self._spot_t_s = (n - moved[0], e - moved[1], max(state.alt_agl_m, 0.0)), now_s
+        fwd, right, down = ned_to_body_frd(self._spot_rel_ned_m, state.roll_rad, state.pitch_rad, state.yaw_rad)
+        down = max(down, 1e-3)  # a spot at or above the horizon would be a broken geometry, not a target
+        return math.atan2(right, down), math.atan2(-fwd, down), math.sqrt(fwd * fwd + right * right + down * down)
+
+    def _spot_at_capture(self) -> tuple[tuple[float, float, float], float] | None:
+        """(spot relative to the vehicle in NED metres, capture time) from the newest decision."""
         adopted, decision = self._adopted, self._decision
         if adopted is None or decision is None or decision.target_px is None:
             return None
         h, w = adopted.hm.prob_safe.shape
         focal_px = (w / 2.0) / math.tan(adopted.hm.hfov_rad / 2.0)  # square pixels: one focal length
         row, col = decision.target_px
-        return math.atan((col - (w - 1) / 2.0) / focal_px), math.atan((row - (h - 1) / 2.0) / focal_px)
+        # The pixel's ray in the body frame (camera looking down: image up = forward), then NED.
+        ray_ned = body_frd_to_ned((-(row - (h - 1) / 2.0) / focal_px, (col - (w - 1) / 2.0) / focal_px, 1.0),
+                                  *adopted.attitude_rad)
+        if ray_ned[2] <= 1e-3:
+            return None
+        scale = max(adopted.hm.alt_agl_m, 0.0) / ray_ned[2]
+        return (ray_ned[0] * scale, ray_ned[1] * scale, ray_ned[2] * scale), adopted.hm.stamp.t_s
 
     @property
     def decision(self) -> Decision | None:
@@ -610,4 +660,16 @@ class ControllerCore:
             spot_valid=spot is not None, spot_north_m=spot[0] if spot else 0.0, spot_east_m=spot[1] if spot else 0.0,
             spot_clearance_m=max(info.get("spot_clearance_m", 0.0), 0.0) if spot else 0.0,
             spot_confidence=min(max(info.get("spot_confidence", 0.0), 0.0), 1.0) if spot else 0.0,
+            **_confirmed_fields(decision),
         )
+
+
+def _confirmed_fields(decision: Decision | None) -> dict[str, Any]:
+    """The status fields of the decision's confirming look; none when it has none or its pixel is
+    not one a frame can have (a policy bug must not take the status message down with it)."""
+    c = decision.confirmed if decision is not None else None
+    lo, hi = ControllerStatus.RANGES["confirmed_row_px"]
+    if c is None or c.frame_seq < 0 or not all(math.isfinite(v) and lo <= v <= hi for v in (c.row_px, c.col_px)):
+        return {}
+    return {"confirmed_valid": True, "confirmed_frame_seq": int(c.frame_seq), "confirmed_row_px": float(c.row_px),
+            "confirmed_col_px": float(c.col_px)}

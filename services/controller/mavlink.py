@@ -110,7 +110,9 @@ from dovesei.shared.messages import Stamp, VehicleState, VelocityCommand
 log = logging.getLogger(__name__)
 
 _ATTITUDE_FRESH_S = 1.0  # heading hold only corrects from an attitude younger than this
-_LANDING_TARGET_PERIOD_S = 0.1  # 10 Hz: ArduPilot's precland filter expects >= ~5 Hz
+# 10 Hz: ArduPilot's precland estimator initialises only on an update at least every 0.5 s for 2 s
+# and drops a target not updated for 2 s (AC_PrecLand EKF_INIT_*, LANDING_TARGET_TIMEOUT_MS).
+_LANDING_TARGET_PERIOD_S = 0.1
 _LANDING_TARGET_FRESH_S = 1.0  # a spot older than this is no longer streamed
 
 
@@ -207,7 +209,9 @@ class MavlinkVehicle:
         self._next_setpoint_s = 0.0
         # Counters for tests, operators' logs and the run's stats.
         self.setpoints_sent = 0
-        self.setpoints_clamped = 0
+        self.setpoints_clamped = 0  # every setpoint written, stream repeats included
+        self.commands_steered = 0  # commands handed in by send() and flown
+        self.commands_clamped = 0  # ... of which asked for more than the limits
         self.messages_received = 0
         self.landing_targets_sent = 0
         self.samples_rejected: Counter[str] = Counter()  # reason -> count
@@ -301,6 +305,7 @@ class MavlinkVehicle:
     def counters(self) -> dict[str, Any]:
         """What the link did, for the run's stats and the operator."""
         return {"setpoints_sent": self.setpoints_sent, "setpoints_clamped": self.setpoints_clamped,
+                "commands_steered": self.commands_steered, "commands_clamped": self.commands_clamped,
                 "messages_received": self.messages_received, "landing_targets_sent": self.landing_targets_sent,
                 "samples_rejected": dict(self.samples_rejected), "intruder_heartbeats": dict(self.intruders),
                 "signing_rejected": dict(self.signing_rejected), "send_failures": self.send_failures,
@@ -324,6 +329,10 @@ class MavlinkVehicle:
         # Out at once (the stream only fills the gaps); the stream's next repeat is a period away.
         if not self._send_setpoint(cmd):
             raise NotSteerableError("setpoint not sent: the link's socket refused it (see the log)")
+        # Per command, not per repeat: how often the controller asked for more than the vehicle flies.
+        self.commands_steered += 1
+        if clamp_setpoint(cmd.vel_body_frd_m_s, 0.0, self.limits)[2]:
+            self.commands_clamped += 1
         with self._lock:
             self._next_setpoint_s = self._clock() + self.setpoint_period_s
 
@@ -761,8 +770,8 @@ class MavlinkVehicle:
 
     def _send_landing_target(self, now: float) -> None:
         with self._lock:
-            spot, mode = self._landing_target, self._mode
-        if spot is None or now - spot[3] > _LANDING_TARGET_FRESH_S or mode not in ("LAND", "PRECLAND"):
+            spot, mode, armed = self._landing_target, self._mode, self._armed
+        if spot is None or now - spot[3] > _LANDING_TARGET_FRESH_S or mode not in ("LAND", "PRECLAND") or not armed:
             return
         ax, ay, dist, _ = spot
         usec = int(now * 1e6)

@@ -25,8 +25,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from dovesei.controller.frames import ned_to_body_frd
 from dovesei.shared import validate
 from dovesei.shared.errors import ConfigError, DoveseiError
+from dovesei.shared.mavurl import check_serial_device, parse_mavlink_url
 
 # MAVLink enum values used here (checked against pymavlink's in the tests).
 MAV_TYPE_GCS = 6
@@ -165,48 +167,33 @@ def load_mavutil() -> Any:
 
 
 def check_url(url: Any) -> tuple[str, int]:
-    """(device, baud) of a MAVLink URL: udpin:/udpout:/tcp:/tcpin: host:port, or DEVICE[,BAUD]."""
-    if not isinstance(url, str) or not url:
-        raise ConfigError(f"MAVLink URL must be a non-empty string, got {url!r}")
-    if url.startswith(("udp", "tcp")):
-        scheme, _, rest = url.partition(":")
-        host, _, port = rest.rpartition(":")
-        if scheme not in ("udp", "udpin", "udpout", "udpbcast", "tcp", "tcpin") or not host or not port.isdigit() \
-                or not 0 < int(port) < 65536:
-            raise ConfigError(f"MAVLink URL {url!r}: use udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT, "
-                              "tcpin:HOST:PORT or a serial DEVICE[,BAUD]")
-        return url, 115200
-    device, baud = url, 115200
-    if "," in url:
-        device, _, baud_text = url.partition(",")
-        if not baud_text.isdigit():
-            raise ConfigError(f"MAVLink URL {url!r}: the baud rate after ',' must be an integer")
-        baud = int(baud_text)
-    return device, baud
+    """(device, baud) of a MAVLink URL, by the one parser `dovesei up` uses too (`dovesei.shared.mavurl`)."""
+    ep = parse_mavlink_url(url)
+    return ep.device, ep.baud
 
 
 def open_link(url: str, *, source_system: int, source_component: int) -> Any:
-    """A pymavlink connection from a URL (see `check_url`)."""
+    """A pymavlink connection from a URL (see `check_url`); any failure is one VehicleConnectError line."""
     mavutil = load_mavutil()
-    device, baud = check_url(url)
+    ep = parse_mavlink_url(url)
     try:
-        return mavutil.mavlink_connection(device, baud=baud, source_system=source_system,
+        check_serial_device(ep)
+    except ConfigError as exc:
+        raise VehicleConnectError(f"cannot open MAVLink link: {exc}") from None
+    try:
+        return mavutil.mavlink_connection(ep.device, baud=ep.baud, source_system=source_system,
                                           source_component=source_component, autoreconnect=False)
-    except (OSError, ValueError) as exc:
+    except ImportError as exc:  # pymavlink imports pyserial only for a serial port
+        raise VehicleConnectError(f"cannot open MAVLink link {url!r}: a serial port needs pyserial "
+                                  f"(pip install pyserial; {exc})") from None
+    except (OSError, ValueError) as exc:  # pyserial's SerialException is an OSError
         raise VehicleConnectError(f"cannot open MAVLink link {url!r}: {exc}") from None
 
 
 def ned_to_frd(vel_ned: tuple[float, ...], roll_rad: float, pitch_rad: float,
                yaw_rad: float) -> tuple[float, float, float]:
     """Rotate a NED vector into the body FRD frame (ZYX Euler angles, as MAVLink's ATTITUDE gives)."""
-    vn, ve, vd = (float(v) for v in vel_ned)
-    cr, sr, cp, sp = math.cos(roll_rad), math.sin(roll_rad), math.cos(pitch_rad), math.sin(pitch_rad)
-    cy, sy = math.cos(yaw_rad), math.sin(yaw_rad)
-    # Rows of R_body<-ned = (R_ned<-body)^T for R = Rz(yaw) Ry(pitch) Rx(roll).
-    f = cp * cy * vn + cp * sy * ve - sp * vd
-    r = (sr * sp * cy - cr * sy) * vn + (sr * sp * sy + cr * cy) * ve + sr * cp * vd
-    d = (cr * sp * cy + sr * sy) * vn + (cr * sp * sy - sr * cy) * ve + cr * cp * vd
-    return (f, r, d)
+    return ned_to_body_frd(vel_ned, roll_rad, pitch_rad, yaw_rad)
 
 
 # ---------------------------------------------------------------------- incoming samples

@@ -50,6 +50,7 @@ from dovesei.shared.clock import WallClock, wall_time_s
 from dovesei.shared.codec import encode
 from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.shared.lifecycle import Inbox, declare_alive, install_stop_handlers, write_stats
+from dovesei.shared.mavurl import parse_mavlink_url
 from dovesei.shared.messages import ControllerStatus, SafetyHeatmap, VehicleState, VelocityCommand, replace
 from dovesei.shared.recording import FlightRecorder
 from dovesei.shared.timing import DEFAULT_TIMING, TIMING_NAMES
@@ -298,15 +299,14 @@ class _Loop:
         return True
 
     def _stream_landing_target(self, state: VehicleState) -> None:
-        """Precision landing: the policy's newest target as LANDING_TARGET angles, every tick."""
-        angles = self.core.landing_target_angles()
+        """Precision landing: the spot as LANDING_TARGET, refreshed every tick until the vehicle has
+        landed (the adapter streams it at 10 Hz while the autopilot is armed in LAND/PRECLAND)."""
         set_target = getattr(self.vehicle, "set_landing_target", None)
-        if angles is None or set_target is None:
+        target = self.core.landing_target(state)
+        if target is None or set_target is None:
             return
-        # Slant distance to the spot on flat ground below.
-        distance_m = state.alt_agl_m / max(1e-3, math.cos(angles[0]) * math.cos(angles[1]))
         try:
-            set_target(angles[0], angles[1], max(0.0, distance_m))
+            set_target(*target)
         except DoveseiError as exc:
             log.debug("landing target not set: %s", exc)
 
@@ -479,6 +479,12 @@ def _serve(session: zenoh.Session, config: ControllerConfig, stop: threading.Eve
                 vehicle.close()
 
 
+def _check_vehicle_url(what: str, url: str) -> None:
+    """The form only (the one parser `dovesei up` uses too); whether a device opens is seen at connect."""
+    if url != "zenoh":
+        parse_mavlink_url(url, what)
+
+
 def _derived_defaults(given: Mapping[str, Any]) -> dict[str, Any]:
     """Defaults that follow the vehicle: the sim runs in lockstep (the sim's default too); a real
     vehicle runs in real time on true seconds."""
@@ -488,8 +494,9 @@ def _derived_defaults(given: Mapping[str, Any]) -> dict[str, Any]:
 
 # The one table of the controller's flags: `build_parser`, `config_from_args` and `to_argv` read it.
 CLI = CommandLine(ControllerConfig, {
-    "vehicle_url": Flag("--vehicle-url", "'zenoh' (the simulator) or a pymavlink URL, e.g. udpin:0.0.0.0:14550",
-                        check=non_blank, metavar="URL"),
+    "vehicle_url": Flag("--vehicle-url", "'zenoh' (the simulator) or a pymavlink URL: udpin:HOST:PORT, "
+                        "udpout:HOST:PORT, tcp:HOST:PORT or a serial DEVICE,BAUD such as /dev/ttyAMA0,921600",
+                        check=_check_vehicle_url, metavar="URL"),
     "vehicle_id": Flag("--vehicle-id", "vehicle id in the keys", check=lambda _w, v: keys.check_vehicle_id(v)),
     "policy": Flag("--policy", "landing policy", choices=policy_names()),
     "timing": Flag("--timing", f"policy timing preset ({DEFAULT_TIMING} with the sim, real with a MAVLink vehicle)",
@@ -564,6 +571,10 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     log.info("controller done: %d ticks, %d commands, %d heatmaps (%d payloads rejected)",
              stats.ticks, stats.commands_sent, stats.heatmaps_received, stats.heatmap_payloads_rejected)
+    steered, clamped = stats.vehicle_link.get("commands_steered"), stats.vehicle_link.get("commands_clamped")
+    if steered:
+        log.info("%d of %d commands (%.0f %%) asked for more than the vehicle's speed limits and were clamped",
+                 clamped, steered, 100.0 * clamped / steered)
     if process.stats_out is not None:
         write_stats(process.stats_out, dataclasses.asdict(stats))
     return 0

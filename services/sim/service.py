@@ -1,6 +1,7 @@
 """The simulator as a Zenoh service (`dovesei-sim`): `SimCore` on the wire, one episode per run.
 
     SimCore.reset/step --CameraFrame--> camera key     (JPEG on the wire with --jpeg-quality)
+                       --VisualOdometry-> odometry key (with --odometry-rate-hz; before the state)
                        --VehicleState-> state key
                        --EpisodeResult-> episode key   (once, at the end; also logged)
     cmd key --Inbox--> VelocityCommand --> SimCore.step
@@ -48,7 +49,7 @@ from dovesei.shared.clock import WallClock
 from dovesei.shared.codec import encode
 from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.shared.lifecycle import Inbox, declare_alive, install_stop_handlers, is_alive, write_stats
-from dovesei.shared.messages import CameraFrame, EpisodeResult, VehicleState, VelocityCommand
+from dovesei.shared.messages import CameraFrame, EpisodeResult, VehicleState, VelocityCommand, VisualOdometry
 from dovesei.shared.timing import TIMING_NAMES
 from dovesei.sim.core import SimConfig, SimCore, StepOut, unstarted_result
 from dovesei.sim.external import run_external_pose
@@ -110,6 +111,7 @@ class SimStats:
 
     steps: int = 0
     frames_sent: int = 0
+    odometry_sent: int = 0
     states_sent: int = 0
     commands_used: int = 0
     commands_stale: int = 0  # lockstep: answers to an earlier state (or the controller's hold)
@@ -122,6 +124,7 @@ class SimStats:
     truth_rejected: int = 0  # ... and refused (out of range, non-finite)
     states_foreign: int = 0  # external pose: a vehicle id other than ours on our state key
     overruns: int = 0  # real time: schedule restarts after falling behind
+    frames_skipped: int = 0  # external pose: states whose attitude no frame can show (view at the horizon)
     # Transport latency of each command used (wall: received here - sent by the controller), and
     # of the first command made from each frame's heatmap (for `dovesei up`'s per-frame budget).
     command_to_sim_s: deque[float] = field(default_factory=lambda: deque(maxlen=_MAX_LATENCY_SAMPLES))
@@ -167,6 +170,8 @@ class _Wire:
             # Real time prefers dropping an old frame to delaying the next one (Zenoh's default).
             flow = zenoh.CongestionControl.BLOCK if config.lockstep else zenoh.CongestionControl.DROP
             self.camera = self._keep(session.declare_publisher(keys.camera(vid), congestion_control=flow))
+            self.odometry = self._keep(session.declare_publisher(keys.odometry(vid), congestion_control=flow)) \
+                if config.sim.odometry_rate_hz > 0 else None
             self.state = None
             self.states: Inbox[VehicleState] | None = None
             if config.external_pose:
@@ -196,12 +201,19 @@ class _Wire:
         """Frame first, then state: the protocol's order for one step."""
         if out.frame is not None:
             self.publish_frame(out.frame, stats)
+        if out.odometry is not None:
+            self.publish_odometry(out.odometry, stats)
         self.state.put(encode(out.state))
         stats.states_sent += 1
 
     def publish_frame(self, frame: CameraFrame, stats: SimStats) -> None:
         self.camera.put(encode(frame, jpeg_quality=self.jpeg_quality))
         stats.frames_sent += 1
+
+    def publish_odometry(self, odometry: VisualOdometry, stats: SimStats) -> None:
+        if self.odometry is not None:
+            self.odometry.put(encode(odometry))
+            stats.odometry_sent += 1
 
     def close(self) -> None:
         for thing in reversed(self._closers):
@@ -261,8 +273,9 @@ def _run_external(wire: _Wire, world: World, start: Start, config: SimServiceCon
     """Camera mode: render at the controller's states, or at SITL's truth when configured."""
     def fly(truth: SitlTruth | None) -> EpisodeResult | None:
         return run_external_pose(wire.states, lambda frame: wire.publish_frame(frame, stats), world, start,
-                                 config.sim, wait_timeout_s=config.wait_timeout_s,
-                                 state_timeout_s=config.cmd_timeout_s, stop=stop, stats=stats, truth=truth)
+                                 config.sim, publish_odometry=lambda odo: wire.publish_odometry(odo, stats),
+                                 wait_timeout_s=config.wait_timeout_s, state_timeout_s=config.cmd_timeout_s,
+                                 stop=stop, stats=stats, truth=truth)
 
     if config.sitl_truth is None:
         return fly(None)
@@ -421,6 +434,9 @@ CLI = CommandLine(SimServiceConfig, {
     "sim.vehicle.cmd_timeout_s": Flag("--cmd-max-age-s", "drop a velocity command whose stamp is older than this "
                                       "on the sim clock, as ArduPilot's GUID_TIMEOUT (the vehicle then brakes to a "
                                       "hover)", check=validate.positive),
+    "sim.odometry_rate_hz": Flag("--odometry-rate-hz", "publish the camera's visual odometry (dovesei.shared."
+                                 "visual_velocity on views rendered at the true pose) on the odometry key at this "
+                                 "rate, e.g. 10 (0 = off)", check=lambda w, v: validate.in_range(w, v, 0.0, 100.0)),
     "sim.frame_period_s": Flag("--frame-period-s", "override the preset's frame period", check=validate.positive),
     "sim.latency_s": Flag("--latency-s", "override the preset's perception latency", check=validate.non_negative),
     "jpeg_quality": Flag("--jpeg-quality", "send frames JPEG-compressed at quality Q (1-100; default raw)",

@@ -252,7 +252,7 @@ def test_without_registration_the_estimate_drifts() -> None:
 def test_the_observation_has_no_position_field() -> None:
     fields = {f.name for f in dataclasses.fields(Observation)}
     assert fields == {"t_s", "alt_agl_m", "prob_safe", "hfov_rad", "roll_rad", "pitch_rad", "yaw_rad",
-                      "vel_est_body_frd_m_s", "cmd_vel_body_frd_m_s", "odom_delta_ne_m"}
+                      "vel_est_body_frd_m_s", "cmd_vel_body_frd_m_s", "odom_delta_ne_m", "frame_seq"}
     assert not any("pos" in f or f.endswith(("_x_m", "_y_m")) for f in fields)
 
 

@@ -185,6 +185,38 @@ def test_recorder_trajectory_is_start_plus_local_ned_with_the_state_of_each_tick
     assert rec.rejected == 1 and len(rec.states) == 3
 
 
+def test_trajectory_after_a_takeoff_starts_where_the_mission_starts() -> None:
+    """--takeoff: the climb from the ground is recorded, but the mission's trajectory (its plot, its
+    path) begins with the controller's first tick at the start altitude."""
+    from dovesei.up.watch import wait_for_takeoff
+
+    rec = Recorder((100.0, 200.0, 26.0), video=False)
+    climb = [VehicleState("uav1", k, Stamp(0.5 * k, "vehicle"), 2.0 * k, (0.0, 0.0, -2.0), pos_valid=True,
+                          pos_local_ned_m=(0.0, 0.0, -2.0 * k)) for k in range(14)]  # 0 -> 26 m
+    status = ControllerStatus("uav1", 1, Stamp(6.5, "vehicle"), "dovesei", "AIMING", "ok", "", 0, 0.0, 10.0)
+    after = [VehicleState("uav1", 14 + k, Stamp(7.0 + 0.5 * k, "vehicle"), 26.0, (1.0, 0.0, 0.0), pos_valid=True,
+                          pos_local_ned_m=(0.5 * (k + 1), 0.0, -26.0)) for k in range(3)]
+
+    class Feed:  # the monitor: the climb's states, then the controller's first status
+        def drain(self) -> None:
+            for st in climb:
+                rec.handle(Sample("state", 1000.0 + st.stamp.t_s, encode(st)))
+            rec.handle(Sample("status", 1006.5, encode(status)))
+
+    class NoExits:
+        def exited(self) -> list:
+            return []
+
+    end = wait_for_takeoff(rec, Feed(), NoExits(), threading.Event(), 5.0)
+    assert end.failure is None and not end.interrupted
+    for st in after:
+        rec.handle(Sample("state", 1006.5 + st.stamp.t_s, encode(st)))
+    traj = rec.trajectory()
+    assert len(rec.states) == 17  # the climb is still recorded ...
+    assert traj["t_s"] == [6.5, 7.0, 7.5, 8.0] and min(traj["alt_m"]) == 26.0  # ... but not flown as the mission
+    assert traj["y_m"] == [200.0, 200.5, 201.0, 201.5] and traj["state"][0] == "AIMING"
+
+
 @pytest.mark.parametrize("realtime", [False, True])
 def test_report_of_a_run_that_never_started_says_why(tmp_path: Path, realtime: bool) -> None:
     opts = UpOptions(world=WORLD, segmenter="sim", realtime=realtime, out=tmp_path)
@@ -453,3 +485,4 @@ def test_up_takes_off_and_flies_a_fake_autopilot_from_boot(tmp_path: Path) -> No
     # The states came from the autopilot through the controller, labelled with the controller's decisions.
     traj = report["trajectory"]
     assert traj["t_s"] and max(traj["alt_m"]) >= 24.0 and set(traj["state"]) - {"INIT"}
+    assert traj["alt_m"][0] >= 0.9 * 26.0, traj["alt_m"][:5]  # the mission starts after the climb

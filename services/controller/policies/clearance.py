@@ -34,7 +34,8 @@ import math
 
 import numpy as np
 
-from dovesei.controller.policies.base import Decision, Observation, PolicyInputError, checked_prob_safe, resolve_config
+from dovesei.controller.policies.base import (Confirmation, Decision, Observation, PolicyInputError, checked_prob_safe,
+                                              resolve_config)
 from dovesei.controller.policies.clearance_config import ClearanceConfig, clearance_preset
 from dovesei.controller.policies.clearance_machine import TERMINAL, Inputs, Memory, Phase, search_route, step, toward
 from dovesei.controller.policies.clearance_map import (GroundMap, clearance_at, emphasise_dips, find_candidate,
@@ -96,6 +97,7 @@ class ClearancePolicy:
         self._passes = 0
         self._cmd: tuple[float, float, float] = (0.0, 0.0, 0.0)
         self._last_motion: MotionStep | None = None
+        self._confirmed: Confirmation | None = None  # the look that last confirmed the target
         self._decision = Decision((0.0, 0.0, 0.0), 0.0, Phase.WARMUP.value, None, 0.0, None, {}, "starting")
 
     def fence_m(self) -> float:
@@ -309,11 +311,17 @@ class ClearancePolicy:
                 tn, te = tilt_offset_ne(obs.alt_agl_m, obs.roll_rad, obs.pitch_rad, obs.yaw_rad)
                 f, r = to_body(spot.north_m - pn - tn, spot.east_m - pe - te, obs.yaw_rad)
                 target_px = ((h - 1) / 2.0 - f / gsd, (w - 1) / 2.0 + r / gsd)
+                # A target chosen or moved by this look was checked in it, at that pixel.
+                moved = prev.target is None or (prev.target.north_m, prev.target.east_m) != (spot.north_m, spot.east_m)
+                if fresh and moved and -0.5 <= target_px[0] <= h - 0.5 and -0.5 <= target_px[1] <= w - 0.5:
+                    self._confirmed = Confirmation(obs.frame_seq, float(target_px[0]), float(target_px[1]))
+        else:
+            self._confirmed = None
         self._decision = Decision(
             vel_body_frd_m_s=(float(vel[0]), float(vel[1]), float(vel[2])), yaw_rate_rad_s=0.0,
             state=mem.phase.value, target_px=None if target_px is None else (float(target_px[0]), float(target_px[1])),
             focus_radius_px=self._required_px(obs), threshold=cfg.p_safe_min,
-            info={k: float(v) for k, v in info.items()}, reason=mem.reason,
+            info={k: float(v) for k, v in info.items()}, reason=mem.reason, confirmed=self._confirmed,
         )
         return self._decision
 

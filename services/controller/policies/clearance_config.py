@@ -239,6 +239,19 @@ class ClearanceConfig:
         """Metric clearance a spot needs: every cell within this radius is known and safe."""
         return self.safety_radius_m + self.margin_m
 
+    def limited_to(self, horizontal_m_s: float, up_m_s: float, down_m_s: float) -> ClearanceConfig:
+        """This config with every speed it commands within the vehicle's limits (ArduCopter's
+        WPNAV_SPEED, WPNAV_SPEED_UP, WPNAV_SPEED_DN by default), so it never asks more than is flown."""
+        for name, value in (("horizontal", horizontal_m_s), ("up", up_m_s), ("down", down_m_s)):
+            validate.positive(f"vehicle speed limit {name} (m/s)", value)
+        return self.replace(
+            search_speed_m_s=min(self.search_speed_m_s, horizontal_m_s),
+            max_speed_m_s=min(self.max_speed_m_s, horizontal_m_s),
+            hold_speed_max_m_s=min(self.hold_speed_max_m_s, horizontal_m_s),
+            climb_speed_m_s=min(self.climb_speed_m_s, up_m_s),
+            descent_max_m_s=min(self.descent_max_m_s, down_m_s),
+            descent_min_m_s=min(self.descent_min_m_s, down_m_s))
+
     def replace(self, **changes: object) -> ClearanceConfig:
         try:
             return dataclasses.replace(self, **changes)
