@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import ast
 import json
+import math
 import signal
 import threading
 import time
@@ -26,7 +27,7 @@ from dovesei.shared import keys
 from dovesei.shared.codec import decode, encode
 from dovesei.shared.lifecycle import is_alive, wait_until
 from dovesei.shared.messages import CameraFrame, EpisodeResult, Message, Stamp, VehicleState, replace
-from dovesei.sim.camera import render
+from dovesei.sim.camera import optical_axis_ground_m, render
 from dovesei.sim.core import SimConfig, SimCore
 from dovesei.sim.service import SimServiceConfig, SimStats, build_parser, config_from_args, main, run
 from dovesei.sim.starts import Start
@@ -436,16 +437,24 @@ def test_sitl_truth_renders_and_judges_at_the_true_pose_while_frames_carry_the_e
             topic, msg = rec.next()
             frame = msg if topic == "camera" else None
         assert frame is not None, "no frame"
-        # Rendered where SITL is (lat/lon steps of 1e-7 deg: a millimetre off), at its altitude and heading.
-        assert frame.truth.centre_world_m == pytest.approx((true_x_m, true_y_m), abs=0.01)
-        def differs(x_m: float, y_m: float, alt_m: float, yaw_rad: float) -> float:
-            return float(np.abs(frame.image_rgb.astype(int) - render(world, x_m, y_m, alt_m, yaw_rad)[0]).mean())
+        # Rendered where SITL is (lat/lon steps of 1e-7 deg: a millimetre off), at its altitude,
+        # heading and tilt: the optical axis meets the ground where SITL's attitude points it.
+        axis = optical_axis_ground_m(true_x_m, true_y_m, 60.0, 0.1, 0.05, -0.04)
+        assert frame.truth.centre_world_m == pytest.approx(axis, abs=0.01)
+        assert math.dist(axis, (true_x_m, true_y_m)) > 3.0  # the tilt is seen, not the estimate's level attitude
+
+        def differs(x_m: float, y_m: float, alt_m: float, yaw_rad: float, roll_rad: float = 0.05,
+                    pitch_rad: float = -0.04) -> float:
+            view = render(world, x_m, y_m, alt_m, yaw_rad, roll_rad=roll_rad, pitch_rad=pitch_rad)[0]
+            return float(np.abs(frame.image_rgb.astype(int) - view).mean())
 
         # SIM_STATE carries float32 angles and altitudes: equal to the truth within a last bit, not bytes.
-        assert differs(true_x_m, true_y_m, 60.0, 0.1) < 0.1 * differs(true_x_m, true_y_m, 55.0, 0.3)
+        at_truth = differs(true_x_m, true_y_m, 60.0, 0.1)
+        assert at_truth < 0.1 * differs(true_x_m, true_y_m, 60.0, 0.1, 0.0, 0.0)  # not level
+        assert at_truth < 0.1 * differs(WEST_M, MID_Y_M, 55.0, 0.3, 0.0, 0.0)  # not at the estimate
+        # What a policy reads is the estimate's: altitude, heading, attitude, the vehicle's clock.
         assert frame.alt_agl_m == pytest.approx(55.0) and frame.yaw_rad == pytest.approx(0.3)
         assert (frame.roll_rad, frame.pitch_rad) == (0.0, 0.0) and frame.stamp.clock == "vehicle"
-        assert differs(true_x_m, true_y_m, 60.0, 0.1) < 0.1 * differs(WEST_M, MID_Y_M, 55.0, 0.3)
         # The truth sinks below the hand-over altitude while the estimate still says 55 m: the
         # judge follows the truth.
         sitl.set(sim_state(12.0, -7.0, 15.0, yaw=0.1))
