@@ -100,7 +100,7 @@ def preflight(options: UpOptions) -> tuple[object, tuple[float, float, float], C
         raise ConfigError(f"world {options.world!r} has no labels for the simulated perception to read: "
                           "fly it with --segmenter clipseg")
     start = resolve_start(world, options)
-    configs = child_configs(options, start)  # each service's own checks, now rather than in a child
+    configs = child_configs(options, start, world)  # each service's own checks, now rather than in a child
     # The ports do not change which links the command lines open: placeholders suffice here.
     check_link_owners(child_commands(options, configs, {n: 0 for n in (*SERVICES, "monitor")}, options.out))
     return world, start, configs

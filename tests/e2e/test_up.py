@@ -215,6 +215,21 @@ class _Alive:
         return self._exited
 
 
+def test_a_real_vehicle_is_fenced_over_the_world_it_flies() -> None:
+    from dovesei.controller.core import DEFAULT_VEHICLE_GEOFENCE_M
+    from dovesei.sim.world import load_world
+    from dovesei.up.launch import world_geofence_m
+
+    world = load_world(WORLD)  # 400 m square
+    opts = UpOptions(world=WORLD, segmenter="sim", vehicle_url="udpout:127.0.0.1:14550", timing="real")
+    assert child_configs(opts, (150.0, 300.0, 60.0), world).controller.geofence_m == 100.0  # 100 m to the north edge
+    assert world_geofence_m(world, (10.0, 200.0, 60.0)) == 50.0  # never less than a search needs
+    assert child_configs(UpOptions(world=WORLD, segmenter="sim"), (150.0, 300.0, 60.0), world).controller.geofence_m \
+        is None  # the sim's episodes stay as published
+    big = type("World", (), {"width_m": 2000.0, "height_m": 2000.0})()
+    assert world_geofence_m(big, (1000.0, 1000.0, 60.0)) == DEFAULT_VEHICLE_GEOFENCE_M
+
+
 def test_up_waits_for_the_autopilot_to_land_after_a_land_handover(tmp_path: Path) -> None:
     """Issue 26: `up` stopped the controller 0.53 s after a precland hand-over; the target died and
     ArduCopter landed blind. Now it waits (bounded) until the autopilot disarms, and says so."""
