@@ -467,6 +467,13 @@ class ControllerStatus(Message):
     spot_east_m: float = 0.0
     spot_clearance_m: float = 0.0
     spot_confidence: float = 0.0
+    # MAVLink navigation health (empty with the sim): which horizontal velocity the controller
+    # trusts ("autopilot", "external-nav", "visual", "none"), whether GNSS and the autopilot's
+    # position are lost, and why, in one line.
+    nav_source: str = ""
+    gnss_lost: bool = False
+    position_lost: bool = False
+    nav_reason: str = ""
     # The look that last confirmed the spot: the camera frame's seq and the spot's pixel in that
     # frame's heatmap (row down, col right), so a judge can map it to the ground with the frame's
     # own pose. Not valid for policies without a checked spot, or before a look confirmed one.

@@ -217,6 +217,86 @@ def test_trajectory_after_a_takeoff_starts_where_the_mission_starts() -> None:
     assert traj["y_m"] == [200.0, 200.5, 201.0, 201.5] and traj["state"][0] == "AIMING"
 
 
+class _StateFeed:
+    """The monitor during a landing: one autopilot state per drain (mode, armed, altitude)."""
+
+    def __init__(self, rec: Recorder, states: list[tuple[str, bool, float]]) -> None:
+        self.rec, self.states, self.k = rec, states, 0
+
+    def drain(self) -> None:
+        if self.k < len(self.states):
+            mode, armed, alt = self.states[self.k]
+            st = VehicleState("uav1", self.k, Stamp(0.1 * self.k, "vehicle"), alt, (0.0, 0.0, 0.5), armed=armed,
+                              mode=mode, pos_valid=True, pos_local_ned_m=(3.0, 4.0, -alt))
+            self.rec.handle(Sample("state", 1000.0 + self.k, encode(st)))
+            self.k += 1
+
+
+class _Alive:
+    def __init__(self, exited: list | None = None) -> None:
+        self._exited = exited or []
+
+    def exited(self) -> list:
+        return self._exited
+
+
+def test_a_real_vehicle_is_fenced_over_the_world_it_flies() -> None:
+    from dovesei.controller.core import DEFAULT_VEHICLE_GEOFENCE_M
+    from dovesei.sim.world import load_world
+    from dovesei.up.launch import world_geofence_m
+
+    world = load_world(WORLD)  # 400 m square
+    opts = UpOptions(world=WORLD, segmenter="sim", vehicle_url="udpout:127.0.0.1:14550", timing="real")
+    assert child_configs(opts, (150.0, 300.0, 60.0), world).controller.geofence_m == 100.0  # 100 m to the north edge
+    assert world_geofence_m(world, (10.0, 200.0, 60.0)) == 50.0  # never less than a search needs
+    assert child_configs(UpOptions(world=WORLD, segmenter="sim"), (150.0, 300.0, 60.0), world).controller.geofence_m \
+        is None  # the sim's episodes stay as published
+    big = type("World", (), {"width_m": 2000.0, "height_m": 2000.0})()
+    assert world_geofence_m(big, (1000.0, 1000.0, 60.0)) == DEFAULT_VEHICLE_GEOFENCE_M
+
+
+def test_up_waits_for_the_autopilot_to_land_after_a_land_handover(tmp_path: Path) -> None:
+    """Issue 26: `up` stopped the controller 0.53 s after a precland hand-over; the target died and
+    ArduCopter landed blind. Now it waits (bounded) until the autopilot disarms, and says so."""
+    from dovesei.up.watch import landing_timeout_s, wait_for_landing
+
+    rec = Recorder((10.0, 20.0, 100.0), video=False)
+    descent = [("GUIDED", True, 20.0), *[("LAND", True, 20.0 - 2.0 * k) for k in range(10)], ("LAND", False, 0.0)]
+    feed = _StateFeed(rec, descent)
+    wait = wait_for_landing(rec, feed, _Alive(), threading.Event(), 30.0, 8.0)
+    assert wait.landed and "disarmed in LAND" in wait.reason and feed.k == len(descent)
+    assert landing_timeout_s(20.0) >= 20.0 / 0.5 + 10.0  # LAND_SPEED 0.5 m/s and a margin
+    opts = UpOptions(world=WORLD, segmenter="sim", vehicle_url="udpout:127.0.0.1:14550", timing="real",
+                     out=tmp_path)
+    stats = {"controller": {"commands_sent": 5, "vehicle_link": {"landing_targets_sent": 240}}}
+    report = build_report(opts, rec, (10.0, 20.0, 100.0), 0.0, stats, None, False, 1.0, landing=wait,
+                          handover_action="precland").to_dict()
+    landing = report["landing"]
+    assert landing["landed"] and landing["action"] == "precland" and landing["landing_targets_sent"] == 240
+    assert landing["touchdown"] == {"x_m": 14.0, "y_m": 23.0, "alt_m": 0.0}
+
+
+def test_the_landing_wait_ends_on_a_takeover_a_dead_controller_or_the_operator() -> None:
+    from dovesei.up.watch import wait_for_landing
+
+    rec = Recorder((0.0, 0.0, 100.0), video=False)
+    taken = wait_for_landing(rec, _StateFeed(rec, [("LAND", True, 19.0), ("LAND", True, 18.0), ("LOITER", True, 18.0)]
+                                              + [("LOITER", True, 18.0)] * 5), _Alive(), threading.Event(), 30.0, 8.0)
+    assert not taken.landed and "LOITER" in taken.reason
+    rec = Recorder((0.0, 0.0, 100.0), video=False)
+    dead = wait_for_landing(rec, _StateFeed(rec, [("LAND", True, 19.0)]), _Alive([("controller", 1)]),
+                            threading.Event(), 30.0, 8.0)
+    assert not dead.landed and "controller exited" in dead.reason
+    stop = threading.Event()
+    stop.set()
+    rec = Recorder((0.0, 0.0, 100.0), video=False)
+    ended = wait_for_landing(rec, _StateFeed(rec, [("LAND", True, 19.0)]), _Alive(), stop, 30.0, 8.0)
+    assert not ended.landed and "operator" in ended.reason
+    rec = Recorder((0.0, 0.0, 100.0), video=False)
+    late = wait_for_landing(rec, _StateFeed(rec, [("LAND", True, 19.0)] * 1000), _Alive(), threading.Event(), 0.3, 8.0)
+    assert not late.landed and "not landed within" in late.reason
+
+
 @pytest.mark.parametrize("realtime", [False, True])
 def test_report_of_a_run_that_never_started_says_why(tmp_path: Path, realtime: bool) -> None:
     opts = UpOptions(world=WORLD, segmenter="sim", realtime=realtime, out=tmp_path)
