@@ -95,12 +95,14 @@ def preflight(options: UpOptions) -> tuple[object, tuple[float, float, float], C
         link = parse_mavlink_url(options.vehicle_url)
         check_serial_device(link)
         check_endpoint_free(link)
+    if options.sitl_truth:
+        check_endpoint_free(parse_mavlink_url(options.sitl_truth, "--sitl-truth"), "--sitl-truth")
     world = load_world(options.world)
     if world.labels is None and options.segmenter == "sim":
         raise ConfigError(f"world {options.world!r} has no labels for the simulated perception to read: "
                           "fly it with --segmenter clipseg")
     start = resolve_start(world, options)
-    configs = child_configs(options, start)  # each service's own checks, now rather than in a child
+    configs = child_configs(options, start, world)  # each service's own checks, now rather than in a child
     # The ports do not change which links the command lines open: placeholders suffice here.
     check_link_owners(child_commands(options, configs, {n: 0 for n in (*SERVICES, "monitor")}, options.out))
     return world, start, configs

@@ -28,6 +28,7 @@ from dovesei.controller.mavlink_proto import load_signing_key
 from dovesei.controller.policies import policy_names
 from dovesei.segmenter.simulated import DEFAULT_PROFILE, PROFILE_NAMES
 from dovesei.sim.service import parse_start as sim_parse_start
+from dovesei.sim.sitl_truth import parse_truth_url
 from dovesei.sim.starts import generate_starts
 
 DESCRIPTION = "`dovesei up`: fly one episode with the three services as separate OS processes on Zenoh."
@@ -75,6 +76,9 @@ class UpOptions:
     realtime: bool = False
     connect: tuple[str, ...] = ()
     vehicle_url: str | None = None  # MAVLink URL of a real autopilot (--vehicle-url); None: simulated
+    # ArduPilot SITL only: a SEPARATE SITL output (udpin:HOST:PORT) where the sim reads SIM_STATE, the
+    # simulator's true pose, to render and judge at; None: frames follow the controller's estimate.
+    sitl_truth: str | None = None
     takeoff: bool = False
     # What the controller does with a real autopilot (None: the controller's own default). Each is
     # refused without --vehicle-url: the simulated vehicle has no hand-over mode, heading control,
@@ -109,9 +113,12 @@ class UpOptions:
         for flag, given in (("--takeoff", self.takeoff), ("--handover-action", self.handover_action is not None),
                             ("--yaw-control", self.yaw_control is not None),
                             ("--signing-key", self.signing_key is not None),
-                            ("--autopilot-system-id", self.autopilot_system_id is not None)):
+                            ("--autopilot-system-id", self.autopilot_system_id is not None),
+                            ("--sitl-truth", self.sitl_truth is not None)):
             if given and not self.vehicle_url:
                 raise ConfigError(f"{flag} only applies with --vehicle-url (a real autopilot)")
+        if self.sitl_truth is not None:
+            parse_truth_url(self.sitl_truth)
         if self.vehicle_url:
             parse_mavlink_url(self.vehicle_url)
             if self.timing != "real":
@@ -238,6 +245,11 @@ def build_parser() -> argparse.ArgumentParser:
                            "--autopilot-system-id it keeps a spoofer off the link")
     real.add_argument("--autopilot-system-id", type=int, metavar="ID",
                       help="fly only the autopilot with this MAVLink system id (1..255; default: the first heard)")
+    real.add_argument("--sitl-truth", metavar="URL",
+                      help="ArduPilot SITL: the camera renders and the judge judges at the simulator's TRUE pose "
+                           "(SIM_STATE), read on a SEPARATE SITL output (udpin:HOST:PORT, e.g. udpin:127.0.0.1:14552 "
+                           "for SITL's --serial2 udpclient:127.0.0.1:14552), never the controller's link; the policy "
+                           "still sees only the autopilot's estimate")
     p.add_argument("--video", action=argparse.BooleanOptionalAction, default=True, help="write episode.mp4")
     p.add_argument("--record", action=argparse.BooleanOptionalAction, default=True,
                    help="record the flight to recording.mcap (replay with `dovesei replay`)")
@@ -269,7 +281,8 @@ def options_from_args(args: argparse.Namespace) -> UpOptions:
     return UpOptions(world=args.world, segmenter=args.segmenter, policy=args.policy, timing=timing_name,
                      seed=args.seed, noise=args.noise, perception=args.perception, start=start, start_seed=args.start_seed,
                      start_alt_m=args.start_alt_m, out=out, realtime=args.realtime, connect=tuple(args.connect),
-                     vehicle_url=args.vehicle_url, takeoff=args.takeoff, handover_action=args.handover_action,
+                     vehicle_url=args.vehicle_url, sitl_truth=args.sitl_truth, takeoff=args.takeoff,
+                     handover_action=args.handover_action,
                      yaw_control=args.yaw_control, signing_key=args.signing_key,
                      autopilot_system_id=args.autopilot_system_id, time_limit_s=limit_s, video=args.video,
                      record=args.record, view=args.view, rrd=args.rrd,

@@ -203,6 +203,7 @@ class RunStats:
     missed_ticks: int = 0  # real time: whole periods skipped after an overrun
     send_errors: int = 0
     states_published: int = 0  # MAVLink: vehicle states republished on the state key
+    geofence_clipped: int = 0  # commands the geofence capped (see core.py)
     odometry_received: int = 0  # MAVLink --gnss-denied: visual velocities handed to the adapter
     odometry_payloads_rejected: int = 0
     core_refusals: dict[str, int] = field(default_factory=dict)
@@ -363,6 +364,7 @@ class _Loop:
             stats.odometry_payloads_rejected = sum(self.odometry.rejected.values())
         stats.state_payloads_rejected = int(getattr(self.vehicle, "rejected", 0))
         stats.core_refusals = dict(self.core.rejected)
+        stats.geofence_clipped = self.core.geofence.clipped if self.core.geofence is not None else 0
         counters = getattr(self.vehicle, "counters", None)
         stats.vehicle_link = counters() if callable(counters) else {}
         return stats
@@ -596,6 +598,10 @@ CLI = CommandLine(ControllerConfig, {
                           check=lambda w, v: validate.in_range(w, v, 1.0, 500.0)),
     "takeoff_ready_timeout_s": Flag("--takeoff-ready-timeout-s", "takeoff: give up when the autopilot cannot arm "
                                     "within this, naming its pre-arm reasons", check=validate.positive),
+    "geofence_radius_m": Flag("--geofence-radius-m", "largest distance from the start, dead-reckoned from the "
+                              "velocity estimate, that any policy may fly (default: off with the sim, "
+                              "400 m with a MAVLink vehicle; 0: off)",
+                              check=lambda w, v: validate.in_range(w, v, 0.0, 100_000.0)),
     "gnss_denied": Flag("--gnss-denied", "MAVLink without GNSS: 'external-nav' streams the camera's velocity to the "
                         "EKF (VISION_SPEED_ESTIMATE) and switches it to --ekf-source-set on a loss; 'attitude' "
                         "switches ArduPilot to GUIDED_NOGPS and flies attitude targets on it; 'off' reports the "

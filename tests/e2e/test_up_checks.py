@@ -22,6 +22,7 @@ import pytest
 
 from dovesei.shared.codec import encode
 from dovesei.shared.messages import CameraFrame, ControllerStatus, EpisodeResult, SafetyHeatmap, Stamp, VehicleState
+from dovesei.shared.zconfig import free_port
 from dovesei.up import EXIT_FAILED, EXIT_OK, EXIT_UNSAFE, UpOptions, build_report, exit_code
 from dovesei.up.monitor import Recorder, Sample
 from dovesei.up.watch import Watcher, stalled_service, stream_owners
@@ -129,6 +130,13 @@ def test_a_taken_mavlink_port_is_refused_before_start(tmp_path: Path) -> None:
         done = _up("--world", WORLD, "--vehicle", f"udpin:127.0.0.1:{port}", "--out", str(tmp_path / "run"))
     assert done.returncode == 2 and f"cannot bind 127.0.0.1:{port}" in done.stderr, done.stderr
     assert not (tmp_path / "run").exists()
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+        free = free_port(socket.SOCK_DGRAM)  # the controller's port is free: only the sim's is taken
+        done = _up("--world", WORLD, "--vehicle", f"udpin:127.0.0.1:{free}", "--sitl-truth", f"udpin:127.0.0.1:{port}",
+                   "--out", str(tmp_path / "run"))
+    assert done.returncode == 2 and f"--sitl-truth 'udpin:127.0.0.1:{port}': cannot bind" in done.stderr, done.stderr
 
 
 # ---------------------------------------------------------------- exit codes and the report
