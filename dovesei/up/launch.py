@@ -116,7 +116,8 @@ def child_configs(options: UpOptions, start: tuple[float, float, float], world: 
     for field, value in (("handover_action", options.handover_action),
                          ("mavlink_yaw_control", options.yaw_control),
                          ("mavlink_signing_key_file", None if options.signing_key is None else str(options.signing_key)),
-                         ("mavlink_system_id", options.autopilot_system_id)):
+                         ("mavlink_system_id", options.autopilot_system_id),
+                         ("gnss_denied", options.gnss_denied)):
         if value is not None:
             steering[field] = value
     controller = ControllerConfig(vehicle_id=options.vehicle_id, policy=options.policy, timing=options.timing,

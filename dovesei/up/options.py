@@ -24,6 +24,7 @@ from dovesei.shared.mavurl import FORMS as MAVLINK_FORMS
 from dovesei.shared.mavurl import MavlinkEndpoint, check_serial_device, parse_mavlink_url
 from dovesei.shared.timing import DEFAULT_TIMING, TIMING_NAMES, timing
 from dovesei.controller.core import HANDOVER_ACTIONS
+from dovesei.controller.gnss_denied import GNSS_DENIED_MODES
 from dovesei.controller.mavlink_proto import load_signing_key
 from dovesei.controller.policies import policy_names
 from dovesei.segmenter.simulated import DEFAULT_PROFILE, PROFILE_NAMES
@@ -87,6 +88,7 @@ class UpOptions:
     yaw_control: str | None = None  # rate (hold the heading) or autopilot (WP_YAW_BEHAVIOR)
     signing_key: Path | None = None  # MAVLink 2 signing key file
     autopilot_system_id: int | None = None  # fly only the autopilot with this MAVLink system id
+    gnss_denied: str | None = None  # off, external-nav or attitude (docs/GNSS-DENIED.md)
     time_limit_s: float = 1200.0
     video: bool = True
     record: bool = True  # recording.mcap in the report folder (dovesei.shared.recording)
@@ -114,6 +116,7 @@ class UpOptions:
                             ("--yaw-control", self.yaw_control is not None),
                             ("--signing-key", self.signing_key is not None),
                             ("--autopilot-system-id", self.autopilot_system_id is not None),
+                            ("--gnss-denied", self.gnss_denied is not None),
                             ("--sitl-truth", self.sitl_truth is not None)):
             if given and not self.vehicle_url:
                 raise ConfigError(f"{flag} only applies with --vehicle-url (a real autopilot)")
@@ -129,6 +132,8 @@ class UpOptions:
             validate.one_of("--handover-action", self.handover_action, HANDOVER_ACTIONS)
         if self.yaw_control is not None:
             validate.one_of("--yaw-control", self.yaw_control, YAW_CONTROLS)
+        if self.gnss_denied is not None:
+            validate.one_of("--gnss-denied", self.gnss_denied, GNSS_DENIED_MODES)
         if self.signing_key is not None:
             try:
                 load_signing_key(self.signing_key)  # read now: a missing key is a usage error, not a dead child
@@ -245,6 +250,10 @@ def build_parser() -> argparse.ArgumentParser:
                            "--autopilot-system-id it keeps a spoofer off the link")
     real.add_argument("--autopilot-system-id", type=int, metavar="ID",
                       help="fly only the autopilot with this MAVLink system id (1..255; default: the first heard)")
+    real.add_argument("--gnss-denied", choices=GNSS_DENIED_MODES,
+                      help="when the autopilot loses GNSS: external-nav (the camera's velocity to its EKF), "
+                           "attitude (GUIDED_NOGPS, dovesei's own velocity loop) or off (report and hold; the "
+                           "default); autopilot parameters in docs/GNSS-DENIED.md")
     real.add_argument("--sitl-truth", metavar="URL",
                       help="ArduPilot SITL: the camera renders and the judge judges at the simulator's TRUE pose "
                            "(SIM_STATE), read on a SEPARATE SITL output (udpin:HOST:PORT, e.g. udpin:127.0.0.1:14552 "
@@ -284,7 +293,8 @@ def options_from_args(args: argparse.Namespace) -> UpOptions:
                      vehicle_url=args.vehicle_url, sitl_truth=args.sitl_truth, takeoff=args.takeoff,
                      handover_action=args.handover_action,
                      yaw_control=args.yaw_control, signing_key=args.signing_key,
-                     autopilot_system_id=args.autopilot_system_id, time_limit_s=limit_s, video=args.video,
+                     autopilot_system_id=args.autopilot_system_id, gnss_denied=args.gnss_denied,
+                     time_limit_s=limit_s, video=args.video,
                      record=args.record, view=args.view, rrd=args.rrd,
                      model=args.model, vehicle_id=args.vehicle_id, heatmap_wait_s=args.heatmap_wait_s,
                      heatmap_hold_after_s=args.heatmap_hold_after_s, after_failure_s=args.after_failure_s,

@@ -252,3 +252,28 @@ def test_off_reports_the_loss_and_holds_without_descending(fly) -> None:
     assert -fake.position_ned_m[2] >= flight.loss_alt_m - 2.0 > 20.0
     assert fake.mode == "ALT_HOLD"  # the EKF failsafe fired: GUIDED needs a position
     assert any(st.position_lost for st in lost)
+
+
+def test_a_blind_camera_stops_the_descent_until_it_sees_again(fly) -> None:
+    """Attitude mode after the loss: the camera goes blind for a while; no descent then, the reason
+    says why; when it sees again the descent resumes to the hand-over."""
+    marks: dict[str, float] = {}
+
+    def blind_then_handover(flight: Flight) -> bool:
+        nogps = flight.fake.mode == "GUIDED_NOGPS"
+        if nogps and "blind_s" not in marks and -flight.fake.position_ned_m[2] < 33.0:
+            flight.camera.blind.set()
+            marks["blind_s"], marks["blind_alt_m"] = time.monotonic(), -flight.fake.position_ned_m[2]
+        if "blind_s" in marks and "seeing_s" not in marks and time.monotonic() - marks["blind_s"] > 5.0:
+            marks["blind_end_alt_m"] = -flight.fake.position_ned_m[2]
+            flight.camera.blind.clear()
+            marks["seeing_s"] = time.monotonic()
+        return "seeing_s" in marks and handed_over(flight)
+
+    flight = fly("attitude", blind_then_handover)
+    # Blind for 5 s: at most the ~0.5 s of odometry age plus a tick of descent, never the 7.5 m of 5 s.
+    assert marks["blind_end_alt_m"] >= marks["blind_alt_m"] - 1.5
+    blind = [st for st in flight.statuses if st.gnss_lost and not st.nav_source == "visual" and st.state != "HANDOVER"]
+    assert blind and all(st.watchdog == "hold" for st in blind)
+    assert any("visual velocity invalid" in st.reason for st in blind), {st.reason for st in blind}
+    assert -flight.fake.position_ned_m[2] <= 20.5  # and then it went on to the hand-over
