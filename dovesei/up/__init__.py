@@ -95,6 +95,8 @@ def preflight(options: UpOptions) -> tuple[object, tuple[float, float, float], C
         link = parse_mavlink_url(options.vehicle_url)
         check_serial_device(link)
         check_endpoint_free(link)
+    if options.sitl_truth:
+        check_endpoint_free(parse_mavlink_url(options.sitl_truth, "--sitl-truth"), "--sitl-truth")
     world = load_world(options.world)
     if world.labels is None and options.segmenter == "sim":
         raise ConfigError(f"world {options.world!r} has no labels for the simulated perception to read: "

@@ -88,8 +88,9 @@ def child_configs(options: UpOptions, start: tuple[float, float, float], world: 
                       seed=options.seed),
         world=options.world, start_xy_alt_m=tuple(float(v) for v in start), lockstep=options.lockstep,
         # Camera mode: the sim renders at the autopilot's state, which the controller (the one owner
-        # of the MAVLink link) publishes on the state key; the sim opens no link of its own.
-        external_pose=bool(options.vehicle_url), wait_for=("segmenter", "controller"))
+        # of the MAVLink link) publishes on the state key; against SITL with --sitl-truth it renders
+        # at SITL's true pose, read on a separate SITL output (never the autopilot's link).
+        external_pose=bool(options.vehicle_url), sitl_truth=options.sitl_truth, wait_for=("segmenter", "controller"))
     perception: dict[str, object] = {"backend": options.segmenter, "sim_seed": options.seed,
                                      "sim_profile": options.perception}
     fusion = fusion_for(options.policy)  # the paper's policies fly the reference's fusion, as in bench
@@ -115,7 +116,8 @@ def child_configs(options: UpOptions, start: tuple[float, float, float], world: 
     for field, value in (("handover_action", options.handover_action),
                          ("mavlink_yaw_control", options.yaw_control),
                          ("mavlink_signing_key_file", None if options.signing_key is None else str(options.signing_key)),
-                         ("mavlink_system_id", options.autopilot_system_id)):
+                         ("mavlink_system_id", options.autopilot_system_id),
+                         ("gnss_denied", options.gnss_denied)):
         if value is not None:
             steering[field] = value
     controller = ControllerConfig(vehicle_id=options.vehicle_id, policy=options.policy, timing=options.timing,
@@ -172,7 +174,7 @@ def check_link_owners(commands: Mapping[str, Sequence[str]]) -> None:
                                   "only the controller may open the autopilot's link")
 
 
-def check_endpoint_free(ep: MavlinkEndpoint) -> None:
+def check_endpoint_free(ep: MavlinkEndpoint, flag: str = "--vehicle") -> None:
     """A listening URL whose port another process on this host already holds cannot work: say so now."""
     if not ep.binds or ep.scheme == "serial":
         return
@@ -181,5 +183,5 @@ def check_endpoint_free(ep: MavlinkEndpoint) -> None:
         try:
             s.bind((ep.host, ep.port))
         except OSError as exc:
-            raise ConfigError(f"--vehicle-url {ep.url!r}: cannot bind {ep.host}:{ep.port} ({exc.strerror}); another "
+            raise ConfigError(f"{flag} {ep.url!r}: cannot bind {ep.host}:{ep.port} ({exc.strerror}); another "
                               "process (a ground station, an earlier run) holds it") from None

@@ -24,10 +24,12 @@ from dovesei.shared.mavurl import FORMS as MAVLINK_FORMS
 from dovesei.shared.mavurl import MavlinkEndpoint, check_serial_device, parse_mavlink_url
 from dovesei.shared.timing import DEFAULT_TIMING, TIMING_NAMES, timing
 from dovesei.controller.core import HANDOVER_ACTIONS
+from dovesei.controller.gnss_denied import GNSS_DENIED_MODES
 from dovesei.controller.mavlink_proto import load_signing_key
 from dovesei.controller.policies import policy_names
 from dovesei.segmenter.simulated import DEFAULT_PROFILE, PROFILE_NAMES
 from dovesei.sim.service import parse_start as sim_parse_start
+from dovesei.sim.sitl_truth import parse_truth_url
 from dovesei.sim.starts import generate_starts
 
 DESCRIPTION = "`dovesei up`: fly one episode with the three services as separate OS processes on Zenoh."
@@ -75,6 +77,9 @@ class UpOptions:
     realtime: bool = False
     connect: tuple[str, ...] = ()
     vehicle_url: str | None = None  # MAVLink URL of a real autopilot (--vehicle-url); None: simulated
+    # ArduPilot SITL only: a SEPARATE SITL output (udpin:HOST:PORT) where the sim reads SIM_STATE, the
+    # simulator's true pose, to render and judge at; None: frames follow the controller's estimate.
+    sitl_truth: str | None = None
     takeoff: bool = False
     # What the controller does with a real autopilot (None: the controller's own default). Each is
     # refused without --vehicle-url: the simulated vehicle has no hand-over mode, heading control,
@@ -83,6 +88,7 @@ class UpOptions:
     yaw_control: str | None = None  # rate (hold the heading) or autopilot (WP_YAW_BEHAVIOR)
     signing_key: Path | None = None  # MAVLink 2 signing key file
     autopilot_system_id: int | None = None  # fly only the autopilot with this MAVLink system id
+    gnss_denied: str | None = None  # off, external-nav or attitude (docs/GNSS-DENIED.md)
     time_limit_s: float = 1200.0
     video: bool = True
     record: bool = True  # recording.mcap in the report folder (dovesei.shared.recording)
@@ -109,9 +115,13 @@ class UpOptions:
         for flag, given in (("--takeoff", self.takeoff), ("--handover-action", self.handover_action is not None),
                             ("--yaw-control", self.yaw_control is not None),
                             ("--signing-key", self.signing_key is not None),
-                            ("--autopilot-system-id", self.autopilot_system_id is not None)):
+                            ("--autopilot-system-id", self.autopilot_system_id is not None),
+                            ("--gnss-denied", self.gnss_denied is not None),
+                            ("--sitl-truth", self.sitl_truth is not None)):
             if given and not self.vehicle_url:
                 raise ConfigError(f"{flag} only applies with --vehicle-url (a real autopilot)")
+        if self.sitl_truth is not None:
+            parse_truth_url(self.sitl_truth)
         if self.vehicle_url:
             parse_mavlink_url(self.vehicle_url)
             if self.timing != "real":
@@ -122,6 +132,8 @@ class UpOptions:
             validate.one_of("--handover-action", self.handover_action, HANDOVER_ACTIONS)
         if self.yaw_control is not None:
             validate.one_of("--yaw-control", self.yaw_control, YAW_CONTROLS)
+        if self.gnss_denied is not None:
+            validate.one_of("--gnss-denied", self.gnss_denied, GNSS_DENIED_MODES)
         if self.signing_key is not None:
             try:
                 load_signing_key(self.signing_key)  # read now: a missing key is a usage error, not a dead child
@@ -238,6 +250,15 @@ def build_parser() -> argparse.ArgumentParser:
                            "--autopilot-system-id it keeps a spoofer off the link")
     real.add_argument("--autopilot-system-id", type=int, metavar="ID",
                       help="fly only the autopilot with this MAVLink system id (1..255; default: the first heard)")
+    real.add_argument("--gnss-denied", choices=GNSS_DENIED_MODES,
+                      help="when the autopilot loses GNSS: external-nav (the camera's velocity to its EKF), "
+                           "attitude (GUIDED_NOGPS, dovesei's own velocity loop) or off (report and hold; the "
+                           "default); autopilot parameters in docs/GNSS-DENIED.md")
+    real.add_argument("--sitl-truth", metavar="URL",
+                      help="ArduPilot SITL: the camera renders and the judge judges at the simulator's TRUE pose "
+                           "(SIM_STATE), read on a SEPARATE SITL output (udpin:HOST:PORT, e.g. udpin:127.0.0.1:14552 "
+                           "for SITL's --serial2 udpclient:127.0.0.1:14552), never the controller's link; the policy "
+                           "still sees only the autopilot's estimate")
     p.add_argument("--video", action=argparse.BooleanOptionalAction, default=True, help="write episode.mp4")
     p.add_argument("--record", action=argparse.BooleanOptionalAction, default=True,
                    help="record the flight to recording.mcap (replay with `dovesei replay`)")
@@ -269,9 +290,11 @@ def options_from_args(args: argparse.Namespace) -> UpOptions:
     return UpOptions(world=args.world, segmenter=args.segmenter, policy=args.policy, timing=timing_name,
                      seed=args.seed, noise=args.noise, perception=args.perception, start=start, start_seed=args.start_seed,
                      start_alt_m=args.start_alt_m, out=out, realtime=args.realtime, connect=tuple(args.connect),
-                     vehicle_url=args.vehicle_url, takeoff=args.takeoff, handover_action=args.handover_action,
+                     vehicle_url=args.vehicle_url, sitl_truth=args.sitl_truth, takeoff=args.takeoff,
+                     handover_action=args.handover_action,
                      yaw_control=args.yaw_control, signing_key=args.signing_key,
-                     autopilot_system_id=args.autopilot_system_id, time_limit_s=limit_s, video=args.video,
+                     autopilot_system_id=args.autopilot_system_id, gnss_denied=args.gnss_denied,
+                     time_limit_s=limit_s, video=args.video,
                      record=args.record, view=args.view, rrd=args.rrd,
                      model=args.model, vehicle_id=args.vehicle_id, heatmap_wait_s=args.heatmap_wait_s,
                      heatmap_hold_after_s=args.heatmap_hold_after_s, after_failure_s=args.after_failure_s,

@@ -151,6 +151,7 @@ _LANDING_TARGET_FRESH_S = 1.0  # a spot older than this is no longer streamed
 _NAV_PERIOD_S = 0.2  # the navigation judgement (and its loss / recovery log) at 5 Hz
 _GPS_RAW_INTERVAL_US = 200_000.0  # GPS_RAW_INT at 5 Hz: a lost fix is noticed within a fifth of a second
 _GLOBAL_FRESH_S = 1.0  # the fallback state's altitude (GLOBAL_POSITION_INT) is used only this fresh
+_LOCAL_FALLBACK_S = 0.5  # LOCAL_POSITION_NED silent this long: states come from ATTITUDE (no stale-state gap)
 _SOURCE_SET_RETRY_S, _SOURCE_SET_TRIES = 1.0, 10
 
 
@@ -870,7 +871,7 @@ class MavlinkVehicle:
         now = self._clock()
         with self._lock:
             local_s, glob = self._local_s, self._global
-            if local_s is None or now - local_s <= self._nav.local_stale_s:
+            if local_s is None or now - local_s <= _LOCAL_FALLBACK_S:
                 return  # the local position still streams (or never did: nothing to fall back from)
             if glob is None or now - glob[2] > _GLOBAL_FRESH_S:
                 return  # no altitude we believe: a made-up state is worse than the stale-state hold

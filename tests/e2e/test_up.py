@@ -101,6 +101,31 @@ def test_a_real_vehicle_runs_in_real_time_with_the_sim_as_camera(tmp_path: Path)
     check_link_owners(cmds)
 
 
+def test_sitl_truth_goes_to_the_sim_on_its_own_endpoint(tmp_path: Path) -> None:
+    from dovesei.shared.errors import ConfigError
+
+    opts = UpOptions(world=WORLD, vehicle_url="udpin:127.0.0.1:14550", sitl_truth="udpin:127.0.0.1:14552",
+                     timing="real", out=tmp_path)
+    cmds = child_commands(opts, child_configs(opts, (1.0, 2.0, 30.0)), {n: 1 for n in (*SERVICES, "monitor")},
+                          tmp_path)
+    _, sim = _parsed("sim", cmds["sim"])
+    _, ctrl = _parsed("controller", cmds["controller"])
+    assert sim.external_pose and sim.sitl_truth == "udpin:127.0.0.1:14552"
+    assert ctrl.vehicle_url == "udpin:127.0.0.1:14550" and "--sitl-truth" not in cmds["controller"]
+    check_link_owners(cmds)
+    # The autopilot's own endpoint is never the sim's.
+    same = UpOptions(world=WORLD, vehicle_url="udpin:127.0.0.1:14550", sitl_truth="udpin:127.0.0.1:14550",
+                     timing="real", out=tmp_path)
+    with pytest.raises(ConfigError, match="both .* would bind 127.0.0.1:14550"):
+        check_link_owners(child_commands(same, child_configs(same, (1.0, 2.0, 30.0)),
+                                         {n: 1 for n in (*SERVICES, "monitor")}, tmp_path))
+    with pytest.raises(ConfigError, match="--sitl-truth only applies with --vehicle"):
+        UpOptions(world=WORLD, sitl_truth="udpin:127.0.0.1:14552")
+    with pytest.raises(ConfigError, match="--sitl-truth 'udpout:127.0.0.1:14552': expected udpin:HOST:PORT"):
+        UpOptions(world=WORLD, vehicle_url="udpin:127.0.0.1:14550", sitl_truth="udpout:127.0.0.1:14552",
+                  timing="real")
+
+
 def test_two_processes_on_one_mavlink_endpoint_are_refused() -> None:
     from dovesei.shared.errors import ConfigError
 
