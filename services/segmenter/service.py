@@ -34,6 +34,7 @@ import json
 import logging
 import threading
 import time
+import typing
 from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -46,7 +47,9 @@ from dovesei.shared.cliconfig import (
 )
 from dovesei.shared.codec import decode, encode
 from dovesei.shared.errors import ConfigError, DoveseiError, ProtocolError
-from dovesei.shared.lifecycle import Inbox, RateLimitedLog, declare_alive, install_stop_handlers, write_stats
+from dovesei.shared.lifecycle import (
+    Inbox, RateLimitedLog, declare_alive, exit_process, install_stop_handlers, write_stats,
+)
 from dovesei.shared.messages import CameraFrame, PromptSetMsg, SafetyHeatmap, replace
 
 from .core import (
@@ -417,5 +420,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     return 0
 
 
+def cli() -> typing.NoReturn:
+    """The process entry (`dovesei-segmenter`, `python -m`): `main`, then out without the teardown.
+
+    Once torch and transformers are imported (CLIPSeg, or `auto` trying it) the interpreter's own
+    teardown took 2-5 s after `main` returned; `main` has closed the session and written the stats
+    by then, so the process ends at once (`exit_process`) and a SIGTERM ends it promptly.
+    """
+    exit_process(main())
+
+
 if __name__ == "__main__":
-    raise SystemExit(main())
+    cli()
