@@ -51,6 +51,7 @@ from dovesei.shared.lifecycle import (
     Inbox, RateLimitedLog, declare_alive, exit_process, install_stop_handlers, write_stats,
 )
 from dovesei.shared.messages import CameraFrame, PromptSetMsg, SafetyHeatmap, replace
+from dovesei.shared.zconfig import SessionError, open_session
 
 from .core import (
     BACKENDS, DTYPES, HEATMAP_DTYPES, REJECT_VEHICLE, BackendUnavailableError, ClipSegFrameBackend, FrameBackend,
@@ -413,8 +414,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (DoveseiError, ValueError) as exc:
         log.error("segmenter not started: %s", exc)
         return 2
-    with zenoh.open(zconf) as session:
-        stats = run(session, config=config, stop=stop, backend=backend)
+    try:
+        with open_session(zconf) as session:
+            stats = run(session, config=config, stop=stop, backend=backend)
+    except SessionError as exc:  # a taken listen port, an unreachable router: one line, not a traceback
+        log.error("segmenter not started: %s", exc)
+        return 1
     if process.stats_out is not None:
         write_stats(process.stats_out, stats)
     return 0
