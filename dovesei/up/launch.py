@@ -66,7 +66,7 @@ def child_configs(options: UpOptions, start: tuple[float, float, float]) -> Chil
     """Each service's config for this run; a value a service refuses is a ConfigError naming it."""
     sim = SimServiceConfig(
         sim=SimConfig(vehicle_id=options.vehicle_id, timing=options.timing, time_limit_s=float(options.time_limit_s),
-                      seed=options.seed),
+                      seed=options.seed, vehicle_profile=options.vehicle_profile),
         world=options.world, start_xy_alt_m=tuple(float(v) for v in start), lockstep=options.lockstep,
         # Camera mode: the sim renders at the autopilot's state, which the controller (the one owner
         # of the MAVLink link) publishes on the state key; the sim opens no link of its own.
