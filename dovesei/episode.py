@@ -159,6 +159,7 @@ def run_episode(world: World, spec: EpisodeSpec, *, record_track: bool = True,
             for seq in [s for s in pending if s < due]:
                 del pending[seq]
         cmd, status = ctrl.tick(out.state)
+        sim.note_status(status)  # the judge learns the ground the policy last confirmed
         record(cmd)
         record(status)
         states.append(status.state)

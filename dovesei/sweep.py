@@ -28,9 +28,10 @@ import os
 import sys
 from pathlib import Path
 
-from dovesei.bench import OneLineParser, check_perception, paper_time_limit_s, parse_policies, suite_worlds
+from dovesei.bench import check_perception, paper_time_limit_s, parse_policies, suite_worlds
 from dovesei.bench.run import Grid, Variant, run_grid
 from dovesei.episode import prompt_set
+from dovesei.shared.cliconfig import OneLineParser
 from dovesei.shared import timing as shared_timing
 from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.shared.validate import in_range, one_of, positive

@@ -30,6 +30,7 @@ from dovesei.controller.policies.clearance_config import ClearanceConfig
 from dovesei.episode import DEFAULT_PERCEPTION
 from dovesei.episode import perception_names as _perception_names
 from dovesei.bench.stats import SUMMARY_KEYS, summarise, wilson_interval
+from dovesei.shared.cliconfig import OneLineParser
 from dovesei.shared import timing as shared_timing
 from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.shared.validate import in_range, non_negative, positive
@@ -46,13 +47,6 @@ log = logging.getLogger(__name__)
 DEFAULT_POLICIES = "dovesei,dovesei-nofocus"
 DEFAULT_VEHICLE_PROFILE = "ideal"  # dovesei.sim.estimator
 PAPER_TIME_LIMIT_S = shared_timing.PAPER_TIME_LIMIT_S
-
-
-class OneLineParser(argparse.ArgumentParser):
-    """argparse with usage errors as ONE line naming the flag (`--help` still prints the usage)."""
-
-    def error(self, message: str):  # noqa: D102 - argparse's hook
-        self.exit(2, f"{self.prog}: {message} (see --help)\n")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -193,7 +187,14 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     print((args.out / "summary.md").read_text())
     print(json.dumps(doc["summary"]))
+    print(wrote_line(args.out))
     return 0
+
+
+def wrote_line(out: Path) -> str:
+    """The last line of a bench: where its files are, the page first (what a person opens)."""
+    names = [n for n in ("report.html", "results.json", "summary.md", "paths.png") if (out / n).is_file()]
+    return f"dovesei bench: wrote {out.resolve()} ({', '.join(names)})"
 
 
 if __name__ == "__main__":

@@ -26,6 +26,7 @@ from datetime import datetime
 from pathlib import Path
 
 from dovesei.faults.scenario import FAULTS, RunResult, run_scenario
+from dovesei.shared.cliconfig import OneLineParser
 from dovesei.shared.errors import ConfigError
 from dovesei.sim.estimator import VEHICLE_PROFILE_NAMES
 from dovesei.up.options import DEFAULT_VEHICLE_PROFILE
@@ -75,7 +76,7 @@ def table(summary: dict) -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="dovesei faults", description=__doc__.split("\n\n")[0],
+    p = OneLineParser(prog="dovesei faults", description=__doc__.split("\n\n")[0],
                                 epilog=f"faults: {'; '.join(f'{f.name}: {f.text}' for f in FAULTS.values())}")
     p.add_argument("--runs", type=int, default=1, help="runs per fault (seeds S, S+1, ...)")
     p.add_argument("--fault", help=f"comma list (default: all): {','.join(FAULTS)}")

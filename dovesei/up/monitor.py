@@ -64,6 +64,7 @@ class Recorder:
         self.states: list[VehicleState] = []
         self.statuses: dict[float, ControllerStatus] = {}  # by the state stamp they answer
         self.status_count = 0
+        self.handover_seen = False  # the controller reported HANDOVER at least once
         self.steering_statuses = 0  # statuses outside the hand-over: each tick sent a command
         self.commands = 0
         self.latency: dict[str, list[float]] = {s: [] for s in STAGES}
@@ -142,6 +143,7 @@ class Recorder:
 
     def _on_status(self, st: ControllerStatus, s: Sample) -> None:
         self.status_count += 1
+        self.handover_seen = self.handover_seen or st.state == "HANDOVER"
         if st.state != "HANDOVER":
             self.steering_statuses += 1
         self.statuses[st.stamp.t_s] = st
