@@ -33,6 +33,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "replay": ("dovesei.replay", "run a policy (and optionally a segmenter) again on a flight recording (.mcap)"),
     "view": ("dovesei.view", "open a flight (report folder or recording.mcap) in Rerun; writes an .rrd"),
     "bench-codec": ("dovesei.benchmarks.codec", "encode/decode time of a 352x352 frame and heatmap"),
+    "bench-odometry": ("dovesei.benchmarks.odometry", "visual velocity: ms per 640x480 frame, error vs truth on the suite"),
 }
 
 

@@ -467,10 +467,26 @@ class ControllerStatus(Message):
     spot_east_m: float = 0.0
     spot_clearance_m: float = 0.0
     spot_confidence: float = 0.0
+    # MAVLink navigation health (empty with the sim): which horizontal velocity the controller
+    # trusts ("autopilot", "external-nav", "visual", "none"), whether GNSS and the autopilot's
+    # position are lost, and why, in one line.
+    nav_source: str = ""
+    gnss_lost: bool = False
+    position_lost: bool = False
+    nav_reason: str = ""
+    # The look that last confirmed the spot: the camera frame's seq and the spot's pixel in that
+    # frame's heatmap (row down, col right), so a judge can map it to the ground with the frame's
+    # own pose. Not valid for policies without a checked spot, or before a look confirmed one.
+    confirmed_valid: bool = False
+    confirmed_frame_seq: int = -1
+    confirmed_row_px: float = 0.0
+    confirmed_col_px: float = 0.0
 
     RANGES: ClassVar[dict[str, tuple[float, float]]] = {
         "spot_north_m": (-1e7, 1e7), "spot_east_m": (-1e7, 1e7), "spot_clearance_m": (0.0, 1e6),
-        "spot_confidence": (0.0, 1.0)}
+        "spot_confidence": (0.0, 1.0), "confirmed_frame_seq": SEQ,
+        # Inside a frame of at most 8192 px a side (CameraModel's limit), with half a pixel of edge.
+        "confirmed_row_px": (-0.5, 8191.5), "confirmed_col_px": (-0.5, 8191.5)}
 
 
 @message("dovesei.prompt_set", 1)
@@ -511,6 +527,17 @@ class EpisodeResult(Message):
     closest_unsafe_valid: bool = False
     closest_unsafe_m: float = 0.0
     detail: str = ""
+    # The ground the policy last confirmed (its confirming look's spot pixel placed with that
+    # frame's true pose) and, for an episode that reached the hand-over altitude, the true distance
+    # from the hand-over point to it. Not valid for policies that confirm no spot.
+    confirmed_valid: bool = False
+    confirmed_x_m: float = 0.0
+    confirmed_y_m: float = 0.0
+    touchdown_error_valid: bool = False
+    touchdown_error_m: float = 0.0
+
+    RANGES: ClassVar[dict[str, tuple[float, float]]] = {
+        "confirmed_x_m": (-1e9, 1e9), "confirmed_y_m": (-1e9, 1e9), "touchdown_error_m": (0.0, 1e9)}
 
     def _check(self) -> None:
         if self.outcome not in OUTCOMES:

@@ -37,6 +37,15 @@ Personalities (`flavour`):
   PLND_XY_DIST_MAX 2.5 m away); otherwise LAND descends straight down, blind.
 - `arm_refusals`: ARMs refused after boot by checks that run only at arming (a real case: the
   pre-arm bit says healthy, ARM still fails once).
+- GNSS loss (ArduPilot, `lose_gnss()`; the estimator in `fake_ekf.FakeEkf`): GPS_RAW_INT loses its
+  fix, the EKF coasts then drops to constant-position mode (LOCAL_POSITION_NED stops, the flags
+  say so), modes that need a position (GUIDED, LOITER, ...) are refused ("Mode change failed:
+  GUIDED requires position") and the EKF failsafe switches them to FS_EKF_ACTION (LAND by
+  default) with "EKF variance"; the vehicle then drifts (drag, no position hold). GUIDED_NOGPS
+  (mode 20) flies SET_ATTITUDE_TARGET only (rates all ignored or all given, else discarded;
+  thrust read as a climb rate, 0.5 holds; level and hold after GUID_TIMEOUT); velocity setpoints
+  do nothing there. VISION_SPEED_ESTIMATE is fused once MAV_CMD_SET_EKF_SOURCE_SET selects the
+  set configured with VELXY = ExternalNav: the EKF keeps velocity and a relative position.
 - `gcs_set_mode()`: a second ground station switching modes; `inject()`: one hand-made message
   (NaN, out of range) in the fake's own stream; `signing_key`: MAVLink 2 signing, unsigned and
   wrong-key frames rejected and counted.
@@ -58,6 +67,9 @@ from dataclasses import dataclass
 from typing import Any
 
 from dovesei.controller import mavlink_proto as mv
+from dovesei.controller.gnss_denied import GRAVITY_M_S2, quaternion_to_euler
+from dovesei.testing import fake_ekf
+from dovesei.testing.fake_ekf import FS_EKF_ACTIONS, FakeEkf
 from dovesei.shared.lifecycle import install_stop_handlers
 
 log = logging.getLogger(__name__)
@@ -79,6 +91,10 @@ PRECLAND_GAIN_PER_S, PRECLAND_MAX_M_S = 0.5, 1.0
 # LANDING_TARGET_TIMEOUT_MS; PLND_XY_DIST_MAX's default.
 PRECLAND_INIT_S, PRECLAND_INIT_GAP_S, PRECLAND_TIMEOUT_S, PRECLAND_XY_DIST_MAX_M = 2.0, 0.5, 2.0, 2.5
 DEFAULT_BOOT_S = 40.0
+# ArduCopter modes whose requires_GPS() is true (ArduCopter/mode.h): refused without a position.
+ARDUPILOT_GPS_MODES = ("GUIDED", "LOITER", "POSHOLD", "RTL", "AUTO", "BRAKE")
+DRAG_PER_S = 0.3  # without position hold the horizontal velocity decays this fast (a few seconds)
+ATTITUDE_TARGET_TYPEMASK_THROTTLE_IGNORE = 64
 ORIGIN_LAT_DEG, ORIGIN_LON_DEG = 47.3977, 8.5456  # any fixed point; only GLOBAL_POSITION_INT uses it
 
 
@@ -124,6 +140,28 @@ class ReceivedSetpoint:
 
 
 @dataclass(frozen=True)
+class ReceivedAttitudeTarget:
+    """One SET_ATTITUDE_TARGET (recv_s on time.monotonic); `accepted`: flown (GUIDED_NOGPS, valid)."""
+
+    recv_s: float
+    type_mask: int
+    q: tuple[float, float, float, float]
+    thrust: float
+    accepted: bool
+
+
+@dataclass(frozen=True)
+class ReceivedVisionSpeed:
+    """One VISION_SPEED_ESTIMATE (NED m/s) or PX4 ODOMETRY velocity (body FRD) as received."""
+
+    recv_s: float
+    usec: int
+    vel_m_s: tuple[float, float, float]
+    covariance: tuple[float, ...]
+    kind: str  # "VISION_SPEED_ESTIMATE" or "ODOMETRY"
+
+
+@dataclass(frozen=True)
 class ReceivedHeartbeat:
     recv_s: float
     system: int
@@ -158,7 +196,7 @@ class FakeAutopilot:
                  offboard_loss_s: float = PX4_OFFBOARD_LOSS_S, system: int = 1, component: int = 1,
                  boot_s: float = DEFAULT_BOOT_S, heading_drift_rad_s: float = 0.0,
                  statustext_period_s: float = 2.0, signing_key: bytes | None = None, arm_refusals: int = 0,
-                 precland: bool = True) -> None:
+                 precland: bool = True, ekf: FakeEkf | None = None) -> None:
         if flavour not in FLAVOURS:
             raise ValueError(f"flavour {flavour!r}: choose one of {FLAVOURS}")
         self.url, self.flavour, self.personality = url, flavour, PERSONALITIES[flavour]
@@ -205,6 +243,11 @@ class FakeAutopilot:
         self.set_mode_messages: list[tuple[float, int, int]] = []  # (recv_s, base_mode, custom_mode)
         self.statustexts_sent: list[tuple[int, str]] = []
         self.peer_seen = threading.Event()
+        self.ekf = ekf if ekf is not None else FakeEkf()
+        self._roll_rad = self._pitch_rad = 0.0
+        self._last_attitude: ReceivedAttitudeTarget | None = None
+        self.attitude_targets: list[ReceivedAttitudeTarget] = []
+        self.vision_speeds: list[ReceivedVisionSpeed] = []
 
     # ----------------------------------------------------------------- control from the test
 
@@ -246,6 +289,24 @@ class FakeAutopilot:
             result = self._command(mv.MAV_CMD_DO_SET_MODE, (1.0, float(p2), float(p3), 0.0, 0.0, 0.0, 0.0))
             self.commands.append(ReceivedCommand(time.monotonic(), mv.MAV_CMD_DO_SET_MODE, (1.0, p2, p3), result))
         log.info("fake: ground station %d switched the mode to %s (result %d)", gcs_system, name, result)
+
+    def lose_gnss(self) -> None:
+        """Cut GNSS (SITL's SIM_GPS_DISABLE 1): the estimator's timeline in `fake_ekf` starts now."""
+        if self.flavour != "ardupilot":
+            raise ValueError("the GNSS-loss personality is ArduPilot's")
+        with self._lock:
+            self.ekf.lose_gnss(time.monotonic())
+        log.info("fake: GNSS lost")
+
+    def restore_gnss(self) -> None:
+        with self._lock:
+            self.ekf.restore_gnss()
+
+    @property
+    def attitude_rad(self) -> tuple[float, float, float]:
+        """(roll, pitch, yaw) as flown."""
+        with self._lock:
+            return self._roll_rad, self._pitch_rad, self._yaw_rad
 
     def set_armed(self, armed: bool) -> None:
         with self._lock:
@@ -393,9 +454,14 @@ class FakeAutopilot:
                 log.info("fake PX4: offboard setpoints lost for COM_OF_LOSS_T, failsafe to LOITER")
                 self._custom_mode = mv.encode_mode("px4", "LOITER")[0]
                 name = "LOITER"
-            steering = self._armed and name == mv.STEER_MODE[self.flavour]
             airborne = -self._pos_ned_m[2] > self.terrain_height_m + 0.05
-            if steering and self._takeoff_alt_m is not None:
+            name = self._ekf_failsafe(name, now)
+            nav_ok = self.flavour != "ardupilot" or self.ekf.position_ok(now)
+            steering = self._armed and name == mv.STEER_MODE[self.flavour] and nav_ok
+            if self._armed and airborne and (name == "GUIDED_NOGPS" or not nav_ok):
+                # No position control: attitude targets, or a level vehicle drifting on its momentum.
+                vel_ned = self._unpositioned_velocity(name, sp, now, dt_s)
+            elif steering and self._takeoff_alt_m is not None:
                 vel_ned[2] = -self.personality.up_cap_m_s if -self._pos_ned_m[2] < self._takeoff_alt_m else 0.0
                 if vel_ned[2] == 0.0:
                     self._takeoff_alt_m = None
@@ -404,6 +470,8 @@ class FakeAutopilot:
             elif self._armed and name in ("LAND", "PRECLAND"):
                 self._precland_tick(now)
                 vel_ned = self._landing_velocity()
+            if not (self._armed and airborne and (name == "GUIDED_NOGPS" or not nav_ok)):
+                self._roll_rad = self._pitch_rad = 0.0  # position-controlled flight: level enough to ignore
             vel_ned = self._capped(vel_ned)
             drift = self._heading_drift_rad_s if airborne and self._armed else 0.0
             self._yaw_rad = math.remainder(self._yaw_rad + (yaw_rate + drift) * dt_s, 2.0 * math.pi)
@@ -417,6 +485,47 @@ class FakeAutopilot:
                     self.touchdown_ne_m = (self._pos_ned_m[0], self._pos_ned_m[1])
                     self.touchdown_s = now
             self._vel_ned_m_s, self._yaw_rate_rad_s = vel_ned, yaw_rate + drift
+
+    def _ekf_failsafe(self, name: str, now: float) -> str:
+        """Copter's EKF failsafe (ArduPilot): FS_EKF_ACTION for modes that need a position. Caller holds the lock."""
+        if self.flavour != "ardupilot" or not self._armed or not self.ekf.failsafe_due(now):
+            return name
+        self._queue_statustext(MAV_SEVERITY_CRITICAL, "EKF variance")
+        if name in ARDUPILOT_GPS_MODES or self.ekf.fs_ekf_action == 3:
+            action = FS_EKF_ACTIONS[self.ekf.fs_ekf_action]
+            self._custom_mode = mv.encode_mode("ardupilot", action)[0]
+            self._queue_statustext(MAV_SEVERITY_CRITICAL, f"EKF Failsafe: changed to {action} Mode")
+            log.info("fake: EKF failsafe, %s -> %s", name, action)
+            return action
+        return name
+
+    def _unpositioned_velocity(self, name: str, sp: ReceivedSetpoint | None, now: float, dt_s: float) -> list[float]:
+        """Flight without a horizontal position: GUIDED_NOGPS attitude targets, else level and drifting."""
+        vel = list(self._vel_ned_m_s)
+        climb = 0.0
+        target = self._last_attitude
+        if name == "GUIDED_NOGPS" and target is not None and now - target.recv_s <= ARDUPILOT_GUIDED_VEL_TIMEOUT_S:
+            self._roll_rad, self._pitch_rad, self._yaw_rad = quaternion_to_euler(target.q)
+            # ArduCopter's default GUID_OPTIONS: thrust is a climb rate, 0.5 holds the altitude.
+            thrust = min(max(target.thrust, 0.0), 1.0)
+            p = self.personality
+            climb = (thrust - 0.5) * 2.0 * (p.up_cap_m_s if thrust >= 0.5 else p.down_cap_m_s)
+        else:
+            # Level (an attitude target timed out, ALT_HOLD or LAND without a position, GUIDED blind).
+            self._roll_rad = self._pitch_rad = 0.0
+            if name in ("LAND", "PRECLAND"):
+                climb = -LAND_RATE_M_S
+            elif name == "GUIDED" and sp is not None and now - sp.recv_s <= ARDUPILOT_GUIDED_VEL_TIMEOUT_S:
+                climb = -sp.vel_m_s[2]  # the barometer still holds the vertical
+        # Body acceleration from the tilt (nose down accelerates forward), into NED by the heading.
+        a_fwd = -GRAVITY_M_S2 * math.tan(self._pitch_rad)
+        a_right = GRAVITY_M_S2 * math.tan(self._roll_rad)
+        c, s = math.cos(self._yaw_rad), math.sin(self._yaw_rad)
+        acc = (c * a_fwd - s * a_right, s * a_fwd + c * a_right)
+        for i in range(2):
+            vel[i] += (acc[i] - DRAG_PER_S * vel[i]) * dt_s
+        vel[2] = -climb
+        return vel
 
     def _capped(self, vel_ned: list[float]) -> list[float]:
         """The personality's speed limits (caller holds the lock)."""
@@ -507,6 +616,19 @@ class FakeAutopilot:
                 self.setpoints.append(sp)
                 if msg.target_system == self._system:
                     self._last_setpoint = sp
+        elif kind == "SET_ATTITUDE_TARGET":
+            self._on_attitude_target(msg, recv_s)
+        elif kind == "VISION_SPEED_ESTIMATE":
+            speed = ReceivedVisionSpeed(recv_s, msg.usec, (msg.x, msg.y, msg.z), tuple(msg.covariance),
+                                        "VISION_SPEED_ESTIMATE")
+            with self._lock:
+                self.vision_speeds.append(speed)
+                if self.flavour == "ardupilot" and all(math.isfinite(v) for v in speed.vel_m_s):
+                    self.ekf.on_vision_speed(recv_s, speed.vel_m_s)
+        elif kind == "ODOMETRY":
+            with self._lock:
+                self.vision_speeds.append(ReceivedVisionSpeed(recv_s, msg.time_usec, (msg.vx, msg.vy, msg.vz),
+                                                              tuple(msg.velocity_covariance), "ODOMETRY"))
         elif kind == "LANDING_TARGET":
             target = ReceivedLandingTarget(recv_s, msg.frame, msg.angle_x, msg.angle_y, msg.distance)
             with self._lock:
@@ -524,6 +646,20 @@ class FakeAutopilot:
                 self.commands.append(ReceivedCommand(recv_s, msg.command, params, result))
             self._conn.mav.command_ack_send(msg.command, result)
 
+    def _on_attitude_target(self, msg: Any, recv_s: float) -> None:
+        """ArduCopter's handle_message_set_attitude_target: guided modes only, rates all-or-none, thrust needed."""
+        q = tuple(float(v) for v in msg.q)
+        rates = msg.type_mask & 0x07
+        unit = abs(math.sqrt(sum(v * v for v in q)) - 1.0) <= 1e-3
+        with self._lock:
+            name = mv.mode_name(self.flavour, self._custom_mode)
+            accepted = (msg.target_system == self._system and name in ("GUIDED", "GUIDED_NOGPS") and rates in (0, 7)
+                        and not msg.type_mask & ATTITUDE_TARGET_TYPEMASK_THROTTLE_IGNORE and unit)
+            target = ReceivedAttitudeTarget(recv_s, msg.type_mask, q, float(msg.thrust), accepted)  # type: ignore[arg-type]
+            self.attitude_targets.append(target)
+            if accepted:
+                self._last_attitude = target
+
     def _streaming(self) -> bool:
         sp = self._last_setpoint
         return sp is not None and time.monotonic() - sp.recv_s <= self._offboard_loss_s
@@ -532,6 +668,8 @@ class FakeAutopilot:
         """PX4 refuses OFFBOARD unless setpoints are already streaming (caller holds the lock)."""
         if self.flavour == "px4" and mv.mode_name("px4", custom_mode) == "OFFBOARD":
             return self._streaming()
+        if self.flavour == "ardupilot" and mv.mode_name("ardupilot", custom_mode) in ARDUPILOT_GPS_MODES:
+            return self.ekf.position_ok(time.monotonic())  # Mode::set_mode: requires_GPS and no position
         return True
 
     def _command(self, command: int, params: tuple[float, ...]) -> int:
@@ -560,9 +698,20 @@ class FakeAutopilot:
             else:
                 custom = int(params[1])
             if not self._mode_allowed(custom):
-                return MAV_RESULT_DENIED
+                if self.flavour == "px4":
+                    return MAV_RESULT_DENIED
+                wanted = mv.mode_name(self.flavour, custom)
+                self._queue_statustext(MAV_SEVERITY_WARNING, f"Mode change failed: {wanted} requires position")
+                return MAV_RESULT_FAILED
             self._custom_mode = custom
             return mv.MAV_RESULT_ACCEPTED
+        if command == mv.MAV_CMD_SET_EKF_SOURCE_SET:
+            if self.flavour != "ardupilot":
+                return MAV_RESULT_UNSUPPORTED
+            result = self.ekf.set_source_set(int(params[0]))
+            if result == mv.MAV_RESULT_ACCEPTED:
+                self._queue_statustext(MAV_SEVERITY_INFO, f"EKF3 source set {int(params[0])} selected")
+            return result
         if command == mv.MAV_CMD_COMPONENT_ARM_DISARM:
             return self._arm(params[0] == 1.0)
         if command == mv.MAV_CMD_NAV_TAKEOFF:
@@ -617,7 +766,7 @@ class FakeAutopilot:
         if fraction >= 0.5:
             flags |= mv.EKF_VELOCITY_HORIZ | mv.EKF_VELOCITY_VERT | mv.EKF_POS_VERT_ABS
         if fraction >= 0.75:
-            flags |= mv.EKF_POS_HORIZ_REL
+            flags |= mv.EKF_POS_HORIZ_REL | mv.EKF_POS_HORIZ_ABS | mv.EKF_PRED_POS_HORIZ_REL
         return flags
 
     def _send_streams(self, now: float) -> None:
@@ -627,18 +776,32 @@ class FakeAutopilot:
                 self._next_send_s[msg_id] = now + self._intervals_s[msg_id]
             pos, vel, yaw = list(self._pos_ned_m), list(self._vel_ned_m_s), self._yaw_rad
             yaw_rate, terrain_m = self._yaw_rate_rad_s, self.terrain_height_m
+            roll, pitch = self._roll_rad, self._pitch_rad
+            now_mono = time.monotonic()
+            # ArduPilot stops LOCAL_POSITION_NED when its EKF has no position (GCS_MAVLINK::send_local_position).
+            local_ok = self.flavour != "ardupilot" or self.ekf.position_ok(now_mono)
+            # Booting gates the good bits; the estimator adds what the loss sets (constant-position mode).
+            boot, ekf = self._ekf_flags(), self.ekf.flags(now_mono)
+            ekf_flags = (boot & ekf & fake_ekf.GOOD_FLAGS) | ((boot | ekf) & ~fake_ekf.GOOD_FLAGS)
+            fix_type = self.ekf.fix_type() if self._boot_fraction() >= 0.5 else 1
         boot_ms, mav = self._boot_ms(), self._conn.mav
         for msg_id in due:
             if msg_id == mv.MSG_ID_LOCAL_POSITION_NED:
-                mav.local_position_ned_send(boot_ms, pos[0], pos[1], pos[2], vel[0], vel[1], vel[2])
+                if local_ok:
+                    mav.local_position_ned_send(boot_ms, pos[0], pos[1], pos[2], vel[0], vel[1], vel[2])
             elif msg_id == mv.MSG_ID_ATTITUDE:
-                mav.attitude_send(boot_ms, 0.0, 0.0, yaw, 0.0, 0.0, yaw_rate)
+                mav.attitude_send(boot_ms, roll, pitch, yaw, 0.0, 0.0, yaw_rate)
+            elif msg_id == mv.MSG_ID_GPS_RAW_INT:
+                mav.gps_raw_int_send(boot_ms * 1000, fix_type, 0, 0, 0, 65535, 65535, 65535, 65535,
+                                     12 if fix_type >= 3 else 0)
+            elif msg_id == mv.MSG_ID_ESTIMATOR_STATUS:
+                mav.estimator_status_send(boot_ms * 1000, ekf_flags & 0x3FF, 0.1, 0.1, 0.1, 0.1, 0.0, 0.0, 0.5, 0.5)
             elif msg_id == mv.MSG_ID_SYS_STATUS:
                 bit = mv.MAV_SYS_STATUS_PREARM_CHECK
                 health = bit if not self._prearm_failures() else 0
                 mav.sys_status_send(bit, bit, health, 100, 12000, -1, -1, 0, 0, 0, 0, 0, 0)
             elif msg_id == mv.MSG_ID_EKF_STATUS_REPORT:
-                mav.ekf_status_report_send(self._ekf_flags(), 0.1, 0.1, 0.1, 0.1, 0.0)
+                mav.ekf_status_report_send(ekf_flags, 0.1, 0.1, 0.1, 0.1, 0.0)
             elif msg_id == mv.MSG_ID_DISTANCE_SENSOR:
                 agl_m = -pos[2] - terrain_m
                 # Out of range reads as max + 1 cm, the convention ArduPilot's driver uses.

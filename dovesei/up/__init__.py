@@ -59,7 +59,10 @@ from dovesei.up.options import (
     UpOptions, build_parser, check_policy, options_from_args, parse_mavlink_url, parse_start, resolve_start,
 )
 from dovesei.up.report import RunReport, build_report, read_stats, write_outputs
-from dovesei.up.watch import RESULT_AFTER_EXIT_S, Watcher, WatchEnd, port_collision, wait_for_takeoff
+from dovesei.up.watch import (
+    RESULT_AFTER_EXIT_S, LandingWait, Watcher, WatchEnd, landing_timeout_s, port_collision, wait_for_landing,
+    wait_for_takeoff,
+)
 
 __all__ = ["SERVICES", "EXIT_OK", "EXIT_FAILED", "EXIT_USAGE", "EXIT_UNSAFE", "EXIT_INTERRUPTED", "Recorder",
            "Sample", "UpOptions", "build_report", "child_commands", "last_error_line", "main",
@@ -96,12 +99,14 @@ def preflight(options: UpOptions) -> tuple[object, tuple[float, float, float], C
         link = parse_mavlink_url(options.vehicle_url)
         check_serial_device(link)
         check_endpoint_free(link)
+    if options.sitl_truth:
+        check_endpoint_free(parse_mavlink_url(options.sitl_truth, "--sitl-truth"), "--sitl-truth")
     world = load_world(options.world)
     if world.labels is None and options.segmenter == "sim":
         raise ConfigError(f"world {options.world!r} has no labels for the simulated perception to read: "
                           "fly it with --segmenter clipseg")
     start = resolve_start(world, options)
-    configs = child_configs(options, start)  # each service's own checks, now rather than in a child
+    configs = child_configs(options, start, world)  # each service's own checks, now rather than in a child
     # The ports do not change which links the command lines open: placeholders suffice here.
     check_link_owners(child_commands(options, configs, {n: 0 for n in (*SERVICES, "monitor")}, options.out))
     return world, start, configs
@@ -169,6 +174,7 @@ def _fly(options: UpOptions, world: object, start: tuple[float, float, float], c
     session, monitor_port = _open_monitor_session(options)
     children = Children(out / "logs")
     monitor = None
+    landing: LandingWait | None = None
     try:
         # Subscribed before any child starts: the first state the sim publishes is recorded.
         monitor = Monitor(session, options.vehicle_id, rec,
@@ -191,6 +197,13 @@ def _fly(options: UpOptions, world: object, start: tuple[float, float, float], c
         if rec.result is not None:
             # The sim ends its run once the result is out: a signal now would only cut its shutdown.
             children.wait_exit("sim", RESULT_AFTER_EXIT_S)
+            # Give the controller's hand-over statuses a moment to arrive after the sim's result.
+            if options.vehicle_url and configs.controller.handover_action in ("land", "precland") and \
+                    _handover_reported(rec, monitor, stop):
+                # The autopilot lands on its own from here, and for a precision landing on the
+                # target the controller streams: both must outlive the judged episode.
+                landing = wait_for_landing(rec, monitor, children, stop,
+                                           landing_timeout_s(configs.controller.handover_alt_m), options.stall_s)
     finally:
         rec.expect_exits = True
         codes = children.stop_all()
@@ -203,7 +216,7 @@ def _fly(options: UpOptions, world: object, start: tuple[float, float, float], c
     log.info("children stopped: %s", ", ".join(f"{n} {describe_exit(c)}" for n, c in codes.items()))
 
     report = build_report(options, rec, start, noise, read_stats(out), end.failure, end.interrupted,
-                          time.monotonic() - t0)
+                          time.monotonic() - t0, landing=landing, handover_action=configs.controller.handover_action)
     report = write_outputs(world, report, rec, out, options.video)
     log.info("report: %s (%s)", out / "report.json", ", ".join(report.files.values()))
     code = exit_code(report)
@@ -256,6 +269,15 @@ def _start_and_watch(options: UpOptions, configs: ChildConfigs, start: tuple[flo
         _start(children, [n for n in SERVICES if n not in children.procs], commands, options)
         end = Watcher(options, rec, monitor, children, stop, t0).run()
     return end
+
+
+def _handover_reported(rec: Recorder, monitor: Monitor, stop: threading.Event, within_s: float = 2.0) -> bool:
+    """True once the controller has reported its hand-over (a timeout or out-of-world ending has none)."""
+    deadline = time.monotonic() + within_s
+    while not rec.handover_seen and time.monotonic() < deadline and not stop.is_set():
+        monitor.drain()
+        stop.wait(0.02)
+    return rec.handover_seen
 
 
 def _open_taps(options: UpOptions, configs: ChildConfigs, start: tuple[float, float, float], world: object) -> list:

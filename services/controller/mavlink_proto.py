@@ -5,7 +5,7 @@ what the autopilot says into validated numbers and what the controller wants int
 setpoints. Values follow the MAVLink common and ardupilotmega dialects (the tests compare them
 with pymavlink's) and the two autopilots' documented conventions:
 
-- Modes: ArduCopter custom modes GUIDED 4, LAND 9, BRAKE 17; PX4 custom_mode =
+- Modes: ArduCopter custom modes GUIDED 4, LAND 9, BRAKE 17, GUIDED_NOGPS 20; PX4 custom_mode =
   (main << 16) | (sub << 24) with OFFBOARD = main 6, AUTO.LAND = main 4 sub 6.
 - Speed limits: ArduCopter flies guided velocities within WPNAV_SPEED (default 10 m/s),
   WPNAV_SPEED_UP (2.5 m/s) and WPNAV_SPEED_DN (1.5 m/s); PX4 within MPC_XY_VEL_MAX (12 m/s),
@@ -48,6 +48,7 @@ MAV_CMD_DO_SET_MODE = 176
 MAV_CMD_COMPONENT_ARM_DISARM = 400
 MAV_CMD_SET_MESSAGE_INTERVAL = 511
 MAV_CMD_REQUEST_MESSAGE = 512
+MAV_CMD_SET_EKF_SOURCE_SET = 42007  # ardupilotmega: param1 = EK3 source set 1..3
 MAV_RESULT_ACCEPTED = 0
 MAV_RESULT_TEMPORARILY_REJECTED = 1
 MAV_RESULT_IN_PROGRESS = 5
@@ -61,14 +62,23 @@ MSG_ID_SYS_STATUS = 1
 MSG_ID_ATTITUDE = 30
 MSG_ID_LOCAL_POSITION_NED = 32
 MSG_ID_GLOBAL_POSITION_INT = 33
+MSG_ID_GPS_RAW_INT = 24
+MSG_ID_VISION_SPEED_ESTIMATE = 103
 MSG_ID_DISTANCE_SENSOR = 132
 MSG_ID_EKF_STATUS_REPORT = 193
+MSG_ID_ESTIMATOR_STATUS = 230
 MSG_ID_HOME_POSITION = 242
+MSG_ID_ODOMETRY = 331
+MAV_FRAME_LOCAL_FRD = 20
+MAV_ESTIMATOR_TYPE_VISION = 2
+GPS_FIX_TYPE_3D = 3  # GPS_RAW_INT.fix_type: below this there is no position fix
 
 # EKF_STATUS_REPORT flags ArduCopter needs before it flies guided velocities: attitude, horizontal
 # and vertical velocity, relative horizontal position and vertical position (no GNSS needed).
 EKF_ATTITUDE, EKF_VELOCITY_HORIZ, EKF_VELOCITY_VERT, EKF_POS_HORIZ_REL = 1, 2, 4, 8
-EKF_POS_VERT_ABS, EKF_UNINITIALIZED = 32, 1024
+EKF_POS_HORIZ_ABS, EKF_POS_VERT_ABS, EKF_CONST_POS_MODE, EKF_PRED_POS_HORIZ_REL = 16, 32, 128, 256
+EKF_UNINITIALIZED = 1024
+# PX4's ESTIMATOR_STATUS flags share bits 1..512 with EKF_STATUS_REPORT (ESTIMATOR_STATUS_FLAGS).
 EKF_FLAGS_NEEDED = EKF_ATTITUDE | EKF_VELOCITY_HORIZ | EKF_VELOCITY_VERT | EKF_POS_HORIZ_REL | EKF_POS_VERT_ABS
 
 # STATUSTEXT severities (MAV_SEVERITY), by value.
@@ -77,10 +87,14 @@ SEVERITY_NAMES = ("EMERGENCY", "ALERT", "CRITICAL", "ERROR", "WARNING", "NOTICE"
 # SET_POSITION_TARGET_LOCAL_NED type masks (bits set = field ignored).
 TYPE_MASK_VELOCITY_YAW_RATE = 0x05C7  # use vx, vy, vz and yaw_rate
 TYPE_MASK_VELOCITY_ONLY = 0x0DC7  # use vx, vy, vz; the autopilot chooses the heading
+# SET_ATTITUDE_TARGET: ignore all three body rates (bits 0-2), use the quaternion and thrust.
+# ArduCopter takes the rates all or none: a partial mask is discarded and guided re-initialised
+# (GCS_Mavlink.cpp handle_message_set_attitude_target), so the heading rides in the quaternion.
+ATTITUDE_TYPE_MASK_ANGLES_THRUST = 0x07
 
 # Custom modes of the two autopilots, by the name we use for them.
 ARDUCOPTER_MODES = {"GUIDED": 4, "LAND": 9, "BRAKE": 17, "LOITER": 5, "POSHOLD": 16, "RTL": 6,
-                    "STABILIZE": 0, "ALT_HOLD": 2, "AUTO": 3}
+                    "STABILIZE": 0, "ALT_HOLD": 2, "AUTO": 3, "GUIDED_NOGPS": 20}
 PX4_MODES = {"OFFBOARD": (6, 0), "LAND": (4, 6), "PRECLAND": (4, 9), "LOITER": (4, 3), "TAKEOFF": (4, 2), "RTL": (4, 5),
              "MISSION": (4, 4), "POSCTL": (3, 0), "ALTCTL": (2, 0), "MANUAL": (1, 0), "STABILIZED": (7, 0)}
 STEER_MODE = {"ardupilot": "GUIDED", "px4": "OFFBOARD"}
@@ -194,6 +208,19 @@ def ned_to_frd(vel_ned: tuple[float, ...], roll_rad: float, pitch_rad: float,
                yaw_rad: float) -> tuple[float, float, float]:
     """Rotate a NED vector into the body FRD frame (ZYX Euler angles, as MAVLink's ATTITUDE gives)."""
     return ned_to_body_frd(vel_ned, roll_rad, pitch_rad, yaw_rad)
+
+
+def frd_to_ned(vel_frd: tuple[float, ...], roll_rad: float, pitch_rad: float,
+               yaw_rad: float) -> tuple[float, float, float]:
+    """Rotate a body FRD vector into NED (the transpose of `ned_to_frd`)."""
+    f, r, d = (float(v) for v in vel_frd)
+    cr, sr, cp, sp = math.cos(roll_rad), math.sin(roll_rad), math.cos(pitch_rad), math.sin(pitch_rad)
+    cy, sy = math.cos(yaw_rad), math.sin(yaw_rad)
+    # Columns of R_body<-ned are the rows of R_ned<-body.
+    n = cp * cy * f + (sr * sp * cy - cr * sy) * r + (cr * sp * cy + sr * sy) * d
+    e = cp * sy * f + (sr * sp * sy + cr * cy) * r + (cr * sp * sy - sr * cy) * d
+    dn = -sp * f + sr * cp * r + cr * cp * d
+    return (n, e, dn)
 
 
 # ---------------------------------------------------------------------- incoming samples

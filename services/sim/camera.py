@@ -227,6 +227,21 @@ def optical_axis_ground_m(x_m: float, y_m: float, alt_agl_m: float, yaw_rad: flo
     return x_m + c * right_m + s * fwd_m, y_m + c * fwd_m - s * right_m
 
 
+def ground_point_m(x_m: float, y_m: float, alt_agl_m: float, yaw_rad: float, row_px: float, col_px: float,
+                   cam: CameraModel, roll_rad: float = 0.0, pitch_rad: float = 0.0) -> tuple[float, float]:
+    """World (x_m east, y_m north) of the flat ground an output pixel (row, col; integers at pixel
+    centres) shows from this pose: the renderer's own ray (`pixel_to_world_homography`), in metres,
+    for the judge to place what a policy saw in a frame."""
+    f_px = cam.width_px / (2.0 * math.tan(cam.hfov_rad / 2.0))
+    body = np.array([-(row_px - (cam.height_px - 1) / 2.0) / f_px, (col_px - (cam.width_px - 1) / 2.0) / f_px, 1.0])
+    fwd, right, down = tilt_rotation(roll_rad, pitch_rad) @ body
+    if down <= _MIN_RAY_DOWN:
+        raise CameraError(f"pixel ({row_px:.1f}, {col_px:.1f}) looks within 5 deg of the horizon: no ground point")
+    fwd_m, right_m = alt_agl_m * fwd / down, alt_agl_m * right / down
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    return x_m + c * right_m + s * fwd_m, y_m + c * fwd_m - s * right_m
+
+
 def _level_affine(m0: np.ndarray, geometry: tuple[float, float, float, float]) -> np.ndarray:
     # Output pixel -> level-0 pixel (m0), then level 0 -> level: cL = (c0 - offset) / scale.
     # Works for a 2x3 affine and a 3x3 homography alike (only the first two rows change).

@@ -15,7 +15,10 @@ The paper judged landings by eye; here the label map does it. Two pieces:
   lander would have had to fly: the bench's ceiling).
 - `EpisodeJudge` watches vehicle states during an episode and ends it: `out_of_world` when the
   vehicle leaves the image, the landing verdict when it reaches the hand-over altitude, `timeout`
-  when the sim-time limit runs out. It accumulates the horizontal path length on the way.
+  when the sim-time limit runs out. It accumulates the horizontal path length on the way, and
+  keeps the ground the policy last confirmed (`confirm`, placed by the sim from the confirming
+  frame's true pose): at the hand-over, `touchdown_error_m` is the true distance from the
+  hand-over point to it (None for a policy that confirmed nothing).
 
 Which classes are safe belongs to the world (`World.classes`); nothing here knows class ids.
 """
@@ -254,6 +257,14 @@ class EpisodeJudge:
         self.path_length_m = 0.0  # horizontal, summed over the states checked
         self.start_t_s: float | None = None
         self.last_state: Pose | None = None
+        self.confirmed_xy_m: tuple[float, float] | None = None  # the ground the policy last confirmed
+        self.touchdown_error_m: float | None = None  # set with the landing verdict, when confirmed
+
+    def confirm(self, xy_m: tuple[float, float] | None) -> None:
+        """The ground the policy last confirmed (world metres), or None when it is not known;
+        frozen once the episode has ended."""
+        if self.outcome is None:
+            self.confirmed_xy_m = xy_m
 
     @property
     def sim_time_s(self) -> float:
@@ -280,6 +291,9 @@ class EpisodeJudge:
             self.verdict = judge_landing(self.world, state.x_m, state.y_m, self.safety_radius_m,
                                          self.tolerance_frac, self.search_radius_m)
             self.outcome = self.verdict.outcome
+            if self.confirmed_xy_m is not None:
+                self.touchdown_error_m = math.hypot(state.x_m - self.confirmed_xy_m[0],
+                                                    state.y_m - self.confirmed_xy_m[1])
         elif self.sim_time_s >= self.time_limit_s:
             self.outcome = "timeout"
         return self.outcome
@@ -295,4 +309,6 @@ class EpisodeJudge:
             "final_y_m": st.y_m if st else None,
             "final_alt_m": st.alt_agl_m if st else None,
             "verdict": self.verdict.to_dict() if self.verdict else None,
+            "confirmed_xy_m": self.confirmed_xy_m,
+            "touchdown_error_m": self.touchdown_error_m,
         }

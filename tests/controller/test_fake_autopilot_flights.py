@@ -13,6 +13,7 @@ import logging
 import math
 import socket
 import threading
+import time
 from collections.abc import Callable, Iterator
 
 import numpy as np
@@ -219,3 +220,41 @@ def test_precland_streams_the_spot_until_touchdown_and_lands_on_it(flight) -> No
     # ... and the touchdown on it.
     tn, te = fake.touchdown_ne_m
     assert math.hypot(tn - n0, te - e0) < 1.5, (fake.touchdown_ne_m, (n0, e0))
+
+
+class Runaway:
+    """The paper's RESTARTING move: forward at 12 m/s (10 after the clamp) and never stopping."""
+
+    name = "runaway"
+
+    def __init__(self) -> None:
+        self.steps = 0
+
+    def step(self, obs: Observation) -> Decision:
+        self.steps += 1
+        return Decision((12.0, 0.0, 0.0), 0.0, "RESTARTING", None, 10.0, 0.5, {})
+
+    def reset(self) -> None:
+        pass
+
+
+def test_the_geofence_keeps_a_runaway_policy_near_the_start_on_a_mavlink_vehicle(flight) -> None:
+    listen, connect = udp_pair()
+    config = ControllerConfig(lockstep=False, timing="real", vehicle_url=connect, vehicle_connect_timeout_s=5.0,
+                              state_stale_after_s=1.0, geofence_radius_m=40.0)
+    with FakeAutopilot(listen, flavour="ardupilot", mode="GUIDED", armed=True, alt_m=60.0, heartbeat_hz=10,
+                       yaw_rad=math.radians(-60.0)) as fake:
+        policy = Runaway()
+        far: list[float] = []
+        started: list[float] = []
+
+        def long_enough() -> bool:
+            n, e, _ = fake.position_ned_m
+            far.append(math.hypot(n, e))
+            if not started:
+                started.append(time.monotonic())
+            return time.monotonic() - started[0] > 12.0  # 120 m unfenced
+
+        stats, _ = flight(fake, config, policy, until=long_enough)
+    assert 30.0 < max(far) < 44.0, max(far)  # the fence (on the velocity estimate) plus the fake's lag
+    assert stats.geofence_clipped > 20

@@ -146,7 +146,9 @@ def test_streams_are_requested_with_set_message_interval(fly: Fly) -> None:
                  if c.command == mv.MAV_CMD_SET_MESSAGE_INTERVAL}
     assert requested == {mv.MSG_ID_LOCAL_POSITION_NED: 40_000.0, mv.MSG_ID_ATTITUDE: 40_000.0,
                          mv.MSG_ID_DISTANCE_SENSOR: 40_000.0,  # microseconds for 25 Hz
-                         mv.MSG_ID_SYS_STATUS: 1e6, mv.MSG_ID_EKF_STATUS_REPORT: 1e6}  # health at 1 Hz
+                         mv.MSG_ID_SYS_STATUS: 1e6, mv.MSG_ID_EKF_STATUS_REPORT: 1e6,  # health at 1 Hz
+                         # the barometric height that outlives the local position, the GNSS fix at 5 Hz
+                         mv.MSG_ID_GLOBAL_POSITION_INT: 40_000.0, mv.MSG_ID_GPS_RAW_INT: 200_000.0}
 
 
 def test_altitude_from_local_position_or_rangefinder(fly: Fly) -> None:

@@ -46,6 +46,23 @@ class Observation:
     # north/east metres, the autopilot's heading); None = unknown (the policy falls back on
     # velocity x dt, which lags by the perception latency whenever the vehicle accelerates).
     odom_delta_ne_m: tuple[float, float] | None = None
+    # The camera frame the heatmap came from (-1: unknown): a policy names it when it reports
+    # which heatmap confirmed its spot (`Confirmation`), so a judge can map that look to the ground.
+    frame_seq: int = -1
+
+
+@dataclass(frozen=True)
+class Confirmation:
+    """The heatmap that last confirmed the chosen spot and where the spot lay in it.
+
+    The pixel is in that heatmap's own pixels (row down, col right; the heatmap has its camera
+    frame's size and field of view), measured in that look, not projected from a later position
+    estimate: mapped with the frame's pose it is the ground whose clearance was checked.
+    """
+
+    frame_seq: int
+    row_px: float
+    col_px: float
 
 
 @dataclass(frozen=True)
@@ -60,6 +77,7 @@ class Decision:
     threshold: float | None  # dynamic segmentation threshold used (None when it failed)
     info: Mapping[str, float] = field(default_factory=dict)
     reason: str = ""  # why the policy is in `state` (the last transition's reason)
+    confirmed: Confirmation | None = None  # policies with a checked spot: the look that confirmed it last
 
 
 def checked_prob_safe(prob: Any, min_side_px: int) -> np.ndarray:
