@@ -175,7 +175,9 @@ def _fly(options: UpOptions, world: object, start: tuple[float, float, float], c
         if rec.result is not None:
             # The sim ends its run once the result is out: a signal now would only cut its shutdown.
             children.wait_exit("sim", RESULT_AFTER_EXIT_S)
-            if options.vehicle_url and configs.controller.handover_action in ("land", "precland"):
+            # Give the controller's hand-over statuses a moment to arrive after the sim's result.
+            if options.vehicle_url and configs.controller.handover_action in ("land", "precland") and \
+                    _handover_reported(rec, monitor, stop):
                 # The autopilot lands on its own from here, and for a precision landing on the
                 # target the controller streams: both must outlive the judged episode.
                 landing = wait_for_landing(rec, monitor, children, stop,
@@ -206,6 +208,15 @@ def _fly(options: UpOptions, world: object, start: tuple[float, float, float], c
               f"{t.episode_wall_s or t.wall_time_s:.1f} s wall, path {report.episode.path_length_m:.0f} m, "
               f"{report.perception_text()}); transport overhead p50 {t.transport_overhead.p50_ms} ms")
     return code
+
+
+def _handover_reported(rec: Recorder, monitor: Monitor, stop: threading.Event, within_s: float = 2.0) -> bool:
+    """True once the controller has reported its hand-over (a timeout or out-of-world ending has none)."""
+    deadline = time.monotonic() + within_s
+    while not rec.handover_seen and time.monotonic() < deadline and not stop.is_set():
+        monitor.drain()
+        stop.wait(0.02)
+    return rec.handover_seen
 
 
 def _open_taps(options: UpOptions, configs: ChildConfigs, start: tuple[float, float, float], world: object) -> list:

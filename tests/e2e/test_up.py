@@ -566,3 +566,53 @@ def test_up_takes_off_and_flies_a_fake_autopilot_from_boot(tmp_path: Path) -> No
     traj = report["trajectory"]
     assert traj["t_s"] and max(traj["alt_m"]) >= 24.0 and set(traj["state"]) - {"INIT"}
     assert traj["alt_m"][0] >= 0.9 * 26.0, traj["alt_m"][:5]  # the mission starts after the climb
+
+
+@pytest.mark.slow
+def test_up_precland_keeps_the_target_streaming_until_the_autopilot_has_landed(tmp_path: Path) -> None:
+    """Issue 26: `up` stopped the controller 0.53 s after a precland hand-over; ArduCopter said
+    "PrecLand: Target Found", "Init Failed" and landed blind. Now `up` waits for the disarm and the
+    fake's AC_PrecLand model initialises on the streamed spot and lands on it."""
+    import socket
+
+    from dovesei.shared.zconfig import free_port
+    from dovesei.testing.fake_autopilot import FakeAutopilot
+
+    import cv2
+
+    # A lawn 300 m square: the policy finds its spot at once and hands over at 20 m.
+    world = tmp_path / "lawn"
+    world.mkdir()
+    rng = np.random.default_rng(0)
+    cv2.imwrite(str(world / "image.png"), rng.integers(60, 140, (300, 300, 3), dtype=np.uint8))
+    cv2.imwrite(str(world / "labels.png"), np.zeros((300, 300), np.uint8))
+    (world / "world.json").write_text(json.dumps({"gsd_m": 1.0, "image": "image.png", "labels": "labels.png",
+                                                  "classes": {"0": {"name": "grass", "safe": True}}}))
+    port = free_port(socket.SOCK_DGRAM)
+    out = tmp_path / "run"
+    with FakeAutopilot(f"udpin:127.0.0.1:{port}", flavour="ardupilot", mode="GUIDED", armed=True, alt_m=24.0,
+                       heartbeat_hz=10) as fake:
+        argv = [sys.executable, "-m", "dovesei.cli", "up", "--world", str(world), "--segmenter", "sim", "--noise", "0",
+                "--start", "150,150,24", "--vehicle", f"udpout:127.0.0.1:{port}",
+                "--handover-action", "precland", "--time-limit-s", "150", "--out", str(out), "--no-video"]
+        env = {**os.environ, "PYTHONUNBUFFERED": "1", "HF_HUB_OFFLINE": "1"}
+        try:
+            done = subprocess.run(argv, cwd=REPO, capture_output=True, text=True, timeout=400, env=env)
+        finally:
+            if (out / "pids.json").exists():
+                for name, pid in _pids(out).items():
+                    if name != "up" and not _gone(pid):
+                        os.kill(pid, signal.SIGKILL)
+        texts = [text for _, text in fake.statustexts_sent]
+        targets = list(fake.landing_targets)
+    report = json.loads((out / "report.json").read_text())
+    assert report["judged"], done.stderr[-3000:]
+    landing = report["landing"]
+    assert landing is not None and landing["landed"] and landing["action"] == "precland", (landing, done.stderr[-3000:])
+    assert fake.touchdown_s is not None and not fake.armed
+    assert "PrecLand: Init Complete" in texts and "PrecLand: Init Failed" not in texts, texts
+    # The stream ran to the touchdown (the controller outlived the judged episode).
+    assert len(targets) > 50 and fake.touchdown_s - targets[-1].recv_s < 0.5
+    assert landing["landing_targets_sent"] >= len(targets) * 0.9
+    touchdown = landing["touchdown"]
+    assert touchdown is not None and touchdown["alt_m"] < 1.0
