@@ -438,6 +438,11 @@ class MavlinkVehicle:
             status = self._nav.status(now, self._odometry)
             previous, self._nav_status = self._nav_status, status
             target = self._target
+            # Counted with the status that shows it, so a reader never sees one without the other.
+            first_loss = status.gnss_lost and not self._gnss_lost_seen
+            if first_loss:
+                self._gnss_lost_seen = True
+                self.gnss_losses += 1
         if status.gnss_lost != previous.gnss_lost or status.position_lost != previous.position_lost:
             if status.gnss_lost or status.position_lost:
                 log.warning("navigation: %s", status.reason)
@@ -448,9 +453,7 @@ class MavlinkVehicle:
                      status.reason)
         if not status.gnss_lost or target is None or self.read_only:
             return
-        if not self._gnss_lost_seen:
-            self._gnss_lost_seen = True
-            self.gnss_losses += 1
+        if first_loss:
             if self.gnss_denied == "external-nav" and target.autopilot == "ardupilot":
                 log.warning("GNSS lost: switching the EKF to source set %d (VELXY ExternalNav)", self.ekf_source_set)
                 self._source_set = (0, now)

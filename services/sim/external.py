@@ -40,7 +40,7 @@ from dovesei.shared import keys
 from dovesei.shared.clock import WallClock, wall_time_s
 from dovesei.shared.lifecycle import Inbox
 from dovesei.shared.messages import CameraFrame, ClassEntry, EpisodeResult, GroundTruth, VehicleState, VisualOdometry
-from dovesei.sim.camera import CameraError, optical_axis_ground_m, render
+from dovesei.sim.camera import CameraError, optical_axis_ground_m, prebuild_pyramid, render
 from dovesei.sim.core import SimConfig, judge_result, unstarted_result
 from dovesei.sim.dynamics import Pose
 from dovesei.sim.judge import EpisodeJudge
@@ -56,6 +56,12 @@ log = logging.getLogger(__name__)
 POSE_WARMUP_S = 0.3
 # When the loop falls this far behind its schedule (a stalled host) it restarts the schedule.
 _MAX_BEHIND_S = 1.0
+# The camera's pyramid levels are built before the first frame for views up to this factor above the
+# start (a slant view tilted 48 deg, or a climb of half the start altitude): built lazily mid-flight
+# each level stalls the real-time loop 1-3 s (measured against SITL), and the first frame, stamped
+# 5 s late, became the segmenter's clock reference, which then refused every fresh frame as "from
+# the future" until `up` declared it hung (issue 26).
+PREBUILD_ALT_FACTOR = 1.5
 
 
 class PoseCamera:
@@ -142,6 +148,8 @@ def run_external_pose(states: Inbox[VehicleState], publish_frame: Callable[[Came
                          safety_radius_m=sim.safety_radius_m)
     key = keys.state(sim.vehicle_id)
     camera = PoseCamera(world, sim)
+    build_s = prebuild_pyramid(world, sim.camera, PREBUILD_ALT_FACTOR * start.alt_m)
+    log.info("camera pyramid ready for views up to %.0f m (%.1f s)", PREBUILD_ALT_FACTOR * start.alt_m, build_s)
     clock = WallClock()
     last_state_wall_s: float | None = None
     first_state_wall_s: float | None = None

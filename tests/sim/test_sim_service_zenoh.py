@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import ast
 import json
+import logging
 import math
 import signal
 import threading
@@ -464,6 +465,21 @@ def test_sitl_truth_renders_and_judges_at_the_true_pose_while_frames_carry_the_e
                                                                                                abs=0.05)
     assert result.final_alt_m == pytest.approx(15.0, abs=0.01)
     assert sim.stats.truth_samples > 0 and sim.stats.truth_rejected == 0 and sim.stats.states_sent == 0
+
+
+def test_external_pose_builds_the_camera_pyramid_before_the_first_frame(pair, caplog) -> None:
+    # Built lazily in flight, each level stalled the real-time loop 1-3 s and the first frame went
+    # out 5 s late (issue 26). Every level a view up to 1.5 x the start altitude needs is built
+    # before any state is awaited: rendering at 140 m afterwards builds nothing.
+    sim_session, _rec = pair
+    fresh = split_world()
+    with caplog.at_level(logging.INFO, logger="dovesei.sim.camera"):
+        with SimThread(sim_session, external_config(wait_timeout_s=0.3), fresh) as sim:
+            assert sim.join().outcome == "error"
+        assert any("camera pyramid level" in r.getMessage() for r in caplog.records)
+        caplog.clear()
+        render(fresh, WEST_M, MID_Y_M, 140.0, 0.0, roll_rad=0.3, pitch_rad=0.2)
+    assert not [r.getMessage() for r in caplog.records if "camera pyramid level" in r.getMessage()]
 
 
 def test_sitl_truth_that_never_comes_or_stops_is_an_error_naming_it(pair, world: World) -> None:
