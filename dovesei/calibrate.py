@@ -27,8 +27,9 @@ import os
 import sys
 from pathlib import Path
 
-from dovesei.bench import DEFAULT_POLICIES, OneLineParser, check_perception, paper_time_limit_s, parse_policies, run_bench
+from dovesei.bench import DEFAULT_POLICIES, check_perception, paper_time_limit_s, parse_policies, run_bench
 from dovesei.bench.run import episode_seed
+from dovesei.shared.cliconfig import OneLineParser
 from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.shared.validate import in_range
 from dovesei.sim.starts import generate_starts

@@ -34,6 +34,7 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+from dovesei.shared.cliconfig import OneLineParser
 from dovesei.shared import keys
 from dovesei.shared.errors import ConfigError
 
@@ -287,7 +288,7 @@ def write_pki(out: Path, *, roles: Iterable[str] = tuple(ROLES), router_names: S
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="dovesei certs", description=__doc__,
+    p = OneLineParser(prog="dovesei certs", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--out", type=Path, required=True, help="folder for the CA, certificates and router.json5")
     p.add_argument("--router-name", action="append", default=[], metavar="NAME",

@@ -9,6 +9,7 @@ a user never sees a traceback for something the project raised on purpose.
 from __future__ import annotations
 
 import importlib
+import importlib.metadata
 import sys
 
 from dovesei.shared.errors import ConfigError, DoveseiError
@@ -32,19 +33,33 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "replay": ("dovesei.replay", "run a policy (and optionally a segmenter) again on a flight recording (.mcap)"),
     "view": ("dovesei.view", "open a flight (report folder or recording.mcap) in Rerun; writes an .rrd"),
     "bench-codec": ("dovesei.benchmarks.codec", "encode/decode time of a 352x352 frame and heatmap"),
+    "bench-odometry": ("dovesei.benchmarks.odometry", "visual velocity: ms per 640x480 frame, error vs truth on the suite"),
 }
+
+
+def version() -> str:
+    """The installed distribution's version (pyproject's), which is what a bug report should name."""
+    try:
+        return importlib.metadata.version("dovesei")
+    except importlib.metadata.PackageNotFoundError:  # run from a source tree that was never installed
+        return "unknown (not installed)"
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
+    if argv and argv[0] in ("-V", "--version"):
+        print(f"dovesei {version()}")
+        return 0
     if not argv or argv[0] in ("-h", "--help"):
-        print("usage: dovesei <command> [options]\n\ncommands:")
+        print("usage: dovesei [--version] <command> [options]  (dovesei <command> --help for its options)"
+              "\n\ncommands:")
         for name, (_, text) in COMMANDS.items():
             print(f"  {name:<18} {text}")
         return 0 if argv else 2
     name, rest = argv[0], argv[1:]
     if name not in COMMANDS:
-        print(f"dovesei: unknown command {name!r}; choose one of {', '.join(COMMANDS)}", file=sys.stderr)
+        print(f"dovesei: unknown command {name!r}; choose one of {', '.join(COMMANDS)} (see dovesei --help)",
+              file=sys.stderr)
         return 2
     module = importlib.import_module(COMMANDS[name][0])
     try:

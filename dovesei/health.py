@@ -10,6 +10,7 @@ import sys
 
 import zenoh
 
+from dovesei.shared.cliconfig import OneLineParser
 from dovesei.shared import keys, validate
 from dovesei.shared.errors import ConfigError
 from dovesei.shared.lifecycle import is_alive
@@ -17,7 +18,7 @@ from dovesei.shared.zconfig import add_zenoh_args, zenoh_config_from_args
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="dovesei health", description=__doc__)
+    p = OneLineParser(prog="dovesei health", description=__doc__)
     p.add_argument("--service", required=True, choices=keys.SERVICES)
     p.add_argument("--vehicle-id", default="uav1", help="vehicle id, or 'any' for a service that serves all vehicles")
     p.add_argument("--timeout-s", type=float, default=3.0)

@@ -54,6 +54,7 @@ from dovesei.segmenter.prompts import REFERENCE_PROMPTS
 from dovesei.segmenter.sim_backend import (
     DEFAULT_PROFILE, PROFILES, PerceptionParams, SimPerception, View, profile_params,
 )
+from dovesei.shared.cliconfig import OneLineParser
 from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.sim.camera import CameraModel, pixel_to_world_affine, render
 from dovesei.sim.judge import disk_safe_map
@@ -183,7 +184,7 @@ def suite_stats(worlds: list[str], profile: str = DEFAULT_PROFILE, noise: float 
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="dovesei perception-stats", description=__doc__.split("\n\n")[0])
+    p = OneLineParser(prog="dovesei perception-stats", description=__doc__.split("\n\n")[0])
     p.add_argument("--perception", default=DEFAULT_PROFILE, choices=sorted(PROFILES),
                    help=f"simulated perception profile (default {DEFAULT_PROFILE})")
     p.add_argument("--noise", type=float, default=1.0, help="error scale within the profile (default 1)")

@@ -15,6 +15,7 @@ import sys
 from pathlib import Path
 
 from dovesei.pictures.world import render_preview, render_views, world_sheet
+from dovesei.shared.cliconfig import OneLineParser
 from dovesei.shared.errors import DoveseiError
 from dovesei.sim.camera import CameraModel, render
 from dovesei.sim.synthetic import parse_spec
@@ -24,7 +25,7 @@ log = logging.getLogger(__name__)
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="dovesei preview", description=__doc__,
+    p = OneLineParser(prog="dovesei preview", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--world", default="synthetic",
                    help="synthetic[:seed=N,style=S,...], dubai, tiles:<url>,... or a world folder")

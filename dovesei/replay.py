@@ -33,11 +33,12 @@ from dovesei.pictures import plots
 from dovesei.pictures.common import ReportError
 from dovesei.segmenter.core import SegmenterConfig, SegmenterCore, make_backend
 from dovesei.segmenter.prompts import PromptSet
+from dovesei.shared.cliconfig import OneLineParser
 from dovesei.shared.errors import ConfigError
 from dovesei.shared.messages import (
     CameraFrame, ControllerStatus, EpisodeResult, SafetyHeatmap, VehicleState,
 )
-from dovesei.shared.recording import FlightRecorder, FlightRecording, RecordingError
+from dovesei.shared.recording import FlightRecorder, FlightRecording, RecordingError, find_recording
 from dovesei.sim.camera import CameraModel
 from dovesei.sim.world import WorldError, load_world
 
@@ -244,8 +245,9 @@ def _plot(recording: FlightRecording, result: ReplayResult, png: Path) -> bool:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="dovesei replay", description=__doc__.split("\n")[0])
-    parser.add_argument("recording", help="a flight recording (.mcap) written by dovesei up or a service")
+    parser = OneLineParser(prog="dovesei replay", description=__doc__.split("\n")[0])
+    parser.add_argument("recording", help="a report folder of dovesei up (its recording.mcap) or a flight "
+                        "recording (.mcap) written by dovesei up or a service")
     parser.add_argument("--policy", help=f"the policy to run (default: the recorded one): {', '.join(policy_names())}")
     parser.add_argument("--segmenter", choices=("sim", "clipseg"),
                         help="make new heatmaps from the recorded frames (default: use the recorded heatmaps)")
@@ -254,7 +256,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--out", help="report folder (default: <recording>-replay)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    recording = FlightRecording(args.recording)
+    recording = FlightRecording(find_recording(args.recording))
     out = Path(args.out) if args.out else recording.path.with_name(recording.path.stem + "-replay")
     out.mkdir(parents=True, exist_ok=True)
     seg = _segmenter(args, recording)

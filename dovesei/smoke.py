@@ -7,13 +7,13 @@ services existed, and stays as a quick health check of a machine.
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 
 import numpy as np
 import zenoh
 
+from dovesei.shared.cliconfig import OneLineParser
 from dovesei.shared import keys
 from dovesei.shared.codec import encode
 from dovesei.shared.lifecycle import Inbox, wait_until
@@ -24,7 +24,7 @@ from dovesei.shared.zconfig import free_port, loopback_config
 
 
 def main(argv: list[str] | None = None) -> int:
-    argparse.ArgumentParser(prog="dovesei smoke", description=__doc__).parse_args(argv)
+    OneLineParser(prog="dovesei smoke", description=__doc__).parse_args(argv)
     port = free_port()
     hm = SafetyHeatmap("smoke", 0, Stamp(0.0, "sim"), np.zeros((352, 352), np.uint8), 100.0, 1.274,
                        "simulated", True, "none", "grouped", 0.0)

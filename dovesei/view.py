@@ -31,11 +31,12 @@ import numpy as np
 import rerun as rr
 from rerun.chunk import RrdReader
 
+from dovesei.shared.cliconfig import OneLineParser
 from dovesei.shared.errors import ConfigError
 from dovesei.shared.messages import (
     CameraFrame, ControllerStatus, EpisodeResult, Message, SafetyHeatmap, VehicleState, VelocityCommand,
 )
-from dovesei.shared.recording import FlightRecording
+from dovesei.shared.recording import FlightRecording, find_recording
 from dovesei.shared.zconfig import free_port
 from dovesei.sim.world import WorldError, load_world
 
@@ -203,23 +204,15 @@ def rrd_entities(path: str | Path) -> dict[str, int]:
     return rows
 
 
-def _recording_path(target: Path) -> Path:
-    if target.is_dir():
-        target = target / "recording.mcap"
-    if not target.is_file():
-        raise ConfigError(f"{target}: no recording (give a report folder with recording.mcap, or an .mcap file)")
-    return target
-
-
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="dovesei view", description=__doc__.split("\n")[0])
+    parser = OneLineParser(prog="dovesei view", description=__doc__.split("\n")[0])
     parser.add_argument("target", type=Path, help="a report folder (with recording.mcap) or a recording .mcap")
     parser.add_argument("--rrd", type=Path, help="write the Rerun recording here (default: beside the recording)")
     parser.add_argument("--open", action=argparse.BooleanOptionalAction, default=True,
                         help="start a Rerun viewer on loopback (default: yes)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    recording = FlightRecording(_recording_path(args.target))
+    recording = FlightRecording(find_recording(args.target))
     run = recording.meta("run")
     world = None
     if run.get("world"):

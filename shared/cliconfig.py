@@ -166,6 +166,19 @@ def _with_values(obj: Any, values: Mapping[str, Any]) -> Any:
     return dataclasses.replace(obj, **own) if own else obj
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """argparse whose usage errors are ONE line naming the flag and value, plus a pointer to --help.
+
+    argparse's own error prints the whole usage (14 lines for `dovesei up`) above the message, which
+    buries the one thing the user got wrong. `--help` still prints everything; the exit code stays 2.
+    Every parser of the project (services and `dovesei` subcommands) is one of these.
+    """
+
+    def error(self, message: str) -> typing.NoReturn:
+        text = " ".join(message.split())  # argparse's messages may hold newlines (long choice lists)
+        self.exit(2, f"{self.prog}: error: {text} (see {self.prog} --help)\n")
+
+
 class _RaisingParser(argparse.ArgumentParser):
     """A parser whose errors are ConfigErrors (for `parse` and the round-trip proof), not exits."""
 
@@ -280,7 +293,7 @@ class CommandLine(Generic[C]):
         Prefixes are not expanded (`allow_abbrev=False`): `--vehicle` must never silently mean
         `--vehicle-id`.
         """
-        parser = argparse.ArgumentParser(prog=self.prog, description=self.description, allow_abbrev=False)
+        parser = OneLineParser(prog=self.prog, description=self.description, allow_abbrev=False)
         self.add_to(parser)
         PROCESS.add_to(parser)
         add_zenoh_args(parser)
@@ -288,7 +301,7 @@ class CommandLine(Generic[C]):
 
     def start(self, argv: Sequence[str] | None) -> tuple[C, ProcessOptions, zenoh.Config]:
         """What every service's `main` does first: parse, set up logging, build the config and the
-        Zenoh config. A bad flag or config exits 2 with the usage line and one error line."""
+        Zenoh config. A bad flag or config exits 2 with one line naming it (`OneLineParser`)."""
         parser = self.build_parser()
         args = parser.parse_args(argv)
         process = PROCESS.from_args(args)

@@ -360,8 +360,10 @@ class VisualOdometry(Message):
 
     `stamp` is the newer frame's capture stamp (the camera's clock); `prev_frame_seq`..`frame_seq`
     are the two frames compared. The velocity is in the body frame at the newer frame (rotation
-    removed with the attitude, scaled by altitude and field of view). `quality` in [0, 1]: 0 means
-    no estimate (low texture, blur, a bad altitude); then `valid` is False and the velocity is 0.
+    removed with the attitude, scaled by altitude and field of view): FRD of the full attitude
+    `roll_rad`, `pitch_rad`, `yaw_rad` (ZYX, as MAVLink's ATTITUDE) that the newer frame was tagged
+    with, so R(roll, pitch, yaw) @ vel gives NED. `quality` in [0, 1]: 0 means no estimate (low
+    texture, blur, a bad altitude); an invalid estimate (`valid` False) has a zero velocity.
     `vel_var_m2_s2` is the variance per horizontal axis, what an EKF needs beside the value.
     """
 
@@ -380,6 +382,9 @@ class VisualOdometry(Message):
     dt_s: float
     alt_agl_m: float
     sent_wall_s: float = 0.0
+    roll_rad: float = 0.0
+    pitch_rad: float = 0.0
+    yaw_rad: float = 0.0
 
 
 @message("dovesei.safety_heatmap", 1)
@@ -467,10 +472,26 @@ class ControllerStatus(Message):
     spot_clearance_m: float = 0.0
     spot_confidence: float = 0.0
     handover: bool = False  # handed over (as the command's `handover`): what a judge ends an episode on
+    # MAVLink navigation health (empty with the sim): which horizontal velocity the controller
+    # trusts ("autopilot", "external-nav", "visual", "none"), whether GNSS and the autopilot's
+    # position are lost, and why, in one line.
+    nav_source: str = ""
+    gnss_lost: bool = False
+    position_lost: bool = False
+    nav_reason: str = ""
+    # The look that last confirmed the spot: the camera frame's seq and the spot's pixel in that
+    # frame's heatmap (row down, col right), so a judge can map it to the ground with the frame's
+    # own pose. Not valid for policies without a checked spot, or before a look confirmed one.
+    confirmed_valid: bool = False
+    confirmed_frame_seq: int = -1
+    confirmed_row_px: float = 0.0
+    confirmed_col_px: float = 0.0
 
     RANGES: ClassVar[dict[str, tuple[float, float]]] = {
         "spot_north_m": (-1e7, 1e7), "spot_east_m": (-1e7, 1e7), "spot_clearance_m": (0.0, 1e6),
-        "spot_confidence": (0.0, 1.0)}
+        "spot_confidence": (0.0, 1.0), "confirmed_frame_seq": SEQ,
+        # Inside a frame of at most 8192 px a side (CameraModel's limit), with half a pixel of edge.
+        "confirmed_row_px": (-0.5, 8191.5), "confirmed_col_px": (-0.5, 8191.5)}
 
 
 @message("dovesei.prompt_set", 1)
@@ -511,6 +532,17 @@ class EpisodeResult(Message):
     closest_unsafe_valid: bool = False
     closest_unsafe_m: float = 0.0
     detail: str = ""
+    # The ground the policy last confirmed (its confirming look's spot pixel placed with that
+    # frame's true pose) and, for an episode that reached the hand-over altitude, the true distance
+    # from the hand-over point to it. Not valid for policies that confirm no spot.
+    confirmed_valid: bool = False
+    confirmed_x_m: float = 0.0
+    confirmed_y_m: float = 0.0
+    touchdown_error_valid: bool = False
+    touchdown_error_m: float = 0.0
+
+    RANGES: ClassVar[dict[str, tuple[float, float]]] = {
+        "confirmed_x_m": (-1e9, 1e9), "confirmed_y_m": (-1e9, 1e9), "touchdown_error_m": (0.0, 1e9)}
 
     def _check(self) -> None:
         if self.outcome not in OUTCOMES:

@@ -42,7 +42,7 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from dovesei.shared.codec import decode, encode
-from dovesei.shared.errors import DoveseiError, ProtocolError
+from dovesei.shared.errors import ConfigError, DoveseiError, ProtocolError
 from dovesei.shared.messages import (
     SCHEMAS, CameraFrame, ControllerStatus, EpisodeResult, Message, PromptSetMsg, SafetyHeatmap, VehicleState,
     VelocityCommand, field_hints,
@@ -340,3 +340,29 @@ def _from_jsonable(value: Any, image: Any) -> Any:
     if isinstance(value, list):
         return [_from_jsonable(v, image) for v in value]
     return value
+
+
+RECORDING_NAME = "recording.mcap"  # what `dovesei up` writes in its report folder
+
+
+def find_recording(target: str | Path) -> Path:
+    """The recording a user means: an .mcap file as given, or the one in a report folder.
+
+    `dovesei view` and `dovesei replay` both take either, so a report folder printed by `up` can be
+    pasted into each. In a folder, `recording.mcap` wins; otherwise the folder's only .mcap (a replay
+    folder holds replay.mcap). A target that holds no recording is the user's error: ConfigError.
+    """
+    path = Path(target)
+    if path.is_dir():
+        if (path / RECORDING_NAME).is_file():
+            return path / RECORDING_NAME
+        found = sorted(p for p in path.glob("*.mcap") if p.is_file())
+        if len(found) == 1:
+            return found[0]
+        what = f"{len(found)} .mcap files ({', '.join(p.name for p in found)})" if found else "no .mcap file"
+        raise ConfigError(f"{path}: no recording: a folder without {RECORDING_NAME} and with {what}; "
+                          "give the recording's path")
+    if not path.is_file():
+        raise ConfigError(f"{path}: no recording, no such file or folder (give a report folder with "
+                          f"{RECORDING_NAME}, or an .mcap file)")
+    return path

@@ -30,9 +30,13 @@ from dovesei.controller.policies.clearance_config import ClearanceConfig
 from dovesei.episode import DEFAULT_PERCEPTION
 from dovesei.episode import perception_names as _perception_names
 from dovesei.bench.stats import SUMMARY_KEYS, summarise, wilson_interval
+from dovesei.shared.cliconfig import OneLineParser
 from dovesei.shared import timing as shared_timing
 from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.shared.validate import in_range, non_negative, positive
+from dovesei.shared.validate import one_of as validate_one_of
+from dovesei.sim.estimator import VEHICLE_PROFILE_NAMES
+from dovesei.sim.starts import START_ALT_MAX_M, START_ALT_MIN_M, check_start_alt_m
 from dovesei.sim.suite import suite as world_suite
 
 __all__ = ["DEFAULT_POLICIES", "SUMMARY_KEYS", "build_parser", "main", "paper_time_limit_s", "parse_policies",
@@ -41,14 +45,8 @@ __all__ = ["DEFAULT_POLICIES", "SUMMARY_KEYS", "build_parser", "main", "paper_ti
 log = logging.getLogger(__name__)
 
 DEFAULT_POLICIES = "dovesei,dovesei-nofocus"
+DEFAULT_VEHICLE_PROFILE = "ideal"  # dovesei.sim.estimator
 PAPER_TIME_LIMIT_S = shared_timing.PAPER_TIME_LIMIT_S
-
-
-class OneLineParser(argparse.ArgumentParser):
-    """argparse with usage errors as ONE line naming the flag (`--help` still prints the usage)."""
-
-    def error(self, message: str):  # noqa: D102 - argparse's hook
-        self.exit(2, f"{self.prog}: {message} (see --help)\n")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -67,7 +65,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--timing", default=shared_timing.DEFAULT_TIMING, help="timing preset: reference or real")
     p.add_argument("--time-limit-s", type=float, default=None,
                    help="sim-time limit of an episode (default: the paper's 1200 s on the preset's clock)")
-    p.add_argument("--start-alt-m", type=float, default=100.0)
+    p.add_argument("--start-alt-m", type=float, default=100.0,
+                   help=f"start altitude of every episode, {START_ALT_MIN_M:g}-{START_ALT_MAX_M:g} m (default: the "
+                        "paper's 100 m; a flow-navigating ArduCopter holds 48-69 m)")
+    p.add_argument("--vehicle-profile", default=DEFAULT_VEHICLE_PROFILE, choices=VEHICLE_PROFILE_NAMES,
+                   help="what the vehicle reports and how it flies: ideal (the truth, a gimbal), realistic (an "
+                        "optical-flow EKF without GNSS, a body-fixed camera, ArduCopter's limits) or harsh "
+                        f"(default: {DEFAULT_VEHICLE_PROFILE})")
     p.add_argument("--start-margin-m", type=float, default=None,
                    help="starts lie this far inside the area where the start footprint is on the map "
                         "(default: with `clearance` flown, its search radius + fence + a drift allowance, so its "
@@ -140,7 +144,7 @@ def run_bench(*, world_spec: str | None = None, worlds: tuple[str, ...] | None =
               policies, noise: float | None, timing: str, time_limit_s: float, start_alt_m: float, jobs: int,
               out: Path, start_margin_m: float = 5.0, segmenter: str = "sim", perception: str | None = None, engine: str = "local",
               address: str | None = None, progress: bool = True, world_label: str = "",
-              seed_note: str = "") -> dict:
+              seed_note: str = "", vehicle_profile: str = DEFAULT_VEHICLE_PROFILE) -> dict:
     """Run (or resume) a bench into `out`; returns the results.json content."""
     _at_least_one("--episodes", episodes)
     _at_least_one("--jobs", jobs)
@@ -149,7 +153,8 @@ def run_bench(*, world_spec: str | None = None, worlds: tuple[str, ...] | None =
     if noise is not None:
         in_range("--noise", noise, 0.0, 4.0)
     positive("--time-limit-s", time_limit_s)
-    positive("--start-alt-m", start_alt_m)
+    check_start_alt_m("--start-alt-m", start_alt_m)
+    validate_one_of("--vehicle-profile", vehicle_profile, VEHICLE_PROFILE_NAMES)
     non_negative("--start-margin-m", start_margin_m)
     shared_timing.timing(timing)
     if address and engine != "ray":
@@ -158,7 +163,8 @@ def run_bench(*, world_spec: str | None = None, worlds: tuple[str, ...] | None =
     grid = Grid(worlds=specs, episodes=episodes, seed=seed, policies=tuple(policies),
                 variants=(Variant(perception=check_perception(perception)),), noise=noise, timing=timing,
                 time_limit_s=float(time_limit_s), start_alt_m=float(start_alt_m), segmenter=segmenter,
-                start_margin_m=float(start_margin_m), world_label=world_label or specs[0], extra={"seed_note": seed_note} if seed_note else {})
+                start_margin_m=float(start_margin_m), world_label=world_label or specs[0], extra={"seed_note": seed_note} if seed_note else {},
+                vehicle_profile=vehicle_profile)
     return run_grid(grid, out=out, workers=jobs, engine=engine, address=address, progress=progress)
 
 
@@ -174,14 +180,21 @@ def main(argv: list[str] | None = None) -> int:
                         start_alt_m=args.start_alt_m, start_margin_m=(default_start_margin_m(policies) if args.start_margin_m is None
                                         else args.start_margin_m), jobs=args.jobs, out=args.out, segmenter=args.segmenter,
                         perception=args.perception, engine=args.engine, address=args.address,
-                        progress=not args.no_progress,
+                        progress=not args.no_progress, vehicle_profile=args.vehicle_profile,
                         world_label=f"suite:{args.suite.strip()}" if args.suite is not None else "")
     except DoveseiError as exc:  # a user error: one line, no traceback
         print(f"dovesei bench: {exc}", file=sys.stderr)
         return 2
     print((args.out / "summary.md").read_text())
     print(json.dumps(doc["summary"]))
+    print(wrote_line(args.out))
     return 0
+
+
+def wrote_line(out: Path) -> str:
+    """The last line of a bench: where its files are, the page first (what a person opens)."""
+    names = [n for n in ("report.html", "results.json", "summary.md", "paths.png") if (out / n).is_file()]
+    return f"dovesei bench: wrote {out.resolve()} ({', '.join(names)})"
 
 
 if __name__ == "__main__":

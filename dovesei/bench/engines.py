@@ -112,6 +112,11 @@ def run_job(job: dict) -> dict:
             "final": {"x_m": round(r.final_x_m, 3), "y_m": round(r.final_y_m, 3), "alt_m": round(r.final_alt_m, 3)},
             "classes_found": list(r.classes_found), "detail": r.detail,
             "closest_unsafe_m": round(r.closest_unsafe_m, 3) if r.closest_unsafe_valid else None,
+            # The ground the policy last confirmed (the judge's placing of its confirming look) and
+            # how far from it the hand-over was: null for a policy that confirms no spot, not 0.
+            "confirmed": ({"x_m": round(r.confirmed_x_m, 3), "y_m": round(r.confirmed_y_m, 3)}
+                          if r.confirmed_valid else None),
+            "touchdown_error_m": round(r.touchdown_error_m, 3) if r.touchdown_error_valid else None,
             "_track": rec.track.astype(np.float32)}
 
 
@@ -123,6 +128,10 @@ def record_base(job: dict) -> dict:
     for key in ("perception", "prompts"):
         if job.get(f"{key}_label") is not None:
             base[key] = job[f"{key}_label"]
+    # The vehicle profile is recorded when it is not `ideal`, whose records stay those of the sim
+    # before profiles existed.
+    if job.get("vehicle_profile") not in (None, "ideal"):
+        base["vehicle_profile"] = job["vehicle_profile"]
     return base
 
 

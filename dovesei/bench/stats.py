@@ -45,6 +45,12 @@ def _counts(eps: list[dict]) -> dict:
     s["mean_sim_time_s"] = round(float(np.mean([e["sim_time_s"] for e in safe])), 1) if safe else None
     s["mean_path_length_m"] = round(float(np.mean([e["path_length_m"] for e in safe])), 1) if safe else None
     s["mean_wall_time_s"] = round(float(np.mean([e["wall_time_s"] for e in eps])), 2) if eps else None
+    # How far from the ground it last confirmed each episode handed over (policies that confirm a
+    # spot; a record without one says null and is not counted as 0).
+    errors = [e["touchdown_error_m"] for e in eps if e.get("touchdown_error_m") is not None]
+    s["touchdown_error_episodes"] = len(errors)
+    s["median_touchdown_error_m"] = round(float(np.median(errors)), 2) if errors else None
+    s["max_touchdown_error_m"] = round(float(np.max(errors)), 2) if errors else None
     lo, hi = wilson_interval(s["safe"], len(eps))
     s["success_rate"] = round(s["safe"] / len(eps), 4) if eps else None
     s["success_ci95"] = [round(lo, 4), round(hi, 4)]
@@ -105,14 +111,23 @@ def _fmt(v: float | None) -> str:
 
 
 def policy_table(summary: dict[str, dict]) -> list[str]:
-    lines = ["| policy | success | 95 % CI | unsafe | timeout | out of world | error | avg. time (s) | avg. distance (m) |",
-             "|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| policy | success | 95 % CI | unsafe | timeout | out of world | error | avg. time (s) | avg. distance (m) "
+             "| touchdown error median / max (m) |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for pol, s in summary.items():
         n = s["episodes"]
         lines.append(f"| {pol} | {s['safe']}/{n} | {_pct(s['success_ci95'])} | {s['unsafe']}/{n} | {s['timeout']}/{n} | "
                      f"{s['out_of_world']}/{n} | {s['error']}/{n} | {_fmt(s['mean_sim_time_s'])} | "
-                     f"{_fmt(s['mean_path_length_m'])} |")
+                     f"{_fmt(s['mean_path_length_m'])} | {_touchdown(s)} |")
     return lines
+
+
+def _touchdown(s: dict) -> str:
+    """Median / max touchdown error and over how many hand-overs, or why there is none."""
+    if not s.get("touchdown_error_episodes"):
+        return "- (no confirmed spot)"
+    return (f"{s['median_touchdown_error_m']:.1f} / {s['max_touchdown_error_m']:.1f} "
+            f"({s['touchdown_error_episodes']} hand-overs)")
 
 
 def rows_table(rows: list[dict], keys: Sequence[str]) -> list[str]:

@@ -6,13 +6,13 @@ JSON object on the last line.
 
 from __future__ import annotations
 
-import argparse
 import json
 import statistics
 import time
 
 import numpy as np
 
+from dovesei.shared.cliconfig import OneLineParser
 from dovesei.shared.codec import decode, encode
 from dovesei.shared.messages import CameraFrame, SafetyHeatmap, Stamp
 
@@ -28,7 +28,7 @@ def _time_us(fn, runs: int) -> tuple[float, float]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="dovesei bench-codec", description=__doc__)
+    p = OneLineParser(prog="dovesei bench-codec", description=__doc__)
     p.add_argument("--runs", type=int, default=2000)
     p.add_argument("--json", action="store_true")
     args = p.parse_args(argv)

@@ -17,7 +17,6 @@ instead: its Python work then competes with the loop for the GIL (a pessimistic 
 
 from __future__ import annotations
 
-import argparse
 import json
 import logging
 import multiprocessing
@@ -34,6 +33,7 @@ import zenoh
 from dovesei.controller.core import ControllerConfig
 from dovesei.controller.policies.base import policy_names
 from dovesei.controller.service import RunStats, run
+from dovesei.shared.cliconfig import OneLineParser
 from dovesei.shared import keys
 from dovesei.shared.clock import WallClock, wall_time_s
 from dovesei.shared.codec import encode
@@ -191,7 +191,7 @@ def bench(*, duration_s: float, rate_hz: float, heatmap_hz: float, size_px: int,
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = OneLineParser(prog="dovesei bench-loop", description=__doc__.splitlines()[0])
     parser.add_argument("--duration-s", type=float, default=30.0)
     parser.add_argument("--rate-hz", type=float, default=20.0)
     parser.add_argument("--heatmap-hz", type=float, default=2.0)

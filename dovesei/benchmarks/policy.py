@@ -15,7 +15,6 @@ OpenCV is limited to one thread so the figure is per core, as the issue asks.
 
 from __future__ import annotations
 
-import argparse
 import json
 import logging
 import os
@@ -27,6 +26,7 @@ import cv2
 import numpy as np
 
 from dovesei.controller.policies.base import Observation, make_policy, policy_names
+from dovesei.shared.cliconfig import OneLineParser
 
 
 # Terminal states after which a flight is over (the reference's LANDED, clearance's ends).
@@ -121,7 +121,7 @@ def run(*, policy_name: str, cycles: int, warmup: int, size_px: int, seed: int, 
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = OneLineParser(prog="dovesei bench-policy", description=__doc__.splitlines()[0])
     parser.add_argument("--policy", default="dovesei", choices=policy_names())
     parser.add_argument("--timing", default="real", choices=["real", "reference"])
     parser.add_argument("--cycles", type=int, default=400)

@@ -46,6 +46,8 @@ from pathlib import Path
 
 import numpy as np
 
+from dovesei.shared.cliconfig import OneLineParser
+
 LOG = logging.getLogger(__name__)
 
 FRAME_PX = 352
@@ -116,7 +118,7 @@ def camera_views(n: int = len(GATE_WORLDS) * len(GATE_POSES)) -> list[np.ndarray
 
 
 def _parse_args(argv: list[str] | None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="dovesei bench-segmenter",
         description="Time the CLIPSeg fast path against the reference's stock forward (13 prompts, 1 frame).",
     )

@@ -34,6 +34,7 @@ from collections.abc import Sequence
 
 import cv2
 
+from dovesei.shared.cliconfig import OneLineParser
 from dovesei.shared.messages import VehicleState, VelocityCommand
 from dovesei.sim.camera import CameraModel, prebuild_pyramid, render
 from dovesei.sim.core import SimConfig, SimCore
@@ -152,7 +153,7 @@ def measure_zenoh_episode(world: World, start: Start, episode_s: float, seed: in
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="dovesei bench-sim", description=__doc__.splitlines()[0])
+    p = OneLineParser(prog="dovesei bench-sim", description=__doc__.splitlines()[0])
     p.add_argument("--world", default="synthetic", help="synthetic[:seed=N,...] or a world folder (default: synthetic)")
     p.add_argument("--json", action="store_true", help="print only the JSON line")
     p.add_argument("--batches", type=int, default=5, help="render batches (the median is reported)")

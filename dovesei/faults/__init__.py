@@ -30,7 +30,10 @@ from datetime import datetime
 from pathlib import Path
 
 from dovesei.faults.scenario import FAULTS, RunResult, run_scenario
+from dovesei.shared.cliconfig import OneLineParser
 from dovesei.shared.errors import ConfigError
+from dovesei.sim.estimator import VEHICLE_PROFILE_NAMES
+from dovesei.up.options import DEFAULT_VEHICLE_PROFILE
 
 log = logging.getLogger("dovesei.faults")
 
@@ -82,7 +85,7 @@ def table(summary: dict) -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="dovesei faults", description=__doc__.split("\n\n")[0],
+    p = OneLineParser(prog="dovesei faults", description=__doc__.split("\n\n")[0],
                                 epilog=f"faults: {'; '.join(f'{f.name}: {f.text}' for f in FAULTS.values())}")
     p.add_argument("--runs", type=int, default=1, help="runs per fault (seeds S, S+1, ...)")
     p.add_argument("--fault", help=f"comma list (default: all): {','.join(FAULTS)}")
@@ -90,6 +93,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, help="folder for the runs (default: runs/faults-<timestamp>)")
     p.add_argument("--json", action="store_true", help="print the totals as JSON instead of the table")
     p.add_argument("--log-level", default="WARNING", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
+    p.add_argument("--vehicle-profile", default=DEFAULT_VEHICLE_PROFILE, choices=VEHICLE_PROFILE_NAMES,
+                   help=f"the simulated vehicle the faults are flown with (default: {DEFAULT_VEHICLE_PROFILE}, as "
+                        "`dovesei up`)")
     return p
 
 
@@ -113,7 +119,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     for i in range(args.runs):
         for name in names:
             run_out = out / f"{name}-{i}"
-            r = run_scenario(FAULTS[name], args.seed + i, run_out)
+            r = run_scenario(FAULTS[name], args.seed + i, run_out, vehicle_profile=args.vehicle_profile)
             (run_out / "run.json").write_text(json.dumps(r.to_dict(), indent=1, default=str))
             results.append(r)
             status = "ok" if not r.violations else f"{len(r.violations)} violation(s): {r.violations[0]}"

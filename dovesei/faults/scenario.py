@@ -32,7 +32,7 @@ from dovesei.up import exit_code, preflight
 from dovesei.up.children import Children
 from dovesei.up.launch import SERVICES, child_commands, child_env
 from dovesei.up.monitor import Monitor, Recorder
-from dovesei.up.options import UpOptions
+from dovesei.up.options import DEFAULT_VEHICLE_PROFILE, UpOptions
 from dovesei.up.report import build_report, read_stats
 from dovesei.up.watch import Watcher
 
@@ -275,7 +275,8 @@ def _retarget(argv: list[str], endpoint: str) -> list[str]:
     return [*argv[:i], "--mode", "client", "--connect", endpoint]
 
 
-def run_scenario(fault: Fault, seed: int, out: Path, *, world: str = WORLD) -> RunResult:
+def run_scenario(fault: Fault, seed: int, out: Path, *, world: str = WORLD,
+                 vehicle_profile: str = DEFAULT_VEHICLE_PROFILE) -> RunResult:
     t0 = time.monotonic()
     vid = "uav1"
     rng = random.Random(seed)
@@ -287,7 +288,7 @@ def run_scenario(fault: Fault, seed: int, out: Path, *, world: str = WORLD) -> R
     options = UpOptions(world=world, segmenter="sim", noise=0.0, start_seed=seed, start_alt_m=START_ALT_M, out=out,
                         realtime=not fault.lockstep, connect=(router.endpoint,), video=False, stall_s=fault.stall_s,
                         after_failure_s=fault.after_failure_s, heatmap_wait_s=fault.heatmap_wait_s,
-                        startup_timeout_s=60.0, log_level="INFO")
+                        startup_timeout_s=60.0, log_level="INFO", vehicle_profile=vehicle_profile)
     _, start, configs = preflight(options)
     (out / "logs").mkdir(parents=True, exist_ok=True)
     (out / "stats").mkdir(exist_ok=True)

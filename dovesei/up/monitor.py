@@ -64,6 +64,7 @@ class Recorder:
         self.states: list[VehicleState] = []
         self.statuses: dict[float, ControllerStatus] = {}  # by the state stamp they answer
         self.status_count = 0
+        self.handover_seen = False  # the controller reported HANDOVER at least once
         self.steering_statuses = 0  # statuses outside the hand-over: each tick sent a command
         self.commands = 0
         self.latency: dict[str, list[float]] = {s: [] for s in STAGES}
@@ -85,8 +86,12 @@ class Recorder:
         self.alive: dict[str, bool] = {}  # per service: its liveliness token is visible
         self.expect_exits = False  # set once the run is ending: a dropped token is then no news
         self.first_state_wall_s: float | None = None  # wall clock at the monitor: the episode's duration
+        # Vehicle clock at which the mission began (after a --takeoff climb): earlier states are the
+        # climb, recorded but not part of the mission's trajectory. None: from the first state.
+        self.mission_start_t_s: float | None = None
         self.result_wall_s: float | None = None
         self.last_state_name, self.last_watchdog = "", ""
+        self.gnss_lost = False  # the newest status said GNSS is lost (a real autopilot)
         self.logged_state, self.logged_watchdog = "", ""
         self.unlogged_changes = 0
         self.last_progress_t_s = -math.inf
@@ -139,6 +144,7 @@ class Recorder:
 
     def _on_status(self, st: ControllerStatus, s: Sample) -> None:
         self.status_count += 1
+        self.handover_seen = self.handover_seen or st.state == "HANDOVER"
         if st.state != "HANDOVER":
             self.steering_statuses += 1
         self.statuses[st.stamp.t_s] = st
@@ -163,6 +169,11 @@ class Recorder:
             self.logged_state, self.logged_watchdog, self.unlogged_changes = st.state, st.watchdog, 0
             self.last_progress_t_s = st.stamp.t_s
         self.last_state_name, self.last_watchdog = st.state, st.watchdog
+        if st.gnss_lost != self.gnss_lost:
+            # Said once per change, whatever the progress lines: the operator must see this one.
+            log.warning("t=%.2f s alt %.1f m: %s", st.stamp.t_s, st.alt_agl_m,
+                        st.nav_reason if st.gnss_lost else "GNSS back")
+            self.gnss_lost = st.gnss_lost
 
     def _on_cmd(self, cmd: VelocityCommand, s: Sample) -> None:
         self.commands += 1
@@ -234,8 +245,10 @@ class Recorder:
     # -- derived --------------------------------------------------------------------------------
 
     def trajectory(self) -> dict[str, list]:
-        """Per state: time, world position (start + local NED), altitude, the controller's state.
+        """Per state of the mission: time, world position (start + local NED), altitude, the controller's state.
 
+        States before `mission_start_t_s` (a --takeoff climb from the ground) are left out: the
+        mission, its plot and its path length start at the start altitude.
         Each state takes the status stamped nearest to it, within half the slower stream's period
         (a real autopilot's states and the controller's 20 Hz ticks never share stamps, and
         exact matching left the labels one lag behind); with none that close the last label holds.
@@ -243,11 +256,13 @@ class Recorder:
         x0, y0, _ = self.start
         rows: dict[str, list] = {"t_s": [], "x_m": [], "y_m": [], "alt_m": [], "state": [], "watchdog": [],
                                  "cmd_down_m_s": []}
+        start_t_s = self.mission_start_t_s
+        states = [st for st in self.states if start_t_s is None or st.stamp.t_s >= start_t_s]
         status_t = sorted(self.statuses)
-        state_t = [st.stamp.t_s for st in self.states]
+        state_t = [st.stamp.t_s for st in states]
         tol_s = 0.5 * max(_median_step(state_t), _median_step(status_t)) + 1e-9
         name, watchdog, down_m_s = "INIT", "hold", 0.0
-        for st in self.states:
+        for st in states:
             status = _nearest(self.statuses, status_t, st.stamp.t_s, tol_s)
             if status is not None:
                 name, watchdog, down_m_s = status.state, status.watchdog, status.vel_body_frd_m_s[2]

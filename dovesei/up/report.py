@@ -16,7 +16,7 @@ import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
@@ -28,6 +28,9 @@ from dovesei.shared.messages import ControllerStatus
 from dovesei.up.launch import SERVICES
 from dovesei.up.monitor import STAGES, Recorder
 from dovesei.up.options import UpOptions
+
+if TYPE_CHECKING:  # watch imports this module (Failure): the annotation only
+    from dovesei.up.watch import LandingWait
 
 log = logging.getLogger("dovesei.up")
 
@@ -136,6 +139,10 @@ class Counts:
     rejected: int
     results_refused: int
     foreign: int
+    # MAVLink: commands that asked for more than the vehicle's speed limits (clamped by the adapter),
+    # of `commands_steered` flown; None with the sim or without the controller's stats.
+    commands_clamped: int | None = None
+    commands_steered: int | None = None
 
 
 @dataclass(frozen=True)
@@ -150,6 +157,47 @@ class Trajectory:
 
 
 @dataclass(frozen=True)
+class Landing:
+    """A real autopilot's own landing after the hand-over ('land' or 'precland'), as `up` waited for it."""
+
+    action: str
+    landed: bool  # the autopilot reported itself disarmed
+    reason: str
+    waited_s: float
+    touchdown: Position | None  # the last state's position (start + the autopilot's local NED)
+    landing_targets_sent: int | None  # precision landing: LANDING_TARGET messages the controller sent
+
+
+@dataclass(frozen=True)
+class Navigation:
+    """A real autopilot's navigation as the controller's status reported it (None with the sim)."""
+
+    gnss_lost: bool
+    gnss_lost_t_s: float | None  # the vehicle clock of the first status that said so
+    gnss_lost_alt_m: float | None
+    position_lost: bool  # the autopilot had no horizontal position at some point
+    sources: tuple[str, ...]  # the trusted velocity sources, in the order they came
+    no_velocity_holds: int  # statuses holding for want of a trusted velocity
+    first_reason: str  # the first loss's reason
+    last_reason: str
+
+    @classmethod
+    def of(cls, statuses: Mapping[float, Any]) -> Navigation | None:
+        ordered = [statuses[t] for t in sorted(statuses)]
+        if not any(st.nav_source for st in ordered):
+            return None  # the sim: nothing judged
+        lost = [st for st in ordered if st.gnss_lost]
+        sources: list[str] = []
+        for st in ordered:
+            if st.nav_source and (not sources or sources[-1] != st.nav_source):
+                sources.append(st.nav_source)
+        return cls(bool(lost), lost[0].stamp.t_s if lost else None, lost[0].alt_agl_m if lost else None,
+                   any(st.position_lost for st in ordered), tuple(sources),
+                   sum(1 for st in ordered if "no trusted velocity source" in st.reason),
+                   lost[0].nav_reason if lost else "", ordered[-1].nav_reason)
+
+
+@dataclass(frozen=True)
 class RunReport:
     episode: Episode
     setup: Setup
@@ -160,6 +208,8 @@ class RunReport:
     failure: Failure | None
     interrupted: bool
     files: Mapping[str, str] | None = None  # name -> file in the report folder; filled by write_outputs
+    landing: Landing | None = None  # only when `up` waited for an autopilot's landing
+    navigation: Navigation | None = None  # a real autopilot's GNSS / position losses (None: the sim)
 
     @property
     def outcome(self) -> str:
@@ -182,6 +232,8 @@ class RunReport:
                     "failure": asdict(self.failure) if self.failure is not None else None,
                     "interrupted": self.interrupted,
                     "trajectory": {k: list(v) for k, v in asdict(self.trajectory).items()}})
+        out["landing"] = asdict(self.landing) if self.landing is not None else None
+        out["navigation"] = asdict(self.navigation) if self.navigation is not None else None
         if self.files is not None:
             out["files"] = dict(self.files)
         return out
@@ -261,7 +313,8 @@ def _latency(options: UpOptions, rec: Recorder, cmd_to_sim: list[float]) -> dict
 
 def build_report(options: UpOptions, rec: Recorder, start: tuple[float, float, float], noise: float,
                  stats: Mapping[str, Any], failure: Failure | None, interrupted: bool,
-                 wall_time_s: float) -> RunReport:
+                 wall_time_s: float, *, landing: LandingWait | None = None,
+                 handover_action: str = "hold") -> RunReport:
     traj = rec.trajectory()
     res = rec.result
     cmd_to_sim, cmd_by_frame = _command_to_sim(stats.get("sim"))
@@ -292,10 +345,21 @@ def build_report(options: UpOptions, rec: Recorder, start: tuple[float, float, f
                     Percentiles.of_seconds(rec.zenoh_delivery_overhead_s(), definition=DELIVERY_DEFINITION),
                     {k: Percentiles.of_seconds(v) for k, v in rec.delivery_s.items()})
     commands, commands_by = _commands(options, rec, stats)
+    link = (stats.get("controller") or {}).get("vehicle_link") or {}
     counts = Counts(rec.frames, rec.heatmaps, commands, commands_by, rec.status_count, len(rec.states),
-                    rec.rejected + sum(_rejected_in(st) for st in stats.values()), rec.results_refused, rec.foreign)
+                    rec.rejected + sum(_rejected_in(st) for st in stats.values()), rec.results_refused, rec.foreign,
+                    link.get("commands_clamped"), link.get("commands_steered"))
     trajectory = Trajectory(**{k: tuple(v) for k, v in traj.items()})
-    return RunReport(episode, setup, timing, counts, trajectory, dict(stats), failure, interrupted)
+    landed = None
+    if landing is not None:
+        last = rec.states[-1] if rec.states else None
+        touchdown = (Position(start[0] + last.pos_local_ned_m[1], start[1] + last.pos_local_ned_m[0], last.alt_agl_m)
+                     if last is not None else None)
+        sent = link.get("landing_targets_sent")
+        landed = Landing(handover_action, landing.landed, landing.reason, landing.waited_s, touchdown,
+                         sent if isinstance(sent, int) and handover_action == "precland" else None)
+    return RunReport(episode, setup, timing, counts, trajectory, dict(stats), failure, interrupted, landing=landed,
+                     navigation=Navigation.of(rec.statuses))
 
 
 def write_outputs(world: Any, report: RunReport, rec: Recorder, out: Path, video: bool) -> RunReport:

@@ -26,6 +26,7 @@ import time
 from dataclasses import dataclass
 
 from dovesei.shared.messages import EpisodeResult
+from dovesei.shared.zconfig import ADDRESS_IN_USE
 from dovesei.up.children import Children, describe_exit, last_error_line
 from dovesei.up.monitor import Monitor, Recorder
 from dovesei.up.options import UpOptions
@@ -39,12 +40,81 @@ RESULT_CONFIRM_S = 10.0  # a result is the sim's only if the sim ends its run wi
 # the sim loading its world while a real vehicle's states already flow.
 FIRST_MESSAGE_GRACE_S = 30.0
 RESULT_POSITION_TOLERANCE_M = 10.0  # result's final position vs the last recorded state
+# Waiting for an autopilot's landing after the hand-over: the hand-over altitude at this slowest
+# descent (ArduCopter's LAND_SPEED is 0.5 m/s below LAND_ALT_LOW; a precision landing also moves
+# over the spot first), plus a margin.
+LANDING_MIN_DESCENT_M_S = 0.25
+LANDING_MARGIN_S = 30.0
+LANDING_MODES = ("LAND", "PRECLAND")
+LANDING_MODE_GRACE_S = 10.0  # the adapter asks for LAND each second for 5 s
 
 
 @dataclass(frozen=True)
 class WatchEnd:
     failure: Failure | None
     interrupted: bool
+
+
+@dataclass(frozen=True)
+class LandingWait:
+    """How the wait for the autopilot's own landing ended."""
+
+    landed: bool
+    reason: str
+    waited_s: float
+
+
+def landing_timeout_s(handover_alt_m: float) -> float:
+    return LANDING_MARGIN_S + handover_alt_m / LANDING_MIN_DESCENT_M_S
+
+
+def wait_for_landing(rec: Recorder, monitor: Monitor, children: Children, stop: threading.Event,
+                     timeout_s: float, stall_s: float) -> LandingWait:
+    """After a 'land' or 'precland' hand-over: keep the controller running until the autopilot has landed.
+
+    The controller is the one owner of the link and, for a precision landing, streams the spot
+    as LANDING_TARGET: stopped at the hand-over (0.53 s after it on ArduCopter SITL), the target
+    died before the autopilot's estimator had initialised and the vehicle landed blind. Landed
+    means the autopilot reports itself disarmed (both autopilots disarm after a LAND). The wait
+    also ends, unlanded, when the autopilot leaves its landing mode (a pilot took over), the
+    controller exits, the states stop for `stall_s`, the operator stops `up`, or at `timeout_s`.
+    """
+    t0 = time.monotonic()
+    seen_landing_mode = False
+    last_state_wall_s = time.time()
+    count = len(rec.states)
+
+    def end(landed: bool, reason: str) -> LandingWait:
+        log.log(logging.INFO if landed else logging.WARNING, "landing: %s", reason)
+        return LandingWait(landed, reason, round(time.monotonic() - t0, 3))
+
+    log.info("hand-over done: waiting up to %.0f s for the autopilot to land (Ctrl-C ends the wait)", timeout_s)
+    while True:
+        monitor.drain()
+        now = time.monotonic()
+        if len(rec.states) > count:
+            count, last_state_wall_s = len(rec.states), time.time()
+        state = rec.states[-1] if rec.states else None
+        if state is not None:
+            if not state.armed:
+                return end(True, f"the autopilot disarmed in {state.mode or 'its mode'} after "
+                                 f"{now - t0:.1f} s, at {state.alt_agl_m:.1f} m")
+            if state.mode in LANDING_MODES:
+                seen_landing_mode = True
+            elif seen_landing_mode or now - t0 > LANDING_MODE_GRACE_S:
+                return end(False, f"the autopilot is in {state.mode or 'an unknown mode'}, not landing "
+                                  "(a pilot or another station took over): not waiting")
+        if stop.is_set():
+            return end(False, "the operator ended the wait: the autopilot lands on its own, without our target")
+        dead = [name for name, _ in children.exited() if name == "controller"]
+        if dead:
+            return end(False, "the controller exited before the autopilot landed")
+        if time.time() - last_state_wall_s > stall_s:
+            return end(False, f"no vehicle state for {stall_s:g} s")
+        if now - t0 > timeout_s:
+            return end(False, f"not landed within {timeout_s:.0f} s: stopping (the autopilot goes on landing "
+                              "on its own)")
+        stop.wait(0.05)
 
 
 def stream_owners(options: UpOptions) -> dict[str, str]:
@@ -110,7 +180,9 @@ def _owes_command(rec: Recorder) -> bool:
 
 def result_is_consistent(rec: Recorder, result: EpisodeResult) -> str:
     """'' when the result agrees with the last recorded state, else why not."""
-    if not rec.states:
+    if not rec.states or not rec.states[-1].pos_valid:
+        # A vehicle without a position (a GNSS-denied vehicle profile) reports dead reckoning,
+        # which drifts from the judge's truth by design: nothing to compare it with.
         return ""
     x0, y0, _ = rec.start
     north_m, east_m, _ = rec.states[-1].pos_local_ned_m
@@ -118,6 +190,14 @@ def result_is_consistent(rec: Recorder, result: EpisodeResult) -> str:
     if off_m > RESULT_POSITION_TOLERANCE_M:
         return f"its final position is {off_m:.1f} m from the vehicle's last recorded state"
     return ""
+
+
+def port_collision(failure: Failure | None, rec: Recorder) -> str | None:
+    """The service that died because its loopback listen port was taken before it could bind it,
+    when nothing has flown yet (no vehicle state); else None. Such a start can be retried."""
+    if failure is None or failure.child is None or failure.returncode is None or rec.states:
+        return None
+    return failure.child if ADDRESS_IN_USE in failure.last_line else None
 
 
 def wait_for_takeoff(rec: Recorder, monitor: Monitor, children: Children, stop: threading.Event,
@@ -143,6 +223,8 @@ def wait_for_takeoff(rec: Recorder, monitor: Monitor, children: Children, stop: 
             return WatchEnd(Failure("controller", None, "", f"the takeoff did not end within {timeout_s:.0f} s "
                                                            f"(last: {alt})"), False)
         stop.wait(0.02)
+    # The controller's first status answers its first tick after the climb: the mission starts there.
+    rec.mission_start_t_s = min(rec.statuses) if rec.statuses else None
     log.info("takeoff done at %.1f m: starting the sim", rec.states[-1].alt_agl_m if rec.states else float("nan"))
     return WatchEnd(None, False)
 
@@ -177,7 +259,9 @@ class Watcher:
                 if self.failure is not None:
                     log.error("%s", self.failure.message)
                     # The others keep running for a while so the report shows how they reacted.
-                    after_s = 0.0 if self.failure.child in (None, "sim") else self.options.after_failure_s
+                    # Nothing to watch after a start that failed on a taken port: `up` retries it.
+                    after_s = (0.0 if self.failure.child in (None, "sim") or port_collision(self.failure, self.rec)
+                               else self.options.after_failure_s)
                     self.failure_deadline = now + after_s
             if now >= self.failure_deadline:
                 return WatchEnd(self.failure, False)

@@ -11,6 +11,11 @@ Data flow:
         aspect, resize -> tagged with the state received just before capture (altitude, attitude,
         a stamp on the vehicle's clock extrapolated to the capture instant) -> encode (JPEG when
         `jpeg_quality` is set, for a radio link to a ground-station segmenter) -> Zenoh put
+    odometry:      at up to `odometry_rate_hz` (10 Hz by default; 0 = off), every new grabbed frame
+        -> the same rotation and crop at the estimator's work width, tagged the same way ->
+        `dovesei.shared.visual_velocity` against the previous one -> VisualOdometry on
+        `dovesei/<vehicle>/odometry` (valid or not, with its reason logged at DEBUG); time between
+        frames from their capture instants. frame_seq counts grabbed frames, not published ones.
 
 Newest frame wins: grabbing runs continuously so the published frame is never older than one
 capture period; a segmenter slower than the camera sees fresh frames, not a backlog. Cropping
@@ -28,6 +33,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import sys
 import threading
 import time
@@ -46,10 +52,17 @@ from dovesei.shared.errors import ConfigError
 from dovesei.shared.lifecycle import Inbox, declare_alive, install_stop_handlers
 from dovesei.shared.messages import CameraFrame, Stamp, VehicleState
 from dovesei.shared.recording import FlightRecorder
+from dovesei.shared.visual_velocity import FrameMeta, VisualVelocity, odometry_message
+from dovesei.shared.zconfig import SessionError, open_session
 
 log = logging.getLogger(__name__)
 
 STATE_HISTORY_S = 3.0  # how far back states are kept to find the one at a frame's capture time
+# Odometry waits this long after a capture for the next state, to interpolate the attitude at the
+# capture instant: the velocity depends on the attitude CHANGE between frames, so tagging each
+# frame with whichever state came last (0..1 state period early, at random) would turn a turn rate
+# of 0.5 rad/s and 50 Hz states into ~3 mrad of noise per frame, 2 m/s at 50 m and 10 Hz.
+ATTITUDE_WAIT_S = 0.05
 
 
 @dataclass(frozen=True)
@@ -68,6 +81,8 @@ class CameraConfig:
     state_timeout_s: float = 1.0
     loop_file: bool = False
     record_path: str | None = None  # write the published frames and their states to this MCAP file
+    odometry_rate_hz: float = 10.0  # visual velocity from consecutive grabbed frames; 0 = off
+    odometry_width_px: int = 320  # frames are cropped like the published ones and shrunk to this width
 
     def __post_init__(self) -> None:
         if not isinstance(self.source, str) or not self.source.strip():
@@ -83,6 +98,10 @@ class CameraConfig:
             raise ConfigError(f"camera rotate_deg must be one of {sorted(ROTATIONS)}, got {self.rotate_deg!r}")
         for name in ("rate_hz", "stall_timeout_s", "state_timeout_s"):
             validate.positive(f"camera {name}", getattr(self, name))
+        validate.in_range("camera odometry_rate_hz", self.odometry_rate_hz, 0.0, 200.0)
+        if isinstance(self.odometry_width_px, bool) or not isinstance(self.odometry_width_px, int) \
+                or not 64 <= self.odometry_width_px <= 1280:
+            raise ConfigError(f"camera odometry_width_px must be an integer in 64..1280, got {self.odometry_width_px!r}")
         if self.jpeg_quality is not None:
             validate.in_range("camera jpeg_quality", self.jpeg_quality, 1, 100)
 
@@ -94,6 +113,8 @@ class CameraStats:
     grabbed: int = 0
     published: int = 0
     withheld_no_state: int = 0
+    odometry_published: int = 0
+    odometry_valid: int = 0
     stalled: bool = False
     ended: bool = False
     warnings: list[str] = field(default_factory=list)
@@ -101,6 +122,10 @@ class CameraStats:
 
 class StateSource(Protocol):
     def poll(self) -> VehicleState | None: ...
+
+    def age_s(self) -> float:
+        """Seconds since the state the last poll returned arrived (0 when it is not known)."""
+        ...
 
     def close(self) -> None: ...
 
@@ -114,6 +139,11 @@ class ZenohStateSource:
     def poll(self) -> VehicleState | None:
         return self._inbox.poll()
 
+    def age_s(self) -> float:
+        # The inbox stamps each sample's arrival: a loop that drains it late (a loaded host, an
+        # odometry computation) still dates the state by when it came, not by when it was read.
+        return min(max(0.0, time.time() - self._inbox.last_recv_wall_s), STATE_HISTORY_S)
+
     def close(self) -> None:
         self._inbox.close()
 
@@ -123,8 +153,12 @@ class CameraPublisher:
 
     def __init__(self, config: CameraConfig, grabber: Grabber, state_source: StateSource,
                  put: Callable[[bytes], None], *, clock: Callable[[], float] = time.monotonic,
-                 stats: CameraStats | None = None, recorder: FlightRecorder | None = None) -> None:
+                 stats: CameraStats | None = None, recorder: FlightRecorder | None = None,
+                 put_odometry: Callable[[bytes], None] | None = None) -> None:
         self.config, self.grabber, self.state_source, self.put = config, grabber, state_source, put
+        self.put_odometry = put_odometry
+        self._odometry = VisualVelocity()
+        self._odometry_index = 0
         self.recorder = recorder
         self._recorded_state: VehicleState | None = None
         self.stats = stats if stats is not None else CameraStats()
@@ -140,7 +174,7 @@ class CameraPublisher:
         """Drain the state source into the history (call often: receive times date the states)."""
         now = self._clock()
         while (state := self.state_source.poll()) is not None:
-            self._states.append((now, state))
+            self._states.append((now - self.state_source.age_s(), state))
         while self._states and now - self._states[0][0] > STATE_HISTORY_S and len(self._states) > 1:
             self._states.popleft()
 
@@ -171,9 +205,7 @@ class CameraPublisher:
             self._no_state_reported = False
         recv_s, state = tagged
         frame = CameraFrame(
-            vehicle_id=self.config.vehicle_id, seq=self._seq,
-            # The state's clock, moved on by the time between its arrival and the capture.
-            stamp=Stamp(state.stamp.t_s + max(0.0, capture_s - recv_s), state.stamp.clock),
+            vehicle_id=self.config.vehicle_id, seq=self._seq, stamp=_capture_stamp(state, recv_s, capture_s),
             image_rgb=crop_resize(bgr, self.config.width_px, self.config.height_px, self.config.rotate_deg),
             hfov_rad=self._hfov(bgr.shape[1], bgr.shape[0]), alt_agl_m=state.alt_agl_m,
             roll_rad=state.roll_rad, pitch_rad=state.pitch_rad, yaw_rad=state.yaw_rad, sent_wall_s=time.time())
@@ -187,6 +219,49 @@ class CameraPublisher:
         self._seq += 1
         self.stats.published += 1
         log.debug("frame %d published (alt %.1f m)", frame.seq, frame.alt_agl_m)
+        return True
+
+    def odometry_tick(self) -> bool:
+        """Compare the newest grabbed frame with the one before and publish the velocity; True if sent.
+
+        A frame without a recent state is skipped and forgotten (the next one starts afresh): a
+        velocity scaled by an unknown altitude would be made up.
+        """
+        if self.put_odometry is None:
+            return False
+        newest = self.grabber.newest()
+        if newest is None or newest[2] == self._odometry_index:
+            return False
+        bgr, capture_s, index = newest
+        after = self._state_after(capture_s)
+        if after is None and self._clock() - capture_s < ATTITUDE_WAIT_S:
+            return False  # the state after the capture is due shortly: interpolate with it then
+        self._odometry_index = index
+        tagged = self._state_at(capture_s)
+        if tagged is None or capture_s - tagged[0] > self.config.state_timeout_s:
+            self._odometry.reset()
+            return False
+        recv_s, state = tagged
+        c = self.config
+        # The published frame's crop and field of view, at the estimator's width (never enlarged).
+        src_h, src_w = bgr.shape[:2]
+        width = min(c.odometry_width_px, src_w if c.rotate_deg in (0, 180) else src_h)
+        height = max(32, round(width * c.height_px / c.width_px))
+        alt_m, roll, pitch, yaw = _interpolate(tagged, after, capture_s)
+        meta = FrameMeta(index, capture_s, alt_m, self._hfov(src_w, src_h), roll, pitch, yaw)
+        est = self._odometry.update(crop_resize(bgr, width, height, c.rotate_deg), meta)
+        if est is None:
+            return False
+        msg = odometry_message(est, meta, vehicle_id=c.vehicle_id, stamp=_capture_stamp(state, recv_s, capture_s),
+                               sent_wall_s=time.time())
+        self.put_odometry(encode(msg))
+        self.stats.odometry_published += 1
+        self.stats.odometry_valid += int(msg.valid)
+        if msg.valid:
+            log.debug("odometry %d: (%.2f, %.2f, %.2f) m/s, quality %.2f", msg.frame_seq, *msg.vel_body_frd_m_s,
+                      msg.quality)
+        else:
+            log.debug("odometry %d invalid: %s", msg.frame_seq, est.reason)
         return True
 
     def _check_stall(self, now: float) -> None:
@@ -213,6 +288,10 @@ class CameraPublisher:
             best = self._states[0]
         return best
 
+    def _state_after(self, capture_s: float) -> tuple[float, VehicleState] | None:
+        """The first state received after the capture, if one has arrived."""
+        return next(((recv_s, state) for recv_s, state in self._states if recv_s > capture_s), None)
+
     def _hfov(self, src_w: int, src_h: int) -> float:
         if self._hfov_cache is None or self._hfov_cache[0] != (src_w, src_h):
             c = self.config
@@ -223,6 +302,26 @@ class CameraPublisher:
     def _warn(self, text: str) -> None:
         self.stats.warnings.append(text)
         log.warning("%s", text)
+
+
+def _interpolate(before: tuple[float, VehicleState], after: tuple[float, VehicleState] | None,
+                 capture_s: float) -> tuple[float, float, float, float]:
+    """(alt, roll, pitch, yaw) at the capture, linear between the states received around it (by
+    their arrival times; the yaw the short way round); the state before alone when none came after."""
+    (t0, s0) = before
+    values0 = (s0.alt_agl_m, s0.roll_rad, s0.pitch_rad, s0.yaw_rad)
+    if after is None or after[0] <= t0:
+        return values0
+    (t1, s1) = after
+    w = min(1.0, max(0.0, (capture_s - t0) / (t1 - t0)))
+    alt, roll, pitch = (a + w * (b - a) for a, b in zip(values0[:3], (s1.alt_agl_m, s1.roll_rad, s1.pitch_rad)))
+    yaw = math.remainder(s0.yaw_rad + w * math.remainder(s1.yaw_rad - s0.yaw_rad, math.tau), math.tau)
+    return alt, roll, pitch, yaw
+
+
+def _capture_stamp(state: VehicleState, recv_s: float, capture_s: float) -> Stamp:
+    """The state's clock, moved on by the time between the state's arrival and the capture."""
+    return Stamp(state.stamp.t_s + max(0.0, capture_s - recv_s), state.stamp.clock)
 
 
 def run(session: zenoh.Session, *, config: CameraConfig, stop: threading.Event,
@@ -253,23 +352,33 @@ def _serve(session: zenoh.Session, config: CameraConfig, stop: threading.Event, 
         state_source = ZenohStateSource(session, config.vehicle_id)
     grabber = Grabber(config.source, loop_file=config.loop_file).start()
     publisher = session.declare_publisher(keys.camera(config.vehicle_id))
-    loop = CameraPublisher(config, grabber, state_source, publisher.put, stats=stats, recorder=recorder)
-    log.info("camera %s (%s) -> %s at %.1f Hz, %dx%d, %s, state from %s", config.source, grabber.kind,
+    odometry = session.declare_publisher(keys.odometry(config.vehicle_id)) if config.odometry_rate_hz > 0 else None
+    loop = CameraPublisher(config, grabber, state_source, publisher.put, stats=stats, recorder=recorder,
+                           put_odometry=odometry.put if odometry is not None else None)
+    log.info("camera %s (%s) -> %s at %.1f Hz, %dx%d, %s, state from %s; odometry %s", config.source, grabber.kind,
              keys.camera(config.vehicle_id), config.rate_hz, config.width_px, config.height_px,
-             f"JPEG q{config.jpeg_quality}" if config.jpeg_quality else "raw RGB", keys.state(config.vehicle_id))
+             f"JPEG q{config.jpeg_quality}" if config.jpeg_quality else "raw RGB", keys.state(config.vehicle_id),
+             f"-> {keys.odometry(config.vehicle_id)} at up to {config.odometry_rate_hz:g} Hz" if odometry else "off")
     period_s, poll_s = 1.0 / config.rate_hz, 0.01
+    odo_period_s = 1.0 / config.odometry_rate_hz if odometry is not None else math.inf
     try:
-        next_pub_s = time.monotonic()
+        next_pub_s = next_odo_s = time.monotonic()
         while not stop.is_set():
             now = time.monotonic()
+            loop.poll_state()  # keep state receive times accurate between publications
+            if now >= next_odo_s:
+                # A new frame is compared as soon as it is grabbed; without one, look again next poll.
+                if loop.odometry_tick():
+                    next_odo_s = max(next_odo_s + odo_period_s, now)
             if now >= next_pub_s:
                 loop.tick()
                 next_pub_s = max(next_pub_s + period_s, now)
-            else:
-                loop.poll_state()  # keep state receive times accurate between publications
+            # At most one poll period: odometry waiting for its next frame looks again then.
             stop.wait(min(poll_s, max(0.0, next_pub_s - time.monotonic())))
     finally:
         grabber.close()
+        if odometry is not None:
+            odometry.undeclare()
         publisher.undeclare()
         if own_source:
             state_source.close()
@@ -291,6 +400,10 @@ CLI = CommandLine(CameraConfig, {
     "state_timeout_s": Flag("--state-timeout", "max age of the state used to tag a frame, seconds",
                             check=validate.positive),
     "loop_file": Flag("--loop", "loop a video file"),
+    "odometry_rate_hz": Flag("--odometry-rate-hz", "visual velocity on the odometry key from consecutive frames, "
+                             "at most this often (0 = off)", check=lambda w, v: validate.in_range(w, v, 0.0, 200.0)),
+    "odometry_width_px": Flag("--odometry-width", "frames shrunk to this width for the visual velocity, pixels",
+                              check=integer_in(64, 1280)),
     "record_path": Flag("--record", "write the published frames and their states as an MCAP recording to PATH",
                         check=non_blank, metavar="PATH"),
 }, prog="dovesei-camera", description="Publish an onboard camera as dovesei frames.")
@@ -305,7 +418,7 @@ def main(argv: list[str] | None = None) -> int:
     config, _process, zconf = CLI.start(argv)  # a bad flag exits 2 with the usage line
     stop = install_stop_handlers()
     try:
-        with zenoh.open(zconf) as session:
+        with open_session(zconf) as session:
             token = declare_alive(session, config.vehicle_id, "camera")
             try:
                 run(session, config=config, stop=stop)
@@ -314,6 +427,9 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as exc:
         log.error("%s", exc)
         return 2
+    except SessionError as exc:  # a taken listen port, an unreachable router: one line, not a traceback
+        log.error("camera not started: %s", exc)
+        return 1
     return 0
 
 

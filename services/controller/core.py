@@ -13,11 +13,19 @@ Data flow per tick:
                 --> watchdog on the DATA clock (state time - adopted heatmap's stamp)
                 --> VelocityCommand (every tick) + ControllerStatus (every tick)
 
+Geofence (`geofence.py`): every command, whatever the mode or policy, keeps the dead-reckoned
+position (the state's velocity estimate integrated from the first state) within
+`geofence_radius_m` of the start; a capped command says so in the status reason. Default: off with
+the sim (the paper's experiment stays as published), DEFAULT_VEHICLE_GEOFENCE_M on a real vehicle.
+
 Watchdog modes, highest priority first (each change is logged once at INFO with its reason):
 
     state_stale  the vehicle state stopped advancing (real time only, wall clock) -> zero velocity
     handover     at/below the hand-over altitude with the policy landing (Decision.landing): stop
                  commanding, short-range sensors take over; the command says so (`handover`)
+    no_velocity  (MAVLink) no horizontal velocity source is trusted: GNSS lost with
+                 `--gnss-denied off`, stale or poor visual velocity, an EKF that does not fuse
+                 it (gnss_denied.NavStatus says why)                             -> zero velocity
     policy_fault the policy raised, or declared LANDED/HANDOVER above the hand-over altitude
                  (measured)                                                      -> zero velocity
     no_heatmap   nothing adopted yet                                             -> zero velocity
@@ -47,10 +55,13 @@ from dataclasses import dataclass
 from enum import Enum
 from typing import Any
 
+from dovesei.controller.gnss_denied import GNSS_DENIED_MODES, NavStatus
 from dovesei.controller.policies.base import Decision, Observation, Policy, PolicyInputError, make_policy, policy_names
 from dovesei.controller.continuity import (
     ALTITUDE_NOISE_M, MAX_VERTICAL_SPEED_M_S, STEP_CONFIRM_SAMPLES, AltitudeContinuity,
 )
+from dovesei.controller.frames import body_frd_to_ned, ned_to_body_frd, to_ne
+from dovesei.controller.geofence import Geofence
 from dovesei.controller.odometry import VelocityTrack
 from dovesei.controller.policies.config import TIMING_PRESETS
 from dovesei.shared import keys, validate
@@ -75,6 +86,10 @@ MIN_HEATMAP_ALT_M, MAX_HEATMAP_ALT_M = 1.0, 1000.0
 HEATMAP_ALT_FRAC = 0.25
 HEATMAP_ALT_NOISE_MULT = 5.0
 _ALT_TRACK_LEN = 200  # accepted (t, alt) states kept: 10 s at 20 Hz, covers any perception latency
+# A real vehicle's fence when none is given: `clearance` searches within 300 m of the start (its
+# own fence 10 m inside), plus room for the raw velocity estimate's drift over a search. The
+# paper's policy has no bound of its own (a 600 m RESTARTING transit on ArduCopter SITL).
+DEFAULT_VEHICLE_GEOFENCE_M = 400.0
 
 
 class ControllerInputError(DoveseiError, ValueError):
@@ -134,6 +149,17 @@ class ControllerConfig:
     altitude_step_confirm_states: int = STEP_CONFIRM_SAMPLES  # a step held this long is real
     handover_confirm_states: int = 3  # states at/below the hand-over altitude before handing over
     record_path: str | None = None  # write an MCAP flight recording here (states, heatmaps, commands, status)
+    # Largest dead-reckoned distance from the start; None: off with the sim, DEFAULT_VEHICLE_GEOFENCE_M
+    # with a real vehicle; 0: off.
+    geofence_radius_m: float | None = None
+    geofence_gain_per_s: float = 0.5  # outward speed allowed per metre left to the fence
+    # MAVLink without GNSS (gnss_denied.py): "off" reports and holds, "external-nav" feeds the visual
+    # velocity to the EKF (source set `ekf_source_set`), "attitude" flies GUIDED_NOGPS attitude targets.
+    gnss_denied: str = "off"
+    ekf_source_set: int = 2  # the EK3_SRCn set whose VELXY is ExternalNav (6)
+    odometry_min_quality: float = 0.5  # visual velocity below this quality is not flown on
+    odometry_max_age_s: float = 0.5  # nor one older than this at arrival (receiver's clock)
+    attitude_max_tilt_deg: float = 15.0  # attitude mode: largest roll/pitch demanded
 
     def __post_init__(self) -> None:
         keys.check_vehicle_id(self.vehicle_id)
@@ -162,6 +188,15 @@ class ControllerConfig:
             raise ConfigError(f"handover_action {self.handover_action!r}: choose one of {HANDOVER_ACTIONS}")
         if self.mavlink_yaw_control not in ("rate", "autopilot"):
             raise ConfigError(f"mavlink_yaw_control {self.mavlink_yaw_control!r}: choose 'rate' or 'autopilot'")
+        if self.gnss_denied not in GNSS_DENIED_MODES:
+            raise ConfigError(f"gnss_denied {self.gnss_denied!r}: choose one of {', '.join(GNSS_DENIED_MODES)}")
+        if self.gnss_denied != "off" and self.vehicle_url == "zenoh":
+            raise ConfigError(f"gnss_denied {self.gnss_denied!r} needs a MAVLink vehicle (--vehicle-url); the sim "
+                              "never loses GNSS")
+        validate.in_range("ControllerConfig.ekf_source_set", self.ekf_source_set, 1, 3)
+        validate.in_range("ControllerConfig.odometry_min_quality", self.odometry_min_quality, 0.0, 1.0)
+        validate.positive("ControllerConfig.odometry_max_age_s", self.odometry_max_age_s)
+        validate.in_range("ControllerConfig.attitude_max_tilt_deg", self.attitude_max_tilt_deg, 1.0, 35.0)
         if self.heatmap_buffer_len < 1:
             raise ConfigError(f"heatmap_buffer_len must be >= 1, got {self.heatmap_buffer_len}")
         validate.in_range("ControllerConfig.camera_hfov_deg", self.camera_hfov_deg, 1.0, 179.0)
@@ -178,6 +213,9 @@ class ControllerConfig:
             validate.in_range(f"ControllerConfig.{name}", getattr(self, name), 1, 1000)
         if self.lockstep and self.vehicle_url != "zenoh":
             raise ConfigError("lockstep needs the simulator (--vehicle-url zenoh); a real vehicle runs in real time")
+        if self.geofence_radius_m is not None:
+            validate.in_range("ControllerConfig.geofence_radius_m", self.geofence_radius_m, 0.0, 100_000.0)
+        validate.positive("ControllerConfig.geofence_gain_per_s", self.geofence_gain_per_s)
         for name in ("mavlink_max_horizontal_m_s", "mavlink_max_up_m_s", "mavlink_max_down_m_s"):
             validate.in_range(f"ControllerConfig.{name}", getattr(self, name), 0.01, 50.0)
         if self.mavlink_system_id is not None:
@@ -196,6 +234,21 @@ class ControllerConfig:
     def period_s(self) -> float:
         return 1.0 / self.rate_hz
 
+    @property
+    def geofence_m(self) -> float | None:
+        """The fence in force: None when off."""
+        radius = self.geofence_radius_m
+        if radius is None:
+            return DEFAULT_VEHICLE_GEOFENCE_M if self.vehicle_url != "zenoh" else None
+        return radius if radius > 0.0 else None
+
+    @property
+    def vehicle_speed_limits_m_s(self) -> tuple[float, float, float] | None:
+        """(horizontal, up, down) the MAVLink adapter flies at most; None with the sim (its own limits)."""
+        if self.vehicle_url == "zenoh":
+            return None
+        return self.mavlink_max_horizontal_m_s, self.mavlink_max_up_m_s, self.mavlink_max_down_m_s
+
 
 class Mode(str, Enum):
     """The loop's safety mode (see the module docstring for priorities)."""
@@ -207,11 +260,12 @@ class Mode(str, Enum):
     STATE_STALE = "state_stale"
     HANDOVER = "handover"
     POLICY_FAULT = "policy_fault"
+    NO_VELOCITY = "no_velocity"
 
     @property
     def watchdog(self) -> str:
         """The status key's `watchdog` field: ok, hold, climb or state_stale."""
-        if self in (Mode.NO_HEATMAP, Mode.POLICY_FAULT):
+        if self in (Mode.NO_HEATMAP, Mode.POLICY_FAULT, Mode.NO_VELOCITY):
             return "hold"
         if self is Mode.HANDOVER:
             return "ok"  # not a fault: the status `state` says HANDOVER
@@ -220,10 +274,12 @@ class Mode(str, Enum):
 
 @dataclass(frozen=True)
 class _Adopted:
-    """The heatmap the current decision was computed from, and what it cost."""
+    """The heatmap the current decision was computed from, what it cost, and the attitude (roll,
+    pitch, yaw) the policy was given with it."""
 
     hm: SafetyHeatmap
     latency: StageLatency
+    attitude_rad: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
 
 class ControllerCore:
@@ -234,7 +290,8 @@ class ControllerCore:
         self.config = config
         self._mono = mono  # the controller's own clock (stamps are judged on it in real time)
         # The real wiring always goes through the factory; tests may hand in a double.
-        self.policy = policy if policy is not None else make_policy(config.policy, config.timing)
+        self.policy = policy if policy is not None else make_policy(config.policy, config.timing,
+                                                                    config.vehicle_speed_limits_m_s)
         self.rejected: Counter[str] = Counter()  # reason -> count (heatmaps and states refused)
         self.adopted_count = 0
         self._tick_seq = 0
@@ -276,6 +333,13 @@ class ControllerCore:
         self._refused_decision: Decision | None = None  # the terminal decision refused above hand-over
         self._track = VelocityTrack()  # the velocity estimate integrated, to read between capture stamps
         self._last_capture_t_s: float | None = None  # capture stamp of the heatmap the policy last took
+        # Precision landing: the chosen spot relative to the vehicle (north, east, down metres) at
+        # data-clock time t_s, fixed at the hand-over and carried by dead reckoning from then on.
+        self._spot_rel_ned_m: tuple[float, float, float] | None = None
+        self._spot_t_s = 0.0
+        radius = self.config.geofence_m
+        self.geofence = Geofence(radius, self.config.geofence_gain_per_s) if radius is not None else None
+        self._fenced = False  # the previous command was capped (its start and end are logged)
 
     def _maybe_new_episode(self, state: VehicleState) -> None:
         """Time running backwards is a new sim episode only in lockstep with a restarted state
@@ -399,11 +463,13 @@ class ControllerCore:
 
     # ---- the tick ------------------------------------------------------------------------
 
-    def tick(self, state: VehicleState, wall_s: float | None = None) -> tuple[VelocityCommand, ControllerStatus]:
+    def tick(self, state: VehicleState, wall_s: float | None = None,
+             nav: NavStatus | None = None) -> tuple[VelocityCommand, ControllerStatus]:
         """One control tick on `state`'s data clock.
 
         `wall_s` is the real-time loop's monotonic wall time (None in lockstep): it only serves to
         notice that the vehicle state stopped advancing, which data time alone cannot show.
+        `nav` is the MAVLink adapter's judgement of the velocity sources (None: the sim, trusted).
         Raises ControllerInputError for another vehicle's state.
         """
         cfg = self.config
@@ -431,17 +497,22 @@ class ControllerCore:
             self._state_advanced_wall_s = wall_s
         self._last_state_t_s, self._last_state_seq = now_s, state.seq
         self._track.add(now_s, state.vel_body_frd_m_s, state.yaw_rad)
+        if self.geofence is not None:
+            self.geofence.add(now_s, state.vel_body_frd_m_s, state.yaw_rad)
         if self._first_alt_m is None:
             self._first_alt_m = state.alt_agl_m
 
         self._adopt_due(state)
-        mode, reason = self._judge(state, wall_s)
+        mode, reason = self._judge(state, wall_s, nav)
         if mode is not self._mode:
             log.info("controller %s: watchdog %s -> %s at t=%.3f s (alt %.1f m): %s", cfg.vehicle_id,
                      self._mode.value if self._mode else "start", mode.value, now_s, state.alt_agl_m, reason)
             self._mode = mode
 
         vel, yaw_rate = self._velocity(mode, state)
+        vel, reason = self._fence(vel, state, reason, pull_back=mode is Mode.OK)
+        if mode is not Mode.HANDOVER:
+            self._spot_rel_ned_m = None  # a new hand-over fixes its own spot
         self._tick_seq += 1
         adopted = self._adopted
         frame_seq = adopted.hm.seq if adopted is not None else -1
@@ -450,7 +521,7 @@ class ControllerCore:
             yaw_rate_rad_s=yaw_rate, state_seq=state.seq, frame_seq=frame_seq,
             latency=adopted.latency if adopted is not None else None, handover=mode is Mode.HANDOVER,
         )
-        return cmd, self._status(mode, reason, state, vel)
+        return cmd, self._status(mode, reason, state, vel, nav)
 
     def _adopt_due(self, state: VehicleState) -> None:
         """Lockstep: adopt exactly the awaited seq; real time: the newest pending heatmap."""
@@ -559,7 +630,7 @@ class ControllerCore:
             odom = self._track.displacement_ne_m(self._last_capture_t_s, hm.stamp.t_s)
         obs = Observation(t_s=self._policy_time_s(hm), alt_agl_m=hm.alt_agl_m, prob_safe=hm.probability(), hfov_rad=hm.hfov_rad,
                           roll_rad=state.roll_rad, pitch_rad=state.pitch_rad, yaw_rad=state.yaw_rad,
-                          vel_est_body_frd_m_s=state.vel_body_frd_m_s, odom_delta_ne_m=odom)
+                          vel_est_body_frd_m_s=state.vel_body_frd_m_s, odom_delta_ne_m=odom, frame_seq=hm.seq)
         start = time.perf_counter()
         try:
             decision = self.policy.step(obs)
@@ -595,7 +666,7 @@ class ControllerCore:
         to_controller_s = recv_wall_s - hm.sent_wall_s if hm.sent_wall_s > 0.0 else 0.0
         latency = StageLatency(frame_to_segmenter_s=hm.frame_to_segmenter_s, inference_s=hm.inference_s,
                                heatmap_to_controller_s=to_controller_s, policy_s=policy_s)
-        self._adopted = _Adopted(hm, latency)
+        self._adopted = _Adopted(hm, latency, (state.roll_rad, state.pitch_rad, state.yaw_rad))
         self._decision = decision
         self.adopted_count += 1
         log.debug("adopted heatmap %d: policy %.2f ms, state %s", hm.seq, policy_s * 1e3, decision.state)
@@ -608,7 +679,7 @@ class ControllerCore:
             return None
         return max(0.0, state.stamp.t_s - self._adopted.hm.stamp.t_s)
 
-    def _judge(self, state: VehicleState, wall_s: float | None) -> tuple[Mode, str]:
+    def _judge(self, state: VehicleState, wall_s: float | None, nav: NavStatus | None = None) -> tuple[Mode, str]:
         cfg = self.config
         if wall_s is not None and self._state_advanced_wall_s is not None:
             frozen_s = wall_s - self._state_advanced_wall_s
@@ -636,6 +707,9 @@ class ControllerCore:
         if self._in_handover:
             return Mode.HANDOVER, (f"at/below the hand-over altitude {cfg.handover_alt_m:g} m: "
                                    "short-range sensors take over")
+        if nav is not None and not nav.velocity_trusted:
+            # Descending blind drifts onto ground nobody checked: hold until a source is trusted.
+            return Mode.NO_VELOCITY, f"no trusted velocity source: {nav.reason}"
         if self._policy_fault is not None:
             return Mode.POLICY_FAULT, f"{self._policy_fault}: holding position"
         decision = self._decision
@@ -659,6 +733,19 @@ class ControllerCore:
             return Mode.HOLD, f"heatmap older than {cfg.heatmap_hold_after_s:g} s: descent stopped, holding position"
         return Mode.OK, "heatmaps fresh: following the policy"
 
+    def _fence(self, vel: tuple[float, float, float], state: VehicleState, reason: str,
+               pull_back: bool) -> tuple[tuple[float, float, float], str]:
+        """Every command through the geofence; the status reason says when it capped one."""
+        if self.geofence is None:
+            return vel, reason
+        vel, why = self.geofence.cap(vel, state.yaw_rad, pull_back)
+        fenced = why is not None
+        if fenced != self._fenced:
+            log.log(logging.WARNING if fenced else logging.INFO, "controller %s: %s", self.config.vehicle_id,
+                    why if fenced else f"geofence: back within {self.geofence.radius_m:g} m, commands untouched")
+            self._fenced = fenced
+        return vel, (f"{reason}; {why}" if fenced else reason)
+
     @property
     def search_alt_m(self) -> float:
         """Where the climb watchdog goes: the configured altitude or the first one seen."""
@@ -668,7 +755,7 @@ class ControllerCore:
 
     def _velocity(self, mode: Mode, state: VehicleState) -> tuple[tuple[float, float, float], float]:
         if mode is Mode.OK and self._decision is not None:
-            return self._decision.vel_body_frd_m_s, self._decision.yaw_rate_rad_s
+            return self._as_meant(self._decision.vel_body_frd_m_s, state), self._decision.yaw_rate_rad_s
         if mode is Mode.CLIMB:
             error_m = self.search_alt_m - state.alt_agl_m
             # FRD: negative down is up. Proportional near the target, never a descent.
@@ -676,27 +763,73 @@ class ControllerCore:
             return (0.0, 0.0, -up_m_s if up_m_s > 0 else 0.0), 0.0
         return (0.0, 0.0, 0.0), 0.0
 
+    def _as_meant(self, vel: tuple[float, float, float], state: VehicleState) -> tuple[float, float, float]:
+        """The decision's body velocity in the body frame of this tick: the policy meant the frame
+        of the heading it was given with its heatmap; if the vehicle has turned since (an autopilot
+        that yaws, heading drift), the horizontal command turns back by as much."""
+        adopted = self._adopted
+        if adopted is None:
+            return vel
+        turned_rad = math.remainder(adopted.attitude_rad[2] - state.yaw_rad, 2.0 * math.pi)
+        if turned_rad == 0.0:
+            return vel
+        fwd, right = to_ne(vel[0], vel[1], turned_rad)
+        return fwd, right, vel[2]
+
     @property
     def mode(self) -> Mode | None:
         return self._mode
 
-    def landing_target_angles(self) -> tuple[float, float] | None:
-        """The decision's target as camera angles (image x right, image y down = body backward),
-        what MAVLink's LANDING_TARGET carries; None without a target."""
+    def landing_target(self, state: VehicleState) -> tuple[float, float, float] | None:
+        """The spot to land on as MAVLink's LANDING_TARGET sees it from the vehicle now: (angle_x,
+        angle_y, distance) in the body FRD frame (image x right, image y down = body backward);
+        None without a spot.
+
+        The spot is fixed on the ground the first time this is asked after the hand-over began:
+        the newest decision's target pixel, cast with the attitude it was decided with onto flat
+        ground at the heatmap's altitude. From then on it is carried by the autopilot's velocity
+        estimate integrated tick by tick (no position), never by the policy's later views: below
+        the hand-over altitude the camera's verdict is the short-range sensors' job, and a target
+        pixel re-sent as fixed angles would run away with the vehicle as it moves over it.
+        """
+        now_s = state.stamp.t_s
+        if self._spot_rel_ned_m is None:
+            spot = self._spot_at_capture()
+            if spot is None:
+                return None
+            self._spot_rel_ned_m, self._spot_t_s = spot
+        moved = self._track.displacement_ne_m(self._spot_t_s, now_s)
+        if moved is None:
+            return None  # the velocity track has a gap: better no target than a made-up one
+        n, e, d = self._spot_rel_ned_m
+        # The ground below is flat: the spot stays `alt` metres down whatever the descent did.
+        self._spot_rel_ned_m, self._spot_t_s = (n - moved[0], e - moved[1], max(state.alt_agl_m, 0.0)), now_s
+        fwd, right, down = ned_to_body_frd(self._spot_rel_ned_m, state.roll_rad, state.pitch_rad, state.yaw_rad)
+        down = max(down, 1e-3)  # a spot at or above the horizon would be a broken geometry, not a target
+        return math.atan2(right, down), math.atan2(-fwd, down), math.sqrt(fwd * fwd + right * right + down * down)
+
+    def _spot_at_capture(self) -> tuple[tuple[float, float, float], float] | None:
+        """(spot relative to the vehicle in NED metres, capture time) from the newest decision."""
         adopted, decision = self._adopted, self._decision
         if adopted is None or decision is None or decision.target_px is None:
             return None
         h, w = adopted.hm.prob_safe.shape
         focal_px = (w / 2.0) / math.tan(adopted.hm.hfov_rad / 2.0)  # square pixels: one focal length
         row, col = decision.target_px
-        return math.atan((col - (w - 1) / 2.0) / focal_px), math.atan((row - (h - 1) / 2.0) / focal_px)
+        # The pixel's ray in the body frame (camera looking down: image up = forward), then NED.
+        ray_ned = body_frd_to_ned((-(row - (h - 1) / 2.0) / focal_px, (col - (w - 1) / 2.0) / focal_px, 1.0),
+                                  *adopted.attitude_rad)
+        if ray_ned[2] <= 1e-3:
+            return None
+        scale = max(adopted.hm.alt_agl_m, 0.0) / ray_ned[2]
+        return (ray_ned[0] * scale, ray_ned[1] * scale, ray_ned[2] * scale), adopted.hm.stamp.t_s
 
     @property
     def decision(self) -> Decision | None:
         return self._decision
 
     def _status(self, mode: Mode, reason: str, state: VehicleState,
-                vel: tuple[float, float, float]) -> ControllerStatus:
+                vel: tuple[float, float, float], nav: NavStatus | None = None) -> ControllerStatus:
         decision = self._decision
         age_s = self.heatmap_age_s(state)
         target = decision.target_px if decision is not None else None
@@ -725,4 +858,19 @@ class ControllerCore:
             spot_clearance_m=max(info.get("spot_clearance_m", 0.0), 0.0) if spot else 0.0,
             spot_confidence=min(max(info.get("spot_confidence", 0.0), 0.0), 1.0) if spot else 0.0,
             handover=mode is Mode.HANDOVER,
+            nav_source=nav.source if nav is not None else "", gnss_lost=nav.gnss_lost if nav is not None else False,
+            position_lost=nav.position_lost if nav is not None else False,
+            nav_reason=nav.reason if nav is not None else "",
+            **_confirmed_fields(decision),
         )
+
+
+def _confirmed_fields(decision: Decision | None) -> dict[str, Any]:
+    """The status fields of the decision's confirming look; none when it has none or its pixel is
+    not one a frame can have (a policy bug must not take the status message down with it)."""
+    c = decision.confirmed if decision is not None else None
+    lo, hi = ControllerStatus.RANGES["confirmed_row_px"]
+    if c is None or c.frame_seq < 0 or not all(math.isfinite(v) and lo <= v <= hi for v in (c.row_px, c.col_px)):
+        return {}
+    return {"confirmed_valid": True, "confirmed_frame_seq": int(c.frame_seq), "confirmed_row_px": float(c.row_px),
+            "confirmed_col_px": float(c.col_px)}

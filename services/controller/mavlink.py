@@ -14,6 +14,20 @@ Data flow (one I/O thread owns the link; callers only read snapshots and hand co
     I/O thread -> HEARTBEAT at 1 Hz as an onboard controller (MAV_TYPE_ONBOARD_CONTROLLER,
         MAV_AUTOPILOT_INVALID); LANDING_TARGET at 10 Hz during a precision-landing hand-over
 
+Without GNSS (`gnss_denied`, the judgement and the attitude loop in `gnss_denied.py`):
+
+    GPS_RAW_INT, EKF_STATUS_REPORT (ArduPilot), ESTIMATOR_STATUS (PX4), LOCAL_POSITION_NED arrivals
+        -> NavJudge -> nav_status() (the controller's core stops descending when nothing is trusted);
+           a loss or recovery logged once, counted in counters()
+    on_visual_odometry(VisualOdometry) -> OdometryGate; "external-nav": each good sample out at once
+        as VISION_SPEED_ESTIMATE (ArduPilot, NED via ATTITUDE, variance on the diagonal) or ODOMETRY
+        (PX4, body-frame velocity), and on GNSS loss MAV_CMD_SET_EKF_SOURCE_SET(ekf_source_set)
+        until acknowledged; "attitude": on GNSS loss ArduPilot is switched GUIDED -> GUIDED_NOGPS and
+        every command streams as SET_ATTITUDE_TARGET from the AttitudeLoop (PX4 stays in OFFBOARD)
+    LOCAL_POSITION_NED stopped (ArduPilot's EKF without a position stops it): the state is then
+        published on each ATTITUDE, altitude and climb rate from GLOBAL_POSITION_INT (relative_alt is
+        the barometric height above home), horizontal velocity from the good visual velocity or zero
+
 Size: one class, one lock domain (the I/O thread and the caller share every field below under
 `_lock`); the pure parts live beside it (`mavlink_proto` numbers and checks, `mavlink_readiness`,
 `mavlink_takeoff`, `mavlink_signing`), and splitting the rest would scatter the locking.
@@ -27,7 +41,10 @@ Conventions (ArduPilot "Copter Commands in Guided Mode", PX4 offboard docs; numb
 MAV_FRAME_BODY_NED (PX4), both heading-level frames; type mask 0x05C7 (velocity + yaw rate).
 Heading: with `yaw_control="rate"` the yaw rate sent is the policy's plus a proportional
 correction towards the heading held since steering began (read from ATTITUDE), so the camera does
-not rotate under the map when the autopilot's heading drifts; "autopilot" sends velocity only.
+not rotate under the map when the autopilot's heading drifts; "autopilot" sends the velocity in
+MAV_FRAME_LOCAL_NED (rotated by the heading the command was meant in) with that held heading as a
+yaw angle, for the autopilot's own heading controller to hold (velocity alone let ArduCopter turn
+the nose by WP_YAW_BEHAVIOR, and the body-frame policy ran out of the world).
 
 Trust: the autopilot is the first ArduPilot/PX4 heartbeat heard, or only `system_id` when pinned
 (a spoofer heard first is never locked onto); another autopilot id later is refused, counted and
@@ -69,6 +86,7 @@ from dovesei.controller.mavlink_proto import (
     MAV_CMD_SET_MESSAGE_INTERVAL,
     MAV_COMP_ID_ONBOARD_COMPUTER,
     MAV_FRAME_BODY_FRD,
+    MAV_FRAME_LOCAL_NED,
     MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
     MAV_MODE_FLAG_SAFETY_ARMED,
     MAV_RESULT_ACCEPTED,
@@ -78,13 +96,20 @@ from dovesei.controller.mavlink_proto import (
     MAV_TYPE_GCS,
     MAV_TYPE_ONBOARD_CONTROLLER,
     MSG_ID_ATTITUDE,
+    ATTITUDE_TYPE_MASK_ANGLES_THRUST,
+    MAV_CMD_SET_EKF_SOURCE_SET,
+    MAV_ESTIMATOR_TYPE_VISION,
+    MAV_FRAME_LOCAL_FRD,
     MSG_ID_DISTANCE_SENSOR,
     MSG_ID_EKF_STATUS_REPORT,
+    MSG_ID_ESTIMATOR_STATUS,
+    MSG_ID_GLOBAL_POSITION_INT,
+    MSG_ID_GPS_RAW_INT,
     MSG_ID_LOCAL_POSITION_NED,
     MSG_ID_SYS_STATUS,
     STEER_FRAME,
     STEER_MODE,
-    TYPE_MASK_VELOCITY_ONLY,
+    TYPE_MASK_VELOCITY_YAW,
     TYPE_MASK_VELOCITY_YAW_RATE,
     YAW_CONTROLS,
     MavlinkError,
@@ -94,27 +119,48 @@ from dovesei.controller.mavlink_proto import (
     check_attitude,
     check_distance_m,
     check_local_position,
+    ALT_RANGE_M,
+    SPEED_RANGE_M_S,
     check_url,
     clamp_setpoint,
     encode_mode,
+    frd_to_ned,
     mode_name,
     ned_to_frd,
     open_link,
 )
 from dovesei.controller import mavlink_takeoff
+from dovesei.controller.frames import to_ne
+from dovesei.controller.gnss_denied import (
+    GNSS_DENIED_MODES,
+    AttitudeGains,
+    AttitudeLoop,
+    NavJudge,
+    NavStatus,
+    OdometryGate,
+    OdometryLimits,
+    vision_speed_covariance,
+)
 from dovesei.controller.mavlink_readiness import ArmReadiness
 from dovesei.controller.mavlink_signing import LinkSigning
 from dovesei.shared import validate
 from dovesei.shared.errors import ConfigError
 from dovesei.shared.keys import check_vehicle_id
 from dovesei.shared.lifecycle import RateLimitedLog
-from dovesei.shared.messages import Stamp, VehicleState, VelocityCommand
+from dovesei.shared.messages import Stamp, VehicleState, VelocityCommand, VisualOdometry
 
 log = logging.getLogger(__name__)
 
 _ATTITUDE_FRESH_S = 1.0  # heading hold only corrects from an attitude younger than this
-_LANDING_TARGET_PERIOD_S = 0.1  # 10 Hz: ArduPilot's precland filter expects >= ~5 Hz
+# 10 Hz: ArduPilot's precland estimator initialises only on an update at least every 0.5 s for 2 s
+# and drops a target not updated for 2 s (AC_PrecLand EKF_INIT_*, LANDING_TARGET_TIMEOUT_MS).
+_LANDING_TARGET_PERIOD_S = 0.1
 _LANDING_TARGET_FRESH_S = 1.0  # a spot older than this is no longer streamed
+_NAV_PERIOD_S = 0.2  # the navigation judgement (and its loss / recovery log) at 5 Hz
+_GPS_RAW_INTERVAL_US = 200_000.0  # GPS_RAW_INT at 5 Hz: a lost fix is noticed within a fifth of a second
+_GLOBAL_FRESH_S = 1.0  # the fallback state's altitude (GLOBAL_POSITION_INT) is used only this fresh
+_LOCAL_FALLBACK_S = 0.5  # LOCAL_POSITION_NED silent this long: states come from ATTITUDE (no stale-state gap)
+_SOURCE_SET_RETRY_S, _SOURCE_SET_TRIES = 1.0, 10
 
 
 @dataclass(frozen=True)
@@ -145,8 +191,12 @@ class MavlinkVehicle:
                  source_component: int = MAV_COMP_ID_ONBOARD_COMPUTER, system_id: int | None = None,
                  limits: SpeedLimits | None = None, yaw_hold_gain_per_s: float = 1.0,
                  signing_key: bytes | None = None, signing_timestamp_file: str | Path | None = None,
-                 require_home: bool = True, clock: Callable[[], float] = time.monotonic) -> None:
+                 require_home: bool = True, gnss_denied: str = "off", ekf_source_set: int = 2,
+                 odometry_limits: OdometryLimits | None = None, attitude_gains: AttitudeGains | None = None,
+                 clock: Callable[[], float] = time.monotonic) -> None:
         check_url(url)
+        validate.one_of("gnss_denied", gnss_denied, GNSS_DENIED_MODES)
+        validate.in_range("ekf_source_set", ekf_source_set, 1, 3)
         for name, value, choices in (("alt_source", alt_source, ALT_SOURCES), ("handover", handover, HANDOVERS),
                                      ("yaw_control", yaw_control, YAW_CONTROLS)):
             validate.one_of(name, value, choices)
@@ -169,7 +219,7 @@ class MavlinkVehicle:
         self.heartbeat_timeout_s, self.command_timeout_s = float(heartbeat_timeout_s), float(command_timeout_s)
         self.setpoint_period_s, self.stream_rate_hz = 1.0 / setpoint_rate_hz, float(stream_rate_hz)
         self.yaw_control, self.yaw_hold_gain_per_s = yaw_control, float(yaw_hold_gain_per_s)
-        self.type_mask = TYPE_MASK_VELOCITY_YAW_RATE if yaw_control == "rate" else TYPE_MASK_VELOCITY_ONLY
+        self.type_mask = TYPE_MASK_VELOCITY_YAW_RATE if yaw_control == "rate" else TYPE_MASK_VELOCITY_YAW
         self.read_only, self.system_id = read_only, system_id
         self.limits = limits if limits is not None else SpeedLimits()
         self.source_system, self.source_component = source_system, source_component
@@ -201,6 +251,7 @@ class MavlinkVehicle:
         self._cmd: VelocityCommand | None = None  # newest command to stream (None: stream nothing)
         self._cmd_time_s = 0.0
         self._cmd_zeroed = False
+        self._cmd_yaw_rad = 0.0  # heading when the newest command arrived
         self._prestream = False  # stream zero setpoints with no command (PX4 before OFFBOARD)
         self._yaw_ref_rad: float | None = None  # the heading held while steering
         self._steered = False  # we have streamed in GUIDED/OFFBOARD at least once
@@ -210,9 +261,29 @@ class MavlinkVehicle:
         self._precland = False
         self._unsupported_seen: set[int] = set()  # MAV_AUTOPILOT values of heartbeats we cannot fly
         self._next_setpoint_s = 0.0
+        # Without GNSS: the judgement, the camera's velocity, the attitude loop (gnss_denied.py).
+        self.gnss_denied, self.ekf_source_set = gnss_denied, int(ekf_source_set)
+        self._nav = NavJudge(gnss_denied)
+        self._odometry = OdometryGate(odometry_limits)
+        self._attitude_gains = attitude_gains if attitude_gains is not None else AttitudeGains(
+            climb_limit_up_m_s=self.limits.up_m_s, climb_limit_down_m_s=self.limits.down_m_s)
+        self._attitude_loop: AttitudeLoop | None = None  # made once the autopilot (its thrust meaning) is known
+        self._attitude_flying = False  # GNSS lost in "attitude": commands go out as attitude targets
+        self._attitude_step_s: float | None = None
+        self._global: tuple[float, float, float] | None = None  # GLOBAL_POSITION_INT relative alt, vz down, at
+        self._local_s: float | None = None  # when the newest LOCAL_POSITION_NED arrived
+        self._nav_status = NavStatus(False, False, True, "autopilot", "no estimator report yet")
+        self._gnss_lost_seen = False
+        self._source_set: tuple[int, float] | None = None  # (tries so far, next try) while switching
         # Counters for tests, operators' logs and the run's stats.
+        self.vision_sent = 0
+        self.attitude_targets_sent = 0
+        self.gnss_losses = 0
+        self.source_set_result: int | None = None  # MAV_RESULT of the source-set switch (None: none yet)
         self.setpoints_sent = 0
-        self.setpoints_clamped = 0
+        self.setpoints_clamped = 0  # every setpoint written, stream repeats included
+        self.commands_steered = 0  # commands handed in by send() and flown
+        self.commands_clamped = 0  # ... of which asked for more than the limits
         self.messages_received = 0
         self.landing_targets_sent = 0
         self.samples_rejected: Counter[str] = Counter()  # reason -> count
@@ -306,10 +377,146 @@ class MavlinkVehicle:
     def counters(self) -> dict[str, Any]:
         """What the link did, for the run's stats and the operator."""
         return {"setpoints_sent": self.setpoints_sent, "setpoints_clamped": self.setpoints_clamped,
+                "commands_steered": self.commands_steered, "commands_clamped": self.commands_clamped,
                 "messages_received": self.messages_received, "landing_targets_sent": self.landing_targets_sent,
                 "samples_rejected": dict(self.samples_rejected), "intruder_heartbeats": dict(self.intruders),
                 "signing_rejected": dict(self.signing_rejected), "send_failures": self.send_failures,
-                "lost_reason": self.lost_reason}
+                "lost_reason": self.lost_reason, "gnss_denied": self.gnss_denied, "gnss_losses": self.gnss_losses,
+                "vision_speed_sent": self.vision_sent, "attitude_targets_sent": self.attitude_targets_sent,
+                "ekf_source_set_result": self.source_set_result, "nav_reason": self.nav_status().reason}
+
+    # ----------------------------------------------------------------- without GNSS
+
+    def nav_status(self) -> NavStatus:
+        """What may be trusted about the vehicle's motion now (refreshed by the I/O thread at 5 Hz)."""
+        with self._lock:
+            return self._nav_status
+
+    def on_visual_odometry(self, odom: VisualOdometry) -> None:
+        """The camera's newest velocity. "external-nav": each good sample goes to the EKF at once."""
+        if not isinstance(odom, VisualOdometry):
+            raise TypeError(f"on_visual_odometry() takes a VisualOdometry, got {type(odom).__name__}")
+        if odom.vehicle_id != self.vehicle_id:
+            self._reject("other vehicle's odometry", f"vehicle {odom.vehicle_id!r}, not {self.vehicle_id!r}")
+            return
+        now = self._clock()
+        with self._lock:
+            if not self._odometry.add(odom, now):
+                return
+            good, _ = self._odometry.judge(now)
+            attitude = self._attitude_rad if self._attitude_s is not None else None
+        if self.gnss_denied != "external-nav" or not good or self.read_only or self._target is None:
+            return
+        if attitude is None:
+            return  # no heading yet: a body velocity cannot be put in NED
+        self._send_external_velocity(odom, attitude, now)
+
+    def _send_external_velocity(self, odom: VisualOdometry, attitude: tuple[float, float, float],
+                                now: float) -> None:
+        target = self._target
+        assert target is not None
+        # The capture time on the autopilot's clock when the camera tagged it so (time since boot,
+        # what ArduPilot's jitter correction expects), else ours.
+        t_s = odom.stamp.t_s if odom.stamp.clock == "vehicle" else now
+        usec = int(max(0.0, t_s) * 1e6)
+        var = odom.vel_var_m2_s2
+        if target.autopilot == "px4":
+            # PX4 has no VISION_SPEED_ESTIMATE handler: ODOMETRY with only a body-frame velocity (the
+            # position fields NaN), fused with EKF2_EV_CTRL bit 2 (velocity).
+            nan = float("nan")
+            fwd, right, down = odom.vel_body_frd_m_s
+            velocity_cov = [var, 0.0, 0.0, 0.0, 0.0, 0.0, var, 0.0, 0.0, 0.0, 0.0, var] + [0.0] * 9
+            ok = self._tx(lambda mav: mav.odometry_send(
+                usec, MAV_FRAME_LOCAL_FRD, MAV_FRAME_BODY_FRD, nan, nan, nan, [nan, nan, nan, nan], fwd, right,
+                down, nan, nan, nan, [nan] + [0.0] * 20, velocity_cov, 0, MAV_ESTIMATOR_TYPE_VISION,
+                int(round(odom.quality * 100))))
+        else:
+            vn, ve, vd = frd_to_ned(odom.vel_body_frd_m_s, *attitude)
+            cov = vision_speed_covariance(var)
+            ok = self._tx(lambda mav: mav.vision_speed_estimate_send(usec, vn, ve, vd, cov, 0))
+        if ok:
+            self.vision_sent += 1
+
+    def _nav_tick(self, now: float) -> None:
+        """Judge the navigation; on a GNSS loss start what the mode asks (source set, GUIDED_NOGPS)."""
+        with self._lock:
+            status = self._nav.status(now, self._odometry)
+            previous, self._nav_status = self._nav_status, status
+            target = self._target
+            # Counted with the status that shows it, so a reader never sees one without the other.
+            first_loss = status.gnss_lost and not self._gnss_lost_seen
+            if first_loss:
+                self._gnss_lost_seen = True
+                self.gnss_losses += 1
+        if status.gnss_lost != previous.gnss_lost or status.position_lost != previous.position_lost:
+            if status.gnss_lost or status.position_lost:
+                log.warning("navigation: %s", status.reason)
+            else:
+                log.info("navigation: GNSS and position back (%s)", status.reason)
+        elif status.velocity_trusted != previous.velocity_trusted:
+            log.info("navigation: velocity %s: %s", "trusted" if status.velocity_trusted else "NOT trusted",
+                     status.reason)
+        if not status.gnss_lost or target is None or self.read_only:
+            return
+        if first_loss:
+            if self.gnss_denied == "external-nav" and target.autopilot == "ardupilot":
+                log.warning("GNSS lost: switching the EKF to source set %d (VELXY ExternalNav)", self.ekf_source_set)
+                self._source_set = (0, now)
+            elif self.gnss_denied == "attitude":
+                self._start_attitude_flying(target)
+        if self._source_set is not None and now >= self._source_set[1]:
+            self._source_set_tick(now)
+
+    def _source_set_tick(self, now: float) -> None:
+        assert self._source_set is not None
+        tries, _ = self._source_set
+        with self._ack_cond:
+            result = self._acks.pop(MAV_CMD_SET_EKF_SOURCE_SET, None)
+        if result is not None:
+            self.source_set_result = result
+            if result == MAV_RESULT_ACCEPTED:
+                log.info("EKF source set %d accepted by the autopilot", self.ekf_source_set)
+                self._source_set = None
+                return
+        if tries >= _SOURCE_SET_TRIES:
+            log.warning("the autopilot did not accept EKF source set %d after %d tries (last MAV_RESULT %s): the "
+                        "EKF may not fuse the visual velocity; no descent until it does", self.ekf_source_set, tries,
+                        result)
+            self._source_set = None
+            return
+        self._send_command_long(MAV_CMD_SET_EKF_SOURCE_SET, float(self.ekf_source_set))
+        self._source_set = (tries + 1, now + _SOURCE_SET_RETRY_S)
+
+    def _start_attitude_flying(self, target: _Target) -> None:
+        """GNSS lost in "attitude": from now on commands go out as attitude targets."""
+        with self._lock:
+            self._attitude_flying = True
+            self._attitude_step_s = None
+            if self._attitude_loop is None:
+                # ArduCopter reads thrust as a climb rate (GUID_OPTIONS bit 3 clear); PX4 as thrust.
+                self._attitude_loop = AttitudeLoop(self._attitude_gains,
+                                                   thrust_mode="thrust" if target.autopilot == "px4" else "climb-rate")
+            self._attitude_loop.reset()
+            in_guided = self._mode == "GUIDED" and self._armed
+            if target.autopilot == "ardupilot" and in_guided:
+                # Our own switch, not a pilot's: GUIDED without a position ends in the EKF failsafe.
+                self._request_mode_locked("GUIDED_NOGPS")
+        if target.autopilot == "ardupilot":
+            if in_guided:
+                log.warning("GNSS lost: switching GUIDED -> GUIDED_NOGPS, flying attitude targets on the visual "
+                            "velocity")
+            else:
+                log.warning("GNSS lost in %s: not switching to GUIDED_NOGPS (dovesei was not flying in GUIDED)",
+                            self.mode)
+        else:
+            log.warning("GNSS lost: flying OFFBOARD attitude targets on the visual velocity")
+
+    def _steer_mode_locked(self) -> str:
+        """The mode we steer in: GUIDED_NOGPS once ArduPilot flies attitude targets. Caller holds the lock."""
+        assert self._target is not None
+        if self._attitude_flying and self._target.autopilot == "ardupilot":
+            return "GUIDED_NOGPS"
+        return STEER_MODE[self._target.autopilot]
 
     # ----------------------------------------------------------------- steering
 
@@ -321,6 +528,9 @@ class MavlinkVehicle:
             reason = self._refusal_locked()
             if reason is None:
                 self._cmd, self._cmd_time_s, self._cmd_zeroed = cmd, self._clock(), False
+                # The body frame the command means: the heading when it arrives (yaw_control 'autopilot'
+                # sends it in the local frame, so repeats never turn with the vehicle).
+                self._cmd_yaw_rad = self._attitude_rad[2]
                 self._steered = True
             else:
                 reason = self._maybe_request_mode_locked(reason)
@@ -329,6 +539,10 @@ class MavlinkVehicle:
         # Out at once (the stream only fills the gaps); the stream's next repeat is a period away.
         if not self._send_setpoint(cmd):
             raise NotSteerableError("setpoint not sent: the link's socket refused it (see the log)")
+        # Per command, not per repeat: how often the controller asked for more than the vehicle flies.
+        self.commands_steered += 1
+        if clamp_setpoint(cmd.vel_body_frd_m_s, 0.0, self.limits)[2]:
+            self.commands_clamped += 1
         with self._lock:
             self._next_setpoint_s = self._clock() + self.setpoint_period_s
 
@@ -417,8 +631,10 @@ class MavlinkVehicle:
             return self._lost_reason
         if not self._armed:
             return "the autopilot is disarmed (dovesei never arms on its own)"
-        wanted = STEER_MODE[self._target.autopilot]
+        wanted = self._steer_mode_locked()
         if self._mode != wanted:
+            if self._mode_request is not None and self._mode_request[0] == wanted:
+                return f"the autopilot is in {self._mode}, switching to {wanted}"
             return f"the autopilot is in {self._mode}, not {wanted}"
         return None
 
@@ -428,7 +644,9 @@ class MavlinkVehicle:
         if (not self.allow_mode_switch or target is None or self.read_only or self._lost_reason is not None
                 or not self._armed):
             return reason
-        wanted = STEER_MODE[target.autopilot]
+        wanted = self._steer_mode_locked()
+        if self._mode_request is not None and self._mode_request[0] == wanted:
+            return reason  # our own switch is already under way
         if self._steered:
             # We flew it in that mode and someone switched away: a pilot's takeover wins, always.
             return f"{reason}; not switching back after a mode change away from {wanted} (pilot override)"
@@ -464,13 +682,16 @@ class MavlinkVehicle:
 
     def _io_loop(self) -> None:
         next_hb_s = self._clock()  # send at once: an udpout peer learns our address from it
-        next_stream_request_s = next_landing_s = next_sign_s = 0.0
+        next_stream_request_s = next_landing_s = next_sign_s = next_nav_s = 0.0
         while not self._stop.is_set():
             now = self._clock()
             if now >= next_hb_s:
                 self._send_heartbeat()
                 next_hb_s = now + 1.0
             self._check_link(now)
+            if self._target is not None and now >= next_nav_s:
+                self._nav_tick(now)
+                next_nav_s = now + _NAV_PERIOD_S
             if self._target is not None and self._state is None and now >= next_stream_request_s:
                 # Asked again every 2 s until the first state: a request is one UDP datagram.
                 self._request_streams()
@@ -544,13 +765,28 @@ class MavlinkVehicle:
                     self._reject("LOCAL_POSITION_NED jump", f"LOCAL_POSITION_NED: {jump}")
                     return
                 with self._lock:
-                    self._local = local
+                    self._local, self._local_s = local, self._clock()
+                    self._nav.on_local_position(self._local_s)
                 if self.alt_source == "local":
                     self._publish_state(msg.time_boot_ms, -local[2])
             elif kind == "ATTITUDE":
                 attitude = check_attitude(msg)
                 with self._lock:
                     self._attitude_rad, self._attitude_s = attitude, self._clock()
+                self._maybe_publish_fallback(msg.time_boot_ms)
+            elif kind == "GLOBAL_POSITION_INT":
+                # relative_alt: the barometric height above home, which outlives the horizontal position.
+                alt_m = validate.in_range("GLOBAL_POSITION_INT.relative_alt", msg.relative_alt / 1000.0,
+                                          *ALT_RANGE_M)
+                vz = validate.in_range("GLOBAL_POSITION_INT.vz", msg.vz / 100.0, -SPEED_RANGE_M_S, SPEED_RANGE_M_S)
+                with self._lock:
+                    self._global = (alt_m, vz, self._clock())
+            elif kind == "GPS_RAW_INT":
+                with self._lock:
+                    self._nav.on_gps_fix(int(msg.fix_type))
+            elif kind == "ESTIMATOR_STATUS":
+                with self._lock:
+                    self._nav.on_ekf_flags(int(msg.flags) & 0x3FF)  # PX4's bits above 512 mean other things
             elif kind == "COMMAND_ACK":
                 with self._ack_cond:
                     self._acks[msg.command] = msg.result
@@ -569,6 +805,8 @@ class MavlinkVehicle:
                                              msg.onboard_control_sensors_health)
             elif kind == "EKF_STATUS_REPORT":
                 self.readiness.on_ekf_status(msg.flags)
+                with self._lock:
+                    self._nav.on_ekf_flags(int(msg.flags) & 0xFFFF)
             elif kind == "HOME_POSITION":
                 validate.finite_vector("HOME_POSITION x, y, z", (msg.x, msg.y, msg.z), 3)
                 self.readiness.on_home()
@@ -647,6 +885,29 @@ class MavlinkVehicle:
                 pitch_rad=float(pitch), yaw_rad=float(yaw), armed=self._armed, mode=self._mode,
                 pos_valid=local is not None, pos_local_ned_m=pos_ned)
 
+    def _maybe_publish_fallback(self, time_boot_ms: int) -> None:
+        """The state once LOCAL_POSITION_NED has stopped: altitude from GLOBAL_POSITION_INT, stamped by ATTITUDE."""
+        if self.alt_source != "local":
+            return  # the rangefinder keeps publishing on its own
+        now = self._clock()
+        with self._lock:
+            local_s, glob = self._local_s, self._global
+            if local_s is None or now - local_s <= _LOCAL_FALLBACK_S:
+                return  # the local position still streams (or never did: nothing to fall back from)
+            if glob is None or now - glob[2] > _GLOBAL_FRESH_S:
+                return  # no altitude we believe: a made-up state is worse than the stale-state hold
+            roll, pitch, yaw = self._attitude_rad
+            visual = self._odometry.velocity(now)
+            fwd, right = (visual[0], visual[1]) if visual is not None else (0.0, 0.0)
+            # The vertical velocity rotated in from NED; the horizontal is the camera's (or zero).
+            down = ned_to_frd((0.0, 0.0, glob[1]), roll, pitch, yaw)[2]
+            self._state_seq += 1
+            self._state = VehicleState(
+                vehicle_id=self.vehicle_id, seq=self._state_seq, stamp=Stamp(time_boot_ms / 1000.0, "vehicle"),
+                alt_agl_m=float(glob[0]), vel_body_frd_m_s=(float(fwd), float(right), float(down)),
+                roll_rad=float(roll), pitch_rad=float(pitch), yaw_rad=float(yaw), armed=self._armed,
+                mode=self._mode, pos_valid=False, pos_local_ned_m=(0.0, 0.0, 0.0))
+
     def _check_link(self, now: float) -> None:
         with self._lock:
             if self._last_hb_s is None or self._lost_reason is not None:
@@ -722,7 +983,8 @@ class MavlinkVehicle:
     def _request_streams(self) -> None:
         """MAV_CMD_SET_MESSAGE_INTERVAL for what the state is made of, at `stream_rate_hz`."""
         interval_us = float(int(1e6 / self.stream_rate_hz))
-        wanted = [MSG_ID_LOCAL_POSITION_NED, MSG_ID_ATTITUDE]
+        # GLOBAL_POSITION_INT: the barometric height that outlives LOCAL_POSITION_NED without GNSS.
+        wanted = [MSG_ID_LOCAL_POSITION_NED, MSG_ID_ATTITUDE, MSG_ID_GLOBAL_POSITION_INT]
         if self.alt_source == "rangefinder":
             wanted.append(MSG_ID_DISTANCE_SENSOR)
         for msg_id in wanted:
@@ -730,6 +992,11 @@ class MavlinkVehicle:
         # Health at 1 Hz: what a ground station shows before it offers to arm.
         for msg_id in (MSG_ID_SYS_STATUS, MSG_ID_EKF_STATUS_REPORT):
             self._send_command_long(MAV_CMD_SET_MESSAGE_INTERVAL, float(msg_id), 1e6)
+        # The GNSS fix at 5 Hz (the first sign of a loss; the EKF notices seconds later), and PX4's
+        # estimator flags (it has no EKF_STATUS_REPORT).
+        self._send_command_long(MAV_CMD_SET_MESSAGE_INTERVAL, float(MSG_ID_GPS_RAW_INT), _GPS_RAW_INTERVAL_US)
+        if self._target is not None and self._target.autopilot == "px4":
+            self._send_command_long(MAV_CMD_SET_MESSAGE_INTERVAL, float(MSG_ID_ESTIMATOR_STATUS), _GPS_RAW_INTERVAL_US)
 
     def _send_heartbeat(self) -> None:
         self._tx(lambda mav: mav.heartbeat_send(MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID, 0, 0,
@@ -759,19 +1026,75 @@ class MavlinkVehicle:
     def _send_setpoint(self, cmd: VelocityCommand) -> bool:
         target = self._target
         assert target is not None
+        with self._lock:
+            attitude_flying = self._attitude_flying
+        if attitude_flying:
+            return self._send_attitude_target(cmd, target)
         (vx, vy, vz), yaw_rate = self._final_setpoint(cmd)
+        frame, mask, yaw = STEER_FRAME[target.autopilot], self.type_mask, 0.0
+        if self.yaw_control == "autopilot":
+            frame, mask, (vx, vy), yaw = self._local_setpoint(vx, vy, yaw_rate)
         time_boot_ms = int(self._clock() * 1000.0) & 0xFFFFFFFF
         ok = self._tx(lambda mav: mav.set_position_target_local_ned_send(
-            time_boot_ms, target.system, target.component, STEER_FRAME[target.autopilot], self.type_mask,
-            0.0, 0.0, 0.0, vx, vy, vz, 0.0, 0.0, 0.0, 0.0, yaw_rate))
+            time_boot_ms, target.system, target.component, frame, mask,
+            0.0, 0.0, 0.0, vx, vy, vz, 0.0, 0.0, 0.0, yaw, yaw_rate))
         if ok:
             self.setpoints_sent += 1
         return ok
 
+    def _local_setpoint(self, fwd: float, right: float,
+                        yaw_rate: float) -> tuple[int, int, tuple[float, float], float]:
+        """yaw_control 'autopilot': (frame, mask, north/east velocity, heading) of a body command.
+
+        The body velocity is rotated by the heading it was meant in (when the command arrived) into
+        MAV_FRAME_LOCAL_NED, and the heading held since steering began goes with it as an absolute
+        yaw: the autopilot's heading controller holds it, so the camera, and with it the policy's
+        body frame, does not turn (WP_YAW_BEHAVIOR would point the nose along the track). A
+        deliberate turn (a yaw rate) is followed, and the heading is held wherever it ends.
+        """
+        with self._lock:
+            meant_yaw, yaw = self._cmd_yaw_rad, self._attitude_rad[2]
+            if yaw_rate != 0.0:
+                self._yaw_ref_rad = None
+            elif self._yaw_ref_rad is None:
+                self._yaw_ref_rad = yaw
+            ref = self._yaw_ref_rad
+        north, east = to_ne(fwd, right, meant_yaw)
+        if ref is None:
+            return MAV_FRAME_LOCAL_NED, TYPE_MASK_VELOCITY_YAW_RATE, (north, east), 0.0
+        return MAV_FRAME_LOCAL_NED, TYPE_MASK_VELOCITY_YAW, (north, east), ref
+
+    def _send_attitude_target(self, cmd: VelocityCommand, target: _Target) -> bool:
+        """The command flown by our own velocity loop: SET_ATTITUDE_TARGET from the visual velocity."""
+        vel, yaw_rate, clamped = clamp_setpoint(cmd.vel_body_frd_m_s, cmd.yaw_rate_rad_s, self.limits)
+        if clamped:
+            self.setpoints_clamped += 1
+        now = self._clock()
+        with self._lock:
+            loop = self._attitude_loop
+            assert loop is not None
+            measured = self._odometry.velocity(now)
+            glob, local = self._global, self._local
+            climb = None
+            if local is not None and self._local_s is not None and now - self._local_s <= self._nav.local_stale_s:
+                climb = -local[5]
+            elif glob is not None and now - glob[2] <= _GLOBAL_FRESH_S:
+                climb = -glob[1]
+            dt_s = 0.0 if self._attitude_step_s is None else now - self._attitude_step_s
+            self._attitude_step_s = now
+            out = loop.step(vel, yaw_rate, measured, climb, self._attitude_rad[2], dt_s)
+        time_boot_ms = int(now * 1000.0) & 0xFFFFFFFF
+        ok = self._tx(lambda mav: mav.set_attitude_target_send(
+            time_boot_ms, target.system, target.component, ATTITUDE_TYPE_MASK_ANGLES_THRUST, list(out.q), 0.0, 0.0,
+            0.0, out.thrust))
+        if ok:
+            self.attitude_targets_sent += 1
+        return ok
+
     def _send_landing_target(self, now: float) -> None:
         with self._lock:
-            spot, mode = self._landing_target, self._mode
-        if spot is None or now - spot[3] > _LANDING_TARGET_FRESH_S or mode not in ("LAND", "PRECLAND"):
+            spot, mode, armed = self._landing_target, self._mode, self._armed
+        if spot is None or now - spot[3] > _LANDING_TARGET_FRESH_S or mode not in ("LAND", "PRECLAND") or not armed:
             return
         ax, ay, dist, _ = spot
         usec = int(now * 1e6)

@@ -5,7 +5,7 @@ what the autopilot says into validated numbers and what the controller wants int
 setpoints. Values follow the MAVLink common and ardupilotmega dialects (the tests compare them
 with pymavlink's) and the two autopilots' documented conventions:
 
-- Modes: ArduCopter custom modes GUIDED 4, LAND 9, BRAKE 17; PX4 custom_mode =
+- Modes: ArduCopter custom modes GUIDED 4, LAND 9, BRAKE 17, GUIDED_NOGPS 20; PX4 custom_mode =
   (main << 16) | (sub << 24) with OFFBOARD = main 6, AUTO.LAND = main 4 sub 6.
 - Speed limits: ArduCopter flies guided velocities within WPNAV_SPEED (default 10 m/s),
   WPNAV_SPEED_UP (2.5 m/s) and WPNAV_SPEED_DN (1.5 m/s); PX4 within MPC_XY_VEL_MAX (12 m/s),
@@ -25,8 +25,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from dovesei.controller.frames import ned_to_body_frd
 from dovesei.shared import validate
 from dovesei.shared.errors import ConfigError, DoveseiError
+from dovesei.shared.mavurl import check_serial_device, parse_mavlink_url
 
 # MAVLink enum values used here (checked against pymavlink's in the tests).
 MAV_TYPE_GCS = 6
@@ -46,6 +48,7 @@ MAV_CMD_DO_SET_MODE = 176
 MAV_CMD_COMPONENT_ARM_DISARM = 400
 MAV_CMD_SET_MESSAGE_INTERVAL = 511
 MAV_CMD_REQUEST_MESSAGE = 512
+MAV_CMD_SET_EKF_SOURCE_SET = 42007  # ardupilotmega: param1 = EK3 source set 1..3
 MAV_RESULT_ACCEPTED = 0
 MAV_RESULT_TEMPORARILY_REJECTED = 1
 MAV_RESULT_IN_PROGRESS = 5
@@ -59,14 +62,23 @@ MSG_ID_SYS_STATUS = 1
 MSG_ID_ATTITUDE = 30
 MSG_ID_LOCAL_POSITION_NED = 32
 MSG_ID_GLOBAL_POSITION_INT = 33
+MSG_ID_GPS_RAW_INT = 24
+MSG_ID_VISION_SPEED_ESTIMATE = 103
 MSG_ID_DISTANCE_SENSOR = 132
 MSG_ID_EKF_STATUS_REPORT = 193
+MSG_ID_ESTIMATOR_STATUS = 230
 MSG_ID_HOME_POSITION = 242
+MSG_ID_ODOMETRY = 331
+MAV_FRAME_LOCAL_FRD = 20
+MAV_ESTIMATOR_TYPE_VISION = 2
+GPS_FIX_TYPE_3D = 3  # GPS_RAW_INT.fix_type: below this there is no position fix
 
 # EKF_STATUS_REPORT flags ArduCopter needs before it flies guided velocities: attitude, horizontal
 # and vertical velocity, relative horizontal position and vertical position (no GNSS needed).
 EKF_ATTITUDE, EKF_VELOCITY_HORIZ, EKF_VELOCITY_VERT, EKF_POS_HORIZ_REL = 1, 2, 4, 8
-EKF_POS_VERT_ABS, EKF_UNINITIALIZED = 32, 1024
+EKF_POS_HORIZ_ABS, EKF_POS_VERT_ABS, EKF_CONST_POS_MODE, EKF_PRED_POS_HORIZ_REL = 16, 32, 128, 256
+EKF_UNINITIALIZED = 1024
+# PX4's ESTIMATOR_STATUS flags share bits 1..512 with EKF_STATUS_REPORT (ESTIMATOR_STATUS_FLAGS).
 EKF_FLAGS_NEEDED = EKF_ATTITUDE | EKF_VELOCITY_HORIZ | EKF_VELOCITY_VERT | EKF_POS_HORIZ_REL | EKF_POS_VERT_ABS
 
 # STATUSTEXT severities (MAV_SEVERITY), by value.
@@ -75,10 +87,15 @@ SEVERITY_NAMES = ("EMERGENCY", "ALERT", "CRITICAL", "ERROR", "WARNING", "NOTICE"
 # SET_POSITION_TARGET_LOCAL_NED type masks (bits set = field ignored).
 TYPE_MASK_VELOCITY_YAW_RATE = 0x05C7  # use vx, vy, vz and yaw_rate
 TYPE_MASK_VELOCITY_ONLY = 0x0DC7  # use vx, vy, vz; the autopilot chooses the heading
+TYPE_MASK_VELOCITY_YAW = 0x09C7  # use vx, vy, vz and yaw (an absolute heading in MAV_FRAME_LOCAL_NED)
+# SET_ATTITUDE_TARGET: ignore all three body rates (bits 0-2), use the quaternion and thrust.
+# ArduCopter takes the rates all or none: a partial mask is discarded and guided re-initialised
+# (GCS_Mavlink.cpp handle_message_set_attitude_target), so the heading rides in the quaternion.
+ATTITUDE_TYPE_MASK_ANGLES_THRUST = 0x07
 
 # Custom modes of the two autopilots, by the name we use for them.
 ARDUCOPTER_MODES = {"GUIDED": 4, "LAND": 9, "BRAKE": 17, "LOITER": 5, "POSHOLD": 16, "RTL": 6,
-                    "STABILIZE": 0, "ALT_HOLD": 2, "AUTO": 3}
+                    "STABILIZE": 0, "ALT_HOLD": 2, "AUTO": 3, "GUIDED_NOGPS": 20}
 PX4_MODES = {"OFFBOARD": (6, 0), "LAND": (4, 6), "PRECLAND": (4, 9), "LOITER": (4, 3), "TAKEOFF": (4, 2), "RTL": (4, 5),
              "MISSION": (4, 4), "POSCTL": (3, 0), "ALTCTL": (2, 0), "MANUAL": (1, 0), "STABILIZED": (7, 0)}
 STEER_MODE = {"ardupilot": "GUIDED", "px4": "OFFBOARD"}
@@ -89,8 +106,10 @@ ALT_SOURCES = ("local", "rangefinder")
 # hold: zero velocity; land: the autopilot's LAND mode; precland: LAND while streaming
 # LANDING_TARGET at the chosen spot (ArduPilot PLND_TYPE=1, PX4 precision landing); none: stop.
 HANDOVERS = ("hold", "land", "precland", "none")
-# rate: velocity + a yaw rate that holds the heading seen from ATTITUDE (closed loop, mask
-# 0x05C7); autopilot: velocity only (0x0DC7), the autopilot picks the heading (WP_YAW_BEHAVIOR).
+# rate: body-frame velocity + a yaw rate that holds the heading seen from ATTITUDE (our closed
+# loop, mask 0x05C7); autopilot: velocity in MAV_FRAME_LOCAL_NED + the held heading as a yaw angle
+# (0x09C7), so the autopilot's own heading controller holds it. Velocity alone (0x0DC7) let
+# ArduCopter turn the nose by WP_YAW_BEHAVIOR and the body-frame policy ran out of the world.
 YAW_CONTROLS = ("rate", "autopilot")
 
 # Plausible ranges of what an autopilot reports; anything outside is a fault, not a flight.
@@ -165,48 +184,46 @@ def load_mavutil() -> Any:
 
 
 def check_url(url: Any) -> tuple[str, int]:
-    """(device, baud) of a MAVLink URL: udpin:/udpout:/tcp:/tcpin: host:port, or DEVICE[,BAUD]."""
-    if not isinstance(url, str) or not url:
-        raise ConfigError(f"MAVLink URL must be a non-empty string, got {url!r}")
-    if url.startswith(("udp", "tcp")):
-        scheme, _, rest = url.partition(":")
-        host, _, port = rest.rpartition(":")
-        if scheme not in ("udp", "udpin", "udpout", "udpbcast", "tcp", "tcpin") or not host or not port.isdigit() \
-                or not 0 < int(port) < 65536:
-            raise ConfigError(f"MAVLink URL {url!r}: use udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT, "
-                              "tcpin:HOST:PORT or a serial DEVICE[,BAUD]")
-        return url, 115200
-    device, baud = url, 115200
-    if "," in url:
-        device, _, baud_text = url.partition(",")
-        if not baud_text.isdigit():
-            raise ConfigError(f"MAVLink URL {url!r}: the baud rate after ',' must be an integer")
-        baud = int(baud_text)
-    return device, baud
+    """(device, baud) of a MAVLink URL, by the one parser `dovesei up` uses too (`dovesei.shared.mavurl`)."""
+    ep = parse_mavlink_url(url)
+    return ep.device, ep.baud
 
 
 def open_link(url: str, *, source_system: int, source_component: int) -> Any:
-    """A pymavlink connection from a URL (see `check_url`)."""
+    """A pymavlink connection from a URL (see `check_url`); any failure is one VehicleConnectError line."""
     mavutil = load_mavutil()
-    device, baud = check_url(url)
+    ep = parse_mavlink_url(url)
     try:
-        return mavutil.mavlink_connection(device, baud=baud, source_system=source_system,
+        check_serial_device(ep)
+    except ConfigError as exc:
+        raise VehicleConnectError(f"cannot open MAVLink link: {exc}") from None
+    try:
+        return mavutil.mavlink_connection(ep.device, baud=ep.baud, source_system=source_system,
                                           source_component=source_component, autoreconnect=False)
-    except (OSError, ValueError) as exc:
+    except ImportError as exc:  # pymavlink imports pyserial only for a serial port
+        raise VehicleConnectError(f"cannot open MAVLink link {url!r}: a serial port needs pyserial "
+                                  f"(pip install pyserial; {exc})") from None
+    except (OSError, ValueError) as exc:  # pyserial's SerialException is an OSError
         raise VehicleConnectError(f"cannot open MAVLink link {url!r}: {exc}") from None
 
 
 def ned_to_frd(vel_ned: tuple[float, ...], roll_rad: float, pitch_rad: float,
                yaw_rad: float) -> tuple[float, float, float]:
     """Rotate a NED vector into the body FRD frame (ZYX Euler angles, as MAVLink's ATTITUDE gives)."""
-    vn, ve, vd = (float(v) for v in vel_ned)
+    return ned_to_body_frd(vel_ned, roll_rad, pitch_rad, yaw_rad)
+
+
+def frd_to_ned(vel_frd: tuple[float, ...], roll_rad: float, pitch_rad: float,
+               yaw_rad: float) -> tuple[float, float, float]:
+    """Rotate a body FRD vector into NED (the transpose of `ned_to_frd`)."""
+    f, r, d = (float(v) for v in vel_frd)
     cr, sr, cp, sp = math.cos(roll_rad), math.sin(roll_rad), math.cos(pitch_rad), math.sin(pitch_rad)
     cy, sy = math.cos(yaw_rad), math.sin(yaw_rad)
-    # Rows of R_body<-ned = (R_ned<-body)^T for R = Rz(yaw) Ry(pitch) Rx(roll).
-    f = cp * cy * vn + cp * sy * ve - sp * vd
-    r = (sr * sp * cy - cr * sy) * vn + (sr * sp * sy + cr * cy) * ve + sr * cp * vd
-    d = (cr * sp * cy + sr * sy) * vn + (cr * sp * sy - sr * cy) * ve + cr * cp * vd
-    return (f, r, d)
+    # Columns of R_body<-ned are the rows of R_ned<-body.
+    n = cp * cy * f + (sr * sp * cy - cr * sy) * r + (cr * sp * cy + sr * sy) * d
+    e = cp * sy * f + (sr * sp * sy + cr * cy) * r + (cr * sp * sy - sr * cy) * d
+    dn = -sp * f + sr * cp * r + cr * cp * d
+    return (n, e, dn)
 
 
 # ---------------------------------------------------------------------- incoming samples

@@ -7,6 +7,9 @@
         --> ControllerStatus --> status key (every tick)
     MAVLink only: VehicleState --> state key (the controller is the one owner of the autopilot link;
         the sim's camera mode and the camera service take the pose from here)
+    MAVLink with --gnss-denied external-nav|attitude: odometry key --Inbox (FIFO)--> the adapter's
+        on_visual_odometry each tick (to the EKF, or into the attitude loop); the adapter's
+        nav_status() goes into every ControllerCore.tick (no descent without a trusted velocity)
 
 Two loops, chosen by `ControllerConfig.lockstep`:
 
@@ -42,6 +45,7 @@ from typing import Any, Protocol
 import zenoh
 
 from dovesei.controller.core import HANDOVER_ACTIONS, ControllerConfig, ControllerCore, ControllerInputError, Mode
+from dovesei.controller.gnss_denied import GNSS_DENIED_MODES, AttitudeGains, NavStatus, OdometryLimits
 from dovesei.controller.mavlink_proto import SpeedLimits, load_signing_key
 from dovesei.controller.policies.base import policy_names
 from dovesei.shared import keys, validate
@@ -50,9 +54,18 @@ from dovesei.shared.clock import WallClock, wall_time_s
 from dovesei.shared.codec import encode
 from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.shared.lifecycle import Inbox, declare_alive, install_stop_handlers, write_stats
-from dovesei.shared.messages import ControllerStatus, SafetyHeatmap, VehicleState, VelocityCommand, replace
+from dovesei.shared.mavurl import parse_mavlink_url
+from dovesei.shared.messages import (
+    ControllerStatus,
+    SafetyHeatmap,
+    VehicleState,
+    VelocityCommand,
+    VisualOdometry,
+    replace,
+)
 from dovesei.shared.recording import FlightRecorder
 from dovesei.shared.timing import DEFAULT_TIMING, TIMING_NAMES
+from dovesei.shared.zconfig import open_session
 
 log = logging.getLogger(__name__)
 
@@ -72,6 +85,10 @@ class Vehicle(Protocol):
     def handover(self) -> None: ...
 
     def close(self) -> None: ...
+
+    def nav_status(self) -> NavStatus | None: ...
+
+    def on_visual_odometry(self, odom: VisualOdometry) -> None: ...
 
 
 class ZenohVehicle:
@@ -120,6 +137,13 @@ class ZenohVehicle:
     def handover(self) -> None:
         """The sim's judge ends the episode at the hand-over altitude: nothing to switch."""
 
+    def nav_status(self) -> NavStatus | None:
+        """The sim publishes its velocity estimate as the state: no estimator health to judge."""
+        return None
+
+    def on_visual_odometry(self, odom: VisualOdometry) -> None:
+        """The sim never loses GNSS (ControllerConfig refuses --gnss-denied with it)."""
+
     @property
     def rejected(self) -> int:
         return sum(self.states.rejected.values())
@@ -151,7 +175,13 @@ def open_vehicle(session: zenoh.Session, config: ControllerConfig) -> Vehicle:
                              yaw_control=config.mavlink_yaw_control, system_id=config.mavlink_system_id,
                              limits=limits, require_home=config.mavlink_require_home,
                              signing_key=load_signing_key(key_file) if key_file else None,
-                             signing_timestamp_file=f"{key_file}.timestamp" if key_file else None)
+                             signing_timestamp_file=f"{key_file}.timestamp" if key_file else None,
+                             gnss_denied=config.gnss_denied, ekf_source_set=config.ekf_source_set,
+                             odometry_limits=OdometryLimits(max_age_s=config.odometry_max_age_s,
+                                                            min_quality=config.odometry_min_quality),
+                             attitude_gains=AttitudeGains(max_tilt_rad=math.radians(config.attitude_max_tilt_deg),
+                                                          climb_limit_up_m_s=limits.up_m_s,
+                                                          climb_limit_down_m_s=limits.down_m_s))
     try:
         vehicle.connect(config.vehicle_connect_timeout_s)
     except BaseException:
@@ -174,6 +204,9 @@ class RunStats:
     missed_ticks: int = 0  # real time: whole periods skipped after an overrun
     send_errors: int = 0
     states_published: int = 0  # MAVLink: vehicle states republished on the state key
+    geofence_clipped: int = 0  # commands the geofence capped (see core.py)
+    odometry_received: int = 0  # MAVLink --gnss-denied: visual velocities handed to the adapter
+    odometry_payloads_rejected: int = 0
     core_refusals: dict[str, int] = field(default_factory=dict)
     vehicle_link: dict[str, Any] = field(default_factory=dict)  # the MAVLink adapter's counters
     wake_lateness_s: deque[float] = field(default_factory=lambda: deque(maxlen=_MAX_LATENESS_SAMPLES))
@@ -197,7 +230,11 @@ class _Loop:
                                                     newest_only=not config.lockstep,
                                                     wakeup=getattr(vehicle, "wakeup", None))
         self._state_pub: Any = None
+        # The camera's velocity, every sample in order (each one is a measurement for the EKF).
+        self.odometry: Inbox[VisualOdometry] | None = None
         try:
+            if config.gnss_denied != "off":
+                self.odometry = Inbox(session, keys.odometry(config.vehicle_id), VisualOdometry, newest_only=False)
             self._status_pub = session.declare_publisher(keys.status(config.vehicle_id))
             if getattr(vehicle, "is_link_owner", False):
                 # Newest wins for a pose: a congested link drops old states rather than queue them.
@@ -205,6 +242,8 @@ class _Loop:
                                                             congestion_control=zenoh.CongestionControl.DROP)
         except BaseException:
             self.heatmaps.close()
+            if self.odometry is not None:
+                self.odometry.close()
             if self._state_pub is not None:
                 self._state_pub.undeclare()
             raise
@@ -212,6 +251,8 @@ class _Loop:
 
     def close(self) -> None:
         self.heatmaps.close()
+        if self.odometry is not None:
+            self.odometry.close()
         self._status_pub.undeclare()
         if self._state_pub is not None:
             self._state_pub.undeclare()
@@ -254,6 +295,14 @@ class _Loop:
             self.recorder.write(cmd)
         self.recorder.write(status)
 
+    def drain_odometry(self) -> None:
+        """Hand every waiting visual velocity to the adapter, oldest first (never blocks)."""
+        if self.odometry is None:
+            return
+        while (odom := self.odometry.poll()) is not None:
+            self.stats.odometry_received += 1
+            self.vehicle.on_visual_odometry(odom)
+
     def drain_heatmaps(self) -> None:
         """Hand every waiting heatmap to the core (never blocks)."""
         while (hm := self.heatmaps.poll()) is not None:
@@ -262,7 +311,7 @@ class _Loop:
     def step(self, state: VehicleState, wall_s: float | None) -> bool:
         """Tick the core on `state`, send the command, publish the status; False if refused."""
         try:
-            cmd, status = self.core.tick(state, wall_s)
+            cmd, status = self.core.tick(state, wall_s, self.vehicle.nav_status())
         except ControllerInputError as exc:
             self.stats.states_refused += 1
             log.warning("vehicle state refused: %s", exc)
@@ -298,23 +347,25 @@ class _Loop:
         return True
 
     def _stream_landing_target(self, state: VehicleState) -> None:
-        """Precision landing: the policy's newest target as LANDING_TARGET angles, every tick."""
-        angles = self.core.landing_target_angles()
+        """Precision landing: the spot as LANDING_TARGET, refreshed every tick until the vehicle has
+        landed (the adapter streams it at 10 Hz while the autopilot is armed in LAND/PRECLAND)."""
         set_target = getattr(self.vehicle, "set_landing_target", None)
-        if angles is None or set_target is None:
+        target = self.core.landing_target(state)
+        if target is None or set_target is None:
             return
-        # Slant distance to the spot on flat ground below.
-        distance_m = state.alt_agl_m / max(1e-3, math.cos(angles[0]) * math.cos(angles[1]))
         try:
-            set_target(angles[0], angles[1], max(0.0, distance_m))
+            set_target(*target)
         except DoveseiError as exc:
             log.debug("landing target not set: %s", exc)
 
     def finish(self) -> RunStats:
         stats = self.stats
         stats.heatmap_payloads_rejected = sum(self.heatmaps.rejected.values())
+        if self.odometry is not None:
+            stats.odometry_payloads_rejected = sum(self.odometry.rejected.values())
         stats.state_payloads_rejected = int(getattr(self.vehicle, "rejected", 0))
         stats.core_refusals = dict(self.core.rejected)
+        stats.geofence_clipped = self.core.geofence.clipped if self.core.geofence is not None else 0
         counters = getattr(self.vehicle, "counters", None)
         stats.vehicle_link = counters() if callable(counters) else {}
         return stats
@@ -393,6 +444,7 @@ def _run_realtime(loop: _Loop, takeoff: _Takeoff | None = None) -> None:
         if state is not None:
             newest = state
             loop.publish_state(state)
+        loop.drain_odometry()
         loop.drain_heatmaps()
         if takeoff is not None and takeoff.is_alive():
             pass  # the adapter owns the vehicle until the climb is done; states still go out
@@ -479,6 +531,12 @@ def _serve(session: zenoh.Session, config: ControllerConfig, stop: threading.Eve
                 vehicle.close()
 
 
+def _check_vehicle_url(what: str, url: str) -> None:
+    """The form only (the one parser `dovesei up` uses too); whether a device opens is seen at connect."""
+    if url != "zenoh":
+        parse_mavlink_url(url, what)
+
+
 def _derived_defaults(given: Mapping[str, Any]) -> dict[str, Any]:
     """Defaults that follow the vehicle: the sim runs in lockstep (the sim's default too); a real
     vehicle runs in real time on true seconds."""
@@ -488,8 +546,9 @@ def _derived_defaults(given: Mapping[str, Any]) -> dict[str, Any]:
 
 # The one table of the controller's flags: `build_parser`, `config_from_args` and `to_argv` read it.
 CLI = CommandLine(ControllerConfig, {
-    "vehicle_url": Flag("--vehicle-url", "'zenoh' (the simulator) or a pymavlink URL, e.g. udpin:0.0.0.0:14550",
-                        check=non_blank, metavar="URL"),
+    "vehicle_url": Flag("--vehicle-url", "'zenoh' (the simulator) or a pymavlink URL: udpin:HOST:PORT, "
+                        "udpout:HOST:PORT, tcp:HOST:PORT or a serial DEVICE,BAUD such as /dev/ttyAMA0,921600",
+                        check=_check_vehicle_url, metavar="URL"),
     "vehicle_id": Flag("--vehicle-id", "vehicle id in the keys", check=lambda _w, v: keys.check_vehicle_id(v)),
     "policy": Flag("--policy", "landing policy", choices=policy_names()),
     "timing": Flag("--timing", f"policy timing preset ({DEFAULT_TIMING} with the sim, real with a MAVLink vehicle)",
@@ -542,6 +601,23 @@ CLI = CommandLine(ControllerConfig, {
                                     "within this, naming its pre-arm reasons", check=validate.positive),
     "camera_hfov_deg": Flag("--camera-hfov-deg", "the camera's horizontal field of view as published (after any "
                             "crop): heatmaps more than 25 %% off it are refused", check=validate.positive),
+    "geofence_radius_m": Flag("--geofence-radius-m", "largest distance from the start, dead-reckoned from the "
+                              "velocity estimate, that any policy may fly (default: off with the sim, "
+                              "400 m with a MAVLink vehicle; 0: off)",
+                              check=lambda w, v: validate.in_range(w, v, 0.0, 100_000.0)),
+    "gnss_denied": Flag("--gnss-denied", "MAVLink without GNSS: 'external-nav' streams the camera's velocity to the "
+                        "EKF (VISION_SPEED_ESTIMATE) and switches it to --ekf-source-set on a loss; 'attitude' "
+                        "switches ArduPilot to GUIDED_NOGPS and flies attitude targets on it; 'off' reports the "
+                        "loss and holds (docs/GNSS-DENIED.md gives the autopilot parameters)",
+                        choices=GNSS_DENIED_MODES),
+    "ekf_source_set": Flag("--ekf-source-set", "external-nav: the EK3 source set (1-3) whose VELXY is ExternalNav",
+                           check=lambda w, v: validate.in_range(w, v, 1, 3)),
+    "odometry_min_quality": Flag("--odometry-min-quality", "visual velocity below this quality (0-1) is not flown on",
+                                 check=lambda w, v: validate.in_range(w, v, 0.0, 1.0)),
+    "odometry_max_age_s": Flag("--odometry-max-age-s", "visual velocity older than this at arrival is stale",
+                               check=validate.positive),
+    "attitude_max_tilt_deg": Flag("--max-tilt-deg", "attitude mode: largest roll/pitch demanded",
+                                  check=lambda w, v: validate.in_range(w, v, 1.0, 35.0)),
     "record_path": Flag("--record", "write an MCAP flight recording (states, adopted heatmaps, commands, status) "
                         "to PATH", check=non_blank, metavar="PATH"),
 }, derive=_derived_defaults, prog="dovesei-controller", description=__doc__.splitlines()[0])
@@ -559,13 +635,17 @@ def main(argv: list[str] | None = None) -> int:
     # Python thread (e.g. a MAVLink reader) is busy: that default alone would break the 5 ms jitter.
     sys.setswitchinterval(0.001)
     try:
-        with zenoh.open(zconf) as session:
+        with open_session(zconf) as session:
             stats = run(session, config=config, stop=stop)
     except DoveseiError as exc:
         log.error("controller stopped: %s", exc)
         return 1
     log.info("controller done: %d ticks, %d commands, %d heatmaps (%d payloads rejected)",
              stats.ticks, stats.commands_sent, stats.heatmaps_received, stats.heatmap_payloads_rejected)
+    steered, clamped = stats.vehicle_link.get("commands_steered"), stats.vehicle_link.get("commands_clamped")
+    if steered:
+        log.info("%d of %d commands (%.0f %%) asked for more than the vehicle's speed limits and were clamped",
+                 clamped, steered, 100.0 * clamped / steered)
     if process.stats_out is not None:
         write_stats(process.stats_out, dataclasses.asdict(stats))
     return 0

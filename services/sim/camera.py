@@ -8,10 +8,15 @@ fraction of its cost): nearest lookup when the residual scale is within a quarte
 bilinear when the view magnifies the world (low altitude) or when asked for. Labels are always
 sampled nearest from full resolution: class ids must never be blended.
 
-Geometry: the camera looks straight down; image up = body forward, image right = body right;
-yaw_rad is the heading (0 = north, +pi/2 = east, NED convention). The ground footprint's
-half-width is tan(hfov / 2) * alt_agl_m and spans width_px / 2 pixels, so every output pixel covers
-2 * tan(hfov / 2) * alt / width_px metres; pixels are square. Output pixels whose centre falls
+Geometry: the camera is fixed to the body looking along body down; image up = body forward, image
+right = body right; yaw_rad is the heading (0 = north, +pi/2 = east, NED convention). Level
+(roll = pitch = 0, or a gimbal) the ground footprint's half-width is tan(hfov / 2) * alt_agl_m and
+spans width_px / 2 pixels, so every output pixel covers 2 * tan(hfov / 2) * alt / width_px metres;
+pixels are square, and the map from output to world pixels is affine (`cv2.warpAffine`). Tilted
+(roll_rad, pitch_rad FRD, aerospace ZYX order: yaw, then pitch, then roll) each pixel's ray is
+rotated by the attitude and cut with the flat ground, a homography (`cv2.warpPerspective`): nose up
+(pitch > 0) moves the view forward, right wing down (roll > 0) moves it left, and the footprint
+becomes a trapezoid. A tilt that puts any corner ray at or above the horizon is a CameraError. Output pixels whose centre falls
 outside the world get label 255 (OUT_OF_WORLD_LABEL), valid_mask False and the flat neutral grey
 of unknown ground (OUT_OF_WORLD_RGB): the world never wraps.
 
@@ -167,12 +172,83 @@ def pixel_to_world_affine(
     )
 
 
+def tilt_rotation(roll_rad: float, pitch_rad: float) -> np.ndarray:
+    """Body (forward, right, down) -> heading-level (forward, right, down): R_y(pitch) @ R_x(roll)."""
+    cr, sr, cp, sp = math.cos(roll_rad), math.sin(roll_rad), math.cos(pitch_rad), math.sin(pitch_rad)
+    return np.array([[cp, sp * sr, sp * cr],
+                     [0.0, cr, -sr],
+                     [-sp, cp * sr, cp * cr]], dtype=np.float64)
+
+
+# The steepest corner ray a tilted render accepts: cos of 85 deg from straight down. Beyond it the
+# footprint runs to the horizon (and a homography would wrap the sky onto the ground).
+_MIN_RAY_DOWN = math.cos(math.radians(85.0))
+
+
+def pixel_to_world_homography(
+    world: World, x_m: float, y_m: float, alt_agl_m: float, yaw_rad: float, roll_rad: float, pitch_rad: float,
+    cam: CameraModel,
+) -> np.ndarray:
+    """3x3 matrix taking output pixel (col, row, 1) to world pixel (col, row) in homogeneous form.
+
+    Pixel -> body ray (forward = -(row - cv) / f, right = (col - cu) / f, down = 1) -> heading-level
+    ray L by the tilt -> ground point (forward, right) = alt * (L_f, L_r) / L_d -> world pixel by the
+    heading, exactly as `pixel_to_world_affine` for a level camera (which this equals at zero tilt).
+    """
+    f_px = cam.width_px / (2.0 * math.tan(cam.hfov_rad / 2.0))
+    cu, cv_ = (cam.width_px - 1) / 2.0, (cam.height_px - 1) / 2.0
+    ray = np.array([[0.0, -1.0 / f_px, cv_ / f_px],
+                    [1.0 / f_px, 0.0, -cu / f_px],
+                    [0.0, 0.0, 1.0]], dtype=np.float64)
+    level = tilt_rotation(roll_rad, pitch_rad) @ ray
+    w, h = cam.width_px, cam.height_px
+    corners = level @ np.array([[0, w - 1, 0, w - 1], [0, 0, h - 1, h - 1], [1, 1, 1, 1]], dtype=np.float64)
+    if np.min(corners[2] / np.linalg.norm(corners, axis=0)) <= _MIN_RAY_DOWN:
+        raise CameraError(f"tilt roll {math.degrees(roll_rad):.1f} deg, pitch {math.degrees(pitch_rad):.1f} deg "
+                          f"puts the {cam.hfov_deg:g} deg view within 5 deg of the horizon: not renderable")
+    a = alt_agl_m / world.gsd_m
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    col0 = x_m / world.gsd_m - 0.5
+    row0 = world.height_px - y_m / world.gsd_m - 0.5
+    # East = c*right + s*forward, north = c*forward - s*right (as in the affine map); world columns
+    # grow east and rows south, and everything is divided by the ray's down component L_d.
+    to_world = np.array([[a * s, a * c, col0],
+                         [-a * c, a * s, row0],
+                         [0.0, 0.0, 1.0]], dtype=np.float64)
+    return to_world @ level
+
+
+def optical_axis_ground_m(x_m: float, y_m: float, alt_agl_m: float, yaw_rad: float, roll_rad: float = 0.0,
+                          pitch_rad: float = 0.0) -> tuple[float, float]:
+    """Where the camera's optical axis meets flat ground (world metres, x east, y north)."""
+    fwd, right, down = tilt_rotation(roll_rad, pitch_rad) @ np.array([0.0, 0.0, 1.0])
+    fwd_m, right_m = alt_agl_m * fwd / down, alt_agl_m * right / down
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    return x_m + c * right_m + s * fwd_m, y_m + c * fwd_m - s * right_m
+
+
+def ground_point_m(x_m: float, y_m: float, alt_agl_m: float, yaw_rad: float, row_px: float, col_px: float,
+                   cam: CameraModel, roll_rad: float = 0.0, pitch_rad: float = 0.0) -> tuple[float, float]:
+    """World (x_m east, y_m north) of the flat ground an output pixel (row, col; integers at pixel
+    centres) shows from this pose: the renderer's own ray (`pixel_to_world_homography`), in metres,
+    for the judge to place what a policy saw in a frame."""
+    f_px = cam.width_px / (2.0 * math.tan(cam.hfov_rad / 2.0))
+    body = np.array([-(row_px - (cam.height_px - 1) / 2.0) / f_px, (col_px - (cam.width_px - 1) / 2.0) / f_px, 1.0])
+    fwd, right, down = tilt_rotation(roll_rad, pitch_rad) @ body
+    if down <= _MIN_RAY_DOWN:
+        raise CameraError(f"pixel ({row_px:.1f}, {col_px:.1f}) looks within 5 deg of the horizon: no ground point")
+    fwd_m, right_m = alt_agl_m * fwd / down, alt_agl_m * right / down
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    return x_m + c * right_m + s * fwd_m, y_m + c * fwd_m - s * right_m
+
+
 def _level_affine(m0: np.ndarray, geometry: tuple[float, float, float, float]) -> np.ndarray:
     # Output pixel -> level-0 pixel (m0), then level 0 -> level: cL = (c0 - offset) / scale.
+    # Works for a 2x3 affine and a 3x3 homography alike (only the first two rows change).
     sx, ox, sy, oy = geometry
     m = m0.copy()
-    m[0] = (m0[0] - [0.0, 0.0, ox]) / sx
-    m[1] = (m0[1] - [0.0, 0.0, oy]) / sy
+    m[0] = (m0[0] - m0[-1] * ox) / sx if m0.shape[0] == 3 else (m0[0] - [0.0, 0.0, ox]) / sx
+    m[1] = (m0[1] - m0[-1] * oy) / sy if m0.shape[0] == 3 else (m0[1] - [0.0, 0.0, oy]) / sy
     return m
 
 
@@ -187,11 +263,16 @@ def render(
     yaw_rad: float,
     cam: CameraModel = CameraModel(),
     *,
+    roll_rad: float = 0.0,
+    pitch_rad: float = 0.0,
     with_labels: bool = True,
     with_image: bool = True,
     interpolation: str = "auto",
 ) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray]:
     """The camera's view: (image_rgb HxWx3 uint8, labels HxW uint8 or None, valid_mask HxW bool).
+
+    roll_rad and pitch_rad tilt the body-fixed camera (both 0: the nadir view of a level vehicle or
+    a gimbal, by the affine map); any tilt renders the perspective view of the tilted pinhole.
 
     labels is None when the world has none or with_labels is False (labels cost ~25 % of a frame);
     image is None with with_image=False (a consumer of the labels alone skips the costly warp).
@@ -202,27 +283,37 @@ def render(
     """
     if not (is_number(alt_agl_m) and alt_agl_m > 0.0):
         raise CameraError(f"alt_agl_m must be finite and > 0 to render, got {alt_agl_m!r}")
-    if not (is_number(x_m) and is_number(y_m) and is_number(yaw_rad)):
-        raise CameraError(f"pose must be finite, got x_m={x_m!r} y_m={y_m!r} yaw_rad={yaw_rad!r}")
+    if not (is_number(x_m) and is_number(y_m) and is_number(yaw_rad) and is_number(roll_rad)
+            and is_number(pitch_rad)):
+        raise CameraError(f"pose must be finite, got x_m={x_m!r} y_m={y_m!r} yaw_rad={yaw_rad!r} "
+                          f"roll_rad={roll_rad!r} pitch_rad={pitch_rad!r}")
     if interpolation not in ("auto", "linear"):
         raise CameraError(f"interpolation must be 'auto' or 'linear', got {interpolation!r}")
     size = (cam.width_px, cam.height_px)
-    m0 = pixel_to_world_affine(world, x_m, y_m, alt_agl_m, yaw_rad, cam)
-    k = cam.metres_per_px(alt_agl_m) / world.gsd_m  # world pixels per output pixel
+    if roll_rad == 0.0 and pitch_rad == 0.0:
+        m0 = pixel_to_world_affine(world, x_m, y_m, alt_agl_m, yaw_rad, cam)
+        k = cam.metres_per_px(alt_agl_m) / world.gsd_m  # world pixels per output pixel
+        warp = cv2.warpAffine
+    else:
+        m0 = pixel_to_world_homography(world, x_m, y_m, alt_agl_m, yaw_rad, roll_rad, pitch_rad, cam)
+        # The pyramid level follows the scale on the optical axis (slant range = alt / cos(tilt));
+        # the far edge of a strongly tilted view is then slightly aliased, the near edge soft.
+        k = cam.metres_per_px(alt_agl_m / float(tilt_rotation(roll_rad, pitch_rad)[2, 2])) / world.gsd_m
+        warp = cv2.warpPerspective
     # Border pixels are replicated (cheaper than a constant border in OpenCV's warp) and then
     # overwritten from the analytic mask below.
     image = None
     if with_image:
         src, geometry = _pyramid(world).level(_level_index(k))
         nearest = interpolation == "auto" and k / geometry[0] >= NEAREST_MIN_SCALE
-        rgba = cv2.warpAffine(src, _level_affine(m0, geometry), size,
-                              flags=(cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR) | cv2.WARP_INVERSE_MAP,
-                              borderMode=cv2.BORDER_REPLICATE)
+        rgba = warp(src, _level_affine(m0, geometry), size,
+                    flags=(cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR) | cv2.WARP_INVERSE_MAP,
+                    borderMode=cv2.BORDER_REPLICATE)
         image = cv2.cvtColor(rgba, cv2.COLOR_RGBA2RGB)
     labels = None
     if world.labels is not None and with_labels:
-        labels = cv2.warpAffine(world.labels, m0, size, flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
-                                borderMode=cv2.BORDER_CONSTANT, borderValue=OUT_OF_WORLD_LABEL)
+        labels = warp(world.labels, m0, size, flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
+                      borderMode=cv2.BORDER_CONSTANT, borderValue=OUT_OF_WORLD_LABEL)
     valid = _valid_mask(world, m0, cam)
     if valid is None:
         valid = np.ones((cam.height_px, cam.width_px), dtype=bool)
@@ -241,18 +332,27 @@ def _level_index(k: float) -> int:
 
 
 def _valid_mask(world: World, m0: np.ndarray, cam: CameraModel) -> np.ndarray | None:
-    """Pixels whose centre maps inside the world; None (all valid) in the common fully-inside case."""
+    """Pixels whose centre maps inside the world; None (all valid) in the common fully-inside case.
+
+    m0 is the 2x3 affine map of a level camera or the 3x3 homography of a tilted one.
+    """
     w, h = cam.width_px, cam.height_px
     corners = np.array([[0, 0, 1], [w - 1, 0, 1], [0, h - 1, 1], [w - 1, h - 1, 1]], dtype=np.float64)
-    cc = corners @ m0.T  # (4, 2) world (col, row)
+    cc = corners @ m0.T  # (4, 2) world (col, row), or (4, 3) homogeneous
+    if m0.shape[0] == 3:
+        cc = cc[:, :2] / cc[:, 2:]
     lo, hi_c, hi_r = -0.5, world.width_px - 0.5, world.height_px - 0.5
-    # The map is affine, so the corners bound every pixel centre: all inside -> nothing to mask.
+    # Affine, or a homography with the whole view below the horizon (checked when it was built):
+    # straight lines stay straight and the image is convex, so the corners bound every pixel centre.
     if cc[:, 0].min() >= lo and cc[:, 0].max() < hi_c and cc[:, 1].min() >= lo and cc[:, 1].max() < hi_r:
         return None
     u = np.arange(w, dtype=np.float64)[None, :]
     v = np.arange(h, dtype=np.float64)[:, None]
     col = m0[0, 0] * u + m0[0, 1] * v + m0[0, 2]
     row = m0[1, 0] * u + m0[1, 1] * v + m0[1, 2]
+    if m0.shape[0] == 3:
+        den = m0[2, 0] * u + m0[2, 1] * v + m0[2, 2]
+        col, row = col / den, row / den
     return (col >= lo) & (col < hi_c) & (row >= lo) & (row < hi_r)
 
 

@@ -3,17 +3,27 @@
 Each step k (t = k * dt) produces, in this order:
 
 1. a `CameraFrame` when one is due (every `frame_period_s` of sim time), rendered at the
-   vehicle's pose, with the ground-truth labels attached (sim only: the simulated perception
-   needs them, a real camera never has them);
+   vehicle's true pose (tilted with the body unless the vehicle profile has a gimbal), labelled
+   with the altitude and attitude the autopilot reports, with the ground-truth labels attached
+   (sim only: the simulated perception needs them, a real camera never has them);
 2. the `VehicleState` of step k, whose `await_frame_seq` names the frame whose heatmap becomes
-   available at this step (captured `latency_s` earlier; -1 when none does);
-3. the `EpisodeResult` once the judge ends the episode (the controller's hand-over, the time
+   available at this step (captured `latency_s` earlier; -1 when none does). Under the `ideal`
+   vehicle profile it is the truth; under the others it is the autopilot's estimate
+   (`dovesei.sim.estimator`), `pos_valid` False: the truth stays here, with the judge;
+3. with `odometry_rate_hz` > 0, a `VisualOdometry` when one is due: the onboard camera's visual
+   velocity from views rendered at the true pose, tagged with the state's altitude and attitude
+   (`dovesei.sim.odometry`; published before the state, so a controller has it when it decides);
+4. the `EpisodeResult` once the judge ends the episode (the controller's hand-over, the time
    limit, the vehicle leaving the world or reaching the ground without a hand-over).
+
+The true pose of each of the last `FRAME_POSES_KEPT` frames is kept: `note_status` places the spot
+pixel of the controller's confirming look (`ControllerStatus.confirmed_*`) on the ground with the
+pose THAT frame was rendered at, and hands the point to the judge (touchdown error).
 
 `step(cmd)` applies the controller's answer to step k for dt and returns step k+1. A command
 counts only while it is fresh on the sim's own clock, as an autopilot's guided mode does
 (ArduPilot's GUID_TIMEOUT): its stamp must be on the "sim" clock, not in the future, and at most
-`vehicle.cmd_timeout_s` old; otherwise it is dropped (counted in `commands_dropped`) and the
+the vehicle's `cmd_timeout_s` old; otherwise it is dropped (counted in `commands_dropped`) and the
 vehicle flies on the last fresh one until that, too, times out and it brakes to a hover. In
 lockstep every command carries the stamp of the state it answers, so none is ever dropped. The Zenoh
 service publishes these in lockstep or real time; the bench calls them directly. Timing presets
@@ -24,7 +34,8 @@ reference".
 from __future__ import annotations
 
 import dataclasses
-from collections import deque
+import logging
+from collections import OrderedDict, deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -34,11 +45,14 @@ from dovesei.shared.clock import wall_time_s
 from dovesei.shared.errors import ConfigError
 from dovesei.shared.timing import DEFAULT_TIMING, timing
 from dovesei.shared.messages import (
-    CameraFrame, ClassEntry, EpisodeResult, GroundTruth, Stamp, VehicleState, VelocityCommand,
+    CameraFrame, ClassEntry, ControllerStatus, EpisodeResult, GroundTruth, Stamp, VehicleState, VelocityCommand,
+    VisualOdometry,
 )
-from dovesei.sim.camera import CameraModel, render
+from dovesei.sim.camera import CameraError, CameraModel, ground_point_m, optical_axis_ground_m, render
 from dovesei.sim.dynamics import Pose, Vehicle, VehicleParams
+from dovesei.sim.estimator import SIM_DEFAULT_VEHICLE_PROFILE, Estimate, Estimator, vehicle_profile
 from dovesei.sim.judge import NO_HANDOVER_REASON, EpisodeJudge
+from dovesei.sim.odometry import SimOdometry
 from dovesei.sim.starts import Start
 from dovesei.sim.world import World
 
@@ -46,6 +60,11 @@ from dovesei.sim.world import World
 # owner): `reference` renders a frame every controller tick, one tick old when used; `real` is a
 # CLIPSeg on a ground station (2 Hz, 0.4 s).
 _EPS_S = 1e-9  # float slack when comparing accumulated sim times
+# True poses of this many recent frames are kept for the judge: 34 min of frames at 2 Hz, 3.4 min
+# at the reference's 20 Hz; a confirmation older than that is reported as unknown, never guessed.
+FRAME_POSES_KEPT = 4096
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -58,6 +77,9 @@ class SimConfig:
     frame_period_s: float | None = None  # None: the timing preset's
     latency_s: float | None = None  # None: the timing preset's
     camera: CameraModel = field(default_factory=CameraModel)
+    # The profile's dynamics, with every field of `vehicle` that differs from VehicleParams()
+    # taking precedence (an explicit --cmd-max-age-s wins over the profile's GUID_TIMEOUT).
+    vehicle_profile: str = SIM_DEFAULT_VEHICLE_PROFILE
     vehicle: VehicleParams = field(default_factory=VehicleParams)
     handover_alt_m: float = 20.0
     time_limit_s: float = 1200.0
@@ -67,12 +89,15 @@ class SimConfig:
     # False: frames carry a blank image (truth labels only). For the in-process bench with the
     # simulated perception, which reads only the labels: skips the costliest warp per frame.
     render_image: bool = True
+    odometry_rate_hz: float = 0.0  # visual odometry views per sim second (10 = the camera's); 0 = off
 
     def __post_init__(self) -> None:
         timing(self.timing)  # a ConfigError naming the presets
+        vehicle_profile(self.vehicle_profile)  # a ConfigError naming the profiles
         for name in ("dt_s", "time_limit_s", "safety_radius_m"):
             validate.positive(f"sim {name}", getattr(self, name))
         validate.non_negative("sim handover_alt_m", self.handover_alt_m)
+        validate.in_range("sim odometry_rate_hz", self.odometry_rate_hz, 0.0, 100.0)
         for name in ("frame_period_s", "latency_s"):
             if getattr(self, name) is not None:
                 validate.non_negative(f"sim {name}", getattr(self, name))
@@ -95,6 +120,7 @@ class StepOut:
     state: VehicleState
     frame: CameraFrame | None
     result: EpisodeResult | None
+    odometry: VisualOdometry | None = None
 
 
 class SimCore:
@@ -108,16 +134,24 @@ class SimCore:
 
     def reset(self) -> StepOut:
         cfg = self.config
+        profile = vehicle_profile(cfg.vehicle_profile)
         self.vehicle = Vehicle(Pose(self.start.x_m, self.start.y_m, self.start.alt_m, yaw_rad=self.start.yaw_rad),
-                               cfg.vehicle, seed=cfg.seed)
+                               profile.episode_dynamics(cfg.vehicle, cfg.seed), seed=cfg.seed)
+        self._gimbal = profile.gimbal
+        self.estimator = None if profile.estimator is None else Estimator(profile.estimator, cfg.seed, cfg.dt_s)
         self.judge = EpisodeJudge(self.world, handover_alt_m=cfg.handover_alt_m, time_limit_s=cfg.time_limit_s,
                                   safety_radius_m=cfg.safety_radius_m)
+        self._odometry = SimOdometry(self.world, cfg.camera, cfg.vehicle_id, cfg.odometry_rate_hz) \
+            if cfg.odometry_rate_hz > 0 else None
         self._k = 0
         self._frame_seq = -1
         self._in_flight: deque[tuple[int, float]] = deque()  # (frame seq, sim time its heatmap is due)
         self._last_cmd: VelocityCommand | None = None
         self._result: EpisodeResult | None = None
         self.commands_dropped = 0
+        # frame seq -> the true pose it was rendered at: x, y, altitude, yaw, roll, pitch
+        self._frame_poses: OrderedDict[int, tuple[float, ...]] = OrderedDict()
+        self._confirmed_look: tuple[int, float, float] | None = None
         return self._emit()
 
     @property
@@ -129,6 +163,10 @@ class SimCore:
         """Ground truth world position (x east, y north): for reports, never sent to the controller."""
         st = self.vehicle.state
         return st.x_m, st.y_m
+
+    def true_pose(self) -> Pose:
+        """The vehicle's true pose (position, altitude, attitude): for the judge and reports only."""
+        return self.vehicle.state
 
     def step(self, cmd: VelocityCommand | None) -> StepOut:
         """Apply the newest command for one step (None: keep the last one; it times out in the vehicle)."""
@@ -150,7 +188,34 @@ class SimCore:
     def is_fresh(self, cmd: VelocityCommand) -> bool:
         """True when the command's stamp is on the sim clock, not ahead of it and not too old."""
         age_s = self.t_s - cmd.stamp.t_s
-        return cmd.stamp.clock == "sim" and -_EPS_S <= age_s <= self.config.vehicle.cmd_timeout_s + _EPS_S
+        return cmd.stamp.clock == "sim" and -_EPS_S <= age_s <= self.vehicle.params.cmd_timeout_s + _EPS_S
+
+    def note_status(self, status: ControllerStatus) -> None:
+        """Take the controller's confirming look from its status: the spot pixel of that frame,
+        placed on the ground with the frame's true pose, becomes the judge's confirmed point."""
+        if self.judge is None or self._result is not None:
+            return
+        look = ((status.confirmed_frame_seq, status.confirmed_row_px, status.confirmed_col_px)
+                if status.confirmed_valid else None)
+        if look == self._confirmed_look:
+            return  # the same look again: nothing to place
+        self._confirmed_look = look
+        if look is None:
+            self.judge.confirm(None)
+            return
+        pose = self._frame_poses.get(look[0])
+        if pose is None:
+            log.warning("confirming frame %d is not among the %d frames kept: touchdown error unknown", look[0],
+                        len(self._frame_poses))
+            self.judge.confirm(None)
+            return
+        x_m, y_m, alt_m, yaw_rad, roll_rad, pitch_rad = pose
+        try:
+            point = ground_point_m(x_m, y_m, alt_m, yaw_rad, look[1], look[2], self.config.camera, roll_rad, pitch_rad)
+        except CameraError as exc:
+            log.warning("confirming look (frame %d): %s: touchdown error unknown", look[0], exc)
+            point = None
+        self.judge.confirm(point)
 
     @property
     def result(self) -> EpisodeResult | None:
@@ -178,34 +243,70 @@ class SimCore:
         pose = dataclasses.replace(self.vehicle.state, t_s=sched_t_s)
         # The hand-over is the controller's word on its newest fresh command, never the altitude.
         outcome = self.judge.check(pose, handover=self._last_cmd is not None and self._last_cmd.handover)
+        est = None if self.estimator is None else self.estimator.update(pose, self.vehicle.vel_own_ned_m_s)
         frame = None
         if outcome is None and sched_t_s >= (self._frame_seq + 1) * cfg.period_s - _EPS_S:
-            frame = self._render(pose)
+            frame = self._render(pose, est)
             self._in_flight.append((frame.seq, sched_t_s + cfg.delay_s))
         await_seq = -1
         # At most one heatmap becomes due per step (frame period >= step); take the newest due.
         while self._in_flight and self._in_flight[0][1] <= sched_t_s + _EPS_S:
             await_seq = self._in_flight.popleft()[0]
-        state = VehicleState(
-            vehicle_id=cfg.vehicle_id, seq=self._k, stamp=Stamp(pose.t_s, "sim"), alt_agl_m=pose.alt_agl_m,
-            vel_body_frd_m_s=pose.vel_body_frd_m_s(), yaw_rad=pose.yaw_rad, armed=True, mode="SIM",
-            pos_valid=True, pos_local_ned_m=(pose.y_m - self.start.y_m, pose.x_m - self.start.x_m, -pose.alt_agl_m),
-            await_frame_seq=await_seq, sent_wall_s=wall_time_s())
+        if est is None:
+            state = VehicleState(
+                vehicle_id=cfg.vehicle_id, seq=self._k, stamp=Stamp(pose.t_s, "sim"), alt_agl_m=pose.alt_agl_m,
+                vel_body_frd_m_s=pose.vel_body_frd_m_s(), yaw_rad=pose.yaw_rad, armed=True, mode="SIM",
+                pos_valid=True, pos_local_ned_m=(pose.y_m - self.start.y_m, pose.x_m - self.start.x_m, -pose.alt_agl_m),
+                await_frame_seq=await_seq, sent_wall_s=wall_time_s())
+        else:
+            # What the autopilot reports: no GNSS, so no valid position (the dead-reckoned one
+            # travels along for displays, flagged invalid); the truth stays with the judge.
+            state = VehicleState(
+                vehicle_id=cfg.vehicle_id, seq=self._k, stamp=Stamp(pose.t_s, "sim"), alt_agl_m=est.alt_agl_m,
+                vel_body_frd_m_s=est.vel_body_frd_m_s, roll_rad=est.roll_rad, pitch_rad=est.pitch_rad,
+                yaw_rad=est.yaw_rad, armed=True, mode="SIM", pos_valid=False, pos_local_ned_m=est.pos_local_ned_m,
+                await_frame_seq=await_seq, sent_wall_s=wall_time_s())
+        odometry = None
+        if self._odometry is not None and outcome is None:
+            # Rendered where the vehicle truly is (tilted with the body unless gimballed), told
+            # only what the state reports.
+            roll, pitch = (0.0, 0.0) if self._gimbal else (pose.roll_rad, pose.pitch_rad)
+            odometry = self._odometry.observe(pose.x_m, pose.y_m, pose.alt_agl_m, pose.yaw_rad, state,
+                                              roll_rad=roll, pitch_rad=pitch)
         if outcome is not None:
             self._result = self._episode_result(outcome)
-        return StepOut(state, frame, self._result)
+        return StepOut(state, frame, self._result, odometry)
 
-    def _render(self, pose: Pose) -> CameraFrame:
+    def _render(self, pose: Pose, est: Estimate | None) -> CameraFrame:
+        """The frame at the true pose, tilted with the body unless gimballed, labelled with the
+        estimate (the altitude and attitude a real camera service takes from the autopilot)."""
         cfg = self.config
-        image, labels, _valid = render(self.world, pose.x_m, pose.y_m, max(pose.alt_agl_m, 0.1), pose.yaw_rad,
-                                       cfg.camera, with_image=cfg.render_image,
+        alt_m = max(pose.alt_agl_m, 0.1)
+        roll, pitch = (0.0, 0.0) if self._gimbal else (pose.roll_rad, pose.pitch_rad)
+        image, labels, _valid = render(self.world, pose.x_m, pose.y_m, alt_m, pose.yaw_rad, cfg.camera,
+                                       roll_rad=roll, pitch_rad=pitch, with_image=cfg.render_image,
                                        with_labels=cfg.attach_truth)  # labels unused: skip their warp
         if image is None:
             image = self._blank_image()
-        truth = GroundTruth(labels, self._classes, (pose.x_m, pose.y_m)) if cfg.attach_truth and labels is not None else None
+        centre = (pose.x_m, pose.y_m) if roll == 0.0 and pitch == 0.0 else \
+            optical_axis_ground_m(pose.x_m, pose.y_m, alt_m, pose.yaw_rad, roll, pitch)
+        truth = GroundTruth(labels, self._classes, centre) if cfg.attach_truth and labels is not None else None
         self._frame_seq += 1
-        return CameraFrame(cfg.vehicle_id, self._frame_seq, Stamp(pose.t_s, "sim"), image, cfg.camera.hfov_rad,
-                           pose.alt_agl_m, yaw_rad=pose.yaw_rad, sent_wall_s=wall_time_s(), truth=truth)
+        if est is None:
+            frame = CameraFrame(cfg.vehicle_id, self._frame_seq, Stamp(pose.t_s, "sim"), image, cfg.camera.hfov_rad,
+                                pose.alt_agl_m, yaw_rad=pose.yaw_rad, sent_wall_s=wall_time_s(), truth=truth)
+        else:
+            # A gimballed camera's frame is level whatever the autopilot's attitude says.
+            label_roll, label_pitch = (0.0, 0.0) if self._gimbal else (est.roll_rad, est.pitch_rad)
+            frame = CameraFrame(cfg.vehicle_id, self._frame_seq, Stamp(pose.t_s, "sim"), image, cfg.camera.hfov_rad,
+                                est.alt_agl_m, roll_rad=label_roll, pitch_rad=label_pitch, yaw_rad=est.yaw_rad,
+                                sent_wall_s=wall_time_s(), truth=truth)
+        # The TRUE pose the frame was rendered at, attitude included (not the frame's labels, which
+        # are the estimate), for placing its pixels later.
+        self._frame_poses[frame.seq] = (pose.x_m, pose.y_m, alt_m, pose.yaw_rad, roll, pitch)
+        if len(self._frame_poses) > FRAME_POSES_KEPT:
+            self._frame_poses.popitem(last=False)
+        return frame
 
     def _blank_image(self):
         if getattr(self, "_blank", None) is None:
@@ -244,6 +345,12 @@ def judge_result(vehicle_id: str, judge: EpisodeJudge, outcome: str, detail: str
                                      "not_judged": "reached the hand-over altitude over a world without labels: "
                                                    "not judged"}.get(outcome, "")
     t_s, x_m, y_m, alt_m = (pose.t_s, pose.x_m, pose.y_m, pose.alt_agl_m) if pose else (0.0, 0.0, 0.0, 0.0)
+    confirmed, error = judge.confirmed_xy_m, judge.touchdown_error_m
     return EpisodeResult(vehicle_id, Stamp(t_s, clock), outcome, judge.sim_time_s, judge.path_length_m,
                          x_m, y_m, alt_m, classes, closest is not None,
-                         float(closest) if closest is not None else 0.0, detail)
+                         float(closest) if closest is not None else 0.0, detail,
+                         confirmed_valid=confirmed is not None,
+                         confirmed_x_m=float(confirmed[0]) if confirmed is not None else 0.0,
+                         confirmed_y_m=float(confirmed[1]) if confirmed is not None else 0.0,
+                         touchdown_error_valid=error is not None,
+                         touchdown_error_m=float(error) if error is not None else 0.0)

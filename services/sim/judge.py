@@ -23,7 +23,10 @@ The paper judged landings by eye; here the label map does it. Two pieces:
   (the policy climbs back, or the time runs out); a vehicle that reaches the ground without a
   hand-over (`GROUND_CONTACT_M`) ends `unsafe`, "on the ground without a hand-over": an
   unplanned touchdown is a crash, wherever it happens. A caller with no word from the controller
-  (`handover=None`) gets the altitude crossing, the paper's rule.
+  (`handover=None`) gets the altitude crossing, the paper's rule. It also keeps the ground the
+  policy last confirmed (`confirm`, placed by the sim from the confirming frame's true pose): at
+  the hand-over, `touchdown_error_m` is the true distance from the hand-over point to it (None
+  for a policy that confirmed nothing).
 
 Which classes are safe belongs to the world (`World.classes`); nothing here knows class ids.
 """
@@ -265,6 +268,14 @@ class EpisodeJudge:
         self.path_length_m = 0.0  # horizontal, summed over the states checked
         self.start_t_s: float | None = None
         self.last_state: Pose | None = None
+        self.confirmed_xy_m: tuple[float, float] | None = None  # the ground the policy last confirmed
+        self.touchdown_error_m: float | None = None  # set with the landing verdict, when confirmed
+
+    def confirm(self, xy_m: tuple[float, float] | None) -> None:
+        """The ground the policy last confirmed (world metres), or None when it is not known;
+        frozen once the episode has ended."""
+        if self.outcome is None:
+            self.confirmed_xy_m = xy_m
 
     @property
     def sim_time_s(self) -> float:
@@ -294,6 +305,9 @@ class EpisodeJudge:
             self.verdict = judge_landing(self.world, state.x_m, state.y_m, self.safety_radius_m,
                                          self.tolerance_frac, self.search_radius_m)
             self.outcome = self.verdict.outcome
+            if self.confirmed_xy_m is not None:
+                self.touchdown_error_m = math.hypot(state.x_m - self.confirmed_xy_m[0],
+                                                    state.y_m - self.confirmed_xy_m[1])
         elif state.alt_agl_m <= GROUND_CONTACT_M:
             self.outcome, self.crashed = "unsafe", True
         elif self.sim_time_s >= self.time_limit_s:
@@ -312,4 +326,6 @@ class EpisodeJudge:
             "final_alt_m": st.alt_agl_m if st else None,
             "verdict": self.verdict.to_dict() if self.verdict else None,
             "crashed": self.crashed,
+            "confirmed_xy_m": self.confirmed_xy_m,
+            "touchdown_error_m": self.touchdown_error_m,
         }

@@ -22,7 +22,8 @@ from dovesei.shared import keys
 from dovesei.shared.codec import decode, encode
 from dovesei.shared.errors import ConfigError
 from dovesei.shared.lifecycle import Inbox, wait_until
-from dovesei.shared.messages import CameraFrame, Stamp, VehicleState
+from dovesei.shared.messages import CameraFrame, Stamp, VehicleState, VisualOdometry, replace
+from tests.shared.ground import ned_to_body, view
 
 
 def write_video(path: Path, frames: int, fps: float = 20.0, size: tuple[int, int] = (160, 120)) -> Path:
@@ -106,6 +107,9 @@ class ListStates:
 
     def poll(self) -> VehicleState | None:
         return self.queue.pop(0) if self.queue else None
+
+    def age_s(self) -> float:
+        return 0.0  # each state arrives when the test polls it
 
     def close(self) -> None:
         pass
@@ -288,3 +292,110 @@ def test_the_camera_service_has_no_autopilot_link() -> None:
     # Only the controller opens MAVLink: no flag, no config field, no import of it here.
     assert "mavlink" not in cs.build_parser().format_help().lower()
     assert "pymavlink" not in Path(cs.__file__).read_text() and "pymavlink" not in Path(src.__file__).read_text()
+
+
+# ---------------------------------------------------------------------- visual odometry on the odometry key
+
+# The vehicle flies north at 8 m/s, 42.5 m up, heading 1.5 rad, tilted as `state()` says: in the
+# body frame that is mostly to the left (heading east of north), forward slightly negative.
+ODO_ALT_M, ODO_VEL_NED = 42.5, (8.0, 0.0, 0.0)
+
+
+def ground_frames(n: int, dt_s: float, size: tuple[int, int] = (320, 240)) -> list[np.ndarray]:
+    """BGR views of the textured ground along the flight (one every dt_s), at the attitude of `state()`."""
+    w, h = size
+    return [cv2.cvtColor(view(ODO_VEL_NED[0] * dt_s * k, ODO_VEL_NED[1] * dt_s * k, ODO_ALT_M, 1.5, 0.01, -0.02,
+                              w=w, h=h, gsd=0.1, rgb=False), cv2.COLOR_GRAY2BGR) for k in range(n)]
+
+
+def odo_truth() -> np.ndarray:
+    return ned_to_body(ODO_VEL_NED, 0.01, -0.02, 1.5)
+
+
+def test_odometry_follows_the_grabbed_frames_and_blank_ones_are_invalid() -> None:
+    now = [0.0]
+    grabber, states, sent, odo = FakeGrabber(), ListStates(), [], []
+    loop = CameraPublisher(CameraConfig(source="0", width_px=96, height_px=96), grabber, states, sent.append,
+                           clock=lambda: now[0], put_odometry=odo.append)
+    states.queue.append(state(ODO_ALT_M, t_s=100.0))
+    loop.poll_state()
+    views = ground_frames(4, 0.1)
+    for k, bgr in enumerate(views):
+        grabber.slot = (bgr, 0.1 * k, k + 1)
+        now[0] = 0.1 * k
+        assert not loop.odometry_tick()  # no state after the capture yet: wait for it to interpolate
+        now[0] = 0.1 * k + cs.ATTITUDE_WAIT_S + 0.01  # none came: the state before it is used
+        assert loop.odometry_tick() == (k > 0)  # the first frame has nothing to compare with
+        assert not loop.odometry_tick()  # the same frame is never compared twice
+    msgs = [decode(b, VisualOdometry) for b in odo]
+    assert [(m.prev_frame_seq, m.frame_seq) for m in msgs] == [(1, 2), (2, 3), (3, 4)]
+    for m in msgs:
+        assert m.valid and m.dt_s == pytest.approx(0.1) and m.stamp.clock == "vehicle"
+        assert np.linalg.norm(np.array(m.vel_body_frd_m_s[:2]) - odo_truth()[:2]) < 0.05 * 8.0
+        assert (m.alt_agl_m, m.yaw_rad) == (ODO_ALT_M, 1.5)
+    assert sent == []  # odometry never publishes camera frames
+    grabber.push(0.5)  # a uniform grey frame: nothing to track
+    now[0] = 0.6
+    assert loop.odometry_tick()
+    blank = decode(odo[-1], VisualOdometry)
+    assert not blank.valid and blank.vel_body_frd_m_s == (0.0, 0.0, 0.0) and blank.quality == 0.0
+    assert loop.stats.odometry_published == 4 and loop.stats.odometry_valid == 3
+
+
+def test_odometry_interpolates_the_attitude_at_the_capture() -> None:
+    now = [0.0]
+    grabber, states, odo = FakeGrabber(), ListStates(), []
+    loop = CameraPublisher(CameraConfig(source="0", width_px=96, height_px=96), grabber, states, [].append,
+                           clock=lambda: now[0], put_odometry=odo.append)
+    views = ground_frames(2, 0.1)
+    yaws = []
+    for k, bgr in enumerate(views):
+        t0 = 0.1 * k
+        # States at t0 - 0.01 (yaw 3.1) and t0 + 0.01 (yaw -3.1, across the +-pi seam); the capture
+        # sits halfway, so its yaw is pi, not 0.
+        for dt, yaw in ((-0.01, 3.1), (0.01, -3.1)):
+            now[0] = t0 + dt
+            states.queue.append(replace(state(ODO_ALT_M + 10 * dt, t_s=100.0 + t0 + dt), yaw_rad=yaw, roll_rad=0.0,
+                                        pitch_rad=0.0))
+            loop.poll_state()
+            if dt < 0:
+                grabber.slot = (bgr, t0, k + 1)
+                assert not loop.odometry_tick()  # waits for the state after the capture
+        assert loop.odometry_tick() == (k > 0)
+    msg = decode(odo[-1], VisualOdometry)
+    assert abs(abs(msg.yaw_rad) - math.pi) < 1e-6 and msg.alt_agl_m == pytest.approx(ODO_ALT_M)
+
+
+def test_the_camera_service_publishes_visual_odometry(service: tuple, tmp_path: Path) -> None:
+    b, start = service
+    fps, n = 20.0, 60
+    video = tmp_path / "ground.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), fps, (320, 240))
+    for bgr in ground_frames(n, 1.0 / fps):
+        writer.write(bgr)
+    writer.release()
+    states = StatePublisher(b, alt_m=ODO_ALT_M)
+    msgs: list[VisualOdometry] = []
+    try:
+        with Inbox(b, keys.odometry("uav1"), VisualOdometry, newest_only=False) as inbox:
+            stats = CameraStats()
+            start(CameraConfig(source=str(video), width_px=128, height_px=128, rate_hz=2.0, odometry_rate_hz=10.0),
+                  stats)
+
+            def collect() -> bool:
+                while (m := inbox.poll()) is not None:
+                    msgs.append(m)
+                return stats.ended and len(msgs) == stats.odometry_published
+
+            assert wait_until(collect, 20.0), f"ended={stats.ended} odometry={stats.odometry_published} got={len(msgs)}"
+    finally:
+        states.close()
+    assert len(msgs) >= 5, f"only {len(msgs)} odometry messages from a 3 s file"
+    valid = [m for m in msgs if m.valid]
+    assert len(valid) >= 0.8 * len(msgs)
+    # Frames are paced by the grabber thread: on a loaded host dt jitters, so the median is judged.
+    vel = np.median([m.vel_body_frd_m_s for m in valid], axis=0)
+    assert np.linalg.norm(vel[:2] - odo_truth()[:2]) < 0.15 * 8.0, (vel, odo_truth())
+    assert all(m.vehicle_id == "uav1" and m.alt_agl_m == ODO_ALT_M and 0 < m.dt_s < 1.0 for m in valid)
+    assert [m.frame_seq for m in msgs] == sorted(m.frame_seq for m in msgs)
+    assert all(m.prev_frame_seq < m.frame_seq for m in msgs)

@@ -75,10 +75,11 @@ class Flight:
 def fly(world: World, policy: ClearancePolicy, *, t_max_s: float = 400.0, dt_s: float = 0.5,
         bias_m_s: tuple[float, float] = (0.0, 0.0), vel_noise_m_s: float = 0.0,
         wind_m_s: tuple[float, float] = (0.0, 0.0), gap_s: tuple[float, float] | None = None,
-        seed: int = 0, start: tuple[float, float] = (0.0, 0.0), hold_s: float = 0.0) -> Flight:
+        seed: int = 0, start: tuple[float, float] = (0.0, 0.0), hold_s: float = 0.0,
+        start_alt_m: float = 100.0) -> Flight:
     rng = np.random.default_rng(seed)
     n, e = start
-    alt, t = 100.0, 0.0
+    alt, t = start_alt_m, 0.0
     v = np.zeros(3)
     states: list[str] = []
     track = []
@@ -252,7 +253,7 @@ def test_without_registration_the_estimate_drifts() -> None:
 def test_the_observation_has_no_position_field() -> None:
     fields = {f.name for f in dataclasses.fields(Observation)}
     assert fields == {"t_s", "alt_agl_m", "prob_safe", "hfov_rad", "roll_rad", "pitch_rad", "yaw_rad",
-                      "vel_est_body_frd_m_s", "cmd_vel_body_frd_m_s", "odom_delta_ne_m"}
+                      "vel_est_body_frd_m_s", "cmd_vel_body_frd_m_s", "odom_delta_ne_m", "frame_seq"}
     assert not any("pos" in f or f.endswith(("_x_m", "_y_m")) for f in fields)
 
 
@@ -336,3 +337,41 @@ def test_the_confirmation_map_remembers_the_whole_search_area() -> None:
     for e in (248.0, 0.0, -248.0):
         p_safe, looks = policy.high.at(0.0, e)
         assert looks > 0.0 and p_safe > 0.85, (e, p_safe, looks)
+
+
+def test_every_altitude_follows_the_start_altitude() -> None:
+    """Search passes, confirmation looks and probes are the 100 m start's scaled by the start
+    altitude the policy observes, each above its floor (hand-over + 15 m for a pass, + 10 m for a
+    probe; the confirmation above the probe's own looks)."""
+    cfg = ClearanceConfig()
+    a100, a60, a40 = cfg.altitudes(100.0), cfg.altitudes(60.0), cfg.altitudes(40.0)
+    assert (a100.search_m, a100.lower_m, a100.confirm_m, a100.probe_m) == (100.0, (60.0, 40.0), 55.0, 35.0)
+    assert (a60.search_m, a60.lower_m, a60.confirm_m, a60.probe_m) == (60.0, (36.0,), 35.0, 30.0)
+    assert (a40.search_m, a40.lower_m, a40.confirm_m, a40.probe_m) == (40.0, (), 35.0, 30.0)
+    # The policy plans its route from the altitude of its first look.
+    policy = ClearancePolicy()
+    policy.step(Observation(t_s=0.0, alt_agl_m=60.0, prob_safe=np.full((64, 64), 0.3, np.float32), hfov_rad=HFOV))
+    assert sorted({alt for _, _, alt in policy._route}, reverse=True) == [60.0, 36.0]
+
+
+@pytest.mark.parametrize("start_alt_m", [40.0, 60.0, 100.0])
+def test_from_any_start_altitude_it_finds_confirms_and_lands(start_alt_m: float) -> None:
+    """The probe scenario (a 10 m lawn 70 m away among yards too small to land on) flown from 40,
+    60 and 100 m: the lawn is found, confirmed by the looks from the scaled confirmation altitude
+    and landed on; the vehicle never went below the scaled probe altitude before choosing it."""
+    rng = np.random.default_rng(4)
+    safe = _textured(rng)
+    _lawn(safe, 50.0, -50.0, 10.0)
+    world = World(safe)
+    cfg = ClearanceConfig(p_safe_min=ODOMETRY_P_SAFE_MIN, confirm_p_min=0.7, probe_p_min=0.7, probe_now_p_min=0.7)
+    policy = ClearancePolicy(cfg)
+    flight = fly(world, policy, seed=4, start_alt_m=start_alt_m, t_max_s=600.0)
+    assert flight.alt_m <= 20.0, flight.decision.reason
+    assert world.disk_safe(flight.north_m, flight.east_m, 2.0)
+    assert math.hypot(flight.north_m - 50.0, flight.east_m + 50.0) < 4.0
+    alts = cfg.altitudes(start_alt_m)
+    chosen = next(i for i, s in enumerate(flight.states) if s in ("APPROACH", "DESCEND"))
+    assert min(alt for _, _, alt, _, _ in flight.track[:chosen]) >= alts.probe_m - cfg.probe_alt_tol_m
+    # The spot was confirmed by the looks at or above the scaled confirmation altitude.
+    p_high, looks = policy.high.at(50.0, -50.0)
+    assert looks > 0.0 and p_high > 0.5

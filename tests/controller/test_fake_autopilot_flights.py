@@ -13,7 +13,8 @@ import logging
 import math
 import socket
 import threading
-from collections.abc import Iterator
+import time
+from collections.abc import Callable, Iterator
 
 import numpy as np
 import pytest
@@ -78,7 +79,8 @@ def flight(zenoh_pair) -> Iterator:
     service_session, test_session = zenoh_pair
     started: list = []
 
-    def fly(fake: FakeAutopilot, config: ControllerConfig, policy: ForwardAndDown) -> tuple[RunStats, Perception]:
+    def fly(fake: FakeAutopilot, config: ControllerConfig, policy: ForwardAndDown,
+            until: Callable[[], bool] | None = None) -> tuple[RunStats, Perception]:
         handover = config.handover_action
         states = Inbox(test_session, keys.state("uav1"), VehicleState, newest_only=True)
         started.append(states)
@@ -98,11 +100,12 @@ def flight(zenoh_pair) -> Iterator:
         try:
             assert wait_until(lambda: is_alive(test_session, "uav1", "controller", 0.5) or "error" in result, 15.0)
             perception.start()
-            # Hand-over ends the flight: the fake is at/below 20 m and no longer steered by us.
-            done = wait_until(lambda: "error" in result or (policy.steps > 0 and _handed_over(fake, handover)),
-                              FLIGHT_DEADLINE_S)
+            # Hand-over ends the flight (the fake is at/below 20 m and no longer steered by us),
+            # unless the test waits for more (a landing).
+            end = until if until is not None else (lambda: _handed_over(fake, handover))
+            done = wait_until(lambda: "error" in result or (policy.steps > 0 and end()), FLIGHT_DEADLINE_S)
             assert "error" not in result, result.get("error")
-            assert done, f"no hand-over: fake at {fake.position_ned_m}, mode {fake.mode}"
+            assert done, f"flight not done: fake at {fake.position_ned_m}, mode {fake.mode}"
         finally:
             stop.set()
             thread.join(15.0)
@@ -173,3 +176,121 @@ def test_flies_from_boot_with_takeoff_steers_descends_and_hands_over(flight, fla
         target = fake.landing_targets[-1]
         assert target.frame == 12 and target.angle_x_rad > 0.05  # right of centre: positive image x
         assert abs(target.angle_y_rad) < 0.05
+
+
+def test_precland_streams_the_spot_until_touchdown_and_lands_on_it(flight) -> None:
+    """Issue 26: ArduCopter said "PrecLand: Target Found", then "Init Failed", and landed blind,
+    because the target stopped 0.53 s after the hand-over. The spot now streams (10 Hz, fixed on
+    the ground and carried by dead reckoning) until the autopilot has landed and disarmed; the
+    fake's AC_PrecLand model initialises on it and lands there."""
+    listen, connect = udp_pair()
+    config = ControllerConfig(lockstep=False, timing="real", vehicle_url=connect, vehicle_connect_timeout_s=5.0,
+                              handover_action="precland", state_stale_after_s=1.0)
+    with FakeAutopilot(listen, flavour="ardupilot", mode="GUIDED", armed=True, alt_m=23.0, heartbeat_hz=10,
+                       yaw_rad=math.radians(30.0)) as fake:
+        handover: dict[str, tuple[float, float]] = {}
+
+        def landed() -> bool:
+            if "at" not in handover and fake.mode == "LAND":
+                handover["at"] = fake.position_ned_m[:2]
+            return not fake.armed
+
+        flight(fake, config, ForwardAndDown(), until=landed)
+        texts = [text for _, text in fake.statustexts_sent]
+        targets = list(fake.landing_targets)
+        measured = list(fake.precland_targets_ne)
+    assert fake.touchdown_ne_m is not None and fake.touchdown_s is not None
+    assert "PrecLand: Target Found" in texts and "PrecLand: Init Complete" in texts, texts
+    assert "PrecLand: Init Failed" not in texts and "PrecLand: Target Lost" not in texts, texts
+    # Streamed to touchdown at a steady rate, and not after it.
+    times = [t.recv_s for t in targets]
+    gaps = [b - a for a, b in zip(times, times[1:])]
+    assert fake.touchdown_s - times[-1] < 0.5 and times[-1] <= fake.touchdown_s + 0.3
+    assert len(targets) > 50 and sorted(gaps)[len(gaps) // 2] <= 0.15, (len(targets), max(gaps))
+    # One spot on the ground, wherever the vehicle was when it measured it (fixed angles would have
+    # dragged it along with the vehicle): every measurement within 1 m of the first ...
+    n0, e0 = measured[0][1:]
+    spread_m = max(math.hypot(n - n0, e - e0) for _, n, e in measured)
+    assert spread_m < 1.0, spread_m
+    # ... about 7.6 m right of the hand-over point (the policy's pixel at ~20 m, heading 30 deg) ...
+    hn, he = handover["at"]
+    fwd, right = ((n0 - hn) * math.cos(math.radians(30.0)) + (e0 - he) * math.sin(math.radians(30.0)),
+                  -(n0 - hn) * math.sin(math.radians(30.0)) + (e0 - he) * math.cos(math.radians(30.0)))
+    assert 5.5 < right < 10.0 and abs(fwd) < 2.5, (fwd, right)
+    # ... and the touchdown on it.
+    tn, te = fake.touchdown_ne_m
+    assert math.hypot(tn - n0, te - e0) < 1.5, (fake.touchdown_ne_m, (n0, e0))
+
+
+class Runaway:
+    """The paper's RESTARTING move: forward at 12 m/s (10 after the clamp) and never stopping."""
+
+    name = "runaway"
+
+    def __init__(self) -> None:
+        self.steps = 0
+
+    def step(self, obs: Observation) -> Decision:
+        self.steps += 1
+        return Decision((12.0, 0.0, 0.0), 0.0, "RESTARTING", None, 10.0, 0.5, {})
+
+    def reset(self) -> None:
+        pass
+
+
+def test_the_geofence_keeps_a_runaway_policy_near_the_start_on_a_mavlink_vehicle(flight) -> None:
+    listen, connect = udp_pair()
+    config = ControllerConfig(lockstep=False, timing="real", vehicle_url=connect, vehicle_connect_timeout_s=5.0,
+                              state_stale_after_s=1.0, geofence_radius_m=40.0)
+    with FakeAutopilot(listen, flavour="ardupilot", mode="GUIDED", armed=True, alt_m=60.0, heartbeat_hz=10,
+                       yaw_rad=math.radians(-60.0)) as fake:
+        policy = Runaway()
+        far: list[float] = []
+        started: list[float] = []
+
+        def long_enough() -> bool:
+            n, e, _ = fake.position_ned_m
+            far.append(math.hypot(n, e))
+            if not started:
+                started.append(time.monotonic())
+            return time.monotonic() - started[0] > 12.0  # 120 m unfenced
+
+        stats, _ = flight(fake, config, policy, until=long_enough)
+    assert 30.0 < max(far) < 44.0, max(far)  # the fence (on the velocity estimate) plus the fake's lag
+    assert stats.geofence_clipped > 20
+
+
+class Sideways:
+    """Right at 4 m/s and down 0.5 m/s in the camera's frame: a body-frame policy's typical ask."""
+
+    name = "sideways"
+
+    def __init__(self) -> None:
+        self.steps = 0
+
+    def step(self, obs: Observation) -> Decision:
+        self.steps += 1
+        return Decision((0.0, 4.0, 0.5), 0.0, "AIMING", None, 10.0, 0.5, {})
+
+    def reset(self) -> None:
+        pass
+
+
+@pytest.mark.parametrize("yaw_control", ["autopilot", "rate"])
+def test_body_frame_commands_keep_their_meaning_whichever_yaw_control(flight, yaw_control: str) -> None:
+    """Issue 26: with --yaw-control autopilot ArduCopter turned the nose by WP_YAW_BEHAVIOR (the fake
+    does too when a setpoint leaves the heading to it) and the body-frame policy ran out of the
+    world (heading +142 and +176 deg). The heading now stays, and right stays right."""
+    listen, connect = udp_pair()
+    config = ControllerConfig(lockstep=False, timing="real", vehicle_url=connect, vehicle_connect_timeout_s=5.0,
+                              state_stale_after_s=1.0, mavlink_yaw_control=yaw_control)
+    yaw0 = math.radians(20.0)
+    with FakeAutopilot(listen, flavour="ardupilot", mode="GUIDED", armed=True, alt_m=60.0, heartbeat_hz=10,
+                       yaw_rad=yaw0, heading_drift_rad_s=math.radians(4.0)) as fake:
+        policy = Sideways()
+        flight(fake, config, policy, until=lambda: math.hypot(*fake.position_ned_m[:2]) > 40.0)
+        n, e, _ = fake.position_ned_m
+        turned_deg = math.degrees(math.remainder(fake.yaw_rad - yaw0, 2 * math.pi))
+    # The track: the start's right (heading + 90 deg), within 12 deg; the heading within 8 deg.
+    track_deg = math.degrees(math.remainder(math.atan2(e, n) - (yaw0 + math.pi / 2), 2 * math.pi))
+    assert abs(track_deg) < 12.0 and abs(turned_deg) < 8.0, (track_deg, turned_deg)

@@ -135,6 +135,19 @@ def test_huge_commands_are_clamped_not_fatal(fly: Fly) -> None:
     assert vehicle.setpoints_clamped >= 2 and vehicle.lost_reason is None
 
 
+def test_clamped_commands_are_counted_per_command_not_per_repeat(fly: Fly) -> None:
+    """The run's stats say how often the controller asked for more than the vehicle flies (issue 26:
+    54-74 % of a SITL flight's setpoints were clamped, and nothing said so)."""
+    fake, vehicle = fly(limits=SpeedLimits(horizontal_m_s=10.0, up_m_s=2.5, down_m_s=1.5))
+    for cmd in (command(fwd=12.0), command(down=4.0), command(fwd=3.0), command(fwd=9.0, down=1.5),
+                command(right=-18.0)):
+        vehicle.send(cmd)
+        barrier(vehicle, 10)  # the stream repeats each one several times
+    counters = vehicle.counters()
+    assert counters["commands_steered"] == 5 and counters["commands_clamped"] == 3
+    assert counters["setpoints_clamped"] > 3  # the repeats are counted there, not here
+
+
 def test_clamp_keeps_direction_and_refuses_non_finite() -> None:
     limits = SpeedLimits(horizontal_m_s=10.0, up_m_s=2.5, down_m_s=1.5)
     vel, rate, clamped = clamp_setpoint((30.0, -40.0, 0.5), 0.0, limits)

@@ -207,6 +207,12 @@ class FakeMavlink:
     def close(self) -> None:
         self.calls.append("close")
 
+    def nav_status(self) -> None:
+        return None  # no estimator to judge: trusted, as the sim
+
+    def on_visual_odometry(self, odom: object) -> None:
+        self.calls.append("odometry")
+
 
 class Descend:
     name = "descend"

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import importlib
 import json
+import os
 import re
 import subprocess
 import tomllib
@@ -28,9 +29,10 @@ PYPROJECT = tomllib.loads((ROOT / "pyproject.toml").read_text())
 SCRIPTS = PYPROJECT["project"]["scripts"]
 
 
-def _resolved(path: Path) -> dict:
+def _resolved(path: Path, env: dict[str, str] | None = None) -> dict:
     out = subprocess.run([str(COMPOSE_BIN), "-f", str(path), "--profile", "gpu", "config", "--format", "json"],
-                         capture_output=True, text=True, timeout=60, check=True)
+                         capture_output=True, text=True, timeout=60, check=True,
+                         env=None if env is None else {**os.environ, **env})
     return json.loads(out.stdout)
 
 
@@ -94,3 +96,38 @@ def test_onboard_image_has_no_torch() -> None:
 def test_zenoh_configs_parse(path: Path) -> None:
     conf = zenoh.Config.from_file(str(path))
     assert json.loads(conf.get_json("scouting/multicast/enabled")) is False
+
+
+def _documented_mavlink_url(path: Path) -> str:
+    """The DOVESEI_MAVLINK value the compose file's own header tells the operator to set."""
+    return re.search(r"DOVESEI_MAVLINK=(\S+)", path.read_text()).group(1)
+
+
+def test_the_onboard_link_is_signed_pinned_and_in_a_form_up_and_the_controller_accept() -> None:
+    """compose.onboard once documented `serial:///dev/ttyACM0:921600`, which pymavlink reads as a UDP
+    address and `up` refused; and it passed neither --signing-key nor --autopilot-system-id, the two
+    that together stop MAVLink spoofing."""
+    from dovesei.controller.service import CLI
+    from dovesei.shared.mavurl import parse_mavlink_url
+
+    path = DEPLOY / "compose.onboard.yaml"
+    documented = _documented_mavlink_url(path)
+    assert parse_mavlink_url(documented).serial
+    for env in ({}, {"DOVESEI_MAVLINK": documented}):
+        cmd = _resolved(path, env)["services"]["controller"]["command"]
+        config = CLI.parse([a for a in cmd[1:] if not a.startswith("--tls")
+                            and a not in ("--connect",) and not a.startswith(("tls/", "/etc/dovesei/certs"))])
+        parse_mavlink_url(config.vehicle_url)
+        assert config.mavlink_signing_key_file and config.mavlink_system_id == 1, cmd
+    ctrl = _resolved(path)["services"]["controller"]
+    key_dir = next(v for v in ctrl["volumes"] if v["target"] == "/etc/dovesei/mavlink")
+    assert not key_dir.get("read_only"), "the signing timestamp is written beside the key"
+    assert config.mavlink_signing_key_file.startswith("/etc/dovesei/mavlink/")
+
+
+def test_the_base_image_installs_the_base_dependencies() -> None:
+    """pyserial (and every base dependency) reaches the onboard image through `pip install .`."""
+    base_stage = (DEPLOY / "Dockerfile").read_text().split("FROM base AS segmenter")[0]
+    installs = [ln for ln in base_stage.splitlines() if ln.startswith("RUN pip install")]
+    assert installs == ["RUN pip install ."], installs
+    assert any(d.startswith("pyserial") for d in PYPROJECT["project"]["dependencies"])

@@ -41,6 +41,8 @@ def test_results_contract_and_resume(tmp_path: Path) -> None:
         # The judge's ceiling: how far the nearest ground judged safe lay from the start (the
         # default synthetic city has lawns and plazas within a few hundred metres of anywhere).
         assert e["nearest_safe_m"] is not None and 0.0 <= e["nearest_safe_m"] <= 500.0
+        # The paper's policies confirm no spot: their records say so (null), not 0.
+        assert e["touchdown_error_m"] is None and e["confirmed"] is None
     assert doc["episodes"][0]["nearest_safe_m"] == doc["episodes"][1]["nearest_safe_m"]  # the same start
     assert set(doc["summary"]) == {"dovesei", "dovesei-nofocus"}
     assert all(SUMMARY_KEYS <= set(s) and s["episodes"] == 1 for s in doc["summary"].values())
@@ -49,6 +51,9 @@ def test_results_contract_and_resume(tmp_path: Path) -> None:
     assert starts["dovesei"] == starts["dovesei-nofocus"]
     table = (tmp_path / "summary.md").read_text().split("## ")[0]
     assert table.count("| dovesei") == 2 and "95 % CI" in table
+    assert table.count("no confirmed spot") == 2
+    assert all(s["median_touchdown_error_m"] is None and s["touchdown_error_episodes"] == 0
+               for s in doc["summary"].values())
     assert (tmp_path / "paths.png").stat().st_size > 0
     assert len(list((tmp_path / "tracks").glob("*.npy"))) == 2
     journal = (tmp_path / "episodes.jsonl").read_text()

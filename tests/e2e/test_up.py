@@ -101,6 +101,31 @@ def test_a_real_vehicle_runs_in_real_time_with_the_sim_as_camera(tmp_path: Path)
     check_link_owners(cmds)
 
 
+def test_sitl_truth_goes_to_the_sim_on_its_own_endpoint(tmp_path: Path) -> None:
+    from dovesei.shared.errors import ConfigError
+
+    opts = UpOptions(world=WORLD, vehicle_url="udpin:127.0.0.1:14550", sitl_truth="udpin:127.0.0.1:14552",
+                     timing="real", out=tmp_path)
+    cmds = child_commands(opts, child_configs(opts, (1.0, 2.0, 30.0)), {n: 1 for n in (*SERVICES, "monitor")},
+                          tmp_path)
+    _, sim = _parsed("sim", cmds["sim"])
+    _, ctrl = _parsed("controller", cmds["controller"])
+    assert sim.external_pose and sim.sitl_truth == "udpin:127.0.0.1:14552"
+    assert ctrl.vehicle_url == "udpin:127.0.0.1:14550" and "--sitl-truth" not in cmds["controller"]
+    check_link_owners(cmds)
+    # The autopilot's own endpoint is never the sim's.
+    same = UpOptions(world=WORLD, vehicle_url="udpin:127.0.0.1:14550", sitl_truth="udpin:127.0.0.1:14550",
+                     timing="real", out=tmp_path)
+    with pytest.raises(ConfigError, match="both .* would bind 127.0.0.1:14550"):
+        check_link_owners(child_commands(same, child_configs(same, (1.0, 2.0, 30.0)),
+                                         {n: 1 for n in (*SERVICES, "monitor")}, tmp_path))
+    with pytest.raises(ConfigError, match="--sitl-truth only applies with --vehicle"):
+        UpOptions(world=WORLD, sitl_truth="udpin:127.0.0.1:14552")
+    with pytest.raises(ConfigError, match="--sitl-truth 'udpout:127.0.0.1:14552': expected udpin:HOST:PORT"):
+        UpOptions(world=WORLD, vehicle_url="udpin:127.0.0.1:14550", sitl_truth="udpout:127.0.0.1:14552",
+                  timing="real")
+
+
 def test_two_processes_on_one_mavlink_endpoint_are_refused() -> None:
     from dovesei.shared.errors import ConfigError
 
@@ -158,6 +183,118 @@ def test_recorder_trajectory_is_start_plus_local_ned_with_the_state_of_each_tick
     assert traj["state"] == ["INIT", "AIMING", "AIMING"]  # carried forward until the next status
     assert traj["cmd_down_m_s"] == [0.0, 1.5, 1.5]
     assert rec.rejected == 1 and len(rec.states) == 3
+
+
+def test_trajectory_after_a_takeoff_starts_where_the_mission_starts() -> None:
+    """--takeoff: the climb from the ground is recorded, but the mission's trajectory (its plot, its
+    path) begins with the controller's first tick at the start altitude."""
+    from dovesei.up.watch import wait_for_takeoff
+
+    rec = Recorder((100.0, 200.0, 26.0), video=False)
+    climb = [VehicleState("uav1", k, Stamp(0.5 * k, "vehicle"), 2.0 * k, (0.0, 0.0, -2.0), pos_valid=True,
+                          pos_local_ned_m=(0.0, 0.0, -2.0 * k)) for k in range(14)]  # 0 -> 26 m
+    status = ControllerStatus("uav1", 1, Stamp(6.5, "vehicle"), "dovesei", "AIMING", "ok", "", 0, 0.0, 10.0)
+    after = [VehicleState("uav1", 14 + k, Stamp(7.0 + 0.5 * k, "vehicle"), 26.0, (1.0, 0.0, 0.0), pos_valid=True,
+                          pos_local_ned_m=(0.5 * (k + 1), 0.0, -26.0)) for k in range(3)]
+
+    class Feed:  # the monitor: the climb's states, then the controller's first status
+        def drain(self) -> None:
+            for st in climb:
+                rec.handle(Sample("state", 1000.0 + st.stamp.t_s, encode(st)))
+            rec.handle(Sample("status", 1006.5, encode(status)))
+
+    class NoExits:
+        def exited(self) -> list:
+            return []
+
+    end = wait_for_takeoff(rec, Feed(), NoExits(), threading.Event(), 5.0)
+    assert end.failure is None and not end.interrupted
+    for st in after:
+        rec.handle(Sample("state", 1006.5 + st.stamp.t_s, encode(st)))
+    traj = rec.trajectory()
+    assert len(rec.states) == 17  # the climb is still recorded ...
+    assert traj["t_s"] == [6.5, 7.0, 7.5, 8.0] and min(traj["alt_m"]) == 26.0  # ... but not flown as the mission
+    assert traj["y_m"] == [200.0, 200.5, 201.0, 201.5] and traj["state"][0] == "AIMING"
+
+
+class _StateFeed:
+    """The monitor during a landing: one autopilot state per drain (mode, armed, altitude)."""
+
+    def __init__(self, rec: Recorder, states: list[tuple[str, bool, float]]) -> None:
+        self.rec, self.states, self.k = rec, states, 0
+
+    def drain(self) -> None:
+        if self.k < len(self.states):
+            mode, armed, alt = self.states[self.k]
+            st = VehicleState("uav1", self.k, Stamp(0.1 * self.k, "vehicle"), alt, (0.0, 0.0, 0.5), armed=armed,
+                              mode=mode, pos_valid=True, pos_local_ned_m=(3.0, 4.0, -alt))
+            self.rec.handle(Sample("state", 1000.0 + self.k, encode(st)))
+            self.k += 1
+
+
+class _Alive:
+    def __init__(self, exited: list | None = None) -> None:
+        self._exited = exited or []
+
+    def exited(self) -> list:
+        return self._exited
+
+
+def test_a_real_vehicle_is_fenced_over_the_world_it_flies() -> None:
+    from dovesei.controller.core import DEFAULT_VEHICLE_GEOFENCE_M
+    from dovesei.sim.world import load_world
+    from dovesei.up.launch import world_geofence_m
+
+    world = load_world(WORLD)  # 400 m square
+    opts = UpOptions(world=WORLD, segmenter="sim", vehicle_url="udpout:127.0.0.1:14550", timing="real")
+    assert child_configs(opts, (150.0, 300.0, 60.0), world).controller.geofence_m == 100.0  # 100 m to the north edge
+    assert world_geofence_m(world, (10.0, 200.0, 60.0)) == 50.0  # never less than a search needs
+    assert child_configs(UpOptions(world=WORLD, segmenter="sim"), (150.0, 300.0, 60.0), world).controller.geofence_m \
+        is None  # the sim's episodes stay as published
+    big = type("World", (), {"width_m": 2000.0, "height_m": 2000.0})()
+    assert world_geofence_m(big, (1000.0, 1000.0, 60.0)) == DEFAULT_VEHICLE_GEOFENCE_M
+
+
+def test_up_waits_for_the_autopilot_to_land_after_a_land_handover(tmp_path: Path) -> None:
+    """Issue 26: `up` stopped the controller 0.53 s after a precland hand-over; the target died and
+    ArduCopter landed blind. Now it waits (bounded) until the autopilot disarms, and says so."""
+    from dovesei.up.watch import landing_timeout_s, wait_for_landing
+
+    rec = Recorder((10.0, 20.0, 100.0), video=False)
+    descent = [("GUIDED", True, 20.0), *[("LAND", True, 20.0 - 2.0 * k) for k in range(10)], ("LAND", False, 0.0)]
+    feed = _StateFeed(rec, descent)
+    wait = wait_for_landing(rec, feed, _Alive(), threading.Event(), 30.0, 8.0)
+    assert wait.landed and "disarmed in LAND" in wait.reason and feed.k == len(descent)
+    assert landing_timeout_s(20.0) >= 20.0 / 0.5 + 10.0  # LAND_SPEED 0.5 m/s and a margin
+    opts = UpOptions(world=WORLD, segmenter="sim", vehicle_url="udpout:127.0.0.1:14550", timing="real",
+                     out=tmp_path)
+    stats = {"controller": {"commands_sent": 5, "vehicle_link": {"landing_targets_sent": 240}}}
+    report = build_report(opts, rec, (10.0, 20.0, 100.0), 0.0, stats, None, False, 1.0, landing=wait,
+                          handover_action="precland").to_dict()
+    landing = report["landing"]
+    assert landing["landed"] and landing["action"] == "precland" and landing["landing_targets_sent"] == 240
+    assert landing["touchdown"] == {"x_m": 14.0, "y_m": 23.0, "alt_m": 0.0}
+
+
+def test_the_landing_wait_ends_on_a_takeover_a_dead_controller_or_the_operator() -> None:
+    from dovesei.up.watch import wait_for_landing
+
+    rec = Recorder((0.0, 0.0, 100.0), video=False)
+    taken = wait_for_landing(rec, _StateFeed(rec, [("LAND", True, 19.0), ("LAND", True, 18.0), ("LOITER", True, 18.0)]
+                                              + [("LOITER", True, 18.0)] * 5), _Alive(), threading.Event(), 30.0, 8.0)
+    assert not taken.landed and "LOITER" in taken.reason
+    rec = Recorder((0.0, 0.0, 100.0), video=False)
+    dead = wait_for_landing(rec, _StateFeed(rec, [("LAND", True, 19.0)]), _Alive([("controller", 1)]),
+                            threading.Event(), 30.0, 8.0)
+    assert not dead.landed and "controller exited" in dead.reason
+    stop = threading.Event()
+    stop.set()
+    rec = Recorder((0.0, 0.0, 100.0), video=False)
+    ended = wait_for_landing(rec, _StateFeed(rec, [("LAND", True, 19.0)]), _Alive(), stop, 30.0, 8.0)
+    assert not ended.landed and "operator" in ended.reason
+    rec = Recorder((0.0, 0.0, 100.0), video=False)
+    late = wait_for_landing(rec, _StateFeed(rec, [("LAND", True, 19.0)] * 1000), _Alive(), threading.Event(), 0.3, 8.0)
+    assert not late.landed and "not landed within" in late.reason
 
 
 @pytest.mark.parametrize("realtime", [False, True])
@@ -428,3 +565,54 @@ def test_up_takes_off_and_flies_a_fake_autopilot_from_boot(tmp_path: Path) -> No
     # The states came from the autopilot through the controller, labelled with the controller's decisions.
     traj = report["trajectory"]
     assert traj["t_s"] and max(traj["alt_m"]) >= 24.0 and set(traj["state"]) - {"INIT"}
+    assert traj["alt_m"][0] >= 0.9 * 26.0, traj["alt_m"][:5]  # the mission starts after the climb
+
+
+@pytest.mark.slow
+def test_up_precland_keeps_the_target_streaming_until_the_autopilot_has_landed(tmp_path: Path) -> None:
+    """Issue 26: `up` stopped the controller 0.53 s after a precland hand-over; ArduCopter said
+    "PrecLand: Target Found", "Init Failed" and landed blind. Now `up` waits for the disarm and the
+    fake's AC_PrecLand model initialises on the streamed spot and lands on it."""
+    import socket
+
+    from dovesei.shared.zconfig import free_port
+    from dovesei.testing.fake_autopilot import FakeAutopilot
+
+    import cv2
+
+    # A lawn 300 m square: the policy finds its spot at once and hands over at 20 m.
+    world = tmp_path / "lawn"
+    world.mkdir()
+    rng = np.random.default_rng(0)
+    cv2.imwrite(str(world / "image.png"), rng.integers(60, 140, (300, 300, 3), dtype=np.uint8))
+    cv2.imwrite(str(world / "labels.png"), np.zeros((300, 300), np.uint8))
+    (world / "world.json").write_text(json.dumps({"gsd_m": 1.0, "image": "image.png", "labels": "labels.png",
+                                                  "classes": {"0": {"name": "grass", "safe": True}}}))
+    port = free_port(socket.SOCK_DGRAM)
+    out = tmp_path / "run"
+    with FakeAutopilot(f"udpin:127.0.0.1:{port}", flavour="ardupilot", mode="GUIDED", armed=True, alt_m=24.0,
+                       heartbeat_hz=10) as fake:
+        argv = [sys.executable, "-m", "dovesei.cli", "up", "--world", str(world), "--segmenter", "sim", "--noise", "0",
+                "--start", "150,150,24", "--vehicle", f"udpout:127.0.0.1:{port}",
+                "--handover-action", "precland", "--time-limit-s", "150", "--out", str(out), "--no-video"]
+        env = {**os.environ, "PYTHONUNBUFFERED": "1", "HF_HUB_OFFLINE": "1"}
+        try:
+            done = subprocess.run(argv, cwd=REPO, capture_output=True, text=True, timeout=400, env=env)
+        finally:
+            if (out / "pids.json").exists():
+                for name, pid in _pids(out).items():
+                    if name != "up" and not _gone(pid):
+                        os.kill(pid, signal.SIGKILL)
+        texts = [text for _, text in fake.statustexts_sent]
+        targets = list(fake.landing_targets)
+    report = json.loads((out / "report.json").read_text())
+    assert report["judged"], done.stderr[-3000:]
+    landing = report["landing"]
+    assert landing is not None and landing["landed"] and landing["action"] == "precland", (landing, done.stderr[-3000:])
+    assert fake.touchdown_s is not None and not fake.armed
+    assert "PrecLand: Init Complete" in texts and "PrecLand: Init Failed" not in texts, texts
+    # The stream ran to the touchdown (the controller outlived the judged episode).
+    assert len(targets) > 50 and fake.touchdown_s - targets[-1].recv_s < 0.5
+    assert landing["landing_targets_sent"] >= len(targets) * 0.9
+    touchdown = landing["touchdown"]
+    assert touchdown is not None and touchdown["alt_m"] < 1.0

@@ -37,9 +37,10 @@ NON_DEFAULT = {
     "sim": SimServiceConfig(
         sim=SimConfig(vehicle_id="uav-7", timing="real", frame_period_s=1.25, latency_s=0.1 + 0.2,
                       handover_alt_m=12.5, time_limit_s=77.7, seed=-3, attach_truth=False,
-                      vehicle=VehicleParams(cmd_timeout_s=0.8)),
+                      vehicle=VehicleParams(cmd_timeout_s=0.8), odometry_rate_hz=12.5),
         world="synthetic:seed=3,size_m=400", start_xy_alt_m=(120.0, 80.5, 61.0), lockstep=False, speed=4.5,
-        jpeg_quality=80, external_pose=True, wait_for=("controller", "segmenter"), wait_timeout_s=2.5,
+        jpeg_quality=80, external_pose=True, sitl_truth="udpin:127.0.0.1:14552", wait_for=("controller", "segmenter"),
+        wait_timeout_s=2.5,
         cmd_timeout_s=0.75),
     "segmenter": ServiceConfig(
         segmenter=SegmenterConfig(
@@ -58,10 +59,13 @@ NON_DEFAULT = {
         lockstep_heatmap_wait_s=7.5, policy_dt_max_s=0.8, future_tolerance_s=0.6, mavlink_system_id=7,
         mavlink_max_horizontal_m_s=8.0, mavlink_max_up_m_s=2.0, mavlink_max_down_m_s=1.0,
         mavlink_signing_key_file="keys/uav3.key", mavlink_require_home=False, takeoff_alt_m=60.0,
-        takeoff_ready_timeout_s=90.0, record_path="flights/uav3.mcap", camera_hfov_deg=58.5),
+        takeoff_ready_timeout_s=90.0, record_path="flights/uav3.mcap",
+        gnss_denied="attitude", ekf_source_set=3, odometry_min_quality=0.6, odometry_max_age_s=0.4,
+        attitude_max_tilt_deg=12.0, camera_hfov_deg=58.5),
     "camera": CameraConfig(source="rtsp://10.0.0.2/cam", vehicle_id="uav2", width_px=320, height_px=240,
                            hfov_deg=90.0, rotate_deg=180, rate_hz=5.0, jpeg_quality=85, stall_timeout_s=3.0,
-                           state_timeout_s=0.5, loop_file=True, record_path="flights/cam.mcap"),
+                           state_timeout_s=0.5, loop_file=True, record_path="flights/cam.mcap", odometry_rate_hz=15.0,
+                           odometry_width_px=256),
 }
 MODULES = {"sim": sim_service, "segmenter": segmenter_service, "controller": controller_service,
            "camera": camera_service}
@@ -180,8 +184,8 @@ def test_a_bad_flag_exits_2_with_one_line_naming_it(name, argv, flag, hint, caps
     with pytest.raises(SystemExit) as exc:
         MODULES[name].build_parser().parse_args(argv)
     assert exc.value.code == 2
-    errors = [line for line in capsys.readouterr().err.splitlines() if "error:" in line]
-    assert len(errors) == 1 and flag in errors[0] and hint in errors[0], errors
+    errors = capsys.readouterr().err.splitlines()  # one line: no usage block above it
+    assert len(errors) == 1 and "error:" in errors[0] and flag in errors[0] and hint in errors[0], errors
     assert "Traceback" not in errors[0]
 
 

@@ -34,12 +34,14 @@ import math
 
 import numpy as np
 
-from dovesei.controller.policies.base import Decision, Observation, PolicyInputError, checked_prob_safe, resolve_config
-from dovesei.controller.policies.clearance_config import ClearanceConfig, clearance_preset
+from dovesei.controller.policies.base import (Confirmation, Decision, Observation, PolicyInputError, checked_prob_safe,
+                                              resolve_config)
+from dovesei.controller.policies.clearance_config import Altitudes, ClearanceConfig, clearance_preset
 from dovesei.controller.policies.clearance_machine import TERMINAL, Inputs, Memory, Phase, search_route, step, toward
 from dovesei.controller.policies.clearance_map import (GroundMap, clearance_at, emphasise_dips, find_candidate,
                                                       find_spot, footprint_width_m, look_weight, promise)
 from dovesei.controller.frames import to_body, to_ne
+from dovesei.controller.geofence import cap_outward
 from dovesei.controller.policies.clearance_motion import EgoMotion, MotionStep, tilt_offset_ne
 
 log = logging.getLogger(__name__)
@@ -58,17 +60,11 @@ def fence(vel_body_frd_m_s: tuple[float, float, float], north_m: float, east_m: 
     The cap is fence_gain x the distance left to the fence, so the vehicle slows down as it nears
     the fence and, beyond it, is pulled back in; inward and tangential motion are untouched.
     """
-    r = math.hypot(north_m, east_m)
-    if r < 1e-6:
-        return vel_body_frd_m_s, False
     fwd, right, down = vel_body_frd_m_s
-    vn, ve = to_ne(fwd, right, yaw_rad)
-    un, ue = north_m / r, east_m / r
-    outward = vn * un + ve * ue
-    allowed = cfg.fence_gain_per_s * ((cfg.fence_m if fence_m is None else fence_m) - r)
-    if outward <= allowed:
+    (vn, ve), capped = cap_outward(north_m, east_m, to_ne(fwd, right, yaw_rad),
+                                   cfg.fence_m if fence_m is None else fence_m, cfg.fence_gain_per_s)
+    if not capped:
         return vel_body_frd_m_s, False
-    vn, ve = vn - (outward - allowed) * un, ve - (outward - allowed) * ue
     f, rr = to_body(vn, ve, yaw_rad)
     return (f, rr, down), True
 
@@ -90,12 +86,14 @@ class ClearancePolicy:
         self.memory: Memory | None = None
         self._last_t_s: float | None = None  # last heatmap
         self._search_alt_m: float | None = None
+        self._alts: Altitudes | None = None  # this flight's altitudes, from the start altitude
         self._route: tuple[tuple[float, float, float], ...] = ()
         self._top_pass_end = 0  # waypoints of the route's first (top) pass
         self._hold_ne: tuple[float, float] | None = None  # NO_SPOT's hold point, in the local frame
         self._passes = 0
         self._cmd: tuple[float, float, float] = (0.0, 0.0, 0.0)
         self._last_motion: MotionStep | None = None
+        self._confirmed: Confirmation | None = None  # the look that last confirmed the target
         self._decision = Decision((0.0, 0.0, 0.0), 0.0, Phase.WARMUP.value, None, 0.0, None, {}, "starting")
 
     def fence_m(self) -> float:
@@ -118,10 +116,8 @@ class ClearancePolicy:
         start, where the high pass saw most. Returns the route, its number of passes and the
         number of waypoints of the first pass."""
         cfg = self.config
-        assert self._search_alt_m is not None
-        top = self._search_alt_m
-        floor = cfg.handover_alt_m + 15.0
-        lower = tuple(a for a in (max(f * top, floor) for f in cfg.lower_search_fracs) if a < top - 5.0)
+        assert self._alts is not None
+        top, lower = self._alts.search_m, self._alts.lower_m
         levels = (top, *lower, *(lower[-1:] if lower else (top,)) * (cfg.pattern_repeats - 1))
         outer = cfg.fence_m - 5.0  # the corners stay a little inside the fence (the vehicle overshoots)
         passes = []
@@ -139,8 +135,11 @@ class ClearancePolicy:
         cfg = self.config
         if self.memory is None:
             self.memory = Memory(since_s=obs.t_s, start_s=obs.t_s)
-            self._search_alt_m = cfg.search_alt_m if cfg.search_alt_m is not None else max(
-                float(obs.alt_agl_m), cfg.handover_alt_m + 10.0)
+            self._alts = cfg.altitudes(float(obs.alt_agl_m))
+            self._search_alt_m = self._alts.search_m
+            log.info("clearance: starting at %.1f m: search passes %s m, confirmation looks from %.0f m, probes "
+                     "from %.0f m", obs.alt_agl_m, "/".join(f"{a:.0f}" for a in (self._alts.search_m, *self._alts.lower_m)),
+                     self._alts.confirm_m, self._alts.probe_m)
             self._route, self._passes, self._top_pass_end = self._plan(obs.hfov_rad)
             # At the coarsest cell, centred on the start, covering every view the search can
             # take from its top altitude; never decayed and never resampled, so an area seen
@@ -198,7 +197,7 @@ class ClearancePolicy:
             seen = emphasise_dips(prob, int(round(cfg.dip_kernel_frac * prob.shape[1])), cfg.dip_gain, cfg.dip_floor)
             weight = min(1.0, dt_c / cfg.look_period_s) * look_weight(obs.alt_agl_m, cfg)
             self.map.fuse(seen, obs.alt_agl_m, obs.hfov_rad, obs.yaw_rad, pn + tn, pe + te, weight=weight)
-            if obs.alt_agl_m >= min(cfg.confirm_alt_m, cfg.confirm_alt_frac * self._search_alt_m):
+            if obs.alt_agl_m >= self._alts.confirm_m:
                 self.high.fuse(seen, obs.alt_agl_m, obs.hfov_rad, obs.yaw_rad, pn + tn, pe + te, weight=weight)
         clearance = self.map.clearance_m()
         # What looked promising from high up, around the vehicle: as far as the map reaches (the
@@ -268,7 +267,7 @@ class ClearancePolicy:
                      fresh=fresh, gap=gap, search_alt_m=self._search_alt_m, route=self._route,
                      passes=self._passes, fence_m=fence_m,
                      best=best, check=check, hfov_rad=obs.hfov_rad, candidate=candidate,
-                     top_pass_end=self._top_pass_end)
+                     top_pass_end=self._top_pass_end, probe_alt_m=self._alts.probe_m)
         prev = self.memory
         mem, vel = step(prev, inp, cfg)
         fenced = False
@@ -309,11 +308,17 @@ class ClearancePolicy:
                 tn, te = tilt_offset_ne(obs.alt_agl_m, obs.roll_rad, obs.pitch_rad, obs.yaw_rad)
                 f, r = to_body(spot.north_m - pn - tn, spot.east_m - pe - te, obs.yaw_rad)
                 target_px = ((h - 1) / 2.0 - f / gsd, (w - 1) / 2.0 + r / gsd)
+                # A target chosen or moved by this look was checked in it, at that pixel.
+                moved = prev.target is None or (prev.target.north_m, prev.target.east_m) != (spot.north_m, spot.east_m)
+                if fresh and moved and -0.5 <= target_px[0] <= h - 0.5 and -0.5 <= target_px[1] <= w - 0.5:
+                    self._confirmed = Confirmation(obs.frame_seq, float(target_px[0]), float(target_px[1]))
+        else:
+            self._confirmed = None
         self._decision = Decision(
             vel_body_frd_m_s=(float(vel[0]), float(vel[1]), float(vel[2])), yaw_rate_rad_s=0.0,
             state=mem.phase.value, target_px=None if target_px is None else (float(target_px[0]), float(target_px[1])),
             focus_radius_px=self._required_px(obs), threshold=cfg.p_safe_min,
-            info={k: float(v) for k, v in info.items()}, reason=mem.reason,
+            info={k: float(v) for k, v in info.items()}, reason=mem.reason, confirmed=self._confirmed,
             landing=mem.phase in (Phase.DESCEND, Phase.HANDOVER),
         )
         return self._decision

@@ -15,6 +15,16 @@ from dovesei.shared.errors import ConfigError
 
 
 @dataclass(frozen=True)
+class Altitudes:
+    """The altitudes one flight of the policy uses, from its start altitude (`ClearanceConfig.altitudes`)."""
+
+    search_m: float  # the top search pass (where an abort climbs back to)
+    lower_m: tuple[float, ...]  # the lower search passes, in order
+    confirm_m: float  # looks at or above this feed the confirmation map
+    probe_m: float  # a probe looks from here
+
+
+@dataclass(frozen=True)
 class ClearanceConfig:
     timing_name: str = "real"
     decision_period_s: float = 0.5  # nominal heatmap period (first cycle, bench stepping)
@@ -24,6 +34,12 @@ class ClearanceConfig:
     margin_m: float = 1.5  # added to the radius: position error and the map's blur
     handover_alt_m: float = 20.0  # HANDOVER only at/below this measured altitude
     search_alt_m: float | None = None  # None: the altitude of the first heatmap
+    # Every altitude below (search passes, confirmation looks, probes) is written for a start at
+    # ref_start_alt_m and scales with the altitude the policy starts at (observed, `altitudes`),
+    # never below its floor above the hand-over. A vehicle navigating on optical flow may not
+    # reach 100 m: ArduCopter's EKF3 caps the height at 0.7 x the rangefinder's range - 1 m
+    # (NavEKF3_core::getHeightControlLimit: 48-69 m for common 70-100 m sensors).
+    ref_start_alt_m: float = 100.0
 
     # --- safety map ---
     map_cells: int = 320  # map side in cells (square, centred near the vehicle)
@@ -106,14 +122,16 @@ class ClearanceConfig:
     search_speed_m_s: float = 8.0
     pattern_repeats: int = 2  # passes at the lowest search level
     # Later passes fly lower (fractions of the top search altitude, never below hand-over + 15 m):
-    # at 100 m CLIPSeg's token grid smears anything under ~7 m, at 40 m under ~2.7 m.
+    # at 100 m CLIPSeg's token grid smears anything under ~7 m, at 40 m under ~2.7 m. A pass
+    # within 5 m of the one above it is not flown (from 40 m only the top level is).
     lower_search_fracs: tuple[float, ...] = (0.6, 0.4)
 
     # --- confirmation from high up ---
     # CLIPSeg's misreadings persist on the same ground at one scale and change with scale (the
     # simulated one anchors them in the world and lets them drift with log2 altitude), so looks
-    # an octave apart err nearly independently. The looks taken at or above confirm_alt_m (or
-    # confirm_alt_frac x the search altitude, if lower) also go to a second map covering the whole
+    # an octave apart err nearly independently. The looks taken at or above confirm_alt_m (scaled
+    # with the start, and at least confirm_above_probe_m above the probe altitude, so a probe's own
+    # looks never confirm what it found; at most the search altitude) also go to a second map covering the whole
     # search area (1 m cells, never decayed), and a spot is taken only where that map's promise
     # (the log-odds mean over the clearance disk) is at least confirm_p_min. On tuning seeds
     # under harsh, probes chaining at 35 m over Dubai's lawn-and-tree "vegetation" landed on it
@@ -122,7 +140,7 @@ class ClearanceConfig:
     # their 5th percentile, the confusable vegetation 0.74-0.78 at its 90th.
     # confirm_p_min 0 turns the gate off.
     confirm_alt_m: float = 55.0  # the 60 m search pass counts
-    confirm_alt_frac: float = 0.8
+    confirm_above_probe_m: float = 5.0
     confirm_p_min: float = 0.78
 
     # --- probes: a closer look at promising ground ---
@@ -130,7 +148,7 @@ class ClearanceConfig:
     # ground that passes the spot test from 35 m reads a few tenths lower. While searching, an
     # area within probe_reach_m whose promise from high up is at least probe_p_min (>=
     # confirm_p_min: the gate would refuse a spot in anything less) is flown to and looked at from
-    # probe_alt_m (at least hand-over + 10 m) for probe_frames heatmaps; if no spot shows, it is
+    # probe_alt_m (scaled with the start, at least hand-over + 10 m) for probe_frames heatmaps; if no spot shows, it is
     # remembered as probed (nothing within probe_skip_m is probed again) and the search goes on.
     probe_p_min: float = 0.78
     # During the first, top pass only likely areas (promise >= probe_now_p_min) are probed; the
@@ -186,6 +204,7 @@ class ClearanceConfig:
             "key_scale_ratio", "dt_cap_s", "search_radius_m", "search_spacing_frac", "search_spacing_radius_frac",
             "search_speed_m_s", "fence_gain_per_s", "anchor_scale_ratio", "anchor_reach_frac", "anchor_spacing_frac",
             "approach_gain_per_s", "max_speed_m_s", "lock_in_m", "lock_out_m", "probe_alt_m", "probe_reach_m", "confirm_alt_m",
+            "ref_start_alt_m", "confirm_above_probe_m",
             "probe_skip_m", "probe_dist_m", "probe_timeout_s", "probe_alt_tol_m",
             "refine_radius_m", "descent_gain_per_s", "descent_min_m_s", "descent_max_m_s", "climb_speed_m_s",
             "warmup_timeout_s", "approach_timeout_s", "descend_timeout_s", "abort_timeout_s", "gap_s",
@@ -195,7 +214,7 @@ class ClearanceConfig:
             validate.positive(f"ClearanceConfig.{name}", getattr(self, name))
         for name in ("drift_frac", "drift_m_s", "anchor_gain_m", "margin_m", "dip_gain", "fence_margin_m", "reg_gate_frac", "reg_gate_m_s", "bias_max_m_s", "switch_gain"):
             validate.non_negative(f"ClearanceConfig.{name}", getattr(self, name))
-        for name in ("confirm_alt_frac", "probe_descend_frac", "confirm_p_min", "probe_p_min", "probe_now_p_min", "anchor_min_response", "anchor_gate_frac", "p_clip", "p_safe_min", "reg_min_response", "reg_full_response", "reg_min_std", "reg_min_eigen_ratio", "reg_pos_gain", "cmd_weight",
+        for name in ("probe_descend_frac", "confirm_p_min", "probe_p_min", "probe_now_p_min", "anchor_min_response", "anchor_gate_frac", "p_clip", "p_safe_min", "reg_min_response", "reg_full_response", "reg_min_std", "reg_min_eigen_ratio", "reg_pos_gain", "cmd_weight",
                      "key_shift_frac", "recheck_hysteresis", "dip_kernel_frac", "dip_floor"):
             validate.in_range(f"ClearanceConfig.{name}", getattr(self, name), 0.0, 1.0)
         for frac in self.lower_search_fracs:
@@ -229,6 +248,21 @@ class ClearanceConfig:
             raise ConfigError(f"ClearanceConfig.search_alt_m {self.search_alt_m!r} must be above the hand-over "
                               f"altitude {self.handover_alt_m} m")
 
+    def altitudes(self, start_alt_m: float) -> Altitudes:
+        """The policy's altitudes for a start at `start_alt_m` (the altitude it first observes):
+        the configured ones x start / ref_start_alt_m, each kept above its floor."""
+        top = float(self.search_alt_m if self.search_alt_m is not None else max(start_alt_m, self.handover_alt_m + 10.0))
+        scale = top / self.ref_start_alt_m
+        floor = self.handover_alt_m + 15.0
+        lower: tuple[float, ...] = ()
+        for frac in self.lower_search_fracs:
+            alt = max(frac * top, floor)
+            if alt < (lower[-1] if lower else top) - 5.0:  # a pass within 5 m of the one above adds nothing
+                lower += (alt,)
+        probe = max(self.probe_alt_m * scale, self.handover_alt_m + 10.0)
+        confirm = min(max(self.confirm_alt_m * scale, probe + self.confirm_above_probe_m), top)
+        return Altitudes(search_m=top, lower_m=lower, confirm_m=confirm, probe_m=probe)
+
     @property
     def fence_m(self) -> float:
         """The dead-reckoned position never goes farther than this from the start."""
@@ -238,6 +272,19 @@ class ClearanceConfig:
     def required_clearance_m(self) -> float:
         """Metric clearance a spot needs: every cell within this radius is known and safe."""
         return self.safety_radius_m + self.margin_m
+
+    def limited_to(self, horizontal_m_s: float, up_m_s: float, down_m_s: float) -> ClearanceConfig:
+        """This config with every speed it commands within the vehicle's limits (ArduCopter's
+        WPNAV_SPEED, WPNAV_SPEED_UP, WPNAV_SPEED_DN by default), so it never asks more than is flown."""
+        for name, value in (("horizontal", horizontal_m_s), ("up", up_m_s), ("down", down_m_s)):
+            validate.positive(f"vehicle speed limit {name} (m/s)", value)
+        return self.replace(
+            search_speed_m_s=min(self.search_speed_m_s, horizontal_m_s),
+            max_speed_m_s=min(self.max_speed_m_s, horizontal_m_s),
+            hold_speed_max_m_s=min(self.hold_speed_max_m_s, horizontal_m_s),
+            climb_speed_m_s=min(self.climb_speed_m_s, up_m_s),
+            descent_max_m_s=min(self.descent_max_m_s, down_m_s),
+            descent_min_m_s=min(self.descent_min_m_s, down_m_s))
 
     def replace(self, **changes: object) -> ClearanceConfig:
         try:

@@ -2,7 +2,8 @@
 
     WARMUP --3 frames / 10 s--> SEARCH --a spot (clearance >= radius + margin, confirmed from
             high up)--> APPROACH
-    SEARCH  --each pass flown: the next one lower (100 -> 60 -> 40 m), where detail resolves
+    SEARCH  --each pass flown: the next one lower (100 -> 60 -> 40 m from 100 m; every altitude
+            scales with the start altitude, ClearanceConfig.altitudes), where detail resolves
             (each pass its own expanding square: spacing from its footprint, radius shrinking
             as sqrt(altitude), so every pass takes about as long as the first)
     SEARCH  --promising ground within reach (an area that reads well from high up but is not yet
@@ -98,6 +99,7 @@ class Inputs:
     passes: int = 1  # how many passes the route holds (for the reason)
     top_pass_end: int | None = None  # the route's waypoints before this are the top pass (None: all)
     fence_m: float | None = None  # the fence now (None: the config's); route points beyond it are pulled in
+    probe_alt_m: float | None = None  # this flight's probe altitude (None: the config's)
 
 
 def search_pattern(spacing_m: float, radius_m: float) -> tuple[tuple[float, float], ...]:
@@ -195,6 +197,7 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
         else:
             return dataclasses.replace(mem, frames=frames), (0.0, 0.0, 0.0)
 
+    probe_alt = cfg.probe_alt_m if inp.probe_alt_m is None else inp.probe_alt_m
     if p is Phase.PROBE:
         probe = mem.probe
         assert probe is not None
@@ -205,7 +208,7 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
             err_n, err_e = probe.north_m - inp.north_m, probe.east_m - inp.east_m
             err = math.hypot(err_n, err_e)
             over = err < cfg.lock_out_m + cfg.lock_alt_frac * inp.alt_agl_m
-            low = inp.alt_agl_m <= cfg.probe_alt_m + cfg.probe_alt_tol_m
+            low = inp.alt_agl_m <= probe_alt + cfg.probe_alt_tol_m
             done = over and low and looked >= cfg.probe_frames
             if done or elapsed > cfg.probe_timeout_s or t - mem.start_s > cfg.no_spot_after_s:
                 why = (f"probed from {inp.alt_agl_m:.0f} m: no spot" if done
@@ -217,7 +220,7 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
             vf, vr = toward(err_n, err_e, cfg.approach_gain_per_s, cfg.search_speed_m_s, inp.yaw_rad)
             # Down only once nearly over it (the view from above covers it on the way).
             near = err < cfg.probe_descend_frac * footprint_width_m(inp.alt_agl_m, inp.hfov_rad)
-            return mem, (vf, vr, _hold_alt(inp.alt_agl_m, cfg.probe_alt_m if near else inp.alt_agl_m, cfg))
+            return mem, (vf, vr, _hold_alt(inp.alt_agl_m, probe_alt if near else inp.alt_agl_m, cfg))
 
     if p is Phase.SEARCH:
         if inp.best is not None:
@@ -230,7 +233,7 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
               and (inp.candidate.p_safe >= cfg.probe_now_p_min or not _top_pass(mem.waypoint, inp))):
             c = inp.candidate
             return _go(mem, Phase.PROBE, t, f"promising ground {c.distance_m:.0f} m away (P {c.p_safe:.2f} over the "
-                                            f"disk): a closer look from {cfg.probe_alt_m:.0f} m", probe=c), (0.0, 0.0, 0.0)
+                                            f"disk): a closer look from {probe_alt:.0f} m", probe=c), (0.0, 0.0, 0.0)
         elif t - mem.start_s > cfg.no_spot_after_s:
             return _go(mem, Phase.NO_SPOT, t, f"no safe spot found in {cfg.no_spot_after_s:g} s"), (0.0, 0.0, 0.0)
         else:

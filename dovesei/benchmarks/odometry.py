@@ -1,0 +1,259 @@
+"""`dovesei bench-odometry`: the visual velocity's speed per frame and its error against the truth.
+
+Speed: a descent over a suite world rendered at 640x480 (RGB, as a camera delivers it), each
+frame prepared and compared with the one before (`dovesei.shared.visual_velocity`) on one OpenCV
+thread; per-frame CPU time of this thread (robust when other processes share the host) and wall
+time, median and 95th percentile. Target: <= 10 ms per frame.
+
+Error: on every world of the suite, frame pairs 0.1 s apart (the camera's 10 Hz) rendered with the
+sim's camera (`dovesei.sim.camera.render`, bilinear, as the sim's odometry views) along straight
+segments with a known velocity: at each altitude and horizontal speed, `--pairs` pairs at seeded
+positions (inside the world, away from its edge), random heading and direction of travel, a yaw
+rate up to 0.3 rad/s and a climb or sink up to 1 m/s. With `--tilt` (the default both are run) the
+body-fixed camera is rolled and pitched up to 15 deg, changing by up to 0.3 rad/s between the two
+frames. With `--noise ideal` the estimator is told the true altitude and attitude and sees the
+rendered pixels (the estimator's own error); with `realistic` (both are run by default) each frame
+gets sensor noise (sigma 2 grey levels), an altitude reading off by 1 % (sigma, each frame) and
+roll, pitch and yaw tags off by 0.5, 0.5 and 1 mrad (sigma, each frame: gyro-integrated attitude
+and a time-tag mismatch). Reported: the fraction of pairs flagged invalid, over the valid ones
+the horizontal error |v_est - v_true| (both brought to the level frame) in % of the speed (median,
+95th percentile) or in m/s at speed 0, and how often the error lies within the estimate's own 95 %
+circle (2.45 sd of the per-axis variance): an EKF fuses the value with that variance.
+
+The last line printed is one JSON object with every figure (`--json` prints only that line).
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import logging
+import math
+import statistics
+import sys
+import time
+import zlib
+from collections.abc import Sequence
+
+import cv2
+import numpy as np
+
+from dovesei.shared.cliconfig import OneLineParser
+from dovesei.shared.visual_velocity import FrameMeta, VisualVelocityConfig, estimate, prepare, rotation_body_to_level
+from dovesei.sim.camera import CameraError, CameraModel, prebuild_pyramid, render
+from dovesei.sim.suite import suite
+from dovesei.sim.world import World, WorldError, load_world
+
+log = logging.getLogger(__name__)
+
+DT_S = 0.1  # the camera service's and the sim's odometry rate, 10 Hz
+ALTITUDES_M = (20.0, 40.0, 60.0, 80.0, 100.0)
+SPEEDS_M_S = (0.0, 2.0, 5.0, 10.0)
+MAX_YAW_RATE_RAD_S = 0.3
+MAX_CLIMB_M_S = 1.0
+MAX_TILT_RAD = math.radians(15.0)
+MAX_TILT_RATE_RAD_S = 0.3
+# `realistic`: what a real camera and autopilot add (sigma per frame): sensor noise, a baro or
+# rangefinder altitude, the attitude the frame is tagged with.
+NOISE_GREY = 2.0
+ALT_REL_SIGMA = 0.01
+ROLL_PITCH_SIGMA_RAD = 0.0005
+YAW_SIGMA_RAD = 0.001
+
+
+def _percentile(values: Sequence[float], q: float) -> float | None:
+    return float(np.percentile(values, q)) if len(values) else None
+
+
+def bench_speed(world: World, frames: int, seed: int) -> dict:
+    """Per-frame time at 640x480 on one OpenCV thread, over a descent drifting across the world.
+
+    The frames are rendered first; only the estimator is timed."""
+    cam = CameraModel(640, 480, 73.0)
+    prebuild_pyramid(world, cam, 100.0)
+    rng = np.random.default_rng(seed)
+    x0, y0 = rng.uniform(0.3, 0.7) * world.width_m, rng.uniform(0.3, 0.7) * world.height_m
+    images, metas = [], []
+    for k in range(frames + 1):
+        alt = max(20.0, 100.0 - 0.2 * k)  # 2 m/s down, 4 m/s east, 3 m/s north, turning 0.2 rad/s
+        yaw = 0.5 + 0.02 * k
+        images.append(render(world, x0 + 0.4 * k, y0 + 0.3 * k, alt, yaw, cam, with_labels=False,
+                             interpolation="linear")[0])
+        metas.append(FrameMeta(k, k * DT_S, alt, cam.hfov_rad, 0.0, 0.0, yaw))
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)  # the target is per core
+    cpu_ms, wall_ms, valid = [], [], 0
+    try:
+        prev = prepare(images[0], metas[0])
+        for image, meta in zip(images[1:], metas[1:]):
+            c0, w0 = time.thread_time(), time.perf_counter()
+            new = prepare(image, meta)
+            est = estimate(prev, new)
+            cpu_ms.append((time.thread_time() - c0) * 1e3)
+            wall_ms.append((time.perf_counter() - w0) * 1e3)
+            valid += est.valid
+            prev = new
+    finally:
+        cv2.setNumThreads(threads)
+    return {"frames": frames, "size": "640x480", "world": world.name, "valid_fraction": round(valid / frames, 3),
+            "cpu_ms_median": round(statistics.median(cpu_ms), 3), "cpu_ms_p95": round(_percentile(cpu_ms, 95), 3),
+            "wall_ms_median": round(statistics.median(wall_ms), 3), "wall_ms_p95": round(_percentile(wall_ms, 95), 3)}
+
+
+def _pair(world: World, cam: CameraModel, rng: np.random.Generator, alt_m: float, speed_m_s: float, tilt: bool,
+          config: VisualVelocityConfig, noise: np.random.Generator | None) -> tuple[bool, float, float, float] | None:
+    """(valid, horizontal error m/s, speed m/s, sd per axis m/s) of one pair, or None when a view
+    falls outside the world."""
+    margin = 1.5 * alt_m + 20.0  # the whole footprint inside the world, tilted or not
+    if world.width_m < 2 * margin or world.height_m < 2 * margin:
+        return None
+    x0, y0 = rng.uniform(margin, world.width_m - margin), rng.uniform(margin, world.height_m - margin)
+    course, yaw0 = rng.uniform(-math.pi, math.pi, 2)
+    vn, ve = speed_m_s * math.cos(course), speed_m_s * math.sin(course)
+    vd = rng.uniform(-MAX_CLIMB_M_S, MAX_CLIMB_M_S)
+    yaw1 = yaw0 + rng.uniform(-MAX_YAW_RATE_RAD_S, MAX_YAW_RATE_RAD_S) * DT_S
+    if tilt:
+        roll0, pitch0 = rng.uniform(-MAX_TILT_RAD, MAX_TILT_RAD, 2)
+        roll1, pitch1 = (np.array([roll0, pitch0]) + rng.uniform(-1, 1, 2) * MAX_TILT_RATE_RAD_S * DT_S).tolist()
+    else:
+        roll0 = pitch0 = roll1 = pitch1 = 0.0
+    alt1 = alt_m - vd * DT_S
+    # World x is east, y north.
+    x1, y1 = x0 + ve * DT_S, y0 + vn * DT_S
+    try:
+        a = render(world, x0, y0, alt_m, yaw0, cam, roll_rad=roll0, pitch_rad=pitch0, with_labels=False,
+                   interpolation="linear")[0]
+        b = render(world, x1, y1, alt1, yaw1, cam, roll_rad=roll1, pitch_rad=pitch1, with_labels=False,
+                   interpolation="linear")[0]
+    except CameraError:
+        return None
+    if noise is not None:
+        a, b = (np.clip(x + noise.normal(0.0, NOISE_GREY, x.shape), 0, 255).astype(np.uint8) for x in (a, b))
+        tags = [(alt * (1 + noise.normal(0, ALT_REL_SIGMA)), r + noise.normal(0, ROLL_PITCH_SIGMA_RAD),
+                 p + noise.normal(0, ROLL_PITCH_SIGMA_RAD), y + noise.normal(0, YAW_SIGMA_RAD))
+                for alt, r, p, y in ((alt_m, roll0, pitch0, yaw0), (alt1, roll1, pitch1, yaw1))]
+    else:
+        tags = [(alt_m, roll0, pitch0, yaw0), (alt1, roll1, pitch1, yaw1)]
+    m0 = FrameMeta(0, 0.0, tags[0][0], cam.hfov_rad, *(float(v) for v in tags[0][1:]))
+    m1 = FrameMeta(1, DT_S, tags[1][0], cam.hfov_rad, *(float(v) for v in tags[1][1:]))
+    est = estimate(prepare(a, m0, config), prepare(b, m1, config), config)
+    if not est.valid:
+        return False, 0.0, speed_m_s, 0.0
+    # Both in the level frame of the newer heading (what an EKF fuses as north/east after its yaw).
+    level = rotation_body_to_level(roll1, pitch1, 0.0) @ np.array(est.vel_body_frd_m_s)
+    c, s = math.cos(yaw1), math.sin(yaw1)
+    truth_fwd, truth_right = c * vn + s * ve, -s * vn + c * ve
+    return (True, float(math.hypot(level[0] - truth_fwd, level[1] - truth_right)), speed_m_s,
+            math.sqrt(est.vel_var_m2_s2))
+
+
+def _summary(rows: list[tuple[bool, float, float, float]]) -> dict:
+    n = len(rows)
+    valid = [(err, v, sd) for ok, err, v, sd in rows if ok]
+    moving = [100.0 * err / v for err, v, _ in valid if v > 0]
+    still = [err for err, v, _ in valid if v == 0]
+    # A 2-D Gaussian error with this sd per axis lies within 2.45 sd 95 % of the time.
+    within = sum(err <= 2.45 * sd for err, _, sd in valid)
+    return {"pairs": n, "invalid_fraction": round(1 - len(valid) / n, 3) if n else None,
+            "err_pct_median": _r(_percentile(moving, 50)), "err_pct_p95": _r(_percentile(moving, 95)),
+            "err_m_s_at_rest_median": _r(_percentile(still, 50)), "err_m_s_at_rest_p95": _r(_percentile(still, 95)),
+            "within_own_95pct": round(within / len(valid), 3) if valid else None}
+
+
+def _r(value: float | None) -> float | None:
+    return None if value is None else round(value, 2)
+
+
+def bench_error(worlds: dict[str, World], pairs: int, seed: int, tilts: Sequence[bool], noises: Sequence[str],
+                cam: CameraModel = CameraModel()) -> dict:
+    """The error tables: per world, tilt and noise, and per altitude x speed over all worlds."""
+    config = VisualVelocityConfig()
+    out: dict = {"camera": f"{cam.width_px}x{cam.height_px} {cam.hfov_deg:g} deg", "dt_s": DT_S,
+                 "pairs_per_cell": pairs, "per_world": {}, "per_cell": {}}
+    for noise, tilt in itertools.product(noises, tilts):
+        tag = f"{'tilted' if tilt else 'level'} camera, {noise}"
+        everything: list[tuple[bool, float, float, float]] = []
+        cells: dict[str, list] = {}
+        for spec, world in worlds.items():
+            prebuild_pyramid(world, cam, 100.0)
+            # The same poses on any host, with or without noise (its draws come from another stream).
+            rng = np.random.default_rng([seed, int(tilt), zlib.crc32(spec.encode())])
+            noise_rng = np.random.default_rng([seed, int(tilt), zlib.crc32(spec.encode()), 1])
+            rows = []
+            for alt, speed in itertools.product(ALTITUDES_M, SPEEDS_M_S):
+                for _ in range(pairs):
+                    r = _pair(world, cam, rng, alt, speed, tilt, config, noise_rng if noise == "realistic" else None)
+                    if r is not None:
+                        rows.append(r)
+                        cells.setdefault(f"{alt:g} m, {speed:g} m/s", []).append(r)
+            everything += rows
+            out["per_world"].setdefault(tag, {})[spec] = _summary(rows)
+        out["per_world"][tag]["all"] = _summary(everything)
+        out["per_cell"][tag] = {k: _summary(v) for k, v in cells.items()}
+    return out
+
+
+def _print_tables(speed: dict, error: dict) -> None:
+    print(f"speed at {speed['size']} ({speed['frames']} frames, {speed['world']}), one OpenCV thread: "
+          f"CPU {speed['cpu_ms_median']:.2f} ms median, {speed['cpu_ms_p95']:.2f} ms p95; "
+          f"wall {speed['wall_ms_median']:.2f} / {speed['wall_ms_p95']:.2f} ms")
+
+    def fmt(v: float | None, width: int = 7) -> str:
+        return f"{'-':>{width}s}" if v is None else f"{v:{width}.2f}"
+
+    def row(name: str, s: dict) -> str:
+        within = "-" if s["within_own_95pct"] is None else f"{100 * s['within_own_95pct']:.0f}%"
+        return (f"{name:34s} {s['pairs']:5d} {100 * s['invalid_fraction']:7.1f}% {fmt(s['err_pct_median'])} "
+                f"{fmt(s['err_pct_p95'])} {fmt(s['err_m_s_at_rest_median'], 9)} {fmt(s['err_m_s_at_rest_p95'], 9)} "
+                f"{within:>7s}")
+
+    header = (f"{'':34s} {'pairs':>5s} {'invalid':>8s} {'med %':>7s} {'p95 %':>7s} {'rest med':>9s} {'rest p95':>9s} "
+              f"{'in 95%':>7s}")
+    for tag, table in error["per_world"].items():
+        print(f"\n{tag} ({error['camera']}, pairs {error['dt_s']:g} s apart; error in % of speed over the valid "
+              "pairs, m/s at rest; in 95%: within the estimate's own 95 % circle)")
+        print(header)
+        for spec, s in table.items():
+            print(row(spec, s))
+        for cell, s in error["per_cell"][tag].items():
+            print(row("  " + cell, s))
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = OneLineParser(prog="dovesei bench-odometry", description=__doc__.splitlines()[0])
+    p.add_argument("--suite", default="default", help="world suite whose every world is measured")
+    p.add_argument("--world", action="append", help="measure these worlds instead of a suite (repeatable)")
+    p.add_argument("--pairs", type=int, default=10, help="frame pairs per world, altitude and speed")
+    p.add_argument("--frames", type=int, default=300, help="frames timed for the speed figure")
+    p.add_argument("--tilt", choices=("both", "on", "off"), default="both",
+                   help="body-fixed camera rolled and pitched (on), level (off) or both")
+    p.add_argument("--noise", choices=("both", "ideal", "realistic"), default="both",
+                   help="true tags and clean pixels (ideal), sensor noise and tag errors (realistic), or both")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--skip-error", action="store_true", help="only the speed figure")
+    p.add_argument("--json", action="store_true", help="print only the JSON line")
+    args = p.parse_args(argv)
+    if args.pairs < 1 or args.frames < 10:
+        p.error("--pairs must be >= 1 and --frames >= 10")
+    logging.basicConfig(level=logging.WARNING)
+    specs = tuple(args.world) if args.world else suite(args.suite)
+    try:
+        worlds = {spec: load_world(spec) for spec in specs}
+    except WorldError as exc:
+        print(f"dovesei bench-odometry: {exc}", file=sys.stderr)
+        return 2
+    speed = bench_speed(next(iter(worlds.values())), args.frames, args.seed)
+    tilts = {"both": (False, True), "on": (True,), "off": (False,)}[args.tilt]
+    noises = ("ideal", "realistic") if args.noise == "both" else (args.noise,)
+    error = {} if args.skip_error else bench_error(worlds, args.pairs, args.seed, tilts, noises)
+    if not args.json:
+        if error:
+            _print_tables(speed, error)
+        else:
+            print(json.dumps(speed))
+    print(json.dumps({"speed": speed, "error": error}))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

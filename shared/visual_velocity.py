@@ -1,0 +1,423 @@
+"""Visual velocity: the vehicle's ground velocity from two consecutive downward camera frames.
+
+Pure computation (OpenCV and numpy, no torch, no transport), shared by the onboard camera service
+and the simulator so that a real flight and a simulated one produce the same odometry stream.
+
+Data flow, once per frame:
+
+    image (RGB or grey, any size) + FrameMeta (stamp, altitude, attitude, field of view)
+      -> prepare(): grey, area-downsampled to `work_width_px`, Lucas-Kanade pyramid, corners
+         picked one per grid cell where the weaker gradient direction is strong enough
+      -> estimate(prev, new):
+           track prev's corners into new (pyramidal Lucas-Kanade), each seeded where the attitude
+           change alone would move it, and back again (forward-backward check)
+           each tracked pair -> two rays (pinhole, image up = body forward, image right = body
+           right) -> the level frame of the newer frame's heading (each frame's own roll/pitch,
+           the yaw change) -> onto the ground plane at the newer frame's altitude
+           robust fit  g_new = rho * g_prev - D : D the horizontal displacement, rho = h_prev/h_new
+      -> VelocityEstimate: (D / dt, (rho - 1) h_new / dt) rotated into body FRD at the newer
+         frame, a variance per horizontal axis, a quality in [0, 1], valid or not and why
+
+Geometry (Hartley & Zisserman, "Multiple View Geometry", ch. 8: a camera rotation alone maps
+image points by K R K^-1; a plane at depth h projects with a scale of f / h): a pixel (u, v) of an
+image W px wide, optical axis at ((W-1)/2, (H-1)/2), focal length f = (W/2) / tan(hfov/2) px,
+looks along body (forward, right, down) = (-(v - cy)/f, (u - cx)/f, 1), so one pixel at the
+centre covers 2 alt tan(hfov/2) / W metres of flat ground. Rotations are ZYX Euler (yaw, pitch,
+roll), body to NED, as MAVLink's ATTITUDE gives them. Ground assumed flat and static; moving
+objects and relief are outliers to the robust fit.
+
+Failures never produce a confident wrong number: too little texture (a blank, uniform or blurred
+frame has few corners), a failed track (few pairs pass the forward-backward check, or they
+disagree), an altitude that is not finite or not plausible, a time step that is not positive or
+too long, or a speed beyond `max_speed_m_s` all give `valid=False`, a zero velocity, a huge
+variance and a `reason`. Every number that leaves here is finite and inside the bounds of the
+`VisualOdometry` message.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from dovesei.shared.errors import ConfigError
+from dovesei.shared.messages import Stamp, VisualOdometry
+from dovesei.shared.validate import in_range, is_number, positive
+
+# What an invalid estimate reports as its variance per axis (m^2/s^2): (100 m/s)^2, "know nothing".
+INVALID_VAR_M2_S2 = 1.0e4
+
+
+@dataclass(frozen=True)
+class VisualVelocityConfig:
+    """Tuning of the estimator; every field is checked when built (ConfigError names it)."""
+
+    work_width_px: int = 320  # frames wider than this are area-averaged down to it (speed, less noise)
+    grid_cell_px: int = 16  # one corner candidate per cell of the work image (spread over the view)
+    max_features: int = 160
+    # Weakest-direction gradient (grey levels per work pixel) a corner needs. Sensor noise of
+    # sigma 2 grey levels gives Sobel gradients of ~0.9; a blank or blurred view has far less.
+    min_gradient: float = 2.0
+    lk_window_px: int = 15
+    lk_levels: int = 3  # pyramid levels above the base: tracks shifts up to ~60 work px
+    fb_max_px: float = 0.7  # forward-backward disagreement that rejects a track
+    min_inliers: int = 15
+    min_quality: float = 0.3  # below it the estimate is not valid
+    full_texture_features: int = 60  # this many corners (or more) count as a fully textured view
+    fit_sigma_px: float = 0.5  # residual (work px) at which the fit quality halves
+    min_alt_m: float = 1.0
+    max_alt_m: float = 1000.0
+    max_climb_m_s: float = 20.0  # altitudes of two frames may differ by at most this x dt (+ 2 m)
+    max_speed_m_s: float = 40.0
+    max_dt_s: float = 1.0
+    max_tilt_deg: float = 60.0  # rays further than this from vertical are not intersected with the ground
+    # Error sources the residual cannot see, each given as one standard deviation: each frame's
+    # attitude tag (the estimate's short-term error plus the time-tag mismatch: ~1 ms of camera
+    # timing jitter at 0.5 rad/s), which moves every ray alike, so two frames' errors give
+    # h x sqrt(2) x sigma / dt (0.7 m/s at 100 m and 10 Hz); the altitude's relative error (it
+    # scales the whole velocity); and a floor. `dovesei bench-odometry --noise realistic` draws the
+    # same per-frame attitude error and checks the variance against the errors it gets.
+    attitude_sigma_rad: float = 0.0005
+    alt_rel_sigma: float = 0.03
+    var_floor_m2_s2: float = 0.01
+
+    def __post_init__(self) -> None:
+        for name, lo, hi in (("work_width_px", 32, 4096), ("grid_cell_px", 4, 256), ("max_features", 8, 4096),
+                             ("lk_window_px", 5, 61), ("lk_levels", 0, 6), ("min_inliers", 4, 4096),
+                             ("full_texture_features", 1, 4096)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or not lo <= value <= hi:
+                raise ConfigError(f"visual velocity {name} must be an integer in {lo}..{hi}, got {value!r}")
+        for name in ("min_gradient", "fb_max_px", "fit_sigma_px", "min_alt_m", "max_alt_m", "max_climb_m_s",
+                     "max_speed_m_s", "max_dt_s", "var_floor_m2_s2"):
+            positive(f"visual velocity {name}", getattr(self, name))
+        in_range("visual velocity min_quality", self.min_quality, 0.0, 1.0)
+        in_range("visual velocity max_tilt_deg", self.max_tilt_deg, 1.0, 85.0)
+        in_range("visual velocity attitude_sigma_rad", self.attitude_sigma_rad, 0.0, 1.0)
+        in_range("visual velocity alt_rel_sigma", self.alt_rel_sigma, 0.0, 1.0)
+        if self.min_alt_m >= self.max_alt_m:
+            raise ConfigError(f"visual velocity min_alt_m {self.min_alt_m} must be below max_alt_m {self.max_alt_m}")
+
+
+@dataclass(frozen=True)
+class FrameMeta:
+    """What is known about a frame besides its pixels: its stamp, the altitude and attitude it was taken at.
+
+    Not checked here: a frame with a NaN altitude is still tracked from, and the estimate that
+    uses it says why it is invalid.
+    """
+
+    seq: int
+    t_s: float
+    alt_agl_m: float
+    hfov_rad: float
+    roll_rad: float = 0.0
+    pitch_rad: float = 0.0
+    yaw_rad: float = 0.0
+
+
+@dataclass(frozen=True)
+class PreparedFrame:
+    """A frame ready to be tracked from or to: its work image, its corners and its geometry."""
+
+    meta: FrameMeta
+    grey: np.ndarray  # the work image (OpenCV's Python binding takes no prebuilt pyramid)
+    corners_px: np.ndarray  # (N, 1, 2) float32, work pixels
+    width_px: int
+    height_px: int
+
+
+@dataclass(frozen=True)
+class VelocityEstimate:
+    """The velocity between two frames, in body FRD at the newer one, with its uncertainty.
+
+    Invalid estimates carry a zero velocity, INVALID_VAR_M2_S2 and the `reason`; quality may be
+    above 0 when the failure was soft (a poor but not empty track).
+    """
+
+    valid: bool
+    vel_body_frd_m_s: tuple[float, float, float]
+    vel_var_m2_s2: float
+    quality: float
+    dt_s: float
+    reason: str
+    prev_seq: int
+    seq: int
+    n_features: int = 0
+    n_tracked: int = 0
+    n_inliers: int = 0
+    residual_px: float = 0.0
+
+
+def rotation_body_to_level(roll_rad: float, pitch_rad: float, yaw_rad: float) -> np.ndarray:
+    """R = Rz(yaw) Ry(pitch) Rx(roll): body FRD vectors -> NED (or a heading frame for a relative yaw)."""
+    cr, sr = math.cos(roll_rad), math.sin(roll_rad)
+    cp, sp = math.cos(pitch_rad), math.sin(pitch_rad)
+    cy, sy = math.cos(yaw_rad), math.sin(yaw_rad)
+    return np.array([
+        [cp * cy, sr * sp * cy - cr * sy, cr * sp * cy + sr * sy],
+        [cp * sy, sr * sp * sy + cr * cy, cr * sp * sy - sr * cy],
+        [-sp, sr * cp, cr * cp],
+    ])
+
+
+def _focal_px(width_px: int, hfov_rad: float) -> float:
+    return (width_px / 2.0) / math.tan(hfov_rad / 2.0)
+
+
+def _rays_body(points_px: np.ndarray, width_px: int, height_px: int, f_px: float) -> np.ndarray:
+    """(N, 2) pixels (u right, v down) -> (N, 3) body FRD rays with down = 1."""
+    cx, cy = (width_px - 1) / 2.0, (height_px - 1) / 2.0
+    rays = np.empty((len(points_px), 3))
+    rays[:, 0] = -(points_px[:, 1] - cy) / f_px
+    rays[:, 1] = (points_px[:, 0] - cx) / f_px
+    rays[:, 2] = 1.0
+    return rays
+
+
+def _to_pixels(rays_body: np.ndarray, width_px: int, height_px: int, f_px: float) -> np.ndarray:
+    cx, cy = (width_px - 1) / 2.0, (height_px - 1) / 2.0
+    down = np.maximum(rays_body[:, 2], 1e-3)  # rays that turned upward are clamped; LK then fails them
+    return np.stack([cx + f_px * rays_body[:, 1] / down, cy - f_px * rays_body[:, 0] / down], axis=1)
+
+
+def _grey_work(image: np.ndarray, work_width_px: int) -> np.ndarray:
+    if not isinstance(image, np.ndarray) or image.dtype != np.uint8 or image.ndim not in (2, 3) \
+            or (image.ndim == 3 and image.shape[2] not in (1, 3)):
+        raise ValueError("visual velocity needs a uint8 image, grey (H, W) or RGB (H, W, 3), got "
+                         f"{getattr(image, 'dtype', type(image).__name__)} {getattr(image, 'shape', '')}")
+    if min(image.shape[:2]) < 32:
+        raise ValueError(f"visual velocity needs an image of at least 32x32 px, got {image.shape[1]}x{image.shape[0]}")
+    grey = image if image.ndim == 2 else (image[:, :, 0] if image.shape[2] == 1 else
+                                          cv2.cvtColor(image, cv2.COLOR_RGB2GRAY))
+    h, w = grey.shape
+    if w > work_width_px:
+        # Area averaging keeps the optical axis at the centre ((W-1)/2 maps to (w-1)/2) and the
+        # ground size per pixel exact, so the pinhole model holds at the work scale.
+        grey = cv2.resize(grey, (work_width_px, max(8, round(h * work_width_px / w))), interpolation=cv2.INTER_AREA)
+    return np.ascontiguousarray(grey)
+
+
+def _corners(grey: np.ndarray, config: VisualVelocityConfig) -> np.ndarray:
+    """The strongest corner of each grid cell whose weaker gradient direction exceeds min_gradient."""
+    block = 5
+    # cornerMinEigenVal scales Sobel(3) by 1/(4 block 255) and sums over the block, so a ramp of g
+    # grey levels per pixel in the weaker direction reads (2 g / 255)^2 (checked in the tests).
+    eig = cv2.cornerMinEigenVal(grey, block, ksize=3)
+    threshold = (2.0 * config.min_gradient / 255.0) ** 2
+    cell, margin = config.grid_cell_px, config.lk_window_px // 2 + 2
+    h, w = eig.shape
+    rows, cols = (h - 2 * margin) // cell, (w - 2 * margin) // cell
+    if rows < 1 or cols < 1:
+        return np.empty((0, 1, 2), np.float32)
+    y0, x0 = margin + (h - 2 * margin - rows * cell) // 2, margin + (w - 2 * margin - cols * cell) // 2
+    tiles = eig[y0:y0 + rows * cell, x0:x0 + cols * cell].reshape(rows, cell, cols, cell).transpose(0, 2, 1, 3)
+    tiles = tiles.reshape(rows, cols, cell * cell)
+    best = tiles.argmax(axis=2)
+    strength = np.take_along_axis(tiles, best[..., None], axis=2)[..., 0]
+    keep = strength > threshold
+    if not keep.any():
+        return np.empty((0, 1, 2), np.float32)
+    r_idx, c_idx = np.nonzero(keep)
+    order = np.argsort(-strength[r_idx, c_idx])[: config.max_features]
+    r_idx, c_idx = r_idx[order], c_idx[order]
+    b = best[r_idx, c_idx]
+    ys = y0 + r_idx * cell + b // cell
+    xs = x0 + c_idx * cell + b % cell
+    return np.stack([xs, ys], axis=1).astype(np.float32).reshape(-1, 1, 2)
+
+
+def prepare(image: np.ndarray, meta: FrameMeta, config: VisualVelocityConfig = VisualVelocityConfig()) -> PreparedFrame:
+    """Grey work image and its corners (ValueError for an image that is not one)."""
+    grey = _grey_work(image, config.work_width_px)
+    return PreparedFrame(meta, grey, _corners(grey, config), grey.shape[1], grey.shape[0])
+
+
+def _invalid(prev: PreparedFrame, new: PreparedFrame, dt_s: float, reason: str, quality: float = 0.0,
+             **counts: float) -> VelocityEstimate:
+    return VelocityEstimate(False, (0.0, 0.0, 0.0), INVALID_VAR_M2_S2, float(min(max(quality, 0.0), 1.0)),
+                            dt_s if is_number(dt_s) else 0.0, reason, prev.meta.seq, new.meta.seq, **counts)
+
+
+def _plausibility(prev: FrameMeta, new: FrameMeta, dt_s: float, config: VisualVelocityConfig) -> str:
+    """Why two frames' metadata cannot give a velocity, or '' when they can."""
+    if not (is_number(dt_s) and 0.0 < dt_s <= config.max_dt_s):
+        return f"time between frames {dt_s!r} s outside (0, {config.max_dt_s:g}] s"
+    for which, m in (("previous", prev), ("newer", new)):
+        if not (is_number(m.alt_agl_m) and config.min_alt_m <= m.alt_agl_m <= config.max_alt_m):
+            return f"{which} frame's altitude {m.alt_agl_m!r} m outside [{config.min_alt_m:g}, {config.max_alt_m:g}] m"
+        if not all(is_number(a) for a in (m.roll_rad, m.pitch_rad, m.yaw_rad)):
+            return f"{which} frame's attitude is not finite"
+        if not (is_number(m.hfov_rad) and 0.0 < m.hfov_rad < math.pi):
+            return f"{which} frame's field of view {m.hfov_rad!r} rad outside (0, pi)"
+        if math.degrees(math.acos(min(1.0, math.cos(m.roll_rad) * math.cos(m.pitch_rad)))) > config.max_tilt_deg:
+            return f"{which} frame tilted beyond {config.max_tilt_deg:g} deg"
+    if abs(new.alt_agl_m - prev.alt_agl_m) > config.max_climb_m_s * dt_s + 2.0:
+        return (f"altitude jumped {prev.alt_agl_m:.1f} -> {new.alt_agl_m:.1f} m in {dt_s:.3f} s "
+                f"(more than {config.max_climb_m_s:g} m/s)")
+    return ""
+
+
+def estimate(prev: PreparedFrame, new: PreparedFrame, config: VisualVelocityConfig = VisualVelocityConfig()
+             ) -> VelocityEstimate:
+    """The velocity that moved the camera from `prev` to `new` (see the module docstring)."""
+    dt_s = new.meta.t_s - prev.meta.t_s if is_number(new.meta.t_s) and is_number(prev.meta.t_s) else float("nan")
+    why = _plausibility(prev.meta, new.meta, dt_s, config)
+    if why:
+        return _invalid(prev, new, dt_s, why)
+    if (prev.width_px, prev.height_px) != (new.width_px, new.height_px):
+        return _invalid(prev, new, dt_s, "the two frames differ in size")
+    n_features = len(prev.corners_px)
+    if n_features < config.min_inliers:
+        return _invalid(prev, new, dt_s, f"too little texture: {n_features} corners", n_features=n_features)
+    w, h = new.width_px, new.height_px
+    f_prev, f_new = _focal_px(w, prev.meta.hfov_rad), _focal_px(w, new.meta.hfov_rad)
+    # Heading frame of the newer frame: its yaw is 0, the previous frame's is the yaw change.
+    dyaw = math.remainder(prev.meta.yaw_rad - new.meta.yaw_rad, math.tau)
+    r_prev = rotation_body_to_level(prev.meta.roll_rad, prev.meta.pitch_rad, dyaw)
+    r_new = rotation_body_to_level(new.meta.roll_rad, new.meta.pitch_rad, 0.0)
+    p0 = prev.corners_px.reshape(-1, 2).astype(np.float64)
+    rays_prev = _rays_body(p0, w, h, f_prev) @ r_prev.T  # level frame
+    # Seed each track where the attitude change alone would move it: LK then searches only the
+    # translation's shift, however fast the vehicle rotates.
+    seed = _to_pixels(rays_prev @ r_new, w, h, f_new).astype(np.float32).reshape(-1, 1, 2)
+    win = (config.lk_window_px, config.lk_window_px)
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 20, 0.03)
+    p1, st1, _ = cv2.calcOpticalFlowPyrLK(prev.grey, new.grey, prev.corners_px, seed.copy(),
+                                          winSize=win, maxLevel=config.lk_levels, criteria=criteria,
+                                          flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+    back, st2, _ = cv2.calcOpticalFlowPyrLK(new.grey, prev.grey, p1, prev.corners_px.copy(),
+                                            winSize=win, maxLevel=config.lk_levels, criteria=criteria,
+                                            flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+    p1 = p1.reshape(-1, 2).astype(np.float64)
+    fb = np.linalg.norm(back.reshape(-1, 2) - p0, axis=1)
+    inside = (p1[:, 0] >= 0) & (p1[:, 0] <= w - 1) & (p1[:, 1] >= 0) & (p1[:, 1] <= h - 1)
+    ok = (st1.ravel() == 1) & (st2.ravel() == 1) & (fb < config.fb_max_px) & inside & np.isfinite(p1).all(axis=1)
+    n_tracked = int(ok.sum())
+    counts = {"n_features": n_features, "n_tracked": n_tracked}
+    if n_tracked < config.min_inliers:
+        return _invalid(prev, new, dt_s, f"tracking failed: {n_tracked} of {n_features} corners followed",
+                        quality=0.0, **counts)
+    rays_prev = rays_prev[ok]
+    rays_new = _rays_body(p1[ok], w, h, f_new) @ r_new.T
+    min_down = math.cos(math.radians(config.max_tilt_deg))
+    # Normalised rays (unit length) look down by their z; shallower ones meet the ground far away.
+    down_ok = (rays_prev[:, 2] / np.linalg.norm(rays_prev, axis=1) > min_down) & \
+              (rays_new[:, 2] / np.linalg.norm(rays_new, axis=1) > min_down)
+    rays_prev, rays_new = rays_prev[down_ok], rays_new[down_ok]
+    if len(rays_prev) < config.min_inliers:
+        return _invalid(prev, new, dt_s, "too few tracked corners look down at the ground", **counts)
+    h_new = new.meta.alt_agl_m
+    # Both frames projected at the newer altitude: the fit's scale then measures the altitude
+    # change visually, and the noise of the previous altitude reading never enters the velocity.
+    g_prev = h_new * rays_prev[:, :2] / rays_prev[:, 2:3]
+    g_new = h_new * rays_new[:, :2] / rays_new[:, 2:3]
+    rho0 = prev.meta.alt_agl_m / h_new
+    fit = _robust_fit(g_prev, g_new, rho0, prior_m=0.05 * h_new)
+    if fit is None:
+        return _invalid(prev, new, dt_s, "the tracked corners disagree (no consistent motion)", **counts)
+    rho, disp_m, inliers, resid_m = fit
+    m_per_px = h_new / f_new  # ground size of a work pixel at the centre of the newer frame
+    resid_px = resid_m / m_per_px
+    n_in = int(inliers.sum())
+    counts.update(n_inliers=n_in, residual_px=float(resid_px))
+    q_texture = min(1.0, n_features / config.full_texture_features)
+    q_track = n_in / n_features
+    q_fit = 1.0 / (1.0 + (resid_px / config.fit_sigma_px) ** 2)
+    quality = q_texture * q_track * q_fit
+    vel_level = np.array([disp_m[0] / dt_s, disp_m[1] / dt_s, (rho - 1.0) * h_new / dt_s])
+    vel_body = r_new.T @ vel_level
+    speed = float(np.linalg.norm(vel_level))
+    if n_in < config.min_inliers:
+        return _invalid(prev, new, dt_s, f"only {n_in} corners agree on one motion", quality, **counts)
+    if quality < config.min_quality:
+        return _invalid(prev, new, dt_s, f"quality {quality:.2f} below {config.min_quality:g} "
+                        f"(texture {q_texture:.2f}, tracked {q_track:.2f}, fit {q_fit:.2f})", quality, **counts)
+    if not (np.isfinite(vel_body).all() and speed <= config.max_speed_m_s):
+        return _invalid(prev, new, dt_s, f"implausible speed {speed:.1f} m/s (limit {config.max_speed_m_s:g})",
+                        quality, **counts)
+    # Residual noise averaged over the inliers, plus what the residual cannot see: each frame's
+    # attitude error moves every ray alike (h x angle), the altitude scales the whole velocity.
+    var = (resid_m ** 2 / n_in + 2.0 * (h_new * config.attitude_sigma_rad) ** 2) / dt_s ** 2 \
+        + (config.alt_rel_sigma * speed) ** 2 + config.var_floor_m2_s2
+    var = min(var, INVALID_VAR_M2_S2)
+    return VelocityEstimate(True, tuple(float(v) for v in vel_body), float(var), float(quality), float(dt_s), "",
+                            prev.meta.seq, new.meta.seq, **counts)
+
+
+def _robust_fit(g_prev: np.ndarray, g_new: np.ndarray, rho0: float, prior_m: float
+                ) -> tuple[float, np.ndarray, np.ndarray, float] | None:
+    """Least squares g_new = rho g_prev - D, twice: on all pairs, then on those near the first fit.
+
+    The scale has a prior rho0 (the altitude readings' ratio) worth `prior_m` of spread per pair,
+    so a cluster of corners in one corner of the view cannot make it up. Returns (rho, D,
+    inlier mask, residual sd per axis in metres), or None when too few pairs agree.
+    """
+    inliers = np.ones(len(g_prev), bool)
+    for _round in range(3):
+        gp, gn = g_prev[inliers], g_new[inliers]
+        n = len(gp)
+        if n < 4:
+            return None
+        mp, mn = gp.mean(axis=0), gn.mean(axis=0)
+        cp, cn = gp - mp, gn - mn
+        lam = n * prior_m ** 2
+        rho = (float((cn * cp).sum()) + lam * rho0) / (float((cp * cp).sum()) + lam)
+        disp = rho * mp - mn
+        resid = np.linalg.norm(g_new - (rho * g_prev - disp), axis=1)
+        scale = 1.4826 * float(np.median(resid[inliers]))
+        # Never tighter than 5 cm plus 0.2 % of the distance to the optical axis (pixel noise).
+        limit = np.maximum(3.0 * scale, 0.05 + 0.002 * np.linalg.norm(g_prev, axis=1))
+        new_inliers = resid <= limit
+        if np.array_equal(new_inliers, inliers):
+            break
+        inliers = new_inliers
+    n = int(inliers.sum())
+    if n < 4:
+        return None
+    sd = float(np.sqrt((resid[inliers] ** 2).sum() / max(1, 2 * n - 3)))
+    return rho, disp, inliers, sd
+
+
+class VisualVelocity:
+    """Frame by frame: each `update` compares the frame with the previous one (None for the first)."""
+
+    def __init__(self, config: VisualVelocityConfig = VisualVelocityConfig()) -> None:
+        self.config = config
+        self._prev: PreparedFrame | None = None
+
+    def update(self, image: np.ndarray, meta: FrameMeta) -> VelocityEstimate | None:
+        new = prepare(image, meta, self.config)
+        prev, self._prev = self._prev, new
+        return None if prev is None else estimate(prev, new, self.config)
+
+    def reset(self) -> None:
+        """Forget the previous frame (after a gap the next update starts afresh)."""
+        self._prev = None
+
+
+def odometry_message(est: VelocityEstimate, newer: FrameMeta, *, vehicle_id: str, stamp: Stamp,
+                     sent_wall_s: float = 0.0) -> VisualOdometry:
+    """The wire message of an estimate; `newer` is the newer frame's meta (altitude and attitude).
+
+    Numbers are clamped into the message's bounds one last time, so a message always builds: the
+    estimator's own checks make this a no-op for every valid estimate. A frame whose altitude or
+    attitude is not finite gives an invalid message with zeros in their place.
+    """
+    def bounded(value: float, lo: float, hi: float) -> float | None:
+        return float(value) if is_number(value) and lo <= value <= hi else None
+
+    alt = bounded(newer.alt_agl_m, -1000.0, 100_000.0)
+    roll, pitch = bounded(newer.roll_rad, -math.pi, math.pi), bounded(newer.pitch_rad, -math.pi, math.pi)
+    yaw = math.remainder(newer.yaw_rad, math.tau) if is_number(newer.yaw_rad) else None
+    valid = bool(est.valid) and None not in (alt, roll, pitch, yaw)
+    vel = tuple(float(np.clip(v, -300.0, 300.0)) if valid and is_number(v) else 0.0 for v in est.vel_body_frd_m_s)
+    var = float(min(max(est.vel_var_m2_s2, 0.0), 1e6)) if valid and is_number(est.vel_var_m2_s2) else INVALID_VAR_M2_S2
+    quality = float(min(max(est.quality, 0.0), 1.0)) if is_number(est.quality) else 0.0
+    dt_s = float(min(max(est.dt_s, 0.0), 10.0)) if is_number(est.dt_s) else 0.0
+    return VisualOdometry(vehicle_id=vehicle_id, frame_seq=int(est.seq), prev_frame_seq=int(est.prev_seq), stamp=stamp,
+                          vel_body_frd_m_s=vel, vel_var_m2_s2=var, quality=quality, valid=valid, dt_s=dt_s,
+                          alt_agl_m=alt or 0.0, sent_wall_s=sent_wall_s, roll_rad=roll or 0.0, pitch_rad=pitch or 0.0,
+                          yaw_rad=yaw or 0.0)
