@@ -66,7 +66,9 @@ from dovesei.controller.odometry import VelocityTrack
 from dovesei.controller.policies.config import TIMING_PRESETS
 from dovesei.shared import keys, validate
 from dovesei.shared.errors import ConfigError, DoveseiError
-from dovesei.shared.messages import ControllerStatus, SafetyHeatmap, StageLatency, VehicleState, VelocityCommand
+from dovesei.shared.messages import (
+    ControllerStatus, SafetyHeatmap, StageLatency, VehicleState, VelocityCommand, replace,
+)
 from dovesei.shared.timing import DEFAULT_TIMING, timing
 
 log = logging.getLogger(__name__)
@@ -84,7 +86,7 @@ MIN_HEATMAP_ALT_M, MAX_HEATMAP_ALT_M = 1.0, 1000.0
 # ... and agree with the vehicle's own states: within this share of the altitude (a frame may be
 # taken with the truth in the sim and the baro in the state), or this many times the noise.
 HEATMAP_ALT_FRAC = 0.25
-HEATMAP_ALT_NOISE_MULT = 5.0
+HEATMAP_ALT_NOISE_MULT = 2.0
 _ALT_TRACK_LEN = 200  # accepted (t, alt) states kept: 10 s at 20 Hz, covers any perception latency
 # A real vehicle's fence when none is given: `clearance` searches within 300 m of the start (its
 # own fence 10 m inside), plus room for the raw velocity estimate's drift over a search. The
@@ -470,7 +472,8 @@ class ControllerCore:
         `wall_s` is the real-time loop's monotonic wall time (None in lockstep): it only serves to
         notice that the vehicle state stopped advancing, which data time alone cannot show.
         `nav` is the MAVLink adapter's judgement of the velocity sources (None: the sim, trusted).
-        Raises ControllerInputError for another vehicle's state.
+        Raises ControllerInputError for another vehicle's state or one from the future; a state
+        whose altitude no multirotor could have reached is answered with a hold (counted).
         """
         cfg = self.config
         if state.vehicle_id != cfg.vehicle_id:
@@ -484,8 +487,8 @@ class ControllerCore:
         jump = self._altitude.check(state.stamp.t_s, state.alt_agl_m)
         if jump is not None:
             reason = f"state {state.seq}: {jump}"
-            self._refuse("altitude jump", "%s: refused", reason)
-            raise ControllerInputError(reason)
+            self._refuse("altitude jump", "%s: refused, holding", reason)
+            return self._refused_state_answer(state, f"{reason}: refused, holding position", nav)
         self._alt_track.append((state.stamp.t_s, state.alt_agl_m))
         if state.alt_agl_m > cfg.handover_alt_m:
             self._low_states, self._low_t_s = 0, None
@@ -522,6 +525,19 @@ class ControllerCore:
             latency=adopted.latency if adopted is not None else None, handover=mode is Mode.HANDOVER,
         )
         return cmd, self._status(mode, reason, state, vel, nav)
+
+    def _refused_state_answer(self, state: VehicleState, reason: str,
+                              nav: NavStatus | None) -> tuple[VelocityCommand, ControllerStatus]:
+        """A zero command answering a state whose altitude was refused: a lockstep sim waits for an
+        answer to every state, and nothing of this one (altitude, stamp, velocity) is used."""
+        self._tick_seq += 1
+        adopted = self._adopted
+        zero = (0.0, 0.0, 0.0)
+        cmd = VelocityCommand(vehicle_id=self.config.vehicle_id, seq=self._tick_seq, stamp=state.stamp,
+                              vel_body_frd_m_s=zero, state_seq=state.seq,
+                              frame_seq=adopted.hm.seq if adopted is not None else -1)
+        believed = replace(state, alt_agl_m=self._altitude.last[1])  # the status shows the altitude we hold to
+        return cmd, self._status(Mode.HOLD, reason, believed, zero, nav)
 
     def _adopt_due(self, state: VehicleState) -> None:
         """Lockstep: adopt exactly the awaited seq; real time: the newest pending heatmap."""

@@ -13,7 +13,7 @@ import math
 import numpy as np
 import pytest
 
-from dovesei.controller.core import ControllerConfig, ControllerCore, ControllerInputError, Mode
+from dovesei.controller.core import ControllerConfig, ControllerCore, Mode
 from dovesei.shared.errors import ConfigError
 from dovesei.shared.messages import SafetyHeatmap, Stamp, VehicleState
 from dovesei.controller.policies.base import Decision
@@ -83,19 +83,25 @@ def test_a_heatmap_captured_at_an_altitude_the_vehicle_never_had_is_refused() ->
     assert cmd.frame_seq == 1
 
 
-def test_an_altitude_jump_no_multirotor_can_fly_is_refused_and_counted() -> None:
-    core = ControllerCore(ControllerConfig(lockstep=False, policy="dovesei", timing="real"), mono=lambda: 0.0)
-    core.tick(state(0, 10.0, alt_m=60.0), wall_s=0.0)
-    with pytest.raises(ControllerInputError, match="altitude 160.0 m"):
-        core.tick(state(1, 10.05, alt_m=160.0), wall_s=0.05)  # +100 m in 50 ms
-    assert core.rejected["altitude jump"] == 1
-    cmd, _ = core.tick(state(2, 10.10, alt_m=59.8), wall_s=0.1)  # the honest stream goes on
-    assert cmd.state_seq == 2
+@pytest.mark.parametrize("lockstep", [True, False])
+def test_an_altitude_jump_no_multirotor_can_fly_is_refused_and_counted(lockstep: bool) -> None:
+    config = ControllerConfig(lockstep=lockstep, policy="dovesei", timing="reference" if lockstep else "real")
+    core = ControllerCore(config, mono=lambda: 0.0)
+    wall = (lambda s: None) if lockstep else (lambda s: s)
+    core.on_heatmap(heatmap(0, 10.0, alt_m=60.0), 0.0)
+    core.tick(state(0, 10.0, alt_m=60.0, await_seq=0), wall_s=wall(0.0))
+    # +100 m in 50 ms: refused, answered with a hold (a lockstep sim waits for an answer to every state).
+    cmd, status = core.tick(state(1, 10.05, alt_m=160.0), wall_s=wall(0.05))
+    assert core.rejected["altitude jump"] == 1 and "altitude 160.0 m" in status.reason
+    assert cmd.state_seq == 1 and cmd.vel_body_frd_m_s == (0.0, 0.0, 0.0) and status.watchdog == "hold"
+    assert status.alt_agl_m == 60.0  # the altitude it holds to, not the refused one
+    cmd, status = core.tick(state(2, 10.10, alt_m=59.8), wall_s=wall(0.1))  # the honest stream goes on
+    assert cmd.state_seq == 2 and status.alt_agl_m == 59.8
     # A step that holds (an estimator reset, a rangefinder over a roof) is taken after 3 states.
     for k in (3, 4):
-        with pytest.raises(ControllerInputError):
-            core.tick(state(k, 10.10 + 0.05 * (k - 2), alt_m=30.0), wall_s=0.1 + 0.05 * (k - 2))
-    cmd, status = core.tick(state(5, 10.25, alt_m=30.0), wall_s=0.25)
+        _, status = core.tick(state(k, 10.10 + 0.05 * (k - 2), alt_m=30.0), wall_s=wall(0.1 + 0.05 * (k - 2)))
+        assert "refused" in status.reason
+    cmd, status = core.tick(state(5, 10.25, alt_m=30.0), wall_s=wall(0.25))
     assert cmd.state_seq == 5 and status.alt_agl_m == 30.0 and core.rejected["altitude jump"] == 3
 
 
