@@ -276,6 +276,7 @@ class MavlinkVehicle:
         self.gnss_losses = 0
         self.source_set_result: int | None = None  # MAV_RESULT of the source-set switch (None: none yet)
         self.setpoints_sent = 0
+        self.stop_hold_s = 0.5  # close(): zero velocity streams this long (10 setpoints at 20 Hz)
         self.setpoints_clamped = 0  # every setpoint written, stream repeats included
         self.commands_steered = 0  # commands handed in by send() and flown
         self.commands_clamped = 0  # ... of which asked for more than the limits
@@ -316,7 +317,20 @@ class MavlinkVehicle:
                  "armed" if self.armed else "disarmed", ", signed link" if self._signing else "")
 
     def close(self) -> None:
-        """Stop the I/O thread and close the link (the autopilot's own failsafes take over)."""
+        """Stop the I/O thread and close the link (the autopilot's own failsafes take over).
+
+        If we were steering, zero velocity streams for `stop_hold_s` first: one lost datagram must
+        not leave ArduCopter flying the last setpoint until GUID_TIMEOUT (3 s at 10 m/s was ~35 m
+        blind on SITL), and the last thing the autopilot heard from us is "stop here".
+        """
+        with self._lock:
+            steering = self._cmd is not None and self._refusal_locked() is None and self._thread is not None
+            if steering:
+                self._cmd, self._cmd_time_s, self._cmd_zeroed = self._zero(), self._clock(), True
+                self._next_setpoint_s = self._clock()  # the first zero goes out now
+        if steering:
+            log.info("closing the MAVLink link: streaming zero velocity for %.1f s first", self.stop_hold_s)
+            self._stop.wait(self.stop_hold_s)
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=5.0)
