@@ -827,16 +827,31 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--disarmed", action="store_true", help="start disarmed (on the ground if --alt 0), booting")
     p.add_argument("--boot-s", type=float, default=DEFAULT_BOOT_S, help="pre-arm phase after start (disarmed only)")
     p.add_argument("--heading-drift-deg-s", type=float, default=0.0, help="heading drift while airborne")
+    p.add_argument("--lose-gnss-below-m", type=float, default=None,
+                   help="ArduPilot: cut GNSS once the vehicle descends below this altitude (SIM_GPS_DISABLE 1)")
+    p.add_argument("--fs-ekf-action", type=int, choices=sorted(FS_EKF_ACTIONS), default=1,
+                   help="ArduPilot FS_EKF_ACTION after a GNSS loss: 1 LAND, 2 ALT_HOLD, 3 LAND even without GPS modes")
+    p.add_argument("--ekf-coast-s", type=float, default=3.0,
+                   help="seconds the EKF coasts on inertia after a GNSS loss before its position is gone")
     args = p.parse_args(argv)
+    if args.lose_gnss_below_m is not None and args.flavour != "ardupilot":
+        p.error("--lose-gnss-below-m: the GNSS-loss personality is ArduPilot's")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     stop = install_stop_handlers()
+    ekf = FakeEkf(fs_ekf_action=args.fs_ekf_action, coast_s=args.ekf_coast_s)
     with FakeAutopilot(args.url, flavour=args.flavour, mode=args.mode, armed=not args.disarmed, alt_m=args.alt,
-                       boot_s=args.boot_s, heading_drift_rad_s=math.radians(args.heading_drift_deg_s)) as fake:
+                       boot_s=args.boot_s, heading_drift_rad_s=math.radians(args.heading_drift_deg_s), ekf=ekf) as fake:
         log.info("fake %s autopilot on %s, mode %s", args.flavour, args.url, fake.mode)
-        while not stop.wait(5.0):
+        next_log_s = time.monotonic()
+        while not stop.wait(0.1):
             n, e, d = fake.position_ned_m
-            log.info("mode %s %s, position N %.1f E %.1f alt %.1f m", fake.mode,
-                     "armed" if fake.armed else "disarmed", n, e, -d)
+            if args.lose_gnss_below_m is not None and fake.ekf.gnss_ok and fake.armed and -d < args.lose_gnss_below_m:
+                fake.lose_gnss()  # once: the test of what follows is the point
+                args.lose_gnss_below_m = None
+            if time.monotonic() >= next_log_s:
+                next_log_s += 5.0
+                log.info("mode %s %s, position N %.1f E %.1f alt %.1f m, GNSS %s", fake.mode,
+                         "armed" if fake.armed else "disarmed", n, e, -d, "ok" if fake.ekf.gnss_ok else "LOST")
     return 0
 
 
