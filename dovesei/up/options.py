@@ -78,6 +78,9 @@ class UpOptions:
     start_seed: int | None = None  # None: --seed
     start_alt_m: float = 100.0
     out: Path = Path("runs/up")
+    # True for the default runs/up-<time>: `run` then claims a folder no other run has (adding -2, -3
+    # when one started in the same second), so two runs never write into one folder.
+    out_unique: bool = False
     realtime: bool = False
     connect: tuple[str, ...] = ()
     vehicle_url: str | None = None  # MAVLink URL of a real autopilot (--vehicle-url); None: simulated
@@ -302,14 +305,14 @@ def options_from_args(args: argparse.Namespace) -> UpOptions:
     # `clearance` keeps its own true-second timers: the reference preset's 78 sim s limit (the
     # paper's 1200 s scaled to its compressed clock) would cut its search short, so it flies real.
     timing_name = args.timing or ("real" if args.vehicle_url or args.policy == "clearance" else DEFAULT_TIMING)
-    out = args.out or Path("runs") / f"up-{datetime.now().strftime('%Y%m%d-%H%M%S')}"
+    out = args.out or Path("runs") / f"up-{datetime.now().strftime('%Y%m%d-%H%M%S')}"  # claimed unique in `run`
     limit_s = timing(timing_name).time_limit_s if args.time_limit_s is None else args.time_limit_s
     return UpOptions(world=args.world, segmenter=args.segmenter, policy=args.policy, timing=timing_name,
                      seed=args.seed, noise=args.noise, perception=args.perception, vehicle_profile=args.vehicle_profile,
                      start=start, start_seed=args.start_seed,
-                     start_alt_m=args.start_alt_m, out=out, realtime=args.realtime, connect=tuple(args.connect),
-                     vehicle_url=args.vehicle_url, sitl_truth=args.sitl_truth, takeoff=args.takeoff,
-                     handover_action=args.handover_action,
+                     start_alt_m=args.start_alt_m, out=out, out_unique=args.out is None, realtime=args.realtime,
+                     connect=tuple(args.connect), vehicle_url=args.vehicle_url, sitl_truth=args.sitl_truth,
+                     takeoff=args.takeoff, handover_action=args.handover_action,
                      yaw_control=args.yaw_control, signing_key=args.signing_key,
                      autopilot_system_id=args.autopilot_system_id, gnss_denied=args.gnss_denied,
                      time_limit_s=limit_s, video=args.video,
