@@ -29,6 +29,10 @@ Personalities (`flavour`):
   OFFBOARD (and arming in it) only while setpoints stream and falls back to LOITER when they stop
   for COM_OF_LOSS_T (1 s).
 - `heading_drift_rad_s`: the heading wanders while airborne (the 5-23 degrees seen on ArduCopter).
+- Heading in GUIDED (ArduPilot): a setpoint with a yaw flies to that heading (absolute in
+  LOCAL_NED, relative to the heading at arrival in the body frames); one with a yaw rate turns at
+  it; one with neither turns the nose towards the direction of travel (WP_YAW_BEHAVIOR 2, the
+  default, while moving faster than 0.5 m/s), at most ATC_SLEW_YAW's 60 deg/s.
 - Precision landing (`precland`, ArduPilot's PLND_ENABLED with PLND_TYPE 1, AC_PrecLand's
   estimator): the first LANDING_TARGET in LAND says "PrecLand: Target Found"; the estimator
   initialises only when targets keep coming at least every 0.5 s for 2 s ("PrecLand: Init
@@ -90,6 +94,8 @@ PRECLAND_GAIN_PER_S, PRECLAND_MAX_M_S = 0.5, 1.0
 # AC_PrecLand.cpp (ArduPilot 4.6): EKF_INIT_TIME_MS, EKF_INIT_SENSOR_MIN_UPDATE_MS,
 # LANDING_TARGET_TIMEOUT_MS; PLND_XY_DIST_MAX's default.
 PRECLAND_INIT_S, PRECLAND_INIT_GAP_S, PRECLAND_TIMEOUT_S, PRECLAND_XY_DIST_MAX_M = 2.0, 0.5, 2.0, 2.5
+# ArduCopter's heading in GUIDED: ATC_SLEW_YAW 6000 cdeg/s; a proportional turn towards the target.
+YAW_SLEW_RAD_S, YAW_GAIN_PER_S, WP_YAW_MIN_SPEED_M_S = math.radians(60.0), 2.0, 0.5
 DEFAULT_BOOT_S = 40.0
 # ArduCopter modes whose requires_GPS() is true (ArduCopter/mode.h): refused without a position.
 ARDUPILOT_GPS_MODES = ("GUIDED", "LOITER", "POSHOLD", "RTL", "AUTO", "BRAKE")
@@ -137,6 +143,8 @@ class ReceivedSetpoint:
     type_mask: int
     vel_m_s: tuple[float, float, float]  # as sent (FRD for the body frames)
     yaw_rate_rad_s: float
+    yaw_rad: float = 0.0  # as sent: absolute in LOCAL_NED, relative to the heading in the body frames
+    yaw_target_rad: float = 0.0  # the heading it asks for, made absolute when it arrived
 
 
 @dataclass(frozen=True)
@@ -590,14 +598,31 @@ class FakeAutopilot:
             return [0.0, 0.0, 0.0], 0.0
         yaw_rate = 0.0 if sp.type_mask & 0x800 else sp.yaw_rate_rad_s
         fwd, right, down = sp.vel_m_s
-        if not all(math.isfinite(v) for v in (fwd, right, down, yaw_rate)):
+        if not all(math.isfinite(v) for v in (fwd, right, down, yaw_rate, sp.yaw_target_rad)):
             return [0.0, 0.0, 0.0], 0.0  # both autopilots ignore a setpoint with NaN velocities
         if sp.frame == mv.STEER_FRAME[self.flavour]:
             c, s = math.cos(self._yaw_rad), math.sin(self._yaw_rad)
-            return [c * fwd - s * right, s * fwd + c * right, down], yaw_rate
-        if sp.frame == mv.MAV_FRAME_LOCAL_NED:
-            return [fwd, right, down], yaw_rate
-        return [0.0, 0.0, 0.0], 0.0
+            vel = [c * fwd - s * right, s * fwd + c * right, down]
+        elif sp.frame == mv.MAV_FRAME_LOCAL_NED:
+            vel = [fwd, right, down]
+        else:
+            return [0.0, 0.0, 0.0], 0.0
+        if self.flavour == "ardupilot":
+            yaw_rate = self._guided_yaw_rate(sp, vel, yaw_rate)
+        return vel, yaw_rate
+
+    def _guided_yaw_rate(self, sp: ReceivedSetpoint, vel_ned: list[float], yaw_rate: float) -> float:
+        """ArduCopter's heading for a guided velocity setpoint (caller holds the lock)."""
+        if not sp.type_mask & 0x400:
+            error = math.remainder(sp.yaw_target_rad - self._yaw_rad, 2.0 * math.pi)  # a heading asked for
+        elif not sp.type_mask & 0x800:
+            return yaw_rate  # a yaw rate asked for
+        elif math.hypot(vel_ned[0], vel_ned[1]) > WP_YAW_MIN_SPEED_M_S:
+            # Neither: WP_YAW_BEHAVIOR 2 points the nose where the vehicle goes.
+            error = math.remainder(math.atan2(vel_ned[1], vel_ned[0]) - self._yaw_rad, 2.0 * math.pi)
+        else:
+            return 0.0
+        return max(-YAW_SLEW_RAD_S, min(YAW_SLEW_RAD_S, YAW_GAIN_PER_S * error))
 
     def _handle(self, msg: Any) -> None:
         kind, recv_s = msg.get_type(), time.monotonic()
@@ -609,10 +634,12 @@ class FakeAutopilot:
                 self.heartbeats.append(ReceivedHeartbeat(recv_s, msg.get_srcSystem(), msg.get_srcComponent(),
                                                          msg.type, msg.autopilot))
         elif kind == "SET_POSITION_TARGET_LOCAL_NED":
-            sp = ReceivedSetpoint(recv_s, msg.get_srcSystem(), msg.get_srcComponent(), msg.target_system,
-                                  msg.target_component, msg.coordinate_frame, msg.type_mask,
-                                  (msg.vx, msg.vy, msg.vz), msg.yaw_rate)
             with self._lock:
+                relative = msg.coordinate_frame in (mv.MAV_FRAME_BODY_OFFSET_NED, mv.MAV_FRAME_BODY_NED)
+                target_yaw = msg.yaw + (self._yaw_rad if relative else 0.0)
+                sp = ReceivedSetpoint(recv_s, msg.get_srcSystem(), msg.get_srcComponent(), msg.target_system,
+                                      msg.target_component, msg.coordinate_frame, msg.type_mask,
+                                      (msg.vx, msg.vy, msg.vz), msg.yaw_rate, msg.yaw, target_yaw)
                 self.setpoints.append(sp)
                 if msg.target_system == self._system:
                     self._last_setpoint = sp
@@ -827,16 +854,31 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--disarmed", action="store_true", help="start disarmed (on the ground if --alt 0), booting")
     p.add_argument("--boot-s", type=float, default=DEFAULT_BOOT_S, help="pre-arm phase after start (disarmed only)")
     p.add_argument("--heading-drift-deg-s", type=float, default=0.0, help="heading drift while airborne")
+    p.add_argument("--lose-gnss-below-m", type=float, default=None,
+                   help="ArduPilot: cut GNSS once the vehicle descends below this altitude (SIM_GPS_DISABLE 1)")
+    p.add_argument("--fs-ekf-action", type=int, choices=sorted(FS_EKF_ACTIONS), default=1,
+                   help="ArduPilot FS_EKF_ACTION after a GNSS loss: 1 LAND, 2 ALT_HOLD, 3 LAND even without GPS modes")
+    p.add_argument("--ekf-coast-s", type=float, default=3.0,
+                   help="seconds the EKF coasts on inertia after a GNSS loss before its position is gone")
     args = p.parse_args(argv)
+    if args.lose_gnss_below_m is not None and args.flavour != "ardupilot":
+        p.error("--lose-gnss-below-m: the GNSS-loss personality is ArduPilot's")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     stop = install_stop_handlers()
+    ekf = FakeEkf(fs_ekf_action=args.fs_ekf_action, coast_s=args.ekf_coast_s)
     with FakeAutopilot(args.url, flavour=args.flavour, mode=args.mode, armed=not args.disarmed, alt_m=args.alt,
-                       boot_s=args.boot_s, heading_drift_rad_s=math.radians(args.heading_drift_deg_s)) as fake:
+                       boot_s=args.boot_s, heading_drift_rad_s=math.radians(args.heading_drift_deg_s), ekf=ekf) as fake:
         log.info("fake %s autopilot on %s, mode %s", args.flavour, args.url, fake.mode)
-        while not stop.wait(5.0):
+        next_log_s = time.monotonic()
+        while not stop.wait(0.1):
             n, e, d = fake.position_ned_m
-            log.info("mode %s %s, position N %.1f E %.1f alt %.1f m", fake.mode,
-                     "armed" if fake.armed else "disarmed", n, e, -d)
+            if args.lose_gnss_below_m is not None and fake.ekf.gnss_ok and fake.armed and -d < args.lose_gnss_below_m:
+                fake.lose_gnss()  # once: the test of what follows is the point
+                args.lose_gnss_below_m = None
+            if time.monotonic() >= next_log_s:
+                next_log_s += 5.0
+                log.info("mode %s %s, position N %.1f E %.1f alt %.1f m, GNSS %s", fake.mode,
+                         "armed" if fake.armed else "disarmed", n, e, -d, "ok" if fake.ekf.gnss_ok else "LOST")
     return 0
 
 

@@ -65,6 +65,12 @@ class ChildConfigs:
         return self.segmenter.segmenter.sim_noise
 
 
+# With --gnss-denied the sim is also the camera's visual odometry, at the camera service's rate
+# (external-nav streams each view to the EKF; ArduPilot's VISO wants >= 10 Hz). Without
+# --sitl-truth it renders only states with a position, so after a loss it goes quiet and the
+# controller holds: the truth the views need after a loss comes from SITL.
+GNSS_DENIED_ODOMETRY_HZ = 10.0
+
 # A real vehicle flying a rendered world: the controller's geofence keeps it over the world, the
 # radius the start's distance to the nearest edge, within these bounds (the smallest leaves a
 # policy room to search; the largest is the controller's own default for any real vehicle).
@@ -85,7 +91,8 @@ def child_configs(options: UpOptions, start: tuple[float, float, float], world: 
     that world (the paper's RESTARTING move once flew 600 m and left a 400 m world)."""
     sim = SimServiceConfig(
         sim=SimConfig(vehicle_id=options.vehicle_id, timing=options.timing, time_limit_s=float(options.time_limit_s),
-                      seed=options.seed),
+                      seed=options.seed, vehicle_profile=options.sim_vehicle_profile,
+                      odometry_rate_hz=GNSS_DENIED_ODOMETRY_HZ if options.gnss_denied not in (None, "off") else 0.0),
         world=options.world, start_xy_alt_m=tuple(float(v) for v in start), lockstep=options.lockstep,
         # Camera mode: the sim renders at the autopilot's state, which the controller (the one owner
         # of the MAVLink link) publishes on the state key; against SITL with --sitl-truth it renders

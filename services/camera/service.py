@@ -53,6 +53,7 @@ from dovesei.shared.lifecycle import Inbox, declare_alive, install_stop_handlers
 from dovesei.shared.messages import CameraFrame, Stamp, VehicleState
 from dovesei.shared.recording import FlightRecorder
 from dovesei.shared.visual_velocity import FrameMeta, VisualVelocity, odometry_message
+from dovesei.shared.zconfig import SessionError, open_session
 
 log = logging.getLogger(__name__)
 
@@ -417,7 +418,7 @@ def main(argv: list[str] | None = None) -> int:
     config, _process, zconf = CLI.start(argv)  # a bad flag exits 2 with the usage line
     stop = install_stop_handlers()
     try:
-        with zenoh.open(zconf) as session:
+        with open_session(zconf) as session:
             token = declare_alive(session, config.vehicle_id, "camera")
             try:
                 run(session, config=config, stop=stop)
@@ -426,6 +427,9 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as exc:
         log.error("%s", exc)
         return 2
+    except SessionError as exc:  # a taken listen port, an unreachable router: one line, not a traceback
+        log.error("camera not started: %s", exc)
+        return 1
     return 0
 
 

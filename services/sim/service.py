@@ -51,7 +51,9 @@ from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.shared.lifecycle import Inbox, declare_alive, install_stop_handlers, is_alive, write_stats
 from dovesei.shared.messages import CameraFrame, EpisodeResult, VehicleState, VelocityCommand, VisualOdometry
 from dovesei.shared.timing import TIMING_NAMES
+from dovesei.shared.zconfig import open_session
 from dovesei.sim.core import SimConfig, SimCore, StepOut, unstarted_result
+from dovesei.sim.estimator import VEHICLE_PROFILE_NAMES
 from dovesei.sim.external import run_external_pose
 from dovesei.sim.sitl_truth import SitlTruth, parse_truth_url
 from dovesei.sim.starts import Start, generate_starts
@@ -431,6 +433,9 @@ CLI = CommandLine(SimServiceConfig, {
     "sim.handover_alt_m": Flag("--handover-alt-m", "the episode ends (and is judged) at this altitude",
                                check=validate.non_negative),
     "sim.seed": Flag("--seed", "seed of the vehicle's disturbances"),
+    "sim.vehicle_profile": Flag("--vehicle-profile", "what the vehicle reports and how it flies: ideal (the truth, "
+                                "a gimbal), realistic (an optical-flow EKF without GNSS, a body-fixed camera, "
+                                "ArduCopter's limits) or harsh", choices=VEHICLE_PROFILE_NAMES),
     "sim.vehicle.cmd_timeout_s": Flag("--cmd-max-age-s", "drop a velocity command whose stamp is older than this "
                                       "on the sim clock, as ArduPilot's GUID_TIMEOUT (the vehicle then brakes to a "
                                       "hover)", check=validate.positive),
@@ -472,7 +477,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         t0 = time.perf_counter()
         world = load_world(config.world)  # the heavy factory: seconds for a new synthetic world
         log.info("world %s ready in %.1f s", world.name, time.perf_counter() - t0)
-        with zenoh.open(zconf) as session:
+        with open_session(zconf) as session:
             result = run(session, config=config, stop=stop, world=world, stats=stats)
     except (WorldError, DoveseiError) as exc:
         log.error("sim stopped: %s", exc)

@@ -20,7 +20,10 @@ from __future__ import annotations
 
 import logging
 import math
+import signal
 import socket
+import subprocess
+import sys
 import threading
 import time
 from collections.abc import Iterator
@@ -28,16 +31,18 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import pytest
+import zenoh
 
 from dovesei.controller import mavlink_proto as mv
 from dovesei.controller.core import ControllerConfig, ControllerCore
+from dovesei.controller.gnss_denied import quaternion_to_euler
 from dovesei.controller.policies.base import Decision, Observation
 from dovesei.controller.service import RunStats, run
 from dovesei.shared import keys
 from dovesei.shared.codec import encode
 from dovesei.shared.lifecycle import Inbox, is_alive, wait_until
 from dovesei.shared.messages import ControllerStatus, SafetyHeatmap, Stamp, VehicleState, VisualOdometry
-from dovesei.shared.zconfig import free_port
+from dovesei.shared.zconfig import free_port, loopback_config
 from dovesei.testing.fake_autopilot import FakeAutopilot
 from dovesei.testing.fake_ekf import FakeEkf
 
@@ -218,7 +223,6 @@ def test_attitude_flies_guided_nogps_on_the_visual_velocity_to_the_handover(fly)
     flown = [t for t in fake.attitude_targets if t.accepted]
     assert len(flown) > 50 and all(t.type_mask == mv.ATTITUDE_TYPE_MASK_ANGLES_THRUST for t in flown)
     # Bounded tilt; descending on the climb-rate thrust scale (below 0.5); forward meant nose down.
-    from dovesei.controller.gnss_denied import quaternion_to_euler
     angles = [quaternion_to_euler(t.q) for t in flown]
     assert max(math.hypot(r, p) for r, p, _ in angles) <= math.radians(15.0) + 1e-3
     assert any(t.thrust < 0.45 for t in flown)
@@ -277,3 +281,50 @@ def test_a_blind_camera_stops_the_descent_until_it_sees_again(fly) -> None:
     assert blind and all(st.watchdog == "hold" for st in blind)
     assert any("visual velocity invalid" in st.reason for st in blind), {st.reason for st in blind}
     assert -flight.fake.position_ned_m[2] <= 20.5  # and then it went on to the hand-over
+
+
+def test_the_controller_process_takes_gnss_denied_from_its_command_line() -> None:
+    """Tier 3: `dovesei-controller --gnss-denied attitude` as a real process on a fake ArduCopter whose
+    GNSS is already gone: it switches to GUIDED_NOGPS, flies attitude targets on the odometry the test
+    publishes over Zenoh, says so in its status, and holds the vehicle on SIGTERM."""
+    mav_port, zenoh_port = free_port(socket.SOCK_DGRAM), free_port()
+    with FakeAutopilot(f"udpin:127.0.0.1:{mav_port}", flavour="ardupilot", mode="GUIDED", armed=True,
+                       alt_m=START_ALT_M, heartbeat_hz=10) as fake:
+        fake.lose_gnss()
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "dovesei.controller.service", "--vehicle-url", f"udpout:127.0.0.1:{mav_port}",
+             "--gnss-denied", "attitude", "--max-tilt-deg", "12", "--state-stale-after-s", "1",
+             "--listen", f"tcp/127.0.0.1:{zenoh_port}", "--no-multicast-scouting", "--log-level", "WARNING"],
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        try:
+            with zenoh.open(loopback_config(connect_ports=[zenoh_port])) as session, \
+                    Inbox(session, keys.state("uav1"), VehicleState, newest_only=True) as states, \
+                    Inbox(session, keys.status("uav1"), ControllerStatus, newest_only=False, depth=4096) as statuses:
+                assert wait_until(lambda: is_alive(session, "uav1", "controller", 0.5), 30.0), "never came up"
+                camera = Camera(session, states, fake)
+                camera.start()
+                seen: list[ControllerStatus] = []
+
+                def flying_on_visual() -> bool:
+                    while (st := statuses.poll()) is not None:
+                        seen.append(st)
+                    return fake.mode == "GUIDED_NOGPS" and any(st.nav_source == "visual" for st in seen) and \
+                        sum(t.accepted for t in fake.attitude_targets) > 20
+                try:
+                    assert wait_until(flying_on_visual, DEADLINE_S), (fake.mode, seen[-1].reason if seen else None)
+                finally:
+                    camera.stop.set()
+                    camera.join(5.0)
+                lost = [st for st in seen if st.gnss_lost]
+                assert lost and "GPS_RAW_INT fix type 1" in lost[-1].nav_reason
+                flown = [t for t in fake.attitude_targets if t.accepted]
+                assert max(math.hypot(*quaternion_to_euler(t.q)[:2]) for t in flown) <= math.radians(12.0) + 1e-3
+                proc.send_signal(signal.SIGTERM)
+                out, _ = proc.communicate(timeout=30.0)
+            assert proc.returncode == 0, out
+            # Told to hold on the way out: the last target asks for no climb and no descent (thrust 0.5).
+            assert [t for t in fake.attitude_targets if t.accepted][-1].thrust == pytest.approx(0.5)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()

@@ -89,6 +89,7 @@ def test_the_real_autopilot_flags_reach_the_controller_through_its_own_flags(tmp
         "--out", str(tmp_path / "run")]))
     configs = child_configs(options, (100.0, 100.0, 60.0))
     c = configs.controller
+    assert configs.sim.sim.odometry_rate_hz == 10.0  # the sim is the camera's visual odometry too
     assert (c.vehicle_url, c.handover_action, c.mavlink_yaw_control, c.mavlink_signing_key_file,
             c.mavlink_system_id, c.gnss_denied) == ("udpout:127.0.0.1:14550", "precland", "autopilot", str(key), 7,
                                                     "external-nav")
@@ -104,6 +105,8 @@ def test_the_real_autopilot_flags_reach_the_controller_through_its_own_flags(tmp
     assert (plain.handover_action, plain.mavlink_yaw_control, plain.mavlink_signing_key_file,
             plain.mavlink_system_id, plain.gnss_denied) == ("hold", "rate", None, None, "off")
     assert CONTROLLER.to_argv(plain) == ["--vehicle-url", "udpout:127.0.0.1:14550"]
+    assert child_configs(options_from_args(build_parser().parse_args(["--vehicle-url", "udpout:127.0.0.1:14550"])),
+                         (100.0, 100.0, 60.0)).sim.sim.odometry_rate_hz == 0.0
 
 
 def test_health_refuses_bad_flags_in_one_line() -> None:
