@@ -131,6 +131,9 @@ from dovesei.controller.gnss_denied import (
     NavStatus,
     OdometryGate,
     OdometryLimits,
+    SOURCE_AUTOPILOT,
+    SOURCE_NONE,
+    SOURCE_VISUAL,
     vision_speed_covariance,
 )
 from dovesei.controller.mavlink_readiness import ArmReadiness
@@ -430,6 +433,12 @@ class MavlinkVehicle:
         """Judge the navigation; on a GNSS loss start what the mode asks (source set, GUIDED_NOGPS)."""
         with self._lock:
             status = self._nav.status(now, self._odometry)
+            if self._attitude_flying and status.source == SOURCE_AUTOPILOT:
+                # GNSS back, but we still fly attitude targets: only the camera's velocity closes the loop.
+                good, why = self._odometry.judge(now)
+                status = (NavStatus(False, False, True, SOURCE_VISUAL, "flying attitude targets on the visual "
+                                    "velocity (GNSS back; the mode stays until the pilot changes it)") if good else
+                          NavStatus(False, False, False, SOURCE_NONE, f"flying attitude targets and {why}: no descent"))
             previous, self._nav_status = self._nav_status, status
             target = self._target
             # Counted with the status that shows it, so a reader never sees one without the other.

@@ -11,7 +11,7 @@ import pytest
 from dovesei.controller import mavlink_proto as mv
 from dovesei.controller.mavlink import MavlinkVehicle
 from dovesei.shared.lifecycle import wait_until
-from dovesei.shared.messages import Stamp, VisualOdometry
+from dovesei.shared.messages import Stamp, VelocityCommand, VisualOdometry
 from dovesei.shared.zconfig import free_port
 from dovesei.testing.fake_autopilot import FakeAutopilot
 
@@ -82,3 +82,14 @@ def test_off_sends_nothing_and_reports_the_loss(link) -> None:
     assert fake.vision_speeds == [] and not [c for c in fake.received()[2]
                                               if c.command == mv.MAV_CMD_SET_EKF_SOURCE_SET]
     assert vehicle.counters()["gnss_losses"] == 1
+
+
+def test_attitude_flying_trusts_only_the_camera_even_when_gnss_returns(link) -> None:
+    fake, vehicle = link("ardupilot", gnss_denied="attitude")
+    vehicle.send(VelocityCommand("uav1", 0, Stamp(0.0, "vehicle"), (0.0, 0.0, 0.0)))  # dovesei flies it in GUIDED
+    fake.lose_gnss()
+    assert wait_until(lambda: fake.mode == "GUIDED_NOGPS", 10.0)
+    fake.restore_gnss()
+    assert wait_until(lambda: not vehicle.nav_status().gnss_lost, 5.0)
+    status = vehicle.nav_status()  # no odometry at all: flying attitude targets blind is not trusted
+    assert not status.velocity_trusted and "flying attitude targets and no visual velocity" in status.reason
