@@ -35,7 +35,7 @@ from dovesei.shared import timing as shared_timing
 from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.shared.validate import in_range, non_negative, positive
 from dovesei.shared.validate import one_of as validate_one_of
-from dovesei.sim.estimator import VEHICLE_PROFILE_NAMES
+from dovesei.sim.estimator import VEHICLE_PROFILE_NAMES, default_vehicle_profile
 from dovesei.sim.starts import START_ALT_MAX_M, START_ALT_MIN_M, check_start_alt_m
 from dovesei.sim.suite import suite as world_suite
 
@@ -45,7 +45,6 @@ __all__ = ["DEFAULT_POLICIES", "SUMMARY_KEYS", "build_parser", "main", "paper_ti
 log = logging.getLogger(__name__)
 
 DEFAULT_POLICIES = "dovesei,dovesei-nofocus"
-DEFAULT_VEHICLE_PROFILE = "ideal"  # dovesei.sim.estimator
 PAPER_TIME_LIMIT_S = shared_timing.PAPER_TIME_LIMIT_S
 
 
@@ -68,10 +67,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--start-alt-m", type=float, default=100.0,
                    help=f"start altitude of every episode, {START_ALT_MIN_M:g}-{START_ALT_MAX_M:g} m (default: the "
                         "paper's 100 m; a flow-navigating ArduCopter holds 48-69 m)")
-    p.add_argument("--vehicle-profile", default=DEFAULT_VEHICLE_PROFILE, choices=VEHICLE_PROFILE_NAMES,
+    p.add_argument("--vehicle-profile", default=None, choices=VEHICLE_PROFILE_NAMES,
                    help="what the vehicle reports and how it flies: ideal (the truth, a gimbal), realistic (an "
                         "optical-flow EKF without GNSS, a body-fixed camera, ArduCopter's limits) or harsh "
-                        f"(default: {DEFAULT_VEHICLE_PROFILE})")
+                        f"(default: {default_vehicle_profile('real')} with --timing real, "
+                        f"{default_vehicle_profile('reference')} with --timing reference)")
     p.add_argument("--start-margin-m", type=float, default=None,
                    help="starts lie this far inside the area where the start footprint is on the map "
                         "(default: with `clearance` flown, its search radius + fence + a drift allowance, so its "
@@ -144,7 +144,7 @@ def run_bench(*, world_spec: str | None = None, worlds: tuple[str, ...] | None =
               policies, noise: float | None, timing: str, time_limit_s: float, start_alt_m: float, jobs: int,
               out: Path, start_margin_m: float = 5.0, segmenter: str = "sim", perception: str | None = None, engine: str = "local",
               address: str | None = None, progress: bool = True, world_label: str = "",
-              seed_note: str = "", vehicle_profile: str = DEFAULT_VEHICLE_PROFILE) -> dict:
+              seed_note: str = "", vehicle_profile: str | None = None) -> dict:
     """Run (or resume) a bench into `out`; returns the results.json content."""
     _at_least_one("--episodes", episodes)
     _at_least_one("--jobs", jobs)
@@ -154,6 +154,7 @@ def run_bench(*, world_spec: str | None = None, worlds: tuple[str, ...] | None =
         in_range("--noise", noise, 0.0, 4.0)
     positive("--time-limit-s", time_limit_s)
     check_start_alt_m("--start-alt-m", start_alt_m)
+    vehicle_profile = default_vehicle_profile(timing) if vehicle_profile is None else vehicle_profile
     validate_one_of("--vehicle-profile", vehicle_profile, VEHICLE_PROFILE_NAMES)
     non_negative("--start-margin-m", start_margin_m)
     shared_timing.timing(timing)

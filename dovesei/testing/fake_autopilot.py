@@ -25,10 +25,17 @@ Personalities (`flavour`):
   A fake created armed (in the air) has booted long ago.
 - Speed caps: ArduPilot WPNAV_SPEED 10 m/s, WPNAV_SPEED_UP 2.5, WPNAV_SPEED_DN 1.5; PX4
   MPC_XY_VEL_MAX 12, MPC_Z_VEL_MAX_UP 3, MPC_Z_VEL_MAX_DN 1.5.
-- ArduPilot stops a guided velocity not refreshed within GUID_TIMEOUT (3 s). PX4 accepts
+- ArduPilot flies a guided velocity not refreshed for GUID_TIMEOUT (`guid_timeout_s`, 3 s by
+  default) as if it were, then stops and holds: a controller killed at 10 m/s coasts ~30 m. The
+  GCS failsafe (`fs_gcs_enable` "land", FS_GCS_ENABLE 5) switches to LAND when no heartbeat from
+  SYSID_MYGCS (255) came for FS_GCS_TIMEOUT (`fs_gcs_timeout_s`, 5 s) after one was heard. PX4 accepts
   OFFBOARD (and arming in it) only while setpoints stream and falls back to LOITER when they stop
   for COM_OF_LOSS_T (1 s).
 - `heading_drift_rad_s`: the heading wanders while airborne (the 5-23 degrees seen on ArduCopter).
+- Heading in GUIDED (ArduPilot): a setpoint with a yaw flies to that heading (absolute in
+  LOCAL_NED, relative to the heading at arrival in the body frames); one with a yaw rate turns at
+  it; one with neither turns the nose towards the direction of travel (WP_YAW_BEHAVIOR 2, the
+  default, while moving faster than 0.5 m/s), at most ATC_SLEW_YAW's 60 deg/s.
 - Precision landing (`precland`, ArduPilot's PLND_ENABLED with PLND_TYPE 1, AC_PrecLand's
   estimator): the first LANDING_TARGET in LAND says "PrecLand: Target Found"; the estimator
   initialises only when targets keep coming at least every 0.5 s for 2 s ("PrecLand: Init
@@ -85,11 +92,14 @@ MAV_RESULT_FAILED = 4
 MAV_SEVERITY_CRITICAL, MAV_SEVERITY_WARNING, MAV_SEVERITY_INFO = 2, 4, 6
 PX4_OFFBOARD_LOSS_S = 1.0  # PX4's COM_OF_LOSS_T default
 ARDUPILOT_GUIDED_VEL_TIMEOUT_S = 3.0  # ArduCopter's GUID_TIMEOUT default
+SYSID_MYGCS = 255  # ArduCopter's default: heartbeats from this system keep the GCS failsafe away
 LAND_RATE_M_S = 1.0
 PRECLAND_GAIN_PER_S, PRECLAND_MAX_M_S = 0.5, 1.0
 # AC_PrecLand.cpp (ArduPilot 4.6): EKF_INIT_TIME_MS, EKF_INIT_SENSOR_MIN_UPDATE_MS,
 # LANDING_TARGET_TIMEOUT_MS; PLND_XY_DIST_MAX's default.
 PRECLAND_INIT_S, PRECLAND_INIT_GAP_S, PRECLAND_TIMEOUT_S, PRECLAND_XY_DIST_MAX_M = 2.0, 0.5, 2.0, 2.5
+# ArduCopter's heading in GUIDED: ATC_SLEW_YAW 6000 cdeg/s; a proportional turn towards the target.
+YAW_SLEW_RAD_S, YAW_GAIN_PER_S, WP_YAW_MIN_SPEED_M_S = math.radians(60.0), 2.0, 0.5
 DEFAULT_BOOT_S = 40.0
 # ArduCopter modes whose requires_GPS() is true (ArduCopter/mode.h): refused without a position.
 ARDUPILOT_GPS_MODES = ("GUIDED", "LOITER", "POSHOLD", "RTL", "AUTO", "BRAKE")
@@ -137,6 +147,8 @@ class ReceivedSetpoint:
     type_mask: int
     vel_m_s: tuple[float, float, float]  # as sent (FRD for the body frames)
     yaw_rate_rad_s: float
+    yaw_rad: float = 0.0  # as sent: absolute in LOCAL_NED, relative to the heading in the body frames
+    yaw_target_rad: float = 0.0  # the heading it asks for, made absolute when it arrived
 
 
 @dataclass(frozen=True)
@@ -197,7 +209,9 @@ class FakeAutopilot:
                  offboard_loss_s: float = PX4_OFFBOARD_LOSS_S, system: int = 1, component: int = 1,
                  boot_s: float = DEFAULT_BOOT_S, heading_drift_rad_s: float = 0.0,
                  statustext_period_s: float = 2.0, signing_key: bytes | None = None, arm_refusals: int = 0,
-                 precland: bool = True, ekf: FakeEkf | None = None) -> None:
+                 precland: bool = True, ekf: FakeEkf | None = None,
+                 guid_timeout_s: float = ARDUPILOT_GUIDED_VEL_TIMEOUT_S, fs_gcs_enable: str | None = None,
+                 fs_gcs_timeout_s: float = 5.0) -> None:
         if flavour not in FLAVOURS:
             raise ValueError(f"flavour {flavour!r}: choose one of {FLAVOURS}")
         self.url, self.flavour, self.personality = url, flavour, PERSONALITIES[flavour]
@@ -229,6 +243,12 @@ class FakeAutopilot:
         self._next_send_s: dict[int, float] = {}
         self._last_setpoint: ReceivedSetpoint | None = None
         self._precland = precland
+        self._guid_timeout_s = float(guid_timeout_s)
+        if fs_gcs_enable not in (None, "land"):
+            raise ValueError(f"fs_gcs_enable {fs_gcs_enable!r}: None (FS_GCS_ENABLE 0) or 'land' (5)")
+        self._fs_gcs_land, self._fs_gcs_timeout_s = fs_gcs_enable == "land", float(fs_gcs_timeout_s)
+        self._gcs_seen_s: float | None = None  # newest heartbeat from SYSID_MYGCS (time.monotonic)
+        self._gcs_failsafe = False
         self._plnd_state = "none"  # none, init (Target Found, filling) or acquired (Init Complete)
         self._plnd_init_s = self._plnd_last_s = 0.0  # time.monotonic of the init and of the newest target
         self._plnd_target_ne_m: tuple[float, float] | None = None  # where the newest target puts it (NE)
@@ -456,6 +476,7 @@ class FakeAutopilot:
                 self._custom_mode = mv.encode_mode("px4", "LOITER")[0]
                 name = "LOITER"
             airborne = -self._pos_ned_m[2] > self.terrain_height_m + 0.05
+            name = self._gcs_failsafe_check(name, now)
             name = self._ekf_failsafe(name, now)
             nav_ok = self.flavour != "ardupilot" or self.ekf.position_ok(now)
             steering = self._armed and name == mv.STEER_MODE[self.flavour] and nav_ok
@@ -466,7 +487,7 @@ class FakeAutopilot:
                 vel_ned[2] = -self.personality.up_cap_m_s if -self._pos_ned_m[2] < self._takeoff_alt_m else 0.0
                 if vel_ned[2] == 0.0:
                     self._takeoff_alt_m = None
-            elif steering and sp is not None and now - sp.recv_s <= ARDUPILOT_GUIDED_VEL_TIMEOUT_S:
+            elif steering and sp is not None and now - sp.recv_s <= self._guid_timeout_s:
                 vel_ned, yaw_rate = self._setpoint_to_ned(sp)
             elif self._armed and name in ("LAND", "PRECLAND"):
                 self._precland_tick(now)
@@ -505,7 +526,7 @@ class FakeAutopilot:
         vel = list(self._vel_ned_m_s)
         climb = 0.0
         target = self._last_attitude
-        if name == "GUIDED_NOGPS" and target is not None and now - target.recv_s <= ARDUPILOT_GUIDED_VEL_TIMEOUT_S:
+        if name == "GUIDED_NOGPS" and target is not None and now - target.recv_s <= self._guid_timeout_s:
             self._roll_rad, self._pitch_rad, self._yaw_rad = quaternion_to_euler(target.q)
             # ArduCopter's default GUID_OPTIONS: thrust is a climb rate, 0.5 holds the altitude.
             thrust = min(max(target.thrust, 0.0), 1.0)
@@ -516,7 +537,7 @@ class FakeAutopilot:
             self._roll_rad = self._pitch_rad = 0.0
             if name in ("LAND", "PRECLAND"):
                 climb = -LAND_RATE_M_S
-            elif name == "GUIDED" and sp is not None and now - sp.recv_s <= ARDUPILOT_GUIDED_VEL_TIMEOUT_S:
+            elif name == "GUIDED" and sp is not None and now - sp.recv_s <= self._guid_timeout_s:
                 climb = -sp.vel_m_s[2]  # the barometer still holds the vertical
         # Body acceleration from the tilt (nose down accelerates forward), into NED by the heading.
         a_fwd = -GRAVITY_M_S2 * math.tan(self._pitch_rad)
@@ -527,6 +548,17 @@ class FakeAutopilot:
             vel[i] += (acc[i] - DRAG_PER_S * vel[i]) * dt_s
         vel[2] = -climb
         return vel
+
+    def _gcs_failsafe_check(self, name: str, now: float) -> str:
+        """FS_GCS_ENABLE 5: LAND once SYSID_MYGCS fell silent for FS_GCS_TIMEOUT (caller holds the lock)."""
+        if not (self._fs_gcs_land and self._armed and self._gcs_seen_s is not None) or self._gcs_failsafe:
+            return name
+        if now - self._gcs_seen_s > self._fs_gcs_timeout_s:
+            self._gcs_failsafe = True
+            self._queue_statustext(MAV_SEVERITY_CRITICAL, "GCS Failsafe")
+            self._custom_mode = mv.encode_mode(self.flavour, "LAND")[0]
+            return "LAND"
+        return name
 
     def _capped(self, vel_ned: list[float]) -> list[float]:
         """The personality's speed limits (caller holds the lock)."""
@@ -591,14 +623,31 @@ class FakeAutopilot:
             return [0.0, 0.0, 0.0], 0.0
         yaw_rate = 0.0 if sp.type_mask & 0x800 else sp.yaw_rate_rad_s
         fwd, right, down = sp.vel_m_s
-        if not all(math.isfinite(v) for v in (fwd, right, down, yaw_rate)):
+        if not all(math.isfinite(v) for v in (fwd, right, down, yaw_rate, sp.yaw_target_rad)):
             return [0.0, 0.0, 0.0], 0.0  # both autopilots ignore a setpoint with NaN velocities
         if sp.frame == mv.STEER_FRAME[self.flavour]:
             c, s = math.cos(self._yaw_rad), math.sin(self._yaw_rad)
-            return [c * fwd - s * right, s * fwd + c * right, down], yaw_rate
-        if sp.frame == mv.MAV_FRAME_LOCAL_NED:
-            return [fwd, right, down], yaw_rate
-        return [0.0, 0.0, 0.0], 0.0
+            vel = [c * fwd - s * right, s * fwd + c * right, down]
+        elif sp.frame == mv.MAV_FRAME_LOCAL_NED:
+            vel = [fwd, right, down]
+        else:
+            return [0.0, 0.0, 0.0], 0.0
+        if self.flavour == "ardupilot":
+            yaw_rate = self._guided_yaw_rate(sp, vel, yaw_rate)
+        return vel, yaw_rate
+
+    def _guided_yaw_rate(self, sp: ReceivedSetpoint, vel_ned: list[float], yaw_rate: float) -> float:
+        """ArduCopter's heading for a guided velocity setpoint (caller holds the lock)."""
+        if not sp.type_mask & 0x400:
+            error = math.remainder(sp.yaw_target_rad - self._yaw_rad, 2.0 * math.pi)  # a heading asked for
+        elif not sp.type_mask & 0x800:
+            return yaw_rate  # a yaw rate asked for
+        elif math.hypot(vel_ned[0], vel_ned[1]) > WP_YAW_MIN_SPEED_M_S:
+            # Neither: WP_YAW_BEHAVIOR 2 points the nose where the vehicle goes.
+            error = math.remainder(math.atan2(vel_ned[1], vel_ned[0]) - self._yaw_rad, 2.0 * math.pi)
+        else:
+            return 0.0
+        return max(-YAW_SLEW_RAD_S, min(YAW_SLEW_RAD_S, YAW_GAIN_PER_S * error))
 
     def _handle(self, msg: Any) -> None:
         kind, recv_s = msg.get_type(), time.monotonic()
@@ -607,13 +656,17 @@ class FakeAutopilot:
         self.peer_seen.set()
         if kind == "HEARTBEAT":
             with self._lock:
+                if msg.get_srcSystem() == SYSID_MYGCS:
+                    self._gcs_seen_s = recv_s
                 self.heartbeats.append(ReceivedHeartbeat(recv_s, msg.get_srcSystem(), msg.get_srcComponent(),
                                                          msg.type, msg.autopilot))
         elif kind == "SET_POSITION_TARGET_LOCAL_NED":
-            sp = ReceivedSetpoint(recv_s, msg.get_srcSystem(), msg.get_srcComponent(), msg.target_system,
-                                  msg.target_component, msg.coordinate_frame, msg.type_mask,
-                                  (msg.vx, msg.vy, msg.vz), msg.yaw_rate)
             with self._lock:
+                relative = msg.coordinate_frame in (mv.MAV_FRAME_BODY_OFFSET_NED, mv.MAV_FRAME_BODY_NED)
+                target_yaw = msg.yaw + (self._yaw_rad if relative else 0.0)
+                sp = ReceivedSetpoint(recv_s, msg.get_srcSystem(), msg.get_srcComponent(), msg.target_system,
+                                      msg.target_component, msg.coordinate_frame, msg.type_mask,
+                                      (msg.vx, msg.vy, msg.vz), msg.yaw_rate, msg.yaw, target_yaw)
                 self.setpoints.append(sp)
                 if msg.target_system == self._system:
                     self._last_setpoint = sp

@@ -112,7 +112,7 @@ class Setup:
     timing: str
     seed: int
     mode: str  # lockstep or realtime
-    vehicle: str  # "sim" or the autopilot's MAVLink URL
+    vehicle: str  # "sim:<vehicle profile>" (dovesei.sim.estimator) or the autopilot's MAVLink URL
     vehicle_id: str
     safety_radius_m: float
     time_limit_s: float
@@ -336,7 +336,8 @@ def build_report(options: UpOptions, rec: Recorder, start: tuple[float, float, f
     setup = Setup(options.world, backend, simulated, options.segmenter, noise if simulated else None,
                   options.perception if simulated else None, options.policy,
                   options.timing, options.seed, "lockstep" if options.lockstep else "realtime",
-                  options.vehicle_url or "sim", options.vehicle_id, 2.0, options.time_limit_s)
+                  options.vehicle_url or f"sim:{options.sim_vehicle_profile}", options.vehicle_id, 2.0,
+                  options.time_limit_s)
     episode_wall_s = (round(rec.result_wall_s - rec.first_state_wall_s, 3)
                       if rec.result_wall_s is not None and rec.first_state_wall_s is not None else None)
     timing = RunTiming(round(wall_time_s, 3), episode_wall_s, _latency(options, rec, cmd_to_sim),

@@ -53,6 +53,7 @@ from dovesei.shared.lifecycle import Inbox, declare_alive, install_stop_handlers
 from dovesei.shared.messages import CameraFrame, Stamp, VehicleState
 from dovesei.shared.recording import FlightRecorder
 from dovesei.shared.visual_velocity import FrameMeta, VisualVelocity, odometry_message
+from dovesei.shared.zconfig import SessionError, open_session
 
 log = logging.getLogger(__name__)
 
@@ -79,7 +80,7 @@ class CameraConfig:
     stall_timeout_s: float = 2.0
     state_timeout_s: float = 1.0
     loop_file: bool = False
-    record_path: str | None = None  # write the published frames and their states to this MCAP file
+    record_path: str | None = None  # write the published frames, their states and the odometry to this MCAP file
     odometry_rate_hz: float = 10.0  # visual velocity from consecutive grabbed frames; 0 = off
     odometry_width_px: int = 320  # frames are cropped like the published ones and shrunk to this width
 
@@ -254,6 +255,8 @@ class CameraPublisher:
         msg = odometry_message(est, meta, vehicle_id=c.vehicle_id, stamp=_capture_stamp(state, recv_s, capture_s),
                                sent_wall_s=time.time())
         self.put_odometry(encode(msg))
+        if self.recorder is not None:
+            self.recorder.write(msg)
         self.stats.odometry_published += 1
         self.stats.odometry_valid += int(msg.valid)
         if msg.valid:
@@ -417,7 +420,7 @@ def main(argv: list[str] | None = None) -> int:
     config, _process, zconf = CLI.start(argv)  # a bad flag exits 2 with the usage line
     stop = install_stop_handlers()
     try:
-        with zenoh.open(zconf) as session:
+        with open_session(zconf) as session:
             token = declare_alive(session, config.vehicle_id, "camera")
             try:
                 run(session, config=config, stop=stop)
@@ -426,6 +429,9 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as exc:
         log.error("%s", exc)
         return 2
+    except SessionError as exc:  # a taken listen port, an unreachable router: one line, not a traceback
+        log.error("camera not started: %s", exc)
+        return 1
     return 0
 
 

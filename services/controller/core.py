@@ -56,7 +56,7 @@ from typing import Any
 
 from dovesei.controller.gnss_denied import EXTERNAL_NAV_MESSAGES, GNSS_DENIED_MODES, NavStatus
 from dovesei.controller.policies.base import Decision, Observation, Policy, PolicyInputError, make_policy, policy_names
-from dovesei.controller.frames import body_frd_to_ned, ned_to_body_frd
+from dovesei.controller.frames import body_frd_to_ned, ned_to_body_frd, to_ne
 from dovesei.controller.geofence import Geofence
 from dovesei.controller.odometry import VelocityTrack
 from dovesei.controller.policies.config import TIMING_PRESETS
@@ -643,13 +643,26 @@ class ControllerCore:
 
     def _velocity(self, mode: Mode, state: VehicleState) -> tuple[tuple[float, float, float], float]:
         if mode is Mode.OK and self._decision is not None:
-            return self._decision.vel_body_frd_m_s, self._decision.yaw_rate_rad_s
+            return self._as_meant(self._decision.vel_body_frd_m_s, state), self._decision.yaw_rate_rad_s
         if mode is Mode.CLIMB:
             error_m = self.search_alt_m - state.alt_agl_m
             # FRD: negative down is up. Proportional near the target, never a descent.
             up_m_s = min(self.config.climb_speed_m_s, self.config.climb_gain_per_s * error_m) if error_m > 0 else 0.0
             return (0.0, 0.0, -up_m_s if up_m_s > 0 else 0.0), 0.0
         return (0.0, 0.0, 0.0), 0.0
+
+    def _as_meant(self, vel: tuple[float, float, float], state: VehicleState) -> tuple[float, float, float]:
+        """The decision's body velocity in the body frame of this tick: the policy meant the frame
+        of the heading it was given with its heatmap; if the vehicle has turned since (an autopilot
+        that yaws, heading drift), the horizontal command turns back by as much."""
+        adopted = self._adopted
+        if adopted is None:
+            return vel
+        turned_rad = math.remainder(adopted.attitude_rad[2] - state.yaw_rad, 2.0 * math.pi)
+        if turned_rad == 0.0:
+            return vel
+        fwd, right = to_ne(vel[0], vel[1], turned_rad)
+        return fwd, right, vel[2]
 
     @property
     def mode(self) -> Mode | None:

@@ -41,7 +41,10 @@ Conventions (ArduPilot "Copter Commands in Guided Mode", PX4 offboard docs; numb
 MAV_FRAME_BODY_NED (PX4), both heading-level frames; type mask 0x05C7 (velocity + yaw rate).
 Heading: with `yaw_control="rate"` the yaw rate sent is the policy's plus a proportional
 correction towards the heading held since steering began (read from ATTITUDE), so the camera does
-not rotate under the map when the autopilot's heading drifts; "autopilot" sends velocity only.
+not rotate under the map when the autopilot's heading drifts; "autopilot" sends the velocity in
+MAV_FRAME_LOCAL_NED (rotated by the heading the command was meant in) with that held heading as a
+yaw angle, for the autopilot's own heading controller to hold (velocity alone let ArduCopter turn
+the nose by WP_YAW_BEHAVIOR, and the body-frame policy ran out of the world).
 
 Trust: the autopilot is the first ArduPilot/PX4 heartbeat heard, or only `system_id` when pinned
 (a spoofer heard first is never locked onto); another autopilot id later is refused, counted and
@@ -80,6 +83,7 @@ from dovesei.controller.mavlink_proto import (
     MAV_CMD_SET_MESSAGE_INTERVAL,
     MAV_COMP_ID_ONBOARD_COMPUTER,
     MAV_FRAME_BODY_FRD,
+    MAV_FRAME_LOCAL_NED,
     MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
     MAV_MODE_FLAG_SAFETY_ARMED,
     MAV_RESULT_ACCEPTED,
@@ -102,7 +106,7 @@ from dovesei.controller.mavlink_proto import (
     MSG_ID_SYS_STATUS,
     STEER_FRAME,
     STEER_MODE,
-    TYPE_MASK_VELOCITY_ONLY,
+    TYPE_MASK_VELOCITY_YAW,
     TYPE_MASK_VELOCITY_YAW_RATE,
     YAW_CONTROLS,
     MavlinkError,
@@ -123,6 +127,7 @@ from dovesei.controller.mavlink_proto import (
     open_link,
 )
 from dovesei.controller import mavlink_takeoff
+from dovesei.controller.frames import to_ne
 from dovesei.controller.gnss_denied import (
     EXTERNAL_NAV_MESSAGES,
     GNSS_DENIED_MODES,
@@ -218,7 +223,7 @@ class MavlinkVehicle:
         self.heartbeat_timeout_s, self.command_timeout_s = float(heartbeat_timeout_s), float(command_timeout_s)
         self.setpoint_period_s, self.stream_rate_hz = 1.0 / setpoint_rate_hz, float(stream_rate_hz)
         self.yaw_control, self.yaw_hold_gain_per_s = yaw_control, float(yaw_hold_gain_per_s)
-        self.type_mask = TYPE_MASK_VELOCITY_YAW_RATE if yaw_control == "rate" else TYPE_MASK_VELOCITY_ONLY
+        self.type_mask = TYPE_MASK_VELOCITY_YAW_RATE if yaw_control == "rate" else TYPE_MASK_VELOCITY_YAW
         self.read_only, self.system_id = read_only, system_id
         self.limits = limits if limits is not None else SpeedLimits()
         self.source_system, self.source_component = source_system, source_component
@@ -248,6 +253,7 @@ class MavlinkVehicle:
         self._cmd: VelocityCommand | None = None  # newest command to stream (None: stream nothing)
         self._cmd_time_s = 0.0
         self._cmd_zeroed = False
+        self._cmd_yaw_rad = 0.0  # heading when the newest command arrived
         self._prestream = False  # stream zero setpoints with no command (PX4 before OFFBOARD)
         self._yaw_ref_rad: float | None = None  # the heading held while steering
         self._steered = False  # we have streamed in GUIDED/OFFBOARD at least once
@@ -279,6 +285,7 @@ class MavlinkVehicle:
         self.gnss_losses = 0
         self.source_set_result: int | None = None  # MAV_RESULT of the source-set switch (None: none yet)
         self.setpoints_sent = 0
+        self.stop_hold_s = 0.5  # close(): zero velocity streams this long (10 setpoints at 20 Hz)
         self.setpoints_clamped = 0  # every setpoint written, stream repeats included
         self.commands_steered = 0  # commands handed in by send() and flown
         self.commands_clamped = 0  # ... of which asked for more than the limits
@@ -319,7 +326,20 @@ class MavlinkVehicle:
                  "armed" if self.armed else "disarmed", ", signed link" if self._signing else "")
 
     def close(self) -> None:
-        """Stop the I/O thread and close the link (the autopilot's own failsafes take over)."""
+        """Stop the I/O thread and close the link (the autopilot's own failsafes take over).
+
+        If we were steering, zero velocity streams for `stop_hold_s` first: one lost datagram must
+        not leave ArduCopter flying the last setpoint until GUID_TIMEOUT (3 s at 10 m/s was ~35 m
+        blind on SITL), and the last thing the autopilot heard from us is "stop here".
+        """
+        with self._lock:
+            steering = self._cmd is not None and self._refusal_locked() is None and self._thread is not None
+            if steering:
+                self._cmd, self._cmd_time_s, self._cmd_zeroed = self._zero(), self._clock(), True
+                self._next_setpoint_s = self._clock()  # the first zero goes out now
+        if steering:
+            log.info("closing the MAVLink link: streaming zero velocity for %.1f s first", self.stop_hold_s)
+            self._stop.wait(self.stop_hold_s)
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=5.0)
@@ -542,6 +562,9 @@ class MavlinkVehicle:
             reason = self._refusal_locked()
             if reason is None:
                 self._cmd, self._cmd_time_s, self._cmd_zeroed = cmd, self._clock(), False
+                # The body frame the command means: the heading when it arrives (yaw_control 'autopilot'
+                # sends it in the local frame, so repeats never turn with the vehicle).
+                self._cmd_yaw_rad = self._attitude_rad[2]
                 self._steered = True
             else:
                 reason = self._maybe_request_mode_locked(reason)
@@ -1045,13 +1068,38 @@ class MavlinkVehicle:
         if attitude_flying:
             return self._send_attitude_target(cmd, target)
         (vx, vy, vz), yaw_rate = self._final_setpoint(cmd)
+        frame, mask, yaw = STEER_FRAME[target.autopilot], self.type_mask, 0.0
+        if self.yaw_control == "autopilot":
+            frame, mask, (vx, vy), yaw = self._local_setpoint(vx, vy, yaw_rate)
         time_boot_ms = int(self._clock() * 1000.0) & 0xFFFFFFFF
         ok = self._tx(lambda mav: mav.set_position_target_local_ned_send(
-            time_boot_ms, target.system, target.component, STEER_FRAME[target.autopilot], self.type_mask,
-            0.0, 0.0, 0.0, vx, vy, vz, 0.0, 0.0, 0.0, 0.0, yaw_rate))
+            time_boot_ms, target.system, target.component, frame, mask,
+            0.0, 0.0, 0.0, vx, vy, vz, 0.0, 0.0, 0.0, yaw, yaw_rate))
         if ok:
             self.setpoints_sent += 1
         return ok
+
+    def _local_setpoint(self, fwd: float, right: float,
+                        yaw_rate: float) -> tuple[int, int, tuple[float, float], float]:
+        """yaw_control 'autopilot': (frame, mask, north/east velocity, heading) of a body command.
+
+        The body velocity is rotated by the heading it was meant in (when the command arrived) into
+        MAV_FRAME_LOCAL_NED, and the heading held since steering began goes with it as an absolute
+        yaw: the autopilot's heading controller holds it, so the camera, and with it the policy's
+        body frame, does not turn (WP_YAW_BEHAVIOR would point the nose along the track). A
+        deliberate turn (a yaw rate) is followed, and the heading is held wherever it ends.
+        """
+        with self._lock:
+            meant_yaw, yaw = self._cmd_yaw_rad, self._attitude_rad[2]
+            if yaw_rate != 0.0:
+                self._yaw_ref_rad = None
+            elif self._yaw_ref_rad is None:
+                self._yaw_ref_rad = yaw
+            ref = self._yaw_ref_rad
+        north, east = to_ne(fwd, right, meant_yaw)
+        if ref is None:
+            return MAV_FRAME_LOCAL_NED, TYPE_MASK_VELOCITY_YAW_RATE, (north, east), 0.0
+        return MAV_FRAME_LOCAL_NED, TYPE_MASK_VELOCITY_YAW, (north, east), ref
 
     def _send_attitude_target(self, cmd: VelocityCommand, target: _Target) -> bool:
         """The command flown by our own velocity loop: SET_ATTITUDE_TARGET from the visual velocity."""

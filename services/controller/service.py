@@ -71,6 +71,7 @@ from dovesei.shared.messages import (
 )
 from dovesei.shared.recording import FlightRecorder
 from dovesei.shared.timing import DEFAULT_TIMING, TIMING_NAMES
+from dovesei.shared.zconfig import open_session
 
 log = logging.getLogger(__name__)
 
@@ -642,7 +643,7 @@ def main(argv: list[str] | None = None) -> int:
     # Python thread (e.g. a MAVLink reader) is busy: that default alone would break the 5 ms jitter.
     sys.setswitchinterval(0.001)
     try:
-        with zenoh.open(zconf) as session:
+        with open_session(zconf) as session:
             stats = run(session, config=config, stop=stop)
     except DoveseiError as exc:
         log.error("controller stopped: %s", exc)

@@ -271,7 +271,8 @@ class SimCore:
             # only what the state reports.
             roll, pitch = (0.0, 0.0) if self._gimbal else (pose.roll_rad, pose.pitch_rad)
             odometry = self._odometry.observe(pose.x_m, pose.y_m, pose.alt_agl_m, pose.yaw_rad, state,
-                                              roll_rad=roll, pitch_rad=pitch)
+                                              roll_rad=roll, pitch_rad=pitch,
+                                              tag_roll_pitch_rad=(0.0, 0.0) if self._gimbal else None)
         if outcome is not None:
             self._result = self._episode_result(outcome)
         return StepOut(state, frame, self._result, odometry)

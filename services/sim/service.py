@@ -51,6 +51,7 @@ from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.shared.lifecycle import Inbox, declare_alive, install_stop_handlers, is_alive, write_stats
 from dovesei.shared.messages import CameraFrame, EpisodeResult, VehicleState, VelocityCommand, VisualOdometry
 from dovesei.shared.timing import TIMING_NAMES
+from dovesei.shared.zconfig import open_session
 from dovesei.sim.core import SimConfig, SimCore, StepOut, unstarted_result
 from dovesei.sim.estimator import VEHICLE_PROFILE_NAMES
 from dovesei.sim.external import run_external_pose
@@ -476,7 +477,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         t0 = time.perf_counter()
         world = load_world(config.world)  # the heavy factory: seconds for a new synthetic world
         log.info("world %s ready in %.1f s", world.name, time.perf_counter() - t0)
-        with zenoh.open(zconf) as session:
+        with open_session(zconf) as session:
             result = run(session, config=config, stop=stop, world=world, stats=stats)
     except (WorldError, DoveseiError) as exc:
         log.error("sim stopped: %s", exc)

@@ -258,3 +258,39 @@ def test_the_geofence_keeps_a_runaway_policy_near_the_start_on_a_mavlink_vehicle
         stats, _ = flight(fake, config, policy, until=long_enough)
     assert 30.0 < max(far) < 44.0, max(far)  # the fence (on the velocity estimate) plus the fake's lag
     assert stats.geofence_clipped > 20
+
+
+class Sideways:
+    """Right at 4 m/s and down 0.5 m/s in the camera's frame: a body-frame policy's typical ask."""
+
+    name = "sideways"
+
+    def __init__(self) -> None:
+        self.steps = 0
+
+    def step(self, obs: Observation) -> Decision:
+        self.steps += 1
+        return Decision((0.0, 4.0, 0.5), 0.0, "AIMING", None, 10.0, 0.5, {})
+
+    def reset(self) -> None:
+        pass
+
+
+@pytest.mark.parametrize("yaw_control", ["autopilot", "rate"])
+def test_body_frame_commands_keep_their_meaning_whichever_yaw_control(flight, yaw_control: str) -> None:
+    """Issue 26: with --yaw-control autopilot ArduCopter turned the nose by WP_YAW_BEHAVIOR (the fake
+    does too when a setpoint leaves the heading to it) and the body-frame policy ran out of the
+    world (heading +142 and +176 deg). The heading now stays, and right stays right."""
+    listen, connect = udp_pair()
+    config = ControllerConfig(lockstep=False, timing="real", vehicle_url=connect, vehicle_connect_timeout_s=5.0,
+                              state_stale_after_s=1.0, mavlink_yaw_control=yaw_control)
+    yaw0 = math.radians(20.0)
+    with FakeAutopilot(listen, flavour="ardupilot", mode="GUIDED", armed=True, alt_m=60.0, heartbeat_hz=10,
+                       yaw_rad=yaw0, heading_drift_rad_s=math.radians(4.0)) as fake:
+        policy = Sideways()
+        flight(fake, config, policy, until=lambda: math.hypot(*fake.position_ned_m[:2]) > 40.0)
+        n, e, _ = fake.position_ned_m
+        turned_deg = math.degrees(math.remainder(fake.yaw_rad - yaw0, 2 * math.pi))
+    # The track: the start's right (heading + 90 deg), within 12 deg; the heading within 8 deg.
+    track_deg = math.degrees(math.remainder(math.atan2(e, n) - (yaw0 + math.pi / 2), 2 * math.pi))
+    assert abs(track_deg) < 12.0 and abs(turned_deg) < 8.0, (track_deg, turned_deg)

@@ -301,3 +301,20 @@ def test_faults_fly_the_profile_asked_for() -> None:
     assert build_parser().parse_args(["--vehicle-profile", "realistic"]).vehicle_profile == "realistic"
     with pytest.raises(SystemExit):
         build_parser().parse_args(["--vehicle-profile", "x"])
+
+
+def test_without_a_profile_every_command_flies_the_timing_presets_default(tmp_path) -> None:
+    from dovesei.bench import build_parser as bench_parser
+    from dovesei.sim.estimator import default_vehicle_profile
+    from dovesei.sweep import grid_from_doc
+    from dovesei.up.options import UpOptions, build_parser, options_from_args
+
+    for timing in ("reference", "real"):
+        want = default_vehicle_profile(timing)
+        assert want in VEHICLE_PROFILES
+        assert UpOptions(timing=timing).sim_vehicle_profile == want
+        assert UpOptions(timing=timing, vehicle_profile="harsh").sim_vehicle_profile == "harsh"
+        opts = options_from_args(build_parser().parse_args(["--timing", timing]))
+        assert opts.vehicle_profile is None and opts.sim_vehicle_profile == want
+        assert grid_from_doc({"worlds": [WORLD], "timing": timing}).vehicle_profile == want
+    assert bench_parser().parse_args([]).vehicle_profile is None
