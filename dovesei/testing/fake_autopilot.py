@@ -164,13 +164,14 @@ class ReceivedAttitudeTarget:
 
 @dataclass(frozen=True)
 class ReceivedVisionSpeed:
-    """One VISION_SPEED_ESTIMATE (NED m/s) or PX4 ODOMETRY velocity (body FRD) as received."""
+    """One VISION_SPEED_ESTIMATE (NED m/s), VISION_POSITION_DELTA (body FRD, delta / dt; `covariance`
+    holds its confidence) or PX4 ODOMETRY velocity (body FRD) as received."""
 
     recv_s: float
     usec: int
     vel_m_s: tuple[float, float, float]
     covariance: tuple[float, ...]
-    kind: str  # "VISION_SPEED_ESTIMATE" or "ODOMETRY"
+    kind: str  # "VISION_SPEED_ESTIMATE", "VISION_POSITION_DELTA" or "ODOMETRY"
 
 
 @dataclass(frozen=True)
@@ -678,6 +679,14 @@ class FakeAutopilot:
                 self.vision_speeds.append(speed)
                 if self.flavour == "ardupilot" and all(math.isfinite(v) for v in speed.vel_m_s):
                     self.ekf.on_vision_speed(recv_s, speed.vel_m_s)
+        elif kind == "VISION_POSITION_DELTA":
+            dt_s = msg.time_delta_usec / 1e6
+            vel = tuple(d / dt_s for d in msg.position_delta) if dt_s > 0 else (math.nan,) * 3
+            with self._lock:
+                self.vision_speeds.append(ReceivedVisionSpeed(recv_s, msg.time_usec, vel, (float(msg.confidence),),
+                                                              "VISION_POSITION_DELTA"))
+                if self.flavour == "ardupilot" and all(math.isfinite(v) for v in vel):
+                    self.ekf.on_vision_delta(recv_s)
         elif kind == "ODOMETRY":
             with self._lock:
                 self.vision_speeds.append(ReceivedVisionSpeed(recv_s, msg.time_usec, (msg.vx, msg.vy, msg.vz),
