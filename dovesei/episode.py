@@ -29,6 +29,7 @@ from dovesei.segmenter.simulated import DEFAULT_NOISE, DEFAULT_PROFILE, PROFILE_
 from dovesei.shared.errors import ConfigError
 from dovesei.shared.messages import EpisodeResult, Message, SafetyHeatmap
 from dovesei.sim.core import SimConfig, SimCore
+from dovesei.sim.estimator import SIM_DEFAULT_VEHICLE_PROFILE
 from dovesei.sim.starts import Start
 from dovesei.sim.world import World
 
@@ -77,13 +78,15 @@ class EpisodeSpec:
     vehicle_id: str = "uav1"
     perception: str = DEFAULT_PERCEPTION  # simulated perception profile
     prompts: PromptSet = REFERENCE_PROMPTS
+    vehicle_profile: str = SIM_DEFAULT_VEHICLE_PROFILE  # what the autopilot reports (dovesei.sim.estimator)
 
     @classmethod
     def from_job(cls, job: dict, start: Start) -> EpisodeSpec:
         """The spec a bench job (a plain, picklable dict) describes."""
         return cls(policy=job["policy"], start=start, timing=job["timing"], seed=job["seed"], noise=job.get("noise"),
                    time_limit_s=job["time_limit_s"], perception=job.get("perception") or DEFAULT_PERCEPTION,
-                   prompts=prompt_set(job.get("prompts")))
+                   prompts=prompt_set(job.get("prompts")),
+                   vehicle_profile=job.get("vehicle_profile") or SIM_DEFAULT_VEHICLE_PROFILE)
 
 
 @dataclass
@@ -93,7 +96,8 @@ class EpisodeRecord:
     spec: EpisodeSpec
     result: EpisodeResult
     wall_time_s: float
-    # One row per sim step: t_s, x_m, y_m, alt_agl_m; `states` holds the controller state per row.
+    # One row per sim step: t_s, x_m, y_m, alt_agl_m (all true, the judge's view, never the
+    # estimate); `states` holds the controller state per row.
     track: np.ndarray = dataclasses.field(repr=False, default_factory=lambda: np.zeros((0, 4)))
     states: list[str] = dataclasses.field(repr=False, default_factory=list)
 
@@ -106,7 +110,8 @@ def build_cores(world: World, spec: EpisodeSpec, *, render_images: bool = False
     drawing the pixels nobody looks at; the trajectory is the same either way.
     """
     sim = SimCore(world, spec.start, SimConfig(vehicle_id=spec.vehicle_id, timing=spec.timing, seed=spec.seed,
-                                               time_limit_s=spec.time_limit_s, render_image=render_images))
+                                               time_limit_s=spec.time_limit_s, render_image=render_images,
+                                               vehicle_profile=spec.vehicle_profile))
     seg_config = segmenter_config(spec)
     seg = SegmenterCore(make_backend(seg_config), seg_config)
     ctrl = ControllerCore(ControllerConfig(vehicle_id=spec.vehicle_id, policy=spec.policy, timing=spec.timing,
@@ -142,8 +147,8 @@ def run_episode(world: World, spec: EpisodeSpec, *, record_track: bool = True,
             pending[out.frame.seq] = seg.process(out.frame)
             record(pending[out.frame.seq])
         if record_track:
-            x_m, y_m = sim.position_m()
-            rows.append((out.state.stamp.t_s, x_m, y_m, out.state.alt_agl_m))
+            truth = sim.true_pose()
+            rows.append((out.state.stamp.t_s, truth.x_m, truth.y_m, truth.alt_agl_m))
         if out.result is not None:
             record(out.result)
             break

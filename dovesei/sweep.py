@@ -11,7 +11,8 @@ prompt sets, described in a small YAML or JSON file, on either engine, resumable
     prompts:                          # name -> prompt set; null = the reference prompts
       reference: null
       lawns-only: {positive: [grass, lawn], negative: [building, road, water, tree]}
-    # optional: noise, time_limit_s, start_alt_m
+    # optional: noise, time_limit_s, start_alt_m, vehicle_profile (ideal | realistic | harsh; default
+    # as `dovesei bench` at this timing)
 
 Every cell flies the same starts. The grid is one bench run (`dovesei.bench.run.run_grid`), so
 it shares the journal, resuming and engines of `dovesei bench`; the output folder holds
@@ -34,12 +35,14 @@ from dovesei.episode import prompt_set
 from dovesei.shared.cliconfig import OneLineParser
 from dovesei.shared import timing as shared_timing
 from dovesei.shared.errors import ConfigError, DoveseiError
-from dovesei.shared.validate import in_range, positive
+from dovesei.shared.validate import in_range, one_of, positive
+from dovesei.sim.estimator import VEHICLE_PROFILE_NAMES, default_vehicle_profile
+from dovesei.sim.starts import check_start_alt_m
 
 log = logging.getLogger(__name__)
 
 KEYS = {"worlds", "suite", "episodes", "seed", "timing", "policies", "perception", "prompts", "noise", "time_limit_s",
-        "start_alt_m"}
+        "start_alt_m", "vehicle_profile"}
 
 
 def _names(doc: dict, key: str, default: list[str] | None = None) -> list[str]:
@@ -127,8 +130,10 @@ def grid_from_doc(doc: dict) -> Grid:
                      for p in perceptions for n, v in prompt_sets.items())
     return Grid(worlds=worlds, episodes=_int(doc, "episodes", 20, 1), seed=_int(doc, "seed", 0, 0),
                 policies=tuple(policies), variants=variants, noise=noise, timing=timing, time_limit_s=float(limit),
-                start_alt_m=positive("sweep file: 'start_alt_m'", doc.get("start_alt_m", 100.0)), world_label=label,
-                extra={"sweep": True})
+                start_alt_m=check_start_alt_m("sweep file: 'start_alt_m'", doc.get("start_alt_m", 100.0)),
+                world_label=label, extra={"sweep": True},
+                vehicle_profile=one_of("sweep file: 'vehicle_profile'",
+                                       doc.get("vehicle_profile", default_vehicle_profile(timing)), VEHICLE_PROFILE_NAMES))
 
 
 def plot_sweep(rows: list[dict], out_png: Path, title: str) -> None:
@@ -163,16 +168,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--engine", default="local", choices=("local", "ray"))
     p.add_argument("--address", default=None, help="Ray cluster address (with --engine ray)")
     p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--vehicle-profile", choices=VEHICLE_PROFILE_NAMES,
+                   help="what the vehicle reports and how it flies (default: the file's vehicle_profile, else as "
+                        "`dovesei bench` at the file's timing)")
     return p
 
 
 def run_sweep(path: Path, *, out: Path, jobs: int, engine: str = "local", address: str | None = None,
-              progress: bool = True) -> dict:
+              progress: bool = True, vehicle_profile: str | None = None) -> dict:
     if jobs < 1:
         raise ConfigError(f"--jobs must be at least 1, got {jobs}")
     if address and engine != "ray":
         raise ConfigError("--address names a Ray cluster: use it with --engine ray")
-    grid = grid_from_doc(read_sweep_file(path))
+    doc = read_sweep_file(path)
+    if vehicle_profile is not None:  # the flag wins over the file
+        doc = {**doc, "vehicle_profile": vehicle_profile}
+    grid = grid_from_doc(doc)
     doc = run_grid(grid, out=out, workers=jobs, engine=engine, address=address, progress=progress,
                    title="dovesei sweep")
     try:
@@ -188,7 +199,7 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:
         run_sweep(args.file, out=args.out, jobs=args.jobs, engine=args.engine, address=args.address,
-                  progress=not args.no_progress)
+                  progress=not args.no_progress, vehicle_profile=args.vehicle_profile)
     except DoveseiError as exc:
         print(f"dovesei sweep: {exc}", file=sys.stderr)
         return 2

@@ -73,10 +73,13 @@ class VisualVelocityConfig:
     max_speed_m_s: float = 40.0
     max_dt_s: float = 1.0
     max_tilt_deg: float = 60.0  # rays further than this from vertical are not intersected with the ground
-    # Error sources the residual cannot see, each given as one standard deviation: the attitude
-    # change between the two frames (gyro drift plus time-tag misalignment), the altitude's
-    # relative error (it scales the whole velocity), and a floor.
-    attitude_change_sigma_rad: float = 0.001
+    # Error sources the residual cannot see, each given as one standard deviation: each frame's
+    # attitude tag (the estimate's short-term error plus the time-tag mismatch: ~1 ms of camera
+    # timing jitter at 0.5 rad/s), which moves every ray alike, so two frames' errors give
+    # h x sqrt(2) x sigma / dt (0.7 m/s at 100 m and 10 Hz); the altitude's relative error (it
+    # scales the whole velocity); and a floor. `dovesei bench-odometry --noise realistic` draws the
+    # same per-frame attitude error and checks the variance against the errors it gets.
+    attitude_sigma_rad: float = 0.0005
     alt_rel_sigma: float = 0.03
     var_floor_m2_s2: float = 0.01
 
@@ -92,7 +95,7 @@ class VisualVelocityConfig:
             positive(f"visual velocity {name}", getattr(self, name))
         in_range("visual velocity min_quality", self.min_quality, 0.0, 1.0)
         in_range("visual velocity max_tilt_deg", self.max_tilt_deg, 1.0, 85.0)
-        in_range("visual velocity attitude_change_sigma_rad", self.attitude_change_sigma_rad, 0.0, 1.0)
+        in_range("visual velocity attitude_sigma_rad", self.attitude_sigma_rad, 0.0, 1.0)
         in_range("visual velocity alt_rel_sigma", self.alt_rel_sigma, 0.0, 1.0)
         if self.min_alt_m >= self.max_alt_m:
             raise ConfigError(f"visual velocity min_alt_m {self.min_alt_m} must be below max_alt_m {self.max_alt_m}")
@@ -335,9 +338,9 @@ def estimate(prev: PreparedFrame, new: PreparedFrame, config: VisualVelocityConf
     if not (np.isfinite(vel_body).all() and speed <= config.max_speed_m_s):
         return _invalid(prev, new, dt_s, f"implausible speed {speed:.1f} m/s (limit {config.max_speed_m_s:g})",
                         quality, **counts)
-    # Residual noise averaged over the inliers, plus what the residual cannot see: the attitude
-    # change moves every ray alike (h x angle), the altitude scales the whole velocity.
-    var = (resid_m ** 2 / n_in + 2.0 * (h_new * config.attitude_change_sigma_rad) ** 2) / dt_s ** 2 \
+    # Residual noise averaged over the inliers, plus what the residual cannot see: each frame's
+    # attitude error moves every ray alike (h x angle), the altitude scales the whole velocity.
+    var = (resid_m ** 2 / n_in + 2.0 * (h_new * config.attitude_sigma_rad) ** 2) / dt_s ** 2 \
         + (config.alt_rel_sigma * speed) ** 2 + config.var_floor_m2_s2
     var = min(var, INVALID_VAR_M2_S2)
     return VelocityEstimate(True, tuple(float(v) for v in vel_body), float(var), float(quality), float(dt_s), "",

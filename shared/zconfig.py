@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import socket
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -22,7 +23,7 @@ from pathlib import Path
 
 import zenoh
 
-from dovesei.shared.errors import ConfigError
+from dovesei.shared.errors import ConfigError, DoveseiError
 
 MODES = ("peer", "client", "router")
 ENV_CONFIG = "ZENOH_CONFIG"
@@ -139,6 +140,28 @@ def free_port(kind: int = socket.SOCK_STREAM) -> int:
     with socket.socket(socket.AF_INET, kind) as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+class SessionError(DoveseiError):
+    """A Zenoh session that could not be opened: a listen port already taken, a router unreachable."""
+
+    @property
+    def address_in_use(self) -> bool:
+        """True when a listen endpoint was taken: retrying with another port can succeed."""
+        return ADDRESS_IN_USE in str(self)
+
+
+ADDRESS_IN_USE = "Address already in use"  # the OS's text (EADDRINUSE), which Zenoh's error carries
+
+
+def open_session(config: zenoh.Config) -> zenoh.Session:
+    """`zenoh.open`, with its failure as one SessionError line instead of a ZError traceback."""
+    try:
+        return zenoh.open(config)
+    except zenoh.ZError as exc:
+        # Zenoh appends the Rust source file and line of each layer: noise for an operator.
+        text = re.sub(r"\s+at \S+\.rs:\d+\.?", "", " ".join(str(exc).split()))
+        raise SessionError(f"cannot open the Zenoh session: {text}") from None
 
 
 def loopback_config(listen_port: int | None = None, connect_ports: Sequence[int] = (),

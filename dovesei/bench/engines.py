@@ -128,6 +128,10 @@ def record_base(job: dict) -> dict:
     for key in ("perception", "prompts"):
         if job.get(f"{key}_label") is not None:
             base[key] = job[f"{key}_label"]
+    # The vehicle profile is recorded when it is not `ideal`, whose records stay those of the sim
+    # before profiles existed.
+    if job.get("vehicle_profile") not in (None, "ideal"):
+        base["vehicle_profile"] = job["vehicle_profile"]
     return base
 
 

@@ -69,6 +69,7 @@ class Grid:
     start_margin_m: float = 5.0  # starts lie this far inside the footprint-on-the-map area
     segmenter: str = "sim"
     extra: dict = field(default_factory=dict)  # more settings that belong in the hash (e.g. the sweep file's)
+    vehicle_profile: str = "ideal"  # dovesei.sim.estimator: what the vehicle reports and how it flies
 
     def config(self) -> dict:
         return {"world": self.world_label or self.worlds[0], "worlds": list(self.worlds), "episodes": self.episodes,
@@ -76,6 +77,8 @@ class Grid:
                 "time_limit_s": self.time_limit_s, "start_alt_m": self.start_alt_m, "segmenter": self.segmenter,
                 # Only a non-default margin enters the settings (and their hash): older benches resume.
                 **({"start_margin_m": self.start_margin_m} if self.start_margin_m != 5.0 else {}),
+                # Likewise `ideal` (the sim before profiles) stays out: its benches resume and hash as before.
+                **({"vehicle_profile": self.vehicle_profile} if self.vehicle_profile != "ideal" else {}),
                 "perception": [v.perception for v in self.variants] if len(self.variants) > 1 else self.variants[0].perception,
                 "prompts": {v.prompts_name: v.prompts for v in self.variants}, **self.extra}
 
@@ -169,6 +172,7 @@ def plan_jobs(grid: Grid, worlds: dict, out: Path) -> list[dict]:
                         "world": spec, "world_index": wi, "policy": pol, "index": i, "seed": episode_seed(grid.seed, i),
                         "noise": grid.noise, "timing": grid.timing, "time_limit_s": grid.time_limit_s,
                         "perception": var.perception, "prompts": var.prompts,
+                        "vehicle_profile": grid.vehicle_profile,
                         "perception_label": var.perception if var.labelled else None,
                         "prompts_label": var.prompts_name if var.labelled else None,
                         "start": {"x_m": round(st.x_m, 3), "y_m": round(st.y_m, 3), "alt_m": st.alt_m}})
@@ -267,7 +271,8 @@ def summary_markdown(doc: dict, *, title: str = "dovesei bench") -> str:
         f"{config['start_alt_m']:.0f} m (seed {config['seed']}"
         f"{', at least %g m inside the edge beyond the footprint' % config['start_margin_m'] if 'start_margin_m' in config else ''}"
         f"), limit {config['time_limit_s']:g} s of sim time, "
-        f"timing preset `{config['timing']}`, simulated perception `{config['perception']}` ({noise}). "
+        f"timing preset `{config['timing']}`, simulated perception `{config['perception']}` ({noise}), "
+        f"vehicle profile `{config.get('vehicle_profile', 'ideal')}`. "
         "Success = reaching the hand-over altitude (20 m) with the 2 m footprint disk on safe classes, judged on "
         "the label map. Intervals are Wilson 95 %.", "",
         *stats.policy_table(doc["summary"]), "",

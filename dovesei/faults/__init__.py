@@ -28,6 +28,7 @@ from pathlib import Path
 from dovesei.faults.scenario import FAULTS, RunResult, run_scenario
 from dovesei.shared.cliconfig import OneLineParser
 from dovesei.shared.errors import ConfigError
+from dovesei.sim.estimator import VEHICLE_PROFILE_NAMES
 
 log = logging.getLogger("dovesei.faults")
 
@@ -82,6 +83,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, help="folder for the runs (default: runs/faults-<timestamp>)")
     p.add_argument("--json", action="store_true", help="print the totals as JSON instead of the table")
     p.add_argument("--log-level", default="WARNING", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
+    p.add_argument("--vehicle-profile", choices=VEHICLE_PROFILE_NAMES,
+                   help="the simulated vehicle the faults are flown with (default: as `dovesei up` at the faults' "
+                        "timing)")
     return p
 
 
@@ -105,7 +109,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     for i in range(args.runs):
         for name in names:
             run_out = out / f"{name}-{i}"
-            r = run_scenario(FAULTS[name], args.seed + i, run_out)
+            r = run_scenario(FAULTS[name], args.seed + i, run_out, vehicle_profile=args.vehicle_profile)
             (run_out / "run.json").write_text(json.dumps(r.to_dict(), indent=1, default=str))
             results.append(r)
             status = "ok" if not r.violations else f"{len(r.violations)} violation(s): {r.violations[0]}"

@@ -274,7 +274,8 @@ def _retarget(argv: list[str], endpoint: str) -> list[str]:
     return [*argv[:i], "--mode", "client", "--connect", endpoint]
 
 
-def run_scenario(fault: Fault, seed: int, out: Path, *, world: str = WORLD) -> RunResult:
+def run_scenario(fault: Fault, seed: int, out: Path, *, world: str = WORLD,
+                 vehicle_profile: str | None = None) -> RunResult:
     t0 = time.monotonic()
     vid = "uav1"
     rng = random.Random(seed)
@@ -286,7 +287,7 @@ def run_scenario(fault: Fault, seed: int, out: Path, *, world: str = WORLD) -> R
     options = UpOptions(world=world, segmenter="sim", noise=0.0, start_seed=seed, start_alt_m=START_ALT_M, out=out,
                         realtime=not fault.lockstep, connect=(router.endpoint,), video=False, stall_s=fault.stall_s,
                         after_failure_s=fault.after_failure_s, heatmap_wait_s=fault.heatmap_wait_s,
-                        startup_timeout_s=60.0, log_level="INFO")
+                        startup_timeout_s=60.0, log_level="INFO", vehicle_profile=vehicle_profile)
     _, start, configs = preflight(options)
     (out / "logs").mkdir(parents=True, exist_ok=True)
     (out / "stats").mkdir(exist_ok=True)

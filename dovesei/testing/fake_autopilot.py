@@ -25,10 +25,17 @@ Personalities (`flavour`):
   A fake created armed (in the air) has booted long ago.
 - Speed caps: ArduPilot WPNAV_SPEED 10 m/s, WPNAV_SPEED_UP 2.5, WPNAV_SPEED_DN 1.5; PX4
   MPC_XY_VEL_MAX 12, MPC_Z_VEL_MAX_UP 3, MPC_Z_VEL_MAX_DN 1.5.
-- ArduPilot stops a guided velocity not refreshed within GUID_TIMEOUT (3 s). PX4 accepts
+- ArduPilot flies a guided velocity not refreshed for GUID_TIMEOUT (`guid_timeout_s`, 3 s by
+  default) as if it were, then stops and holds: a controller killed at 10 m/s coasts ~30 m. The
+  GCS failsafe (`fs_gcs_enable` "land", FS_GCS_ENABLE 5) switches to LAND when no heartbeat from
+  SYSID_MYGCS (255) came for FS_GCS_TIMEOUT (`fs_gcs_timeout_s`, 5 s) after one was heard. PX4 accepts
   OFFBOARD (and arming in it) only while setpoints stream and falls back to LOITER when they stop
   for COM_OF_LOSS_T (1 s).
 - `heading_drift_rad_s`: the heading wanders while airborne (the 5-23 degrees seen on ArduCopter).
+- Heading in GUIDED (ArduPilot): a setpoint with a yaw flies to that heading (absolute in
+  LOCAL_NED, relative to the heading at arrival in the body frames); one with a yaw rate turns at
+  it; one with neither turns the nose towards the direction of travel (WP_YAW_BEHAVIOR 2, the
+  default, while moving faster than 0.5 m/s), at most ATC_SLEW_YAW's 60 deg/s.
 - Precision landing (`precland`, ArduPilot's PLND_ENABLED with PLND_TYPE 1, AC_PrecLand's
   estimator): the first LANDING_TARGET in LAND says "PrecLand: Target Found"; the estimator
   initialises only when targets keep coming at least every 0.5 s for 2 s ("PrecLand: Init
@@ -37,6 +44,15 @@ Personalities (`flavour`):
   PLND_XY_DIST_MAX 2.5 m away); otherwise LAND descends straight down, blind.
 - `arm_refusals`: ARMs refused after boot by checks that run only at arming (a real case: the
   pre-arm bit says healthy, ARM still fails once).
+- GNSS loss (ArduPilot, `lose_gnss()`; the estimator in `fake_ekf.FakeEkf`): GPS_RAW_INT loses its
+  fix, the EKF coasts then drops to constant-position mode (LOCAL_POSITION_NED stops, the flags
+  say so), modes that need a position (GUIDED, LOITER, ...) are refused ("Mode change failed:
+  GUIDED requires position") and the EKF failsafe switches them to FS_EKF_ACTION (LAND by
+  default) with "EKF variance"; the vehicle then drifts (drag, no position hold). GUIDED_NOGPS
+  (mode 20) flies SET_ATTITUDE_TARGET only (rates all ignored or all given, else discarded;
+  thrust read as a climb rate, 0.5 holds; level and hold after GUID_TIMEOUT); velocity setpoints
+  do nothing there. VISION_SPEED_ESTIMATE is fused once MAV_CMD_SET_EKF_SOURCE_SET selects the
+  set configured with VELXY = ExternalNav: the EKF keeps velocity and a relative position.
 - `gcs_set_mode()`: a second ground station switching modes; `inject()`: one hand-made message
   (NaN, out of range) in the fake's own stream; `signing_key`: MAVLink 2 signing, unsigned and
   wrong-key frames rejected and counted.
@@ -58,6 +74,9 @@ from dataclasses import dataclass
 from typing import Any
 
 from dovesei.controller import mavlink_proto as mv
+from dovesei.controller.gnss_denied import GRAVITY_M_S2, quaternion_to_euler
+from dovesei.testing import fake_ekf
+from dovesei.testing.fake_ekf import FS_EKF_ACTIONS, FakeEkf
 from dovesei.shared.lifecycle import install_stop_handlers
 
 log = logging.getLogger(__name__)
@@ -73,12 +92,19 @@ MAV_RESULT_FAILED = 4
 MAV_SEVERITY_CRITICAL, MAV_SEVERITY_WARNING, MAV_SEVERITY_INFO = 2, 4, 6
 PX4_OFFBOARD_LOSS_S = 1.0  # PX4's COM_OF_LOSS_T default
 ARDUPILOT_GUIDED_VEL_TIMEOUT_S = 3.0  # ArduCopter's GUID_TIMEOUT default
+SYSID_MYGCS = 255  # ArduCopter's default: heartbeats from this system keep the GCS failsafe away
 LAND_RATE_M_S = 1.0
 PRECLAND_GAIN_PER_S, PRECLAND_MAX_M_S = 0.5, 1.0
 # AC_PrecLand.cpp (ArduPilot 4.6): EKF_INIT_TIME_MS, EKF_INIT_SENSOR_MIN_UPDATE_MS,
 # LANDING_TARGET_TIMEOUT_MS; PLND_XY_DIST_MAX's default.
 PRECLAND_INIT_S, PRECLAND_INIT_GAP_S, PRECLAND_TIMEOUT_S, PRECLAND_XY_DIST_MAX_M = 2.0, 0.5, 2.0, 2.5
+# ArduCopter's heading in GUIDED: ATC_SLEW_YAW 6000 cdeg/s; a proportional turn towards the target.
+YAW_SLEW_RAD_S, YAW_GAIN_PER_S, WP_YAW_MIN_SPEED_M_S = math.radians(60.0), 2.0, 0.5
 DEFAULT_BOOT_S = 40.0
+# ArduCopter modes whose requires_GPS() is true (ArduCopter/mode.h): refused without a position.
+ARDUPILOT_GPS_MODES = ("GUIDED", "LOITER", "POSHOLD", "RTL", "AUTO", "BRAKE")
+DRAG_PER_S = 0.3  # without position hold the horizontal velocity decays this fast (a few seconds)
+ATTITUDE_TARGET_TYPEMASK_THROTTLE_IGNORE = 64
 ORIGIN_LAT_DEG, ORIGIN_LON_DEG = 47.3977, 8.5456  # any fixed point; only GLOBAL_POSITION_INT uses it
 
 
@@ -121,6 +147,31 @@ class ReceivedSetpoint:
     type_mask: int
     vel_m_s: tuple[float, float, float]  # as sent (FRD for the body frames)
     yaw_rate_rad_s: float
+    yaw_rad: float = 0.0  # as sent: absolute in LOCAL_NED, relative to the heading in the body frames
+    yaw_target_rad: float = 0.0  # the heading it asks for, made absolute when it arrived
+
+
+@dataclass(frozen=True)
+class ReceivedAttitudeTarget:
+    """One SET_ATTITUDE_TARGET (recv_s on time.monotonic); `accepted`: flown (GUIDED_NOGPS, valid)."""
+
+    recv_s: float
+    type_mask: int
+    q: tuple[float, float, float, float]
+    thrust: float
+    accepted: bool
+
+
+@dataclass(frozen=True)
+class ReceivedVisionSpeed:
+    """One VISION_SPEED_ESTIMATE (NED m/s), VISION_POSITION_DELTA (body FRD, delta / dt; `covariance`
+    holds its confidence) or PX4 ODOMETRY velocity (body FRD) as received."""
+
+    recv_s: float
+    usec: int
+    vel_m_s: tuple[float, float, float]
+    covariance: tuple[float, ...]
+    kind: str  # "VISION_SPEED_ESTIMATE", "VISION_POSITION_DELTA" or "ODOMETRY"
 
 
 @dataclass(frozen=True)
@@ -158,7 +209,9 @@ class FakeAutopilot:
                  offboard_loss_s: float = PX4_OFFBOARD_LOSS_S, system: int = 1, component: int = 1,
                  boot_s: float = DEFAULT_BOOT_S, heading_drift_rad_s: float = 0.0,
                  statustext_period_s: float = 2.0, signing_key: bytes | None = None, arm_refusals: int = 0,
-                 precland: bool = True) -> None:
+                 precland: bool = True, ekf: FakeEkf | None = None,
+                 guid_timeout_s: float = ARDUPILOT_GUIDED_VEL_TIMEOUT_S, fs_gcs_enable: str | None = None,
+                 fs_gcs_timeout_s: float = 5.0) -> None:
         if flavour not in FLAVOURS:
             raise ValueError(f"flavour {flavour!r}: choose one of {FLAVOURS}")
         self.url, self.flavour, self.personality = url, flavour, PERSONALITIES[flavour]
@@ -190,6 +243,12 @@ class FakeAutopilot:
         self._next_send_s: dict[int, float] = {}
         self._last_setpoint: ReceivedSetpoint | None = None
         self._precland = precland
+        self._guid_timeout_s = float(guid_timeout_s)
+        if fs_gcs_enable not in (None, "land"):
+            raise ValueError(f"fs_gcs_enable {fs_gcs_enable!r}: None (FS_GCS_ENABLE 0) or 'land' (5)")
+        self._fs_gcs_land, self._fs_gcs_timeout_s = fs_gcs_enable == "land", float(fs_gcs_timeout_s)
+        self._gcs_seen_s: float | None = None  # newest heartbeat from SYSID_MYGCS (time.monotonic)
+        self._gcs_failsafe = False
         self._plnd_state = "none"  # none, init (Target Found, filling) or acquired (Init Complete)
         self._plnd_init_s = self._plnd_last_s = 0.0  # time.monotonic of the init and of the newest target
         self._plnd_target_ne_m: tuple[float, float] | None = None  # where the newest target puts it (NE)
@@ -205,6 +264,11 @@ class FakeAutopilot:
         self.set_mode_messages: list[tuple[float, int, int]] = []  # (recv_s, base_mode, custom_mode)
         self.statustexts_sent: list[tuple[int, str]] = []
         self.peer_seen = threading.Event()
+        self.ekf = ekf if ekf is not None else FakeEkf()
+        self._roll_rad = self._pitch_rad = 0.0
+        self._last_attitude: ReceivedAttitudeTarget | None = None
+        self.attitude_targets: list[ReceivedAttitudeTarget] = []
+        self.vision_speeds: list[ReceivedVisionSpeed] = []
 
     # ----------------------------------------------------------------- control from the test
 
@@ -246,6 +310,24 @@ class FakeAutopilot:
             result = self._command(mv.MAV_CMD_DO_SET_MODE, (1.0, float(p2), float(p3), 0.0, 0.0, 0.0, 0.0))
             self.commands.append(ReceivedCommand(time.monotonic(), mv.MAV_CMD_DO_SET_MODE, (1.0, p2, p3), result))
         log.info("fake: ground station %d switched the mode to %s (result %d)", gcs_system, name, result)
+
+    def lose_gnss(self) -> None:
+        """Cut GNSS (SITL's SIM_GPS_DISABLE 1): the estimator's timeline in `fake_ekf` starts now."""
+        if self.flavour != "ardupilot":
+            raise ValueError("the GNSS-loss personality is ArduPilot's")
+        with self._lock:
+            self.ekf.lose_gnss(time.monotonic())
+        log.info("fake: GNSS lost")
+
+    def restore_gnss(self) -> None:
+        with self._lock:
+            self.ekf.restore_gnss()
+
+    @property
+    def attitude_rad(self) -> tuple[float, float, float]:
+        """(roll, pitch, yaw) as flown."""
+        with self._lock:
+            return self._roll_rad, self._pitch_rad, self._yaw_rad
 
     def set_armed(self, armed: bool) -> None:
         with self._lock:
@@ -393,17 +475,25 @@ class FakeAutopilot:
                 log.info("fake PX4: offboard setpoints lost for COM_OF_LOSS_T, failsafe to LOITER")
                 self._custom_mode = mv.encode_mode("px4", "LOITER")[0]
                 name = "LOITER"
-            steering = self._armed and name == mv.STEER_MODE[self.flavour]
             airborne = -self._pos_ned_m[2] > self.terrain_height_m + 0.05
-            if steering and self._takeoff_alt_m is not None:
+            name = self._gcs_failsafe_check(name, now)
+            name = self._ekf_failsafe(name, now)
+            nav_ok = self.flavour != "ardupilot" or self.ekf.position_ok(now)
+            steering = self._armed and name == mv.STEER_MODE[self.flavour] and nav_ok
+            if self._armed and airborne and (name == "GUIDED_NOGPS" or not nav_ok):
+                # No position control: attitude targets, or a level vehicle drifting on its momentum.
+                vel_ned = self._unpositioned_velocity(name, sp, now, dt_s)
+            elif steering and self._takeoff_alt_m is not None:
                 vel_ned[2] = -self.personality.up_cap_m_s if -self._pos_ned_m[2] < self._takeoff_alt_m else 0.0
                 if vel_ned[2] == 0.0:
                     self._takeoff_alt_m = None
-            elif steering and sp is not None and now - sp.recv_s <= ARDUPILOT_GUIDED_VEL_TIMEOUT_S:
+            elif steering and sp is not None and now - sp.recv_s <= self._guid_timeout_s:
                 vel_ned, yaw_rate = self._setpoint_to_ned(sp)
             elif self._armed and name in ("LAND", "PRECLAND"):
                 self._precland_tick(now)
                 vel_ned = self._landing_velocity()
+            if not (self._armed and airborne and (name == "GUIDED_NOGPS" or not nav_ok)):
+                self._roll_rad = self._pitch_rad = 0.0  # position-controlled flight: level enough to ignore
             vel_ned = self._capped(vel_ned)
             drift = self._heading_drift_rad_s if airborne and self._armed else 0.0
             self._yaw_rad = math.remainder(self._yaw_rad + (yaw_rate + drift) * dt_s, 2.0 * math.pi)
@@ -417,6 +507,58 @@ class FakeAutopilot:
                     self.touchdown_ne_m = (self._pos_ned_m[0], self._pos_ned_m[1])
                     self.touchdown_s = now
             self._vel_ned_m_s, self._yaw_rate_rad_s = vel_ned, yaw_rate + drift
+
+    def _ekf_failsafe(self, name: str, now: float) -> str:
+        """Copter's EKF failsafe (ArduPilot): FS_EKF_ACTION for modes that need a position. Caller holds the lock."""
+        if self.flavour != "ardupilot" or not self._armed or not self.ekf.failsafe_due(now):
+            return name
+        self._queue_statustext(MAV_SEVERITY_CRITICAL, "EKF variance")
+        if name in ARDUPILOT_GPS_MODES or self.ekf.fs_ekf_action == 3:
+            action = FS_EKF_ACTIONS[self.ekf.fs_ekf_action]
+            self._custom_mode = mv.encode_mode("ardupilot", action)[0]
+            self._queue_statustext(MAV_SEVERITY_CRITICAL, f"EKF Failsafe: changed to {action} Mode")
+            log.info("fake: EKF failsafe, %s -> %s", name, action)
+            return action
+        return name
+
+    def _unpositioned_velocity(self, name: str, sp: ReceivedSetpoint | None, now: float, dt_s: float) -> list[float]:
+        """Flight without a horizontal position: GUIDED_NOGPS attitude targets, else level and drifting."""
+        vel = list(self._vel_ned_m_s)
+        climb = 0.0
+        target = self._last_attitude
+        if name == "GUIDED_NOGPS" and target is not None and now - target.recv_s <= self._guid_timeout_s:
+            self._roll_rad, self._pitch_rad, self._yaw_rad = quaternion_to_euler(target.q)
+            # ArduCopter's default GUID_OPTIONS: thrust is a climb rate, 0.5 holds the altitude.
+            thrust = min(max(target.thrust, 0.0), 1.0)
+            p = self.personality
+            climb = (thrust - 0.5) * 2.0 * (p.up_cap_m_s if thrust >= 0.5 else p.down_cap_m_s)
+        else:
+            # Level (an attitude target timed out, ALT_HOLD or LAND without a position, GUIDED blind).
+            self._roll_rad = self._pitch_rad = 0.0
+            if name in ("LAND", "PRECLAND"):
+                climb = -LAND_RATE_M_S
+            elif name == "GUIDED" and sp is not None and now - sp.recv_s <= self._guid_timeout_s:
+                climb = -sp.vel_m_s[2]  # the barometer still holds the vertical
+        # Body acceleration from the tilt (nose down accelerates forward), into NED by the heading.
+        a_fwd = -GRAVITY_M_S2 * math.tan(self._pitch_rad)
+        a_right = GRAVITY_M_S2 * math.tan(self._roll_rad)
+        c, s = math.cos(self._yaw_rad), math.sin(self._yaw_rad)
+        acc = (c * a_fwd - s * a_right, s * a_fwd + c * a_right)
+        for i in range(2):
+            vel[i] += (acc[i] - DRAG_PER_S * vel[i]) * dt_s
+        vel[2] = -climb
+        return vel
+
+    def _gcs_failsafe_check(self, name: str, now: float) -> str:
+        """FS_GCS_ENABLE 5: LAND once SYSID_MYGCS fell silent for FS_GCS_TIMEOUT (caller holds the lock)."""
+        if not (self._fs_gcs_land and self._armed and self._gcs_seen_s is not None) or self._gcs_failsafe:
+            return name
+        if now - self._gcs_seen_s > self._fs_gcs_timeout_s:
+            self._gcs_failsafe = True
+            self._queue_statustext(MAV_SEVERITY_CRITICAL, "GCS Failsafe")
+            self._custom_mode = mv.encode_mode(self.flavour, "LAND")[0]
+            return "LAND"
+        return name
 
     def _capped(self, vel_ned: list[float]) -> list[float]:
         """The personality's speed limits (caller holds the lock)."""
@@ -481,14 +623,31 @@ class FakeAutopilot:
             return [0.0, 0.0, 0.0], 0.0
         yaw_rate = 0.0 if sp.type_mask & 0x800 else sp.yaw_rate_rad_s
         fwd, right, down = sp.vel_m_s
-        if not all(math.isfinite(v) for v in (fwd, right, down, yaw_rate)):
+        if not all(math.isfinite(v) for v in (fwd, right, down, yaw_rate, sp.yaw_target_rad)):
             return [0.0, 0.0, 0.0], 0.0  # both autopilots ignore a setpoint with NaN velocities
         if sp.frame == mv.STEER_FRAME[self.flavour]:
             c, s = math.cos(self._yaw_rad), math.sin(self._yaw_rad)
-            return [c * fwd - s * right, s * fwd + c * right, down], yaw_rate
-        if sp.frame == mv.MAV_FRAME_LOCAL_NED:
-            return [fwd, right, down], yaw_rate
-        return [0.0, 0.0, 0.0], 0.0
+            vel = [c * fwd - s * right, s * fwd + c * right, down]
+        elif sp.frame == mv.MAV_FRAME_LOCAL_NED:
+            vel = [fwd, right, down]
+        else:
+            return [0.0, 0.0, 0.0], 0.0
+        if self.flavour == "ardupilot":
+            yaw_rate = self._guided_yaw_rate(sp, vel, yaw_rate)
+        return vel, yaw_rate
+
+    def _guided_yaw_rate(self, sp: ReceivedSetpoint, vel_ned: list[float], yaw_rate: float) -> float:
+        """ArduCopter's heading for a guided velocity setpoint (caller holds the lock)."""
+        if not sp.type_mask & 0x400:
+            error = math.remainder(sp.yaw_target_rad - self._yaw_rad, 2.0 * math.pi)  # a heading asked for
+        elif not sp.type_mask & 0x800:
+            return yaw_rate  # a yaw rate asked for
+        elif math.hypot(vel_ned[0], vel_ned[1]) > WP_YAW_MIN_SPEED_M_S:
+            # Neither: WP_YAW_BEHAVIOR 2 points the nose where the vehicle goes.
+            error = math.remainder(math.atan2(vel_ned[1], vel_ned[0]) - self._yaw_rad, 2.0 * math.pi)
+        else:
+            return 0.0
+        return max(-YAW_SLEW_RAD_S, min(YAW_SLEW_RAD_S, YAW_GAIN_PER_S * error))
 
     def _handle(self, msg: Any) -> None:
         kind, recv_s = msg.get_type(), time.monotonic()
@@ -497,16 +656,41 @@ class FakeAutopilot:
         self.peer_seen.set()
         if kind == "HEARTBEAT":
             with self._lock:
+                if msg.get_srcSystem() == SYSID_MYGCS:
+                    self._gcs_seen_s = recv_s
                 self.heartbeats.append(ReceivedHeartbeat(recv_s, msg.get_srcSystem(), msg.get_srcComponent(),
                                                          msg.type, msg.autopilot))
         elif kind == "SET_POSITION_TARGET_LOCAL_NED":
-            sp = ReceivedSetpoint(recv_s, msg.get_srcSystem(), msg.get_srcComponent(), msg.target_system,
-                                  msg.target_component, msg.coordinate_frame, msg.type_mask,
-                                  (msg.vx, msg.vy, msg.vz), msg.yaw_rate)
             with self._lock:
+                relative = msg.coordinate_frame in (mv.MAV_FRAME_BODY_OFFSET_NED, mv.MAV_FRAME_BODY_NED)
+                target_yaw = msg.yaw + (self._yaw_rad if relative else 0.0)
+                sp = ReceivedSetpoint(recv_s, msg.get_srcSystem(), msg.get_srcComponent(), msg.target_system,
+                                      msg.target_component, msg.coordinate_frame, msg.type_mask,
+                                      (msg.vx, msg.vy, msg.vz), msg.yaw_rate, msg.yaw, target_yaw)
                 self.setpoints.append(sp)
                 if msg.target_system == self._system:
                     self._last_setpoint = sp
+        elif kind == "SET_ATTITUDE_TARGET":
+            self._on_attitude_target(msg, recv_s)
+        elif kind == "VISION_SPEED_ESTIMATE":
+            speed = ReceivedVisionSpeed(recv_s, msg.usec, (msg.x, msg.y, msg.z), tuple(msg.covariance),
+                                        "VISION_SPEED_ESTIMATE")
+            with self._lock:
+                self.vision_speeds.append(speed)
+                if self.flavour == "ardupilot" and all(math.isfinite(v) for v in speed.vel_m_s):
+                    self.ekf.on_vision_speed(recv_s, speed.vel_m_s)
+        elif kind == "VISION_POSITION_DELTA":
+            dt_s = msg.time_delta_usec / 1e6
+            vel = tuple(d / dt_s for d in msg.position_delta) if dt_s > 0 else (math.nan,) * 3
+            with self._lock:
+                self.vision_speeds.append(ReceivedVisionSpeed(recv_s, msg.time_usec, vel, (float(msg.confidence),),
+                                                              "VISION_POSITION_DELTA"))
+                if self.flavour == "ardupilot" and all(math.isfinite(v) for v in vel):
+                    self.ekf.on_vision_delta(recv_s)
+        elif kind == "ODOMETRY":
+            with self._lock:
+                self.vision_speeds.append(ReceivedVisionSpeed(recv_s, msg.time_usec, (msg.vx, msg.vy, msg.vz),
+                                                              tuple(msg.velocity_covariance), "ODOMETRY"))
         elif kind == "LANDING_TARGET":
             target = ReceivedLandingTarget(recv_s, msg.frame, msg.angle_x, msg.angle_y, msg.distance)
             with self._lock:
@@ -524,6 +708,20 @@ class FakeAutopilot:
                 self.commands.append(ReceivedCommand(recv_s, msg.command, params, result))
             self._conn.mav.command_ack_send(msg.command, result)
 
+    def _on_attitude_target(self, msg: Any, recv_s: float) -> None:
+        """ArduCopter's handle_message_set_attitude_target: guided modes only, rates all-or-none, thrust needed."""
+        q = tuple(float(v) for v in msg.q)
+        rates = msg.type_mask & 0x07
+        unit = abs(math.sqrt(sum(v * v for v in q)) - 1.0) <= 1e-3
+        with self._lock:
+            name = mv.mode_name(self.flavour, self._custom_mode)
+            accepted = (msg.target_system == self._system and name in ("GUIDED", "GUIDED_NOGPS") and rates in (0, 7)
+                        and not msg.type_mask & ATTITUDE_TARGET_TYPEMASK_THROTTLE_IGNORE and unit)
+            target = ReceivedAttitudeTarget(recv_s, msg.type_mask, q, float(msg.thrust), accepted)  # type: ignore[arg-type]
+            self.attitude_targets.append(target)
+            if accepted:
+                self._last_attitude = target
+
     def _streaming(self) -> bool:
         sp = self._last_setpoint
         return sp is not None and time.monotonic() - sp.recv_s <= self._offboard_loss_s
@@ -532,6 +730,8 @@ class FakeAutopilot:
         """PX4 refuses OFFBOARD unless setpoints are already streaming (caller holds the lock)."""
         if self.flavour == "px4" and mv.mode_name("px4", custom_mode) == "OFFBOARD":
             return self._streaming()
+        if self.flavour == "ardupilot" and mv.mode_name("ardupilot", custom_mode) in ARDUPILOT_GPS_MODES:
+            return self.ekf.position_ok(time.monotonic())  # Mode::set_mode: requires_GPS and no position
         return True
 
     def _command(self, command: int, params: tuple[float, ...]) -> int:
@@ -560,9 +760,20 @@ class FakeAutopilot:
             else:
                 custom = int(params[1])
             if not self._mode_allowed(custom):
-                return MAV_RESULT_DENIED
+                if self.flavour == "px4":
+                    return MAV_RESULT_DENIED
+                wanted = mv.mode_name(self.flavour, custom)
+                self._queue_statustext(MAV_SEVERITY_WARNING, f"Mode change failed: {wanted} requires position")
+                return MAV_RESULT_FAILED
             self._custom_mode = custom
             return mv.MAV_RESULT_ACCEPTED
+        if command == mv.MAV_CMD_SET_EKF_SOURCE_SET:
+            if self.flavour != "ardupilot":
+                return MAV_RESULT_UNSUPPORTED
+            result = self.ekf.set_source_set(int(params[0]))
+            if result == mv.MAV_RESULT_ACCEPTED:
+                self._queue_statustext(MAV_SEVERITY_INFO, f"EKF3 source set {int(params[0])} selected")
+            return result
         if command == mv.MAV_CMD_COMPONENT_ARM_DISARM:
             return self._arm(params[0] == 1.0)
         if command == mv.MAV_CMD_NAV_TAKEOFF:
@@ -617,7 +828,7 @@ class FakeAutopilot:
         if fraction >= 0.5:
             flags |= mv.EKF_VELOCITY_HORIZ | mv.EKF_VELOCITY_VERT | mv.EKF_POS_VERT_ABS
         if fraction >= 0.75:
-            flags |= mv.EKF_POS_HORIZ_REL
+            flags |= mv.EKF_POS_HORIZ_REL | mv.EKF_POS_HORIZ_ABS | mv.EKF_PRED_POS_HORIZ_REL
         return flags
 
     def _send_streams(self, now: float) -> None:
@@ -627,18 +838,32 @@ class FakeAutopilot:
                 self._next_send_s[msg_id] = now + self._intervals_s[msg_id]
             pos, vel, yaw = list(self._pos_ned_m), list(self._vel_ned_m_s), self._yaw_rad
             yaw_rate, terrain_m = self._yaw_rate_rad_s, self.terrain_height_m
+            roll, pitch = self._roll_rad, self._pitch_rad
+            now_mono = time.monotonic()
+            # ArduPilot stops LOCAL_POSITION_NED when its EKF has no position (GCS_MAVLINK::send_local_position).
+            local_ok = self.flavour != "ardupilot" or self.ekf.position_ok(now_mono)
+            # Booting gates the good bits; the estimator adds what the loss sets (constant-position mode).
+            boot, ekf = self._ekf_flags(), self.ekf.flags(now_mono)
+            ekf_flags = (boot & ekf & fake_ekf.GOOD_FLAGS) | ((boot | ekf) & ~fake_ekf.GOOD_FLAGS)
+            fix_type = self.ekf.fix_type() if self._boot_fraction() >= 0.5 else 1
         boot_ms, mav = self._boot_ms(), self._conn.mav
         for msg_id in due:
             if msg_id == mv.MSG_ID_LOCAL_POSITION_NED:
-                mav.local_position_ned_send(boot_ms, pos[0], pos[1], pos[2], vel[0], vel[1], vel[2])
+                if local_ok:
+                    mav.local_position_ned_send(boot_ms, pos[0], pos[1], pos[2], vel[0], vel[1], vel[2])
             elif msg_id == mv.MSG_ID_ATTITUDE:
-                mav.attitude_send(boot_ms, 0.0, 0.0, yaw, 0.0, 0.0, yaw_rate)
+                mav.attitude_send(boot_ms, roll, pitch, yaw, 0.0, 0.0, yaw_rate)
+            elif msg_id == mv.MSG_ID_GPS_RAW_INT:
+                mav.gps_raw_int_send(boot_ms * 1000, fix_type, 0, 0, 0, 65535, 65535, 65535, 65535,
+                                     12 if fix_type >= 3 else 0)
+            elif msg_id == mv.MSG_ID_ESTIMATOR_STATUS:
+                mav.estimator_status_send(boot_ms * 1000, ekf_flags & 0x3FF, 0.1, 0.1, 0.1, 0.1, 0.0, 0.0, 0.5, 0.5)
             elif msg_id == mv.MSG_ID_SYS_STATUS:
                 bit = mv.MAV_SYS_STATUS_PREARM_CHECK
                 health = bit if not self._prearm_failures() else 0
                 mav.sys_status_send(bit, bit, health, 100, 12000, -1, -1, 0, 0, 0, 0, 0, 0)
             elif msg_id == mv.MSG_ID_EKF_STATUS_REPORT:
-                mav.ekf_status_report_send(self._ekf_flags(), 0.1, 0.1, 0.1, 0.1, 0.0)
+                mav.ekf_status_report_send(ekf_flags, 0.1, 0.1, 0.1, 0.1, 0.0)
             elif msg_id == mv.MSG_ID_DISTANCE_SENSOR:
                 agl_m = -pos[2] - terrain_m
                 # Out of range reads as max + 1 cm, the convention ArduPilot's driver uses.
@@ -664,16 +889,31 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--disarmed", action="store_true", help="start disarmed (on the ground if --alt 0), booting")
     p.add_argument("--boot-s", type=float, default=DEFAULT_BOOT_S, help="pre-arm phase after start (disarmed only)")
     p.add_argument("--heading-drift-deg-s", type=float, default=0.0, help="heading drift while airborne")
+    p.add_argument("--lose-gnss-below-m", type=float, default=None,
+                   help="ArduPilot: cut GNSS once the vehicle descends below this altitude (SIM_GPS_DISABLE 1)")
+    p.add_argument("--fs-ekf-action", type=int, choices=sorted(FS_EKF_ACTIONS), default=1,
+                   help="ArduPilot FS_EKF_ACTION after a GNSS loss: 1 LAND, 2 ALT_HOLD, 3 LAND even without GPS modes")
+    p.add_argument("--ekf-coast-s", type=float, default=3.0,
+                   help="seconds the EKF coasts on inertia after a GNSS loss before its position is gone")
     args = p.parse_args(argv)
+    if args.lose_gnss_below_m is not None and args.flavour != "ardupilot":
+        p.error("--lose-gnss-below-m: the GNSS-loss personality is ArduPilot's")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     stop = install_stop_handlers()
+    ekf = FakeEkf(fs_ekf_action=args.fs_ekf_action, coast_s=args.ekf_coast_s)
     with FakeAutopilot(args.url, flavour=args.flavour, mode=args.mode, armed=not args.disarmed, alt_m=args.alt,
-                       boot_s=args.boot_s, heading_drift_rad_s=math.radians(args.heading_drift_deg_s)) as fake:
+                       boot_s=args.boot_s, heading_drift_rad_s=math.radians(args.heading_drift_deg_s), ekf=ekf) as fake:
         log.info("fake %s autopilot on %s, mode %s", args.flavour, args.url, fake.mode)
-        while not stop.wait(5.0):
+        next_log_s = time.monotonic()
+        while not stop.wait(0.1):
             n, e, d = fake.position_ned_m
-            log.info("mode %s %s, position N %.1f E %.1f alt %.1f m", fake.mode,
-                     "armed" if fake.armed else "disarmed", n, e, -d)
+            if args.lose_gnss_below_m is not None and fake.ekf.gnss_ok and fake.armed and -d < args.lose_gnss_below_m:
+                fake.lose_gnss()  # once: the test of what follows is the point
+                args.lose_gnss_below_m = None
+            if time.monotonic() >= next_log_s:
+                next_log_s += 5.0
+                log.info("mode %s %s, position N %.1f E %.1f alt %.1f m, GNSS %s", fake.mode,
+                         "armed" if fake.armed else "disarmed", n, e, -d, "ok" if fake.ekf.gnss_ok else "LOST")
     return 0
 
 

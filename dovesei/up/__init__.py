@@ -21,6 +21,11 @@ true seconds (the `real` timing preset): the controller is the one process that 
 link and publishes the autopilot's state; the sim renders the world at that state (its local
 origin placed at --start) and judges there.
 
+With `--handover-action land` or `precland`, `up` keeps the controller running after the judged
+hand-over until the autopilot has landed and disarmed (bounded; `watch.wait_for_landing`): the
+autopilot lands on its own, and a precision landing needs the controller's LANDING_TARGET stream
+to touchdown. The report's `landing` section says how that wait ended.
+
 Exit codes: 0 landed safely; 3 the episode ran but ended unsafe, timed out or left the world;
 1 an error (a service died or hung, takeoff refused, an 'error' ending); 2 bad usage (flags, world,
 model directory, MAVLink URL: one line, before any process starts and before the output folder
@@ -29,6 +34,8 @@ exists); 130 interrupted (SIGINT/SIGTERM stop every child the same way).
 
 from __future__ import annotations
 
+import dataclasses
+import itertools
 import json
 import logging
 import os
@@ -45,7 +52,7 @@ from dovesei.replay import up_recorder
 from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.shared.lifecycle import install_stop_handlers
 from dovesei.shared.mavurl import check_serial_device
-from dovesei.shared.zconfig import free_port, zenoh_config
+from dovesei.shared.zconfig import SessionError, free_port, open_session, zenoh_config
 from dovesei.sim.world import WorldError, load_world
 from dovesei.up.children import Children, describe_exit, last_error_line
 from dovesei.up.launch import (
@@ -58,7 +65,8 @@ from dovesei.up.options import (
 )
 from dovesei.up.report import RunReport, build_report, read_stats, write_outputs
 from dovesei.up.watch import (
-    RESULT_AFTER_EXIT_S, LandingWait, Watcher, WatchEnd, landing_timeout_s, wait_for_landing, wait_for_takeoff,
+    RESULT_AFTER_EXIT_S, LandingWait, Watcher, WatchEnd, landing_timeout_s, port_collision, wait_for_landing,
+    wait_for_takeoff,
 )
 
 __all__ = ["SERVICES", "EXIT_OK", "EXIT_FAILED", "EXIT_USAGE", "EXIT_UNSAFE", "EXIT_INTERRUPTED", "Recorder",
@@ -70,6 +78,7 @@ log = logging.getLogger("dovesei.up")
 EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_UNSAFE, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
 TAKEOFF_CLIMB_M_S = 1.0  # slowest climb rate allowed for when waiting for --takeoff (ArduCopter's default is 2.5)
 TAKEOFF_MARGIN_S = 30.0
+START_ATTEMPTS = 3  # starts on freshly picked ports when one was taken before a service bound it
 
 
 def exit_code(report: RunReport) -> int:
@@ -95,15 +104,31 @@ def preflight(options: UpOptions) -> tuple[object, tuple[float, float, float], C
         link = parse_mavlink_url(options.vehicle_url)
         check_serial_device(link)
         check_endpoint_free(link)
+    if options.sitl_truth:
+        check_endpoint_free(parse_mavlink_url(options.sitl_truth, "--sitl-truth"), "--sitl-truth")
     world = load_world(options.world)
     if world.labels is None and options.segmenter == "sim":
         raise ConfigError(f"world {options.world!r} has no labels for the simulated perception to read: "
                           "fly it with --segmenter clipseg")
     start = resolve_start(world, options)
-    configs = child_configs(options, start)  # each service's own checks, now rather than in a child
+    configs = child_configs(options, start, world)  # each service's own checks, now rather than in a child
     # The ports do not change which links the command lines open: placeholders suffice here.
     check_link_owners(child_commands(options, configs, {n: 0 for n in (*SERVICES, "monitor")}, options.out))
     return world, start, configs
+
+
+def claim_folder(base: Path) -> Path:
+    """A new folder named `base`, or `base`-2, -3, ... when taken: mkdir is atomic, so two runs
+    started in the same second (the default name has one-second resolution) never share one."""
+    base.parent.mkdir(parents=True, exist_ok=True)
+    for n in itertools.count(1):
+        path = base if n == 1 else base.with_name(f"{base.name}-{n}")
+        try:
+            path.mkdir()
+        except FileExistsError:
+            continue
+        return path
+    raise AssertionError("unreachable")
 
 
 def _remove_if_empty(out: Path, created: list[Path]) -> None:
@@ -121,8 +146,12 @@ def run(options: UpOptions, *, stop: threading.Event,
     """
     t0 = time.monotonic()
     world, start, configs = preflight(options) if checked is None else checked
+    created = [p for p in (*reversed(options.out.parents), options.out) if not p.exists()]
+    if options.out_unique:
+        options = dataclasses.replace(options, out=claim_folder(options.out), out_unique=False)
+        created.append(options.out)
     out = options.out
-    created = [p for p in (*reversed(out.parents), out, out / "logs", out / "stats") if not p.exists()]
+    created += [p for p in (out, out / "logs", out / "stats") if not p.exists() and p not in created]
     (out / "logs").mkdir(parents=True, exist_ok=True)
     (out / "stats").mkdir(exist_ok=True)
     try:
@@ -144,36 +173,38 @@ def _fly(options: UpOptions, world: object, start: tuple[float, float, float], c
     if options.segmenter != "sim" and options.lockstep and options.timing == "reference":
         log.warning("a model segmenter in lockstep with reference timing runs one inference per 0.05 s of sim "
                     "time; --timing real needs ten times fewer")
-    ports = {name: free_port() for name in (*SERVICES, "monitor")}
-    commands = child_commands(options, configs, ports, out)
-    monitor_conf = (zenoh_config(mode="client", connect=options.connect, env={}) if options.connect else
-                    zenoh_config(mode="peer", listen=[f"tcp/127.0.0.1:{ports['monitor']}"], multicast_scouting=False,
-                                 env={}))
     rec = Recorder(start, video=options.video, vehicle_id=options.vehicle_id)
     taps = _open_taps(options, configs, start, world)
     rec.taps = [tap.write for tap in taps]
+    session, monitor_port = _open_monitor_session(options)
     children = Children(out / "logs")
-    session = zenoh.open(monitor_conf)
     monitor = None
     landing: LandingWait | None = None
     try:
         # Subscribed before any child starts: the first state the sim publishes is recorded.
         monitor = Monitor(session, options.vehicle_id, rec,
                           with_camera=options.video or bool(options.vehicle_url) or bool(taps))
-        end = WatchEnd(None, False)
-        if options.takeoff:
-            # The sim would judge the climb as a landing: it starts once the controller steers.
-            _start(children, ("segmenter", "controller"), commands, options)
-            end = wait_for_takeoff(rec, monitor, children, stop, configs.controller.takeoff_ready_timeout_s
-                                   + start[2] / TAKEOFF_CLIMB_M_S + TAKEOFF_MARGIN_S)
-            rec.first_state_wall_s = None  # the episode begins after the climb
-        if end.failure is None and not end.interrupted:
-            _start(children, [n for n in SERVICES if n not in children.procs], commands, options)
-            end = Watcher(options, rec, monitor, children, stop, t0).run()
+        for attempt in range(1, START_ATTEMPTS + 1):
+            # Picked now, bound by the children a moment later: another process may take a port in
+            # between (1 run in 6 under load). Such a start is retried on new ports, never flown.
+            ports = {**{name: free_port() for name in SERVICES}, "monitor": monitor_port}
+            end = _start_and_watch(options, configs, start, rec, monitor, children,
+                                   child_commands(options, configs, ports, out), stop, t0)
+            taken = port_collision(end.failure, rec)
+            if taken is None or attempt == START_ATTEMPTS:
+                break
+            log.warning("%s could not listen on port %d (another process took it after `up` picked it): "
+                        "restarting the services on new ports (attempt %d of %d)", taken, ports[taken],
+                        attempt + 1, START_ATTEMPTS)
+            children.stop_all()
+            children = Children(out / "logs")
+            rec.alive.clear()
         if rec.result is not None:
             # The sim ends its run once the result is out: a signal now would only cut its shutdown.
             children.wait_exit("sim", RESULT_AFTER_EXIT_S)
-            if options.vehicle_url and configs.controller.handover_action in ("land", "precland"):
+            # Give the controller's hand-over statuses a moment to arrive after the sim's result.
+            if options.vehicle_url and configs.controller.handover_action in ("land", "precland") and \
+                    _handover_reported(rec, monitor, stop):
                 # The autopilot lands on its own from here, and for a precision landing on the
                 # target the controller streams: both must outlive the judged episode.
                 landing = wait_for_landing(rec, monitor, children, stop,
@@ -204,6 +235,54 @@ def _fly(options: UpOptions, world: object, start: tuple[float, float, float], c
               f"{t.episode_wall_s or t.wall_time_s:.1f} s wall, path {report.episode.path_length_m:.0f} m, "
               f"{report.perception_text()}); transport overhead p50 {t.transport_overhead.p50_ms} ms")
     return code
+
+
+def _open_monitor_session(options: UpOptions) -> tuple[zenoh.Session, int]:
+    """`up`'s own Zenoh session and the loopback port it listens on (0 with --connect).
+
+    Opened in this process, so a port taken between picking and binding is seen at once and
+    another one is picked.
+    """
+    if options.connect:
+        return open_session(zenoh_config(mode="client", connect=options.connect, env={})), 0
+    for attempt in range(1, START_ATTEMPTS + 1):
+        port = free_port()
+        try:
+            return open_session(zenoh_config(mode="peer", listen=[f"tcp/127.0.0.1:{port}"],
+                                             multicast_scouting=False, env={})), port
+        except SessionError as exc:
+            if not exc.address_in_use or attempt == START_ATTEMPTS:
+                raise
+            log.info("monitor port %d was taken before it could be bound: picking another", port)
+    raise AssertionError("unreachable")
+
+
+def _start_and_watch(options: UpOptions, configs: ChildConfigs, start: tuple[float, float, float], rec: Recorder,
+                     monitor: Monitor, children: Children, commands: dict[str, list[str]], stop: threading.Event,
+                     t0: float) -> WatchEnd:
+    """Start the services (the controller's takeoff first, when asked) and watch the episode."""
+    end = WatchEnd(None, False)
+    if options.takeoff:
+        # The sim would judge the climb as a landing: it starts once the controller steers.
+        _start(children, ("segmenter", "controller"), commands, options)
+        end = wait_for_takeoff(rec, monitor, children, stop, configs.controller.takeoff_ready_timeout_s
+                               + start[2] / TAKEOFF_CLIMB_M_S + TAKEOFF_MARGIN_S)
+        if port_collision(end.failure, rec) is not None:
+            return end
+        rec.first_state_wall_s = None  # the episode begins after the climb
+    if end.failure is None and not end.interrupted:
+        _start(children, [n for n in SERVICES if n not in children.procs], commands, options)
+        end = Watcher(options, rec, monitor, children, stop, t0).run()
+    return end
+
+
+def _handover_reported(rec: Recorder, monitor: Monitor, stop: threading.Event, within_s: float = 2.0) -> bool:
+    """True once the controller has reported its hand-over (a timeout or out-of-world ending has none)."""
+    deadline = time.monotonic() + within_s
+    while not rec.handover_seen and time.monotonic() < deadline and not stop.is_set():
+        monitor.drain()
+        stop.wait(0.02)
+    return rec.handover_seen
 
 
 def _open_taps(options: UpOptions, configs: ChildConfigs, start: tuple[float, float, float], world: object) -> list:

@@ -17,10 +17,11 @@ import socket
 import sys
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 from pathlib import Path
 
 from dovesei.controller import service as controller_service
-from dovesei.controller.core import ControllerConfig
+from dovesei.controller.core import DEFAULT_VEHICLE_GEOFENCE_M, ControllerConfig
 from dovesei.episode import fusion_for
 from dovesei.segmenter import service as segmenter_service
 from dovesei.segmenter.core import SegmenterConfig
@@ -64,15 +65,39 @@ class ChildConfigs:
         return self.segmenter.segmenter.sim_noise
 
 
-def child_configs(options: UpOptions, start: tuple[float, float, float]) -> ChildConfigs:
-    """Each service's config for this run; a value a service refuses is a ConfigError naming it."""
+# With --gnss-denied the sim is also the camera's visual odometry, at the camera service's rate
+# (external-nav streams each view to the EKF; ArduPilot's VISO wants >= 10 Hz). Without
+# --sitl-truth it renders only states with a position, so after a loss it goes quiet and the
+# controller holds: the truth the views need after a loss comes from SITL.
+GNSS_DENIED_ODOMETRY_HZ = 10.0
+
+# A real vehicle flying a rendered world: the controller's geofence keeps it over the world, the
+# radius the start's distance to the nearest edge, within these bounds (the smallest leaves a
+# policy room to search; the largest is the controller's own default for any real vehicle).
+WORLD_FENCE_MIN_M = 50.0
+
+
+def world_geofence_m(world: Any, start: tuple[float, float, float]) -> float:
+    """The geofence radius that keeps a real vehicle over the world it sees (x east, y north from 0)."""
+    x_m, y_m, _ = start
+    nearest_m = min(x_m, world.width_m - x_m, y_m, world.height_m - y_m)
+    return float(min(max(nearest_m, WORLD_FENCE_MIN_M), DEFAULT_VEHICLE_GEOFENCE_M))
+
+
+def child_configs(options: UpOptions, start: tuple[float, float, float], world: Any = None) -> ChildConfigs:
+    """Each service's config for this run; a value a service refuses is a ConfigError naming it.
+
+    With a real vehicle and the `world` it flies over, the controller's geofence keeps it over
+    that world (the paper's RESTARTING move once flew 600 m and left a 400 m world)."""
     sim = SimServiceConfig(
         sim=SimConfig(vehicle_id=options.vehicle_id, timing=options.timing, time_limit_s=float(options.time_limit_s),
-                      seed=options.seed),
+                      seed=options.seed, vehicle_profile=options.sim_vehicle_profile,
+                      odometry_rate_hz=GNSS_DENIED_ODOMETRY_HZ if options.gnss_denied not in (None, "off") else 0.0),
         world=options.world, start_xy_alt_m=tuple(float(v) for v in start), lockstep=options.lockstep,
         # Camera mode: the sim renders at the autopilot's state, which the controller (the one owner
-        # of the MAVLink link) publishes on the state key; the sim opens no link of its own.
-        external_pose=bool(options.vehicle_url), wait_for=("segmenter", "controller"))
+        # of the MAVLink link) publishes on the state key; against SITL with --sitl-truth it renders
+        # at SITL's true pose, read on a separate SITL output (never the autopilot's link).
+        external_pose=bool(options.vehicle_url), sitl_truth=options.sitl_truth, wait_for=("segmenter", "controller"))
     perception: dict[str, object] = {"backend": options.segmenter, "sim_seed": options.seed,
                                      "sim_profile": options.perception}
     fusion = fusion_for(options.policy)  # the paper's policies fly the reference's fusion, as in bench
@@ -92,11 +117,14 @@ def child_configs(options: UpOptions, start: tuple[float, float, float]) -> Chil
     if options.takeoff:
         # The controller, the link's one owner, arms and climbs to the start before it steers.
         steering["takeoff_alt_m"] = float(start[2])
+    if options.vehicle_url and world is not None:
+        steering["geofence_radius_m"] = world_geofence_m(world, start)
     # The real autopilot's flags: each reaches the controller only when given (its defaults otherwise).
     for field, value in (("handover_action", options.handover_action),
                          ("mavlink_yaw_control", options.yaw_control),
                          ("mavlink_signing_key_file", None if options.signing_key is None else str(options.signing_key)),
-                         ("mavlink_system_id", options.autopilot_system_id)):
+                         ("mavlink_system_id", options.autopilot_system_id),
+                         ("gnss_denied", options.gnss_denied)):
         if value is not None:
             steering[field] = value
     controller = ControllerConfig(vehicle_id=options.vehicle_id, policy=options.policy, timing=options.timing,
@@ -153,7 +181,7 @@ def check_link_owners(commands: Mapping[str, Sequence[str]]) -> None:
                                   "only the controller may open the autopilot's link")
 
 
-def check_endpoint_free(ep: MavlinkEndpoint) -> None:
+def check_endpoint_free(ep: MavlinkEndpoint, flag: str = "--vehicle") -> None:
     """A listening URL whose port another process on this host already holds cannot work: say so now."""
     if not ep.binds or ep.scheme == "serial":
         return
@@ -162,5 +190,5 @@ def check_endpoint_free(ep: MavlinkEndpoint) -> None:
         try:
             s.bind((ep.host, ep.port))
         except OSError as exc:
-            raise ConfigError(f"--vehicle-url {ep.url!r}: cannot bind {ep.host}:{ep.port} ({exc.strerror}); another "
+            raise ConfigError(f"{flag} {ep.url!r}: cannot bind {ep.host}:{ep.port} ({exc.strerror}); another "
                               "process (a ground station, an earlier run) holds it") from None

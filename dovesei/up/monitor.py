@@ -64,6 +64,7 @@ class Recorder:
         self.states: list[VehicleState] = []
         self.statuses: dict[float, ControllerStatus] = {}  # by the state stamp they answer
         self.status_count = 0
+        self.handover_seen = False  # the controller reported HANDOVER at least once
         self.steering_statuses = 0  # statuses outside the hand-over: each tick sent a command
         self.commands = 0
         self.latency: dict[str, list[float]] = {s: [] for s in STAGES}
@@ -90,6 +91,7 @@ class Recorder:
         self.mission_start_t_s: float | None = None
         self.result_wall_s: float | None = None
         self.last_state_name, self.last_watchdog = "", ""
+        self.gnss_lost = False  # the newest status said GNSS is lost (a real autopilot)
         self.logged_state, self.logged_watchdog = "", ""
         self.unlogged_changes = 0
         self.last_progress_t_s = -math.inf
@@ -142,6 +144,7 @@ class Recorder:
 
     def _on_status(self, st: ControllerStatus, s: Sample) -> None:
         self.status_count += 1
+        self.handover_seen = self.handover_seen or st.state == "HANDOVER"
         if st.state != "HANDOVER":
             self.steering_statuses += 1
         self.statuses[st.stamp.t_s] = st
@@ -166,6 +169,11 @@ class Recorder:
             self.logged_state, self.logged_watchdog, self.unlogged_changes = st.state, st.watchdog, 0
             self.last_progress_t_s = st.stamp.t_s
         self.last_state_name, self.last_watchdog = st.state, st.watchdog
+        if st.gnss_lost != self.gnss_lost:
+            # Said once per change, whatever the progress lines: the operator must see this one.
+            log.warning("t=%.2f s alt %.1f m: %s", st.stamp.t_s, st.alt_agl_m,
+                        st.nav_reason if st.gnss_lost else "GNSS back")
+            self.gnss_lost = st.gnss_lost
 
     def _on_cmd(self, cmd: VelocityCommand, s: Sample) -> None:
         self.commands += 1

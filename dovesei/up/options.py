@@ -24,11 +24,14 @@ from dovesei.shared.mavurl import FORMS as MAVLINK_FORMS
 from dovesei.shared.mavurl import MavlinkEndpoint, check_serial_device, parse_mavlink_url
 from dovesei.shared.timing import DEFAULT_TIMING, TIMING_NAMES, timing
 from dovesei.controller.core import HANDOVER_ACTIONS
+from dovesei.controller.gnss_denied import GNSS_DENIED_MODES
 from dovesei.controller.mavlink_proto import load_signing_key
 from dovesei.controller.policies import policy_names
 from dovesei.segmenter.simulated import DEFAULT_PROFILE, PROFILE_NAMES
+from dovesei.sim.estimator import VEHICLE_PROFILE_NAMES, default_vehicle_profile
 from dovesei.sim.service import parse_start as sim_parse_start
-from dovesei.sim.starts import generate_starts
+from dovesei.sim.sitl_truth import parse_truth_url
+from dovesei.sim.starts import check_start_alt_m, generate_starts
 
 DESCRIPTION = "`dovesei up`: fly one episode with the three services as separate OS processes on Zenoh."
 SEGMENTERS = ("auto", "clipseg", "sim")
@@ -68,13 +71,22 @@ class UpOptions:
     seed: int = 0
     noise: float | None = None  # None: the simulated perception's calibrated default
     perception: str = DEFAULT_PROFILE  # simulated perception profile (clean | realistic | harsh)
+    # Simulated vehicle (ideal | realistic | harsh); None: the timing preset's default
+    # (dovesei.sim.estimator.default_vehicle_profile). A real vehicle (--vehicle) is itself.
+    vehicle_profile: str | None = None
     start: tuple[float, float, float] | None = None  # (x_m, y_m, alt_m); None: from start_seed
     start_seed: int | None = None  # None: --seed
     start_alt_m: float = 100.0
     out: Path = Path("runs/up")
+    # True for the default runs/up-<time>: `run` then claims a folder no other run has (adding -2, -3
+    # when one started in the same second), so two runs never write into one folder.
+    out_unique: bool = False
     realtime: bool = False
     connect: tuple[str, ...] = ()
     vehicle_url: str | None = None  # MAVLink URL of a real autopilot (--vehicle-url); None: simulated
+    # ArduPilot SITL only: a SEPARATE SITL output (udpin:HOST:PORT) where the sim reads SIM_STATE, the
+    # simulator's true pose, to render and judge at; None: frames follow the controller's estimate.
+    sitl_truth: str | None = None
     takeoff: bool = False
     # What the controller does with a real autopilot (None: the controller's own default). Each is
     # refused without --vehicle-url: the simulated vehicle has no hand-over mode, heading control,
@@ -83,6 +95,7 @@ class UpOptions:
     yaw_control: str | None = None  # rate (hold the heading) or autopilot (WP_YAW_BEHAVIOR)
     signing_key: Path | None = None  # MAVLink 2 signing key file
     autopilot_system_id: int | None = None  # fly only the autopilot with this MAVLink system id
+    gnss_denied: str | None = None  # off, external-nav or attitude (docs/GNSS-DENIED.md)
     time_limit_s: float = 1200.0
     video: bool = True
     record: bool = True  # recording.mcap in the report folder (dovesei.shared.recording)
@@ -109,9 +122,13 @@ class UpOptions:
         for flag, given in (("--takeoff", self.takeoff), ("--handover-action", self.handover_action is not None),
                             ("--yaw-control", self.yaw_control is not None),
                             ("--signing-key", self.signing_key is not None),
-                            ("--autopilot-system-id", self.autopilot_system_id is not None)):
+                            ("--autopilot-system-id", self.autopilot_system_id is not None),
+                            ("--gnss-denied", self.gnss_denied is not None),
+                            ("--sitl-truth", self.sitl_truth is not None)):
             if given and not self.vehicle_url:
                 raise ConfigError(f"{flag} only applies with --vehicle-url (a real autopilot)")
+        if self.sitl_truth is not None:
+            parse_truth_url(self.sitl_truth)
         if self.vehicle_url:
             parse_mavlink_url(self.vehicle_url)
             if self.timing != "real":
@@ -122,6 +139,8 @@ class UpOptions:
             validate.one_of("--handover-action", self.handover_action, HANDOVER_ACTIONS)
         if self.yaw_control is not None:
             validate.one_of("--yaw-control", self.yaw_control, YAW_CONTROLS)
+        if self.gnss_denied is not None:
+            validate.one_of("--gnss-denied", self.gnss_denied, GNSS_DENIED_MODES)
         if self.signing_key is not None:
             try:
                 load_signing_key(self.signing_key)  # read now: a missing key is a usage error, not a dead child
@@ -132,10 +151,12 @@ class UpOptions:
                 and 1 <= self.autopilot_system_id <= 255):
             raise ConfigError(f"--autopilot-system-id {self.autopilot_system_id!r}: a MAVLink system id is an "
                               "integer in 1..255")
+        if self.vehicle_profile is not None:
+            validate.one_of("--vehicle-profile", self.vehicle_profile, VEHICLE_PROFILE_NAMES)
         if self.start is not None:
             validate.finite_vector("--start", self.start, 3)
-            validate.positive("--start altitude (m)", self.start[2])
-        validate.positive("--start-alt-m", self.start_alt_m)
+            check_start_alt_m("--start altitude", self.start[2])
+        check_start_alt_m("--start-alt-m", self.start_alt_m)
         for flag, value in (("--heatmap-wait-s", self.heatmap_wait_s),
                             ("--heatmap-hold-after-s", self.heatmap_hold_after_s)):
             if value is not None:
@@ -151,6 +172,11 @@ class UpOptions:
             if self.segmenter == "sim":
                 raise ConfigError("--model only applies to a model segmenter (--segmenter auto or clipseg)")
             check_model(self.model)
+
+    @property
+    def sim_vehicle_profile(self) -> str:
+        """The vehicle profile the sim flies: the one asked for, else the timing preset's default."""
+        return default_vehicle_profile(self.timing) if self.vehicle_profile is None else self.vehicle_profile
 
     @property
     def lockstep(self) -> bool:
@@ -211,10 +237,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--perception", default=DEFAULT_PROFILE, choices=PROFILE_NAMES,
                    help=f"simulated perception profile (default: {DEFAULT_PROFILE}); a test instrument")
     p.add_argument("--noise", type=float, help="error scale within the perception profile (default: 1)")
+    p.add_argument("--vehicle-profile", choices=VEHICLE_PROFILE_NAMES,
+                   help="simulated vehicle: ideal (reports the truth, a gimbal), realistic (an optical-flow EKF "
+                        "without GNSS, a body-fixed camera, ArduCopter's limits) or harsh (default: "
+                        f"{default_vehicle_profile('real')} with real timing, {default_vehicle_profile('reference')} "
+                        "with reference timing); ignored with --vehicle")
     where = p.add_mutually_exclusive_group()
     where.add_argument("--start", metavar="X,Y[,ALT]", help="start position in world metres (x east, y north)")
     where.add_argument("--start-seed", type=int, help="draw the start like the bench's start 0 with this seed")
-    p.add_argument("--start-alt-m", type=float, default=100.0, help="start altitude when --start gives none")
+    p.add_argument("--start-alt-m", type=float, default=100.0,
+                   help="start altitude when --start gives none (25-200 m; a flow-navigating ArduCopter holds 48-69 m)")
     p.add_argument("--time-limit-s", type=float, default=None,
                    help="sim-time limit of the episode (default: the paper's 1200 s on the preset's clock, "
                         "as `dovesei bench`: 60 s with --timing reference, 1200 s with --timing real)")
@@ -238,6 +270,15 @@ def build_parser() -> argparse.ArgumentParser:
                            "--autopilot-system-id it keeps a spoofer off the link")
     real.add_argument("--autopilot-system-id", type=int, metavar="ID",
                       help="fly only the autopilot with this MAVLink system id (1..255; default: the first heard)")
+    real.add_argument("--gnss-denied", choices=GNSS_DENIED_MODES,
+                      help="when the autopilot loses GNSS: external-nav (the camera's velocity to its EKF), "
+                           "attitude (GUIDED_NOGPS, dovesei's own velocity loop) or off (report and hold; the "
+                           "default); autopilot parameters in docs/GNSS-DENIED.md")
+    real.add_argument("--sitl-truth", metavar="URL",
+                      help="ArduPilot SITL: the camera renders and the judge judges at the simulator's TRUE pose "
+                           "(SIM_STATE), read on a SEPARATE SITL output (udpin:HOST:PORT, e.g. udpin:127.0.0.1:14552 "
+                           "for SITL's --serial2 udpclient:127.0.0.1:14552), never the controller's link; the policy "
+                           "still sees only the autopilot's estimate")
     p.add_argument("--video", action=argparse.BooleanOptionalAction, default=True, help="write episode.mp4")
     p.add_argument("--record", action=argparse.BooleanOptionalAction, default=True,
                    help="record the flight to recording.mcap (replay with `dovesei replay`)")
@@ -264,14 +305,17 @@ def options_from_args(args: argparse.Namespace) -> UpOptions:
     # `clearance` keeps its own true-second timers: the reference preset's 78 sim s limit (the
     # paper's 1200 s scaled to its compressed clock) would cut its search short, so it flies real.
     timing_name = args.timing or ("real" if args.vehicle_url or args.policy == "clearance" else DEFAULT_TIMING)
-    out = args.out or Path("runs") / f"up-{datetime.now().strftime('%Y%m%d-%H%M%S')}"
+    out = args.out or Path("runs") / f"up-{datetime.now().strftime('%Y%m%d-%H%M%S')}"  # claimed unique in `run`
     limit_s = timing(timing_name).time_limit_s if args.time_limit_s is None else args.time_limit_s
     return UpOptions(world=args.world, segmenter=args.segmenter, policy=args.policy, timing=timing_name,
-                     seed=args.seed, noise=args.noise, perception=args.perception, start=start, start_seed=args.start_seed,
-                     start_alt_m=args.start_alt_m, out=out, realtime=args.realtime, connect=tuple(args.connect),
-                     vehicle_url=args.vehicle_url, takeoff=args.takeoff, handover_action=args.handover_action,
+                     seed=args.seed, noise=args.noise, perception=args.perception, vehicle_profile=args.vehicle_profile,
+                     start=start, start_seed=args.start_seed,
+                     start_alt_m=args.start_alt_m, out=out, out_unique=args.out is None, realtime=args.realtime,
+                     connect=tuple(args.connect), vehicle_url=args.vehicle_url, sitl_truth=args.sitl_truth,
+                     takeoff=args.takeoff, handover_action=args.handover_action,
                      yaw_control=args.yaw_control, signing_key=args.signing_key,
-                     autopilot_system_id=args.autopilot_system_id, time_limit_s=limit_s, video=args.video,
+                     autopilot_system_id=args.autopilot_system_id, gnss_denied=args.gnss_denied,
+                     time_limit_s=limit_s, video=args.video,
                      record=args.record, view=args.view, rrd=args.rrd,
                      model=args.model, vehicle_id=args.vehicle_id, heatmap_wait_s=args.heatmap_wait_s,
                      heatmap_hold_after_s=args.heatmap_hold_after_s, after_failure_s=args.after_failure_s,

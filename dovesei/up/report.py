@@ -112,7 +112,7 @@ class Setup:
     timing: str
     seed: int
     mode: str  # lockstep or realtime
-    vehicle: str  # "sim" or the autopilot's MAVLink URL
+    vehicle: str  # "sim:<vehicle profile>" (dovesei.sim.estimator) or the autopilot's MAVLink URL
     vehicle_id: str
     safety_radius_m: float
     time_limit_s: float
@@ -169,6 +169,35 @@ class Landing:
 
 
 @dataclass(frozen=True)
+class Navigation:
+    """A real autopilot's navigation as the controller's status reported it (None with the sim)."""
+
+    gnss_lost: bool
+    gnss_lost_t_s: float | None  # the vehicle clock of the first status that said so
+    gnss_lost_alt_m: float | None
+    position_lost: bool  # the autopilot had no horizontal position at some point
+    sources: tuple[str, ...]  # the trusted velocity sources, in the order they came
+    no_velocity_holds: int  # statuses holding for want of a trusted velocity
+    first_reason: str  # the first loss's reason
+    last_reason: str
+
+    @classmethod
+    def of(cls, statuses: Mapping[float, Any]) -> Navigation | None:
+        ordered = [statuses[t] for t in sorted(statuses)]
+        if not any(st.nav_source for st in ordered):
+            return None  # the sim: nothing judged
+        lost = [st for st in ordered if st.gnss_lost]
+        sources: list[str] = []
+        for st in ordered:
+            if st.nav_source and (not sources or sources[-1] != st.nav_source):
+                sources.append(st.nav_source)
+        return cls(bool(lost), lost[0].stamp.t_s if lost else None, lost[0].alt_agl_m if lost else None,
+                   any(st.position_lost for st in ordered), tuple(sources),
+                   sum(1 for st in ordered if "no trusted velocity source" in st.reason),
+                   lost[0].nav_reason if lost else "", ordered[-1].nav_reason)
+
+
+@dataclass(frozen=True)
 class RunReport:
     episode: Episode
     setup: Setup
@@ -180,6 +209,7 @@ class RunReport:
     interrupted: bool
     files: Mapping[str, str] | None = None  # name -> file in the report folder; filled by write_outputs
     landing: Landing | None = None  # only when `up` waited for an autopilot's landing
+    navigation: Navigation | None = None  # a real autopilot's GNSS / position losses (None: the sim)
 
     @property
     def outcome(self) -> str:
@@ -203,6 +233,7 @@ class RunReport:
                     "interrupted": self.interrupted,
                     "trajectory": {k: list(v) for k, v in asdict(self.trajectory).items()}})
         out["landing"] = asdict(self.landing) if self.landing is not None else None
+        out["navigation"] = asdict(self.navigation) if self.navigation is not None else None
         if self.files is not None:
             out["files"] = dict(self.files)
         return out
@@ -305,7 +336,8 @@ def build_report(options: UpOptions, rec: Recorder, start: tuple[float, float, f
     setup = Setup(options.world, backend, simulated, options.segmenter, noise if simulated else None,
                   options.perception if simulated else None, options.policy,
                   options.timing, options.seed, "lockstep" if options.lockstep else "realtime",
-                  options.vehicle_url or "sim", options.vehicle_id, 2.0, options.time_limit_s)
+                  options.vehicle_url or f"sim:{options.sim_vehicle_profile}", options.vehicle_id, 2.0,
+                  options.time_limit_s)
     episode_wall_s = (round(rec.result_wall_s - rec.first_state_wall_s, 3)
                       if rec.result_wall_s is not None and rec.first_state_wall_s is not None else None)
     timing = RunTiming(round(wall_time_s, 3), episode_wall_s, _latency(options, rec, cmd_to_sim),
@@ -327,7 +359,8 @@ def build_report(options: UpOptions, rec: Recorder, start: tuple[float, float, f
         sent = link.get("landing_targets_sent")
         landed = Landing(handover_action, landing.landed, landing.reason, landing.waited_s, touchdown,
                          sent if isinstance(sent, int) and handover_action == "precland" else None)
-    return RunReport(episode, setup, timing, counts, trajectory, dict(stats), failure, interrupted, landing=landed)
+    return RunReport(episode, setup, timing, counts, trajectory, dict(stats), failure, interrupted, landing=landed,
+                     navigation=Navigation.of(rec.statuses))
 
 
 def write_outputs(world: Any, report: RunReport, rec: Recorder, out: Path, video: bool) -> RunReport:

@@ -26,6 +26,7 @@ import time
 from dataclasses import dataclass
 
 from dovesei.shared.messages import EpisodeResult
+from dovesei.shared.zconfig import ADDRESS_IN_USE
 from dovesei.up.children import Children, describe_exit, last_error_line
 from dovesei.up.monitor import Monitor, Recorder
 from dovesei.up.options import UpOptions
@@ -179,7 +180,9 @@ def _owes_command(rec: Recorder) -> bool:
 
 def result_is_consistent(rec: Recorder, result: EpisodeResult) -> str:
     """'' when the result agrees with the last recorded state, else why not."""
-    if not rec.states:
+    if not rec.states or not rec.states[-1].pos_valid:
+        # A vehicle without a position (a GNSS-denied vehicle profile) reports dead reckoning,
+        # which drifts from the judge's truth by design: nothing to compare it with.
         return ""
     x0, y0, _ = rec.start
     north_m, east_m, _ = rec.states[-1].pos_local_ned_m
@@ -187,6 +190,14 @@ def result_is_consistent(rec: Recorder, result: EpisodeResult) -> str:
     if off_m > RESULT_POSITION_TOLERANCE_M:
         return f"its final position is {off_m:.1f} m from the vehicle's last recorded state"
     return ""
+
+
+def port_collision(failure: Failure | None, rec: Recorder) -> str | None:
+    """The service that died because its loopback listen port was taken before it could bind it,
+    when nothing has flown yet (no vehicle state); else None. Such a start can be retried."""
+    if failure is None or failure.child is None or failure.returncode is None or rec.states:
+        return None
+    return failure.child if ADDRESS_IN_USE in failure.last_line else None
 
 
 def wait_for_takeoff(rec: Recorder, monitor: Monitor, children: Children, stop: threading.Event,
@@ -248,7 +259,9 @@ class Watcher:
                 if self.failure is not None:
                     log.error("%s", self.failure.message)
                     # The others keep running for a while so the report shows how they reacted.
-                    after_s = 0.0 if self.failure.child in (None, "sim") else self.options.after_failure_s
+                    # Nothing to watch after a start that failed on a taken port: `up` retries it.
+                    after_s = (0.0 if self.failure.child in (None, "sim") or port_collision(self.failure, self.rec)
+                               else self.options.after_failure_s)
                     self.failure_deadline = now + after_s
             if now >= self.failure_deadline:
                 return WatchEnd(self.failure, False)

@@ -53,10 +53,16 @@ from dovesei.shared.lifecycle import Inbox, declare_alive, install_stop_handlers
 from dovesei.shared.messages import CameraFrame, Stamp, VehicleState
 from dovesei.shared.recording import FlightRecorder
 from dovesei.shared.visual_velocity import FrameMeta, VisualVelocity, odometry_message
+from dovesei.shared.zconfig import SessionError, open_session
 
 log = logging.getLogger(__name__)
 
 STATE_HISTORY_S = 3.0  # how far back states are kept to find the one at a frame's capture time
+# Odometry waits this long after a capture for the next state, to interpolate the attitude at the
+# capture instant: the velocity depends on the attitude CHANGE between frames, so tagging each
+# frame with whichever state came last (0..1 state period early, at random) would turn a turn rate
+# of 0.5 rad/s and 50 Hz states into ~3 mrad of noise per frame, 2 m/s at 50 m and 10 Hz.
+ATTITUDE_WAIT_S = 0.05
 
 
 @dataclass(frozen=True)
@@ -74,7 +80,7 @@ class CameraConfig:
     stall_timeout_s: float = 2.0
     state_timeout_s: float = 1.0
     loop_file: bool = False
-    record_path: str | None = None  # write the published frames and their states to this MCAP file
+    record_path: str | None = None  # write the published frames, their states and the odometry to this MCAP file
     odometry_rate_hz: float = 10.0  # visual velocity from consecutive grabbed frames; 0 = off
     odometry_width_px: int = 320  # frames are cropped like the published ones and shrunk to this width
 
@@ -117,6 +123,10 @@ class CameraStats:
 class StateSource(Protocol):
     def poll(self) -> VehicleState | None: ...
 
+    def age_s(self) -> float:
+        """Seconds since the state the last poll returned arrived (0 when it is not known)."""
+        ...
+
     def close(self) -> None: ...
 
 
@@ -128,6 +138,11 @@ class ZenohStateSource:
 
     def poll(self) -> VehicleState | None:
         return self._inbox.poll()
+
+    def age_s(self) -> float:
+        # The inbox stamps each sample's arrival: a loop that drains it late (a loaded host, an
+        # odometry computation) still dates the state by when it came, not by when it was read.
+        return min(max(0.0, time.time() - self._inbox.last_recv_wall_s), STATE_HISTORY_S)
 
     def close(self) -> None:
         self._inbox.close()
@@ -159,7 +174,7 @@ class CameraPublisher:
         """Drain the state source into the history (call often: receive times date the states)."""
         now = self._clock()
         while (state := self.state_source.poll()) is not None:
-            self._states.append((now, state))
+            self._states.append((now - self.state_source.age_s(), state))
         while self._states and now - self._states[0][0] > STATE_HISTORY_S and len(self._states) > 1:
             self._states.popleft()
 
@@ -218,6 +233,9 @@ class CameraPublisher:
         if newest is None or newest[2] == self._odometry_index:
             return False
         bgr, capture_s, index = newest
+        after = self._state_after(capture_s)
+        if after is None and self._clock() - capture_s < ATTITUDE_WAIT_S:
+            return False  # the state after the capture is due shortly: interpolate with it then
         self._odometry_index = index
         tagged = self._state_at(capture_s)
         if tagged is None or capture_s - tagged[0] > self.config.state_timeout_s:
@@ -229,14 +247,16 @@ class CameraPublisher:
         src_h, src_w = bgr.shape[:2]
         width = min(c.odometry_width_px, src_w if c.rotate_deg in (0, 180) else src_h)
         height = max(32, round(width * c.height_px / c.width_px))
-        meta = FrameMeta(index, capture_s, state.alt_agl_m, self._hfov(src_w, src_h), state.roll_rad,
-                         state.pitch_rad, state.yaw_rad)
+        alt_m, roll, pitch, yaw = _interpolate(tagged, after, capture_s)
+        meta = FrameMeta(index, capture_s, alt_m, self._hfov(src_w, src_h), roll, pitch, yaw)
         est = self._odometry.update(crop_resize(bgr, width, height, c.rotate_deg), meta)
         if est is None:
             return False
         msg = odometry_message(est, meta, vehicle_id=c.vehicle_id, stamp=_capture_stamp(state, recv_s, capture_s),
                                sent_wall_s=time.time())
         self.put_odometry(encode(msg))
+        if self.recorder is not None:
+            self.recorder.write(msg)
         self.stats.odometry_published += 1
         self.stats.odometry_valid += int(msg.valid)
         if msg.valid:
@@ -270,6 +290,10 @@ class CameraPublisher:
             best = self._states[0]
         return best
 
+    def _state_after(self, capture_s: float) -> tuple[float, VehicleState] | None:
+        """The first state received after the capture, if one has arrived."""
+        return next(((recv_s, state) for recv_s, state in self._states if recv_s > capture_s), None)
+
     def _hfov(self, src_w: int, src_h: int) -> float:
         if self._hfov_cache is None or self._hfov_cache[0] != (src_w, src_h):
             c = self.config
@@ -280,6 +304,21 @@ class CameraPublisher:
     def _warn(self, text: str) -> None:
         self.stats.warnings.append(text)
         log.warning("%s", text)
+
+
+def _interpolate(before: tuple[float, VehicleState], after: tuple[float, VehicleState] | None,
+                 capture_s: float) -> tuple[float, float, float, float]:
+    """(alt, roll, pitch, yaw) at the capture, linear between the states received around it (by
+    their arrival times; the yaw the short way round); the state before alone when none came after."""
+    (t0, s0) = before
+    values0 = (s0.alt_agl_m, s0.roll_rad, s0.pitch_rad, s0.yaw_rad)
+    if after is None or after[0] <= t0:
+        return values0
+    (t1, s1) = after
+    w = min(1.0, max(0.0, (capture_s - t0) / (t1 - t0)))
+    alt, roll, pitch = (a + w * (b - a) for a, b in zip(values0[:3], (s1.alt_agl_m, s1.roll_rad, s1.pitch_rad)))
+    yaw = math.remainder(s0.yaw_rad + w * math.remainder(s1.yaw_rad - s0.yaw_rad, math.tau), math.tau)
+    return alt, roll, pitch, yaw
 
 
 def _capture_stamp(state: VehicleState, recv_s: float, capture_s: float) -> Stamp:
@@ -381,7 +420,7 @@ def main(argv: list[str] | None = None) -> int:
     config, _process, zconf = CLI.start(argv)  # a bad flag exits 2 with the usage line
     stop = install_stop_handlers()
     try:
-        with zenoh.open(zconf) as session:
+        with open_session(zconf) as session:
             token = declare_alive(session, config.vehicle_id, "camera")
             try:
                 run(session, config=config, stop=stop)
@@ -390,6 +429,9 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as exc:
         log.error("%s", exc)
         return 2
+    except SessionError as exc:  # a taken listen port, an unreachable router: one line, not a traceback
+        log.error("camera not started: %s", exc)
+        return 1
     return 0
 
 

@@ -13,6 +13,11 @@ Data flow per tick:
                 --> watchdog on the DATA clock (state time - adopted heatmap's stamp)
                 --> VelocityCommand (every tick) + ControllerStatus (every tick)
 
+Geofence (`geofence.py`): every command, whatever the mode or policy, keeps the dead-reckoned
+position (the state's velocity estimate integrated from the first state) within
+`geofence_radius_m` of the start; a capped command says so in the status reason. Default: off with
+the sim (the paper's experiment stays as published), DEFAULT_VEHICLE_GEOFENCE_M on a real vehicle.
+
 Watchdog modes, highest priority first (each change is logged once at INFO with its reason):
 
     state_stale  the vehicle state stopped advancing (real time only, wall clock) -> zero velocity
@@ -49,9 +54,10 @@ from dataclasses import dataclass
 from enum import Enum
 from typing import Any
 
-from dovesei.controller.gnss_denied import GNSS_DENIED_MODES, NavStatus
+from dovesei.controller.gnss_denied import EXTERNAL_NAV_MESSAGES, GNSS_DENIED_MODES, NavStatus
 from dovesei.controller.policies.base import Decision, Observation, Policy, PolicyInputError, make_policy, policy_names
-from dovesei.controller.frames import body_frd_to_ned, ned_to_body_frd
+from dovesei.controller.frames import body_frd_to_ned, ned_to_body_frd, to_ne
+from dovesei.controller.geofence import Geofence
 from dovesei.controller.odometry import VelocityTrack
 from dovesei.controller.policies.config import TIMING_PRESETS
 from dovesei.shared import keys, validate
@@ -68,6 +74,10 @@ MAX_POLICY_SPEED = 100.0  # m/s and rad/s: a policy asking for more is faulty (m
 DT_CAP_PERIODS = 2.0  # a perception gap advances the policy's clock by at most this many nominal periods
 # The vehicle clock runs on true seconds; 5 % margin for crystal drift and latency jitter.
 _DATA_RATE_MARGIN = 1.05
+# A real vehicle's fence when none is given: `clearance` searches within 300 m of the start (its
+# own fence 10 m inside), plus room for the raw velocity estimate's drift over a search. The
+# paper's policy has no bound of its own (a 600 m RESTARTING transit on ArduCopter SITL).
+DEFAULT_VEHICLE_GEOFENCE_M = 400.0
 
 
 class ControllerInputError(DoveseiError, ValueError):
@@ -114,10 +124,15 @@ class ControllerConfig:
     lockstep_heatmap_retry_s: float = 0.25  # shorter deadline while the segmenter seems down
     heatmap_buffer_len: int = 64  # lockstep: early heatmaps kept by seq
     record_path: str | None = None  # write an MCAP flight recording here (states, heatmaps, commands, status)
+    # Largest dead-reckoned distance from the start; None: off with the sim, DEFAULT_VEHICLE_GEOFENCE_M
+    # with a real vehicle; 0: off.
+    geofence_radius_m: float | None = None
+    geofence_gain_per_s: float = 0.5  # outward speed allowed per metre left to the fence
     # MAVLink without GNSS (gnss_denied.py): "off" reports and holds, "external-nav" feeds the visual
     # velocity to the EKF (source set `ekf_source_set`), "attitude" flies GUIDED_NOGPS attitude targets.
     gnss_denied: str = "off"
     ekf_source_set: int = 2  # the EK3_SRCn set whose VELXY is ExternalNav (6)
+    external_nav_message: str = "both"  # ArduPilot: VISION_SPEED_ESTIMATE, VISION_POSITION_DELTA or both
     odometry_min_quality: float = 0.5  # visual velocity below this quality is not flown on
     odometry_max_age_s: float = 0.5  # nor one older than this at arrival (receiver's clock)
     attitude_max_tilt_deg: float = 15.0  # attitude mode: largest roll/pitch demanded
@@ -155,6 +170,7 @@ class ControllerConfig:
             raise ConfigError(f"gnss_denied {self.gnss_denied!r} needs a MAVLink vehicle (--vehicle-url); the sim "
                               "never loses GNSS")
         validate.in_range("ControllerConfig.ekf_source_set", self.ekf_source_set, 1, 3)
+        validate.one_of("ControllerConfig.external_nav_message", self.external_nav_message, EXTERNAL_NAV_MESSAGES)
         validate.in_range("ControllerConfig.odometry_min_quality", self.odometry_min_quality, 0.0, 1.0)
         validate.positive("ControllerConfig.odometry_max_age_s", self.odometry_max_age_s)
         validate.in_range("ControllerConfig.attitude_max_tilt_deg", self.attitude_max_tilt_deg, 1.0, 35.0)
@@ -162,6 +178,9 @@ class ControllerConfig:
             raise ConfigError(f"heatmap_buffer_len must be >= 1, got {self.heatmap_buffer_len}")
         if self.lockstep and self.vehicle_url != "zenoh":
             raise ConfigError("lockstep needs the simulator (--vehicle-url zenoh); a real vehicle runs in real time")
+        if self.geofence_radius_m is not None:
+            validate.in_range("ControllerConfig.geofence_radius_m", self.geofence_radius_m, 0.0, 100_000.0)
+        validate.positive("ControllerConfig.geofence_gain_per_s", self.geofence_gain_per_s)
         for name in ("mavlink_max_horizontal_m_s", "mavlink_max_up_m_s", "mavlink_max_down_m_s"):
             validate.in_range(f"ControllerConfig.{name}", getattr(self, name), 0.01, 50.0)
         if self.mavlink_system_id is not None:
@@ -179,6 +198,14 @@ class ControllerConfig:
     @property
     def period_s(self) -> float:
         return 1.0 / self.rate_hz
+
+    @property
+    def geofence_m(self) -> float | None:
+        """The fence in force: None when off."""
+        radius = self.geofence_radius_m
+        if radius is None:
+            return DEFAULT_VEHICLE_GEOFENCE_M if self.vehicle_url != "zenoh" else None
+        return radius if radius > 0.0 else None
 
     @property
     def vehicle_speed_limits_m_s(self) -> tuple[float, float, float] | None:
@@ -268,6 +295,9 @@ class ControllerCore:
         # data-clock time t_s, fixed at the hand-over and carried by dead reckoning from then on.
         self._spot_rel_ned_m: tuple[float, float, float] | None = None
         self._spot_t_s = 0.0
+        radius = self.config.geofence_m
+        self.geofence = Geofence(radius, self.config.geofence_gain_per_s) if radius is not None else None
+        self._fenced = False  # the previous command was capped (its start and end are logged)
 
     def _maybe_new_episode(self, state: VehicleState) -> None:
         """Time running backwards is a new sim episode only in lockstep with a restarted state
@@ -411,6 +441,8 @@ class ControllerCore:
             self._state_advanced_wall_s = wall_s
         self._last_state_t_s, self._last_state_seq = now_s, state.seq
         self._track.add(now_s, state.vel_body_frd_m_s, state.yaw_rad)
+        if self.geofence is not None:
+            self.geofence.add(now_s, state.vel_body_frd_m_s, state.yaw_rad)
         if self._first_alt_m is None:
             self._first_alt_m = state.alt_agl_m
 
@@ -422,6 +454,7 @@ class ControllerCore:
             self._mode = mode
 
         vel, yaw_rate = self._velocity(mode, state)
+        vel, reason = self._fence(vel, state, reason, pull_back=mode is Mode.OK)
         if mode is not Mode.HANDOVER:
             self._spot_rel_ned_m = None  # a new hand-over fixes its own spot
         self._tick_seq += 1
@@ -588,6 +621,19 @@ class ControllerCore:
             return Mode.HOLD, f"heatmap older than {cfg.heatmap_hold_after_s:g} s: descent stopped, holding position"
         return Mode.OK, "heatmaps fresh: following the policy"
 
+    def _fence(self, vel: tuple[float, float, float], state: VehicleState, reason: str,
+               pull_back: bool) -> tuple[tuple[float, float, float], str]:
+        """Every command through the geofence; the status reason says when it capped one."""
+        if self.geofence is None:
+            return vel, reason
+        vel, why = self.geofence.cap(vel, state.yaw_rad, pull_back)
+        fenced = why is not None
+        if fenced != self._fenced:
+            log.log(logging.WARNING if fenced else logging.INFO, "controller %s: %s", self.config.vehicle_id,
+                    why if fenced else f"geofence: back within {self.geofence.radius_m:g} m, commands untouched")
+            self._fenced = fenced
+        return vel, (f"{reason}; {why}" if fenced else reason)
+
     @property
     def search_alt_m(self) -> float:
         """Where the climb watchdog goes: the configured altitude or the first one seen."""
@@ -597,13 +643,26 @@ class ControllerCore:
 
     def _velocity(self, mode: Mode, state: VehicleState) -> tuple[tuple[float, float, float], float]:
         if mode is Mode.OK and self._decision is not None:
-            return self._decision.vel_body_frd_m_s, self._decision.yaw_rate_rad_s
+            return self._as_meant(self._decision.vel_body_frd_m_s, state), self._decision.yaw_rate_rad_s
         if mode is Mode.CLIMB:
             error_m = self.search_alt_m - state.alt_agl_m
             # FRD: negative down is up. Proportional near the target, never a descent.
             up_m_s = min(self.config.climb_speed_m_s, self.config.climb_gain_per_s * error_m) if error_m > 0 else 0.0
             return (0.0, 0.0, -up_m_s if up_m_s > 0 else 0.0), 0.0
         return (0.0, 0.0, 0.0), 0.0
+
+    def _as_meant(self, vel: tuple[float, float, float], state: VehicleState) -> tuple[float, float, float]:
+        """The decision's body velocity in the body frame of this tick: the policy meant the frame
+        of the heading it was given with its heatmap; if the vehicle has turned since (an autopilot
+        that yaws, heading drift), the horizontal command turns back by as much."""
+        adopted = self._adopted
+        if adopted is None:
+            return vel
+        turned_rad = math.remainder(adopted.attitude_rad[2] - state.yaw_rad, 2.0 * math.pi)
+        if turned_rad == 0.0:
+            return vel
+        fwd, right = to_ne(vel[0], vel[1], turned_rad)
+        return fwd, right, vel[2]
 
     @property
     def mode(self) -> Mode | None:

@@ -51,6 +51,16 @@ from dovesei.shared.errors import ConfigError
 from dovesei.shared.messages import VisualOdometry
 
 GNSS_DENIED_MODES = ("off", "external-nav", "attitude")
+# What "external-nav" sends ArduPilot for each camera velocity (PX4 always gets ODOMETRY):
+#   speed  VISION_SPEED_ESTIMATE: EKF3 fuses it as an ExternalNav velocity (FuseVelPosNED), which keeps
+#          the velocity but, with no position source, times the position out after posRetryTimeUseVel
+#          (10 s) so horiz_pos_rel drops and ArduCopter's position_ok() with it;
+#   delta  VISION_POSITION_DELTA: EKF3 fuses it as body odometry (SelectBodyOdomFusion, with
+#          EK3_SRCn_VELXY = ExternalNav), which sets horiz_pos_rel (doingBodyVelNav,
+#          NavEKF3_core::updateFilterStatus): a relative position GUIDED flies on;
+#   both   the two (the default): the camera's velocity counts twice in the EKF, so its noise floors
+#          (VISO_VEL_M_NSE and the confidence) should not be set tighter than the camera's variance.
+EXTERNAL_NAV_MESSAGES = ("both", "delta", "speed")
 THRUST_MODES = ("climb-rate", "thrust")
 GRAVITY_M_S2 = 9.80665
 

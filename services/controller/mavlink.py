@@ -41,7 +41,10 @@ Conventions (ArduPilot "Copter Commands in Guided Mode", PX4 offboard docs; numb
 MAV_FRAME_BODY_NED (PX4), both heading-level frames; type mask 0x05C7 (velocity + yaw rate).
 Heading: with `yaw_control="rate"` the yaw rate sent is the policy's plus a proportional
 correction towards the heading held since steering began (read from ATTITUDE), so the camera does
-not rotate under the map when the autopilot's heading drifts; "autopilot" sends velocity only.
+not rotate under the map when the autopilot's heading drifts; "autopilot" sends the velocity in
+MAV_FRAME_LOCAL_NED (rotated by the heading the command was meant in) with that held heading as a
+yaw angle, for the autopilot's own heading controller to hold (velocity alone let ArduCopter turn
+the nose by WP_YAW_BEHAVIOR, and the body-frame policy ran out of the world).
 
 Trust: the autopilot is the first ArduPilot/PX4 heartbeat heard, or only `system_id` when pinned
 (a spoofer heard first is never locked onto); another autopilot id later is refused, counted and
@@ -80,6 +83,7 @@ from dovesei.controller.mavlink_proto import (
     MAV_CMD_SET_MESSAGE_INTERVAL,
     MAV_COMP_ID_ONBOARD_COMPUTER,
     MAV_FRAME_BODY_FRD,
+    MAV_FRAME_LOCAL_NED,
     MAV_MODE_FLAG_CUSTOM_MODE_ENABLED,
     MAV_MODE_FLAG_SAFETY_ARMED,
     MAV_RESULT_ACCEPTED,
@@ -102,7 +106,7 @@ from dovesei.controller.mavlink_proto import (
     MSG_ID_SYS_STATUS,
     STEER_FRAME,
     STEER_MODE,
-    TYPE_MASK_VELOCITY_ONLY,
+    TYPE_MASK_VELOCITY_YAW,
     TYPE_MASK_VELOCITY_YAW_RATE,
     YAW_CONTROLS,
     MavlinkError,
@@ -123,7 +127,9 @@ from dovesei.controller.mavlink_proto import (
     open_link,
 )
 from dovesei.controller import mavlink_takeoff
+from dovesei.controller.frames import to_ne
 from dovesei.controller.gnss_denied import (
+    EXTERNAL_NAV_MESSAGES,
     GNSS_DENIED_MODES,
     AttitudeGains,
     AttitudeLoop,
@@ -131,6 +137,9 @@ from dovesei.controller.gnss_denied import (
     NavStatus,
     OdometryGate,
     OdometryLimits,
+    SOURCE_AUTOPILOT,
+    SOURCE_NONE,
+    SOURCE_VISUAL,
     vision_speed_covariance,
 )
 from dovesei.controller.mavlink_readiness import ArmReadiness
@@ -151,6 +160,8 @@ _LANDING_TARGET_FRESH_S = 1.0  # a spot older than this is no longer streamed
 _NAV_PERIOD_S = 0.2  # the navigation judgement (and its loss / recovery log) at 5 Hz
 _GPS_RAW_INTERVAL_US = 200_000.0  # GPS_RAW_INT at 5 Hz: a lost fix is noticed within a fifth of a second
 _GLOBAL_FRESH_S = 1.0  # the fallback state's altitude (GLOBAL_POSITION_INT) is used only this fresh
+_LOCAL_FALLBACK_S = 0.5  # LOCAL_POSITION_NED silent this long: states come from ATTITUDE (no stale-state gap)
+_LOCAL_NEVER_S = 3.0  # ... or never heard this long after the streams were asked for
 _SOURCE_SET_RETRY_S, _SOURCE_SET_TRIES = 1.0, 10
 
 
@@ -183,10 +194,12 @@ class MavlinkVehicle:
                  limits: SpeedLimits | None = None, yaw_hold_gain_per_s: float = 1.0,
                  signing_key: bytes | None = None, signing_timestamp_file: str | Path | None = None,
                  require_home: bool = True, gnss_denied: str = "off", ekf_source_set: int = 2,
+                 external_nav_message: str = "both",
                  odometry_limits: OdometryLimits | None = None, attitude_gains: AttitudeGains | None = None,
                  clock: Callable[[], float] = time.monotonic) -> None:
         check_url(url)
         validate.one_of("gnss_denied", gnss_denied, GNSS_DENIED_MODES)
+        validate.one_of("external_nav_message", external_nav_message, EXTERNAL_NAV_MESSAGES)
         validate.in_range("ekf_source_set", ekf_source_set, 1, 3)
         for name, value, choices in (("alt_source", alt_source, ALT_SOURCES), ("handover", handover, HANDOVERS),
                                      ("yaw_control", yaw_control, YAW_CONTROLS)):
@@ -210,7 +223,7 @@ class MavlinkVehicle:
         self.heartbeat_timeout_s, self.command_timeout_s = float(heartbeat_timeout_s), float(command_timeout_s)
         self.setpoint_period_s, self.stream_rate_hz = 1.0 / setpoint_rate_hz, float(stream_rate_hz)
         self.yaw_control, self.yaw_hold_gain_per_s = yaw_control, float(yaw_hold_gain_per_s)
-        self.type_mask = TYPE_MASK_VELOCITY_YAW_RATE if yaw_control == "rate" else TYPE_MASK_VELOCITY_ONLY
+        self.type_mask = TYPE_MASK_VELOCITY_YAW_RATE if yaw_control == "rate" else TYPE_MASK_VELOCITY_YAW
         self.read_only, self.system_id = read_only, system_id
         self.limits = limits if limits is not None else SpeedLimits()
         self.source_system, self.source_component = source_system, source_component
@@ -240,6 +253,7 @@ class MavlinkVehicle:
         self._cmd: VelocityCommand | None = None  # newest command to stream (None: stream nothing)
         self._cmd_time_s = 0.0
         self._cmd_zeroed = False
+        self._cmd_yaw_rad = 0.0  # heading when the newest command arrived
         self._prestream = False  # stream zero setpoints with no command (PX4 before OFFBOARD)
         self._yaw_ref_rad: float | None = None  # the heading held while steering
         self._steered = False  # we have streamed in GUIDED/OFFBOARD at least once
@@ -251,6 +265,7 @@ class MavlinkVehicle:
         self._next_setpoint_s = 0.0
         # Without GNSS: the judgement, the camera's velocity, the attitude loop (gnss_denied.py).
         self.gnss_denied, self.ekf_source_set = gnss_denied, int(ekf_source_set)
+        self.external_nav_message = external_nav_message
         self._nav = NavJudge(gnss_denied)
         self._odometry = OdometryGate(odometry_limits)
         self._attitude_gains = attitude_gains if attitude_gains is not None else AttitudeGains(
@@ -260,6 +275,7 @@ class MavlinkVehicle:
         self._attitude_step_s: float | None = None
         self._global: tuple[float, float, float] | None = None  # GLOBAL_POSITION_INT relative alt, vz down, at
         self._local_s: float | None = None  # when the newest LOCAL_POSITION_NED arrived
+        self._streams_asked_s: float | None = None  # when the streams were first asked for
         self._nav_status = NavStatus(False, False, True, "autopilot", "no estimator report yet")
         self._gnss_lost_seen = False
         self._source_set: tuple[int, float] | None = None  # (tries so far, next try) while switching
@@ -269,6 +285,7 @@ class MavlinkVehicle:
         self.gnss_losses = 0
         self.source_set_result: int | None = None  # MAV_RESULT of the source-set switch (None: none yet)
         self.setpoints_sent = 0
+        self.stop_hold_s = 0.5  # close(): zero velocity streams this long (10 setpoints at 20 Hz)
         self.setpoints_clamped = 0  # every setpoint written, stream repeats included
         self.commands_steered = 0  # commands handed in by send() and flown
         self.commands_clamped = 0  # ... of which asked for more than the limits
@@ -309,7 +326,20 @@ class MavlinkVehicle:
                  "armed" if self.armed else "disarmed", ", signed link" if self._signing else "")
 
     def close(self) -> None:
-        """Stop the I/O thread and close the link (the autopilot's own failsafes take over)."""
+        """Stop the I/O thread and close the link (the autopilot's own failsafes take over).
+
+        If we were steering, zero velocity streams for `stop_hold_s` first: one lost datagram must
+        not leave ArduCopter flying the last setpoint until GUID_TIMEOUT (3 s at 10 m/s was ~35 m
+        blind on SITL), and the last thing the autopilot heard from us is "stop here".
+        """
+        with self._lock:
+            steering = self._cmd is not None and self._refusal_locked() is None and self._thread is not None
+            if steering:
+                self._cmd, self._cmd_time_s, self._cmd_zeroed = self._zero(), self._clock(), True
+                self._next_setpoint_s = self._clock()  # the first zero goes out now
+        if steering:
+            log.info("closing the MAVLink link: streaming zero velocity for %.1f s first", self.stop_hold_s)
+            self._stop.wait(self.stop_hold_s)
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=5.0)
@@ -419,9 +449,19 @@ class MavlinkVehicle:
                 down, nan, nan, nan, [nan] + [0.0] * 20, velocity_cov, 0, MAV_ESTIMATOR_TYPE_VISION,
                 int(round(odom.quality * 100))))
         else:
-            vn, ve, vd = frd_to_ned(odom.vel_body_frd_m_s, *attitude)
-            cov = vision_speed_covariance(var)
-            ok = self._tx(lambda mav: mav.vision_speed_estimate_send(usec, vn, ve, vd, cov, 0))
+            ok = True
+            if self.external_nav_message in ("both", "speed"):
+                vn, ve, vd = frd_to_ned(odom.vel_body_frd_m_s, *attitude)
+                cov = vision_speed_covariance(var)
+                ok = self._tx(lambda mav: mav.vision_speed_estimate_send(usec, vn, ve, vd, cov, 0))
+            if self.external_nav_message in ("both", "delta"):
+                # The displacement between the two frames, body FRD at the newer one; the rotation between
+                # them is left at zero: with the camera at the centre of gravity (VISO_POS_X/Y/Z 0) EKF3
+                # uses it only for the lever arm.
+                delta = [v * odom.dt_s for v in odom.vel_body_frd_m_s]
+                dt_us = int(odom.dt_s * 1e6)
+                ok = self._tx(lambda mav: mav.vision_position_delta_send(
+                    usec, dt_us, [0.0, 0.0, 0.0], delta, float(round(odom.quality * 100.0)))) and ok
         if ok:
             self.vision_sent += 1
 
@@ -429,8 +469,19 @@ class MavlinkVehicle:
         """Judge the navigation; on a GNSS loss start what the mode asks (source set, GUIDED_NOGPS)."""
         with self._lock:
             status = self._nav.status(now, self._odometry)
+            if self._attitude_flying and status.source == SOURCE_AUTOPILOT:
+                # GNSS back, but we still fly attitude targets: only the camera's velocity closes the loop.
+                good, why = self._odometry.judge(now)
+                status = (NavStatus(False, False, True, SOURCE_VISUAL, "flying attitude targets on the visual "
+                                    "velocity (GNSS back; the mode stays until the pilot changes it)") if good else
+                          NavStatus(False, False, False, SOURCE_NONE, f"flying attitude targets and {why}: no descent"))
             previous, self._nav_status = self._nav_status, status
             target = self._target
+            # Counted with the status that shows it, so a reader never sees one without the other.
+            first_loss = status.gnss_lost and not self._gnss_lost_seen
+            if first_loss:
+                self._gnss_lost_seen = True
+                self.gnss_losses += 1
         if status.gnss_lost != previous.gnss_lost or status.position_lost != previous.position_lost:
             if status.gnss_lost or status.position_lost:
                 log.warning("navigation: %s", status.reason)
@@ -441,9 +492,7 @@ class MavlinkVehicle:
                      status.reason)
         if not status.gnss_lost or target is None or self.read_only:
             return
-        if not self._gnss_lost_seen:
-            self._gnss_lost_seen = True
-            self.gnss_losses += 1
+        if first_loss:
             if self.gnss_denied == "external-nav" and target.autopilot == "ardupilot":
                 log.warning("GNSS lost: switching the EKF to source set %d (VELXY ExternalNav)", self.ekf_source_set)
                 self._source_set = (0, now)
@@ -513,6 +562,9 @@ class MavlinkVehicle:
             reason = self._refusal_locked()
             if reason is None:
                 self._cmd, self._cmd_time_s, self._cmd_zeroed = cmd, self._clock(), False
+                # The body frame the command means: the heading when it arrives (yaw_control 'autopilot'
+                # sends it in the local frame, so repeats never turn with the vehicle).
+                self._cmd_yaw_rad = self._attitude_rad[2]
                 self._steered = True
             else:
                 reason = self._maybe_request_mode_locked(reason)
@@ -869,9 +921,14 @@ class MavlinkVehicle:
             return  # the rangefinder keeps publishing on its own
         now = self._clock()
         with self._lock:
-            local_s, glob = self._local_s, self._global
-            if local_s is None or now - local_s <= self._nav.local_stale_s:
-                return  # the local position still streams (or never did: nothing to fall back from)
+            local_s, glob, asked_s = self._local_s, self._global, self._streams_asked_s
+            if local_s is None:
+                # Never had one: fall back only once it clearly is not coming (a controller started
+                # after the loss); at a normal start the local position follows the request at once.
+                if asked_s is None or now - asked_s <= _LOCAL_NEVER_S:
+                    return
+            elif now - local_s <= _LOCAL_FALLBACK_S:
+                return  # the local position still streams
             if glob is None or now - glob[2] > _GLOBAL_FRESH_S:
                 return  # no altitude we believe: a made-up state is worse than the stale-state hold
             roll, pitch, yaw = self._attitude_rad
@@ -961,6 +1018,8 @@ class MavlinkVehicle:
     def _request_streams(self) -> None:
         """MAV_CMD_SET_MESSAGE_INTERVAL for what the state is made of, at `stream_rate_hz`."""
         interval_us = float(int(1e6 / self.stream_rate_hz))
+        if self._streams_asked_s is None:
+            self._streams_asked_s = self._clock()
         # GLOBAL_POSITION_INT: the barometric height that outlives LOCAL_POSITION_NED without GNSS.
         wanted = [MSG_ID_LOCAL_POSITION_NED, MSG_ID_ATTITUDE, MSG_ID_GLOBAL_POSITION_INT]
         if self.alt_source == "rangefinder":
@@ -1009,13 +1068,38 @@ class MavlinkVehicle:
         if attitude_flying:
             return self._send_attitude_target(cmd, target)
         (vx, vy, vz), yaw_rate = self._final_setpoint(cmd)
+        frame, mask, yaw = STEER_FRAME[target.autopilot], self.type_mask, 0.0
+        if self.yaw_control == "autopilot":
+            frame, mask, (vx, vy), yaw = self._local_setpoint(vx, vy, yaw_rate)
         time_boot_ms = int(self._clock() * 1000.0) & 0xFFFFFFFF
         ok = self._tx(lambda mav: mav.set_position_target_local_ned_send(
-            time_boot_ms, target.system, target.component, STEER_FRAME[target.autopilot], self.type_mask,
-            0.0, 0.0, 0.0, vx, vy, vz, 0.0, 0.0, 0.0, 0.0, yaw_rate))
+            time_boot_ms, target.system, target.component, frame, mask,
+            0.0, 0.0, 0.0, vx, vy, vz, 0.0, 0.0, 0.0, yaw, yaw_rate))
         if ok:
             self.setpoints_sent += 1
         return ok
+
+    def _local_setpoint(self, fwd: float, right: float,
+                        yaw_rate: float) -> tuple[int, int, tuple[float, float], float]:
+        """yaw_control 'autopilot': (frame, mask, north/east velocity, heading) of a body command.
+
+        The body velocity is rotated by the heading it was meant in (when the command arrived) into
+        MAV_FRAME_LOCAL_NED, and the heading held since steering began goes with it as an absolute
+        yaw: the autopilot's heading controller holds it, so the camera, and with it the policy's
+        body frame, does not turn (WP_YAW_BEHAVIOR would point the nose along the track). A
+        deliberate turn (a yaw rate) is followed, and the heading is held wherever it ends.
+        """
+        with self._lock:
+            meant_yaw, yaw = self._cmd_yaw_rad, self._attitude_rad[2]
+            if yaw_rate != 0.0:
+                self._yaw_ref_rad = None
+            elif self._yaw_ref_rad is None:
+                self._yaw_ref_rad = yaw
+            ref = self._yaw_ref_rad
+        north, east = to_ne(fwd, right, meant_yaw)
+        if ref is None:
+            return MAV_FRAME_LOCAL_NED, TYPE_MASK_VELOCITY_YAW_RATE, (north, east), 0.0
+        return MAV_FRAME_LOCAL_NED, TYPE_MASK_VELOCITY_YAW, (north, east), ref
 
     def _send_attitude_target(self, cmd: VelocityCommand, target: _Target) -> bool:
         """The command flown by our own velocity loop: SET_ATTITUDE_TARGET from the visual velocity."""

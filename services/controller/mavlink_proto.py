@@ -69,6 +69,7 @@ MSG_ID_EKF_STATUS_REPORT = 193
 MSG_ID_ESTIMATOR_STATUS = 230
 MSG_ID_HOME_POSITION = 242
 MSG_ID_ODOMETRY = 331
+MSG_ID_VISION_POSITION_DELTA = 11011  # ardupilotmega: body-frame displacement between two frames
 MAV_FRAME_LOCAL_FRD = 20
 MAV_ESTIMATOR_TYPE_VISION = 2
 GPS_FIX_TYPE_3D = 3  # GPS_RAW_INT.fix_type: below this there is no position fix
@@ -87,6 +88,7 @@ SEVERITY_NAMES = ("EMERGENCY", "ALERT", "CRITICAL", "ERROR", "WARNING", "NOTICE"
 # SET_POSITION_TARGET_LOCAL_NED type masks (bits set = field ignored).
 TYPE_MASK_VELOCITY_YAW_RATE = 0x05C7  # use vx, vy, vz and yaw_rate
 TYPE_MASK_VELOCITY_ONLY = 0x0DC7  # use vx, vy, vz; the autopilot chooses the heading
+TYPE_MASK_VELOCITY_YAW = 0x09C7  # use vx, vy, vz and yaw (an absolute heading in MAV_FRAME_LOCAL_NED)
 # SET_ATTITUDE_TARGET: ignore all three body rates (bits 0-2), use the quaternion and thrust.
 # ArduCopter takes the rates all or none: a partial mask is discarded and guided re-initialised
 # (GCS_Mavlink.cpp handle_message_set_attitude_target), so the heading rides in the quaternion.
@@ -105,8 +107,10 @@ ALT_SOURCES = ("local", "rangefinder")
 # hold: zero velocity; land: the autopilot's LAND mode; precland: LAND while streaming
 # LANDING_TARGET at the chosen spot (ArduPilot PLND_TYPE=1, PX4 precision landing); none: stop.
 HANDOVERS = ("hold", "land", "precland", "none")
-# rate: velocity + a yaw rate that holds the heading seen from ATTITUDE (closed loop, mask
-# 0x05C7); autopilot: velocity only (0x0DC7), the autopilot picks the heading (WP_YAW_BEHAVIOR).
+# rate: body-frame velocity + a yaw rate that holds the heading seen from ATTITUDE (our closed
+# loop, mask 0x05C7); autopilot: velocity in MAV_FRAME_LOCAL_NED + the held heading as a yaw angle
+# (0x09C7), so the autopilot's own heading controller holds it. Velocity alone (0x0DC7) let
+# ArduCopter turn the nose by WP_YAW_BEHAVIOR and the body-frame policy ran out of the world.
 YAW_CONTROLS = ("rate", "autopilot")
 
 # Plausible ranges of what an autopilot reports; anything outside is a fault, not a flight.

@@ -45,7 +45,13 @@ from typing import Any, Protocol
 import zenoh
 
 from dovesei.controller.core import HANDOVER_ACTIONS, ControllerConfig, ControllerCore, ControllerInputError, Mode
-from dovesei.controller.gnss_denied import GNSS_DENIED_MODES, AttitudeGains, NavStatus, OdometryLimits
+from dovesei.controller.gnss_denied import (
+    EXTERNAL_NAV_MESSAGES,
+    GNSS_DENIED_MODES,
+    AttitudeGains,
+    NavStatus,
+    OdometryLimits,
+)
 from dovesei.controller.mavlink_proto import SpeedLimits, load_signing_key
 from dovesei.controller.policies.base import policy_names
 from dovesei.shared import keys, validate
@@ -65,6 +71,7 @@ from dovesei.shared.messages import (
 )
 from dovesei.shared.recording import FlightRecorder
 from dovesei.shared.timing import DEFAULT_TIMING, TIMING_NAMES
+from dovesei.shared.zconfig import open_session
 
 log = logging.getLogger(__name__)
 
@@ -176,6 +183,7 @@ def open_vehicle(session: zenoh.Session, config: ControllerConfig) -> Vehicle:
                              signing_key=load_signing_key(key_file) if key_file else None,
                              signing_timestamp_file=f"{key_file}.timestamp" if key_file else None,
                              gnss_denied=config.gnss_denied, ekf_source_set=config.ekf_source_set,
+                             external_nav_message=config.external_nav_message,
                              odometry_limits=OdometryLimits(max_age_s=config.odometry_max_age_s,
                                                             min_quality=config.odometry_min_quality),
                              attitude_gains=AttitudeGains(max_tilt_rad=math.radians(config.attitude_max_tilt_deg),
@@ -203,6 +211,7 @@ class RunStats:
     missed_ticks: int = 0  # real time: whole periods skipped after an overrun
     send_errors: int = 0
     states_published: int = 0  # MAVLink: vehicle states republished on the state key
+    geofence_clipped: int = 0  # commands the geofence capped (see core.py)
     odometry_received: int = 0  # MAVLink --gnss-denied: visual velocities handed to the adapter
     odometry_payloads_rejected: int = 0
     core_refusals: dict[str, int] = field(default_factory=dict)
@@ -363,6 +372,7 @@ class _Loop:
             stats.odometry_payloads_rejected = sum(self.odometry.rejected.values())
         stats.state_payloads_rejected = int(getattr(self.vehicle, "rejected", 0))
         stats.core_refusals = dict(self.core.rejected)
+        stats.geofence_clipped = self.core.geofence.clipped if self.core.geofence is not None else 0
         counters = getattr(self.vehicle, "counters", None)
         stats.vehicle_link = counters() if callable(counters) else {}
         return stats
@@ -596,6 +606,10 @@ CLI = CommandLine(ControllerConfig, {
                           check=lambda w, v: validate.in_range(w, v, 1.0, 500.0)),
     "takeoff_ready_timeout_s": Flag("--takeoff-ready-timeout-s", "takeoff: give up when the autopilot cannot arm "
                                     "within this, naming its pre-arm reasons", check=validate.positive),
+    "geofence_radius_m": Flag("--geofence-radius-m", "largest distance from the start, dead-reckoned from the "
+                              "velocity estimate, that any policy may fly (default: off with the sim, "
+                              "400 m with a MAVLink vehicle; 0: off)",
+                              check=lambda w, v: validate.in_range(w, v, 0.0, 100_000.0)),
     "gnss_denied": Flag("--gnss-denied", "MAVLink without GNSS: 'external-nav' streams the camera's velocity to the "
                         "EKF (VISION_SPEED_ESTIMATE) and switches it to --ekf-source-set on a loss; 'attitude' "
                         "switches ArduPilot to GUIDED_NOGPS and flies attitude targets on it; 'off' reports the "
@@ -603,6 +617,9 @@ CLI = CommandLine(ControllerConfig, {
                         choices=GNSS_DENIED_MODES),
     "ekf_source_set": Flag("--ekf-source-set", "external-nav: the EK3 source set (1-3) whose VELXY is ExternalNav",
                            check=lambda w, v: validate.in_range(w, v, 1, 3)),
+    "external_nav_message": Flag("--external-nav-message", "external-nav on ArduPilot: 'speed' sends "
+                                 "VISION_SPEED_ESTIMATE, 'delta' VISION_POSITION_DELTA (body odometry: EKF3 keeps a "
+                                 "relative position for GUIDED with it), 'both' the two", choices=EXTERNAL_NAV_MESSAGES),
     "odometry_min_quality": Flag("--odometry-min-quality", "visual velocity below this quality (0-1) is not flown on",
                                  check=lambda w, v: validate.in_range(w, v, 0.0, 1.0)),
     "odometry_max_age_s": Flag("--odometry-max-age-s", "visual velocity older than this at arrival is stale",
@@ -626,7 +643,7 @@ def main(argv: list[str] | None = None) -> int:
     # Python thread (e.g. a MAVLink reader) is busy: that default alone would break the 5 ms jitter.
     sys.setswitchinterval(0.001)
     try:
-        with zenoh.open(zconf) as session:
+        with open_session(zconf) as session:
             stats = run(session, config=config, stop=stop)
     except DoveseiError as exc:
         log.error("controller stopped: %s", exc)

@@ -34,6 +34,7 @@ import json
 import logging
 import threading
 import time
+import typing
 from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -46,8 +47,11 @@ from dovesei.shared.cliconfig import (
 )
 from dovesei.shared.codec import decode, encode
 from dovesei.shared.errors import ConfigError, DoveseiError, ProtocolError
-from dovesei.shared.lifecycle import Inbox, RateLimitedLog, declare_alive, install_stop_handlers, write_stats
+from dovesei.shared.lifecycle import (
+    Inbox, RateLimitedLog, declare_alive, exit_process, install_stop_handlers, write_stats,
+)
 from dovesei.shared.messages import CameraFrame, PromptSetMsg, SafetyHeatmap, replace
+from dovesei.shared.zconfig import SessionError, open_session
 
 from .core import (
     BACKENDS, DTYPES, HEATMAP_DTYPES, REJECT_VEHICLE, BackendUnavailableError, ClipSegFrameBackend, FrameBackend,
@@ -410,12 +414,26 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (DoveseiError, ValueError) as exc:
         log.error("segmenter not started: %s", exc)
         return 2
-    with zenoh.open(zconf) as session:
-        stats = run(session, config=config, stop=stop, backend=backend)
+    try:
+        with open_session(zconf) as session:
+            stats = run(session, config=config, stop=stop, backend=backend)
+    except SessionError as exc:  # a taken listen port, an unreachable router: one line, not a traceback
+        log.error("segmenter not started: %s", exc)
+        return 1
     if process.stats_out is not None:
         write_stats(process.stats_out, stats)
     return 0
 
 
+def cli() -> typing.NoReturn:
+    """The process entry (`dovesei-segmenter`, `python -m`): `main`, then out without the teardown.
+
+    Once torch and transformers are imported (CLIPSeg, or `auto` trying it) the interpreter's own
+    teardown took 2-5 s after `main` returned; `main` has closed the session and written the stats
+    by then, so the process ends at once (`exit_process`) and a SIGTERM ends it promptly.
+    """
+    exit_process(main())
+
+
 if __name__ == "__main__":
-    raise SystemExit(main())
+    cli()

@@ -3,10 +3,13 @@
 Each step k (t = k * dt) produces, in this order:
 
 1. a `CameraFrame` when one is due (every `frame_period_s` of sim time), rendered at the
-   vehicle's pose, with the ground-truth labels attached (sim only: the simulated perception
-   needs them, a real camera never has them);
+   vehicle's true pose (tilted with the body unless the vehicle profile has a gimbal), labelled
+   with the altitude and attitude the autopilot reports, with the ground-truth labels attached
+   (sim only: the simulated perception needs them, a real camera never has them);
 2. the `VehicleState` of step k, whose `await_frame_seq` names the frame whose heatmap becomes
-   available at this step (captured `latency_s` earlier; -1 when none does);
+   available at this step (captured `latency_s` earlier; -1 when none does). Under the `ideal`
+   vehicle profile it is the truth; under the others it is the autopilot's estimate
+   (`dovesei.sim.estimator`), `pos_valid` False: the truth stays here, with the judge;
 3. with `odometry_rate_hz` > 0, a `VisualOdometry` when one is due: the onboard camera's visual
    velocity from views rendered at the true pose, tagged with the state's altitude and attitude
    (`dovesei.sim.odometry`; published before the state, so a controller has it when it decides);
@@ -20,7 +23,7 @@ pose THAT frame was rendered at, and hands the point to the judge (touchdown err
 `step(cmd)` applies the controller's answer to step k for dt and returns step k+1. A command
 counts only while it is fresh on the sim's own clock, as an autopilot's guided mode does
 (ArduPilot's GUID_TIMEOUT): its stamp must be on the "sim" clock, not in the future, and at most
-`vehicle.cmd_timeout_s` old; otherwise it is dropped (counted in `commands_dropped`) and the
+the vehicle's `cmd_timeout_s` old; otherwise it is dropped (counted in `commands_dropped`) and the
 vehicle flies on the last fresh one until that, too, times out and it brakes to a hover. In
 lockstep every command carries the stamp of the state it answers, so none is ever dropped. The Zenoh
 service publishes these in lockstep or real time; the bench calls them directly. Timing presets
@@ -45,8 +48,9 @@ from dovesei.shared.messages import (
     CameraFrame, ClassEntry, ControllerStatus, EpisodeResult, GroundTruth, Stamp, VehicleState, VelocityCommand,
     VisualOdometry,
 )
-from dovesei.sim.camera import CameraError, CameraModel, ground_point_m, render
+from dovesei.sim.camera import CameraError, CameraModel, ground_point_m, optical_axis_ground_m, render
 from dovesei.sim.dynamics import Pose, Vehicle, VehicleParams
+from dovesei.sim.estimator import SIM_DEFAULT_VEHICLE_PROFILE, Estimate, Estimator, vehicle_profile
 from dovesei.sim.judge import EpisodeJudge
 from dovesei.sim.odometry import SimOdometry
 from dovesei.sim.starts import Start
@@ -73,6 +77,9 @@ class SimConfig:
     frame_period_s: float | None = None  # None: the timing preset's
     latency_s: float | None = None  # None: the timing preset's
     camera: CameraModel = field(default_factory=CameraModel)
+    # The profile's dynamics, with every field of `vehicle` that differs from VehicleParams()
+    # taking precedence (an explicit --cmd-max-age-s wins over the profile's GUID_TIMEOUT).
+    vehicle_profile: str = SIM_DEFAULT_VEHICLE_PROFILE
     vehicle: VehicleParams = field(default_factory=VehicleParams)
     handover_alt_m: float = 20.0
     time_limit_s: float = 1200.0
@@ -86,6 +93,7 @@ class SimConfig:
 
     def __post_init__(self) -> None:
         timing(self.timing)  # a ConfigError naming the presets
+        vehicle_profile(self.vehicle_profile)  # a ConfigError naming the profiles
         for name in ("dt_s", "time_limit_s", "safety_radius_m"):
             validate.positive(f"sim {name}", getattr(self, name))
         validate.non_negative("sim handover_alt_m", self.handover_alt_m)
@@ -126,8 +134,11 @@ class SimCore:
 
     def reset(self) -> StepOut:
         cfg = self.config
+        profile = vehicle_profile(cfg.vehicle_profile)
         self.vehicle = Vehicle(Pose(self.start.x_m, self.start.y_m, self.start.alt_m, yaw_rad=self.start.yaw_rad),
-                               cfg.vehicle, seed=cfg.seed)
+                               profile.episode_dynamics(cfg.vehicle, cfg.seed), seed=cfg.seed)
+        self._gimbal = profile.gimbal
+        self.estimator = None if profile.estimator is None else Estimator(profile.estimator, cfg.seed, cfg.dt_s)
         self.judge = EpisodeJudge(self.world, handover_alt_m=cfg.handover_alt_m, time_limit_s=cfg.time_limit_s,
                                   safety_radius_m=cfg.safety_radius_m)
         self._odometry = SimOdometry(self.world, cfg.camera, cfg.vehicle_id, cfg.odometry_rate_hz) \
@@ -153,6 +164,10 @@ class SimCore:
         st = self.vehicle.state
         return st.x_m, st.y_m
 
+    def true_pose(self) -> Pose:
+        """The vehicle's true pose (position, altitude, attitude): for the judge and reports only."""
+        return self.vehicle.state
+
     def step(self, cmd: VelocityCommand | None) -> StepOut:
         """Apply the newest command for one step (None: keep the last one; it times out in the vehicle)."""
         if self.vehicle is None:
@@ -173,7 +188,7 @@ class SimCore:
     def is_fresh(self, cmd: VelocityCommand) -> bool:
         """True when the command's stamp is on the sim clock, not ahead of it and not too old."""
         age_s = self.t_s - cmd.stamp.t_s
-        return cmd.stamp.clock == "sim" and -_EPS_S <= age_s <= self.config.vehicle.cmd_timeout_s + _EPS_S
+        return cmd.stamp.clock == "sim" and -_EPS_S <= age_s <= self.vehicle.params.cmd_timeout_s + _EPS_S
 
     def note_status(self, status: ControllerStatus) -> None:
         """Take the controller's confirming look from its status: the spot pixel of that frame,
@@ -227,41 +242,68 @@ class SimCore:
         sched_t_s = round(self._k * cfg.dt_s, 9)
         pose = dataclasses.replace(self.vehicle.state, t_s=sched_t_s)
         outcome = self.judge.check(pose)
+        est = None if self.estimator is None else self.estimator.update(pose, self.vehicle.vel_own_ned_m_s)
         frame = None
         if outcome is None and sched_t_s >= (self._frame_seq + 1) * cfg.period_s - _EPS_S:
-            frame = self._render(pose)
+            frame = self._render(pose, est)
             self._in_flight.append((frame.seq, sched_t_s + cfg.delay_s))
         await_seq = -1
         # At most one heatmap becomes due per step (frame period >= step); take the newest due.
         while self._in_flight and self._in_flight[0][1] <= sched_t_s + _EPS_S:
             await_seq = self._in_flight.popleft()[0]
-        state = VehicleState(
-            vehicle_id=cfg.vehicle_id, seq=self._k, stamp=Stamp(pose.t_s, "sim"), alt_agl_m=pose.alt_agl_m,
-            vel_body_frd_m_s=pose.vel_body_frd_m_s(), yaw_rad=pose.yaw_rad, armed=True, mode="SIM",
-            pos_valid=True, pos_local_ned_m=(pose.y_m - self.start.y_m, pose.x_m - self.start.x_m, -pose.alt_agl_m),
-            await_frame_seq=await_seq, sent_wall_s=wall_time_s())
+        if est is None:
+            state = VehicleState(
+                vehicle_id=cfg.vehicle_id, seq=self._k, stamp=Stamp(pose.t_s, "sim"), alt_agl_m=pose.alt_agl_m,
+                vel_body_frd_m_s=pose.vel_body_frd_m_s(), yaw_rad=pose.yaw_rad, armed=True, mode="SIM",
+                pos_valid=True, pos_local_ned_m=(pose.y_m - self.start.y_m, pose.x_m - self.start.x_m, -pose.alt_agl_m),
+                await_frame_seq=await_seq, sent_wall_s=wall_time_s())
+        else:
+            # What the autopilot reports: no GNSS, so no valid position (the dead-reckoned one
+            # travels along for displays, flagged invalid); the truth stays with the judge.
+            state = VehicleState(
+                vehicle_id=cfg.vehicle_id, seq=self._k, stamp=Stamp(pose.t_s, "sim"), alt_agl_m=est.alt_agl_m,
+                vel_body_frd_m_s=est.vel_body_frd_m_s, roll_rad=est.roll_rad, pitch_rad=est.pitch_rad,
+                yaw_rad=est.yaw_rad, armed=True, mode="SIM", pos_valid=False, pos_local_ned_m=est.pos_local_ned_m,
+                await_frame_seq=await_seq, sent_wall_s=wall_time_s())
         odometry = None
         if self._odometry is not None and outcome is None:
-            # Rendered where the vehicle truly is, told only what the state reports.
-            odometry = self._odometry.observe(pose.x_m, pose.y_m, pose.alt_agl_m, pose.yaw_rad, state)
+            # Rendered where the vehicle truly is (tilted with the body unless gimballed), told
+            # only what the state reports.
+            roll, pitch = (0.0, 0.0) if self._gimbal else (pose.roll_rad, pose.pitch_rad)
+            odometry = self._odometry.observe(pose.x_m, pose.y_m, pose.alt_agl_m, pose.yaw_rad, state,
+                                              roll_rad=roll, pitch_rad=pitch,
+                                              tag_roll_pitch_rad=(0.0, 0.0) if self._gimbal else None)
         if outcome is not None:
             self._result = self._episode_result(outcome)
         return StepOut(state, frame, self._result, odometry)
 
-    def _render(self, pose: Pose) -> CameraFrame:
+    def _render(self, pose: Pose, est: Estimate | None) -> CameraFrame:
+        """The frame at the true pose, tilted with the body unless gimballed, labelled with the
+        estimate (the altitude and attitude a real camera service takes from the autopilot)."""
         cfg = self.config
-        image, labels, _valid = render(self.world, pose.x_m, pose.y_m, max(pose.alt_agl_m, 0.1), pose.yaw_rad,
-                                       cfg.camera, with_image=cfg.render_image,
+        alt_m = max(pose.alt_agl_m, 0.1)
+        roll, pitch = (0.0, 0.0) if self._gimbal else (pose.roll_rad, pose.pitch_rad)
+        image, labels, _valid = render(self.world, pose.x_m, pose.y_m, alt_m, pose.yaw_rad, cfg.camera,
+                                       roll_rad=roll, pitch_rad=pitch, with_image=cfg.render_image,
                                        with_labels=cfg.attach_truth)  # labels unused: skip their warp
         if image is None:
             image = self._blank_image()
-        truth = GroundTruth(labels, self._classes, (pose.x_m, pose.y_m)) if cfg.attach_truth and labels is not None else None
+        centre = (pose.x_m, pose.y_m) if roll == 0.0 and pitch == 0.0 else \
+            optical_axis_ground_m(pose.x_m, pose.y_m, alt_m, pose.yaw_rad, roll, pitch)
+        truth = GroundTruth(labels, self._classes, centre) if cfg.attach_truth and labels is not None else None
         self._frame_seq += 1
-        frame = CameraFrame(cfg.vehicle_id, self._frame_seq, Stamp(pose.t_s, "sim"), image, cfg.camera.hfov_rad,
-                            pose.alt_agl_m, yaw_rad=pose.yaw_rad, sent_wall_s=wall_time_s(), truth=truth)
-        # The pose the frame was rendered at, attitude included, for placing its pixels later.
-        self._frame_poses[frame.seq] = (pose.x_m, pose.y_m, max(pose.alt_agl_m, 0.1), pose.yaw_rad, frame.roll_rad,
-                                        frame.pitch_rad)
+        if est is None:
+            frame = CameraFrame(cfg.vehicle_id, self._frame_seq, Stamp(pose.t_s, "sim"), image, cfg.camera.hfov_rad,
+                                pose.alt_agl_m, yaw_rad=pose.yaw_rad, sent_wall_s=wall_time_s(), truth=truth)
+        else:
+            # A gimballed camera's frame is level whatever the autopilot's attitude says.
+            label_roll, label_pitch = (0.0, 0.0) if self._gimbal else (est.roll_rad, est.pitch_rad)
+            frame = CameraFrame(cfg.vehicle_id, self._frame_seq, Stamp(pose.t_s, "sim"), image, cfg.camera.hfov_rad,
+                                est.alt_agl_m, roll_rad=label_roll, pitch_rad=label_pitch, yaw_rad=est.yaw_rad,
+                                sent_wall_s=wall_time_s(), truth=truth)
+        # The TRUE pose the frame was rendered at, attitude included (not the frame's labels, which
+        # are the estimate), for placing its pixels later.
+        self._frame_poses[frame.seq] = (pose.x_m, pose.y_m, alt_m, pose.yaw_rad, roll, pitch)
         if len(self._frame_poses) > FRAME_POSES_KEPT:
             self._frame_poses.popitem(last=False)
         return frame

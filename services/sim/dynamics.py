@@ -5,14 +5,23 @@ Data flow per `Vehicle.step(dt_s, cmd, yaw_rate, cmd_t_s)`:
     command (body FRD, m/s) --stale?--> zero (brake to hover)
         -> rotate by heading into NED -> clip to the speed limits
         -> first-order velocity loop, its change clipped by the acceleration limits
-           (horizontal: min(accel limit, g * tan(tilt limit)))
-        -> + wind (constant + Ornstein-Uhlenbeck gusts) + drift (random walk) = ground velocity
+           (horizontal: min(accel limit, g * tan(tilt limit))) and, when a jerk limit is set,
+           the change of that acceleration clipped by jerk x dt (ArduCopter's shaped velocity)
+        -> / (1 + scale_error) + wind (constant + Ornstein-Uhlenbeck gusts) + drift (random walk)
+           = ground velocity
         -> integrate position (world frame: x_m east, y_m north, alt_agl_m up; ground at 0)
+        -> attitude: the roll and pitch that tilt the thrust to give the horizontal acceleration
+           (plus linear drag on the vehicle's own velocity), for a camera fixed to the body
 
 The velocity the autopilot controls (`vel_own_ned_m_s`) is relative to a frame that the
 disturbances move: without GNSS the vehicle cannot see wind or estimator drift, so a hover
-command still drifts at wind + drift. The speed and acceleration limits bound the vehicle's own
+command still drifts at wind + drift. `scale_error` is the estimate's scale error: an autopilot
+whose velocity estimate reads (1 + e) x the truth tracks its commands on that estimate, so it truly
+flies its own velocity / (1 + e). The speed and acceleration limits bound the vehicle's own
 velocity; `Pose.vel_ned_m_s` is the ground velocity and includes the disturbances.
+
+With the defaults (no jerk limit, scale error 0, no wind) the arithmetic is exactly that of the
+model before these were added: the `ideal` vehicle profile relies on it.
 
 Deterministic: the only randomness (gusts, drift) comes from one numpy Generator seeded at
 construction, so the same seed and the same sequence of steps give the same trajectory.
@@ -51,6 +60,10 @@ class VehicleParams:
     gust_sigma_m_s: float = 0.0  # stationary std of each horizontal gust component
     gust_time_constant_s: float = 5.0
     drift_sigma_m_s_sqrt_s: float = 0.0  # random-walk velocity disturbance, per horizontal axis
+    jerk_limit_h_m_s3: float | None = None  # None: the acceleration may step (the original model)
+    scale_error: float = 0.0  # the velocity estimate reads (1 + e) x the truth; see the module docstring
+    drag_per_s: float = 0.0  # linear drag: only the attitude sees it (the autopilot's loop absorbs it)
+    max_descent_m_s: float | None = None  # None: max_speed_v_m_s both ways (ArduCopter: WPNAV_SPEED_DN)
 
     def __post_init__(self) -> None:
         positive = ("max_speed_h_m_s", "max_speed_v_m_s", "max_accel_h_m_s2", "max_accel_v_m_s2",
@@ -58,8 +71,12 @@ class VehicleParams:
         try:
             for name in positive:
                 validate.positive(f"VehicleParams.{name}", getattr(self, name))
-            for name in ("gust_sigma_m_s", "drift_sigma_m_s_sqrt_s"):
+            for name in ("gust_sigma_m_s", "drift_sigma_m_s_sqrt_s", "drag_per_s"):
                 validate.non_negative(f"VehicleParams.{name}", getattr(self, name))
+            for name in ("jerk_limit_h_m_s3", "max_descent_m_s"):
+                if getattr(self, name) is not None:
+                    validate.positive(f"VehicleParams.{name}", getattr(self, name))
+            validate.in_range("VehicleParams.scale_error", self.scale_error, -0.5, 0.5)
             validate.finite_vector("VehicleParams.wind_ned_m_s", self.wind_ned_m_s, 3)
         except ConfigError as exc:
             raise DynamicsError(str(exc)) from None
@@ -82,6 +99,8 @@ class Pose:
     vel_ned_m_s: tuple[float, float, float] = (0.0, 0.0, 0.0)  # ground velocity, down positive
     yaw_rad: float = 0.0  # heading: 0 north, +pi/2 east
     t_s: float = 0.0
+    roll_rad: float = 0.0  # FRD body attitude from the dynamics (right wing down > 0)
+    pitch_rad: float = 0.0  # nose up > 0
 
     def vel_body_frd_m_s(self) -> tuple[float, float, float]:
         """Ground velocity in the body frame (forward, right, down), as a flight controller reports it."""
@@ -120,6 +139,7 @@ class Vehicle:
         # The state's velocity is over ground; what the autopilot itself flies is that minus wind
         # (so a vehicle hovering in the wind starts with vel_ned_m_s = wind_ned_m_s).
         self._vel_own_ned = np.asarray(state.vel_ned_m_s, dtype=np.float64) - wind
+        self._accel_own_ned = np.zeros(3)  # the last step's own acceleration (for the jerk limit)
         self._state = replace(state, yaw_rad=wrap_angle_rad(state.yaw_rad))
         self.last_command_stale = True  # did the last step brake because no fresh command existed?
 
@@ -173,13 +193,27 @@ class Vehicle:
         if dv_h > max_dv_h:
             dv[:2] *= max_dv_h / dv_h
         dv[2] = min(max(dv[2], -p.max_accel_v_m_s2 * dt_s), p.max_accel_v_m_s2 * dt_s)
+        if p.jerk_limit_h_m_s3 is not None:
+            # The horizontal acceleration may change by at most jerk x dt per step: a multirotor
+            # has to tilt to accelerate, and ArduCopter shapes its velocity targets so it does
+            # not tilt faster than the jerk limit allows.
+            a_prev = self._accel_own_ned[:2]
+            da = dv[:2] / dt_s - a_prev
+            da_norm = math.hypot(da[0], da[1])
+            if da_norm > p.jerk_limit_h_m_s3 * dt_s:
+                dv[:2] = (a_prev + da * (p.jerk_limit_h_m_s3 * dt_s / da_norm)) * dt_s
         v1 = v0 + dv
+        self._accel_own_ned = dv / dt_s
 
         disturb0 = self._gust_ned + self._drift_ned
         self._advance_disturbances(dt_s)
         wind = np.asarray(p.wind_ned_m_s, dtype=np.float64)
-        ground0 = v0 + wind + disturb0
-        ground1 = v1 + wind + self._gust_ned + self._drift_ned
+        if p.scale_error != 0.0:
+            ground0 = v0 / (1.0 + p.scale_error) + wind + disturb0
+            ground1 = v1 / (1.0 + p.scale_error) + wind + self._gust_ned + self._drift_ned
+        else:
+            ground0 = v0 + wind + disturb0
+            ground1 = v1 + wind + self._gust_ned + self._drift_ned
         move = 0.5 * (ground0 + ground1) * dt_s  # trapezoid: exact for the linear velocity ramp
 
         alt = st.alt_agl_m - move[2]
@@ -190,6 +224,7 @@ class Vehicle:
             v1[2] = min(v1[2], 0.0)  # NED: only an upward (negative down) velocity survives
             ground1 = np.zeros(3)
         self._vel_own_ned = v1
+        roll, pitch = self._attitude(yaw_new) if alt > 0.0 else (0.0, 0.0)
         self._state = Pose(
             x_m=st.x_m + move[1],
             y_m=st.y_m + move[0],
@@ -197,8 +232,23 @@ class Vehicle:
             vel_ned_m_s=(float(ground1[0]), float(ground1[1]), float(ground1[2])),
             yaw_rad=yaw_new,
             t_s=st.t_s + dt_s,
+            roll_rad=roll,
+            pitch_rad=pitch,
         )
         return self._state
+
+    def _attitude(self, yaw_rad: float) -> tuple[float, float]:
+        """Roll and pitch whose thrust gives this step's own acceleration plus the drag to overcome.
+
+        Thrust along body up must supply (a_forward, a_right, g - a_down) in the heading-level
+        frame; for the ZYX attitude that is pitch = atan2(-a_f, g - a_d) (nose down to speed up)
+        and roll = atan2(a_r, hypot(a_f, g - a_d)) (right wing down to go right).
+        """
+        a = self._accel_own_ned + self.params.drag_per_s * self._vel_own_ned
+        c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+        a_f, a_r = c * a[0] + s * a[1], -s * a[0] + c * a[1]
+        up = max(GRAVITY_M_S2 - a[2], 0.1 * GRAVITY_M_S2)  # never a free fall: some thrust remains
+        return math.atan2(a_r, math.hypot(a_f, up)), math.atan2(-a_f, up)
 
     def _clip_velocity(self, v_ned: np.ndarray) -> np.ndarray:
         p = self.params
@@ -206,7 +256,8 @@ class Vehicle:
         speed_h = math.hypot(out[0], out[1])
         if speed_h > p.max_speed_h_m_s:
             out[:2] *= p.max_speed_h_m_s / speed_h  # keep the direction, cap the magnitude
-        out[2] = min(max(out[2], -p.max_speed_v_m_s), p.max_speed_v_m_s)
+        down_m_s = p.max_speed_v_m_s if p.max_descent_m_s is None else p.max_descent_m_s
+        out[2] = min(max(out[2], -p.max_speed_v_m_s), down_m_s)
         return out
 
     def _advance_disturbances(self, dt_s: float) -> None:

@@ -15,24 +15,37 @@ vehicle's clock); with `odometry_rate_hz` the loop also runs at that rate and pu
 odometry of views rendered at the same pose (`dovesei.sim.odometry`), dated by the state's stamp
 moved on by the wall time since it arrived. No state within `wait_timeout_s` of the start, or none for `state_timeout_s`
 later, ends the episode as 'error' naming the key.
+
+With a truth source (ArduPilot SITL's SIM_STATE, `dovesei.sim.sitl_truth`) the images, the odometry
+views and the judge follow the simulator's TRUE pose and attitude instead, while everything a
+policy reads stays the estimate's:
+
+    state key (the EKF's estimate) --> the frame's stamp, altitude and attitude labels (what a policy sees)
+    SIM_STATE (the physics' truth)  --> where and how tilted the image is rendered, the labels, the judge
+
+so the camera sees the vehicle's real motion, as a real camera would, and the estimate's drift
+shows. The states then need no local position (an EKF without GNSS may have none); a truth that
+stops ends the episode as 'error' naming its source.
 """
 
 from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections.abc import Callable
-from typing import Any
+from typing import Any, Protocol
 
 from dovesei.shared import keys
 from dovesei.shared.clock import WallClock, wall_time_s
 from dovesei.shared.lifecycle import Inbox
 from dovesei.shared.messages import CameraFrame, ClassEntry, EpisodeResult, GroundTruth, VehicleState, VisualOdometry
-from dovesei.sim.camera import CameraError, optical_axis_ground_m, render
+from dovesei.sim.camera import CameraError, optical_axis_ground_m, prebuild_pyramid, render
 from dovesei.sim.core import SimConfig, judge_result, unstarted_result
 from dovesei.sim.dynamics import Pose
 from dovesei.sim.judge import EpisodeJudge
 from dovesei.sim.odometry import SimOdometry
+from dovesei.sim.sitl_truth import TruePose
 from dovesei.sim.starts import Start
 from dovesei.sim.world import World
 
@@ -43,6 +56,12 @@ log = logging.getLogger(__name__)
 POSE_WARMUP_S = 0.3
 # When the loop falls this far behind its schedule (a stalled host) it restarts the schedule.
 _MAX_BEHIND_S = 1.0
+# The camera's pyramid levels are built before the first frame for views up to this factor above the
+# start (a slant view tilted 48 deg, or a climb of half the start altitude): built lazily mid-flight
+# each level stalls the real-time loop 1-3 s (measured against SITL), and the first frame, stamped
+# 5 s late, became the segmenter's clock reference, which then refused every fresh frame as "from
+# the future" until `up` declared it hung (issue 26).
+PREBUILD_ALT_FACTOR = 1.5
 
 
 class PoseCamera:
@@ -53,22 +72,33 @@ class PoseCamera:
         self.classes = tuple(ClassEntry(int(i), c.name, bool(c.safe)) for i, c in sorted(world.classes.items()))
         self.seq = -1
 
-    def frame(self, pose: Pose, state: VehicleState) -> CameraFrame:
-        """The view at `pose` tilted by the state's roll and pitch, labelled with that attitude.
+    def frame(self, pose: Pose, state: VehicleState, attitude_rad: tuple[float, float] | None = None) -> CameraFrame:
+        """The view at `pose` tilted by `attitude_rad` (roll, pitch; default the state's), labelled
+        with what `state` says: a real camera's frame carries the autopilot's estimate of its
+        altitude and attitude, never the truth it was taken at.
 
         CameraError when the attitude puts the view at the horizon (the caller skips that frame).
         """
         cam = self.sim.camera
+        roll_rad, pitch_rad = (state.roll_rad, state.pitch_rad) if attitude_rad is None else attitude_rad
         # A vehicle on the ground still needs a view; 0.1 m keeps the pinhole model defined.
         alt_m = max(pose.alt_agl_m, 0.1)
         image, labels, _valid = render(self.world, pose.x_m, pose.y_m, alt_m, pose.yaw_rad, cam,
-                                       roll_rad=state.roll_rad, pitch_rad=state.pitch_rad)
-        centre = optical_axis_ground_m(pose.x_m, pose.y_m, alt_m, pose.yaw_rad, state.roll_rad, state.pitch_rad)
+                                       roll_rad=roll_rad, pitch_rad=pitch_rad)
+        centre = optical_axis_ground_m(pose.x_m, pose.y_m, alt_m, pose.yaw_rad, roll_rad, pitch_rad)
         truth = GroundTruth(labels, self.classes, centre) if self.sim.attach_truth and labels is not None else None
         self.seq += 1
-        return CameraFrame(self.sim.vehicle_id, self.seq, state.stamp, image, cam.hfov_rad, pose.alt_agl_m,
-                           roll_rad=state.roll_rad, pitch_rad=state.pitch_rad, yaw_rad=pose.yaw_rad,
+        return CameraFrame(self.sim.vehicle_id, self.seq, state.stamp, image, cam.hfov_rad, max(state.alt_agl_m, 0.0),
+                           roll_rad=state.roll_rad, pitch_rad=state.pitch_rad, yaw_rad=state.yaw_rad,
                            sent_wall_s=wall_time_s(), truth=truth)
+
+
+class TruthSource(Protocol):
+    """Where the simulator's true pose comes from (`dovesei.sim.sitl_truth.SitlTruth`, or a test's)."""
+
+    url: str
+
+    def newest(self) -> TruePose | None: ...
 
 
 def pose_in_world(state: VehicleState, start: Start) -> Pose:
@@ -78,14 +108,23 @@ def pose_in_world(state: VehicleState, start: Start) -> Pose:
                 yaw_rad=state.yaw_rad, t_s=state.stamp.t_s)
 
 
-def newest_state(states: Inbox[VehicleState], vehicle_id: str, stats: Any) -> VehicleState | None:
-    """The newest state of `vehicle_id` with a local position waiting in the inbox, or None."""
+def pose_from_truth(true: TruePose, start: Start, t_s: float) -> Pose:
+    """SITL's true pose placed in the world like `pose_in_world` (its origin at the start)."""
+    return Pose(x_m=start.x_m + true.east_m, y_m=start.y_m + true.north_m, alt_agl_m=max(true.alt_agl_m, 0.0),
+                vel_ned_m_s=true.vel_ned_m_s, yaw_rad=true.yaw_rad, t_s=t_s)
+
+
+def newest_state(states: Inbox[VehicleState], vehicle_id: str, stats: Any, *,
+                 need_position: bool = True) -> VehicleState | None:
+    """The newest state of `vehicle_id` waiting in the inbox (with a local position unless told
+    otherwise), or None."""
     newest = None
     while (state := states.poll()) is not None:
         if state.vehicle_id != vehicle_id:
             stats.states_foreign += 1
             continue
-        if state.pos_valid:  # until the autopilot has a local position there is no pose to render
+        # Without a truth source the local position IS the pose: none, nothing to render.
+        if state.pos_valid or not need_position:
             newest = state
     return newest
 
@@ -93,8 +132,12 @@ def newest_state(states: Inbox[VehicleState], vehicle_id: str, stats: Any) -> Ve
 def run_external_pose(states: Inbox[VehicleState], publish_frame: Callable[[CameraFrame], None], world: World,
                       start: Start, sim: SimConfig, *, wait_timeout_s: float, state_timeout_s: float,
                       stop: threading.Event, stats: Any,
-                      publish_odometry: Callable[[VisualOdometry], None] | None = None) -> EpisodeResult | None:
+                      publish_odometry: Callable[[VisualOdometry], None] | None = None,
+                      truth: TruthSource | None = None) -> EpisodeResult | None:
     """Render at the states received until the judge ends the episode; None when `stop` ends it first.
+
+    With `truth`, frames, odometry views and the judge follow its newest pose and attitude instead
+    (the states still stamp and label the frames).
 
     `stats` counts what happened (the service's SimStats: poses_received, states_foreign, steps,
     overruns, frames_skipped). With `sim.odometry_rate_hz` > 0 and `publish_odometry`, the loop
@@ -105,6 +148,8 @@ def run_external_pose(states: Inbox[VehicleState], publish_frame: Callable[[Came
                          safety_radius_m=sim.safety_radius_m)
     key = keys.state(sim.vehicle_id)
     camera = PoseCamera(world, sim)
+    build_s = prebuild_pyramid(world, sim.camera, PREBUILD_ALT_FACTOR * start.alt_m)
+    log.info("camera pyramid ready for views up to %.0f m (%.1f s)", PREBUILD_ALT_FACTOR * start.alt_m, build_s)
     clock = WallClock()
     last_state_wall_s: float | None = None
     first_state_wall_s: float | None = None
@@ -118,31 +163,40 @@ def run_external_pose(states: Inbox[VehicleState], publish_frame: Callable[[Came
         if clock.now_s() - due_s > _MAX_BEHIND_S:
             stats.overruns += 1
             due_s = clock.now_s() + tick_s
-        new = newest_state(states, sim.vehicle_id, stats)
+        new = newest_state(states, sim.vehicle_id, stats, need_position=truth is None)
         if new is not None:
             state = new
             stats.poses_received += 1
             last_state_wall_s = clock.now_s()
             if first_state_wall_s is None:
                 first_state_wall_s = last_state_wall_s
-                log.info("first vehicle state with a local position on %s", key)
-        if last_state_wall_s is None:
+                log.info("first vehicle state%s on %s", "" if truth else " with a local position", key)
+        true = truth.newest() if truth is not None else None
+        if last_state_wall_s is None or (truth is not None and true is None):
             if clock.now_s() > wait_timeout_s:
-                return unstarted_result(world, start, sim, f"no vehicle state with a local position on {key} "
-                                        f"within {wait_timeout_s:g} s (is the controller running against the "
-                                        "autopilot?)", clock="vehicle")
+                missing = (f"no SIM_STATE from SITL on {truth.url}" if last_state_wall_s is not None
+                           else f"no vehicle state{'' if truth else ' with a local position'} on {key}")
+                return unstarted_result(world, start, sim, f"{missing} within {wait_timeout_s:g} s (is the "
+                                        "controller running against the autopilot, and does SITL send to "
+                                        "the sim's own output?)", clock="vehicle")
             continue
         if clock.now_s() - last_state_wall_s > state_timeout_s:
             return judge_result(sim.vehicle_id, judge, "error", f"no vehicle state on {key} for {state_timeout_s:g} s",
                                 clock="vehicle")
+        if true is not None and time.monotonic() - true.recv_monotonic_s > state_timeout_s:
+            return judge_result(sim.vehicle_id, judge, "error",
+                                f"no SIM_STATE from SITL on {truth.url} for {state_timeout_s:g} s", clock="vehicle")
         if last_state_wall_s - first_state_wall_s < POSE_WARMUP_S:
             continue
-        pose = pose_in_world(state, start)
+        if true is None:
+            pose, attitude_rad = pose_in_world(state, start), (state.roll_rad, state.pitch_rad)
+        else:
+            pose, attitude_rad = pose_from_truth(true, start, state.stamp.t_s), (true.roll_rad, true.pitch_rad)
         if judge.check(pose) is not None:
             return judge_result(sim.vehicle_id, judge, judge.outcome, clock="vehicle")
         if odometry is not None:
             odo = odometry.observe(pose.x_m, pose.y_m, pose.alt_agl_m, pose.yaw_rad, state,
-                                   roll_rad=state.roll_rad, pitch_rad=state.pitch_rad)
+                                   roll_rad=attitude_rad[0], pitch_rad=attitude_rad[1])
             if odo is not None:
                 publish_odometry(odo)
         if clock.now_s() < next_frame_s - 1e-6:
@@ -150,7 +204,7 @@ def run_external_pose(states: Inbox[VehicleState], publish_frame: Callable[[Came
         next_frame_s = next_frame_s + sim.period_s if clock.now_s() - next_frame_s < _MAX_BEHIND_S \
             else clock.now_s() + sim.period_s
         try:
-            frame = camera.frame(pose, state)
+            frame = camera.frame(pose, state, attitude_rad)
         except CameraError as exc:  # an attitude no camera frame can show: skip it, keep serving
             stats.frames_skipped += 1
             log.warning("frame at state %d skipped: %s", state.seq, exc)

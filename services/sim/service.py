@@ -21,7 +21,10 @@ Three ways to run an episode, chosen by the config:
   with a local position is placed in the world with the local origin at the start (north = +y,
   east = +x), frames are rendered there at the frame rate of the wall clock and the judge
   watches the same world. Nothing is published on the state key in this mode: monitors read
-  the controller's states there directly.
+  the controller's states there directly. With `--sitl-truth udpin:HOST:PORT` (ArduPilot SITL),
+  the image and the judge follow SITL's TRUE pose, read from SIM_STATE on a SEPARATE SITL output
+  (`dovesei.sim.sitl_truth`), while the frames keep the estimate's stamp, altitude and attitude:
+  the truth never reaches a policy.
 
 `main` only parses flags, sets up logging and signals, loads the world, opens the session and
 calls `run`; `run` reads no flags or environment, so tests call it with a hand-made world.
@@ -48,8 +51,11 @@ from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.shared.lifecycle import Inbox, declare_alive, install_stop_handlers, is_alive, write_stats
 from dovesei.shared.messages import CameraFrame, EpisodeResult, VehicleState, VelocityCommand, VisualOdometry
 from dovesei.shared.timing import TIMING_NAMES
+from dovesei.shared.zconfig import open_session
 from dovesei.sim.core import SimConfig, SimCore, StepOut, unstarted_result
+from dovesei.sim.estimator import VEHICLE_PROFILE_NAMES
 from dovesei.sim.external import run_external_pose
+from dovesei.sim.sitl_truth import SitlTruth, parse_truth_url
 from dovesei.sim.starts import Start, generate_starts
 from dovesei.sim.world import World, WorldError, load_world
 
@@ -75,6 +81,9 @@ class SimServiceConfig:
     speed: float = 1.0  # real time only: sim seconds per wall second
     jpeg_quality: int | None = None  # None: raw frames on the wire
     external_pose: bool = False  # render at the VehicleState received on the state key, no own dynamics
+    # External pose against ArduPilot SITL: render and judge at SIM_STATE read on this SITL output
+    # (udpin:HOST:PORT, never the controller's link) instead of at the controller's estimate.
+    sitl_truth: str | None = None
     wait_for: tuple[str, ...] = ()  # liveliness tokens to see before the episode starts
     wait_timeout_s: float = 60.0
     cmd_timeout_s: float = 10.0  # lockstep: wall wait for a command; external pose: for a new state
@@ -91,6 +100,11 @@ class SimServiceConfig:
             validate.finite_vector("--start", self.start_xy_alt_m, 3)
         if not isinstance(self.external_pose, bool):
             raise ConfigError(f"sim service external_pose must be true or false, got {self.external_pose!r}")
+        if self.sitl_truth is not None:
+            parse_truth_url(self.sitl_truth)
+            if not self.external_pose:
+                raise ConfigError("--sitl-truth applies to the camera mode only (--external-pose): the sim's own "
+                                  "dynamics already know the truth")
 
 
 @dataclass
@@ -108,6 +122,8 @@ class SimStats:
     commands_rejected: int = 0  # payloads the codec refused (counted by the inbox)
     states_rejected: int = 0  # external pose: state payloads the codec refused
     poses_received: int = 0  # external pose: states of our vehicle with a local position used
+    truth_samples: int = 0  # external pose with --sitl-truth: SIM_STATEs received and checked
+    truth_rejected: int = 0  # ... and refused (out of range, non-finite)
     states_foreign: int = 0  # external pose: a vehicle id other than ours on our state key
     overruns: int = 0  # real time: schedule restarts after falling behind
     frames_skipped: int = 0  # external pose: states whose attitude no frame can show (view at the horizon)
@@ -231,9 +247,7 @@ def run(session: zenoh.Session, *, config: SimServiceConfig, stop: threading.Eve
         if missing:
             result = _never_started(world, start, config, missing)
         elif config.external_pose:
-            result = run_external_pose(wire.states, lambda frame: wire.publish_frame(frame, stats), world, start,
-                                       config.sim, publish_odometry=lambda odo: wire.publish_odometry(odo, stats), wait_timeout_s=config.wait_timeout_s,
-                                       state_timeout_s=config.cmd_timeout_s, stop=stop, stats=stats)
+            result = _run_external(wire, world, start, config, stop, stats)
         else:
             core = SimCore(world, start, config.sim)
             if config.lockstep:
@@ -254,6 +268,24 @@ def run(session: zenoh.Session, *, config: SimServiceConfig, stop: threading.Eve
         return result
     finally:
         wire.close()
+
+
+def _run_external(wire: _Wire, world: World, start: Start, config: SimServiceConfig, stop: threading.Event,
+                  stats: SimStats) -> EpisodeResult | None:
+    """Camera mode: render at the controller's states, or at SITL's truth when configured."""
+    def fly(truth: SitlTruth | None) -> EpisodeResult | None:
+        return run_external_pose(wire.states, lambda frame: wire.publish_frame(frame, stats), world, start,
+                                 config.sim, publish_odometry=lambda odo: wire.publish_odometry(odo, stats),
+                                 wait_timeout_s=config.wait_timeout_s, state_timeout_s=config.cmd_timeout_s,
+                                 stop=stop, stats=stats, truth=truth)
+
+    if config.sitl_truth is None:
+        return fly(None)
+    with SitlTruth(config.sitl_truth) as truth:
+        try:
+            return fly(truth)
+        finally:
+            stats.truth_samples, stats.truth_rejected = truth.samples, truth.rejected
 
 
 def _never_started(world: World, start: Start, config: SimServiceConfig, detail: str) -> EpisodeResult:
@@ -401,6 +433,9 @@ CLI = CommandLine(SimServiceConfig, {
     "sim.handover_alt_m": Flag("--handover-alt-m", "the episode ends (and is judged) at this altitude",
                                check=validate.non_negative),
     "sim.seed": Flag("--seed", "seed of the vehicle's disturbances"),
+    "sim.vehicle_profile": Flag("--vehicle-profile", "what the vehicle reports and how it flies: ideal (the truth, "
+                                "a gimbal), realistic (an optical-flow EKF without GNSS, a body-fixed camera, "
+                                "ArduCopter's limits) or harsh", choices=VEHICLE_PROFILE_NAMES),
     "sim.vehicle.cmd_timeout_s": Flag("--cmd-max-age-s", "drop a velocity command whose stamp is older than this "
                                       "on the sim clock, as ArduPilot's GUID_TIMEOUT (the vehicle then brakes to a "
                                       "hover)", check=validate.positive),
@@ -415,6 +450,11 @@ CLI = CommandLine(SimServiceConfig, {
     "external_pose": Flag("--external-pose", "render at the vehicle state the controller publishes on the state "
                           "key (a real or SITL autopilot) instead of simulating the flight; the sim then sends no "
                           "states"),
+    "sitl_truth": Flag("--sitl-truth", "with --external-pose against ArduPilot SITL: render and judge at the "
+                       "simulator's TRUE pose, read from SIM_STATE on this SEPARATE SITL output (udpin:HOST:PORT, "
+                       "e.g. SITL's --serial2 udpclient:127.0.0.1:14552; never the controller's link); frames keep "
+                       "the estimate's altitude and attitude", check=lambda w, v: parse_truth_url(v, w),
+                       metavar="URL"),
     "wait_for": Flag("--wait-for", "comma list of services (segmenter,controller) whose liveliness to wait for "
                      "before starting", choices=WAITABLE, metavar="SERVICES"),
     "wait_timeout_s": Flag("--wait-timeout-s", "give up waiting for --wait-for services (or the first "
@@ -437,7 +477,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         t0 = time.perf_counter()
         world = load_world(config.world)  # the heavy factory: seconds for a new synthetic world
         log.info("world %s ready in %.1f s", world.name, time.perf_counter() - t0)
-        with zenoh.open(zconf) as session:
+        with open_session(zconf) as session:
             result = run(session, config=config, stop=stop, world=world, stats=stats)
     except (WorldError, DoveseiError) as exc:
         log.error("sim stopped: %s", exc)

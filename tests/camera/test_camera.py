@@ -22,7 +22,7 @@ from dovesei.shared import keys
 from dovesei.shared.codec import decode, encode
 from dovesei.shared.errors import ConfigError
 from dovesei.shared.lifecycle import Inbox, wait_until
-from dovesei.shared.messages import CameraFrame, Stamp, VehicleState, VisualOdometry
+from dovesei.shared.messages import CameraFrame, Stamp, VehicleState, VisualOdometry, replace
 from tests.shared.ground import ned_to_body, view
 
 
@@ -107,6 +107,9 @@ class ListStates:
 
     def poll(self) -> VehicleState | None:
         return self.queue.pop(0) if self.queue else None
+
+    def age_s(self) -> float:
+        return 0.0  # each state arrives when the test polls it
 
     def close(self) -> None:
         pass
@@ -320,6 +323,8 @@ def test_odometry_follows_the_grabbed_frames_and_blank_ones_are_invalid() -> Non
     for k, bgr in enumerate(views):
         grabber.slot = (bgr, 0.1 * k, k + 1)
         now[0] = 0.1 * k
+        assert not loop.odometry_tick()  # no state after the capture yet: wait for it to interpolate
+        now[0] = 0.1 * k + cs.ATTITUDE_WAIT_S + 0.01  # none came: the state before it is used
         assert loop.odometry_tick() == (k > 0)  # the first frame has nothing to compare with
         assert not loop.odometry_tick()  # the same frame is never compared twice
     msgs = [decode(b, VisualOdometry) for b in odo]
@@ -330,11 +335,35 @@ def test_odometry_follows_the_grabbed_frames_and_blank_ones_are_invalid() -> Non
         assert (m.alt_agl_m, m.yaw_rad) == (ODO_ALT_M, 1.5)
     assert sent == []  # odometry never publishes camera frames
     grabber.push(0.5)  # a uniform grey frame: nothing to track
-    now[0] = 0.5
+    now[0] = 0.6
     assert loop.odometry_tick()
     blank = decode(odo[-1], VisualOdometry)
     assert not blank.valid and blank.vel_body_frd_m_s == (0.0, 0.0, 0.0) and blank.quality == 0.0
     assert loop.stats.odometry_published == 4 and loop.stats.odometry_valid == 3
+
+
+def test_odometry_interpolates_the_attitude_at_the_capture() -> None:
+    now = [0.0]
+    grabber, states, odo = FakeGrabber(), ListStates(), []
+    loop = CameraPublisher(CameraConfig(source="0", width_px=96, height_px=96), grabber, states, [].append,
+                           clock=lambda: now[0], put_odometry=odo.append)
+    views = ground_frames(2, 0.1)
+    yaws = []
+    for k, bgr in enumerate(views):
+        t0 = 0.1 * k
+        # States at t0 - 0.01 (yaw 3.1) and t0 + 0.01 (yaw -3.1, across the +-pi seam); the capture
+        # sits halfway, so its yaw is pi, not 0.
+        for dt, yaw in ((-0.01, 3.1), (0.01, -3.1)):
+            now[0] = t0 + dt
+            states.queue.append(replace(state(ODO_ALT_M + 10 * dt, t_s=100.0 + t0 + dt), yaw_rad=yaw, roll_rad=0.0,
+                                        pitch_rad=0.0))
+            loop.poll_state()
+            if dt < 0:
+                grabber.slot = (bgr, t0, k + 1)
+                assert not loop.odometry_tick()  # waits for the state after the capture
+        assert loop.odometry_tick() == (k > 0)
+    msg = decode(odo[-1], VisualOdometry)
+    assert abs(abs(msg.yaw_rad) - math.pi) < 1e-6 and msg.alt_agl_m == pytest.approx(ODO_ALT_M)
 
 
 def test_the_camera_service_publishes_visual_odometry(service: tuple, tmp_path: Path) -> None:

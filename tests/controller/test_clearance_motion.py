@@ -48,8 +48,19 @@ def test_phase_shift_recovers_known_pixel_shifts() -> None:
 def test_frames_convert() -> None:
     assert to_ne(1.0, 0.0, math.pi / 2) == pytest.approx((0.0, 1.0))  # facing east, forward = east
     assert to_body(*to_ne(2.0, -3.0, 0.7), 0.7) == pytest.approx((2.0, -3.0))
-    n, e = tilt_offset_ne(100.0, 0.0, math.radians(10.0), 0.0)  # nose up: the camera looks back
-    assert n == pytest.approx(-100.0 * math.tan(math.radians(10.0))) and e == pytest.approx(0.0)
+    n, e = tilt_offset_ne(100.0, 0.0, math.radians(10.0), 0.0)  # nose up: the camera looks ahead
+    assert n == pytest.approx(100.0 * math.tan(math.radians(10.0))) and e == pytest.approx(0.0)
+
+
+@pytest.mark.parametrize("roll_deg,pitch_deg,yaw_deg", [(0, 10, 0), (-12, 0, 0), (8, -14, 35), (-5, 9, -120)])
+def test_the_tilt_offset_is_where_the_simulated_camera_looks(roll_deg: float, pitch_deg: float, yaw_deg: float) -> None:
+    """The policy's de-tilt and the renderer's tilted camera agree (the sign was once backwards
+    for pitch, invisible while the sim's frames were all nadir)."""
+    from dovesei.sim.camera import optical_axis_ground_m
+
+    roll, pitch, yaw = (math.radians(v) for v in (roll_deg, pitch_deg, yaw_deg))
+    x, y = optical_axis_ground_m(0.0, 0.0, 60.0, yaw, roll, pitch)
+    assert tilt_offset_ne(60.0, roll, pitch, yaw) == pytest.approx((y, x), abs=1e-9)  # (north, east)
 
 
 @pytest.mark.parametrize("alt_end", [100.0, 80.0])

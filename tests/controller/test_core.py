@@ -316,3 +316,17 @@ def test_a_heatmap_from_the_future_is_refused_and_honest_ones_still_adopted() ->
     assert core.on_heatmap(heatmap(1, 10.4), 0.0)  # an honest one is not "older than the newest"
     cmd, status = core.tick(state(1, 10.5), wall_s=clock.t_s)
     assert cmd.frame_seq == 1 and status.watchdog == "ok"
+
+
+def test_a_turn_since_the_heatmap_turns_the_command_back_to_what_the_policy_meant() -> None:
+    """Issue 26: an autopilot that yaws (WP_YAW_BEHAVIOR, drift) turned the body frame under a
+    body-frame decision. The command keeps the direction the policy meant at its heatmap."""
+    core, _ = make_core(lockstep=True)
+    core.on_heatmap(heatmap(0, 0.0), 0.0)
+    cmd, _ = core.tick(VehicleState("uav1", 0, Stamp(0.05, "sim"), 80.0, (0.0, 0.0, 0.0), yaw_rad=0.0,
+                                    await_frame_seq=0))
+    assert cmd.vel_body_frd_m_s == pytest.approx(VEL_FRD)
+    # Turned 90 degrees right since: the policy's forward (north) is now the vehicle's left.
+    cmd, _ = core.tick(VehicleState("uav1", 1, Stamp(0.10, "sim"), 80.0, (0.0, 0.0, 0.0), yaw_rad=math.pi / 2))
+    fwd, right, down = cmd.vel_body_frd_m_s
+    assert (fwd, right, down) == pytest.approx((VEL_FRD[1], -VEL_FRD[0], VEL_FRD[2]))

@@ -13,6 +13,7 @@ import logging
 import math
 import socket
 import threading
+import time
 from collections.abc import Callable, Iterator
 
 import numpy as np
@@ -218,4 +219,81 @@ def test_precland_streams_the_spot_until_touchdown_and_lands_on_it(flight) -> No
     assert 5.5 < right < 10.0 and abs(fwd) < 2.5, (fwd, right)
     # ... and the touchdown on it.
     tn, te = fake.touchdown_ne_m
+    print(f"precland: {len(targets)} targets, median gap {sorted(gaps)[len(gaps) // 2] * 1e3:.0f} ms, max "
+          f"{max(gaps) * 1e3:.0f} ms, spread {spread_m:.2f} m, touchdown {math.hypot(tn - n0, te - e0):.2f} m "
+          f"from the spot, last target {(fake.touchdown_s - times[-1]) * 1e3:.0f} ms before touchdown")
     assert math.hypot(tn - n0, te - e0) < 1.5, (fake.touchdown_ne_m, (n0, e0))
+
+
+class Runaway:
+    """The paper's RESTARTING move: forward at 12 m/s (10 after the clamp) and never stopping."""
+
+    name = "runaway"
+
+    def __init__(self) -> None:
+        self.steps = 0
+
+    def step(self, obs: Observation) -> Decision:
+        self.steps += 1
+        return Decision((12.0, 0.0, 0.0), 0.0, "RESTARTING", None, 10.0, 0.5, {})
+
+    def reset(self) -> None:
+        pass
+
+
+def test_the_geofence_keeps_a_runaway_policy_near_the_start_on_a_mavlink_vehicle(flight) -> None:
+    listen, connect = udp_pair()
+    config = ControllerConfig(lockstep=False, timing="real", vehicle_url=connect, vehicle_connect_timeout_s=5.0,
+                              state_stale_after_s=1.0, geofence_radius_m=40.0)
+    with FakeAutopilot(listen, flavour="ardupilot", mode="GUIDED", armed=True, alt_m=60.0, heartbeat_hz=10,
+                       yaw_rad=math.radians(-60.0)) as fake:
+        policy = Runaway()
+        far: list[float] = []
+        started: list[float] = []
+
+        def long_enough() -> bool:
+            n, e, _ = fake.position_ned_m
+            far.append(math.hypot(n, e))
+            if not started:
+                started.append(time.monotonic())
+            return time.monotonic() - started[0] > 12.0  # 120 m unfenced
+
+        stats, _ = flight(fake, config, policy, until=long_enough)
+    assert 30.0 < max(far) < 44.0, max(far)  # the fence (on the velocity estimate) plus the fake's lag
+    assert stats.geofence_clipped > 20
+
+
+class Sideways:
+    """Right at 4 m/s and down 0.5 m/s in the camera's frame: a body-frame policy's typical ask."""
+
+    name = "sideways"
+
+    def __init__(self) -> None:
+        self.steps = 0
+
+    def step(self, obs: Observation) -> Decision:
+        self.steps += 1
+        return Decision((0.0, 4.0, 0.5), 0.0, "AIMING", None, 10.0, 0.5, {})
+
+    def reset(self) -> None:
+        pass
+
+
+@pytest.mark.parametrize("yaw_control", ["autopilot", "rate"])
+def test_body_frame_commands_keep_their_meaning_whichever_yaw_control(flight, yaw_control: str) -> None:
+    """Issue 26: with --yaw-control autopilot ArduCopter turned the nose by WP_YAW_BEHAVIOR (the fake
+    does too when a setpoint leaves the heading to it) and the body-frame policy ran out of the
+    world (heading +142 and +176 deg). The heading now stays, and right stays right."""
+    listen, connect = udp_pair()
+    config = ControllerConfig(lockstep=False, timing="real", vehicle_url=connect, vehicle_connect_timeout_s=5.0,
+                              state_stale_after_s=1.0, mavlink_yaw_control=yaw_control)
+    yaw0 = math.radians(20.0)
+    with FakeAutopilot(listen, flavour="ardupilot", mode="GUIDED", armed=True, alt_m=60.0, heartbeat_hz=10,
+                       yaw_rad=yaw0, heading_drift_rad_s=math.radians(4.0)) as fake:
+        policy = Sideways()
+        flight(fake, config, policy, until=lambda: math.hypot(*fake.position_ned_m[:2]) > 40.0)
+        n, e, _ = fake.position_ned_m
+        turned_deg = math.degrees(math.remainder(fake.yaw_rad - yaw0, 2 * math.pi))
+    # The track: the start's right (heading + 90 deg), within 12 deg; the heading within 8 deg.
+    track_deg = math.degrees(math.remainder(math.atan2(e, n) - (yaw0 + math.pi / 2), 2 * math.pi))
+    assert abs(track_deg) < 12.0 and abs(turned_deg) < 8.0, (track_deg, turned_deg)

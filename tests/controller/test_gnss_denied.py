@@ -232,3 +232,22 @@ def test_config_checks_the_gnss_denied_flags() -> None:
     argv = to_argv(config)
     assert "--gnss-denied" in argv and "external-nav" in argv
     assert config_from_args(build_parser().parse_args(argv)) == config
+
+
+def test_the_up_report_summarises_the_navigation_from_the_statuses() -> None:
+    from dovesei.shared.messages import ControllerStatus
+    from dovesei.up.report import Navigation
+
+    def status(t_s: float, alt_m: float, source: str, lost: bool, reason: str = "") -> ControllerStatus:
+        return ControllerStatus("uav1", int(t_s * 10), Stamp(t_s, "vehicle"), "p", "LANDING", "ok" if source != "none"
+                                else "hold", reason, 0, 0.0, 0.0, alt_agl_m=alt_m, nav_source=source, gnss_lost=lost,
+                                nav_reason=f"nav {t_s}")
+
+    assert Navigation.of({0.0: status(0.0, 50.0, "", False)}) is None  # the sim
+    statuses = {0.0: status(0.0, 50.0, "autopilot", False), 1.0: status(1.0, 40.0, "none", True,
+                                                                      "no trusted velocity source: x"),
+                2.0: status(2.0, 40.0, "visual", True), 3.0: status(3.0, 30.0, "visual", True)}
+    nav = Navigation.of(statuses)
+    assert nav is not None and nav.gnss_lost and nav.gnss_lost_t_s == 1.0 and nav.gnss_lost_alt_m == 40.0
+    assert nav.sources == ("autopilot", "none", "visual") and nav.no_velocity_holds == 1
+    assert (nav.first_reason, nav.last_reason) == ("nav 1.0", "nav 3.0")

@@ -84,6 +84,8 @@ def test_our_constants_match_pymavlink() -> None:
               | mavlink.POSITION_TARGET_TYPEMASK_YAW_IGNORE)
     assert mv.TYPE_MASK_VELOCITY_YAW_RATE == ignore == 0x05C7
     assert mv.TYPE_MASK_VELOCITY_ONLY == ignore | mavlink.POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE == 0x0DC7
+    assert mv.TYPE_MASK_VELOCITY_YAW == ignore - mavlink.POSITION_TARGET_TYPEMASK_YAW_IGNORE \
+        + mavlink.POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE == 0x09C7
 
 
 def test_mode_numbers_follow_both_autopilots() -> None:
@@ -197,12 +199,19 @@ def test_steers_in_guided_or_offboard_with_body_frame_and_mask(fly: Fly, flavour
     assert fake.mode == mode
 
 
-def test_yaw_rate_is_sent_and_autopilot_yaw_mask_is_available(fly: Fly) -> None:
-    fake, vehicle = fly(yaw_control="autopilot")
-    vehicle.send(command(fwd=1.0, yaw_rate=0.3))
+def test_autopilot_yaw_control_sends_local_velocity_and_the_held_heading(fly: Fly) -> None:
+    """yaw_control 'autopilot': the body command rotated into LOCAL_NED by the heading it was meant in,
+    with the heading held as an absolute yaw (mask 0x09C7); a deliberate turn goes as a yaw rate."""
+    fake, vehicle = fly(yaw_control="autopilot", fake_kw={"yaw_rad": math.pi / 2})
+    vehicle.send(command(fwd=2.0, right=1.0))
     assert wait_until(lambda: len(fake.received()[0]) >= 3, 5.0)
     sp = fake.received()[0][-1]
-    assert sp.type_mask == 0x0DC7 and sp.yaw_rate_rad_s == pytest.approx(0.3)
+    assert (sp.frame, sp.type_mask) == (mv.MAV_FRAME_LOCAL_NED, 0x09C7)
+    # Heading east: forward is east, right is south.
+    assert sp.vel_m_s == pytest.approx((-1.0, 2.0, 0.0), abs=1e-3) and sp.yaw_rad == pytest.approx(math.pi / 2, abs=1e-3)
+    vehicle.send(command(fwd=1.0, yaw_rate=0.3))
+    assert wait_until(lambda: fake.received()[0][-1].type_mask == 0x05C7, 5.0)
+    assert fake.received()[0][-1].yaw_rate_rad_s == pytest.approx(0.3)
 
 
 def test_setpoint_stream_keeps_at_least_10hz(fly: Fly) -> None:

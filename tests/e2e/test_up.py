@@ -101,6 +101,31 @@ def test_a_real_vehicle_runs_in_real_time_with_the_sim_as_camera(tmp_path: Path)
     check_link_owners(cmds)
 
 
+def test_sitl_truth_goes_to_the_sim_on_its_own_endpoint(tmp_path: Path) -> None:
+    from dovesei.shared.errors import ConfigError
+
+    opts = UpOptions(world=WORLD, vehicle_url="udpin:127.0.0.1:14550", sitl_truth="udpin:127.0.0.1:14552",
+                     timing="real", out=tmp_path)
+    cmds = child_commands(opts, child_configs(opts, (1.0, 2.0, 30.0)), {n: 1 for n in (*SERVICES, "monitor")},
+                          tmp_path)
+    _, sim = _parsed("sim", cmds["sim"])
+    _, ctrl = _parsed("controller", cmds["controller"])
+    assert sim.external_pose and sim.sitl_truth == "udpin:127.0.0.1:14552"
+    assert ctrl.vehicle_url == "udpin:127.0.0.1:14550" and "--sitl-truth" not in cmds["controller"]
+    check_link_owners(cmds)
+    # The autopilot's own endpoint is never the sim's.
+    same = UpOptions(world=WORLD, vehicle_url="udpin:127.0.0.1:14550", sitl_truth="udpin:127.0.0.1:14550",
+                     timing="real", out=tmp_path)
+    with pytest.raises(ConfigError, match="both .* would bind 127.0.0.1:14550"):
+        check_link_owners(child_commands(same, child_configs(same, (1.0, 2.0, 30.0)),
+                                         {n: 1 for n in (*SERVICES, "monitor")}, tmp_path))
+    with pytest.raises(ConfigError, match="--sitl-truth only applies with --vehicle"):
+        UpOptions(world=WORLD, sitl_truth="udpin:127.0.0.1:14552")
+    with pytest.raises(ConfigError, match="--sitl-truth 'udpout:127.0.0.1:14552': expected udpin:HOST:PORT"):
+        UpOptions(world=WORLD, vehicle_url="udpin:127.0.0.1:14550", sitl_truth="udpout:127.0.0.1:14552",
+                  timing="real")
+
+
 def test_two_processes_on_one_mavlink_endpoint_are_refused() -> None:
     from dovesei.shared.errors import ConfigError
 
@@ -213,6 +238,21 @@ class _Alive:
 
     def exited(self) -> list:
         return self._exited
+
+
+def test_a_real_vehicle_is_fenced_over_the_world_it_flies() -> None:
+    from dovesei.controller.core import DEFAULT_VEHICLE_GEOFENCE_M
+    from dovesei.sim.world import load_world
+    from dovesei.up.launch import world_geofence_m
+
+    world = load_world(WORLD)  # 400 m square
+    opts = UpOptions(world=WORLD, segmenter="sim", vehicle_url="udpout:127.0.0.1:14550", timing="real")
+    assert child_configs(opts, (150.0, 300.0, 60.0), world).controller.geofence_m == 100.0  # 100 m to the north edge
+    assert world_geofence_m(world, (10.0, 200.0, 60.0)) == 50.0  # never less than a search needs
+    assert child_configs(UpOptions(world=WORLD, segmenter="sim"), (150.0, 300.0, 60.0), world).controller.geofence_m \
+        is None  # the sim's episodes stay as published
+    big = type("World", (), {"width_m": 2000.0, "height_m": 2000.0})()
+    assert world_geofence_m(big, (1000.0, 1000.0, 60.0)) == DEFAULT_VEHICLE_GEOFENCE_M
 
 
 def test_up_waits_for_the_autopilot_to_land_after_a_land_handover(tmp_path: Path) -> None:
@@ -526,3 +566,53 @@ def test_up_takes_off_and_flies_a_fake_autopilot_from_boot(tmp_path: Path) -> No
     traj = report["trajectory"]
     assert traj["t_s"] and max(traj["alt_m"]) >= 24.0 and set(traj["state"]) - {"INIT"}
     assert traj["alt_m"][0] >= 0.9 * 26.0, traj["alt_m"][:5]  # the mission starts after the climb
+
+
+@pytest.mark.slow
+def test_up_precland_keeps_the_target_streaming_until_the_autopilot_has_landed(tmp_path: Path) -> None:
+    """Issue 26: `up` stopped the controller 0.53 s after a precland hand-over; ArduCopter said
+    "PrecLand: Target Found", "Init Failed" and landed blind. Now `up` waits for the disarm and the
+    fake's AC_PrecLand model initialises on the streamed spot and lands on it."""
+    import socket
+
+    from dovesei.shared.zconfig import free_port
+    from dovesei.testing.fake_autopilot import FakeAutopilot
+
+    import cv2
+
+    # A lawn 300 m square: the policy finds its spot at once and hands over at 20 m.
+    world = tmp_path / "lawn"
+    world.mkdir()
+    rng = np.random.default_rng(0)
+    cv2.imwrite(str(world / "image.png"), rng.integers(60, 140, (300, 300, 3), dtype=np.uint8))
+    cv2.imwrite(str(world / "labels.png"), np.zeros((300, 300), np.uint8))
+    (world / "world.json").write_text(json.dumps({"gsd_m": 1.0, "image": "image.png", "labels": "labels.png",
+                                                  "classes": {"0": {"name": "grass", "safe": True}}}))
+    port = free_port(socket.SOCK_DGRAM)
+    out = tmp_path / "run"
+    with FakeAutopilot(f"udpin:127.0.0.1:{port}", flavour="ardupilot", mode="GUIDED", armed=True, alt_m=24.0,
+                       heartbeat_hz=10) as fake:
+        argv = [sys.executable, "-m", "dovesei.cli", "up", "--world", str(world), "--segmenter", "sim", "--noise", "0",
+                "--start", "150,150,24", "--vehicle", f"udpout:127.0.0.1:{port}",
+                "--handover-action", "precland", "--time-limit-s", "150", "--out", str(out), "--no-video"]
+        env = {**os.environ, "PYTHONUNBUFFERED": "1", "HF_HUB_OFFLINE": "1"}
+        try:
+            done = subprocess.run(argv, cwd=REPO, capture_output=True, text=True, timeout=400, env=env)
+        finally:
+            if (out / "pids.json").exists():
+                for name, pid in _pids(out).items():
+                    if name != "up" and not _gone(pid):
+                        os.kill(pid, signal.SIGKILL)
+        texts = [text for _, text in fake.statustexts_sent]
+        targets = list(fake.landing_targets)
+    report = json.loads((out / "report.json").read_text())
+    assert report["judged"], done.stderr[-3000:]
+    landing = report["landing"]
+    assert landing is not None and landing["landed"] and landing["action"] == "precland", (landing, done.stderr[-3000:])
+    assert fake.touchdown_s is not None and not fake.armed
+    assert "PrecLand: Init Complete" in texts and "PrecLand: Init Failed" not in texts, texts
+    # The stream ran to the touchdown (the controller outlived the judged episode).
+    assert len(targets) > 50 and fake.touchdown_s - targets[-1].recv_s < 0.5
+    assert landing["landing_targets_sent"] >= len(targets) * 0.9
+    touchdown = landing["touchdown"]
+    assert touchdown is not None and touchdown["alt_m"] < 1.0

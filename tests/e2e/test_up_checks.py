@@ -22,6 +22,7 @@ import pytest
 
 from dovesei.shared.codec import encode
 from dovesei.shared.messages import CameraFrame, ControllerStatus, EpisodeResult, SafetyHeatmap, Stamp, VehicleState
+from dovesei.shared.zconfig import free_port
 from dovesei.up import EXIT_FAILED, EXIT_OK, EXIT_UNSAFE, UpOptions, build_report, exit_code
 from dovesei.up.monitor import Recorder, Sample
 from dovesei.up.watch import Watcher, stalled_service, stream_owners
@@ -48,6 +49,8 @@ def _up(*args: str, timeout_s: float = 60.0) -> subprocess.CompletedProcess:
     (["--yaw-control", "autopilot"], "--yaw-control only applies with --vehicle-url"),
     (["--signing-key", "key"], "--signing-key only applies with --vehicle-url"),
     (["--autopilot-system-id", "1"], "--autopilot-system-id only applies with --vehicle-url"),
+    (["--gnss-denied", "attitude"], "--gnss-denied only applies with --vehicle-url"),
+    (["--vehicle-url", "udpin:127.0.0.1:14550", "--gnss-denied", "gps"], "--gnss-denied"),
     (["--vehicle-url", "udpin:127.0.0.1:14550", "--handover-action", "jump"], "--handover-action"),
     (["--vehicle-url", "udpin:127.0.0.1:14550", "--signing-key", "/no/such/key"], "--signing-key: MAVLink signing key"),
     (["--vehicle-url", "udpin:127.0.0.1:14550", "--autopilot-system-id", "0"], "--autopilot-system-id 0"),
@@ -82,22 +85,28 @@ def test_the_real_autopilot_flags_reach_the_controller_through_its_own_flags(tmp
     key.write_bytes(bytes(range(32)))
     options = options_from_args(build_parser().parse_args([
         "--vehicle", "udpout:127.0.0.1:14550", "--handover-action", "precland", "--yaw-control", "autopilot",
-        "--signing-key", str(key), "--autopilot-system-id", "7", "--out", str(tmp_path / "run")]))
+        "--signing-key", str(key), "--autopilot-system-id", "7", "--gnss-denied", "external-nav",
+        "--out", str(tmp_path / "run")]))
     configs = child_configs(options, (100.0, 100.0, 60.0))
     c = configs.controller
+    assert configs.sim.sim.odometry_rate_hz == 10.0  # the sim is the camera's visual odometry too
     assert (c.vehicle_url, c.handover_action, c.mavlink_yaw_control, c.mavlink_signing_key_file,
-            c.mavlink_system_id) == ("udpout:127.0.0.1:14550", "precland", "autopilot", str(key), 7)
+            c.mavlink_system_id, c.gnss_denied) == ("udpout:127.0.0.1:14550", "precland", "autopilot", str(key), 7,
+                                                    "external-nav")
     argv = child_commands(options, configs, {"sim": 1, "segmenter": 2, "controller": 3, "monitor": 4},
                           tmp_path)["controller"]
     for flag, value in (("--vehicle-url", "udpout:127.0.0.1:14550"), ("--handover-action", "precland"),
-                        ("--yaw-control", "autopilot"), ("--signing-key", str(key)), ("--autopilot-system-id", "7")):
+                        ("--yaw-control", "autopilot"), ("--signing-key", str(key)), ("--autopilot-system-id", "7"),
+                        ("--gnss-denied", "external-nav")):
         assert argv[argv.index(flag) + 1] == value, argv
     # Not given: the controller keeps its own defaults, and no flag is passed for them.
     plain = child_configs(options_from_args(build_parser().parse_args(["--vehicle-url", "udpout:127.0.0.1:14550"])),
                           (100.0, 100.0, 60.0)).controller
     assert (plain.handover_action, plain.mavlink_yaw_control, plain.mavlink_signing_key_file,
-            plain.mavlink_system_id) == ("hold", "rate", None, None)
+            plain.mavlink_system_id, plain.gnss_denied) == ("hold", "rate", None, None, "off")
     assert CONTROLLER.to_argv(plain) == ["--vehicle-url", "udpout:127.0.0.1:14550"]
+    assert child_configs(options_from_args(build_parser().parse_args(["--vehicle-url", "udpout:127.0.0.1:14550"])),
+                         (100.0, 100.0, 60.0)).sim.sim.odometry_rate_hz == 0.0
 
 
 def test_health_refuses_bad_flags_in_one_line() -> None:
@@ -129,6 +138,13 @@ def test_a_taken_mavlink_port_is_refused_before_start(tmp_path: Path) -> None:
         done = _up("--world", WORLD, "--vehicle", f"udpin:127.0.0.1:{port}", "--out", str(tmp_path / "run"))
     assert done.returncode == 2 and f"cannot bind 127.0.0.1:{port}" in done.stderr, done.stderr
     assert not (tmp_path / "run").exists()
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+        free = free_port(socket.SOCK_DGRAM)  # the controller's port is free: only the sim's is taken
+        done = _up("--world", WORLD, "--vehicle", f"udpin:127.0.0.1:{free}", "--sitl-truth", f"udpin:127.0.0.1:{port}",
+                   "--out", str(tmp_path / "run"))
+    assert done.returncode == 2 and f"--sitl-truth 'udpin:127.0.0.1:{port}': cannot bind" in done.stderr, done.stderr
 
 
 # ---------------------------------------------------------------- exit codes and the report

@@ -39,7 +39,8 @@ NON_DEFAULT = {
                       handover_alt_m=12.5, time_limit_s=77.7, seed=-3, attach_truth=False,
                       vehicle=VehicleParams(cmd_timeout_s=0.8), odometry_rate_hz=12.5),
         world="synthetic:seed=3,size_m=400", start_xy_alt_m=(120.0, 80.5, 61.0), lockstep=False, speed=4.5,
-        jpeg_quality=80, external_pose=True, wait_for=("controller", "segmenter"), wait_timeout_s=2.5,
+        jpeg_quality=80, external_pose=True, sitl_truth="udpin:127.0.0.1:14552", wait_for=("controller", "segmenter"),
+        wait_timeout_s=2.5,
         cmd_timeout_s=0.75),
     "segmenter": ServiceConfig(
         segmenter=SegmenterConfig(
@@ -59,7 +60,7 @@ NON_DEFAULT = {
         mavlink_max_horizontal_m_s=8.0, mavlink_max_up_m_s=2.0, mavlink_max_down_m_s=1.0,
         mavlink_signing_key_file="keys/uav3.key", mavlink_require_home=False, takeoff_alt_m=60.0,
         takeoff_ready_timeout_s=90.0, record_path="flights/uav3.mcap",
-        gnss_denied="attitude", ekf_source_set=3, odometry_min_quality=0.6, odometry_max_age_s=0.4,
+        gnss_denied="attitude", ekf_source_set=3, external_nav_message="delta", odometry_min_quality=0.6, odometry_max_age_s=0.4,
         attitude_max_tilt_deg=12.0),
     "camera": CameraConfig(source="rtsp://10.0.0.2/cam", vehicle_id="uav2", width_px=320, height_px=240,
                            hfov_deg=90.0, rotate_deg=180, rate_hz=5.0, jpeg_quality=85, stall_timeout_s=3.0,

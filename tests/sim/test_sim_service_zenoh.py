@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import ast
 import json
+import logging
+import math
 import signal
 import threading
 import time
@@ -26,13 +28,15 @@ from dovesei.shared import keys
 from dovesei.shared.codec import decode, encode
 from dovesei.shared.lifecycle import is_alive, wait_until
 from dovesei.shared.messages import CameraFrame, EpisodeResult, Message, Stamp, VehicleState, replace
-from dovesei.sim.camera import render
+from dovesei.sim.camera import optical_axis_ground_m, render
 from dovesei.sim.core import SimConfig, SimCore
 from dovesei.sim.service import SimServiceConfig, SimStats, build_parser, config_from_args, main, run
 from dovesei.sim.starts import Start
 from dovesei.sim.world import World
 from dovesei.shared.zconfig import free_port
+from dovesei.shared.errors import ConfigError
 from tests.sim.test_sim_core import WEST_M, MID_Y_M, command, split_world
+from tests.sim.test_sitl_truth import FakeSitlOutput, sim_state
 
 VID = "uav1"
 DEADLINE_S = 10.0
@@ -417,6 +421,95 @@ def test_external_pose_ends_in_error_when_the_states_stop(pair, world: World) ->
     assert result.outcome == "error" and "no vehicle state" in result.detail
 
 
+def test_sitl_truth_renders_and_judges_at_the_true_pose_while_frames_carry_the_estimate(pair, world: World) -> None:
+    # The controller's states (the EKF) say 55 m, yaw 0.3, no local position (a GNSS-free EKF);
+    # SITL's physics says 12 m north, 7 m west, 60 m, yaw 0.1. The image follows the truth, the
+    # frame's altitude and attitude (what a policy reads) the estimate.
+    sim_session, rec = pair
+    port = free_port()
+    config = external_config(sitl_truth=f"udpin:127.0.0.1:{port}")
+    true_x_m, true_y_m = WEST_M - 7.0, MID_Y_M + 12.0
+    sitl = FakeSitlOutput(port)
+    sitl.set(sim_state(12.0, -7.0, 60.0, roll=0.05, pitch=-0.04, yaw=0.1))  # metres from the EKF origin
+    with sitl, StatePublisher(rec.session, alt_m=55.0, pos_valid=False), SimThread(sim_session, config, world) as sim:
+        t_end = time.monotonic() + DEADLINE_S
+        frame = None
+        while frame is None and time.monotonic() < t_end:
+            topic, msg = rec.next()
+            frame = msg if topic == "camera" else None
+        assert frame is not None, "no frame"
+        # Rendered where SITL is (lat/lon steps of 1e-7 deg: a millimetre off), at its altitude,
+        # heading and tilt: the optical axis meets the ground where SITL's attitude points it.
+        axis = optical_axis_ground_m(true_x_m, true_y_m, 60.0, 0.1, 0.05, -0.04)
+        assert frame.truth.centre_world_m == pytest.approx(axis, abs=0.01)
+        assert math.dist(axis, (true_x_m, true_y_m)) > 3.0  # the tilt is seen, not the estimate's level attitude
+
+        def differs(x_m: float, y_m: float, alt_m: float, yaw_rad: float, roll_rad: float = 0.05,
+                    pitch_rad: float = -0.04) -> float:
+            view = render(world, x_m, y_m, alt_m, yaw_rad, roll_rad=roll_rad, pitch_rad=pitch_rad)[0]
+            return float(np.abs(frame.image_rgb.astype(int) - view).mean())
+
+        # SIM_STATE carries float32 angles and altitudes: equal to the truth within a last bit, not bytes.
+        at_truth = differs(true_x_m, true_y_m, 60.0, 0.1)
+        assert at_truth < 0.1 * differs(true_x_m, true_y_m, 60.0, 0.1, 0.0, 0.0)  # not level
+        assert at_truth < 0.1 * differs(WEST_M, MID_Y_M, 55.0, 0.3, 0.0, 0.0)  # not at the estimate
+        # What a policy reads is the estimate's: altitude, heading, attitude, the vehicle's clock.
+        assert frame.alt_agl_m == pytest.approx(55.0) and frame.yaw_rad == pytest.approx(0.3)
+        assert (frame.roll_rad, frame.pitch_rad) == (0.0, 0.0) and frame.stamp.clock == "vehicle"
+        # The truth sinks below the hand-over altitude while the estimate still says 55 m: the
+        # judge follows the truth.
+        sitl.set(sim_state(12.0, -7.0, 15.0, yaw=0.1))
+        result = rec.until_result()
+        assert sim.join() == result
+    assert result.outcome == "safe" and (result.final_x_m, result.final_y_m) == pytest.approx((true_x_m, true_y_m),
+                                                                                               abs=0.05)
+    assert result.final_alt_m == pytest.approx(15.0, abs=0.01)
+    assert sim.stats.truth_samples > 0 and sim.stats.truth_rejected == 0 and sim.stats.states_sent == 0
+
+
+def test_external_pose_builds_the_camera_pyramid_before_the_first_frame(pair, caplog) -> None:
+    # Built lazily in flight, each level stalled the real-time loop 1-3 s and the first frame went
+    # out 5 s late (issue 26). Every level a view up to 1.5 x the start altitude needs is built
+    # before any state is awaited: rendering at 140 m afterwards builds nothing.
+    sim_session, _rec = pair
+    fresh = split_world()
+    with caplog.at_level(logging.INFO, logger="dovesei.sim.camera"):
+        with SimThread(sim_session, external_config(wait_timeout_s=0.3), fresh) as sim:
+            assert sim.join().outcome == "error"
+        assert any("camera pyramid level" in r.getMessage() for r in caplog.records)
+        caplog.clear()
+        render(fresh, WEST_M, MID_Y_M, 140.0, 0.0, roll_rad=0.3, pitch_rad=0.2)
+    assert not [r.getMessage() for r in caplog.records if "camera pyramid level" in r.getMessage()]
+
+
+def test_sitl_truth_that_never_comes_or_stops_is_an_error_naming_it(pair, world: World) -> None:
+    sim_session, rec = pair
+    port = free_port()
+    url = f"udpin:127.0.0.1:{port}"
+    with StatePublisher(rec.session), SimThread(sim_session, external_config(sitl_truth=url, wait_timeout_s=0.5),
+                                                  world) as sim:
+        result = sim.join()
+    assert result.outcome == "error" and f"no SIM_STATE from SITL on {url}" in result.detail
+    assert sim.stats.frames_sent == 0
+    sitl = FakeSitlOutput(port)
+    sitl.set(sim_state(0.0, 0.0, 60.0))
+    with sitl, StatePublisher(rec.session), \
+            SimThread(sim_session, external_config(sitl_truth=url, cmd_timeout_s=0.5), world) as sim:
+        assert wait_until(lambda: sim.stats.frames_sent > 0, DEADLINE_S)
+        sitl.streaming = False  # SITL stopped; the controller's states go on
+        result = sim.join()
+    assert result.outcome == "error" and f"no SIM_STATE from SITL on {url} for 0.5 s" in result.detail
+
+
+def test_sitl_truth_needs_the_camera_mode_and_a_udp_listener() -> None:
+    c = config_from_args(build_parser().parse_args(["--external-pose", "--sitl-truth", "udpin:127.0.0.1:14552"]))
+    assert c.sitl_truth == "udpin:127.0.0.1:14552"
+    with pytest.raises(ConfigError, match="--sitl-truth applies to the camera mode only"):
+        SimServiceConfig(sitl_truth="udpin:127.0.0.1:14552")
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["--external-pose", "--sitl-truth", "udpout:127.0.0.1:14552"])
+
+
 def test_external_pose_flag_takes_no_url() -> None:
     assert config_from_args(build_parser().parse_args(["--external-pose"])).external_pose is True
     assert config_from_args(build_parser().parse_args([])).external_pose is False
@@ -463,9 +556,15 @@ def test_main_exits_1_when_the_episode_ends_in_error(tmp_path: Path) -> None:
 
 
 def test_no_sim_module_talks_mavlink() -> None:
-    # Only the controller opens MAVLink (issue 9): the sim neither imports pymavlink nor the controller.
+    # Only the controller opens the autopilot's link (issue 9): the sim never imports the controller,
+    # and pymavlink only in the SITL truth reader, which binds its own SITL output (udpin only,
+    # tested above) and parses with the dialect module, never mavutil's connections.
     for path in Path(dovesei.sim.__file__).parent.glob("*.py"):
         for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
             names = [a.name for a in node.names] if isinstance(node, ast.Import) else \
                 [node.module or ""] if isinstance(node, ast.ImportFrom) else []
-            assert not any(n.startswith(("pymavlink", "dovesei.controller")) for n in names), f"{path.name}: {names}"
+            assert not any(n.startswith("dovesei.controller") for n in names), f"{path.name}: {names}"
+            if path.name == "sitl_truth.py":
+                assert not any(n.startswith("pymavlink") and "dialects.v20" not in n for n in names), names
+            else:
+                assert not any(n.startswith("pymavlink") for n in names), f"{path.name}: {names}"

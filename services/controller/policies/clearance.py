@@ -41,6 +41,7 @@ from dovesei.controller.policies.clearance_machine import TERMINAL, Inputs, Memo
 from dovesei.controller.policies.clearance_map import (GroundMap, clearance_at, emphasise_dips, find_candidate,
                                                       find_spot, footprint_width_m, look_weight, promise)
 from dovesei.controller.frames import to_body, to_ne
+from dovesei.controller.geofence import cap_outward
 from dovesei.controller.policies.clearance_motion import EgoMotion, MotionStep, tilt_offset_ne
 
 log = logging.getLogger(__name__)
@@ -59,17 +60,11 @@ def fence(vel_body_frd_m_s: tuple[float, float, float], north_m: float, east_m: 
     The cap is fence_gain x the distance left to the fence, so the vehicle slows down as it nears
     the fence and, beyond it, is pulled back in; inward and tangential motion are untouched.
     """
-    r = math.hypot(north_m, east_m)
-    if r < 1e-6:
-        return vel_body_frd_m_s, False
     fwd, right, down = vel_body_frd_m_s
-    vn, ve = to_ne(fwd, right, yaw_rad)
-    un, ue = north_m / r, east_m / r
-    outward = vn * un + ve * ue
-    allowed = cfg.fence_gain_per_s * ((cfg.fence_m if fence_m is None else fence_m) - r)
-    if outward <= allowed:
+    (vn, ve), capped = cap_outward(north_m, east_m, to_ne(fwd, right, yaw_rad),
+                                   cfg.fence_m if fence_m is None else fence_m, cfg.fence_gain_per_s)
+    if not capped:
         return vel_body_frd_m_s, False
-    vn, ve = vn - (outward - allowed) * un, ve - (outward - allowed) * ue
     f, rr = to_body(vn, ve, yaw_rad)
     return (f, rr, down), True
 

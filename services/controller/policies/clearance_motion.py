@@ -47,10 +47,13 @@ def phase_shift(ref: np.ndarray, cur: np.ndarray, window: np.ndarray) -> tuple[f
 def tilt_offset_ne(alt_agl_m: float, roll_rad: float, pitch_rad: float, yaw_rad: float) -> tuple[float, float]:
     """Where the image centre looks relative to the point below the vehicle (flat ground).
 
-    Nose up (pitch > 0) turns the camera's axis backwards; right wing down (roll > 0) turns it left.
+    The camera looks along body down; with the ZYX attitude (MAVLink ATTITUDE) that axis is
+    (cos r sin p, -sin r, cos r cos p) in the heading-level frame (forward, right, down). So nose up
+    (pitch > 0) turns it forwards (the belly faces ahead: a braking vehicle sees where it goes) and
+    right wing down (roll > 0) turns it left.
     """
-    forward = -alt_agl_m * math.tan(pitch_rad)
-    right = -alt_agl_m * math.tan(roll_rad)
+    forward = alt_agl_m * math.tan(pitch_rad)
+    right = -alt_agl_m * math.tan(roll_rad) / math.cos(pitch_rad)
     return to_ne(forward, right, yaw_rad)
 
 

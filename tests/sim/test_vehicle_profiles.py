@@ -1,0 +1,320 @@
+"""Vehicle profiles: `ideal` is the sim as it always was; `realistic` reports an estimate, never the truth.
+
+- ideal: episodes flown with it give the records captured from the code before profiles existed
+  (the reference below was recorded at commit f3f3332 with the same jobs).
+- realistic: every input of the controller and of the policy (state velocity, altitude,
+  attitude; the frames' and heatmaps' altitude and attitude; the policy's Observation) differs
+  from the sim's true pose at the same instant, and the frames are rendered tilted.
+- the dynamics of a multirotor under ArduCopter: braking from 10 m/s in ~4.5 s, GUID_TIMEOUT's
+  3 s of coasting, nose down to accelerate.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from dovesei.bench import engines
+from dovesei.episode import EpisodeSpec, build_cores
+from dovesei.shared.errors import ConfigError
+from dovesei.shared.messages import Stamp, VelocityCommand
+from dovesei.sim.core import SimConfig, SimCore
+from dovesei.sim.dynamics import Pose, Vehicle, VehicleParams
+from dovesei.sim.estimator import VEHICLE_PROFILES, vehicle_profile
+from dovesei.sim.starts import Start
+from dovesei.sim.world import load_world
+
+WORLD = "synthetic:size_m=400,seed=1"
+
+# Recorded with the code before vehicle profiles (commit f3f3332), `engines.run_job` of these jobs.
+REFERENCE = [
+    ({"policy": "dovesei", "index": 1, "seed": 12, "timing": "reference", "time_limit_s": 60.0,
+      "start": {"x_m": 266.718, "y_m": 133.498, "alt_m": 100.0}},
+     {"outcome": "safe", "sim_time_s": 46.85, "path_length_m": 87.956, "max_range_m": 74.5,
+      "final": {"x_m": 290.224, "y_m": 66.297, "alt_m": 19.979}}),
+    ({"policy": "clearance", "index": 0, "seed": 11, "timing": "real", "time_limit_s": 150.0,
+      "start": {"x_m": 230.274, "y_m": 296.129, "alt_m": 100.0}},
+     {"outcome": "safe", "sim_time_s": 42.75, "path_length_m": 80.763, "max_range_m": 79.1,
+      "final": {"x_m": 291.424, "y_m": 345.55, "alt_m": 19.969}}),
+]
+
+
+@pytest.mark.parametrize("job,want", REFERENCE, ids=[j["policy"] for j, _ in REFERENCE])
+def test_ideal_reproduces_the_records_of_the_code_before_profiles(job: dict, want: dict) -> None:
+    full = {"world": WORLD, "noise": None, "perception": "realistic", "prompts": None, **job}
+    for profile in (None, "ideal"):  # a job without the field (older benches) and one naming ideal
+        rec = engines.run_job(full if profile is None else {**full, "vehicle_profile": profile})
+        got = {k: rec[k] for k in want}
+        assert got == want, profile
+
+
+def test_ideal_state_is_the_truth_and_frames_are_nadir() -> None:
+    world = load_world(WORLD)
+    core = SimCore(world, Start(200.0, 200.0, 60.0), SimConfig(vehicle_profile="ideal", timing="reference"))
+    out = core.reset()
+    for k in range(60):
+        pose = core.true_pose()
+        assert out.state.pos_valid and out.state.alt_agl_m == pose.alt_agl_m
+        assert out.state.vel_body_frd_m_s == pose.vel_body_frd_m_s()
+        if out.frame is not None:
+            assert (out.frame.roll_rad, out.frame.pitch_rad) == (0.0, 0.0)
+        out = core.step(VelocityCommand("uav1", k, out.state.stamp, (8.0 if k < 30 else 0.0, 0.0, 0.5),
+                                        state_seq=out.state.seq))
+
+
+def _truth_table(core: SimCore, table: dict) -> None:
+    p = core.true_pose()
+    table[round(core.t_s, 6)] = p
+
+
+def test_realistic_no_controller_or_policy_input_equals_the_truth() -> None:
+    """Fly a realistic episode with the bench's own cores, recording the truth of every step, and
+    compare everything the controller and the policy were given with the truth of its instant."""
+    world = load_world(WORLD)
+    spec = EpisodeSpec(policy="clearance", start=Start(200.0, 200.0, 100.0), timing="real", seed=3,
+                       time_limit_s=60.0, vehicle_profile="realistic")
+    sim, seg, ctrl = build_cores(world, spec)
+    observations = []
+    policy_step = ctrl.policy.step
+
+    def spy(obs):
+        observations.append(obs)
+        return policy_step(obs)
+
+    ctrl.policy.step = spy
+    truth: dict[float, Pose] = {}
+    states, frames, heatmaps = [], [], {}
+    out = sim.reset()
+    pending = {}
+    while out.result is None:
+        _truth_table(sim, truth)
+        states.append(out.state)
+        if out.frame is not None:
+            frames.append(out.frame)
+            pending[out.frame.seq] = seg.process(out.frame)
+            heatmaps[out.frame.seq] = pending[out.frame.seq]
+        if out.state.await_frame_seq >= 0:
+            ctrl.on_heatmap(pending.pop(out.state.await_frame_seq), 0.0)
+        cmd, _status = ctrl.tick(out.state)
+        out = sim.step(cmd)
+    assert len(states) > 600 and len(frames) > 50 and len(observations) > 50
+
+    def at(t_s: float) -> Pose:
+        return truth[round(t_s, 6)]
+
+    vel_err, alt_err, tilt = [], [], []
+    for st in states:
+        p = at(st.stamp.t_s)
+        assert not st.pos_valid
+        assert st.alt_agl_m != p.alt_agl_m
+        assert st.vel_body_frd_m_s != p.vel_body_frd_m_s()
+        assert st.vel_body_frd_m_s[:2] != pytest.approx(p.vel_body_frd_m_s()[:2], abs=1e-6)
+        assert (st.roll_rad, st.pitch_rad, st.yaw_rad) != (p.roll_rad, p.pitch_rad, p.yaw_rad)
+        assert st.yaw_rad != p.yaw_rad
+        vel_err.append(np.subtract(st.vel_body_frd_m_s[:2], p.vel_body_frd_m_s()[:2]))
+        alt_err.append(st.alt_agl_m - p.alt_agl_m)
+    for fr in frames:
+        p = at(fr.stamp.t_s)
+        assert fr.alt_agl_m != p.alt_agl_m and heatmaps[fr.seq].alt_agl_m != p.alt_agl_m
+        assert fr.roll_rad != p.roll_rad and fr.pitch_rad != p.pitch_rad and fr.yaw_rad != p.yaw_rad
+        tilt.append(math.hypot(p.roll_rad, p.pitch_rad))
+    for obs in observations:
+        p = at(obs.t_s)
+        assert obs.alt_agl_m != p.alt_agl_m
+        assert (obs.roll_rad, obs.pitch_rad, obs.yaw_rad) != (p.roll_rad, p.pitch_rad, p.yaw_rad)
+        assert obs.vel_est_body_frd_m_s != p.vel_body_frd_m_s()
+    # The differences are an estimate's, not rounding: noise, bias, wind and latency add up to
+    # more than a few centimetres per second, and the body tilts while it manoeuvres.
+    assert float(np.sqrt(np.mean(np.square(vel_err)))) > 0.05
+    assert max(abs(e) for e in alt_err) > 0.1
+    assert max(tilt) > math.radians(3.0)
+
+
+def test_realistic_frames_are_rendered_tilted_with_the_body() -> None:
+    world = load_world(WORLD)
+    core = SimCore(world, Start(200.0, 200.0, 80.0), SimConfig(vehicle_profile="realistic", timing="reference"))
+    out = core.reset()
+    tilted = None
+    for k in range(40):  # accelerate forward: nose down
+        out = core.step(VelocityCommand("uav1", k, out.state.stamp, (8.0, 0.0, 0.0), state_seq=out.state.seq))
+        if out.frame is not None and core.true_pose().pitch_rad < -math.radians(5.0):
+            tilted = out.frame, core.true_pose()
+    assert tilted is not None
+    frame, pose = tilted
+    from dovesei.sim.camera import render
+    nadir, _, _ = render(world, pose.x_m, pose.y_m, pose.alt_agl_m, pose.yaw_rad, core.config.camera,
+                         with_labels=False)
+    tilted_img, _, _ = render(world, pose.x_m, pose.y_m, pose.alt_agl_m, pose.yaw_rad, core.config.camera,
+                              roll_rad=pose.roll_rad, pitch_rad=pose.pitch_rad, with_labels=False)
+    assert np.array_equal(frame.image_rgb, tilted_img) and not np.array_equal(frame.image_rgb, nadir)
+
+
+DT_S = 0.05
+
+
+def _fly(vehicle: Vehicle, seconds: float, cmd, cmd_t_s: float | None = None) -> None:
+    """Step for `seconds`; the command is re-sent every step, or was sent once at `cmd_t_s`."""
+    for _ in range(round(seconds / DT_S)):
+        vehicle.step(DT_S, cmd, 0.0, vehicle.state.t_s if cmd_t_s is None else cmd_t_s)
+
+
+def test_realistic_dynamics_brake_like_arducopter_and_coast_on_guid_timeout() -> None:
+    params = dataclasses.replace(VEHICLE_PROFILES["realistic"].dynamics, gust_sigma_m_s=0.0, drift_sigma_m_s_sqrt_s=0.0)
+    v = Vehicle(Pose(200.0, 200.0, 60.0), params)
+    _fly(v, 8.0, (10.0, 0.0, 0.0))
+    assert v.state.vel_ned_m_s[0] == pytest.approx(10.0, abs=0.05)
+    t0, t_stop = v.state.t_s, None
+    pitches = []
+    while v.state.t_s - t0 < 10.0:
+        v.step(DT_S, (0.0, 0.0, 0.0), 0.0, v.state.t_s)
+        pitches.append(v.state.pitch_rad)
+        if t_stop is None and v.state.vel_ned_m_s[0] < 0.1:
+            t_stop = v.state.t_s - t0
+    # ArduCopter SITL braked from 10 m/s in ~4.5 s (issue 23): 2.5 m/s^2 with a 5 m/s^3 jerk limit.
+    assert t_stop is not None and 4.0 <= t_stop <= 5.2
+    assert max(pitches) > math.radians(10.0)  # braking: nose up, 10-15 deg (issue 26)
+    # GUID_TIMEOUT: a command that is no longer refreshed is flown for 3 s, then the vehicle brakes.
+    v = Vehicle(Pose(200.0, 200.0, 60.0), params)
+    _fly(v, 8.0, (10.0, 0.0, 0.0))
+    sent_t_s = v.state.t_s
+    _fly(v, 2.9, (10.0, 0.0, 0.0), cmd_t_s=sent_t_s)
+    assert v.state.vel_ned_m_s[0] == pytest.approx(10.0, abs=0.05) and not v.last_command_stale
+    _fly(v, 1.0, (10.0, 0.0, 0.0), cmd_t_s=sent_t_s)
+    assert v.last_command_stale and v.state.vel_ned_m_s[0] < 9.0
+
+
+def test_accelerating_forward_pitches_nose_down_and_right_rolls_right() -> None:
+    v = Vehicle(Pose(200.0, 200.0, 60.0), VEHICLE_PROFILES["realistic"].dynamics)
+    _fly(v, 0.5, (8.0, 0.0, 0.0))
+    assert v.state.pitch_rad < -math.radians(3.0) and abs(v.state.roll_rad) < math.radians(1.0)
+    v = Vehicle(Pose(200.0, 200.0, 60.0), VEHICLE_PROFILES["realistic"].dynamics)
+    _fly(v, 0.5, (0.0, 8.0, 0.0))
+    assert v.state.roll_rad > math.radians(3.0)
+
+
+def test_profiles_are_checked_and_explicit_dynamics_win_over_the_profile() -> None:
+    with pytest.raises(ConfigError, match="--vehicle-profile 'nosuch': choose one of ideal, realistic, harsh"):
+        SimConfig(vehicle_profile="nosuch")
+    with pytest.raises(ConfigError):
+        vehicle_profile("nosuch")
+    world = load_world(WORLD)
+    core = SimCore(world, Start(200.0, 200.0, 60.0),
+                   SimConfig(vehicle_profile="realistic", vehicle=VehicleParams(cmd_timeout_s=1.0)))
+    core.reset()
+    assert core.vehicle.params.cmd_timeout_s == 1.0 and core.vehicle.params.max_accel_h_m_s2 == 2.5
+    core = SimCore(world, Start(200.0, 200.0, 60.0), SimConfig(vehicle_profile="realistic"))
+    core.reset()
+    assert core.vehicle.params.cmd_timeout_s == 3.0
+    fresh = VelocityCommand("uav1", 0, Stamp(0.0, "sim"), (0.0, 0.0, 0.0))
+    for _ in range(50):  # 2.5 s: a command that old is still fresh under GUID_TIMEOUT's 3 s
+        core.step(None)
+    assert core.is_fresh(fresh)
+
+
+def test_the_estimate_repeats_per_seed_and_differs_between_seeds() -> None:
+    world = load_world(WORLD)
+
+    def states(seed: int) -> list:
+        core = SimCore(world, Start(200.0, 200.0, 60.0), SimConfig(vehicle_profile="harsh", seed=seed))
+        out, rows = core.reset(), []
+        for k in range(40):
+            out = core.step(VelocityCommand("uav1", k, out.state.stamp, (3.0, 1.0, 0.5), state_seq=out.state.seq))
+            rows.append((out.state.alt_agl_m, out.state.vel_body_frd_m_s, out.state.yaw_rad, core.true_pose().x_m))
+        return rows
+
+    assert states(4) == states(4)
+    assert states(4) != states(5)
+
+
+# ---- the flags: bench, sweep, up, faults and the sim service all take --vehicle-profile ----
+
+
+def test_bench_records_the_profile_and_the_start_altitude(tmp_path) -> None:
+    from dovesei.bench import run_bench
+
+    doc = run_bench(world_spec=WORLD, episodes=1, seed=2, policies=["clearance"], noise=None, timing="real",
+                    time_limit_s=20.0, start_alt_m=40.0, jobs=1, out=tmp_path / "b", progress=False,
+                    vehicle_profile="realistic")
+    (ep,) = doc["episodes"]
+    assert ep["vehicle_profile"] == "realistic" and ep["start"]["alt_m"] == 40.0
+    assert doc["config"]["vehicle_profile"] == "realistic" and doc["config"]["start_alt_m"] == 40.0
+    assert "vehicle profile `realistic`" in (tmp_path / "b" / "summary.md").read_text()
+    # The track is the truth: it starts at the true start altitude, whatever the baro said.
+    track = np.load(next((tmp_path / "b" / "tracks").rglob("*.npy")))
+    assert track[0, 3] == pytest.approx(40.0, abs=1e-6)
+
+
+@pytest.mark.parametrize("argv,needle", [
+    (["--start-alt-m", "10"], "--start-alt-m must be a number of metres in [25, 200]"),
+    (["--start-alt-m", "nan"], "--start-alt-m must be a number of metres in [25, 200]"),
+    (["--vehicle-profile", "perfect"], "argument --vehicle-profile: invalid choice: 'perfect'"),
+])
+def test_bench_refuses_bad_profiles_and_altitudes_in_one_line(tmp_path, capsys, argv, needle) -> None:
+    from dovesei.bench import main
+
+    try:
+        code = main(["--world", WORLD, "--episodes", "1", "--out", str(tmp_path / "b"), *argv])
+    except SystemExit as exc:  # argparse's own refusal (one line: the bench's parser)
+        code = exc.code
+    assert code == 2
+    err = capsys.readouterr().err.strip()
+    assert needle in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "b").exists()
+
+
+def test_up_passes_the_profile_to_the_sim_child_and_checks_the_start_altitude() -> None:
+    from dovesei.sim.service import CLI as SIM_CLI
+    from dovesei.up.launch import child_configs
+    from dovesei.up.options import UpOptions, build_parser, options_from_args
+
+    options = options_from_args(build_parser().parse_args(["--vehicle-profile", "harsh", "--start-alt-m", "60"]))
+    assert (options.vehicle_profile, options.start_alt_m) == ("harsh", 60.0)
+    sim = child_configs(options, (100.0, 100.0, 60.0)).sim
+    argv = SIM_CLI.to_argv(sim)
+    assert argv[argv.index("--vehicle-profile") + 1] == "harsh"
+    assert SIM_CLI.parse(argv).sim.vehicle_profile == "harsh"
+    with pytest.raises(ConfigError, match="--vehicle-profile 'x'"):
+        UpOptions(vehicle_profile="x")
+    with pytest.raises(ConfigError, match=r"--start altitude must be a number of metres in \[25, 200\]"):
+        UpOptions(start=(1.0, 1.0, 5.0))
+
+
+def test_sweep_takes_the_profile_from_its_file_or_the_flag(tmp_path) -> None:
+    from dovesei.sweep import build_parser, grid_from_doc
+
+    base = {"worlds": [WORLD], "episodes": 1, "policies": ["dovesei"]}
+    assert grid_from_doc(base).vehicle_profile == "ideal"
+    assert grid_from_doc({**base, "vehicle_profile": "harsh", "start_alt_m": 60}).vehicle_profile == "harsh"
+    with pytest.raises(ConfigError, match="sweep file: 'vehicle_profile' 'x'"):
+        grid_from_doc({**base, "vehicle_profile": "x"})
+    with pytest.raises(ConfigError, match="sweep file: 'start_alt_m' must be a number of metres"):
+        grid_from_doc({**base, "start_alt_m": 500})
+    assert build_parser().parse_args(["f.yaml", "--vehicle-profile", "realistic"]).vehicle_profile == "realistic"
+
+
+def test_faults_fly_the_profile_asked_for() -> None:
+    from dovesei.faults import build_parser
+
+    assert build_parser().parse_args(["--vehicle-profile", "realistic"]).vehicle_profile == "realistic"
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["--vehicle-profile", "x"])
+
+
+def test_without_a_profile_every_command_flies_the_timing_presets_default(tmp_path) -> None:
+    from dovesei.bench import build_parser as bench_parser
+    from dovesei.sim.estimator import default_vehicle_profile
+    from dovesei.sweep import grid_from_doc
+    from dovesei.up.options import UpOptions, build_parser, options_from_args
+
+    for timing in ("reference", "real"):
+        want = default_vehicle_profile(timing)
+        assert want in VEHICLE_PROFILES
+        assert UpOptions(timing=timing).sim_vehicle_profile == want
+        assert UpOptions(timing=timing, vehicle_profile="harsh").sim_vehicle_profile == "harsh"
+        opts = options_from_args(build_parser().parse_args(["--timing", timing]))
+        assert opts.vehicle_profile is None and opts.sim_vehicle_profile == want
+        assert grid_from_doc({"worlds": [WORLD], "timing": timing}).vehicle_profile == want
+    assert bench_parser().parse_args([]).vehicle_profile is None
