@@ -568,3 +568,41 @@ def test_no_sim_module_talks_mavlink() -> None:
                 assert not any(n.startswith("pymavlink") and "dialects.v20" not in n for n in names), names
             else:
                 assert not any(n.startswith("pymavlink") for n in names), f"{path.name}: {names}"
+
+
+def test_the_controllers_status_gives_the_judge_its_confirmed_ground(pair, world: World) -> None:
+    """Over Zenoh the sim takes the controller's status (its confirming look: frame 0, 40 px above
+    the centre) and its result carries the touchdown error measured from that frame's own pose,
+    as the in-process runner measures it."""
+    from dovesei.shared.messages import ControllerStatus  # lazy: only this test sends one
+
+    sim_session, rec = pair
+    config = lockstep_config()
+    status_pub = rec.session.declare_publisher(keys.status(VID))
+    look = dict(confirmed_valid=True, confirmed_frame_seq=0, confirmed_row_px=175.5 - 40.0, confirmed_col_px=175.5)
+
+    def answer(state: VehicleState) -> None:
+        status_pub.put(encode(ControllerStatus(VID, state.seq, state.stamp, "clearance", "DESCEND", "ok", "", 0, 0.0,
+                                               1.0, **look)))
+        rec.send(replace(command(state, DESCEND), frame_seq=state.await_frame_seq, sent_wall_s=time.time()))
+
+    try:
+        with SimThread(sim_session, config, world) as sim:
+            rec.announce()
+            published = rec.until_result(answer)
+            sim.join()
+    finally:
+        status_pub.undeclare()
+    x_m, y_m, alt_m = config.start_xy_alt_m
+    core = SimCore(world, Start(x_m, y_m, alt_m), config.sim)
+    out = core.reset()
+    while out.result is None:
+        core.note_status(ControllerStatus(VID, 0, out.state.stamp, "clearance", "DESCEND", "ok", "", 0, 0.0, 1.0,
+                                          **look))
+        out = core.step(command(out.state, DESCEND))
+    expected = out.result
+    assert expected.touchdown_error_valid and expected.touchdown_error_m > 3.0
+    assert published.confirmed_valid and published.touchdown_error_valid
+    assert (published.confirmed_x_m, published.confirmed_y_m) == pytest.approx((expected.confirmed_x_m,
+                                                                                expected.confirmed_y_m))
+    assert published.touchdown_error_m == pytest.approx(expected.touchdown_error_m)
