@@ -64,6 +64,7 @@ def test_killed_the_vehicle_coasts_guid_timeout_on_the_last_setpoint_and_the_gcs
     try:
         n, e, _ = fake.position_ned_m
         coast_m = math.hypot(n - at[0], e - at[1])
+        print(f"killed at 10 m/s: coasted {coast_m:.1f} m in {stopped_s - killed_s:.2f} s")
         # GUID_TIMEOUT 3 s at 10 m/s: ~30 m blind, six times what the sim's 0.5 s drop suggested.
         assert stopped_s - killed_s > 2.5 and 22.0 < coast_m < 40.0, (stopped_s - killed_s, coast_m)
         # Then FS_GCS_TIMEOUT without dovesei's heartbeat (system 255 = SYSID_MYGCS): LAND.
@@ -81,6 +82,8 @@ def test_stopped_it_streams_zero_velocity_before_closing_and_the_vehicle_stops_a
         n, e, _ = fake.position_ned_m
         assert stopped_s - stopped_at_s < 2.0 and math.hypot(n - at[0], e - at[1]) < 15.0
         after = [sp for sp in fake.received()[0] if sp.recv_s >= stopped_at_s]
+        print(f"SIGTERM at 10 m/s: stopped after {math.hypot(n - at[0], e - at[1]):.1f} m in "
+              f"{stopped_s - stopped_at_s:.2f} s, {sum(sp.vel_m_s == (0.0, 0.0, 0.0) for sp in after)} zero setpoints")
         zeros = [sp for sp in after if sp.vel_m_s == (0.0, 0.0, 0.0)]
         # Several zero setpoints (one lost datagram must not leave 10 m/s flying), and zero is the last word.
         assert len(zeros) >= 5 and after[-1].vel_m_s == (0.0, 0.0, 0.0), [sp.vel_m_s for sp in after][-12:]
