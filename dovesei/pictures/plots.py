@@ -349,9 +349,19 @@ def plot_bench_paths(world: Any, doc: Mapping[str, Any], tracks_dir: Path | str,
                     markeredgewidth=1.5, zorder=10 + top)
             ax.plot(track[-1, 1], track[-1, 2], marker="X", ms=11, color=OUTCOME_COLOURS.get(ep["outcome"], "black"),
                     markeredgecolor="white", markeredgewidth=1.2, zorder=11 + top)
+            # The ground the policy last confirmed (a ring in its colour) joined to the touchdown:
+            # how far from the checked ground it handed over.
+            confirmed = ep.get("confirmed")
+            error = ep.get("touchdown_error_m")
+            if confirmed is not None:
+                ax.plot([confirmed["x_m"], track[-1, 1]], [confirmed["y_m"], track[-1, 2]], color="white", lw=1.2,
+                        ls=":", zorder=12 + top)
+                ax.plot(confirmed["x_m"], confirmed["y_m"], marker="o", ms=9, markerfacecolor="none",
+                        markeredgecolor=colour[pol], markeredgewidth=2.0, zorder=12 + top)
+            checked = f", {error:.1f} m from the confirmed spot" if error is not None else ""
             handles.append(Line2D([], [], color=colour[pol], lw=2, marker="o", ms=8, markeredgecolor="white",
                                   label=f"{pol}: {ep['outcome']}, {ep.get('sim_time_s', 0):.0f} s, "
-                                        f"{ep.get('path_length_m', 0):.0f} m"))
+                                        f"{ep.get('path_length_m', 0):.0f} m{checked}"))
         first = next(iter(runs.values()))[1]
         ax.plot(first[0, 1], first[0, 2], marker="^", ms=12, color="white", markeredgecolor="black", zorder=6)
         ax.set_xlim(extent[0], extent[1])

@@ -54,7 +54,7 @@ from dataclasses import dataclass
 from enum import Enum
 from typing import Any
 
-from dovesei.controller.gnss_denied import GNSS_DENIED_MODES, NavStatus
+from dovesei.controller.gnss_denied import EXTERNAL_NAV_MESSAGES, GNSS_DENIED_MODES, NavStatus
 from dovesei.controller.policies.base import Decision, Observation, Policy, PolicyInputError, make_policy, policy_names
 from dovesei.controller.frames import body_frd_to_ned, ned_to_body_frd, to_ne
 from dovesei.controller.geofence import Geofence
@@ -132,6 +132,7 @@ class ControllerConfig:
     # velocity to the EKF (source set `ekf_source_set`), "attitude" flies GUIDED_NOGPS attitude targets.
     gnss_denied: str = "off"
     ekf_source_set: int = 2  # the EK3_SRCn set whose VELXY is ExternalNav (6)
+    external_nav_message: str = "both"  # ArduPilot: VISION_SPEED_ESTIMATE, VISION_POSITION_DELTA or both
     odometry_min_quality: float = 0.5  # visual velocity below this quality is not flown on
     odometry_max_age_s: float = 0.5  # nor one older than this at arrival (receiver's clock)
     attitude_max_tilt_deg: float = 15.0  # attitude mode: largest roll/pitch demanded
@@ -169,6 +170,7 @@ class ControllerConfig:
             raise ConfigError(f"gnss_denied {self.gnss_denied!r} needs a MAVLink vehicle (--vehicle-url); the sim "
                               "never loses GNSS")
         validate.in_range("ControllerConfig.ekf_source_set", self.ekf_source_set, 1, 3)
+        validate.one_of("ControllerConfig.external_nav_message", self.external_nav_message, EXTERNAL_NAV_MESSAGES)
         validate.in_range("ControllerConfig.odometry_min_quality", self.odometry_min_quality, 0.0, 1.0)
         validate.positive("ControllerConfig.odometry_max_age_s", self.odometry_max_age_s)
         validate.in_range("ControllerConfig.attitude_max_tilt_deg", self.attitude_max_tilt_deg, 1.0, 35.0)
