@@ -109,8 +109,9 @@ class ControllerConfig:
     vehicle_connect_timeout_s: float = 30.0  # MAVLink: wait this long for the autopilot's heartbeat
     mavlink_alt_source: str = "local"  # MAVLink altitude: "local" position or "rangefinder"
     mavlink_allow_mode_switch: bool = False  # MAVLink: may switch to GUIDED/OFFBOARD itself
-    # MAVLink: "rate" sends velocity + yaw rate 0 (type mask 0x05C7: the heading, and so the camera,
-    # is held); "autopilot" sends velocity only (0x0DC7: ArduCopter then yaws by WP_YAW_BEHAVIOR).
+    # MAVLink: "rate" sends body-frame velocity + a yaw rate closed on ATTITUDE (mask 0x05C7);
+    # "autopilot" sends LOCAL_NED velocity + the held heading as a yaw angle (0x09C7) for the
+    # autopilot's heading controller. Either way the heading, and so the camera, is held.
     mavlink_yaw_control: str = "rate"
     mavlink_system_id: int | None = None  # MAVLink: fly only this autopilot system id (None: the first heard)
     # MAVLink setpoint limits, ArduCopter's defaults: WPNAV_SPEED, WPNAV_SPEED_UP, WPNAV_SPEED_DN.
