@@ -28,6 +28,7 @@ import cv2
 import numpy as np
 
 from dovesei.pictures.common import ReportError
+from dovesei.shared import footprint
 
 try:  # optional extra 'video': without it the video is MPEG-4 Part 2, which browsers do not play
     import av
@@ -82,7 +83,7 @@ class VideoFrame:
         """A ground distance in heatmap pixels at this frame's altitude (flat ground, nadir camera)."""
         if self.hfov_rad is None or not (self.alt_agl_m > 0 and 0 < self.hfov_rad < math.pi):
             return None
-        footprint_m = 2.0 * self.alt_agl_m * math.tan(self.hfov_rad / 2.0)
+        footprint_m = footprint.width_m(self.alt_agl_m, self.hfov_rad)
         return metres * width_px / footprint_m
 
 

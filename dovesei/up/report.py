@@ -25,6 +25,7 @@ from dovesei.pictures import plots
 from dovesei.pictures import video as videos
 from dovesei.pictures.common import ReportError, backend_label
 from dovesei.shared.messages import ControllerStatus
+from dovesei.shared.mission import HANDOVER_ALT_M, SAFETY_RADIUS_M
 from dovesei.up.launch import SERVICES
 from dovesei.up.monitor import STAGES, Recorder
 from dovesei.up.options import UpOptions
@@ -118,6 +119,7 @@ class Setup:
     vehicle_id: str
     safety_radius_m: float
     time_limit_s: float
+    handover_alt_m: float = HANDOVER_ALT_M  # where the controller handed over and the sim judged
 
 
 @dataclass(frozen=True)
@@ -341,8 +343,8 @@ def build_report(options: UpOptions, rec: Recorder, start: tuple[float, float, f
     setup = Setup(options.world, backend, simulated, options.segmenter, noise if simulated else None,
                   options.perception if simulated else None, options.policy,
                   options.timing, options.seed, "lockstep" if options.lockstep else "realtime",
-                  options.vehicle_url or f"sim:{options.sim_vehicle_profile}", options.vehicle_id, 2.0,
-                  options.time_limit_s)
+                  options.vehicle_url or f"sim:{options.sim_vehicle_profile}", options.vehicle_id, SAFETY_RADIUS_M,
+                  options.time_limit_s, options.handover_alt_m)
     episode_wall_s = (round(rec.result_wall_s - rec.first_state_wall_s, 3)
                       if rec.result_wall_s is not None and rec.first_state_wall_s is not None else None)
     timing = RunTiming(round(wall_time_s, 3), episode_wall_s, _latency(options, rec, cmd_to_sim),

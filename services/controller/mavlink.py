@@ -477,8 +477,10 @@ class MavlinkVehicle:
                           NavStatus(False, False, False, SOURCE_NONE, f"flying attitude targets and {why}: no descent"))
             previous, self._nav_status = self._nav_status, status
             target = self._target
-            # Counted with the status that shows it, so a reader never sees one without the other.
-            first_loss = status.gnss_lost and not self._gnss_lost_seen
+            # Counted with the status that shows it, so a reader never sees one without the other. A
+            # position lost without a fix ever seen (started after the loss) counts as the same loss.
+            lost = status.gnss_lost or status.position_lost
+            first_loss = lost and not self._gnss_lost_seen
             if first_loss:
                 self._gnss_lost_seen = True
                 self.gnss_losses += 1
@@ -490,7 +492,7 @@ class MavlinkVehicle:
         elif status.velocity_trusted != previous.velocity_trusted:
             log.info("navigation: velocity %s: %s", "trusted" if status.velocity_trusted else "NOT trusted",
                      status.reason)
-        if not status.gnss_lost or target is None or self.read_only:
+        if not lost or target is None or self.read_only:
             return
         if first_loss:
             if self.gnss_denied == "external-nav" and target.autopilot == "ardupilot":

@@ -33,13 +33,13 @@ import cv2
 import numpy as np
 
 from dovesei.shared.errors import DoveseiError
+from dovesei.shared.mission import HANDOVER_ALT_M, SAFETY_RADIUS_M
 from dovesei.shared.validate import is_number
 from dovesei.sim.dynamics import Pose
 from dovesei.sim.world import World
 
 OUTSIDE_WORLD_NAME = "outside the world"
 DEFAULT_ZERO_TOLERANCE_NAMES = ("person", "people", "pedestrian", "human")
-SAFETY_RADIUS_M = 2.0  # the landing disk the paper's criterion looks at
 TOLERANCE_FRAC = 0.01  # unsafe share of the disk forgiven (label anti-aliasing along edges)
 SEARCH_RADIUS_M = 50.0  # how far `closest_unsafe_m` looks
 
@@ -236,7 +236,7 @@ class EpisodeJudge:
     def __init__(
         self,
         world: World,
-        handover_alt_m: float = 20.0,
+        handover_alt_m: float = HANDOVER_ALT_M,
         time_limit_s: float = 1200.0,
         safety_radius_m: float = SAFETY_RADIUS_M,
         tolerance_frac: float = TOLERANCE_FRAC,

@@ -290,13 +290,12 @@ def test_a_blind_camera_stops_the_descent_until_it_sees_again(fly) -> None:
 
 
 def test_the_controller_process_takes_gnss_denied_from_its_command_line() -> None:
-    """Tier 3: `dovesei-controller --gnss-denied attitude` as a real process on a fake ArduCopter whose
-    GNSS is already gone: it switches to GUIDED_NOGPS, flies attitude targets on the odometry the test
+    """Tier 3: `dovesei-controller --gnss-denied attitude` as a real process on a fake ArduCopter that
+    loses GNSS once the controller flies it: it switches to GUIDED_NOGPS, flies attitude targets on the odometry the test
     publishes over Zenoh, says so in its status, and holds the vehicle on SIGTERM."""
     mav_port, zenoh_port = free_port(socket.SOCK_DGRAM), free_port()
     with FakeAutopilot(f"udpin:127.0.0.1:{mav_port}", flavour="ardupilot", mode="GUIDED", armed=True,
                        alt_m=START_ALT_M, heartbeat_hz=10) as fake:
-        fake.lose_gnss()
         proc = subprocess.Popen(
             [sys.executable, "-m", "dovesei.controller.service", "--vehicle-url", f"udpout:127.0.0.1:{mav_port}",
              "--gnss-denied", "attitude", "--max-tilt-deg", "12", "--state-stale-after-s", "1",
@@ -307,6 +306,8 @@ def test_the_controller_process_takes_gnss_denied_from_its_command_line() -> Non
                     Inbox(session, keys.state("uav1"), VehicleState, newest_only=True) as states, \
                     Inbox(session, keys.status("uav1"), ControllerStatus, newest_only=False, depth=4096) as statuses:
                 assert wait_until(lambda: is_alive(session, "uav1", "controller", 0.5), 30.0), "never came up"
+                assert wait_until(lambda: states.poll() is not None, 15.0), "no state from the controller"
+                fake.lose_gnss()  # mid-flight, with the controller flying it in GUIDED
                 camera = Camera(session, states, fake)
                 camera.start()
                 seen: list[ControllerStatus] = []

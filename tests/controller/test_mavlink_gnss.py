@@ -113,4 +113,6 @@ def test_a_controller_started_after_the_loss_still_gets_states_from_the_baromete
     # The barometric height (the EKF failsafe is landing it at 1 m/s meanwhile: compare with the truth now).
     assert states[0].alt_agl_m == pytest.approx(-fake.position_ned_m[2], abs=1.0) and not states[0].pos_valid
     assert states[0].stamp.clock == "vehicle" and fake.mode == "LAND"
-    assert vehicle.nav_status().position_lost and vehicle.nav_status().gnss_lost
+    # It never saw a fix, so it cannot tell GNSS went; it sees the position gone and trusts nothing.
+    assert vehicle.nav_status().position_lost and not vehicle.nav_status().velocity_trusted
+    assert wait_until(lambda: vehicle.counters()["gnss_losses"] == 1, 2.0)  # counted as the loss it is
