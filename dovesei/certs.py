@@ -5,10 +5,11 @@ each one may do. The list here is deny by default, and its subjects are the cert
 common names, one role per service:
 
     role        may put                         may subscribe to
-    controller  cmd, status, state (autopilot)  heatmap, state
+    controller  cmd, status, state (autopilot)  heatmap, state, odometry
     segmenter   heatmap (and segment replies)   camera, prompts (and answers segment queries)
-    sim         camera, state, episode          cmd, state, status (the hand-over, external pose)
-    camera      camera                          state
+    sim         camera, state, episode,         cmd, state, status (the hand-over, external pose)
+                odometry
+    camera      camera, odometry                state
     operator    prompts (and segment queries)   status, episode, heatmap, state, camera
     monitor     nothing                         everything (`dovesei up`, `dovesei health`)
 
@@ -57,13 +58,16 @@ class Role:
 
 ROLES: dict[str, Role] = {
     # The controller owns the autopilot link, so the vehicle's state in flight comes from it.
-    "controller": Role(puts=("cmd", "status", "state"), subscribes=("heatmap", "state"),
+    # It flies on (or feeds the EKF with) the camera's visual velocity, which only the camera (or
+    # the sim in its place) may publish.
+    "controller": Role(puts=("cmd", "status", "state"), subscribes=("heatmap", "state", "odometry"),
                        alive_as=("controller", "mavlink")),
     "segmenter": Role(puts=("heatmap",), subscribes=("camera", "prompts"), answers=("segment",),
                       alive_as=("segmenter",)),
     # The sim hears the controller's status for its hand-over in external-pose mode (sim.judge).
-    "sim": Role(puts=("camera", "state", "episode"), subscribes=("cmd", "state", "status"), alive_as=("sim",)),
-    "camera": Role(puts=("camera",), subscribes=("state",), alive_as=("camera",)),
+    "sim": Role(puts=("camera", "state", "episode", "odometry"), subscribes=("cmd", "state", "status"),
+                alive_as=("sim",)),
+    "camera": Role(puts=("camera", "odometry"), subscribes=("state",), alive_as=("camera",)),
     "operator": Role(puts=("prompts",), subscribes=("status", "episode", "heatmap", "state", "camera"),
                      asks=("segment",)),
     "monitor": Role(subscribes=tuple(t for t in keys.TOPICS if t != "segment")),

@@ -11,7 +11,8 @@ prompt sets, described in a small YAML or JSON file, on either engine, resumable
     prompts:                          # name -> prompt set; null = the reference prompts
       reference: null
       lawns-only: {positive: [grass, lawn], negative: [building, road, water, tree]}
-    # optional: noise, time_limit_s, start_alt_m, vehicle_profile (ideal | realistic | harsh)
+    # optional: noise, time_limit_s, start_alt_m, vehicle_profile (ideal | realistic | harsh; default
+    # as `dovesei bench` at this timing)
 
 Every cell flies the same starts. The grid is one bench run (`dovesei.bench.run.run_grid`), so
 it shares the journal, resuming and engines of `dovesei bench`; the output folder holds
@@ -35,7 +36,7 @@ from dovesei.shared.cliconfig import OneLineParser
 from dovesei.shared import timing as shared_timing
 from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.shared.validate import in_range, one_of, positive
-from dovesei.sim.estimator import VEHICLE_PROFILE_NAMES
+from dovesei.sim.estimator import VEHICLE_PROFILE_NAMES, default_vehicle_profile
 from dovesei.sim.starts import check_start_alt_m
 
 log = logging.getLogger(__name__)
@@ -131,8 +132,8 @@ def grid_from_doc(doc: dict) -> Grid:
                 policies=tuple(policies), variants=variants, noise=noise, timing=timing, time_limit_s=float(limit),
                 start_alt_m=check_start_alt_m("sweep file: 'start_alt_m'", doc.get("start_alt_m", 100.0)),
                 world_label=label, extra={"sweep": True},
-                vehicle_profile=one_of("sweep file: 'vehicle_profile'", doc.get("vehicle_profile", "ideal"),
-                                       VEHICLE_PROFILE_NAMES))
+                vehicle_profile=one_of("sweep file: 'vehicle_profile'",
+                                       doc.get("vehicle_profile", default_vehicle_profile(timing)), VEHICLE_PROFILE_NAMES))
 
 
 def plot_sweep(rows: list[dict], out_png: Path, title: str) -> None:
@@ -168,7 +169,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--address", default=None, help="Ray cluster address (with --engine ray)")
     p.add_argument("--no-progress", action="store_true")
     p.add_argument("--vehicle-profile", choices=VEHICLE_PROFILE_NAMES,
-                   help="what the vehicle reports and how it flies (default: the file's vehicle_profile, else ideal)")
+                   help="what the vehicle reports and how it flies (default: the file's vehicle_profile, else as "
+                        "`dovesei bench` at the file's timing)")
     return p
 
 

@@ -45,14 +45,14 @@ from dovesei.shared.codec import decode, encode
 from dovesei.shared.errors import ConfigError, DoveseiError, ProtocolError
 from dovesei.shared.messages import (
     SCHEMAS, CameraFrame, ControllerStatus, EpisodeResult, Message, PromptSetMsg, SafetyHeatmap, VehicleState,
-    VelocityCommand, field_hints,
+    VelocityCommand, VisualOdometry, field_hints,
 )
 
 PROFILE = "dovesei"
 TOPICS: dict[type, str] = {
     VehicleState: "/dovesei/state", VelocityCommand: "/dovesei/cmd", ControllerStatus: "/dovesei/status",
     SafetyHeatmap: "/dovesei/heatmap", CameraFrame: "/dovesei/camera", EpisodeResult: "/dovesei/episode",
-    PromptSetMsg: "/dovesei/prompts",
+    PromptSetMsg: "/dovesei/prompts", VisualOdometry: "/dovesei/odometry",
 }
 CAMERA_IMAGE_TOPIC = "/camera/image"
 HEATMAP_IMAGE_TOPIC = "/heatmap/image"

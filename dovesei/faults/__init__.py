@@ -33,7 +33,6 @@ from dovesei.faults.scenario import FAULTS, RunResult, run_scenario
 from dovesei.shared.cliconfig import OneLineParser
 from dovesei.shared.errors import ConfigError
 from dovesei.sim.estimator import VEHICLE_PROFILE_NAMES
-from dovesei.up.options import DEFAULT_VEHICLE_PROFILE
 
 log = logging.getLogger("dovesei.faults")
 
@@ -93,9 +92,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", type=Path, help="folder for the runs (default: runs/faults-<timestamp>)")
     p.add_argument("--json", action="store_true", help="print the totals as JSON instead of the table")
     p.add_argument("--log-level", default="WARNING", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
-    p.add_argument("--vehicle-profile", default=DEFAULT_VEHICLE_PROFILE, choices=VEHICLE_PROFILE_NAMES,
-                   help=f"the simulated vehicle the faults are flown with (default: {DEFAULT_VEHICLE_PROFILE}, as "
-                        "`dovesei up`)")
+    p.add_argument("--vehicle-profile", choices=VEHICLE_PROFILE_NAMES,
+                   help="the simulated vehicle the faults are flown with (default: as `dovesei up` at the faults' "
+                        "timing)")
     return p
 
 

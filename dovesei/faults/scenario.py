@@ -32,7 +32,7 @@ from dovesei.up import exit_code, preflight
 from dovesei.up.children import Children
 from dovesei.up.launch import SERVICES, child_commands, child_env
 from dovesei.up.monitor import Monitor, Recorder
-from dovesei.up.options import DEFAULT_VEHICLE_PROFILE, UpOptions
+from dovesei.up.options import UpOptions
 from dovesei.up.report import build_report, read_stats
 from dovesei.up.watch import Watcher
 
@@ -276,7 +276,7 @@ def _retarget(argv: list[str], endpoint: str) -> list[str]:
 
 
 def run_scenario(fault: Fault, seed: int, out: Path, *, world: str = WORLD,
-                 vehicle_profile: str = DEFAULT_VEHICLE_PROFILE) -> RunResult:
+                 vehicle_profile: str | None = None) -> RunResult:
     t0 = time.monotonic()
     vid = "uav1"
     rng = random.Random(seed)

@@ -22,13 +22,14 @@ from dovesei.shared import keys, validate
 from dovesei.shared.errors import ConfigError
 from dovesei.shared.mavurl import FORMS as MAVLINK_FORMS
 from dovesei.shared.mavurl import MavlinkEndpoint, check_serial_device, parse_mavlink_url
+from dovesei.shared.mission import HANDOVER_ALT_M, MIN_DESCENT_M, check_handover_below_start
 from dovesei.shared.timing import DEFAULT_TIMING, TIMING_NAMES, timing
 from dovesei.controller.core import HANDOVER_ACTIONS
 from dovesei.controller.gnss_denied import GNSS_DENIED_MODES
 from dovesei.controller.mavlink_proto import load_signing_key
 from dovesei.controller.policies import policy_names
 from dovesei.segmenter.simulated import DEFAULT_PROFILE, PROFILE_NAMES
-from dovesei.sim.estimator import VEHICLE_PROFILE_NAMES
+from dovesei.sim.estimator import VEHICLE_PROFILE_NAMES, default_vehicle_profile
 from dovesei.sim.service import parse_start as sim_parse_start
 from dovesei.sim.sitl_truth import parse_truth_url
 from dovesei.sim.starts import check_start_alt_m, generate_starts
@@ -37,7 +38,6 @@ DESCRIPTION = "`dovesei up`: fly one episode with the three services as separate
 SEGMENTERS = ("auto", "clipseg", "sim")
 YAW_CONTROLS = ("rate", "autopilot")  # the controller's --yaw-control choices
 LOG_LEVELS = ("DEBUG", "INFO", "WARNING", "ERROR")
-DEFAULT_VEHICLE_PROFILE = "ideal"  # dovesei.sim.estimator; a real vehicle (--vehicle) is itself
 SEED_MAX = 2**32 - 1  # numpy's SeedSequence takes any int >= 0; the services' seeds fit 32 bits
 
 _HUB_ID = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*/[A-Za-z0-9][A-Za-z0-9_.-]*$")
@@ -72,10 +72,14 @@ class UpOptions:
     seed: int = 0
     noise: float | None = None  # None: the simulated perception's calibrated default
     perception: str = DEFAULT_PROFILE  # simulated perception profile (clean | realistic | harsh)
-    vehicle_profile: str = DEFAULT_VEHICLE_PROFILE  # simulated vehicle (ideal | realistic | harsh)
+    # Simulated vehicle (ideal | realistic | harsh); None: the timing preset's default
+    # (dovesei.sim.estimator.default_vehicle_profile). A real vehicle (--vehicle) is itself.
+    vehicle_profile: str | None = None
     start: tuple[float, float, float] | None = None  # (x_m, y_m, alt_m); None: from start_seed
     start_seed: int | None = None  # None: --seed
     start_alt_m: float = 100.0
+    # The controller hands over (and hands it to its policy) and the sim's judge judges here.
+    handover_alt_m: float = HANDOVER_ALT_M
     out: Path = Path("runs/up")
     # True for the default runs/up-<time>: `run` then claims a folder no other run has (adding -2, -3
     # when one started in the same second), so two runs never write into one folder.
@@ -150,11 +154,13 @@ class UpOptions:
                 and 1 <= self.autopilot_system_id <= 255):
             raise ConfigError(f"--autopilot-system-id {self.autopilot_system_id!r}: a MAVLink system id is an "
                               "integer in 1..255")
-        validate.one_of("--vehicle-profile", self.vehicle_profile, VEHICLE_PROFILE_NAMES)
+        if self.vehicle_profile is not None:
+            validate.one_of("--vehicle-profile", self.vehicle_profile, VEHICLE_PROFILE_NAMES)
         if self.start is not None:
             validate.finite_vector("--start", self.start, 3)
             check_start_alt_m("--start altitude", self.start[2])
         check_start_alt_m("--start-alt-m", self.start_alt_m)
+        check_handover_below_start(self.handover_alt_m, self.start[2] if self.start is not None else self.start_alt_m)
         for flag, value in (("--heatmap-wait-s", self.heatmap_wait_s),
                             ("--heatmap-hold-after-s", self.heatmap_hold_after_s)):
             if value is not None:
@@ -170,6 +176,11 @@ class UpOptions:
             if self.segmenter == "sim":
                 raise ConfigError("--model only applies to a model segmenter (--segmenter auto or clipseg)")
             check_model(self.model)
+
+    @property
+    def sim_vehicle_profile(self) -> str:
+        """The vehicle profile the sim flies: the one asked for, else the timing preset's default."""
+        return default_vehicle_profile(self.timing) if self.vehicle_profile is None else self.vehicle_profile
 
     @property
     def lockstep(self) -> bool:
@@ -230,15 +241,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--perception", default=DEFAULT_PROFILE, choices=PROFILE_NAMES,
                    help=f"simulated perception profile (default: {DEFAULT_PROFILE}); a test instrument")
     p.add_argument("--noise", type=float, help="error scale within the perception profile (default: 1)")
-    p.add_argument("--vehicle-profile", default=DEFAULT_VEHICLE_PROFILE, choices=VEHICLE_PROFILE_NAMES,
+    p.add_argument("--vehicle-profile", choices=VEHICLE_PROFILE_NAMES,
                    help="simulated vehicle: ideal (reports the truth, a gimbal), realistic (an optical-flow EKF "
                         "without GNSS, a body-fixed camera, ArduCopter's limits) or harsh (default: "
-                        f"{DEFAULT_VEHICLE_PROFILE}); ignored with --vehicle")
+                        f"{default_vehicle_profile('real')} with real timing, {default_vehicle_profile('reference')} "
+                        "with reference timing); ignored with --vehicle")
     where = p.add_mutually_exclusive_group()
     where.add_argument("--start", metavar="X,Y[,ALT]", help="start position in world metres (x east, y north)")
     where.add_argument("--start-seed", type=int, help="draw the start like the bench's start 0 with this seed")
     p.add_argument("--start-alt-m", type=float, default=100.0,
                    help="start altitude when --start gives none (25-200 m; a flow-navigating ArduCopter holds 48-69 m)")
+    p.add_argument("--handover-alt-m", type=float, default=HANDOVER_ALT_M,
+                   help=f"hand-over altitude: the controller and its policy hand over, and the sim judges, here "
+                        f"(default: {HANDOVER_ALT_M:g} m; at least {MIN_DESCENT_M:g} m below the start)")
     p.add_argument("--time-limit-s", type=float, default=None,
                    help="sim-time limit of the episode (default: the paper's 1200 s on the preset's clock, "
                         "as `dovesei bench`: 60 s with --timing reference, 1200 s with --timing real)")
@@ -302,7 +317,7 @@ def options_from_args(args: argparse.Namespace) -> UpOptions:
     return UpOptions(world=args.world, segmenter=args.segmenter, policy=args.policy, timing=timing_name,
                      seed=args.seed, noise=args.noise, perception=args.perception, vehicle_profile=args.vehicle_profile,
                      start=start, start_seed=args.start_seed,
-                     start_alt_m=args.start_alt_m, out=out, out_unique=args.out is None, realtime=args.realtime,
+                     start_alt_m=args.start_alt_m, handover_alt_m=args.handover_alt_m, out=out, out_unique=args.out is None, realtime=args.realtime,
                      connect=tuple(args.connect), vehicle_url=args.vehicle_url, sitl_truth=args.sitl_truth,
                      takeoff=args.takeoff, handover_action=args.handover_action,
                      yaw_control=args.yaw_control, signing_key=args.signing_key,

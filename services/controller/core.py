@@ -55,7 +55,7 @@ from dataclasses import dataclass
 from enum import Enum
 from typing import Any
 
-from dovesei.controller.gnss_denied import GNSS_DENIED_MODES, NavStatus
+from dovesei.controller.gnss_denied import EXTERNAL_NAV_MESSAGES, GNSS_DENIED_MODES, NavStatus
 from dovesei.controller.policies.base import Decision, Observation, Policy, PolicyInputError, make_policy, policy_names
 from dovesei.controller.continuity import (
     ALTITUDE_NOISE_M, MAX_VERTICAL_SPEED_M_S, STEP_CONFIRM_SAMPLES, AltitudeContinuity,
@@ -64,8 +64,9 @@ from dovesei.controller.frames import body_frd_to_ned, ned_to_body_frd, to_ne
 from dovesei.controller.geofence import Geofence
 from dovesei.controller.odometry import VelocityTrack
 from dovesei.controller.policies.config import TIMING_PRESETS
-from dovesei.shared import keys, validate
+from dovesei.shared import footprint, keys, validate
 from dovesei.shared.errors import ConfigError, DoveseiError
+from dovesei.shared.mission import HANDOVER_ALT_M
 from dovesei.shared.messages import (
     ControllerStatus, SafetyHeatmap, StageLatency, VehicleState, VelocityCommand, replace,
 )
@@ -113,7 +114,7 @@ class ControllerConfig:
     climb_speed_m_s: float = 2.0  # max vertical speed of the climb watchdog
     climb_gain_per_s: float = 0.5  # climb speed = gain x altitude error (capped): no overshoot
     search_alt_m: float | None = None  # None: the altitude at which the vehicle was first seen
-    handover_alt_m: float = 20.0  # at/below: stop commanding, report HANDOVER
+    handover_alt_m: float = HANDOVER_ALT_M  # at/below: stop commanding, report HANDOVER (handed to the policy)
     handover_release_m: float = 2.0  # hysteresis: leave HANDOVER only above handover + this
     handover_action: str = "hold"  # MAVLink adapter action at hand-over: hold, land, precland or none
     vehicle_url: str = "zenoh"  # "zenoh" (the sim over Zenoh) or a pymavlink connection URL
@@ -122,8 +123,9 @@ class ControllerConfig:
     vehicle_connect_timeout_s: float = 30.0  # MAVLink: wait this long for the autopilot's heartbeat
     mavlink_alt_source: str = "local"  # MAVLink altitude: "local" position or "rangefinder"
     mavlink_allow_mode_switch: bool = False  # MAVLink: may switch to GUIDED/OFFBOARD itself
-    # MAVLink: "rate" sends velocity + yaw rate 0 (type mask 0x05C7: the heading, and so the camera,
-    # is held); "autopilot" sends velocity only (0x0DC7: ArduCopter then yaws by WP_YAW_BEHAVIOR).
+    # MAVLink: "rate" sends body-frame velocity + a yaw rate closed on ATTITUDE (mask 0x05C7);
+    # "autopilot" sends LOCAL_NED velocity + the held heading as a yaw angle (0x09C7) for the
+    # autopilot's heading controller. Either way the heading, and so the camera, is held.
     mavlink_yaw_control: str = "rate"
     mavlink_system_id: int | None = None  # MAVLink: fly only this autopilot system id (None: the first heard)
     # MAVLink setpoint limits, ArduCopter's defaults: WPNAV_SPEED, WPNAV_SPEED_UP, WPNAV_SPEED_DN.
@@ -159,6 +161,7 @@ class ControllerConfig:
     # velocity to the EKF (source set `ekf_source_set`), "attitude" flies GUIDED_NOGPS attitude targets.
     gnss_denied: str = "off"
     ekf_source_set: int = 2  # the EK3_SRCn set whose VELXY is ExternalNav (6)
+    external_nav_message: str = "both"  # ArduPilot: VISION_SPEED_ESTIMATE, VISION_POSITION_DELTA or both
     odometry_min_quality: float = 0.5  # visual velocity below this quality is not flown on
     odometry_max_age_s: float = 0.5  # nor one older than this at arrival (receiver's clock)
     attitude_max_tilt_deg: float = 15.0  # attitude mode: largest roll/pitch demanded
@@ -196,6 +199,7 @@ class ControllerConfig:
             raise ConfigError(f"gnss_denied {self.gnss_denied!r} needs a MAVLink vehicle (--vehicle-url); the sim "
                               "never loses GNSS")
         validate.in_range("ControllerConfig.ekf_source_set", self.ekf_source_set, 1, 3)
+        validate.one_of("ControllerConfig.external_nav_message", self.external_nav_message, EXTERNAL_NAV_MESSAGES)
         validate.in_range("ControllerConfig.odometry_min_quality", self.odometry_min_quality, 0.0, 1.0)
         validate.positive("ControllerConfig.odometry_max_age_s", self.odometry_max_age_s)
         validate.in_range("ControllerConfig.attitude_max_tilt_deg", self.attitude_max_tilt_deg, 1.0, 35.0)
@@ -293,7 +297,8 @@ class ControllerCore:
         self._mono = mono  # the controller's own clock (stamps are judged on it in real time)
         # The real wiring always goes through the factory; tests may hand in a double.
         self.policy = policy if policy is not None else make_policy(config.policy, config.timing,
-                                                                    config.vehicle_speed_limits_m_s)
+                                                                    config.vehicle_speed_limits_m_s,
+                                                                    handover_alt_m=config.handover_alt_m)
         self.rejected: Counter[str] = Counter()  # reason -> count (heatmaps and states refused)
         self.adopted_count = 0
         self._tick_seq = 0
@@ -830,7 +835,7 @@ class ControllerCore:
         if adopted is None or decision is None or decision.target_px is None:
             return None
         h, w = adopted.hm.prob_safe.shape
-        focal_px = (w / 2.0) / math.tan(adopted.hm.hfov_rad / 2.0)  # square pixels: one focal length
+        focal_px = footprint.focal_px(w, adopted.hm.hfov_rad)  # square pixels: one focal length
         row, col = decision.target_px
         # The pixel's ray in the body frame (camera looking down: image up = forward), then NED.
         ray_ned = body_frd_to_ned((-(row - (h - 1) / 2.0) / focal_px, (col - (w - 1) / 2.0) / focal_px, 1.0),

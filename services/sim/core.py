@@ -43,6 +43,7 @@ import numpy as np
 from dovesei.shared import validate
 from dovesei.shared.clock import wall_time_s
 from dovesei.shared.errors import ConfigError
+from dovesei.shared.mission import HANDOVER_ALT_M, SAFETY_RADIUS_M
 from dovesei.shared.timing import DEFAULT_TIMING, timing
 from dovesei.shared.messages import (
     CameraFrame, ClassEntry, ControllerStatus, EpisodeResult, GroundTruth, Stamp, VehicleState, VelocityCommand,
@@ -81,9 +82,9 @@ class SimConfig:
     # taking precedence (an explicit --cmd-max-age-s wins over the profile's GUID_TIMEOUT).
     vehicle_profile: str = SIM_DEFAULT_VEHICLE_PROFILE
     vehicle: VehicleParams = field(default_factory=VehicleParams)
-    handover_alt_m: float = 20.0
+    handover_alt_m: float = HANDOVER_ALT_M  # the judge ends and judges the episode here
     time_limit_s: float = 1200.0
-    safety_radius_m: float = 2.0
+    safety_radius_m: float = SAFETY_RADIUS_M  # the judge's landing disk
     seed: int = 0
     attach_truth: bool = True
     # False: frames carry a blank image (truth labels only). For the in-process bench with the
@@ -272,7 +273,8 @@ class SimCore:
             # only what the state reports.
             roll, pitch = (0.0, 0.0) if self._gimbal else (pose.roll_rad, pose.pitch_rad)
             odometry = self._odometry.observe(pose.x_m, pose.y_m, pose.alt_agl_m, pose.yaw_rad, state,
-                                              roll_rad=roll, pitch_rad=pitch)
+                                              roll_rad=roll, pitch_rad=pitch,
+                                              tag_roll_pitch_rad=(0.0, 0.0) if self._gimbal else None)
         if outcome is not None:
             self._result = self._episode_result(outcome)
         return StepOut(state, frame, self._result, odometry)

@@ -222,6 +222,14 @@ VEHICLE_PROFILE_NAMES = tuple(VEHICLE_PROFILES)
 SIM_DEFAULT_VEHICLE_PROFILE = "ideal"  # the sim service and SimConfig; `bench` and `up` choose their own
 
 
+def default_vehicle_profile(timing_name: str) -> str:
+    """The profile `bench`, `sweep`, `up` and `faults` fly when none is asked for, by timing preset.
+
+    Today `ideal` for both presets.
+    """
+    return "ideal"
+
+
 def vehicle_profile(name: str) -> VehicleProfile:
     """The named profile, or a ConfigError naming the choices."""
     try:

@@ -103,6 +103,8 @@ class TruthSource(Protocol):
 
     def newest(self) -> TruePose | None: ...
 
+    def at(self, boot_s: float) -> TruePose | None: ...
+
 
 def pose_in_world(state: VehicleState, start: Start) -> Pose:
     """A vehicle's local NED state placed in the world: origin at the start, north +y, east +x."""
@@ -206,6 +208,10 @@ def run_external_pose(states: Inbox[VehicleState], publish_frame: Callable[[Came
         if true is None:
             pose, attitude_rad = pose_in_world(state, start), (state.roll_rad, state.pitch_rad)
         else:
+            # The truth at the instant of the state that labels this view (stamped on the vehicle's
+            # clock), so image and label describe one moment; the newest truth when it cannot be dated.
+            if state.stamp.clock == "vehicle":
+                true = truth.at(state.stamp.t_s) or true
             pose, attitude_rad = pose_from_truth(true, start, state.stamp.t_s), (true.roll_rad, true.pitch_rad)
         handover = handover_heard(statuses, sim.vehicle_id, handover)
         if judge.check(pose, handover=handover) is not None:

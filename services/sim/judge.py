@@ -19,8 +19,8 @@ The paper judged landings by eye; here the label map does it. Two pieces:
   `timeout` when the sim-time limit runs out. It accumulates the horizontal path length.
 
   The altitude alone never makes a landing: twice under `harsh` a descent the policy had already
-  aborted sank through 20 m on inertia and was scored "safe". Such an uncommanded sink goes on
-  (the policy climbs back, or the time runs out); a vehicle that reaches the ground without a
+  aborted sank through the hand-over altitude on inertia and was scored "safe". Such an
+  uncommanded sink goes on (the policy climbs back, or the time runs out); a vehicle that reaches the ground without a
   hand-over (`GROUND_CONTACT_M`) ends `unsafe`, "on the ground without a hand-over": an
   unplanned touchdown is a crash, wherever it happens. A caller with no word from the controller
   (`handover=None`) gets the altitude crossing, the paper's rule. It also keeps the ground the
@@ -41,13 +41,13 @@ import cv2
 import numpy as np
 
 from dovesei.shared.errors import DoveseiError
+from dovesei.shared.mission import HANDOVER_ALT_M, SAFETY_RADIUS_M
 from dovesei.shared.validate import is_number
 from dovesei.sim.dynamics import Pose
 from dovesei.sim.world import World
 
 OUTSIDE_WORLD_NAME = "outside the world"
 DEFAULT_ZERO_TOLERANCE_NAMES = ("person", "people", "pedestrian", "human")
-SAFETY_RADIUS_M = 2.0  # the landing disk the paper's criterion looks at
 TOLERANCE_FRAC = 0.01  # unsafe share of the disk forgiven (label anti-aliasing along edges)
 SEARCH_RADIUS_M = 50.0  # how far `closest_unsafe_m` looks
 GROUND_CONTACT_M = 0.1  # true altitude at which an un-handed-over vehicle has hit the ground
@@ -246,7 +246,7 @@ class EpisodeJudge:
     def __init__(
         self,
         world: World,
-        handover_alt_m: float = 20.0,
+        handover_alt_m: float = HANDOVER_ALT_M,
         time_limit_s: float = 1200.0,
         safety_radius_m: float = SAFETY_RADIUS_M,
         tolerance_frac: float = TOLERANCE_FRAC,

@@ -134,7 +134,7 @@ def test_split_services_connect_and_their_acl_holds(pki, ground_router) -> None:
     port = ground_router
     services = {**_services("compose.ground.yaml"), **_services("compose.onboard.yaml")}
     sessions = {name: _session_of(svc, pki, port) for name, svc in services.items()}
-    got: dict[str, list[bytes]] = {"heatmap": [], "camera": [], "cmd": []}
+    got: dict[str, list[bytes]] = {"heatmap": [], "camera": [], "cmd": [], "odometry": []}
     lock = threading.Lock()
 
     def catcher(topic):
@@ -143,7 +143,8 @@ def test_split_services_connect_and_their_acl_holds(pki, ground_router) -> None:
                 got[topic].append(sample.payload.to_bytes())
         return on
     subs = [sessions["controller"].declare_subscriber(keys.heatmap("uav1"), catcher("heatmap")),
-            sessions["segmenter"].declare_subscriber(keys.camera("*"), catcher("camera"))]
+            sessions["segmenter"].declare_subscriber(keys.camera("*"), catcher("camera")),
+            sessions["controller"].declare_subscriber(keys.odometry("uav1"), catcher("odometry"))]
     try:
         for s in sessions.values():
             assert wait_until(lambda s=s: any(True for _ in s.info.routers_zid()), 5.0)
@@ -159,6 +160,13 @@ def test_split_services_connect_and_their_acl_holds(pki, ground_router) -> None:
         list(sessions["camera"].liveliness().get(keys.alive("uav1", "*"), timeout=0.5))  # its puts are routed
         assert delivered("segmenter", "heatmap", b"hm2")
         assert not [p for p in got["heatmap"] if p.startswith(b"forged")]
+        # The camera's visual velocity reaches the controller; nobody else may publish one.
+        assert delivered("camera", "odometry", b"odo")
+        for i in range(10):
+            sessions["segmenter"].put(keys.odometry("uav1"), f"forged-{i}".encode())
+        list(sessions["segmenter"].liveliness().get(keys.alive("uav1", "*"), timeout=0.5))
+        assert delivered("camera", "odometry", b"odo2")
+        assert not [p for p in got["odometry"] if p.startswith(b"forged")]
     finally:
         for sub in subs:
             sub.undeclare()

@@ -30,8 +30,9 @@ from dovesei.sim.world import load_world
 WORLD = "synthetic:size_m=400,seed=1"
 
 # Recorded with the code before vehicle profiles (commit f3f3332), `engines.run_job` of these jobs;
-# since the judge ends an episode on the controller's hand-over (3 states at 20 m, then its
-# command), 0.15 s later than the altitude crossing did: the same landing, 0.17 m lower.
+# since the judge ends an episode on the controller's hand-over (3 states at the altitude, then
+# its command), 0.15 s later than the altitude crossing did: the same landing, 0.17 m lower. The
+# clearance record is that of `clearance` since it lands where it checked (f7aefb9).
 REFERENCE = [
     ({"policy": "dovesei", "index": 1, "seed": 12, "timing": "reference", "time_limit_s": 60.0,
       "start": {"x_m": 266.718, "y_m": 133.498, "alt_m": 100.0}},
@@ -39,8 +40,8 @@ REFERENCE = [
       "final": {"x_m": 290.224, "y_m": 66.297, "alt_m": 19.799}}),
     ({"policy": "clearance", "index": 0, "seed": 11, "timing": "real", "time_limit_s": 150.0,
       "start": {"x_m": 230.274, "y_m": 296.129, "alt_m": 100.0}},
-     {"outcome": "safe", "sim_time_s": 42.9, "path_length_m": 80.766, "max_range_m": 79.1,
-      "final": {"x_m": 291.425, "y_m": 345.547, "alt_m": 19.811}}),
+     {"outcome": "safe", "sim_time_s": 45.25, "path_length_m": 80.455, "max_range_m": 78.6,
+      "final": {"x_m": 290.721, "y_m": 346.391, "alt_m": 19.806}}),
 ]
 
 
@@ -303,3 +304,20 @@ def test_faults_fly_the_profile_asked_for() -> None:
     assert build_parser().parse_args(["--vehicle-profile", "realistic"]).vehicle_profile == "realistic"
     with pytest.raises(SystemExit):
         build_parser().parse_args(["--vehicle-profile", "x"])
+
+
+def test_without_a_profile_every_command_flies_the_timing_presets_default(tmp_path) -> None:
+    from dovesei.bench import build_parser as bench_parser
+    from dovesei.sim.estimator import default_vehicle_profile
+    from dovesei.sweep import grid_from_doc
+    from dovesei.up.options import UpOptions, build_parser, options_from_args
+
+    for timing in ("reference", "real"):
+        want = default_vehicle_profile(timing)
+        assert want in VEHICLE_PROFILES
+        assert UpOptions(timing=timing).sim_vehicle_profile == want
+        assert UpOptions(timing=timing, vehicle_profile="harsh").sim_vehicle_profile == "harsh"
+        opts = options_from_args(build_parser().parse_args(["--timing", timing]))
+        assert opts.vehicle_profile is None and opts.sim_vehicle_profile == want
+        assert grid_from_doc({"worlds": [WORLD], "timing": timing}).vehicle_profile == want
+    assert bench_parser().parse_args([]).vehicle_profile is None
