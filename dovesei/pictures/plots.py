@@ -182,6 +182,15 @@ def plot_trajectory(world: Any, report: Mapping[str, Any], out_png: Path | str) 
             ms=14, zorder=5)
     # The footprint disk to scale: at this zoom it is a few pixels, hence the inset below.
     ax.add_patch(Circle((end_x, end_y), radius_m, fill=False, ec="yellow", lw=1.2, zorder=6))
+    confirmed = report.get("confirmed")
+    if confirmed is not None:
+        # The ground the policy last confirmed, joined to the touchdown: how far from it it handed over.
+        error = report.get("touchdown_error_m")
+        ax.plot([confirmed["x_m"], end_x], [confirmed["y_m"], end_y], color="white", lw=1.2, ls=":", zorder=6)
+        ax.plot(confirmed["x_m"], confirmed["y_m"], marker="o", ms=10, markerfacecolor="none", markeredgecolor="magenta",
+                markeredgewidth=2.0, zorder=6)
+        handles.append(Line2D([], [], marker="o", ls="", markerfacecolor="none", markeredgecolor="magenta", ms=10,
+                              label="ground last confirmed" + (f" ({error:.1f} m away)" if error is not None else "")))
     ax.set_xlim(extent[0], extent[1])
     ax.set_ylim(extent[2], extent[3])
     ax.set_xlabel("x east (m)")

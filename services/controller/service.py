@@ -609,6 +609,8 @@ CLI = CommandLine(ControllerConfig, {
                           check=lambda w, v: validate.in_range(w, v, 1.0, 500.0)),
     "takeoff_ready_timeout_s": Flag("--takeoff-ready-timeout-s", "takeoff: give up when the autopilot cannot arm "
                                     "within this, naming its pre-arm reasons", check=validate.positive),
+    "camera_hfov_deg": Flag("--camera-hfov-deg", "the camera's horizontal field of view as published (after any "
+                            "crop): heatmaps more than 25 %% off it are refused", check=validate.positive),
     "geofence_radius_m": Flag("--geofence-radius-m", "largest distance from the start, dead-reckoned from the "
                               "velocity estimate, that any policy may fly (default: off with the sim, "
                               "400 m with a MAVLink vehicle; 0: off)",

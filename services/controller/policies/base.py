@@ -77,6 +77,10 @@ class Decision:
     threshold: float | None  # dynamic segmentation threshold used (None when it failed)
     info: Mapping[str, float] = field(default_factory=dict)
     reason: str = ""  # why the policy is in `state` (the last transition's reason)
+    # The policy is committed to landing where it is (descending onto a checked spot, or done):
+    # only then may the controller hand over at the hand-over altitude. A descent the policy has
+    # aborted that sinks through that altitude (inertia, a baro step) is not a landing.
+    landing: bool = False
     confirmed: Confirmation | None = None  # policies with a checked spot: the look that confirmed it last
 
 

@@ -513,6 +513,8 @@ class DoveseiPolicy:
             focus_radius_px=self._image.radius_px * scale_rows,
             threshold=seg.threshold,
             info=info,
+            # The paper's success is reaching 20 m while LANDING; any other state there is not a landing.
+            landing=out.state in (DoveseiState.LANDING, DoveseiState.LANDED),
         )
         return self._decision
 
