@@ -246,7 +246,7 @@ def build_parser() -> argparse.ArgumentParser:
     where.add_argument("--start", metavar="X,Y[,ALT]", help="start position in world metres (x east, y north)")
     where.add_argument("--start-seed", type=int, help="draw the start like the bench's start 0 with this seed")
     p.add_argument("--start-alt-m", type=float, default=100.0,
-                   help="start altitude when --start gives none (25-200 m; a flow-navigating ArduCopter holds 48-69 m)")
+                   help="start altitude when --start gives none (21-200 m; a flow-navigating ArduCopter holds 48-69 m)")
     p.add_argument("--time-limit-s", type=float, default=None,
                    help="sim-time limit of the episode (default: the paper's 1200 s on the preset's clock, "
                         "as `dovesei bench`: 60 s with --timing reference, 1200 s with --timing real)")

@@ -248,8 +248,8 @@ def test_bench_records_the_profile_and_the_start_altitude(tmp_path) -> None:
 
 
 @pytest.mark.parametrize("argv,needle", [
-    (["--start-alt-m", "10"], "--start-alt-m must be a number of metres in [25, 200]"),
-    (["--start-alt-m", "nan"], "--start-alt-m must be a number of metres in [25, 200]"),
+    (["--start-alt-m", "10"], "--start-alt-m must be a number of metres in [21, 200]"),
+    (["--start-alt-m", "nan"], "--start-alt-m must be a number of metres in [21, 200]"),
     (["--vehicle-profile", "perfect"], "argument --vehicle-profile: invalid choice: 'perfect'"),
 ])
 def test_bench_refuses_bad_profiles_and_altitudes_in_one_line(tmp_path, capsys, argv, needle) -> None:
@@ -278,7 +278,7 @@ def test_up_passes_the_profile_to_the_sim_child_and_checks_the_start_altitude() 
     assert SIM_CLI.parse(argv).sim.vehicle_profile == "harsh"
     with pytest.raises(ConfigError, match="--vehicle-profile 'x'"):
         UpOptions(vehicle_profile="x")
-    with pytest.raises(ConfigError, match=r"--start altitude must be a number of metres in \[25, 200\]"):
+    with pytest.raises(ConfigError, match=r"--start altitude must be a number of metres in \[21, 200\]"):
         UpOptions(start=(1.0, 1.0, 5.0))
 
 
