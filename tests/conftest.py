@@ -15,6 +15,17 @@ os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
 from dovesei.shared.zconfig import free_port  # noqa: E402  (re-exported for the test tiers)
 
 
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """The `sitl` tier flies a real ArduCopter SITL (DOVESEI_SITL_DIR): never part of the default
+    suite, only run when a -m expression names it (`pytest -m sitl`)."""
+    if "sitl" in (config.getoption("markexpr") or ""):
+        return
+    kept = [item for item in items if item.get_closest_marker("sitl") is None]
+    if len(kept) != len(items):
+        config.hook.pytest_deselected(items=[item for item in items if item.get_closest_marker("sitl") is not None])
+        items[:] = kept
+
+
 @pytest.fixture
 def zenoh_pair() -> Iterator[tuple[object, object]]:
     """Two in-process peers on loopback (multicast off): one listens, the other connects to it."""

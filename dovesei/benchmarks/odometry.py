@@ -20,6 +20,15 @@ the horizontal error |v_est - v_true| (both brought to the level frame) in % of 
 95th percentile) or in m/s at speed 0, and how often the error lies within the estimate's own 95 %
 circle (2.45 sd of the per-axis variance): an EKF fuses the value with that variance.
 
+Flights (`--flight-s`, 60 s by default, 0 = skip): on every world, one in-process `SimCore`
+episode per vehicle profile (`ideal`, `realistic`, `harsh`) with the sim's odometry at 10 Hz, flown by a
+scripted pilot (speeds 0-8 m/s in changing directions, turns, a 1 m/s descent from 100 m): the
+views are rendered at the true pose tilted with the body, the estimator is told what the profile's
+autopilot reports (its delayed, noisy attitude, heading error and baro altitude). Each odometry
+message is turned to north/east with the attitude it carries, as an EKF would, and compared with
+the true displacement over the same 0.1 s: median and 95th percentile error in % of the speed
+(pairs above 1 m/s), in m/s below, and the invalid fraction.
+
 The last line printed is one JSON object with every figure (`--json` prints only that line).
 """
 
@@ -40,7 +49,10 @@ import numpy as np
 
 from dovesei.shared.cliconfig import OneLineParser
 from dovesei.shared.visual_velocity import FrameMeta, VisualVelocityConfig, estimate, prepare, rotation_body_to_level
+from dovesei.shared.messages import VehicleState, VelocityCommand
 from dovesei.sim.camera import CameraError, CameraModel, prebuild_pyramid, render
+from dovesei.sim.core import SimConfig, SimCore
+from dovesei.sim.starts import Start
 from dovesei.sim.suite import suite
 from dovesei.sim.world import World, WorldError, load_world
 
@@ -193,6 +205,88 @@ def bench_error(worlds: dict[str, World], pairs: int, seed: int, tilts: Sequence
     return out
 
 
+# The scripted pilot of the flights: (seconds, forward, right, down m/s, yaw rate rad/s), repeated.
+PILOT_LEGS = ((8.0, 5.0, 0.0, 1.0, 0.0), (6.0, 8.0, 2.0, 1.0, 0.2), (5.0, 0.0, 0.0, 1.0, 0.0),
+              (8.0, -3.0, 4.0, 1.0, -0.3), (6.0, 2.0, -6.0, 1.0, 0.0), (4.0, 0.0, 0.0, 0.0, 0.5))
+
+
+def _pilot(state: VehicleState, t_s: float) -> VelocityCommand:
+    period = sum(leg[0] for leg in PILOT_LEGS)
+    t = t_s % period
+    for dur, fwd, right, down, yaw_rate in PILOT_LEGS:
+        if t < dur:
+            break
+        t -= dur
+    return VelocityCommand(state.vehicle_id, state.seq, state.stamp, (fwd, right, down), yaw_rate,
+                           state_seq=state.seq)
+
+
+def bench_flights(worlds: dict[str, World], flight_s: float, profiles: Sequence[str], seed: int) -> dict:
+    """Odometry against the truth along scripted flights, per profile and world."""
+    out: dict = {"flight_s": flight_s, "per_profile": {}}
+    for profile in profiles:
+        table: dict = {}
+        every: list[tuple[bool, float, float, float]] = []
+        for spec, world in worlds.items():
+            start = Start(world.width_m / 2, world.height_m / 2, 100.0, yaw_rad=0.3)
+            core = SimCore(world, start, SimConfig(vehicle_id="bench", vehicle_profile=profile, odometry_rate_hz=10.0,
+                                                   time_limit_s=flight_s, attach_truth=False, render_image=False,
+                                                   seed=seed, handover_alt_m=5.0))
+            out_step = core.reset()
+            truth: dict[float, tuple[float, float]] = {}
+            rows = []
+            while out_step.result is None:
+                pose = core.true_pose()
+                truth[round(out_step.state.stamp.t_s, 6)] = (pose.x_m, pose.y_m)
+                odo = out_step.odometry
+                if odo is not None:
+                    t1, t0 = round(odo.stamp.t_s, 6), round(odo.stamp.t_s - odo.dt_s, 6)
+                    if t0 in truth:
+                        (x0, y0), (x1, y1) = truth[t0], truth[t1]
+                        vn, ve = (y1 - y0) / odo.dt_s, (x1 - x0) / odo.dt_s
+                        speed = math.hypot(vn, ve)
+                        if not odo.valid:
+                            rows.append((False, 0.0, speed, 0.0))
+                        else:
+                            ned = rotation_body_to_level(odo.roll_rad, odo.pitch_rad, odo.yaw_rad) @ \
+                                np.array(odo.vel_body_frd_m_s)
+                            rows.append((True, math.hypot(ned[0] - vn, ned[1] - ve), speed,
+                                         math.sqrt(odo.vel_var_m2_s2)))
+                out_step = core.step(_pilot(out_step.state, out_step.state.stamp.t_s))
+            every += rows
+            table[spec] = _flight_summary(rows)
+        table["all"] = _flight_summary(every)
+        out["per_profile"][profile] = table
+    return out
+
+
+def _flight_summary(rows: list[tuple[bool, float, float, float]]) -> dict:
+    valid = [(err, v, sd) for ok, err, v, sd in rows if ok]
+    moving = [100.0 * err / v for err, v, _ in valid if v >= 1.0]
+    slow = [err for err, v, _ in valid if v < 1.0]
+    within = sum(err <= 2.45 * sd for err, _, sd in valid)  # as in _summary
+    return {"samples": len(rows), "invalid_fraction": round(1 - len(valid) / len(rows), 3) if rows else None,
+            "err_pct_median": _r(_percentile(moving, 50)), "err_pct_p95": _r(_percentile(moving, 95)),
+            "err_m_s_slow_median": _r(_percentile(slow, 50)), "err_m_s_slow_p95": _r(_percentile(slow, 95)),
+            "within_own_95pct": round(within / len(valid), 3) if valid else None,
+            "sd_m_s_median": _r(_percentile([sd for _, _, sd in valid], 50))}
+
+
+def _print_flights(flights: dict) -> None:
+    def fmt(v: float | None, width: int = 7) -> str:
+        return f"{'-':>{width}s}" if v is None else f"{v:{width}.2f}"
+    for profile, table in flights["per_profile"].items():
+        print(f"\nflights, {profile} vehicle profile ({flights['flight_s']:g} s each, odometry at 10 Hz vs the true "
+              "displacement; % of speed above 1 m/s, m/s below)")
+        print(f"{'':34s} {'samples':>7s} {'invalid':>8s} {'med %':>7s} {'p95 %':>7s} {'slow med':>9s} {'slow p95':>9s} "
+              f"{'in 95%':>7s} {'sd med':>7s}")
+        for spec, s in table.items():
+            within = "-" if s["within_own_95pct"] is None else f"{100 * s['within_own_95pct']:.0f}%"
+            print(f"{spec:34s} {s['samples']:7d} {100 * s['invalid_fraction']:7.1f}% {fmt(s['err_pct_median'])} "
+                  f"{fmt(s['err_pct_p95'])} {fmt(s['err_m_s_slow_median'], 9)} {fmt(s['err_m_s_slow_p95'], 9)} "
+                  f"{within:>7s} {fmt(s['sd_m_s_median'])}")
+
+
 def _print_tables(speed: dict, error: dict) -> None:
     print(f"speed at {speed['size']} ({speed['frames']} frames, {speed['world']}), one OpenCV thread: "
           f"CPU {speed['cpu_ms_median']:.2f} ms median, {speed['cpu_ms_p95']:.2f} ms p95; "
@@ -229,12 +323,14 @@ def main(argv: list[str] | None = None) -> int:
                    help="body-fixed camera rolled and pitched (on), level (off) or both")
     p.add_argument("--noise", choices=("both", "ideal", "realistic"), default="both",
                    help="true tags and clean pixels (ideal), sensor noise and tag errors (realistic), or both")
+    p.add_argument("--flight-s", type=float, default=60.0,
+                   help="seconds of scripted flight per world and vehicle profile (0 = skip the flights)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--skip-error", action="store_true", help="only the speed figure")
     p.add_argument("--json", action="store_true", help="print only the JSON line")
     args = p.parse_args(argv)
-    if args.pairs < 1 or args.frames < 10:
-        p.error("--pairs must be >= 1 and --frames >= 10")
+    if args.pairs < 1 or args.frames < 10 or not 0.0 <= args.flight_s <= 3600.0:
+        p.error("--pairs must be >= 1, --frames >= 10 and --flight-s in 0..3600")
     logging.basicConfig(level=logging.WARNING)
     specs = tuple(args.world) if args.world else suite(args.suite)
     try:
@@ -246,12 +342,16 @@ def main(argv: list[str] | None = None) -> int:
     tilts = {"both": (False, True), "on": (True,), "off": (False,)}[args.tilt]
     noises = ("ideal", "realistic") if args.noise == "both" else (args.noise,)
     error = {} if args.skip_error else bench_error(worlds, args.pairs, args.seed, tilts, noises)
+    flights = bench_flights(worlds, args.flight_s, ("ideal", "realistic", "harsh"), args.seed) \
+        if args.flight_s > 0 and not args.skip_error else {}
     if not args.json:
         if error:
             _print_tables(speed, error)
         else:
             print(json.dumps(speed))
-    print(json.dumps({"speed": speed, "error": error}))
+        if flights:
+            _print_flights(flights)
+    print(json.dumps({"speed": speed, "error": error, "flights": flights}))
     return 0
 
 

@@ -25,7 +25,10 @@ Personalities (`flavour`):
   A fake created armed (in the air) has booted long ago.
 - Speed caps: ArduPilot WPNAV_SPEED 10 m/s, WPNAV_SPEED_UP 2.5, WPNAV_SPEED_DN 1.5; PX4
   MPC_XY_VEL_MAX 12, MPC_Z_VEL_MAX_UP 3, MPC_Z_VEL_MAX_DN 1.5.
-- ArduPilot stops a guided velocity not refreshed within GUID_TIMEOUT (3 s). PX4 accepts
+- ArduPilot flies a guided velocity not refreshed for GUID_TIMEOUT (`guid_timeout_s`, 3 s by
+  default) as if it were, then stops and holds: a controller killed at 10 m/s coasts ~30 m. The
+  GCS failsafe (`fs_gcs_enable` "land", FS_GCS_ENABLE 5) switches to LAND when no heartbeat from
+  SYSID_MYGCS (255) came for FS_GCS_TIMEOUT (`fs_gcs_timeout_s`, 5 s) after one was heard. PX4 accepts
   OFFBOARD (and arming in it) only while setpoints stream and falls back to LOITER when they stop
   for COM_OF_LOSS_T (1 s).
 - `heading_drift_rad_s`: the heading wanders while airborne (the 5-23 degrees seen on ArduCopter).
@@ -89,6 +92,7 @@ MAV_RESULT_FAILED = 4
 MAV_SEVERITY_CRITICAL, MAV_SEVERITY_WARNING, MAV_SEVERITY_INFO = 2, 4, 6
 PX4_OFFBOARD_LOSS_S = 1.0  # PX4's COM_OF_LOSS_T default
 ARDUPILOT_GUIDED_VEL_TIMEOUT_S = 3.0  # ArduCopter's GUID_TIMEOUT default
+SYSID_MYGCS = 255  # ArduCopter's default: heartbeats from this system keep the GCS failsafe away
 LAND_RATE_M_S = 1.0
 PRECLAND_GAIN_PER_S, PRECLAND_MAX_M_S = 0.5, 1.0
 # AC_PrecLand.cpp (ArduPilot 4.6): EKF_INIT_TIME_MS, EKF_INIT_SENSOR_MIN_UPDATE_MS,
@@ -160,13 +164,14 @@ class ReceivedAttitudeTarget:
 
 @dataclass(frozen=True)
 class ReceivedVisionSpeed:
-    """One VISION_SPEED_ESTIMATE (NED m/s) or PX4 ODOMETRY velocity (body FRD) as received."""
+    """One VISION_SPEED_ESTIMATE (NED m/s), VISION_POSITION_DELTA (body FRD, delta / dt; `covariance`
+    holds its confidence) or PX4 ODOMETRY velocity (body FRD) as received."""
 
     recv_s: float
     usec: int
     vel_m_s: tuple[float, float, float]
     covariance: tuple[float, ...]
-    kind: str  # "VISION_SPEED_ESTIMATE" or "ODOMETRY"
+    kind: str  # "VISION_SPEED_ESTIMATE", "VISION_POSITION_DELTA" or "ODOMETRY"
 
 
 @dataclass(frozen=True)
@@ -204,7 +209,9 @@ class FakeAutopilot:
                  offboard_loss_s: float = PX4_OFFBOARD_LOSS_S, system: int = 1, component: int = 1,
                  boot_s: float = DEFAULT_BOOT_S, heading_drift_rad_s: float = 0.0,
                  statustext_period_s: float = 2.0, signing_key: bytes | None = None, arm_refusals: int = 0,
-                 precland: bool = True, ekf: FakeEkf | None = None) -> None:
+                 precland: bool = True, ekf: FakeEkf | None = None,
+                 guid_timeout_s: float = ARDUPILOT_GUIDED_VEL_TIMEOUT_S, fs_gcs_enable: str | None = None,
+                 fs_gcs_timeout_s: float = 5.0) -> None:
         if flavour not in FLAVOURS:
             raise ValueError(f"flavour {flavour!r}: choose one of {FLAVOURS}")
         self.url, self.flavour, self.personality = url, flavour, PERSONALITIES[flavour]
@@ -236,6 +243,12 @@ class FakeAutopilot:
         self._next_send_s: dict[int, float] = {}
         self._last_setpoint: ReceivedSetpoint | None = None
         self._precland = precland
+        self._guid_timeout_s = float(guid_timeout_s)
+        if fs_gcs_enable not in (None, "land"):
+            raise ValueError(f"fs_gcs_enable {fs_gcs_enable!r}: None (FS_GCS_ENABLE 0) or 'land' (5)")
+        self._fs_gcs_land, self._fs_gcs_timeout_s = fs_gcs_enable == "land", float(fs_gcs_timeout_s)
+        self._gcs_seen_s: float | None = None  # newest heartbeat from SYSID_MYGCS (time.monotonic)
+        self._gcs_failsafe = False
         self._plnd_state = "none"  # none, init (Target Found, filling) or acquired (Init Complete)
         self._plnd_init_s = self._plnd_last_s = 0.0  # time.monotonic of the init and of the newest target
         self._plnd_target_ne_m: tuple[float, float] | None = None  # where the newest target puts it (NE)
@@ -463,6 +476,7 @@ class FakeAutopilot:
                 self._custom_mode = mv.encode_mode("px4", "LOITER")[0]
                 name = "LOITER"
             airborne = -self._pos_ned_m[2] > self.terrain_height_m + 0.05
+            name = self._gcs_failsafe_check(name, now)
             name = self._ekf_failsafe(name, now)
             nav_ok = self.flavour != "ardupilot" or self.ekf.position_ok(now)
             steering = self._armed and name == mv.STEER_MODE[self.flavour] and nav_ok
@@ -473,7 +487,7 @@ class FakeAutopilot:
                 vel_ned[2] = -self.personality.up_cap_m_s if -self._pos_ned_m[2] < self._takeoff_alt_m else 0.0
                 if vel_ned[2] == 0.0:
                     self._takeoff_alt_m = None
-            elif steering and sp is not None and now - sp.recv_s <= ARDUPILOT_GUIDED_VEL_TIMEOUT_S:
+            elif steering and sp is not None and now - sp.recv_s <= self._guid_timeout_s:
                 vel_ned, yaw_rate = self._setpoint_to_ned(sp)
             elif self._armed and name in ("LAND", "PRECLAND"):
                 self._precland_tick(now)
@@ -512,7 +526,7 @@ class FakeAutopilot:
         vel = list(self._vel_ned_m_s)
         climb = 0.0
         target = self._last_attitude
-        if name == "GUIDED_NOGPS" and target is not None and now - target.recv_s <= ARDUPILOT_GUIDED_VEL_TIMEOUT_S:
+        if name == "GUIDED_NOGPS" and target is not None and now - target.recv_s <= self._guid_timeout_s:
             self._roll_rad, self._pitch_rad, self._yaw_rad = quaternion_to_euler(target.q)
             # ArduCopter's default GUID_OPTIONS: thrust is a climb rate, 0.5 holds the altitude.
             thrust = min(max(target.thrust, 0.0), 1.0)
@@ -523,7 +537,7 @@ class FakeAutopilot:
             self._roll_rad = self._pitch_rad = 0.0
             if name in ("LAND", "PRECLAND"):
                 climb = -LAND_RATE_M_S
-            elif name == "GUIDED" and sp is not None and now - sp.recv_s <= ARDUPILOT_GUIDED_VEL_TIMEOUT_S:
+            elif name == "GUIDED" and sp is not None and now - sp.recv_s <= self._guid_timeout_s:
                 climb = -sp.vel_m_s[2]  # the barometer still holds the vertical
         # Body acceleration from the tilt (nose down accelerates forward), into NED by the heading.
         a_fwd = -GRAVITY_M_S2 * math.tan(self._pitch_rad)
@@ -534,6 +548,17 @@ class FakeAutopilot:
             vel[i] += (acc[i] - DRAG_PER_S * vel[i]) * dt_s
         vel[2] = -climb
         return vel
+
+    def _gcs_failsafe_check(self, name: str, now: float) -> str:
+        """FS_GCS_ENABLE 5: LAND once SYSID_MYGCS fell silent for FS_GCS_TIMEOUT (caller holds the lock)."""
+        if not (self._fs_gcs_land and self._armed and self._gcs_seen_s is not None) or self._gcs_failsafe:
+            return name
+        if now - self._gcs_seen_s > self._fs_gcs_timeout_s:
+            self._gcs_failsafe = True
+            self._queue_statustext(MAV_SEVERITY_CRITICAL, "GCS Failsafe")
+            self._custom_mode = mv.encode_mode(self.flavour, "LAND")[0]
+            return "LAND"
+        return name
 
     def _capped(self, vel_ned: list[float]) -> list[float]:
         """The personality's speed limits (caller holds the lock)."""
@@ -631,6 +656,8 @@ class FakeAutopilot:
         self.peer_seen.set()
         if kind == "HEARTBEAT":
             with self._lock:
+                if msg.get_srcSystem() == SYSID_MYGCS:
+                    self._gcs_seen_s = recv_s
                 self.heartbeats.append(ReceivedHeartbeat(recv_s, msg.get_srcSystem(), msg.get_srcComponent(),
                                                          msg.type, msg.autopilot))
         elif kind == "SET_POSITION_TARGET_LOCAL_NED":
@@ -652,6 +679,14 @@ class FakeAutopilot:
                 self.vision_speeds.append(speed)
                 if self.flavour == "ardupilot" and all(math.isfinite(v) for v in speed.vel_m_s):
                     self.ekf.on_vision_speed(recv_s, speed.vel_m_s)
+        elif kind == "VISION_POSITION_DELTA":
+            dt_s = msg.time_delta_usec / 1e6
+            vel = tuple(d / dt_s for d in msg.position_delta) if dt_s > 0 else (math.nan,) * 3
+            with self._lock:
+                self.vision_speeds.append(ReceivedVisionSpeed(recv_s, msg.time_usec, vel, (float(msg.confidence),),
+                                                              "VISION_POSITION_DELTA"))
+                if self.flavour == "ardupilot" and all(math.isfinite(v) for v in vel):
+                    self.ekf.on_vision_delta(recv_s)
         elif kind == "ODOMETRY":
             with self._lock:
                 self.vision_speeds.append(ReceivedVisionSpeed(recv_s, msg.time_usec, (msg.vx, msg.vy, msg.vz),

@@ -6,6 +6,7 @@
     on_vision_speed(VISION_SPEED_ESTIMATE)  a velocity for the EKF, fused only while the active
                                        source set is the one configured with VELXY = ExternalNav
                                        (EK3_SRCn_VELXY 6) and visual odometry is enabled (VISO_TYPE)
+    on_vision_delta(VISION_POSITION_DELTA)  body odometry, fused under the same conditions
     set_source_set(n)                  MAV_CMD_SET_EKF_SOURCE_SET
     position_ok(now), flags(now), fix_type(), failsafe_due(now)
 
@@ -14,8 +15,12 @@ The timeline of a loss without another velocity source, as ArduCopter 4.6 SITL f
 about 8 s before "EKF variance") with its flags unchanged, then loses horizontal velocity and
 position (constant-position mode; LOCAL_POSITION_NED stops); after `failsafe_s` more (Copter's
 ekf_check: 10 iterations at 10 Hz) the EKF failsafe fires (FS_EKF_ACTION). With the
-external-nav velocity fused, the EKF keeps horizontal velocity and a relative position (no
-absolute one) and the failsafe never comes.
+external-nav velocity fused the EKF keeps its horizontal velocity, but what else depends on the
+message (NavEKF3_core, see gnss_denied.EXTERNAL_NAV_MESSAGES): body odometry
+(VISION_POSITION_DELTA) keeps a relative position for good (doingBodyVelNav); an ExternalNav
+velocity alone (VISION_SPEED_ESTIMATE) keeps the old position valid only until
+posRetryTimeUseVel (10 s after the loss), then the horizontal position flags drop (no
+constant-position mode: the velocity is still aided) and the failsafe follows.
 """
 
 from __future__ import annotations
@@ -23,10 +28,12 @@ from __future__ import annotations
 from dovesei.controller import mavlink_proto as mv
 
 VISION_FRESH_S = 0.5  # a vision velocity older than this is not being fused
+POS_RETRY_USE_VEL_S = 10.0  # EKF3's posRetryTimeUseVel_ms: position kept on a velocity alone this long
 GOOD_FLAGS = (mv.EKF_ATTITUDE | mv.EKF_VELOCITY_HORIZ | mv.EKF_VELOCITY_VERT | mv.EKF_POS_HORIZ_REL
               | mv.EKF_POS_HORIZ_ABS | mv.EKF_POS_VERT_ABS | mv.EKF_PRED_POS_HORIZ_REL)
 EXTNAV_FLAGS = GOOD_FLAGS & ~mv.EKF_POS_HORIZ_ABS  # dead reckoning on the external velocity
 LOST_FLAGS = mv.EKF_ATTITUDE | mv.EKF_VELOCITY_VERT | mv.EKF_POS_VERT_ABS | mv.EKF_CONST_POS_MODE
+VELOCITY_ONLY_FLAGS = mv.EKF_ATTITUDE | mv.EKF_VELOCITY_HORIZ | mv.EKF_VELOCITY_VERT | mv.EKF_POS_VERT_ABS
 FS_EKF_ACTIONS = {1: "LAND", 2: "ALT_HOLD", 3: "LAND"}  # 3: LAND even from modes without GPS
 
 
@@ -34,15 +41,18 @@ class FakeEkf:
     """GNSS, source sets and the fused external velocity; times on the fake's clock (seconds)."""
 
     def __init__(self, *, extnav_source_set: int | None = 2, viso_enabled: bool = True, coast_s: float = 3.0,
-                 failsafe_s: float = 1.0, fs_ekf_action: int = 1) -> None:
+                 failsafe_s: float = 1.0, fs_ekf_action: int = 1,
+                 pos_retry_use_vel_s: float = POS_RETRY_USE_VEL_S) -> None:
         if fs_ekf_action not in FS_EKF_ACTIONS:
             raise ValueError(f"fs_ekf_action {fs_ekf_action!r}: choose one of {sorted(FS_EKF_ACTIONS)}")
         self.extnav_source_set, self.viso_enabled = extnav_source_set, viso_enabled
         self.coast_s, self.failsafe_s, self.fs_ekf_action = float(coast_s), float(failsafe_s), fs_ekf_action
+        self.pos_retry_use_vel_s = float(pos_retry_use_vel_s)
         self.source_set = 1  # EK3_SRC1_*: GPS, what a vehicle boots with
         self.gnss_lost_at_s: float | None = None
-        self.vision_at_s: float | None = None
+        self.vision_at_s: float | None = None  # newest VISION_SPEED_ESTIMATE
         self.vision_ned_m_s: tuple[float, float, float] | None = None
+        self.delta_at_s: float | None = None  # newest VISION_POSITION_DELTA
         self.position_lost_at_s: float | None = None  # when position_ok() last turned false
         self.failsafe_active = False
 
@@ -70,23 +80,39 @@ class FakeEkf:
     def on_vision_speed(self, now: float, vel_ned_m_s: tuple[float, float, float]) -> None:
         self.vision_at_s, self.vision_ned_m_s = now, vel_ned_m_s
 
-    def fusing_extnav(self, now: float) -> bool:
-        """The external velocity reaches the filter: right source set, VISO enabled, fresh data."""
+    def on_vision_delta(self, now: float) -> None:
+        self.delta_at_s = now
+
+    def _extnav_reaches_filter(self, at_s: float | None, now: float) -> bool:
+        """Right source set, VISO enabled, fresh data."""
         return (self.viso_enabled and self.extnav_source_set is not None and self.source_set == self.extnav_source_set
-                and self.vision_at_s is not None and now - self.vision_at_s <= VISION_FRESH_S)
+                and at_s is not None and now - at_s <= VISION_FRESH_S)
+
+    def fusing_extnav(self, now: float) -> bool:
+        """Body odometry fused: a relative position for as long as it comes."""
+        return self._extnav_reaches_filter(self.delta_at_s, now)
+
+    def fusing_velocity(self, now: float) -> bool:
+        """An ExternalNav velocity fused (velocity aiding, no position)."""
+        return self._extnav_reaches_filter(self.vision_at_s, now)
 
     def position_ok(self, now: float) -> bool:
         if self.gnss_ok or self.fusing_extnav(now):
             return True
         assert self.gnss_lost_at_s is not None
-        return now - self.gnss_lost_at_s < self.coast_s  # inertia, until the variances grow
+        since_s = now - self.gnss_lost_at_s
+        if self.fusing_velocity(now):
+            return since_s < self.pos_retry_use_vel_s  # the position times out even with a velocity
+        return since_s < self.coast_s  # inertia, until the variances grow
 
     def flags(self, now: float) -> int:
         if self.gnss_ok:
             return GOOD_FLAGS
         if self.fusing_extnav(now):
             return EXTNAV_FLAGS
-        return GOOD_FLAGS if self.position_ok(now) else LOST_FLAGS
+        if self.position_ok(now):
+            return GOOD_FLAGS
+        return VELOCITY_ONLY_FLAGS if self.fusing_velocity(now) else LOST_FLAGS
 
     def failsafe_due(self, now: float) -> bool:
         """True once, when the position has been lost for `failsafe_s` (Copter's ekf_check)."""

@@ -21,6 +21,11 @@ true seconds (the `real` timing preset): the controller is the one process that 
 link and publishes the autopilot's state; the sim renders the world at that state (its local
 origin placed at --start) and judges there.
 
+With `--handover-action land` or `precland`, `up` keeps the controller running after the judged
+hand-over until the autopilot has landed and disarmed (bounded; `watch.wait_for_landing`): the
+autopilot lands on its own, and a precision landing needs the controller's LANDING_TARGET stream
+to touchdown. The report's `landing` section says how that wait ended.
+
 Exit codes: 0 landed safely; 3 the episode ran but ended unsafe, timed out or left the world;
 1 an error (a service died or hung, takeoff refused, an 'error' ending); 2 bad usage (flags, world,
 model directory, MAVLink URL: one line, before any process starts and before the output folder

@@ -22,6 +22,7 @@ from dovesei.shared import keys, validate
 from dovesei.shared.errors import ConfigError
 from dovesei.shared.mavurl import FORMS as MAVLINK_FORMS
 from dovesei.shared.mavurl import MavlinkEndpoint, check_serial_device, parse_mavlink_url
+from dovesei.shared.mission import HANDOVER_ALT_M, MIN_DESCENT_M, check_handover_below_start
 from dovesei.shared.timing import DEFAULT_TIMING, TIMING_NAMES, timing
 from dovesei.controller.core import HANDOVER_ACTIONS
 from dovesei.controller.gnss_denied import GNSS_DENIED_MODES
@@ -77,6 +78,8 @@ class UpOptions:
     start: tuple[float, float, float] | None = None  # (x_m, y_m, alt_m); None: from start_seed
     start_seed: int | None = None  # None: --seed
     start_alt_m: float = 100.0
+    # The controller hands over (and hands it to its policy) and the sim's judge judges here.
+    handover_alt_m: float = HANDOVER_ALT_M
     out: Path = Path("runs/up")
     # True for the default runs/up-<time>: `run` then claims a folder no other run has (adding -2, -3
     # when one started in the same second), so two runs never write into one folder.
@@ -157,6 +160,7 @@ class UpOptions:
             validate.finite_vector("--start", self.start, 3)
             check_start_alt_m("--start altitude", self.start[2])
         check_start_alt_m("--start-alt-m", self.start_alt_m)
+        check_handover_below_start(self.handover_alt_m, self.start[2] if self.start is not None else self.start_alt_m)
         for flag, value in (("--heatmap-wait-s", self.heatmap_wait_s),
                             ("--heatmap-hold-after-s", self.heatmap_hold_after_s)):
             if value is not None:
@@ -246,7 +250,10 @@ def build_parser() -> argparse.ArgumentParser:
     where.add_argument("--start", metavar="X,Y[,ALT]", help="start position in world metres (x east, y north)")
     where.add_argument("--start-seed", type=int, help="draw the start like the bench's start 0 with this seed")
     p.add_argument("--start-alt-m", type=float, default=100.0,
-                   help="start altitude when --start gives none (21-200 m; a flow-navigating ArduCopter holds 48-69 m)")
+                   help="start altitude when --start gives none (25-200 m; a flow-navigating ArduCopter holds 48-69 m)")
+    p.add_argument("--handover-alt-m", type=float, default=HANDOVER_ALT_M,
+                   help=f"hand-over altitude: the controller and its policy hand over, and the sim judges, here "
+                        f"(default: {HANDOVER_ALT_M:g} m; at least {MIN_DESCENT_M:g} m below the start)")
     p.add_argument("--time-limit-s", type=float, default=None,
                    help="sim-time limit of the episode (default: the paper's 1200 s on the preset's clock, "
                         "as `dovesei bench`: 60 s with --timing reference, 1200 s with --timing real)")
@@ -310,7 +317,7 @@ def options_from_args(args: argparse.Namespace) -> UpOptions:
     return UpOptions(world=args.world, segmenter=args.segmenter, policy=args.policy, timing=timing_name,
                      seed=args.seed, noise=args.noise, perception=args.perception, vehicle_profile=args.vehicle_profile,
                      start=start, start_seed=args.start_seed,
-                     start_alt_m=args.start_alt_m, out=out, out_unique=args.out is None, realtime=args.realtime,
+                     start_alt_m=args.start_alt_m, handover_alt_m=args.handover_alt_m, out=out, out_unique=args.out is None, realtime=args.realtime,
                      connect=tuple(args.connect), vehicle_url=args.vehicle_url, sitl_truth=args.sitl_truth,
                      takeoff=args.takeoff, handover_action=args.handover_action,
                      yaw_control=args.yaw_control, signing_key=args.signing_key,

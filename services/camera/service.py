@@ -80,7 +80,7 @@ class CameraConfig:
     stall_timeout_s: float = 2.0
     state_timeout_s: float = 1.0
     loop_file: bool = False
-    record_path: str | None = None  # write the published frames and their states to this MCAP file
+    record_path: str | None = None  # write the published frames, their states and the odometry to this MCAP file
     odometry_rate_hz: float = 10.0  # visual velocity from consecutive grabbed frames; 0 = off
     odometry_width_px: int = 320  # frames are cropped like the published ones and shrunk to this width
 
@@ -255,6 +255,8 @@ class CameraPublisher:
         msg = odometry_message(est, meta, vehicle_id=c.vehicle_id, stamp=_capture_stamp(state, recv_s, capture_s),
                                sent_wall_s=time.time())
         self.put_odometry(encode(msg))
+        if self.recorder is not None:
+            self.recorder.write(msg)
         self.stats.odometry_published += 1
         self.stats.odometry_valid += int(msg.valid)
         if msg.valid:

@@ -51,6 +51,16 @@ from dovesei.shared.errors import ConfigError
 from dovesei.shared.messages import VisualOdometry
 
 GNSS_DENIED_MODES = ("off", "external-nav", "attitude")
+# What "external-nav" sends ArduPilot for each camera velocity (PX4 always gets ODOMETRY):
+#   speed  VISION_SPEED_ESTIMATE: EKF3 fuses it as an ExternalNav velocity (FuseVelPosNED), which keeps
+#          the velocity but, with no position source, times the position out after posRetryTimeUseVel
+#          (10 s) so horiz_pos_rel drops and ArduCopter's position_ok() with it;
+#   delta  VISION_POSITION_DELTA: EKF3 fuses it as body odometry (SelectBodyOdomFusion, with
+#          EK3_SRCn_VELXY = ExternalNav), which sets horiz_pos_rel (doingBodyVelNav,
+#          NavEKF3_core::updateFilterStatus): a relative position GUIDED flies on;
+#   both   the two (the default): the camera's velocity counts twice in the EKF, so its noise floors
+#          (VISO_VEL_M_NSE and the confidence) should not be set tighter than the camera's variance.
+EXTERNAL_NAV_MESSAGES = ("both", "delta", "speed")
 THRUST_MODES = ("climb-rate", "thrust")
 GRAVITY_M_S2 = 9.80665
 
@@ -166,8 +176,9 @@ class OdometryGate:
 class NavJudge:
     """Turns what the autopilot says about its estimate into a `NavStatus` for one `--gnss-denied` mode.
 
-    GNSS is lost when GPS_RAW_INT reports less than a 3D fix, or when the EKF flags lose the
-    absolute position after having had it. The position is lost when the EKF flags say so, or
+    GNSS is lost when GPS_RAW_INT reports less than a 3D fix after having had one, or when the EKF
+    flags lose the absolute position after having had it (a vehicle that never had GNSS, e.g. one
+    set up to fly on optical flow, is judged by its flags alone). The position is lost when the EKF flags say so, or
     (PX4, which simply stops LOCAL_POSITION_NED when its position is invalid) when the local
     position stopped while the attitude still streams. With no GPS_RAW_INT and no flags at all
     nothing is judged lost: the autopilot's velocity is trusted as before (the sim, a flow setup).
@@ -178,12 +189,14 @@ class NavJudge:
         self.mode = mode
         self.local_stale_s = validate.positive("local_stale_s", local_stale_s)
         self._fix_type: int | None = None
+        self._had_fix = False
         self._health: EkfHealth | None = None
         self._had_absolute = False
         self._local_s: float | None = None
 
     def on_gps_fix(self, fix_type: int) -> None:
         self._fix_type = int(fix_type)
+        self._had_fix = self._had_fix or self._fix_type >= GPS_FIX_TYPE_3D
 
     def on_ekf_flags(self, flags: int) -> None:
         health = ekf_health(flags)
@@ -198,7 +211,7 @@ class NavJudge:
         return self._health
 
     def gnss_lost(self) -> tuple[bool, str]:
-        if self._fix_type is not None and self._fix_type < GPS_FIX_TYPE_3D:
+        if self._had_fix and self._fix_type is not None and self._fix_type < GPS_FIX_TYPE_3D:
             return True, f"GNSS lost (GPS_RAW_INT fix type {self._fix_type})"
         health = self._health
         if health is not None and self._had_absolute and not (health.position_absolute and not health.const_pos_mode):

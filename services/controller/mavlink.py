@@ -73,6 +73,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from dovesei.controller.continuity import (
+    ALTITUDE_NOISE_M, MAX_VERTICAL_SPEED_M_S, STEP_CONFIRM_SAMPLES, AltitudeContinuity,
+)
 from dovesei.controller.mavlink_proto import (
     ALT_SOURCES,
     AUTOPILOT_KINDS,
@@ -129,6 +132,7 @@ from dovesei.controller.mavlink_proto import (
 from dovesei.controller import mavlink_takeoff
 from dovesei.controller.frames import to_ne
 from dovesei.controller.gnss_denied import (
+    EXTERNAL_NAV_MESSAGES,
     GNSS_DENIED_MODES,
     AttitudeGains,
     AttitudeLoop,
@@ -136,6 +140,9 @@ from dovesei.controller.gnss_denied import (
     NavStatus,
     OdometryGate,
     OdometryLimits,
+    SOURCE_AUTOPILOT,
+    SOURCE_NONE,
+    SOURCE_VISUAL,
     vision_speed_covariance,
 )
 from dovesei.controller.mavlink_readiness import ArmReadiness
@@ -157,6 +164,7 @@ _NAV_PERIOD_S = 0.2  # the navigation judgement (and its loss / recovery log) at
 _GPS_RAW_INTERVAL_US = 200_000.0  # GPS_RAW_INT at 5 Hz: a lost fix is noticed within a fifth of a second
 _GLOBAL_FRESH_S = 1.0  # the fallback state's altitude (GLOBAL_POSITION_INT) is used only this fresh
 _LOCAL_FALLBACK_S = 0.5  # LOCAL_POSITION_NED silent this long: states come from ATTITUDE (no stale-state gap)
+_LOCAL_NEVER_S = 3.0  # ... or never heard this long after the streams were asked for
 _SOURCE_SET_RETRY_S, _SOURCE_SET_TRIES = 1.0, 10
 
 
@@ -189,10 +197,12 @@ class MavlinkVehicle:
                  limits: SpeedLimits | None = None, yaw_hold_gain_per_s: float = 1.0,
                  signing_key: bytes | None = None, signing_timestamp_file: str | Path | None = None,
                  require_home: bool = True, gnss_denied: str = "off", ekf_source_set: int = 2,
+                 external_nav_message: str = "both",
                  odometry_limits: OdometryLimits | None = None, attitude_gains: AttitudeGains | None = None,
                  clock: Callable[[], float] = time.monotonic) -> None:
         check_url(url)
         validate.one_of("gnss_denied", gnss_denied, GNSS_DENIED_MODES)
+        validate.one_of("external_nav_message", external_nav_message, EXTERNAL_NAV_MESSAGES)
         validate.in_range("ekf_source_set", ekf_source_set, 1, 3)
         for name, value, choices in (("alt_source", alt_source, ALT_SOURCES), ("handover", handover, HANDOVERS),
                                      ("yaw_control", yaw_control, YAW_CONTROLS)):
@@ -239,6 +249,8 @@ class MavlinkVehicle:
         self._attitude_rad = (0.0, 0.0, 0.0)
         self._attitude_s: float | None = None
         self._local: tuple[float, float, float, float, float, float] | None = None  # x y z vx vy vz NED
+        self._local_alt = AltitudeContinuity(MAX_VERTICAL_SPEED_M_S, ALTITUDE_NOISE_M, STEP_CONFIRM_SAMPLES,
+                                             who="MAVLink LOCAL_POSITION_NED")
         self._range_m: float | None = None
         self._state: VehicleState | None = None
         self._state_seq, self._returned_seq = -1, -1
@@ -258,6 +270,7 @@ class MavlinkVehicle:
         self._next_setpoint_s = 0.0
         # Without GNSS: the judgement, the camera's velocity, the attitude loop (gnss_denied.py).
         self.gnss_denied, self.ekf_source_set = gnss_denied, int(ekf_source_set)
+        self.external_nav_message = external_nav_message
         self._nav = NavJudge(gnss_denied)
         self._odometry = OdometryGate(odometry_limits)
         self._attitude_gains = attitude_gains if attitude_gains is not None else AttitudeGains(
@@ -267,6 +280,7 @@ class MavlinkVehicle:
         self._attitude_step_s: float | None = None
         self._global: tuple[float, float, float] | None = None  # GLOBAL_POSITION_INT relative alt, vz down, at
         self._local_s: float | None = None  # when the newest LOCAL_POSITION_NED arrived
+        self._streams_asked_s: float | None = None  # when the streams were first asked for
         self._nav_status = NavStatus(False, False, True, "autopilot", "no estimator report yet")
         self._gnss_lost_seen = False
         self._source_set: tuple[int, float] | None = None  # (tries so far, next try) while switching
@@ -276,6 +290,7 @@ class MavlinkVehicle:
         self.gnss_losses = 0
         self.source_set_result: int | None = None  # MAV_RESULT of the source-set switch (None: none yet)
         self.setpoints_sent = 0
+        self.stop_hold_s = 0.5  # close(): zero velocity streams this long (10 setpoints at 20 Hz)
         self.setpoints_clamped = 0  # every setpoint written, stream repeats included
         self.commands_steered = 0  # commands handed in by send() and flown
         self.commands_clamped = 0  # ... of which asked for more than the limits
@@ -316,7 +331,20 @@ class MavlinkVehicle:
                  "armed" if self.armed else "disarmed", ", signed link" if self._signing else "")
 
     def close(self) -> None:
-        """Stop the I/O thread and close the link (the autopilot's own failsafes take over)."""
+        """Stop the I/O thread and close the link (the autopilot's own failsafes take over).
+
+        If we were steering, zero velocity streams for `stop_hold_s` first: one lost datagram must
+        not leave ArduCopter flying the last setpoint until GUID_TIMEOUT (3 s at 10 m/s was ~35 m
+        blind on SITL), and the last thing the autopilot heard from us is "stop here".
+        """
+        with self._lock:
+            steering = self._cmd is not None and self._refusal_locked() is None and self._thread is not None
+            if steering:
+                self._cmd, self._cmd_time_s, self._cmd_zeroed = self._zero(), self._clock(), True
+                self._next_setpoint_s = self._clock()  # the first zero goes out now
+        if steering:
+            log.info("closing the MAVLink link: streaming zero velocity for %.1f s first", self.stop_hold_s)
+            self._stop.wait(self.stop_hold_s)
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=5.0)
@@ -426,9 +454,19 @@ class MavlinkVehicle:
                 down, nan, nan, nan, [nan] + [0.0] * 20, velocity_cov, 0, MAV_ESTIMATOR_TYPE_VISION,
                 int(round(odom.quality * 100))))
         else:
-            vn, ve, vd = frd_to_ned(odom.vel_body_frd_m_s, *attitude)
-            cov = vision_speed_covariance(var)
-            ok = self._tx(lambda mav: mav.vision_speed_estimate_send(usec, vn, ve, vd, cov, 0))
+            ok = True
+            if self.external_nav_message in ("both", "speed"):
+                vn, ve, vd = frd_to_ned(odom.vel_body_frd_m_s, *attitude)
+                cov = vision_speed_covariance(var)
+                ok = self._tx(lambda mav: mav.vision_speed_estimate_send(usec, vn, ve, vd, cov, 0))
+            if self.external_nav_message in ("both", "delta"):
+                # The displacement between the two frames, body FRD at the newer one; the rotation between
+                # them is left at zero: with the camera at the centre of gravity (VISO_POS_X/Y/Z 0) EKF3
+                # uses it only for the lever arm.
+                delta = [v * odom.dt_s for v in odom.vel_body_frd_m_s]
+                dt_us = int(odom.dt_s * 1e6)
+                ok = self._tx(lambda mav: mav.vision_position_delta_send(
+                    usec, dt_us, [0.0, 0.0, 0.0], delta, float(round(odom.quality * 100.0)))) and ok
         if ok:
             self.vision_sent += 1
 
@@ -436,10 +474,18 @@ class MavlinkVehicle:
         """Judge the navigation; on a GNSS loss start what the mode asks (source set, GUIDED_NOGPS)."""
         with self._lock:
             status = self._nav.status(now, self._odometry)
+            if self._attitude_flying and status.source == SOURCE_AUTOPILOT:
+                # GNSS back, but we still fly attitude targets: only the camera's velocity closes the loop.
+                good, why = self._odometry.judge(now)
+                status = (NavStatus(False, False, True, SOURCE_VISUAL, "flying attitude targets on the visual "
+                                    "velocity (GNSS back; the mode stays until the pilot changes it)") if good else
+                          NavStatus(False, False, False, SOURCE_NONE, f"flying attitude targets and {why}: no descent"))
             previous, self._nav_status = self._nav_status, status
             target = self._target
-            # Counted with the status that shows it, so a reader never sees one without the other.
-            first_loss = status.gnss_lost and not self._gnss_lost_seen
+            # Counted with the status that shows it, so a reader never sees one without the other. A
+            # position lost without a fix ever seen (started after the loss) counts as the same loss.
+            lost = status.gnss_lost or status.position_lost
+            first_loss = lost and not self._gnss_lost_seen
             if first_loss:
                 self._gnss_lost_seen = True
                 self.gnss_losses += 1
@@ -451,7 +497,7 @@ class MavlinkVehicle:
         elif status.velocity_trusted != previous.velocity_trusted:
             log.info("navigation: velocity %s: %s", "trusted" if status.velocity_trusted else "NOT trusted",
                      status.reason)
-        if not status.gnss_lost or target is None or self.read_only:
+        if not lost or target is None or self.read_only:
             return
         if first_loss:
             if self.gnss_denied == "external-nav" and target.autopilot == "ardupilot":
@@ -755,6 +801,10 @@ class MavlinkVehicle:
                 return  # e.g. a vision component's own estimate: the autopilot's is the one it flies on
             if kind == "LOCAL_POSITION_NED":
                 local = check_local_position(msg)
+                jump = self._local_alt.check(msg.time_boot_ms / 1000.0, -local[2])
+                if jump is not None:  # a height no multirotor flew to: dropped before it is a state
+                    self._reject("LOCAL_POSITION_NED jump", f"LOCAL_POSITION_NED: {jump}")
+                    return
                 with self._lock:
                     self._local, self._local_s = local, self._clock()
                     self._nav.on_local_position(self._local_s)
@@ -882,9 +932,14 @@ class MavlinkVehicle:
             return  # the rangefinder keeps publishing on its own
         now = self._clock()
         with self._lock:
-            local_s, glob = self._local_s, self._global
-            if local_s is None or now - local_s <= _LOCAL_FALLBACK_S:
-                return  # the local position still streams (or never did: nothing to fall back from)
+            local_s, glob, asked_s = self._local_s, self._global, self._streams_asked_s
+            if local_s is None:
+                # Never had one: fall back only once it clearly is not coming (a controller started
+                # after the loss); at a normal start the local position follows the request at once.
+                if asked_s is None or now - asked_s <= _LOCAL_NEVER_S:
+                    return
+            elif now - local_s <= _LOCAL_FALLBACK_S:
+                return  # the local position still streams
             if glob is None or now - glob[2] > _GLOBAL_FRESH_S:
                 return  # no altitude we believe: a made-up state is worse than the stale-state hold
             roll, pitch, yaw = self._attitude_rad
@@ -974,6 +1029,8 @@ class MavlinkVehicle:
     def _request_streams(self) -> None:
         """MAV_CMD_SET_MESSAGE_INTERVAL for what the state is made of, at `stream_rate_hz`."""
         interval_us = float(int(1e6 / self.stream_rate_hz))
+        if self._streams_asked_s is None:
+            self._streams_asked_s = self._clock()
         # GLOBAL_POSITION_INT: the barometric height that outlives LOCAL_POSITION_NED without GNSS.
         wanted = [MSG_ID_LOCAL_POSITION_NED, MSG_ID_ATTITUDE, MSG_ID_GLOBAL_POSITION_INT]
         if self.alt_source == "rangefinder":

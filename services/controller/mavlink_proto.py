@@ -69,6 +69,7 @@ MSG_ID_EKF_STATUS_REPORT = 193
 MSG_ID_ESTIMATOR_STATUS = 230
 MSG_ID_HOME_POSITION = 242
 MSG_ID_ODOMETRY = 331
+MSG_ID_VISION_POSITION_DELTA = 11011  # ardupilotmega: body-frame displacement between two frames
 MAV_FRAME_LOCAL_FRD = 20
 MAV_ESTIMATOR_TYPE_VISION = 2
 GPS_FIX_TYPE_3D = 3  # GPS_RAW_INT.fix_type: below this there is no position fix

@@ -45,7 +45,13 @@ from typing import Any, Protocol
 import zenoh
 
 from dovesei.controller.core import HANDOVER_ACTIONS, ControllerConfig, ControllerCore, ControllerInputError, Mode
-from dovesei.controller.gnss_denied import GNSS_DENIED_MODES, AttitudeGains, NavStatus, OdometryLimits
+from dovesei.controller.gnss_denied import (
+    EXTERNAL_NAV_MESSAGES,
+    GNSS_DENIED_MODES,
+    AttitudeGains,
+    NavStatus,
+    OdometryLimits,
+)
 from dovesei.controller.mavlink_proto import SpeedLimits, load_signing_key
 from dovesei.controller.policies.base import policy_names
 from dovesei.shared import keys, validate
@@ -177,6 +183,7 @@ def open_vehicle(session: zenoh.Session, config: ControllerConfig) -> Vehicle:
                              signing_key=load_signing_key(key_file) if key_file else None,
                              signing_timestamp_file=f"{key_file}.timestamp" if key_file else None,
                              gnss_denied=config.gnss_denied, ekf_source_set=config.ekf_source_set,
+                             external_nav_message=config.external_nav_message,
                              odometry_limits=OdometryLimits(max_age_s=config.odometry_max_age_s,
                                                             min_quality=config.odometry_min_quality),
                              attitude_gains=AttitudeGains(max_tilt_rad=math.radians(config.attitude_max_tilt_deg),
@@ -569,9 +576,10 @@ CLI = CommandLine(ControllerConfig, {
     "handover_action": Flag("--handover-action", "MAVLink action at the hand-over altitude", choices=HANDOVER_ACTIONS),
     # The adapter validates these too; literal choices keep --help free of a pymavlink import.
     "mavlink_alt_source": Flag("--alt-source", "MAVLink altitude source", choices=("local", "rangefinder")),
-    "mavlink_yaw_control": Flag("--yaw-control", "MAVLink: 'rate' holds the heading (velocity + zero yaw rate, "
-                                "mask 0x05C7); 'autopilot' sends velocity only (mask 0x0DC7) and lets the autopilot "
-                                "choose the heading", choices=("rate", "autopilot")),
+    "mavlink_yaw_control": Flag("--yaw-control", "MAVLink: 'rate' holds the heading with a closed-loop yaw rate "
+                                "(body-frame velocity, mask 0x05C7); 'autopilot' has the autopilot hold it (velocity "
+                                "in LOCAL_NED + the held heading as a yaw angle, mask 0x09C7)",
+                                choices=("rate", "autopilot")),
     "mavlink_allow_mode_switch": Flag("--allow-mode-switch", "MAVLink: switch the autopilot to GUIDED/OFFBOARD when "
                                       "it is not (default: refuse to steer)"),
     "lockstep_heatmap_wait_s": Flag("--heatmap-wait-s", "lockstep: wall deadline for an awaited heatmap",
@@ -599,6 +607,8 @@ CLI = CommandLine(ControllerConfig, {
                           check=lambda w, v: validate.in_range(w, v, 1.0, 500.0)),
     "takeoff_ready_timeout_s": Flag("--takeoff-ready-timeout-s", "takeoff: give up when the autopilot cannot arm "
                                     "within this, naming its pre-arm reasons", check=validate.positive),
+    "camera_hfov_deg": Flag("--camera-hfov-deg", "the camera's horizontal field of view as published (after any "
+                            "crop): heatmaps more than 25 %% off it are refused", check=validate.positive),
     "geofence_radius_m": Flag("--geofence-radius-m", "largest distance from the start, dead-reckoned from the "
                               "velocity estimate, that any policy may fly (default: off with the sim, "
                               "400 m with a MAVLink vehicle; 0: off)",
@@ -610,6 +620,9 @@ CLI = CommandLine(ControllerConfig, {
                         choices=GNSS_DENIED_MODES),
     "ekf_source_set": Flag("--ekf-source-set", "external-nav: the EK3 source set (1-3) whose VELXY is ExternalNav",
                            check=lambda w, v: validate.in_range(w, v, 1, 3)),
+    "external_nav_message": Flag("--external-nav-message", "external-nav on ArduPilot: 'speed' sends "
+                                 "VISION_SPEED_ESTIMATE, 'delta' VISION_POSITION_DELTA (body odometry: EKF3 keeps a "
+                                 "relative position for GUIDED with it), 'both' the two", choices=EXTERNAL_NAV_MESSAGES),
     "odometry_min_quality": Flag("--odometry-min-quality", "visual velocity below this quality (0-1) is not flown on",
                                  check=lambda w, v: validate.in_range(w, v, 0.0, 1.0)),
     "odometry_max_age_s": Flag("--odometry-max-age-s", "visual velocity older than this at arrival is stale",

@@ -28,11 +28,13 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import sys
 import time
 from collections import Counter
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Protocol
 
 import numpy as np
@@ -255,6 +257,10 @@ def make_backend(config: SegmenterConfig) -> FrameBackend:
     if config.backend == "sim":
         return _make_sim(config, "configured (--backend sim)")
     try:
+        if config.backend == "auto":
+            missing = weights_missing(config.model)
+            if missing is not None:
+                raise BackendUnavailableError(missing)
         return _make_clipseg(config, "configured" if config.backend == "clipseg" else "auto: CLIPSeg weights loaded")
     except BackendUnavailableError as exc:
         if config.backend == "clipseg":
@@ -263,6 +269,34 @@ def make_backend(config: SegmenterConfig) -> FrameBackend:
         log.warning("backend auto: CLIPSeg %r could not be loaded, using SIMULATED perception instead "
                     "(test instrument; real camera frames will be rejected). Reason: %s", config.model, why)
         return _make_sim(config, f"auto: fell back to simulated because CLIPSeg {config.model!r} could not be loaded ({why})")
+
+
+def weights_missing(model: str, env: Mapping[str, str] = os.environ) -> str | None:
+    """Why CLIPSeg weights certainly cannot load here, found without importing torch; None when they may.
+
+    `auto` falls back to the simulated perception when the weights are not on disk. Finding that
+    out by trying to load them cost 10-25 s on a loaded 2-core host (torch and transformers
+    imported for nothing) and a slow interpreter teardown after; a look at the folder, or at the
+    local Hugging Face cache when the Hub may not be asked (HF_HUB_OFFLINE, which `up` sets for
+    `auto`), answers in well under a second. Online, or with the files there, the real load decides.
+    """
+    path = Path(model).expanduser()
+    if model.startswith((".", "/", "~")) or path.exists():
+        if not path.is_dir():
+            return f"CLIPSeg model {model!r}: no such local directory"
+        if not (path / "config.json").is_file():
+            return f"CLIPSeg model {model!r}: the directory has no config.json"
+        return None
+    if env.get("HF_HUB_OFFLINE", "").strip().lower() in ("", "0", "false"):
+        return None  # the Hub may still have them
+    try:
+        from huggingface_hub import try_to_load_from_cache  # light: no torch
+    except ImportError:
+        return None  # no Hub client: the real load will say why
+    if isinstance(try_to_load_from_cache(model, "config.json"), str):
+        return None
+    return (f"CLIPSeg model {model!r} is not in the local Hugging Face cache and HF_HUB_OFFLINE is set "
+            f"(download it on a connected machine: hf download {model} --local-dir DIR, then --model DIR)")
 
 
 def _make_clipseg(config: SegmenterConfig, reason: str) -> ClipSegFrameBackend:

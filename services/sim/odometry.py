@@ -44,12 +44,15 @@ class SimOdometry:
         return self._next_s is None or t_s >= self._next_s - _EPS_S
 
     def observe(self, x_m: float, y_m: float, alt_m: float, yaw_rad: float, state: VehicleState, *,
-                roll_rad: float = 0.0, pitch_rad: float = 0.0, t_s: float | None = None) -> VisualOdometry | None:
+                roll_rad: float = 0.0, pitch_rad: float = 0.0, t_s: float | None = None,
+                tag_roll_pitch_rad: tuple[float, float] | None = None) -> VisualOdometry | None:
         """The odometry of a view rendered at the true pose (x, y, alt, yaw, roll, pitch) when one is due.
 
-        `state` is what the camera is tagged with (the autopilot's report); its stamp dates the
-        view unless `t_s` (same clock) is given. None when nothing is due, for the first view, and
-        when the view cannot be rendered (then the next one starts afresh).
+        `state` is what the camera is tagged with (the autopilot's report: altitude, heading and,
+        unless `tag_roll_pitch_rad` says otherwise, roll and pitch; a gimballed camera is tagged
+        level whatever the body does); its stamp dates the view unless `t_s` (same clock) is given.
+        None when nothing is due, for the first view, and when the view cannot be rendered (then
+        the next one starts afresh).
         """
         t_s = state.stamp.t_s if t_s is None else t_s
         if not self.due(t_s):
@@ -67,8 +70,8 @@ class SimOdometry:
             log.debug("odometry view skipped: %s", exc)
             return None
         self._seq += 1
-        meta = FrameMeta(self._seq, t_s, state.alt_agl_m, self.camera.hfov_rad, state.roll_rad, state.pitch_rad,
-                         state.yaw_rad)
+        tag_roll, tag_pitch = (state.roll_rad, state.pitch_rad) if tag_roll_pitch_rad is None else tag_roll_pitch_rad
+        meta = FrameMeta(self._seq, t_s, state.alt_agl_m, self.camera.hfov_rad, tag_roll, tag_pitch, state.yaw_rad)
         est = self._estimator.update(image, meta)
         if est is None:
             return None

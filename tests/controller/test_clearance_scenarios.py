@@ -70,6 +70,22 @@ class Flight:
     track: list[tuple[float, float, float, str, float]]  # north, east, alt, state, commanded down speed
     decision: object
     max_range_m: float
+    # The true (north, east, altitude) at capture of every heatmap, by frame seq: where the
+    # policy's confirming look (Decision.confirmed) lies on the ground.
+    frame_poses: dict[int, tuple[float, float, float]] = dataclasses.field(default_factory=dict)
+
+    def confirmed_ground_m(self) -> tuple[float, float] | None:
+        """The true ground of the policy's last confirming look (nadir camera, yaw 0)."""
+        c = getattr(self.decision, "confirmed", None)
+        if c is None or c.frame_seq not in self.frame_poses:
+            return None
+        n, e, alt = self.frame_poses[c.frame_seq]
+        g = 2.0 * alt * math.tan(HFOV / 2.0) / 352
+        return n + ((352 - 1) / 2.0 - c.row_px) * g, e + (c.col_px - (352 - 1) / 2.0) * g
+
+    def touchdown_error_m(self) -> float | None:
+        ground = self.confirmed_ground_m()
+        return None if ground is None else math.hypot(self.north_m - ground[0], self.east_m - ground[1])
 
 
 def fly(world: World, policy: ClearancePolicy, *, t_max_s: float = 400.0, dt_s: float = 0.5,
@@ -86,13 +102,17 @@ def fly(world: World, policy: ClearancePolicy, *, t_max_s: float = 400.0, dt_s: 
     max_range = 0.0
     decision = None
     hold_until: float | None = None  # NO_SPOT reached: fly on this long to see the hold
+    frame_poses: dict[int, tuple[float, float, float]] = {}
     while t < t_max_s:
         fresh = gap_s is None or not (gap_s[0] <= t < gap_s[1])
         prob = perceive(world.view(n, e, alt), rng) if fresh else None
+        seq = len(frame_poses) if fresh else -1
+        if fresh:
+            frame_poses[seq] = (n, e, alt)
         vel_est = (v[0] + bias_m_s[0] + rng.normal(0.0, vel_noise_m_s),
                    v[1] + bias_m_s[1] + rng.normal(0.0, vel_noise_m_s), v[2])
         decision = policy.step(Observation(t_s=t, alt_agl_m=alt, prob_safe=prob, hfov_rad=HFOV,
-                                           vel_est_body_frd_m_s=vel_est))
+                                           vel_est_body_frd_m_s=vel_est, frame_seq=seq))
         cmd = np.asarray(decision.vel_body_frd_m_s)
         states.append(decision.state)
         track.append((n, e, alt, decision.state, float(cmd[2])))
@@ -109,7 +129,7 @@ def fly(world: World, policy: ClearancePolicy, *, t_max_s: float = 400.0, dt_s: 
             hold_until = t + hold_s if hold_until is None else hold_until
             if t >= hold_until:
                 break
-    return Flight(n, e, alt, t, states, track, decision, max_range)
+    return Flight(n, e, alt, t, states, track, decision, max_range, frame_poses)
 
 
 def _textured(rng: np.random.Generator, safe_fraction_blocks: int = 60) -> np.ndarray:

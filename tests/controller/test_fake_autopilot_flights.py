@@ -43,7 +43,7 @@ class ForwardAndDown:
 
     def step(self, obs: Observation) -> Decision:
         self.steps += 1
-        return Decision((3.0, 0.0, 1.5), 0.0, "LANDING", (32.0, 48.0), 10.0, 0.5, {})
+        return Decision((3.0, 0.0, 1.5), 0.0, "LANDING", (32.0, 48.0), 10.0, 0.5, {}, landing=True)
 
     def reset(self) -> None:
         pass
@@ -219,6 +219,9 @@ def test_precland_streams_the_spot_until_touchdown_and_lands_on_it(flight) -> No
     assert 5.5 < right < 10.0 and abs(fwd) < 2.5, (fwd, right)
     # ... and the touchdown on it.
     tn, te = fake.touchdown_ne_m
+    print(f"precland: {len(targets)} targets, median gap {sorted(gaps)[len(gaps) // 2] * 1e3:.0f} ms, max "
+          f"{max(gaps) * 1e3:.0f} ms, spread {spread_m:.2f} m, touchdown {math.hypot(tn - n0, te - e0):.2f} m "
+          f"from the spot, last target {(fake.touchdown_s - times[-1]) * 1e3:.0f} ms before touchdown")
     assert math.hypot(tn - n0, te - e0) < 1.5, (fake.touchdown_ne_m, (n0, e0))
 
 

@@ -107,10 +107,12 @@ def test_judge_per_mode_after_a_gnss_loss() -> None:
     # GNSS gone, the EKF still coasting: lost, and only a good visual velocity makes a source.
     gate.add(odom(1), 1.0)
     judge = NavJudge("off")
+    judge.on_gps_fix(3)
     judge.on_gps_fix(1)
     off = judge.status(1.0, gate)
     assert off.gnss_lost and not off.velocity_trusted and "--gnss-denied off" in off.reason
     judge = NavJudge("attitude")
+    judge.on_gps_fix(3)
     judge.on_gps_fix(1)
     attitude = judge.status(1.0, gate)
     assert attitude.velocity_trusted and attitude.source == "visual"
@@ -118,6 +120,7 @@ def test_judge_per_mode_after_a_gnss_loss() -> None:
     assert not stale.velocity_trusted and "old" in stale.reason and "no descent" in stale.reason
     # external-nav: trusted only when the EKF has horizontal velocity and a (relative) position.
     judge = NavJudge("external-nav")
+    judge.on_gps_fix(3)
     judge.on_gps_fix(1)
     judge.on_ekf_flags(CONST_POS_FLAGS)
     pending = judge.status(1.0, gate)
@@ -194,7 +197,7 @@ class Descend:
     name = "descend"
 
     def step(self, obs: Observation) -> Decision:
-        return Decision((1.0, 0.0, 1.0), 0.0, "LANDING", None, 10.0, 0.5, {})
+        return Decision((1.0, 0.0, 1.0), 0.0, "LANDING", None, 10.0, 0.5, {}, landing=True)
 
     def reset(self) -> None:
         pass
@@ -251,3 +254,25 @@ def test_the_up_report_summarises_the_navigation_from_the_statuses() -> None:
     assert nav is not None and nav.gnss_lost and nav.gnss_lost_t_s == 1.0 and nav.gnss_lost_alt_m == 40.0
     assert nav.sources == ("autopilot", "none", "visual") and nav.no_velocity_holds == 1
     assert (nav.first_reason, nav.last_reason) == ("nav 1.0", "nav 3.0")
+
+
+
+def test_a_vehicle_that_never_had_gnss_is_judged_by_its_flags_alone() -> None:
+    """A flow-only setup reports GPS_RAW_INT without a fix from boot: that is no loss, and with
+    --gnss-denied off it must not hold; its EKF's flags decide."""
+    gate = OdometryGate()
+    judge = NavJudge("off")
+    judge.on_gps_fix(0)
+    judge.on_ekf_flags(DEAD_RECKONING_FLAGS)  # flying on flow: relative position, velocity
+    status = judge.status(0.0, gate)
+    assert not status.gnss_lost and status.velocity_trusted and status.source == "autopilot"
+    judge.on_ekf_flags(CONST_POS_FLAGS)  # the flow gave out: that is a position loss
+    status = judge.status(0.0, gate)
+    assert status.position_lost and not status.velocity_trusted
+    # Booting: no fix yet, then a fix, then none: only the last is a loss.
+    judge = NavJudge("off")
+    for fix in (1, 3):
+        judge.on_gps_fix(fix)
+        assert not judge.gnss_lost()[0]
+    judge.on_gps_fix(1)
+    assert judge.gnss_lost()[0]

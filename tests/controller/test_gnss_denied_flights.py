@@ -6,8 +6,10 @@ velocity every 0.05 s measured from the fake's true motion (the camera's job, is
 its own tests cover the estimator). The policy flies forward 1 m/s and down 1.5 m/s from 40 m;
 GNSS is cut below 36 m. Then:
 
-- external-nav: VISION_SPEED_ESTIMATE streams at >= 10 Hz, the EKF is switched to source set 2
-  (VELXY ExternalNav) and fuses it, GUIDED never leaves, the hand-over comes at 20 m;
+- external-nav: VISION_SPEED_ESTIMATE and VISION_POSITION_DELTA stream at >= 10 Hz, the EKF is
+  switched to source set 2 (VELXY ExternalNav) and fuses them, GUIDED never leaves, the hand-over
+  comes at 20 m; with VISION_SPEED_ESTIMATE alone EKF3 loses its position after posRetryTimeUseVel
+  and the controller holds while the autopilot's failsafe takes over;
 - attitude: ArduCopter goes GUIDED -> GUIDED_NOGPS, the controller flies attitude targets on the
   visual velocity (bounded tilt), the hand-over comes at 20 m, the EKF failsafe never lands it;
 - off: the loss is reported, the controller holds: no descent, no hand-over (FS_EKF_ACTION 2,
@@ -61,7 +63,7 @@ class ForwardAndDown:
 
     def step(self, obs: Observation) -> Decision:
         self.steps += 1
-        return Decision((1.0, 0.0, 1.5), 0.0, "LANDING", (32.0, 32.0), 10.0, 0.5, {})
+        return Decision((1.0, 0.0, 1.5), 0.0, "LANDING", (32.0, 32.0), 10.0, 0.5, {}, landing=True)
 
     def reset(self) -> None:
         pass
@@ -120,7 +122,7 @@ def fly(zenoh_pair) -> Iterator:
     service_session, test_session = zenoh_pair
     closers: list = []
 
-    def go(mode: str, until, ekf: FakeEkf | None = None) -> Flight:
+    def go(mode: str, until, ekf: FakeEkf | None = None, **config_kw: object) -> Flight:
         port = free_port(socket.SOCK_DGRAM)
         fake = FakeAutopilot(f"udpin:127.0.0.1:{port}", flavour="ardupilot", mode="GUIDED", armed=True,
                              alt_m=START_ALT_M, heartbeat_hz=10, ekf=ekf)
@@ -128,7 +130,7 @@ def fly(zenoh_pair) -> Iterator:
         closers.append(fake.stop)
         config = ControllerConfig(lockstep=False, timing="real", vehicle_url=f"udpout:127.0.0.1:{port}",
                                   vehicle_connect_timeout_s=10.0, state_stale_after_s=1.0, gnss_denied=mode,
-                                  handover_action="hold")
+                                  handover_action="hold", **config_kw)
         states = Inbox(test_session, keys.state("uav1"), VehicleState, newest_only=True)
         statuses = Inbox(test_session, keys.status("uav1"), ControllerStatus, newest_only=False, depth=4096)
         closers.extend([states.close, statuses.close])
@@ -200,12 +202,16 @@ def test_external_nav_keeps_guided_flying_on_the_visual_velocity_to_the_handover
     assert switches[0].recv_s >= flight.loss_s
     assert fake.ekf.source_set == 2 and not fake.ekf.failsafe_active
     assert fake.mode == "GUIDED" and fake.armed
-    # VISION_SPEED_ESTIMATE at >= 10 Hz with the camera's variance, NED from the body velocity.
-    speeds = [v for v in fake.vision_speeds if v.kind == "VISION_SPEED_ESTIMATE" and v.recv_s >= flight.loss_s]
-    span_s = speeds[-1].recv_s - speeds[0].recv_s
-    assert span_s > 3.0 and (len(speeds) - 1) / span_s >= 10.0, (len(speeds), span_s)
+    # VISION_SPEED_ESTIMATE and VISION_POSITION_DELTA at >= 10 Hz: the variance with the first, NED
+    # from the body velocity; the body displacement with the second (its confidence from the quality).
+    for kind in ("VISION_SPEED_ESTIMATE", "VISION_POSITION_DELTA"):
+        sent = [v for v in fake.vision_speeds if v.kind == kind and v.recv_s >= flight.loss_s]
+        span_s = sent[-1].recv_s - sent[0].recv_s
+        assert span_s > 3.0 and (len(sent) - 1) / span_s >= 10.0, (kind, len(sent), span_s)
+        assert any(abs(v.vel_m_s[0] - 1.0) < 0.3 for v in sent), kind  # heading north at 1 m/s forward
+    speeds = [v for v in fake.vision_speeds if v.kind == "VISION_SPEED_ESTIMATE"]
     assert speeds[-1].covariance[0] == pytest.approx(0.04) and speeds[-1].covariance[4] == pytest.approx(0.04)
-    assert any(abs(v.vel_m_s[0] - 1.0) < 0.3 for v in speeds)  # heading north at 1 m/s forward
+    assert [v for v in fake.vision_speeds if v.kind == "VISION_POSITION_DELTA"][-1].covariance == (90.0,)
     # The status said so: GNSS lost, flying on external nav; and it descended to the hand-over.
     lost = after_loss(flight)
     assert lost and any(st.nav_source == "external-nav" for st in lost)
@@ -284,13 +290,12 @@ def test_a_blind_camera_stops_the_descent_until_it_sees_again(fly) -> None:
 
 
 def test_the_controller_process_takes_gnss_denied_from_its_command_line() -> None:
-    """Tier 3: `dovesei-controller --gnss-denied attitude` as a real process on a fake ArduCopter whose
-    GNSS is already gone: it switches to GUIDED_NOGPS, flies attitude targets on the odometry the test
+    """Tier 3: `dovesei-controller --gnss-denied attitude` as a real process on a fake ArduCopter that
+    loses GNSS once the controller flies it: it switches to GUIDED_NOGPS, flies attitude targets on the odometry the test
     publishes over Zenoh, says so in its status, and holds the vehicle on SIGTERM."""
     mav_port, zenoh_port = free_port(socket.SOCK_DGRAM), free_port()
     with FakeAutopilot(f"udpin:127.0.0.1:{mav_port}", flavour="ardupilot", mode="GUIDED", armed=True,
                        alt_m=START_ALT_M, heartbeat_hz=10) as fake:
-        fake.lose_gnss()
         proc = subprocess.Popen(
             [sys.executable, "-m", "dovesei.controller.service", "--vehicle-url", f"udpout:127.0.0.1:{mav_port}",
              "--gnss-denied", "attitude", "--max-tilt-deg", "12", "--state-stale-after-s", "1",
@@ -301,6 +306,8 @@ def test_the_controller_process_takes_gnss_denied_from_its_command_line() -> Non
                     Inbox(session, keys.state("uav1"), VehicleState, newest_only=True) as states, \
                     Inbox(session, keys.status("uav1"), ControllerStatus, newest_only=False, depth=4096) as statuses:
                 assert wait_until(lambda: is_alive(session, "uav1", "controller", 0.5), 30.0), "never came up"
+                assert wait_until(lambda: states.poll() is not None, 15.0), "no state from the controller"
+                fake.lose_gnss()  # mid-flight, with the controller flying it in GUIDED
                 camera = Camera(session, states, fake)
                 camera.start()
                 seen: list[ControllerStatus] = []
@@ -328,3 +335,20 @@ def test_the_controller_process_takes_gnss_denied_from_its_command_line() -> Non
             if proc.poll() is None:
                 proc.kill()
                 proc.wait()
+
+
+def test_a_velocity_alone_lets_ekf3_lose_its_position_and_the_controller_holds(fly) -> None:
+    """--external-nav-message speed: VISION_SPEED_ESTIMATE alone keeps EKF3's velocity but not its
+    position past posRetryTimeUseVel (4 s here, 10 s in EKF3): the controller sees the position go,
+    stops descending and says why; the EKF failsafe then takes the vehicle (LAND), which is why the
+    default also sends VISION_POSITION_DELTA."""
+    def failsafe(flight: Flight) -> bool:
+        return any(text.startswith("EKF Failsafe") for _, text in flight.fake.statustexts_sent)
+
+    flight = fly("external-nav", failsafe, ekf=FakeEkf(pos_retry_use_vel_s=4.0), external_nav_message="speed")
+    fake = flight.fake
+    assert {v.kind for v in fake.vision_speeds} == {"VISION_SPEED_ESTIMATE"} and fake.ekf.source_set == 2
+    held = [st for st in flight.statuses if st.position_lost]
+    assert held and all(st.watchdog == "hold" and st.nav_source == "none" for st in held if st.state != "HANDOVER")
+    assert any("not fusing" in st.nav_reason and "horizontal position" in st.nav_reason for st in held)
+    assert fake.mode == "LAND"

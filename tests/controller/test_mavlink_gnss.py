@@ -11,9 +11,10 @@ import pytest
 from dovesei.controller import mavlink_proto as mv
 from dovesei.controller.mavlink import MavlinkVehicle
 from dovesei.shared.lifecycle import wait_until
-from dovesei.shared.messages import Stamp, VisualOdometry
+from dovesei.shared.messages import Stamp, VelocityCommand, VisualOdometry
 from dovesei.shared.zconfig import free_port
 from dovesei.testing.fake_autopilot import FakeAutopilot
+from dovesei.testing.fake_ekf import FakeEkf
 
 
 def odom(seq: int, vel: tuple[float, float, float], vehicle: str = "uav1", quality: float = 0.9) -> VisualOdometry:
@@ -25,15 +26,18 @@ def odom(seq: int, vel: tuple[float, float, float], vehicle: str = "uav1", quali
 def link() -> Iterator:
     opened: list = []
 
-    def make(flavour: str, yaw_rad: float = 0.0, **kw: object) -> tuple[FakeAutopilot, MavlinkVehicle]:
+    def make(flavour: str, yaw_rad: float = 0.0, before=None, **kw: object) -> tuple[FakeAutopilot, MavlinkVehicle]:
         port = free_port(socket.SOCK_DGRAM)
         fake = FakeAutopilot(f"udpin:127.0.0.1:{port}", flavour=flavour, mode="GUIDED" if flavour == "ardupilot"
-                             else "LOITER", armed=True, heartbeat_hz=20, yaw_rad=yaw_rad).start()
+                             else "LOITER", armed=True, heartbeat_hz=20, yaw_rad=yaw_rad,
+                             ekf=FakeEkf(coast_s=0.0)).start()
         opened.append(fake)
+        if before is not None:
+            before(fake)
         vehicle = MavlinkVehicle(f"udpout:127.0.0.1:{port}", **kw)  # type: ignore[arg-type]
         opened.append(vehicle)
         vehicle.connect(5.0)
-        assert wait_until(lambda: vehicle.poll_state() is not None, 5.0)
+        assert wait_until(lambda: vehicle.poll_state() is not None, 10.0)
         return fake, vehicle
 
     yield make
@@ -42,20 +46,24 @@ def link() -> Iterator:
 
 
 def test_ardupilot_gets_vision_speed_in_ned_with_the_variance_and_the_capture_time(link) -> None:
-    fake, vehicle = link("ardupilot", yaw_rad=math.pi / 2, gnss_denied="external-nav")
+    fake, vehicle = link("ardupilot", yaw_rad=math.pi / 2, gnss_denied="external-nav")  # both messages
     vehicle.on_visual_odometry(odom(1, (2.0, 0.5, 0.0)))
     vehicle.on_visual_odometry(odom(1, (2.0, 0.5, 0.0)))  # a duplicate: not sent twice
     vehicle.on_visual_odometry(odom(2, (2.0, 0.5, 0.0), vehicle="uav9"))  # another vehicle's: refused
     vehicle.on_visual_odometry(odom(3, (2.0, 0.5, 0.0), quality=0.2))  # too poor to fly on: not sent
     vehicle.on_visual_odometry(odom(4, (2.0, 0.5, 0.0)))
     assert wait_until(lambda: len(fake.vision_speeds) >= 2, 5.0)
-    first = fake.vision_speeds[0]
+    first = [v for v in fake.vision_speeds if v.kind == "VISION_SPEED_ESTIMATE"][0]
     assert first.kind == "VISION_SPEED_ESTIMATE" and first.usec == int((12.5 + 0.1) * 1e6)
     # Heading east: forward 2 m/s is east, right 0.5 m/s is south.
     assert first.vel_m_s == pytest.approx((-0.5, 2.0, 0.0), abs=1e-4)
     assert first.covariance == pytest.approx((0.09, 0, 0, 0, 0.09, 0, 0, 0, 0.09))
-    assert wait_until(lambda: vehicle.vision_sent == 2, 2.0) and len(fake.vision_speeds) == 2
+    assert wait_until(lambda: vehicle.vision_sent == 2 and len(fake.vision_speeds) == 4, 5.0)
     assert vehicle.samples_rejected["other vehicle's odometry"] == 1
+    # With each, the body displacement over the frame pair (dt 0.1 s) and the quality as confidence.
+    delta = [v for v in fake.vision_speeds if v.kind == "VISION_POSITION_DELTA"][0]
+    assert delta.usec == first.usec and delta.vel_m_s == pytest.approx((2.0, 0.5, 0.0), abs=1e-4)
+    assert delta.covariance == (90.0,)
 
 
 def test_px4_gets_odometry_with_only_a_body_velocity(link) -> None:
@@ -82,3 +90,29 @@ def test_off_sends_nothing_and_reports_the_loss(link) -> None:
     assert fake.vision_speeds == [] and not [c for c in fake.received()[2]
                                               if c.command == mv.MAV_CMD_SET_EKF_SOURCE_SET]
     assert vehicle.counters()["gnss_losses"] == 1
+
+
+def test_attitude_flying_trusts_only_the_camera_even_when_gnss_returns(link) -> None:
+    fake, vehicle = link("ardupilot", gnss_denied="attitude")
+    vehicle.send(VelocityCommand("uav1", 0, Stamp(0.0, "vehicle"), (0.0, 0.0, 0.0)))  # dovesei flies it in GUIDED
+    fake.lose_gnss()
+    assert wait_until(lambda: fake.mode == "GUIDED_NOGPS", 10.0)
+    fake.restore_gnss()
+    assert wait_until(lambda: not vehicle.nav_status().gnss_lost, 5.0)
+    status = vehicle.nav_status()  # no odometry at all: flying attitude targets blind is not trusted
+    assert not status.velocity_trusted and "flying attitude targets and no visual velocity" in status.reason
+
+
+def test_a_controller_started_after_the_loss_still_gets_states_from_the_barometer(link) -> None:
+    """GNSS gone before we connect: LOCAL_POSITION_NED never comes, so the state is made from
+    ATTITUDE and GLOBAL_POSITION_INT's relative altitude, without a position."""
+    fake, vehicle = link("ardupilot", before=FakeAutopilot.lose_gnss)
+    assert wait_until(lambda: (s := vehicle.poll_state()) is not None and not s.pos_valid, 5.0)
+    states = []
+    assert wait_until(lambda: (s := vehicle.poll_state()) is not None and states.append(s) is None, 5.0)
+    # The barometric height (the EKF failsafe is landing it at 1 m/s meanwhile: compare with the truth now).
+    assert states[0].alt_agl_m == pytest.approx(-fake.position_ned_m[2], abs=1.0) and not states[0].pos_valid
+    assert states[0].stamp.clock == "vehicle" and fake.mode == "LAND"
+    # It never saw a fix, so it cannot tell GNSS went; it sees the position gone and trusts nothing.
+    assert vehicle.nav_status().position_lost and not vehicle.nav_status().velocity_trusted
+    assert wait_until(lambda: vehicle.counters()["gnss_losses"] == 1, 2.0)  # counted as the loss it is

@@ -84,6 +84,10 @@ def test_bench_paths_one_panel_per_start(world: World, tmp_path) -> None:
                              "path_length_m": 10.0})
     out = plot_bench_paths(world, {"episodes": episodes, "config": {"world": "test"}}, tracks, tmp_path / "p.png")
     assert out is not None and cv2.imread(str(out)) is not None
+    # A policy that confirmed a spot: its ring and the line to the touchdown are drawn (the picture changes).
+    episodes[0].update(confirmed={"x_m": 45.0, "y_m": 66.0}, touchdown_error_m=7.2)
+    again = plot_bench_paths(world, {"episodes": episodes, "config": {"world": "test"}}, tracks, tmp_path / "q.png")
+    assert not np.array_equal(cv2.imread(str(out)), cv2.imread(str(again)))
 
 
 def test_bench_paths_without_tracks_writes_nothing(world: World, tmp_path) -> None:

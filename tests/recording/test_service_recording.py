@@ -23,7 +23,7 @@ from dovesei.shared.codec import encode
 from dovesei.shared.errors import ConfigError
 from dovesei.shared.lifecycle import Inbox, is_alive, wait_until
 from dovesei.shared.messages import (
-    CameraFrame, ControllerStatus, SafetyHeatmap, Stamp, VehicleState, VelocityCommand,
+    CameraFrame, ControllerStatus, SafetyHeatmap, Stamp, VehicleState, VelocityCommand, VisualOdometry,
 )
 from dovesei.shared.recording import FlightRecording
 
@@ -171,7 +171,12 @@ def test_camera_records_published_frames_with_their_states(zenoh_pair, tmp_path:
 
     rec = FlightRecording(path)
     assert rec.meta("camera_service")["width_px"] == 96 and rec.meta("camera_service")["source"] == str(video)
-    msgs = [m for _, m in rec.messages()]
+    every = [m for _, m in rec.messages()]
+    # The visual odometry is recorded as published (its altitude interpolated between states).
+    odometry = [m for m in every if isinstance(m, VisualOdometry)]
+    assert len(odometry) == stats.odometry_published >= 3
+    assert [m.frame_seq for m in odometry] == sorted(m.frame_seq for m in odometry)
+    msgs = [m for m in every if not isinstance(m, VisualOdometry)]
     frames = [m for m in msgs if isinstance(m, CameraFrame)]
     states = [m for m in msgs if isinstance(m, VehicleState)]
     assert len(frames) == stats.published == len(live) >= 3

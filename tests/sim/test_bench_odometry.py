@@ -16,7 +16,8 @@ SMALL_WORLD = "synthetic:size_m=300"  # generated once (~1 s), then read from th
 
 def test_bench_odometry_prints_speed_and_error_figures(capsys: pytest.CaptureFixture[str]) -> None:
     assert COMMANDS["bench-odometry"][0] == bench.__name__
-    argv = ["--json", "--world", SMALL_WORLD, "--pairs", "1", "--frames", "12", "--tilt", "on", "--noise", "ideal"]
+    argv = ["--json", "--world", SMALL_WORLD, "--pairs", "1", "--frames", "12", "--tilt", "on", "--noise", "ideal",
+            "--flight-s", "4"]
     assert bench.main(argv) == 0
     lines = capsys.readouterr().out.strip().splitlines()
     assert len(lines) == 1
@@ -32,6 +33,12 @@ def test_bench_odometry_prints_speed_and_error_figures(capsys: pytest.CaptureFix
     assert everything["pairs"] == 16 and 0.0 <= everything["invalid_fraction"] < 0.5
     assert everything["err_pct_median"] < 10.0 and everything["err_m_s_at_rest_p95"] < 0.5
     assert len(report["error"]["per_cell"]["tilted camera, ideal"]) == 16
+    # The scripted flights: 4 s at 10 Hz is ~39 compared pairs per profile; the ideal profile's
+    # tags are the truth, so its error is the estimator's own.
+    flights = report["flights"]["per_profile"]
+    assert set(flights) == {"ideal", "realistic", "harsh"}
+    ideal = flights["ideal"]["all"]
+    assert 30 <= ideal["samples"] <= 40 and ideal["invalid_fraction"] < 0.2 and ideal["err_pct_median"] < 5.0
 
 
 def test_the_error_figure_sees_a_wrong_altitude(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -8,8 +8,10 @@ import numpy as np
 import pytest
 
 from dovesei.shared.errors import ConfigError
-from dovesei.shared.messages import VisualOdometry
+from dovesei.shared.messages import Stamp, VehicleState, VisualOdometry
+from dovesei.sim.camera import CameraModel
 from dovesei.sim.core import SimConfig, SimCore
+from dovesei.sim.odometry import SimOdometry
 from dovesei.sim.service import build_parser, config_from_args
 from dovesei.sim.starts import Start
 from dovesei.sim.world import World
@@ -55,6 +57,21 @@ def test_without_odometry_the_episode_is_unchanged(world: World) -> None:
     strip = lambda s: s.__class__(**{**s.__dict__, "sent_wall_s": 0.0})  # noqa: E731 - wall time differs
     assert [strip(o.state) for o in plain] == [strip(o.state) for o in with_odo]
     assert plain[-1].result.outcome == with_odo[-1].result.outcome
+
+
+def test_a_gimballed_camera_is_tagged_level(world: World) -> None:
+    # The body rolls 0.2 rad but the gimbal keeps the camera level: told the body's roll, the
+    # estimator would remove a rotation the image never had (and read ~ alt x 0.2 / dt of motion).
+    def states(roll: float):
+        return [VehicleState(VID, k, Stamp(0.1 * k, "sim"), 40.0, (0.0, 0.0, 0.0), roll_rad=roll * (k % 2))
+                for k in range(3)]
+
+    def run(tag):
+        odo = SimOdometry(world, CameraModel(), VID, 10.0)
+        return [odo.observe(WEST_M, MID_Y_M, 40.0, 0.0, st, tag_roll_pitch_rad=tag) for st in states(0.2)][1:]
+    level = run((0.0, 0.0))
+    assert all(m.valid and np.linalg.norm(m.vel_body_frd_m_s) < 0.1 for m in level)
+    assert all(not m.valid or np.linalg.norm(m.vel_body_frd_m_s) > 10.0 for m in run(None))
 
 
 def test_odometry_flag(world: World) -> None:

@@ -226,15 +226,23 @@ class ClearancePolicy:
             skip = mem.probed + tuple((n, e) for n, e, _ in mem.blacklist)
             candidate = find_candidate(self.high, high, cfg, north_m=pn, east_m=pe, skip=skip, fence_m=fence_m,
                                        within_m=cfg.probe_reach_m)
-        check = None
+        check = recheck = None
         target = self.memory.target
         if target is not None:
             check = find_spot(self.map, clearance, cfg, north_m=pn, east_m=pe, blacklist=(),
                               near=(target.north_m, target.east_m), within_m=cfg.refine_radius_m,
                               need_m=cfg.required_clearance_m * cfg.recheck_hysteresis, fence_m=fence_m,
                               gate=gate)
+            if self.memory.phase is Phase.DESCEND and not self._spot_known():
+                # The footprint below, with the full clearance: what a re-check would land on.
+                recheck = find_spot(self.map, clearance, cfg, north_m=pn, east_m=pe, blacklist=(), near=(pn, pe),
+                                    within_m=cfg.refine_radius_m, fence_m=fence_m, gate=gate)
         return self._decide(obs, fresh=True, gap=gap, best=best, check=check, clearance=clearance, fence_m=fence_m,
-                            candidate=candidate)
+                            candidate=candidate, recheck=recheck)
+
+    def _spot_known(self) -> bool:
+        """Was the target fixed by vision (or re-checked) recently enough to descend on?"""
+        return self.motion.spot_since_s <= self.config.spot_trust_s
 
     def _hold(self, obs: Observation, pn: float, pe: float) -> Decision:
         """NO_SPOT: stay over the point where the search gave up, by vision.
@@ -259,7 +267,7 @@ class ClearancePolicy:
         return self._decision
 
     def _decide(self, obs: Observation, *, fresh: bool, gap: bool, best, check, clearance,
-                fence_m: float, candidate=None) -> Decision:
+                fence_m: float, candidate=None, recheck=None) -> Decision:
         cfg = self.config
         assert self.memory is not None and self._search_alt_m is not None
         pn, pe = self.motion.north_m, self.motion.east_m
@@ -267,13 +275,17 @@ class ClearancePolicy:
                      fresh=fresh, gap=gap, search_alt_m=self._search_alt_m, route=self._route,
                      passes=self._passes, fence_m=fence_m,
                      best=best, check=check, hfov_rad=obs.hfov_rad, candidate=candidate,
-                     top_pass_end=self._top_pass_end, probe_alt_m=self._alts.probe_m)
+                     top_pass_end=self._top_pass_end, probe_alt_m=self._alts.probe_m,
+                     spot_known=self._spot_known(), recheck=recheck)
         prev = self.memory
         mem, vel = step(prev, inp, cfg)
         fenced = False
         if mem.phase not in TERMINAL:  # a terminal state holds still: the operator takes over
             vel, fenced = fence(vel, pn, pe, obs.yaw_rad, cfg, fence_m)
         self.memory = mem
+        anchored = fresh and mem.target is not None and mem.anchor != prev.anchor and self.motion.set_spot()
+        if mem.target is None:
+            self.motion.clear_spot()
         if mem.phase is Phase.NO_SPOT and self._hold_ne is None:
             self._hold_ne = (pn, pe)  # where the search gave up: held there by vision from now on
         self._cmd = vel
@@ -293,7 +305,8 @@ class ClearancePolicy:
         m = self._last_motion
         if m is not None:
             info.update(registered=float(m.registered), reg_response=m.response, reg_innovation_m=m.innovation_m,
-                        anchored=float(m.anchored))
+                        anchored=float(m.anchored), spot_fixed=float(m.spot_fixed), spot_response=m.spot_response,
+                        spot_since_s=min(self.motion.spot_since_s, 1e6))
         target_px = None
         spot = mem.target
         if spot is not None:
@@ -308,9 +321,11 @@ class ClearancePolicy:
                 tn, te = tilt_offset_ne(obs.alt_agl_m, obs.roll_rad, obs.pitch_rad, obs.yaw_rad)
                 f, r = to_body(spot.north_m - pn - tn, spot.east_m - pe - te, obs.yaw_rad)
                 target_px = ((h - 1) / 2.0 - f / gsd, (w - 1) / 2.0 + r / gsd)
-                # A target chosen or moved by this look was checked in it, at that pixel.
-                moved = prev.target is None or (prev.target.north_m, prev.target.east_m) != (spot.north_m, spot.east_m)
-                if fresh and moved and -0.5 <= target_px[0] <= h - 0.5 and -0.5 <= target_px[1] <= w - 0.5:
+                # The look that chose (or re-checked) the target, or one registered against its
+                # keyframe whose re-check passed, confirms it at this pixel: the estimate was just
+                # put back on the checked ground, so the pixel is measured, not dead-reckoned.
+                seen = anchored or (fresh and check is not None and m is not None and m.spot_fixed)
+                if seen and -0.5 <= target_px[0] <= h - 0.5 and -0.5 <= target_px[1] <= w - 0.5:
                     self._confirmed = Confirmation(obs.frame_seq, float(target_px[0]), float(target_px[1]))
         else:
             self._confirmed = None
@@ -319,6 +334,7 @@ class ClearancePolicy:
             state=mem.phase.value, target_px=None if target_px is None else (float(target_px[0]), float(target_px[1])),
             focus_radius_px=self._required_px(obs), threshold=cfg.p_safe_min,
             info={k: float(v) for k, v in info.items()}, reason=mem.reason, confirmed=self._confirmed,
+            landing=mem.phase in (Phase.DESCEND, Phase.HANDOVER),
         )
         return self._decision
 

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from dovesei.shared import timing as shared_timing
 from dovesei.shared import validate
 from dovesei.shared.errors import ConfigError
+from dovesei.shared.mission import HANDOVER_ALT_M, SAFETY_RADIUS_M
 
 
 @dataclass(frozen=True)
@@ -30,9 +31,10 @@ class ClearanceConfig:
     decision_period_s: float = 0.5  # nominal heatmap period (first cycle, bench stepping)
 
     # --- landing goal ---
-    safety_radius_m: float = 2.0  # the disk that must be safe at touchdown (the judge's)
+    safety_radius_m: float = SAFETY_RADIUS_M  # the disk that must be safe at touchdown (the judge's)
     margin_m: float = 1.5  # added to the radius: position error and the map's blur
-    handover_alt_m: float = 20.0  # HANDOVER only at/below this measured altitude
+    # HANDOVER only at/below this measured altitude; the controller hands its own down (make_policy).
+    handover_alt_m: float = HANDOVER_ALT_M
     search_alt_m: float | None = None  # None: the altitude of the first heatmap
     # Every altitude below (search passes, confirmation looks, probes) is written for a start at
     # ref_start_alt_m and scales with the altitude the policy starts at (observed, `altitudes`),
@@ -102,6 +104,25 @@ class ClearanceConfig:
     anchor_gate_frac: float = 0.2  # an anchor's innovation gate: reg_gate_m + this x footprint + 2 x uncertainty
     anchor_gain_m: float = 2.0
     anchor_max: int = 600
+    # The spot's own keyframe: from the look that chose (or re-checked) the target, every heatmap
+    # is registered against it, so the target stays on the ground that was checked while dead
+    # reckoning drifts. Phase correlation normalises the spectrum, so low-contrast ground that
+    # is consistent from frame to frame still gives a clear peak: the peak (>= spot_min_response)
+    # and an innovation gate (reg_gate_m + reg_gate_frac x footprint + spot_drift_m_s x the time
+    # since the last fix) decide, not the texture's absolute contrast. spot_drift_m_s is what an
+    # estimate without GNSS may be off by per second (a flow EKF's velocity bias plus the wind it
+    # cannot see: ~1-2 m/s, the measured drift). The keyframe is renewed from a fixed
+    # look once the altitude changed by spot_renew_ratio.
+    spot_min_response: float = 0.4
+    spot_drift_m_s: float = 2.0
+    spot_renew_ratio: float = 1.3
+    # Descent only while the spot was fixed (or re-checked) within spot_trust_s; past it, the
+    # vehicle holds its altitude and, after recheck_frames fresh looks, re-checks the footprint
+    # below (the full clearance, at the vehicle's estimated position, within refine_radius_m of
+    # the target) and takes that as the new spot with a new keyframe: it never descends on a
+    # dead-reckoned guess of where the checked ground went.
+    spot_trust_s: float = 0.75
+    recheck_frames: int = 1
 
     # --- search ---
     # The search stays within this of the start. On the suite's tuning starts (seed 1000, 50 per
@@ -204,7 +225,7 @@ class ClearanceConfig:
             "key_scale_ratio", "dt_cap_s", "search_radius_m", "search_spacing_frac", "search_spacing_radius_frac",
             "search_speed_m_s", "fence_gain_per_s", "anchor_scale_ratio", "anchor_reach_frac", "anchor_spacing_frac",
             "approach_gain_per_s", "max_speed_m_s", "lock_in_m", "lock_out_m", "probe_alt_m", "probe_reach_m", "confirm_alt_m",
-            "ref_start_alt_m", "confirm_above_probe_m",
+            "ref_start_alt_m", "confirm_above_probe_m", "spot_drift_m_s", "spot_trust_s",
             "probe_skip_m", "probe_dist_m", "probe_timeout_s", "probe_alt_tol_m",
             "refine_radius_m", "descent_gain_per_s", "descent_min_m_s", "descent_max_m_s", "climb_speed_m_s",
             "warmup_timeout_s", "approach_timeout_s", "descend_timeout_s", "abort_timeout_s", "gap_s",
@@ -214,7 +235,7 @@ class ClearanceConfig:
             validate.positive(f"ClearanceConfig.{name}", getattr(self, name))
         for name in ("drift_frac", "drift_m_s", "anchor_gain_m", "margin_m", "dip_gain", "fence_margin_m", "reg_gate_frac", "reg_gate_m_s", "bias_max_m_s", "switch_gain"):
             validate.non_negative(f"ClearanceConfig.{name}", getattr(self, name))
-        for name in ("probe_descend_frac", "confirm_p_min", "probe_p_min", "probe_now_p_min", "anchor_min_response", "anchor_gate_frac", "p_clip", "p_safe_min", "reg_min_response", "reg_full_response", "reg_min_std", "reg_min_eigen_ratio", "reg_pos_gain", "cmd_weight",
+        for name in ("spot_min_response", "probe_descend_frac", "confirm_p_min", "probe_p_min", "probe_now_p_min", "anchor_min_response", "anchor_gate_frac", "p_clip", "p_safe_min", "reg_min_response", "reg_full_response", "reg_min_std", "reg_min_eigen_ratio", "reg_pos_gain", "cmd_weight",
                      "key_shift_frac", "recheck_hysteresis", "dip_kernel_frac", "dip_floor"):
             validate.in_range(f"ClearanceConfig.{name}", getattr(self, name), 0.0, 1.0)
         for frac in self.lower_search_fracs:
@@ -222,11 +243,13 @@ class ClearanceConfig:
         if not self.fence_margin_m < self.search_radius_m:
             raise ConfigError(f"ClearanceConfig.fence_margin_m {self.fence_margin_m} must be below search_radius_m "
                               f"{self.search_radius_m}")
+        if not self.spot_renew_ratio > 1.0:
+            raise ConfigError(f"ClearanceConfig.spot_renew_ratio must be > 1, got {self.spot_renew_ratio!r}")
         if self.cell_min_m > self.cell_max_m:
             raise ConfigError(f"ClearanceConfig.cell_min_m {self.cell_min_m} exceeds cell_max_m {self.cell_max_m}")
         if self.lock_out_m < self.lock_in_m:
             raise ConfigError(f"ClearanceConfig.lock_out_m {self.lock_out_m} must be >= lock_in_m {self.lock_in_m}")
-        for name in ("map_cells", "reg_size_px", "pattern_repeats", "fail_frames", "warmup_frames",
+        for name in ("recheck_frames", "map_cells", "reg_size_px", "pattern_repeats", "fail_frames", "warmup_frames",
                      "gap_recover_frames", "max_aborts", "anchor_max", "probe_frames"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
@@ -241,9 +264,6 @@ class ClearanceConfig:
         if self.probe_now_p_min < self.probe_p_min:
             raise ConfigError(f"ClearanceConfig.probe_now_p_min {self.probe_now_p_min} must be >= probe_p_min "
                               f"{self.probe_p_min}")
-        if not self.probe_alt_m >= self.handover_alt_m + 10.0:
-            raise ConfigError(f"ClearanceConfig.probe_alt_m {self.probe_alt_m!r} must be at least 10 m above the "
-                              f"hand-over altitude {self.handover_alt_m} m")
         if self.search_alt_m is not None and not self.search_alt_m > self.handover_alt_m:
             raise ConfigError(f"ClearanceConfig.search_alt_m {self.search_alt_m!r} must be above the hand-over "
                               f"altitude {self.handover_alt_m} m")

@@ -16,6 +16,9 @@
     APPROACH --target fails fail_frames re-checks / approach_timeout_s--> SEARCH (blacklisted)
     DESCEND  --target fails fail_frames re-checks / descend_timeout_s--> ABORT (blacklisted)
     DESCEND  --lock lost (error > 3 x lock-out)--> APPROACH
+    DESCEND  --the spot not fixed by vision for spot_trust_s--> DESCEND holding its altitude; after
+             recheck_frames fresh looks the footprint below is re-checked and becomes the spot
+             (a new keyframe): it never descends on a dead-reckoned guess of the checked ground
     ABORT    --back at the search altitude / abort_timeout_s--> SEARCH where the route was left,
              or NO_SPOT after max_aborts
     any live state --no heatmap for gap_s--> GAP_HOLD (map frozen, zero velocity)
@@ -77,6 +80,9 @@ class Memory:
     probed: tuple[tuple[float, float], ...] = ()  # areas looked at closely without a spot showing
     descending: bool = False  # inside the lock (hysteresis state)
     reason: str = "starting"
+    # Counts the looks that established a target (chosen, switched, re-checked below): the policy
+    # takes the spot's keyframe from the look that changed it.
+    anchor: int = 0
 
 
 @dataclass(frozen=True)
@@ -100,6 +106,8 @@ class Inputs:
     top_pass_end: int | None = None  # the route's waypoints before this are the top pass (None: all)
     fence_m: float | None = None  # the fence now (None: the config's); route points beyond it are pulled in
     probe_alt_m: float | None = None  # this flight's probe altitude (None: the config's)
+    spot_known: bool = True  # the target was fixed by vision (or re-checked) within spot_trust_s
+    recheck: Spot | None = None  # the footprint below, re-checked (None: it does not qualify)
 
 
 def search_pattern(spacing_m: float, radius_m: float) -> tuple[tuple[float, float], ...]:
@@ -226,7 +234,8 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
         if inp.best is not None:
             s = inp.best
             mem = _go(mem, Phase.APPROACH, t, f"spot {s.distance_m:.0f} m away: clearance {s.clearance_m:.1f} m, "
-                                              f"confidence {s.confidence:.2f}", target=s, probe=None)
+                                              f"confidence {s.confidence:.2f}", target=s, probe=None,
+                      anchor=mem.anchor + 1)
             p = Phase.APPROACH
         elif (inp.candidate is not None and len(mem.probed) < cfg.probe_max
               and t - mem.start_s <= cfg.no_spot_after_s
@@ -302,7 +311,7 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
                 and math.hypot(best.north_m - target.north_m, best.east_m - target.east_m) > cfg.refine_radius_m):
             mem = _go(mem, Phase.APPROACH, t, f"better spot: clearance {best.clearance_m:.1f} m, confidence "
                                               f"{best.confidence:.2f}, score {best.score:.2f} > {target.score:.2f}",
-                      target=best)
+                      target=best, anchor=mem.anchor + 1)
             target = best
             err_n, err_e = target.north_m - inp.north_m, target.east_m - inp.east_m
             err = math.hypot(err_n, err_e)
@@ -323,9 +332,21 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
                    aborts=mem.aborts + 1, blacklist=_blacklisted(mem, target, inp.alt_agl_m)), (0.0, 0.0, -cfg.climb_speed_m_s)
     if err > 3.0 * lock_out:
         return _go(mem, Phase.APPROACH, t, f"lock lost ({err:.1f} m off): approaching again"), (0.0, 0.0, 0.0)
+    if not inp.spot_known:
+        # Where the checked ground went is a guess: hold the altitude, and after a few fresh
+        # looks take the footprint below, re-checked, as the spot.
+        looked = mem.frames + (1 if inp.fresh else 0)
+        if looked >= cfg.recheck_frames and inp.recheck is not None:
+            s = inp.recheck
+            # The descent's clock runs on (its timeout bounds a descent that keeps re-checking).
+            return dataclasses.replace(mem, target=s, anchor=mem.anchor + 1, frames=0, fails=0, descending=False,
+                                       reason=f"spot not fixed by vision: re-checked the footprint below at "
+                                              f"{inp.alt_agl_m:.0f} m (clearance {s.clearance_m:.1f} m)"), (0.0, 0.0, 0.0)
+        vf, vr = toward(err_n, err_e, cfg.approach_gain_per_s, cfg.max_speed_m_s, inp.yaw_rad)
+        return dataclasses.replace(mem, frames=looked, descending=False), (vf, vr, 0.0)
     descending = err < lock_in or (mem.descending and err <= lock_out)
-    if descending != mem.descending:
-        mem = dataclasses.replace(mem, descending=descending)
+    if descending != mem.descending or mem.frames:
+        mem = dataclasses.replace(mem, descending=descending, frames=0)
     vf, vr = toward(err_n, err_e, cfg.approach_gain_per_s, cfg.max_speed_m_s, inp.yaw_rad)
     vz = 0.0
     if descending:

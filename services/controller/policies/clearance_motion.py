@@ -15,6 +15,10 @@ Two sources, fused every heatmap:
   texture and the innovation is inside a gate; then it corrects the position and, slowly, the
   velocity bias (so a biased estimator is learnt, not just patched). Anchors (below) give
   absolute fixes; the keyframe moves with the estimate a fix moves.
+- the spot's keyframe (`set_spot`): the look that chose the landing target, against which every
+  later heatmap is registered too. A fix from it puts the estimate back where it was relative
+  to the checked ground (so the target, in the estimate's frame, is that ground again), and
+  `spot_since_s` says how long ago the last one was: the policy descends only on a recent one.
 
 Pure and deterministic: arrays in, numbers out, no clock but the observation's.
 """
@@ -54,7 +58,15 @@ def tilt_offset_ne(alt_agl_m: float, roll_rad: float, pitch_rad: float, yaw_rad:
 
 
 def _constrained(img: np.ndarray, inn_n: float, inn_e: float, yaw_rad: float, min_ratio: float) -> tuple[float, float]:
-    """The innovation with its components along weakly textured directions removed.
+    """The innovation with its components along weakly textured directions removed."""
+    out_n, out_e, _ = _constrained_dirs(img, inn_n, inn_e, yaw_rad, min_ratio)
+    return out_n, out_e
+
+
+def _constrained_dirs(img: np.ndarray, inn_n: float, inn_e: float, yaw_rad: float,
+                      min_ratio: float) -> tuple[float, float, int]:
+    """The innovation with its components along weakly textured directions removed, and how
+    many directions (0-2) the texture constrains.
 
     The structure tensor of the image (sums of gradient products) has one large eigenvalue per
     direction that edges constrain; a strip or a single edge leaves the other one near zero.
@@ -65,17 +77,19 @@ def _constrained(img: np.ndarray, inn_n: float, inn_e: float, yaw_rad: float, mi
     evals, evecs = np.linalg.eigh(np.array([[jxx, jxy], [jxy, jyy]]))
     top = float(evals[-1])
     if top <= 0.0:
-        return 0.0, 0.0
+        return 0.0, 0.0, 0
     out_n = out_e = 0.0
+    dirs = 0
     for lam, (ux, uy) in zip(evals, evecs.T):
         if lam < min_ratio * top:
             continue
+        dirs += 1
         # Image direction (x right, y down) -> body (forward = -y, right = x) -> north/east.
         vn, ve = to_ne(-float(uy), float(ux), yaw_rad)
         along = inn_n * vn + inn_e * ve
         out_n += along * vn
         out_e += along * ve
-    return out_n, out_e
+    return out_n, out_e, dirs
 
 
 @dataclass(frozen=True)
@@ -90,6 +104,8 @@ class MotionStep:
     new_keyframe: bool
     anchored: bool = False  # an anchor (a view registered when the estimate was good) was matched
     uncertainty_m: float = 0.0  # the position error the estimate allows itself (see EgoMotion)
+    spot_fixed: bool = False  # registered against the spot's keyframe (the estimate is on the checked ground)
+    spot_response: float = 0.0
 
 
 @dataclass
@@ -140,6 +156,22 @@ class EgoMotion:
         self._unregistered_s = 0.0
         self._static: np.ndarray | None = None  # image-fixed pattern of the registration images
         self._last_pred_m = (0.0, 0.0)  # the last prediction's displacement (north, east)
+        self._last_view: _View | None = None  # the newest look, for `set_spot`
+        self._spot: _View | None = None  # the spot's keyframe
+        self.spot_since_s = math.inf  # data seconds since the spot's keyframe was taken or last fixed
+
+    def set_spot(self) -> bool:
+        """Take the newest look as the spot's keyframe (the look that chose or re-checked the
+        target); False when there was none."""
+        if self._last_view is None:
+            return False
+        self._spot = self._last_view
+        self.spot_since_s = 0.0
+        return True
+
+    def clear_spot(self) -> None:
+        self._spot = None
+        self.spot_since_s = math.inf
 
     @property
     def anchors(self) -> int:
@@ -299,13 +331,52 @@ class EgoMotion:
                 # registration read the fix as motion and the bias learner as a velocity error
                 # (a 5 m fix learnt 2.6 m/s in 4 s while hovering, and the hold ran away).
                 self._key.cc = (self._key.cc[0] + fix[0], self._key.cc[1] + fix[1])
+        spot_fixed, spot_response = self._spot_fix(img, gsd, width_m, yaw_rad, tn, te, dt_s)
+        self._last_view = _View(img.copy(), gsd, yaw_rad, (self.north_m + tn, self.east_m + te))
+        if spot_fixed and self._spot is not None and max(self._spot.gsd_m / gsd, gsd / self._spot.gsd_m) > \
+                self.cfg.spot_renew_ratio:
+            # Lower (or higher) by a ratio: a fixed look of the same ground at this scale
+            # registers better from here on; the chain adds one fix's error.
+            self._spot = self._last_view
         if new_key or self._key is None:
             self._key = _View(img.copy(), gsd, yaw_rad, (self.north_m + tn, self.east_m + te))
             self._fails = 0
             new_key = True
             self._maybe_anchor(self._key, textured)
         return MotionStep(self.north_m, self.east_m, registered, response, innovation, new_key, anchored,
-                          self.uncertainty_m)
+                          self.uncertainty_m, spot_fixed, spot_response)
+
+    def _spot_fix(self, img: np.ndarray, gsd: float, width_m: float, yaw_rad: float, tn: float, te: float,
+                  dt_s: float) -> tuple[bool, float]:
+        """Register against the spot's keyframe; an accepted match puts the estimate where that
+        look says it is (relative to the checked ground). Returns (fixed, response)."""
+        if self._spot is None:
+            return False, 0.0
+        cfg = self.cfg
+        self.spot_since_s += max(dt_s, 0.0)
+        if float(img.std()) < 1e-4:
+            return False, 0.0  # a flat image has no phase to correlate
+        meas_n, meas_e, response, static, _ = self._measure(self._spot, img, gsd, yaw_rad, tn, te)
+        inn_n, inn_e = meas_n - self.north_m, meas_e - self.east_m
+        gate = cfg.reg_gate_m + cfg.reg_gate_frac * width_m + cfg.spot_drift_m_s * self.spot_since_s
+        if static or response < cfg.spot_min_response or math.hypot(inn_n, inn_e) > gate:
+            return False, response
+        # Along a strip or an edge the shift is unobservable: only the directions the texture
+        # constrains are corrected, and only both make a fix (the spot is pinned, not slid along).
+        inn_n, inn_e, dirs = _constrained_dirs(img, inn_n, inn_e, yaw_rad, cfg.reg_min_eigen_ratio)
+        # A share of it, as for the keyframe: a fix's own error (a fraction of a registration
+        # pixel, ~0.3 m at 90 m) applied whole every frame jittered the fused map by a cell and
+        # cost a 12 m lawn its clearance; the share leaves a lag of drift x (1 - k) / k per look.
+        k = cfg.reg_pos_gain * self._trust(response)
+        inn_n, inn_e = k * inn_n, k * inn_e
+        self.north_m += inn_n
+        self.east_m += inn_e
+        if self._key is not None:
+            self._key.cc = (self._key.cc[0] + inn_n, self._key.cc[1] + inn_e)  # it moved with the estimate
+        if dirs < 2:
+            return False, response
+        self.spot_since_s = 0.0
+        return True, response
 
     def _maybe_anchor(self, key: _View, textured: bool) -> None:
         """Keep a new keyframe as an anchor unless an anchor of about its scale, known at least
