@@ -178,22 +178,19 @@ class _Wire:
                 if config.sim.odometry_rate_hz > 0 else None
             self.state = None
             self.states: Inbox[VehicleState] | None = None
-            self.statuses: Inbox[ControllerStatus] | None = None
+            # The controller's newest status: its hand-over, which alone ends an external-pose
+            # episode as a landing (sim.judge), and the look that confirmed its spot.
+            self.statuses = self._keep(Inbox(session, keys.status(vid), ControllerStatus, newest_only=True))
             if config.external_pose:
                 # The controller publishes the autopilot's state here; the sim only listens.
                 self.states = self._keep(Inbox(session, keys.state(vid), VehicleState, newest_only=True))
-                # ... and its hand-over, which alone ends the episode as a landing (sim.judge).
-                self.statuses = self._keep(Inbox(session, keys.status(vid), ControllerStatus, newest_only=True))
             else:
                 self.state = self._keep(session.declare_publisher(keys.state(vid), congestion_control=flow))
             # The result is published once, just before the session closes: no batching delay.
             self.episode = self._keep(session.declare_publisher(
                 keys.episode(vid), congestion_control=zenoh.CongestionControl.BLOCK, express=True))
             self.cmds: Inbox[VelocityCommand] | None = None
-            self.statuses: Inbox[ControllerStatus] | None = None
             if not config.external_pose:
-                # The controller's newest status names the look that confirmed its spot.
-                self.statuses = self._keep(Inbox(session, keys.status(vid), ControllerStatus, newest_only=True))
                 # Lockstep needs every answer in order; real time only ever wants the newest.
                 self.cmds = self._keep(Inbox(session, keys.cmd(vid), VelocityCommand,
                                              newest_only=not config.lockstep))
