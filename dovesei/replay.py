@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from dovesei.controller.core import ControllerConfig, ControllerCore
+from dovesei.controller.core import ControllerConfig, ControllerCore, ControllerInputError
 from dovesei.controller.policies.base import policy_names
 from dovesei.episode import EpisodeSpec, segmenter_config
 from dovesei.pictures import plots
@@ -132,7 +132,11 @@ def replay(recording: FlightRecording, *, policy: str | None = None, segmenter: 
 
     def tick(state: VehicleState, wall_s: float | None) -> None:
         nonlocal compared, same, first
-        cmd, status = ctrl.tick(state, wall_s)
+        try:
+            cmd, status = ctrl.tick(state, wall_s)
+        except ControllerInputError as exc:
+            log.warning("state %d refused as the live controller would: %s", state.seq, exc)
+            return
         states.append(status.state)
         if record is not None:
             record.write(cmd)
@@ -263,7 +267,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         metadata["segmenter"] = segmenter_metadata(seg)
     with FlightRecorder(out / "replay.mcap", metadata=metadata) as rec:
         result = replay(recording, policy=args.policy, segmenter=seg, record=rec)
-    doc = {"recording": str(recording.path), "open_loop": True, **result.to_dict()}
+    if recording.cut is not None:
+        print(recording.describe())  # a crash or power loss cut it: what came before the cut was replayed
+    doc = {"recording": str(recording.path), "open_loop": True, "recording_cut": recording.cut,
+           "recovered_messages": recording.recovered, **result.to_dict()}
     doc["files"] = {"replay": "replay.json", "recording": "replay.mcap"}
     if _plot(recording, result, out / "trajectory.png"):
         doc["files"]["trajectory_plot"] = "trajectory.png"

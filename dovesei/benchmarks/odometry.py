@@ -226,7 +226,7 @@ def bench_flights(worlds: dict[str, World], flight_s: float, profiles: Sequence[
     out: dict = {"flight_s": flight_s, "per_profile": {}}
     for profile in profiles:
         table: dict = {}
-        every: list[tuple[bool, float, float]] = []
+        every: list[tuple[bool, float, float, float]] = []
         for spec, world in worlds.items():
             start = Start(world.width_m / 2, world.height_m / 2, 100.0, yaw_rad=0.3)
             core = SimCore(world, start, SimConfig(vehicle_id="bench", vehicle_profile=profile, odometry_rate_hz=10.0,
@@ -246,11 +246,12 @@ def bench_flights(worlds: dict[str, World], flight_s: float, profiles: Sequence[
                         vn, ve = (y1 - y0) / odo.dt_s, (x1 - x0) / odo.dt_s
                         speed = math.hypot(vn, ve)
                         if not odo.valid:
-                            rows.append((False, 0.0, speed))
+                            rows.append((False, 0.0, speed, 0.0))
                         else:
                             ned = rotation_body_to_level(odo.roll_rad, odo.pitch_rad, odo.yaw_rad) @ \
                                 np.array(odo.vel_body_frd_m_s)
-                            rows.append((True, math.hypot(ned[0] - vn, ned[1] - ve), speed))
+                            rows.append((True, math.hypot(ned[0] - vn, ned[1] - ve), speed,
+                                         math.sqrt(odo.vel_var_m2_s2)))
                 out_step = core.step(_pilot(out_step.state, out_step.state.stamp.t_s))
             every += rows
             table[spec] = _flight_summary(rows)
@@ -259,13 +260,16 @@ def bench_flights(worlds: dict[str, World], flight_s: float, profiles: Sequence[
     return out
 
 
-def _flight_summary(rows: list[tuple[bool, float, float]]) -> dict:
-    valid = [(err, v) for ok, err, v in rows if ok]
-    moving = [100.0 * err / v for err, v in valid if v >= 1.0]
-    slow = [err for err, v in valid if v < 1.0]
+def _flight_summary(rows: list[tuple[bool, float, float, float]]) -> dict:
+    valid = [(err, v, sd) for ok, err, v, sd in rows if ok]
+    moving = [100.0 * err / v for err, v, _ in valid if v >= 1.0]
+    slow = [err for err, v, _ in valid if v < 1.0]
+    within = sum(err <= 2.45 * sd for err, _, sd in valid)  # as in _summary
     return {"samples": len(rows), "invalid_fraction": round(1 - len(valid) / len(rows), 3) if rows else None,
             "err_pct_median": _r(_percentile(moving, 50)), "err_pct_p95": _r(_percentile(moving, 95)),
-            "err_m_s_slow_median": _r(_percentile(slow, 50)), "err_m_s_slow_p95": _r(_percentile(slow, 95))}
+            "err_m_s_slow_median": _r(_percentile(slow, 50)), "err_m_s_slow_p95": _r(_percentile(slow, 95)),
+            "within_own_95pct": round(within / len(valid), 3) if valid else None,
+            "sd_m_s_median": _r(_percentile([sd for _, _, sd in valid], 50))}
 
 
 def _print_flights(flights: dict) -> None:
@@ -274,10 +278,13 @@ def _print_flights(flights: dict) -> None:
     for profile, table in flights["per_profile"].items():
         print(f"\nflights, {profile} vehicle profile ({flights['flight_s']:g} s each, odometry at 10 Hz vs the true "
               "displacement; % of speed above 1 m/s, m/s below)")
-        print(f"{'':34s} {'samples':>7s} {'invalid':>8s} {'med %':>7s} {'p95 %':>7s} {'slow med':>9s} {'slow p95':>9s}")
+        print(f"{'':34s} {'samples':>7s} {'invalid':>8s} {'med %':>7s} {'p95 %':>7s} {'slow med':>9s} {'slow p95':>9s} "
+              f"{'in 95%':>7s} {'sd med':>7s}")
         for spec, s in table.items():
+            within = "-" if s["within_own_95pct"] is None else f"{100 * s['within_own_95pct']:.0f}%"
             print(f"{spec:34s} {s['samples']:7d} {100 * s['invalid_fraction']:7.1f}% {fmt(s['err_pct_median'])} "
-                  f"{fmt(s['err_pct_p95'])} {fmt(s['err_m_s_slow_median'], 9)} {fmt(s['err_m_s_slow_p95'], 9)}")
+                  f"{fmt(s['err_pct_p95'])} {fmt(s['err_m_s_slow_median'], 9)} {fmt(s['err_m_s_slow_p95'], 9)} "
+                  f"{within:>7s} {fmt(s['sd_m_s_median'])}")
 
 
 def _print_tables(speed: dict, error: dict) -> None:

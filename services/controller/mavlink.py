@@ -73,6 +73,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from dovesei.controller.continuity import (
+    ALTITUDE_NOISE_M, MAX_VERTICAL_SPEED_M_S, STEP_CONFIRM_SAMPLES, AltitudeContinuity,
+)
 from dovesei.controller.mavlink_proto import (
     ALT_SOURCES,
     AUTOPILOT_KINDS,
@@ -246,6 +249,8 @@ class MavlinkVehicle:
         self._attitude_rad = (0.0, 0.0, 0.0)
         self._attitude_s: float | None = None
         self._local: tuple[float, float, float, float, float, float] | None = None  # x y z vx vy vz NED
+        self._local_alt = AltitudeContinuity(MAX_VERTICAL_SPEED_M_S, ALTITUDE_NOISE_M, STEP_CONFIRM_SAMPLES,
+                                             who="MAVLink LOCAL_POSITION_NED")
         self._range_m: float | None = None
         self._state: VehicleState | None = None
         self._state_seq, self._returned_seq = -1, -1
@@ -799,6 +804,10 @@ class MavlinkVehicle:
                 return  # e.g. a vision component's own estimate: the autopilot's is the one it flies on
             if kind == "LOCAL_POSITION_NED":
                 local = check_local_position(msg)
+                jump = self._local_alt.check(msg.time_boot_ms / 1000.0, -local[2])
+                if jump is not None:  # a height no multirotor flew to: dropped before it is a state
+                    self._reject("LOCAL_POSITION_NED jump", f"LOCAL_POSITION_NED: {jump}")
+                    return
                 with self._lock:
                     self._local, self._local_s, self._local_boot_ms = local, self._clock(), int(msg.time_boot_ms)
                     self._nav.on_local_position(self._local_s)

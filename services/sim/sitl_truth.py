@@ -9,10 +9,18 @@ in libraries/SITL/SITL.cpp `SIM::sim_state_send`), sent on any of its outputs th
     SITL --its own output, e.g. --serial2 udpclient:127.0.0.1:14552--> UDP socket bound here
         (udpin:127.0.0.1:14552; never the controller's link: `dovesei up` refuses a shared endpoint)
         --pymavlink's MAVLink 2 parser--> HEARTBEAT: ask for the EKF origin (MAV_CMD_REQUEST_MESSAGE
-                                                     GPS_GLOBAL_ORIGIN) and SIM_STATE (SET_MESSAGE_INTERVAL)
+                                                     GPS_GLOBAL_ORIGIN), SIM_STATE and ATTITUDE (SET_MESSAGE_INTERVAL)
                                           GPS_GLOBAL_ORIGIN: the origin, pinned once
-                                          SIM_STATE: checked --> TruePose (newest only)
+                                          ATTITUDE: the autopilot's boot clock (time_boot_ms) at arrival
+                                          SIM_STATE: checked --> TruePose dated on that clock (last ~3 s kept)
     TruePose --> dovesei.sim.external: frames rendered and the judge's pose; never a VehicleState
+
+SIM_STATE carries no time, so each sample is dated on the autopilot's boot clock by the ATTITUDE
+that SITL sends beside it (both asked at the same rate, sent from the same scheduler pass): the
+camera can then render the truth AT the instant of the state that labels the frame (`at(t_s)`).
+Rendering the newest truth under an older state's attitude tilted the view against its label by
+the attitude's change over the state's age (20 Hz states: up to ~50 ms, 1-2 deg while braking),
+which read as metres per second of false motion in the visual odometry at 80 m (measured).
 
 The only things sent are those two requests, on the sim's own output: nothing steers, arms or sets
 a parameter. Positions are metres north/east of the autopilot's EKF origin (where it booted, the
@@ -26,11 +34,13 @@ writes degrees x 1e7 into SIM_STATE's float `lat`/`lon` (the spec says degrees),
 
 from __future__ import annotations
 
+import bisect
 import logging
 import math
 import socket
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass
 from typing import Any
 
@@ -40,6 +50,7 @@ log = logging.getLogger(__name__)
 
 MSG_ID_SIM_STATE = 108
 MSG_ID_GPS_GLOBAL_ORIGIN = 49
+MSG_ID_ATTITUDE = 30
 MAV_CMD_SET_MESSAGE_INTERVAL = 511
 MAV_CMD_REQUEST_MESSAGE = 512
 MAV_AUTOPILOT_INVALID = 8  # a ground station's or companion's heartbeat, not the autopilot's
@@ -49,6 +60,7 @@ LATLON_TO_M = 0.011131884502145034
 DEFAULT_RATE_HZ = 50.0  # SIM_STATE rate asked for: a frame never waits more than 20 ms for a pose
 _REQUEST_EVERY_S = 2.0  # re-ask this often until an answer comes (a request can be lost; SITL may reboot)
 _RECV_TIMEOUT_S = 0.2  # the reader thread's socket timeout: how soon `close` is noticed
+_HISTORY_S = 3.0  # truth kept for `at`: states reach the sim well within this (their staleness limit is 1 s)
 
 
 def parse_truth_url(url: Any, flag: str = "--sitl-truth") -> tuple[str, int]:
@@ -74,6 +86,7 @@ class TruePose:
     yaw_rad: float
     vel_ned_m_s: tuple[float, float, float]
     recv_monotonic_s: float  # when it arrived here (time.monotonic)
+    boot_s: float | None = None  # the autopilot's time since boot it belongs to (None: no ATTITUDE seen yet)
 
 
 @dataclass(frozen=True)
@@ -120,7 +133,7 @@ def sample_problem(msg: Any) -> str:
     return ""
 
 
-def true_pose(msg: Any, origin: Origin, recv_monotonic_s: float) -> TruePose:
+def true_pose(msg: Any, origin: Origin, recv_monotonic_s: float, boot_s: float | None = None) -> TruePose:
     """A checked SIM_STATE as metres from `origin` (ArduPilot's flat-earth scaling)."""
     mid_lat_rad = math.radians((msg.lat_int + origin.lat_e7) / 2 * 1e-7)
     # Longitude difference wrapped into +-180 deg, as ArduPilot's diff_longitude does.
@@ -130,7 +143,23 @@ def true_pose(msg: Any, origin: Origin, recv_monotonic_s: float) -> TruePose:
                     east_m=dlon_e7 * LATLON_TO_M * max(math.cos(mid_lat_rad), 0.01),
                     alt_agl_m=float(msg.alt) - origin.alt_amsl_m, roll_rad=float(msg.roll),
                     pitch_rad=float(msg.pitch), yaw_rad=yaw, vel_ned_m_s=(float(msg.vn), float(msg.ve), float(msg.vd)),
-                    recv_monotonic_s=recv_monotonic_s)
+                    recv_monotonic_s=recv_monotonic_s, boot_s=boot_s)
+
+
+def interpolate(a: TruePose, b: TruePose, boot_s: float) -> TruePose:
+    """The pose at `boot_s` between two dated samples (the heading the short way round)."""
+    w = (boot_s - a.boot_s) / (b.boot_s - a.boot_s)
+
+    def mix(x: float, y: float) -> float:
+        return x + w * (y - x)
+
+    dyaw = math.atan2(math.sin(b.yaw_rad - a.yaw_rad), math.cos(b.yaw_rad - a.yaw_rad))
+    yaw = a.yaw_rad + w * dyaw
+    return TruePose(north_m=mix(a.north_m, b.north_m), east_m=mix(a.east_m, b.east_m),
+                    alt_agl_m=mix(a.alt_agl_m, b.alt_agl_m), roll_rad=mix(a.roll_rad, b.roll_rad),
+                    pitch_rad=mix(a.pitch_rad, b.pitch_rad), yaw_rad=math.atan2(math.sin(yaw), math.cos(yaw)),
+                    vel_ned_m_s=tuple(mix(x, y) for x, y in zip(a.vel_ned_m_s, b.vel_ned_m_s)),
+                    recv_monotonic_s=mix(a.recv_monotonic_s, b.recv_monotonic_s), boot_s=boot_s)
 
 
 class SitlTruth:
@@ -156,10 +185,13 @@ class SitlTruth:
         self._mav.robust_parsing = True  # a corrupt datagram is skipped, not raised
         self._lock = threading.Lock()
         self._newest: TruePose | None = None
+        self._history: deque[TruePose] = deque()  # dated samples, oldest first, `_HISTORY_S` of them
+        self._clock_ref: tuple[float, float] | None = None  # (time_boot s, arrival monotonic s) of the last ATTITUDE
         self._last_sim_state_s: float | None = None
         self._origin: Origin | None = None
         self._target: tuple[int, int] | None = None  # the autopilot's (system, component)
-        self._last_request_s = {MSG_ID_SIM_STATE: -math.inf, MSG_ID_GPS_GLOBAL_ORIGIN: -math.inf}
+        self._last_request_s = {MSG_ID_SIM_STATE: -math.inf, MSG_ID_GPS_GLOBAL_ORIGIN: -math.inf,
+                                MSG_ID_ATTITUDE: -math.inf}
         self._stop = threading.Event()
         self._sock: socket.socket | None = None
         self._thread: threading.Thread | None = None
@@ -202,6 +234,19 @@ class SitlTruth:
         with self._lock:
             return self._newest
 
+    def at(self, boot_s: float) -> TruePose | None:
+        """The truth at the autopilot's time `boot_s`, interpolated between the dated samples around it
+        (the nearest end when outside them); the newest sample while none is dated yet."""
+        with self._lock:
+            history, newest = list(self._history), self._newest
+        if not history:
+            return newest
+        times = [p.boot_s for p in history]
+        i = bisect.bisect_left(times, boot_s)
+        if i == 0 or i == len(history):
+            return history[min(i, len(history) - 1)]
+        return interpolate(history[i - 1], history[i], boot_s)
+
     @property
     def origin(self) -> Origin | None:
         return self._origin
@@ -235,6 +280,8 @@ class SitlTruth:
             flowing = self._last_sim_state_s is not None and now - self._last_sim_state_s < _REQUEST_EVERY_S
             if not flowing:
                 self._request(MSG_ID_SIM_STATE, addr, now)
+            if self._clock_ref is None or now - self._clock_ref[1] > _REQUEST_EVERY_S:
+                self._request(MSG_ID_ATTITUDE, addr, now)
         elif self._target is None or msg.get_srcSystem() != self._target[0]:
             return  # before the autopilot's heartbeat, or another system's: not ours
         elif kind == "GPS_GLOBAL_ORIGIN" and self._origin is None:
@@ -244,6 +291,8 @@ class SitlTruth:
                 return
             log.info("SITL truth origin (the EKF's): %.7f, %.7f at %.2f m AMSL, the ground",
                      self._origin.lat_e7 * 1e-7, self._origin.lon_e7 * 1e-7, self._origin.alt_amsl_m)
+        elif kind == "ATTITUDE":
+            self._clock_ref = (msg.time_boot_ms / 1000.0, now)
         elif kind == "SIM_STATE":
             self._last_sim_state_s = now
             problem = sample_problem(msg)
@@ -254,9 +303,18 @@ class SitlTruth:
                 return
             if self._origin is None:
                 return  # no frame to place it in yet (the EKF has no origin before its first fix)
-            pose = true_pose(msg, self._origin, now)
+            # Dated by the newest ATTITUDE plus the time since it arrived (the two come together).
+            ref = self._clock_ref
+            boot_s = None if ref is None or now - ref[1] > 1.0 else ref[0] + (now - ref[1])
+            pose = true_pose(msg, self._origin, now, boot_s)
             with self._lock:
                 self._newest = pose
+                if boot_s is not None:
+                    if self._history and boot_s <= self._history[-1].boot_s:
+                        self._history.clear()  # the boot clock went back: SITL rebooted
+                    self._history.append(pose)
+                    while self._history and boot_s - self._history[0].boot_s > _HISTORY_S:
+                        self._history.popleft()
             self.samples += 1
 
     def _request(self, msg_id: int, addr: tuple[str, int], now: float) -> None:
@@ -265,7 +323,7 @@ class SitlTruth:
         if now - self._last_request_s[msg_id] < _REQUEST_EVERY_S:
             return
         system, component = self._target
-        if msg_id == MSG_ID_SIM_STATE:
+        if msg_id in (MSG_ID_SIM_STATE, MSG_ID_ATTITUDE):
             cmd = (MAV_CMD_SET_MESSAGE_INTERVAL, msg_id, 1e6 / self.rate_hz)
         else:
             cmd = (MAV_CMD_REQUEST_MESSAGE, msg_id, 0)

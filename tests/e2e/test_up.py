@@ -590,10 +590,10 @@ def test_up_precland_keeps_the_target_streaming_until_the_autopilot_has_landed(t
                                                   "classes": {"0": {"name": "grass", "safe": True}}}))
     port = free_port(socket.SOCK_DGRAM)
     out = tmp_path / "run"
-    with FakeAutopilot(f"udpin:127.0.0.1:{port}", flavour="ardupilot", mode="GUIDED", armed=True, alt_m=24.0,
+    with FakeAutopilot(f"udpin:127.0.0.1:{port}", flavour="ardupilot", mode="GUIDED", armed=True, alt_m=26.0,
                        heartbeat_hz=10) as fake:
         argv = [sys.executable, "-m", "dovesei.cli", "up", "--world", str(world), "--segmenter", "sim", "--noise", "0",
-                "--start", "150,150,24", "--vehicle", f"udpout:127.0.0.1:{port}",
+                "--start", "150,150,26", "--vehicle", f"udpout:127.0.0.1:{port}",
                 "--handover-action", "precland", "--time-limit-s", "150", "--out", str(out), "--no-video"]
         env = {**os.environ, "PYTHONUNBUFFERED": "1", "HF_HUB_OFFLINE": "1"}
         try:
@@ -605,6 +605,7 @@ def test_up_precland_keeps_the_target_streaming_until_the_autopilot_has_landed(t
                         os.kill(pid, signal.SIGKILL)
         texts = [text for _, text in fake.statustexts_sent]
         targets = list(fake.landing_targets)
+    assert (out / "report.json").exists(), (done.returncode, done.stderr[-3000:])
     report = json.loads((out / "report.json").read_text())
     assert report["judged"], done.stderr[-3000:]
     landing = report["landing"]

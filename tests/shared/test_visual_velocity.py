@@ -103,6 +103,18 @@ def test_roll_and_pitch_are_removed() -> None:
     assert tilt_only.valid and np.linalg.norm(tilt_only.vel_body_frd_m_s) < 0.2
 
 
+def test_a_wrong_attitude_tag_widens_the_variance() -> None:
+    # The newer frame tagged 5 mrad off in roll and pitch at 60 m: the velocity is off by metres
+    # per second (no image can tell a small tilt from a shift well), but the variance says so.
+    a, b, m0, m1 = pair(60.0, (3.0, 1.0, 0.0), yaw0=0.5)
+    right = run_pair(a, b, m0, m1)
+    wrong = run_pair(a, b, m0, FrameMeta(1, m1.t_s, m1.alt_agl_m, HFOV, 0.005, -0.005, m1.yaw_rad))
+    truth = ned_to_body((3.0, 1.0, 0.0), 0.0, 0.0, 0.5)
+    err = np.linalg.norm(np.array(wrong.vel_body_frd_m_s[:2]) - truth[:2])
+    assert err > 2.0 and wrong.valid
+    assert err <= 2.45 * math.sqrt(wrong.vel_var_m2_s2) and wrong.vel_var_m2_s2 > 4 * right.vel_var_m2_s2
+
+
 def test_descent_is_measured_from_the_image_scale() -> None:
     # 4 m/s down at 40 m: frame 1 is 0.4 m lower, the image 1 % larger.
     a, b, m0, m1 = pair(40.0, (1.0, 0.0, 4.0), yaw0=0.0)

@@ -53,6 +53,8 @@ class FakeSitlOutput:
         self._sock.settimeout(0.02)
         self._lock = threading.Lock()
         self._state = sim_state()
+        self.motion = None  # or a function of the boot clock (s) giving the SIM_STATE to send then
+        self._boot0 = time.monotonic()
         self.requests: list = []  # COMMAND_LONGs received
         self.sent_states = 0
         self.streaming = True  # False: stop sending SIM_STATE (SITL gone)
@@ -82,10 +84,14 @@ class FakeSitlOutput:
                         HOME_LAT_E7, HOME_LON_E7, round(HOME_ALT_M * 1000), 0))
             except TimeoutError:
                 pass
-            asked = any(r.command == 511 and r.param1 == MSG_ID_SIM_STATE for r in self.requests)
-            if asked and self.streaming:
+            asked = {int(r.param1) for r in self.requests if r.command == 511}
+            if MSG_ID_SIM_STATE in asked and self.streaming:
+                boot_s = time.monotonic() - self._boot0
                 with self._lock:
-                    msg = self._state
+                    msg = self._state if self.motion is None else self.motion(boot_s)
+                if 30 in asked:  # ATTITUDE, from the same pass: what dates the SIM_STATE beside it
+                    self.send(_mavlink2().MAVLink_attitude_message(int(boot_s * 1000), msg.roll, msg.pitch, msg.yaw,
+                                                                   0.0, 0.0, 0.0))
                 self.send(msg)
                 self.sent_states += 1
 
@@ -151,6 +157,26 @@ def test_the_reader_asks_for_sim_state_and_follows_it() -> None:
         assert wait_until(lambda: truth.rejected > 3, DEADLINE_S)
         assert truth.newest().north_m == pytest.approx(30.0, abs=0.02)
     assert truth.samples > 0 and truth.error is None
+
+
+def test_the_truth_is_dated_on_the_autopilots_clock_and_read_at_a_states_instant() -> None:
+    # The fake flies north at 10 m/s on its boot clock; SIM_STATE has no time, the ATTITUDE sent
+    # with it does. `at(t)` gives the pose of that instant, between samples by interpolation.
+    port = free_port()
+    with SitlTruth(f"udpin:127.0.0.1:{port}") as truth, FakeSitlOutput(port) as sitl:
+        sitl.motion = lambda boot_s: sim_state(10.0 * boot_s, 0.0, 50.0, pitch=0.1 * math.sin(boot_s))
+        assert wait_until(lambda: truth.newest() is not None and truth.newest().boot_s is not None, DEADLINE_S)
+        assert any(a.command == 511 and a.param1 == 30 for a in sitl.requests)
+        assert wait_until(lambda: truth.newest().boot_s > 1.5, DEADLINE_S)
+        now_s = truth.newest().boot_s
+        for back_s in (0.05, 0.333, 1.0):
+            pose = truth.at(now_s - back_s)
+            # 1e-7 deg steps and the ATTITUDE-to-SIM_STATE gap on loopback: well within 0.3 m (30 ms).
+            assert pose.north_m == pytest.approx(10.0 * (now_s - back_s), abs=0.3), back_s
+            assert pose.pitch_rad == pytest.approx(0.1 * math.sin(now_s - back_s), abs=0.01)
+        # Outside what is kept: the nearest end, never an extrapolation.
+        assert truth.at(now_s + 5.0).north_m == pytest.approx(truth.newest().north_m, abs=0.5)
+        assert truth.at(-100.0).boot_s >= 0.0
 
 
 def test_without_the_ekf_origin_no_pose_is_made_up() -> None:

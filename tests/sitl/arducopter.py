@@ -119,7 +119,7 @@ class MavlinkWatch:
         self._sock.settimeout(0.2)
         self._stop = threading.Event()
         self.texts: list[str] = []
-        self.modes: list[tuple[str, bool]] = []  # (custom mode number as text, armed) on each change
+        self.modes: list[tuple[int, bool]] = []  # (custom mode number, armed) on each change
         self.rel_alt_m: float | None = None
         self.armed = False
         self.custom_mode: int | None = None
@@ -137,7 +137,7 @@ class MavlinkWatch:
                 if kind == "HEARTBEAT" and msg.autopilot == 3:
                     armed = bool(msg.base_mode & 128)
                     if (msg.custom_mode, armed) != (self.custom_mode, self.armed):
-                        self.modes.append((str(msg.custom_mode), armed))
+                        self.modes.append((msg.custom_mode, armed))
                     self.custom_mode, self.armed = msg.custom_mode, armed
                     if time.monotonic() - asked > 5.0:  # GLOBAL_POSITION_INT at 2 Hz on this output
                         packet = self._mav.command_long_encode(msg.get_srcSystem(), msg.get_srcComponent(), 511, 0,

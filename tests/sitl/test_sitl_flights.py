@@ -7,11 +7,14 @@ ArduPilot build outside this repository (docs/sitl.md).
 - The sim's truth reader against ArduCopter's own SIM_STATE and GPS_GLOBAL_ORIGIN.
 - `dovesei up --takeoff --policy clearance` from boot: GUIDED all the way, hand-over at 20 m over
   ground the judge (at SITL's true pose) calls safe, the copter left hovering there.
+- The same with `--handover-action precland` (PLND_ENABLED 1, PLND_TYPE 1): LANDING_TARGET streams
+  until ArduCopter has landed on the spot and disarmed.
 """
 
 from __future__ import annotations
 
 import json
+import math
 import os
 import subprocess
 import sys
@@ -28,7 +31,7 @@ from tests.sitl.arducopter import ArduCopterSitl, MavlinkWatch, sitl_tree
 pytestmark = pytest.mark.sitl
 
 REPO = Path(__file__).resolve().parents[2]
-GUIDED = "4"  # ArduCopter custom mode numbers
+GUIDED, LAND = 4, 9  # ArduCopter custom mode numbers
 HANDOVER_ALT_M = 20.0
 
 
@@ -53,27 +56,52 @@ def test_the_truth_reader_follows_arducopters_sim_state(tmp_path: Path) -> None:
     assert truth.rejected == 0
 
 
-@pytest.mark.timeout(1500)
-def test_up_clearance_from_boot_hands_over_at_20_m(tmp_path: Path) -> None:
+def _fly_up(tmp_path: Path, *up_args: str, params: dict[str, float] | None = None, settle_s: float = 3.0):
+    """`dovesei up --takeoff --policy clearance` against a fresh SITL: (exit, stderr, report, watch, after).
+
+    `after` is (custom mode, armed, relative altitude) `settle_s` after `up` returned.
+    """
     ports = _ports()
     out = tmp_path / "up"
     argv = [sys.executable, "-m", "dovesei.cli", "up", "--vehicle-url", f"udpin:127.0.0.1:{ports['controller']}",
             "--sitl-truth", f"udpin:127.0.0.1:{ports['truth']}", "--takeoff", "--policy", "clearance",
-            "--segmenter", "sim", "--no-video", "--time-limit-s", "900", "--out", str(out)]
+            "--segmenter", "sim", "--no-video", "--time-limit-s", "900", "--out", str(out), *up_args]
     env = {**os.environ, "PYTHONUNBUFFERED": "1", "HF_HUB_OFFLINE": "1"}
     with ArduCopterSitl(sitl_tree(), tmp_path / "sitl", controller_port=ports["controller"],
-                        truth_port=ports["truth"], monitor_port=ports["monitor"]), \
+                        truth_port=ports["truth"], monitor_port=ports["monitor"], params=params), \
             MavlinkWatch(ports["monitor"]) as watch:
         done = subprocess.run(argv, cwd=REPO, capture_output=True, text=True, timeout=1400, env=env)
-        time.sleep(3.0)  # the copter after the hand-over: still armed, still in GUIDED, holding
+        time.sleep(settle_s)
         after = (watch.custom_mode, watch.armed, watch.rel_alt_m)
     report = json.loads((out / "report.json").read_text())
-    tail = done.stderr[-3000:]
-    assert done.returncode == 0 and report["outcome"] == "safe", tail
+    return done.returncode, done.stderr[-3000:], report, watch, after
+
+
+@pytest.mark.timeout(1500)
+def test_up_clearance_from_boot_hands_over_at_20_m(tmp_path: Path) -> None:
+    code, tail, report, watch, after = _fly_up(tmp_path)
+    assert code == 0 and report["outcome"] == "safe", tail
     # The hand-over came from the policy at 20 m (by the estimate), the judge's truth agrees.
-    assert report["episode"]["final_alt_m"] == pytest.approx(HANDOVER_ALT_M, abs=1.5), report["episode"]
+    assert report["judged"] and report["final"]["alt_m"] == pytest.approx(HANDOVER_ALT_M, abs=1.5), report["final"]
+    assert report["navigation"]["sources"] == ["autopilot"] and not report["navigation"]["gnss_lost"]
     states = report["trajectory"]["state"]
     assert "HANDOVER" in states[-5:], states[-20:]
-    # ArduCopter flew GUIDED from the takeoff to the end, nothing took it away.
-    assert after[0] == int(GUIDED) and after[1] and after[2] == pytest.approx(HANDOVER_ALT_M, abs=2.0), after
+    # ArduCopter flew GUIDED from the takeoff to the end, nothing took it away; it holds at 20 m.
+    assert after[0] == GUIDED and after[1] and after[2] == pytest.approx(HANDOVER_ALT_M, abs=2.0), after
     assert not [t for t in watch.texts if "failsafe" in t.lower()], watch.texts
+
+
+@pytest.mark.timeout(1500)
+def test_up_precland_hands_over_and_arducopter_lands_on_the_spot(tmp_path: Path) -> None:
+    code, tail, report, watch, after = _fly_up(tmp_path, "--handover-action", "precland",
+                                               params={"PLND_ENABLED": 1, "PLND_TYPE": 1})
+    assert code == 0 and report["outcome"] == "safe", tail
+    landing = report["landing"]
+    assert landing["action"] == "precland" and landing["landed"], landing
+    # LANDING_TARGET streamed until the autopilot disarmed, and it used it.
+    assert landing["landing_targets_sent"] >= 50, landing
+    assert "PrecLand: Target Found" in watch.texts and "PrecLand: Init Complete" in watch.texts, watch.texts
+    assert after[0] == LAND and not after[1], after
+    # Down on the ground the judge called safe at the hand-over: within 2 m of that point.
+    final, touchdown = report["final"], landing["touchdown"]
+    assert math.dist((final["x_m"], final["y_m"]), (touchdown["x_m"], touchdown["y_m"])) < 2.0, (final, touchdown)
