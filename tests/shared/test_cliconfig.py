@@ -37,7 +37,7 @@ NON_DEFAULT = {
     "sim": SimServiceConfig(
         sim=SimConfig(vehicle_id="uav-7", timing="real", frame_period_s=1.25, latency_s=0.1 + 0.2,
                       handover_alt_m=12.5, time_limit_s=77.7, seed=-3, attach_truth=False,
-                      vehicle=VehicleParams(cmd_timeout_s=0.8), odometry_rate_hz=12.5),
+                      vehicle=VehicleParams(cmd_timeout_s=0.8), odometry_rate_hz=12.5, vehicle_profile="harsh"),
         world="synthetic:seed=3,size_m=400", start_xy_alt_m=(120.0, 80.5, 61.0), lockstep=False, speed=4.5,
         jpeg_quality=80, external_pose=True, sitl_truth="udpin:127.0.0.1:14552", wait_for=("controller", "segmenter"),
         wait_timeout_s=2.5,
@@ -59,7 +59,7 @@ NON_DEFAULT = {
         lockstep_heatmap_wait_s=7.5, policy_dt_max_s=0.8, future_tolerance_s=0.6, mavlink_system_id=7,
         mavlink_max_horizontal_m_s=8.0, mavlink_max_up_m_s=2.0, mavlink_max_down_m_s=1.0,
         mavlink_signing_key_file="keys/uav3.key", mavlink_require_home=False, takeoff_alt_m=60.0,
-        takeoff_ready_timeout_s=90.0, record_path="flights/uav3.mcap",
+        takeoff_ready_timeout_s=90.0, record_path="flights/uav3.mcap", geofence_radius_m=250.0,
         gnss_denied="attitude", ekf_source_set=3, external_nav_message="delta", odometry_min_quality=0.6, odometry_max_age_s=0.4,
         attitude_max_tilt_deg=12.0, camera_hfov_deg=58.5),
     "camera": CameraConfig(source="rtsp://10.0.0.2/cam", vehicle_id="uav2", width_px=320, height_px=240,
