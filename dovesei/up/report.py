@@ -24,6 +24,7 @@ import numpy as np
 from dovesei.pictures import plots
 from dovesei.pictures import video as videos
 from dovesei.pictures.common import ReportError, backend_label
+from dovesei.controller.policies.config_file import load_policy_config, policy_values, preset_config
 from dovesei.shared.messages import ControllerStatus
 from dovesei.shared.mission import HANDOVER_ALT_M, SAFETY_RADIUS_M
 from dovesei.up.launch import SERVICES
@@ -120,6 +121,8 @@ class Setup:
     safety_radius_m: float
     time_limit_s: float
     handover_alt_m: float = HANDOVER_ALT_M  # where the controller handed over and the sim judged
+    policy_config_file: str | None = None  # --policy-config, and the constants it changed from the preset
+    policy_config: Mapping[str, Any] | None = None
 
 
 @dataclass(frozen=True)
@@ -316,6 +319,15 @@ def _latency(options: UpOptions, rec: Recorder, cmd_to_sim: list[float]) -> dict
     return latency
 
 
+def _policy_config(options: UpOptions) -> tuple[str | None, dict[str, Any] | None]:
+    """The policy file flown and the constants it set differently from the timing preset's."""
+    if options.policy_config is None:
+        return None, None
+    flown = policy_values(options.policy, load_policy_config(options.policy, options.policy_config, options.timing))
+    preset = policy_values(options.policy, preset_config(options.policy, options.timing))
+    return str(options.policy_config), {k: v for k, v in flown.items() if v != preset[k]}
+
+
 def build_report(options: UpOptions, rec: Recorder, start: tuple[float, float, float], noise: float,
                  stats: Mapping[str, Any], failure: Failure | None, interrupted: bool,
                  wall_time_s: float, *, landing: LandingWait | None = None,
@@ -344,7 +356,7 @@ def build_report(options: UpOptions, rec: Recorder, start: tuple[float, float, f
                   options.perception if simulated else None, options.policy,
                   options.timing, options.seed, "lockstep" if options.lockstep else "realtime",
                   options.vehicle_url or f"sim:{options.sim_vehicle_profile}", options.vehicle_id, SAFETY_RADIUS_M,
-                  options.time_limit_s, options.handover_alt_m)
+                  options.time_limit_s, options.handover_alt_m, *_policy_config(options))
     episode_wall_s = (round(rec.result_wall_s - rec.first_state_wall_s, 3)
                       if rec.result_wall_s is not None and rec.first_state_wall_s is not None else None)
     timing = RunTiming(round(wall_time_s, 3), episode_wall_s, _latency(options, rec, cmd_to_sim),

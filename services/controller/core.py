@@ -64,6 +64,7 @@ from dovesei.controller.frames import body_frd_to_ned, ned_to_body_frd, to_ne
 from dovesei.controller.geofence import Geofence
 from dovesei.controller.odometry import VelocityTrack
 from dovesei.controller.policies.config import TIMING_PRESETS
+from dovesei.controller.policies.config_file import load_policy_config
 from dovesei.shared import footprint, keys, validate
 from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.shared.mission import HANDOVER_ALT_M
@@ -105,6 +106,8 @@ class ControllerConfig:
 
     vehicle_id: str = "uav1"
     policy: str = "dovesei"
+    # A TOML file of the policy's constants (policies/config_file.py); None: the timing preset's.
+    policy_config_file: str | None = None
     timing: str = DEFAULT_TIMING  # policy timing preset (dovesei.shared.timing); a real vehicle runs "real"
     lockstep: bool = True  # True: one tick per sim state (as the sim's default); False: own 20 Hz loop
     rate_hz: float = 20.0  # real-time loop rate on the wall clock
@@ -172,6 +175,7 @@ class ControllerConfig:
             raise ConfigError(f"policy {self.policy!r}: choose one of {', '.join(policy_names())}")
         if self.timing not in TIMING_PRESETS:
             raise ConfigError(f"timing {self.timing!r}: choose one of {', '.join(sorted(TIMING_PRESETS))}")
+        self.policy_config()  # a bad file is one line now, not a policy fault in flight
         positive = ("rate_hz", "heatmap_hold_after_s", "heatmap_climb_after_s", "state_stale_after_s",
                     "climb_speed_m_s", "climb_gain_per_s", "handover_alt_m", "vehicle_connect_timeout_s",
                     "lockstep_heatmap_wait_s", "lockstep_heatmap_retry_s", "policy_dt_max_s",
@@ -236,6 +240,12 @@ class ControllerConfig:
             raise ConfigError(f"timing {self.timing!r} with a real vehicle ({self.vehicle_url}): a real vehicle "
                               "runs on true seconds, use --timing real")
 
+    def policy_config(self) -> Any:
+        """What the policy is built from: the file's constants on the timing preset, or the preset's name."""
+        if self.policy_config_file is None:
+            return self.timing
+        return load_policy_config(self.policy, self.policy_config_file, self.timing)
+
     @property
     def period_s(self) -> float:
         return 1.0 / self.rate_hz
@@ -296,7 +306,7 @@ class ControllerCore:
         self.config = config
         self._mono = mono  # the controller's own clock (stamps are judged on it in real time)
         # The real wiring always goes through the factory; tests may hand in a double.
-        self.policy = policy if policy is not None else make_policy(config.policy, config.timing,
+        self.policy = policy if policy is not None else make_policy(config.policy, config.policy_config(),
                                                                     config.vehicle_speed_limits_m_s,
                                                                     handover_alt_m=config.handover_alt_m)
         self.rejected: Counter[str] = Counter()  # reason -> count (heatmaps and states refused)

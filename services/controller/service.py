@@ -558,6 +558,8 @@ CLI = CommandLine(ControllerConfig, {
                         check=_check_vehicle_url, metavar="URL"),
     "vehicle_id": Flag("--vehicle-id", "vehicle id in the keys", check=lambda _w, v: keys.check_vehicle_id(v)),
     "policy": Flag("--policy", "landing policy", choices=policy_names()),
+    "policy_config_file": Flag("--policy-config", "TOML file of the policy's constants (default: the timing "
+                               "preset's; `dovesei policy-config --defaults POLICY` prints them)", metavar="FILE"),
     "timing": Flag("--timing", f"policy timing preset ({DEFAULT_TIMING} with the sim, real with a MAVLink vehicle)",
                    choices=TIMING_NAMES),
     "lockstep": Flag("--lockstep", "one tick per sim state, waiting for awaited heatmaps (default with the sim)",

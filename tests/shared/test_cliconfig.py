@@ -59,7 +59,7 @@ NON_DEFAULT = {
         lockstep_heatmap_wait_s=7.5, policy_dt_max_s=0.8, future_tolerance_s=0.6, mavlink_system_id=7,
         mavlink_max_horizontal_m_s=8.0, mavlink_max_up_m_s=2.0, mavlink_max_down_m_s=1.0,
         mavlink_signing_key_file="keys/uav3.key", mavlink_require_home=False, takeoff_alt_m=60.0,
-        takeoff_ready_timeout_s=90.0, record_path="flights/uav3.mcap",
+        takeoff_ready_timeout_s=90.0, record_path="flights/uav3.mcap", geofence_radius_m=250.0,
         gnss_denied="attitude", ekf_source_set=3, external_nav_message="delta", odometry_min_quality=0.6, odometry_max_age_s=0.4,
         attitude_max_tilt_deg=12.0, camera_hfov_deg=58.5, geofence_radius_m=250.0),
     "camera": CameraConfig(source="rtsp://10.0.0.2/cam", vehicle_id="uav2", width_px=320, height_px=240,
