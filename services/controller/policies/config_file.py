@@ -54,6 +54,8 @@ def _checked_value(where: str, hint: Any, value: Any) -> Any:
     origin, args = typing.get_origin(hint), typing.get_args(hint)
     optional = origin in (typing.Union, types.UnionType) and type(None) in args
     if optional:
+        if value is None:  # a recording's "unset" (TOML has no null: a file leaves the key out)
+            return None
         hint = next(a for a in args if a is not type(None))
         origin, args = typing.get_origin(hint), typing.get_args(hint)
     if hint is bool:
@@ -81,7 +83,6 @@ def _checked_value(where: str, hint: Any, value: Any) -> Any:
 
 def load_policy_config(policy: str, path: str | Path, timing: str) -> Any:
     """The config `policy` flies with: the `timing` preset with the file's values, validated."""
-    kind, preset = _config_kind(policy)
     path = Path(path)
     try:
         doc = tomllib.loads(path.read_text(encoding="utf-8"))
@@ -89,10 +90,17 @@ def load_policy_config(policy: str, path: str | Path, timing: str) -> Any:
         raise ConfigError(f"--policy-config {str(path)!r}: cannot read it ({exc.strerror})") from None
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise ConfigError(f"--policy-config {str(path)!r}: not TOML ({exc})") from None
+    return config_from_values(policy, doc, timing, f"--policy-config {path.name}")
+
+
+def config_from_values(policy: str, doc: dict[str, Any], timing: str, what: str = "policy config") -> Any:
+    """The `timing` preset's config with `doc`'s values (a file's, or a recording's), each checked;
+    a ConfigError naming `what` and the key otherwise."""
+    _, preset = _config_kind(policy)
     fields = settable_fields(policy)
     values: dict[str, Any] = {}
     for key, value in doc.items():
-        where = f"--policy-config {path.name}: {key}"
+        where = f"{what}: {key}"
         if key in _OWNED_ELSEWHERE:
             raise ConfigError(f"{where} is set with {_OWNED_ELSEWHERE[key]}, not in a policy file")
         if key not in fields:
@@ -102,7 +110,7 @@ def load_policy_config(policy: str, path: str | Path, timing: str) -> Any:
     try:
         return preset(timing).replace(**values)
     except ConfigError as exc:  # the config's own check: a value out of range, two that disagree
-        raise ConfigError(f"--policy-config {path.name}: {exc}") from None
+        raise ConfigError(f"{what}: {exc}") from None
 
 
 def preset_config(policy: str, timing: str) -> Any:
