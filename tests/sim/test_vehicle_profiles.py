@@ -323,3 +323,20 @@ def test_without_a_profile_every_command_flies_the_timing_presets_default(tmp_pa
         assert opts.vehicle_profile is None and opts.sim_vehicle_profile == want
         assert grid_from_doc({"worlds": [WORLD], "timing": timing}).vehicle_profile == want
     assert bench_parser().parse_args([]).vehicle_profile is None
+
+
+@pytest.mark.parametrize("name", ["realistic", "harsh"])
+def test_the_reported_attitude_wanders_but_does_not_jump_between_frames(name: str) -> None:
+    # An AHRS integrates gyros: its roll/pitch error drifts, it does not jump from one state to the
+    # next. A jump of a few mrad between two frames 0.1 s apart is metres per second of false
+    # visual velocity at 100 m (bench-odometry measured it), so the change must stay small while
+    # the error itself still has the profile's spread.
+    from dovesei.sim.estimator import Estimator
+    params = VEHICLE_PROFILES[name].estimator
+    est = Estimator(params, seed=3, dt_s=0.05)
+    pose = Pose(0.0, 0.0, 80.0)
+    errors = np.array([[e.roll_rad, e.pitch_rad] for e in (est.update(pose, (0.0, 0.0, 0.0)) for _ in range(24000))])
+    change_0p1s = errors[2:] - errors[:-2]
+    assert float(np.std(change_0p1s)) < 0.15 * params.attitude_noise_rad  # ~sqrt(2 x 0.1 / 30) = 0.08
+    wander = errors - errors.mean(axis=0)
+    assert float(np.std(wander)) > 0.3 * params.attitude_noise_rad  # it still wanders over minutes
