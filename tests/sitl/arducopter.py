@@ -104,7 +104,7 @@ class MavlinkWatch:
     """The test's own read of a SITL output: STATUSTEXT lines, mode changes, altitude, armed state, GPS fix.
 
     Parsed with pymavlink's MAVLink 2 dialect on a plain UDP socket; it asks for GLOBAL_POSITION_INT
-    and GPS_RAW_INT at 2 Hz, and with `cut_gps_below_m` it disables SITL's GPS (PARAM_SET
+    GPS_RAW_INT and EKF_STATUS_REPORT at 2 Hz, and with `cut_gps_below_m` it disables SITL's GPS (PARAM_SET
     SIM_GPS_DISABLE 1) once the copter, armed, has been 10 m above that altitude and sinks below it
     (`gps_cut_alt_m` records where). `texts` and `modes` grow as the flight goes.
     """
@@ -126,6 +126,7 @@ class MavlinkWatch:
         self.armed = False
         self.custom_mode: int | None = None
         self.gps_fix_type = 0
+        self.ekf_flags = 0  # EKF_STATUS_REPORT flags
         self.cut_gps_below_m = cut_gps_below_m
         self.gps_cut_alt_m: float | None = None
         self._above = False
@@ -146,8 +147,8 @@ class MavlinkWatch:
                         self.modes.append((msg.custom_mode, armed))
                     self.custom_mode, self.armed = msg.custom_mode, armed
                     target = (msg.get_srcSystem(), msg.get_srcComponent())
-                    if time.monotonic() - asked > 5.0:  # GLOBAL_POSITION_INT and GPS_RAW_INT at 2 Hz here
-                        for msg_id in (33, 24):
+                    if time.monotonic() - asked > 5.0:  # GLOBAL_POSITION_INT, GPS_RAW_INT, EKF_STATUS_REPORT
+                        for msg_id in (33, 24, 193):
                             packet = self._mav.command_long_encode(*target, 511, 0, msg_id, 500_000, 0, 0, 0, 0,
                                                                    0).pack(self._mav)
                             self._sock.sendto(packet, addr)
@@ -159,6 +160,13 @@ class MavlinkWatch:
                     self.rel_alt_m = msg.relative_alt / 1000.0
                 elif kind == "GPS_RAW_INT":
                     self.gps_fix_type = msg.fix_type
+                elif kind == "EKF_STATUS_REPORT":
+                    self.ekf_flags = msg.flags
+
+    @property
+    def ekf_has_absolute_position(self) -> bool:
+        """EKF_STATUS_REPORT: an absolute horizontal position (16), not in constant-position mode (128)."""
+        return bool(self.ekf_flags & 16) and not self.ekf_flags & 128
 
     def _maybe_cut_gps(self, target: tuple[int, int], addr: tuple[str, int]) -> None:
         """SIM_GPS_DISABLE 1 (an INT8 parameter) below `cut_gps_below_m`, re-sent each heartbeat until

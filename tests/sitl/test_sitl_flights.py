@@ -63,8 +63,8 @@ def _fly_up(tmp_path: Path, *up_args: str, params: dict[str, float] | None = Non
     """`dovesei up --takeoff --policy clearance` against a fresh SITL: (exit, stderr, report, watch, after).
 
     `after` is (custom mode, armed, relative altitude) `settle_s` after `up` returned. With
-    `cut_gps_below_m`, `up` starts once SITL has its 3D fix (a controller that starts before the
-    first fix reads the boot as a GNSS loss: see docs/sitl.md) and the GPS is cut there.
+    `cut_gps_below_m`, `up` starts once SITL's EKF has its GPS position (a controller that starts
+    before reads the boot as a GNSS loss: see docs/sitl.md) and the GPS is cut there.
     """
     ports = _ports()
     out = tmp_path / "up"
@@ -76,7 +76,8 @@ def _fly_up(tmp_path: Path, *up_args: str, params: dict[str, float] | None = Non
                         truth_port=ports["truth"], monitor_port=ports["monitor"], params=params), \
             MavlinkWatch(ports["monitor"], cut_gps_below_m=cut_gps_below_m) as watch:
         if cut_gps_below_m is not None:
-            assert wait_until(lambda: watch.gps_fix_type >= 3, 120.0, poll_s=0.5), "SITL: no 3D fix in 120 s"
+            assert wait_until(lambda: watch.gps_fix_type >= 3 and watch.ekf_has_absolute_position, 120.0, poll_s=0.5), \
+                "SITL: no 3D fix and EKF position in 120 s"
         done = subprocess.run(argv, cwd=REPO, capture_output=True, text=True, timeout=1400, env=env)
         time.sleep(settle_s)
         after = (watch.custom_mode, watch.armed, watch.rel_alt_m)
