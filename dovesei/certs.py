@@ -7,7 +7,7 @@ common names, one role per service:
     role        may put                         may subscribe to
     controller  cmd, status, state (autopilot)  heatmap, state, odometry
     segmenter   heatmap (and segment replies)   camera, prompts (and answers segment queries)
-    sim         camera, state, episode,         cmd, state
+    sim         camera, state, episode,         cmd, state, status (the hand-over, external pose)
                 odometry
     camera      camera, odometry                state
     operator    prompts (and segment queries)   status, episode, heatmap, state, camera
@@ -64,7 +64,9 @@ ROLES: dict[str, Role] = {
                        alive_as=("controller", "mavlink")),
     "segmenter": Role(puts=("heatmap",), subscribes=("camera", "prompts"), answers=("segment",),
                       alive_as=("segmenter",)),
-    "sim": Role(puts=("camera", "state", "episode", "odometry"), subscribes=("cmd", "state"), alive_as=("sim",)),
+    # The sim hears the controller's status for its hand-over in external-pose mode (sim.judge).
+    "sim": Role(puts=("camera", "state", "episode", "odometry"), subscribes=("cmd", "state", "status"),
+                alive_as=("sim",)),
     "camera": Role(puts=("camera", "odometry"), subscribes=("state",), alive_as=("camera",)),
     "operator": Role(puts=("prompts",), subscribes=("status", "episode", "heatmap", "state", "camera"),
                      asks=("segment",)),

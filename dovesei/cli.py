@@ -30,6 +30,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "health": ("dovesei.health", "exit 0 when a service's liveliness token is visible"),
     "faults": ("dovesei.faults", "the fault suite: hangs, kills, a router restart, message loss, skew, floods, forgeries"),
     "certs": ("dovesei.certs", "a CA, one certificate per role and the router's ACL for the secured Zenoh mode"),
+    "policy-config": ("dovesei.policy_config", "a policy's constants as a TOML file for --policy-config, or check one"),
     "replay": ("dovesei.replay", "run a policy (and optionally a segmenter) again on a flight recording (.mcap)"),
     "view": ("dovesei.view", "open a flight (report folder or recording.mcap) in Rerun; writes an .rrd"),
     "bench-codec": ("dovesei.benchmarks.codec", "encode/decode time of a 352x352 frame and heatmap"),

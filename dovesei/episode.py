@@ -28,6 +28,7 @@ from dovesei.segmenter.prompts import REFERENCE_PROMPTS, PromptSet
 from dovesei.segmenter.simulated import DEFAULT_NOISE, DEFAULT_PROFILE, PROFILE_NAMES
 from dovesei.shared.errors import ConfigError
 from dovesei.shared.messages import EpisodeResult, Message, SafetyHeatmap
+from dovesei.shared.mission import HANDOVER_ALT_M
 from dovesei.sim.core import SimConfig, SimCore
 from dovesei.sim.estimator import SIM_DEFAULT_VEHICLE_PROFILE
 from dovesei.sim.starts import Start
@@ -79,6 +80,7 @@ class EpisodeSpec:
     perception: str = DEFAULT_PERCEPTION  # simulated perception profile
     prompts: PromptSet = REFERENCE_PROMPTS
     vehicle_profile: str = SIM_DEFAULT_VEHICLE_PROFILE  # what the autopilot reports (dovesei.sim.estimator)
+    handover_alt_m: float = HANDOVER_ALT_M  # handed to the controller (and so the policy) and the sim's judge
 
     @classmethod
     def from_job(cls, job: dict, start: Start) -> EpisodeSpec:
@@ -86,7 +88,8 @@ class EpisodeSpec:
         return cls(policy=job["policy"], start=start, timing=job["timing"], seed=job["seed"], noise=job.get("noise"),
                    time_limit_s=job["time_limit_s"], perception=job.get("perception") or DEFAULT_PERCEPTION,
                    prompts=prompt_set(job.get("prompts")),
-                   vehicle_profile=job.get("vehicle_profile") or SIM_DEFAULT_VEHICLE_PROFILE)
+                   vehicle_profile=job.get("vehicle_profile") or SIM_DEFAULT_VEHICLE_PROFILE,
+                   handover_alt_m=job.get("handover_alt_m", HANDOVER_ALT_M))
 
 
 @dataclass
@@ -111,11 +114,12 @@ def build_cores(world: World, spec: EpisodeSpec, *, render_images: bool = False
     """
     sim = SimCore(world, spec.start, SimConfig(vehicle_id=spec.vehicle_id, timing=spec.timing, seed=spec.seed,
                                                time_limit_s=spec.time_limit_s, render_image=render_images,
-                                               vehicle_profile=spec.vehicle_profile))
+                                               vehicle_profile=spec.vehicle_profile,
+                                               handover_alt_m=spec.handover_alt_m))
     seg_config = segmenter_config(spec)
     seg = SegmenterCore(make_backend(seg_config), seg_config)
     ctrl = ControllerCore(ControllerConfig(vehicle_id=spec.vehicle_id, policy=spec.policy, timing=spec.timing,
-                                           lockstep=True))
+                                           lockstep=True, handover_alt_m=spec.handover_alt_m))
     return sim, seg, ctrl
 
 

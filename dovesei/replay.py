@@ -26,8 +26,9 @@ from typing import Any
 
 import numpy as np
 
-from dovesei.controller.core import ControllerConfig, ControllerCore
-from dovesei.controller.policies.base import policy_names
+from dovesei.controller.core import ControllerConfig, ControllerCore, ControllerInputError
+from dovesei.controller.policies.base import make_policy, policy_names
+from dovesei.controller.policies.config_file import config_from_values, policy_values
 from dovesei.episode import EpisodeSpec, segmenter_config
 from dovesei.pictures import plots
 from dovesei.pictures.common import ReportError
@@ -35,6 +36,7 @@ from dovesei.segmenter.core import SegmenterConfig, SegmenterCore, make_backend
 from dovesei.segmenter.prompts import PromptSet
 from dovesei.shared.cliconfig import OneLineParser
 from dovesei.shared.errors import ConfigError
+from dovesei.shared.mission import HANDOVER_ALT_M
 from dovesei.shared.messages import (
     CameraFrame, ControllerStatus, EpisodeResult, SafetyHeatmap, VehicleState,
 )
@@ -49,19 +51,25 @@ def episode_metadata(spec: EpisodeSpec, world: str = "") -> dict[str, dict[str, 
     """The metadata records of an in-process episode's recording (what replay needs to rebuild it)."""
     return flight_metadata(segmenter_config(spec), policy=spec.policy, timing=spec.timing, lockstep=True,
                            vehicle_id=spec.vehicle_id, seed=spec.seed, world=world,
-                           start=(spec.start.x_m, spec.start.y_m, spec.start.alt_m), camera=CameraModel())
+                           start=(spec.start.x_m, spec.start.y_m, spec.start.alt_m), camera=CameraModel(),
+                           handover_alt_m=spec.handover_alt_m)
 
 
 def flight_metadata(seg: SegmenterConfig, *, policy: str, timing: str, lockstep: bool, vehicle_id: str, seed: int,
-                    world: str, start: tuple[float, float, float], camera: Any = None) -> dict[str, dict[str, Any]]:
-    """Metadata records of a recording: the run, the segmenter, the prompt set and the camera model."""
+                    world: str, start: tuple[float, float, float], camera: Any = None,
+                    handover_alt_m: float = HANDOVER_ALT_M,
+                    policy_config: dict[str, Any] | None = None) -> dict[str, dict[str, Any]]:
+    """Metadata records of a recording: the run, the segmenter, the prompt set and the camera model,
+    and the policy's constants when a --policy-config changed them (replay flies them again)."""
     out = {
         "run": {"policy": policy, "timing": timing, "lockstep": lockstep, "vehicle_id": vehicle_id, "seed": seed,
-                "world": world, "start": list(start)},
+                "world": world, "start": list(start), "handover_alt_m": handover_alt_m},
         "segmenter": segmenter_metadata(seg),
         "prompts": {"positive": list(seg.prompts.positive), "negative": list(seg.prompts.negative),
                     "template": seg.prompts.template},
     }
+    if policy_config is not None:
+        out["policy_config"] = policy_config
     if camera is not None:
         out["camera"] = {k: v for k, v in asdict(camera).items() if isinstance(v, (int, float, str, bool))}
     return out
@@ -72,7 +80,10 @@ def up_recorder(out: Path, configs: Any, options: Any, start: tuple[float, float
     sim = configs.sim.sim
     meta = flight_metadata(configs.segmenter.segmenter, policy=configs.controller.policy, timing=sim.timing,
                            lockstep=bool(options.lockstep), vehicle_id=options.vehicle_id, seed=sim.seed,
-                           world=str(options.world), start=start, camera=sim.camera)
+                           world=str(options.world), start=start, camera=sim.camera,
+                           handover_alt_m=configs.controller.handover_alt_m,
+                           policy_config=(None if configs.controller.policy_config_file is None else
+                                          policy_values(configs.controller.policy, configs.controller.policy_config())))
     return FlightRecorder(Path(out) / "recording.mcap", metadata=meta)
 
 
@@ -119,8 +130,15 @@ def replay(recording: FlightRecording, *, policy: str | None = None, segmenter: 
     if policy not in policy_names():
         raise ConfigError(f"--policy {policy!r}: choose one of {', '.join(policy_names())}")
     lockstep = bool(run.get("lockstep", True))
-    ctrl = ControllerCore(ControllerConfig(vehicle_id=str(run.get("vehicle_id", "uav1")), policy=policy,
-                                           timing=str(run.get("timing", "reference")), lockstep=lockstep))
+    config = ControllerConfig(vehicle_id=str(run.get("vehicle_id", "uav1")), policy=policy,
+                              timing=str(run.get("timing", "reference")), lockstep=lockstep,
+                              handover_alt_m=float(run.get("handover_alt_m", HANDOVER_ALT_M)))
+    values = recording.meta("policy_config")
+    # The recorded policy flies again with the constants it flew with; another policy with its own defaults.
+    built = None if not values or policy != recorded_policy else make_policy(
+        policy, config_from_values(policy, values, config.timing, f"recording {recording.path} policy_config"),
+        config.vehicle_speed_limits_m_s, handover_alt_m=config.handover_alt_m)
+    ctrl = ControllerCore(config, policy=built)
     seg = SegmenterCore(make_backend(segmenter), segmenter) if segmenter is not None else None
     events = list(recording.messages((VehicleState, CameraFrame, SafetyHeatmap, ControllerStatus, EpisodeResult)))
     recorded = {st.stamp.t_s: st for _, st in events if isinstance(st, ControllerStatus)}
@@ -132,7 +150,11 @@ def replay(recording: FlightRecording, *, policy: str | None = None, segmenter: 
 
     def tick(state: VehicleState, wall_s: float | None) -> None:
         nonlocal compared, same, first
-        cmd, status = ctrl.tick(state, wall_s)
+        try:
+            cmd, status = ctrl.tick(state, wall_s)
+        except ControllerInputError as exc:
+            log.warning("state %d refused as the live controller would: %s", state.seq, exc)
+            return
         states.append(status.state)
         if record is not None:
             record.write(cmd)
@@ -263,7 +285,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         metadata["segmenter"] = segmenter_metadata(seg)
     with FlightRecorder(out / "replay.mcap", metadata=metadata) as rec:
         result = replay(recording, policy=args.policy, segmenter=seg, record=rec)
-    doc = {"recording": str(recording.path), "open_loop": True, **result.to_dict()}
+    if recording.cut is not None:
+        print(recording.describe())  # a crash or power loss cut it: what came before the cut was replayed
+    doc = {"recording": str(recording.path), "open_loop": True, "recording_cut": recording.cut,
+           "recovered_messages": recording.recovered, **result.to_dict()}
     doc["files"] = {"replay": "replay.json", "recording": "replay.mcap"}
     if _plot(recording, result, out / "trajectory.png"):
         doc["files"]["trajectory_plot"] = "trajectory.png"

@@ -228,5 +228,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         view.write(msg, wall_s)
         n += 1
     view.close()
+    if recording.cut is not None:
+        print(recording.describe())  # a crash or power loss cut it: everything before the cut is shown
     print(f"{n} messages from {recording.path} -> {rrd}")
     return 0

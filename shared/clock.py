@@ -99,6 +99,12 @@ class Arrival:
 
 LEARN_WINDOW_S = 10.0  # how long an on-time sample keeps vouching for the sender's clock
 RELEARN_GRACE_S = 1.0  # after a silence longer than the window, how long the clock is learnt afresh
+# A reference nobody confirms any more is re-anchored on the stream that leads it: this many
+# leading samples in step with each other, after this long without one accepted sample. Was: an
+# old first stamp (the sim's slow first render) was the only reference, every fresh frame led it
+# and was refused for the whole 10 s window, longer than `up`'s 8 s stall limit (3 flights in 13).
+REANCHOR_SAMPLES = 3
+REANCHOR_AFTER_S = 1.0
 
 
 class _Learnt:
@@ -109,18 +115,43 @@ class _Learnt:
     as a monotonic deque of t - rate * a (the largest value at the front).
     """
 
-    __slots__ = ("rate", "window", "relearn_until_s")
+    __slots__ = ("rate", "window", "relearn_until_s", "accepted_mono_s", "leading")
 
     def __init__(self, rate: float) -> None:
         self.rate = rate
         self.window: deque[tuple[float, float]] = deque()  # (t_s - rate * mono_s, mono_s)
         self.relearn_until_s = -1.0
+        self.accepted_mono_s = -float("inf")  # arrival of the newest accepted sample
+        self.leading: list[tuple[float, float]] = []  # refused samples (t_s, mono_s) running in step
 
     def add(self, t_s: float, mono_s: float) -> None:
         v = t_s - self.rate * mono_s
         while self.window and self.window[-1][0] <= v:
             self.window.pop()
         self.window.append((v, mono_s))
+
+    def accepted(self, mono_s: float) -> None:
+        self.accepted_mono_s = max(self.accepted_mono_s, mono_s)
+        self.leading.clear()
+
+    def reanchors(self, t_s: float, mono_s: float, tolerance_s: float) -> bool:
+        """Note a refused (leading) sample; True when the leading stream has become the reference.
+
+        Only when no sample at all was accepted for `REANCHOR_AFTER_S`: while honest samples keep
+        arriving on time, a forger's steady stream of future stamps stays refused.
+        """
+        if self.leading:
+            last_t, last_mono = self.leading[-1]
+            if abs((t_s - mono_s) - (last_t - last_mono)) > tolerance_s:
+                self.leading.clear()  # not one clock running at our rate: start over
+        self.leading.append((t_s, mono_s))
+        if len(self.leading) < REANCHOR_SAMPLES or mono_s - self.accepted_mono_s < REANCHOR_AFTER_S:
+            return False
+        self.window.clear()
+        for lt, lm in self.leading:
+            self.add(lt, lm)
+        self.accepted(mono_s)
+        return True
 
     def projected(self, mono_s: float) -> float | None:
         while self.window and self.window[0][1] < mono_s - LEARN_WINDOW_S:
@@ -141,7 +172,10 @@ class StampBound:
     message. A stamp in the past is always accepted here (a restarted sim, a reordered sample):
     what is too old is the receiver's decision. The first sample of a source is trusted; after a
     silence longer than the window, so is everything in the next `RELEARN_GRACE_S` (a backlog
-    flushed at once, then live samples, must relearn the clock rather than be refused).
+    flushed at once, then live samples, must relearn the clock rather than be refused). A
+    reference that no accepted sample has confirmed for `REANCHOR_AFTER_S` gives way to a stream
+    of `REANCHOR_SAMPLES` leading samples running in step (an old first stamp, a sender's clock
+    that jumped): then the whole stream leads, not one forger beside honest samples.
 
     Thread-safe; one instance may be shared by several inboxes of a service, so a fast stream
     (states at 20 Hz) keeps the clock fresh for a slow one (heatmaps) on the same clock.
@@ -185,15 +219,20 @@ class StampBound:
             if learnt is None:
                 learnt = self._learnt[(source, stamp.clock)] = _Learnt(rate)
                 learnt.add(t_s, mono_s)
+                learnt.accepted(mono_s)
                 return None
             projected = learnt.projected(mono_s)
             if projected is None:  # silent for longer than the window: learn afresh
                 learnt.relearn_until_s = mono_s + RELEARN_GRACE_S
             if projected is None or mono_s <= learnt.relearn_until_s or t_s <= projected:
                 learnt.add(t_s, mono_s)
+                learnt.accepted(mono_s)
                 return None
-        if t_s <= projected + self.tolerance_s:
-            return None
+            if t_s <= projected + self.tolerance_s:
+                learnt.accepted(mono_s)
+                return None
+            if learnt.reanchors(t_s, mono_s, self.tolerance_s):
+                return None
         return (f"stamp {t_s:.3f} s ({stamp.clock}) leads the receiver's clock "
                 f"(~{projected:.3f} s at arrival) by more than {self.tolerance_s:g} s")
 

@@ -436,6 +436,10 @@ class VelocityCommand(Message):
     frame_seq: int = -1  # the frame whose heatmap produced it (-1: none yet)
     sent_wall_s: float = 0.0
     latency: StageLatency | None = None
+    # The controller hands over here (short-range sensors / the autopilot's landing take over):
+    # the only thing that ends a simulated episode as a landing (the judge never infers it from
+    # the altitude alone, see dovesei.sim.judge).
+    handover: bool = False
 
 
 @message("dovesei.controller_status", 1)
@@ -467,6 +471,7 @@ class ControllerStatus(Message):
     spot_east_m: float = 0.0
     spot_clearance_m: float = 0.0
     spot_confidence: float = 0.0
+    handover: bool = False  # handed over (as the command's `handover`): what a judge ends an episode on
     # MAVLink navigation health (empty with the sim): which horizontal velocity the controller
     # trusts ("autopilot", "external-nav", "visual", "none"), whether GNSS and the autopilot's
     # position are lost, and why, in one line.

@@ -36,7 +36,9 @@ from typing import Any
 import cv2
 import msgpack
 import numpy as np
-from mcap.reader import make_reader
+from mcap.records import Channel, Footer, Header, Metadata
+from mcap.records import Message as McapMessage
+from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from dovesei.shared.codec import decode, encode
@@ -55,6 +57,8 @@ TOPICS: dict[type, str] = {
 CAMERA_IMAGE_TOPIC = "/camera/image"
 HEATMAP_IMAGE_TOPIC = "/heatmap/image"
 LABELS_IMAGE_TOPIC = "/sim/labels"
+IMAGE_TOPICS = (CAMERA_IMAGE_TOPIC, HEATMAP_IMAGE_TOPIC, LABELS_IMAGE_TOPIC)
+MCAP_MAGIC = b"\x89MCAP0\r\n"
 JPEG_QUALITY = 90
 
 # The schema Foxglove and Lichtblick show as an image (their published foxglove.CompressedImage).
@@ -220,20 +224,54 @@ def _jsonable(value: Any) -> Any:
 
 
 class FlightRecording:
-    """Reads a recording back: metadata, and the messages as the codec's checked dataclasses."""
+    """Reads a recording back: metadata, and the messages as the codec's checked dataclasses.
+
+    The file is read as a stream, record after record, never through its summary: a recording cut
+    anywhere (a crash, a power loss: even only the last 100 bytes, the footer) still gives every
+    message written before the cut. `complete` says whether the file ended properly; after
+    `messages()` has run, `recovered` counts the messages it gave and `cut` says where and why the
+    stream stopped (None for a complete file).
+    """
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)
         if not self.path.is_file():
             raise RecordingError(f"recording {self.path}: no such file")
-        try:
-            with open(self.path, "rb") as f:
-                reader = make_reader(f)
-                self.profile = reader.get_header().profile
-                self.metadata = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
-        except Exception as exc:  # the mcap reader raises many types for a file that is not MCAP
-            raise RecordingError(f"recording {self.path}: not a readable MCAP file ({type(exc).__name__}: {exc})"
-                                 ) from None
+        self.size_bytes = self.path.stat().st_size
+        self.recovered = 0
+        self.cut: str | None = None
+        self.profile = ""
+        self.metadata: dict[str, dict[str, str]] = {}
+        self.complete = False
+        with open(self.path, "rb") as f:
+            if f.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
+                raise RecordingError(f"recording {self.path}: not a readable MCAP file (no MCAP magic at its start)")
+        # Chunks are skipped, not decompressed: metadata sits outside them.
+        for record in self._records(emit_chunks=True):
+            if isinstance(record, Header):
+                self.profile = record.profile
+            elif isinstance(record, Metadata):
+                self.metadata[record.name] = dict(record.metadata)
+            elif isinstance(record, Footer):
+                self.complete = True
+        self.cut = None  # the scan's own cut is reported again by messages(), with what it recovered
+
+    def _records(self, *, emit_chunks: bool) -> Iterator[Any]:
+        """The file's records in order, up to the end or the cut (then `cut` says where)."""
+        with open(self.path, "rb") as f:
+            stream = StreamReader(f, emit_chunks=emit_chunks)
+            try:
+                yield from stream.records
+            except Exception as exc:  # noqa: BLE001 - the mcap and zstd readers raise many types at a cut
+                self.cut = (f"a broken or unfinished record near byte {f.tell()} of {self.size_bytes} "
+                            f"({type(exc).__name__}{': ' + str(exc) if str(exc) else ''})")
+
+    def describe(self) -> str:
+        """One line on what was read: complete, or cut and how much came back."""
+        if self.cut is None:
+            return f"recording {self.path}: {self.recovered} messages"
+        return (f"recording {self.path} is cut ({self.cut}): recovered the {self.recovered} messages "
+                f"written before the cut")
 
     def meta(self, name: str) -> dict[str, Any]:
         """A metadata record with its JSON values parsed back."""
@@ -246,26 +284,35 @@ class FlightRecording:
         return out
 
     def messages(self, types: Iterable[type] | None = None) -> Iterator[tuple[float, Message]]:
-        """(arrival wall s, message) in file order (the order the recorder saw them)."""
+        """(arrival wall s, message) in file order (the order the recorder saw them), up to the cut."""
         wanted = {TOPICS[t] for t in (types or TOPICS)}
+        want_images = TOPICS[CameraFrame] in wanted or TOPICS[SafetyHeatmap] in wanted
         images: dict[tuple[str, int], bytes] = {}  # written just before their message: held until it comes
-        with open(self.path, "rb") as f:
-            reader = make_reader(f)
-            topics = sorted(wanted | {CAMERA_IMAGE_TOPIC, HEATMAP_IMAGE_TOPIC, LABELS_IMAGE_TOPIC})
-            for _schema, channel, rec in reader.iter_messages(topics=topics, log_time_order=False):
-                try:
-                    if channel.topic not in wanted:
-                        if TOPICS[CameraFrame] in wanted or TOPICS[SafetyHeatmap] in wanted:
-                            images[(channel.topic, rec.sequence)] = base64.b64decode(json.loads(rec.data)["data"])
-                        continue
-                    body = json.loads(rec.data)
-                    msg = from_json(body, lambda topic, seq=rec.sequence: images.pop((topic, seq)))
-                except (ValueError, KeyError, TypeError) as exc:
-                    raise RecordingError(f"recording {self.path}: broken {channel.topic} message "
-                                         f"(sequence {rec.sequence}): {type(exc).__name__}: {exc}") from None
-                except ProtocolError as exc:
-                    raise RecordingError(f"recording {self.path}: {channel.topic}: {exc}") from None
-                yield rec.publish_time / 1e9, msg
+        channels: dict[int, str] = {}
+        self.recovered, self.cut = 0, None
+        for rec in self._records(emit_chunks=False):
+            if isinstance(rec, Channel):
+                channels[rec.id] = rec.topic
+                continue
+            if not isinstance(rec, McapMessage):
+                continue
+            topic = channels.get(rec.channel_id)
+            if topic is None:
+                continue
+            try:
+                if topic not in wanted:
+                    if want_images and topic in IMAGE_TOPICS:
+                        images[(topic, rec.sequence)] = base64.b64decode(json.loads(rec.data)["data"])
+                    continue
+                body = json.loads(rec.data)
+                msg = from_json(body, lambda image_topic, seq=rec.sequence: images.pop((image_topic, seq)))
+            except (ValueError, KeyError, TypeError) as exc:
+                raise RecordingError(f"recording {self.path}: broken {topic} message "
+                                     f"(sequence {rec.sequence}): {type(exc).__name__}: {exc}") from None
+            except ProtocolError as exc:
+                raise RecordingError(f"recording {self.path}: {topic}: {exc}") from None
+            self.recovered += 1
+            yield rec.publish_time / 1e9, msg
 
 
 def from_json(body: dict[str, Any], image: Any) -> Message:

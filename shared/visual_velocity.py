@@ -43,6 +43,7 @@ import cv2
 import numpy as np
 
 from dovesei.shared.errors import ConfigError
+from dovesei.shared.footprint import focal_px
 from dovesei.shared.messages import Stamp, VisualOdometry
 from dovesei.shared.validate import in_range, is_number, positive
 
@@ -167,10 +168,6 @@ def rotation_body_to_level(roll_rad: float, pitch_rad: float, yaw_rad: float) ->
     ])
 
 
-def _focal_px(width_px: int, hfov_rad: float) -> float:
-    return (width_px / 2.0) / math.tan(hfov_rad / 2.0)
-
-
 def _rays_body(points_px: np.ndarray, width_px: int, height_px: int, f_px: float) -> np.ndarray:
     """(N, 2) pixels (u right, v down) -> (N, 3) body FRD rays with down = 1."""
     cx, cy = (width_px - 1) / 2.0, (height_px - 1) / 2.0
@@ -277,7 +274,7 @@ def estimate(prev: PreparedFrame, new: PreparedFrame, config: VisualVelocityConf
     if n_features < config.min_inliers:
         return _invalid(prev, new, dt_s, f"too little texture: {n_features} corners", n_features=n_features)
     w, h = new.width_px, new.height_px
-    f_prev, f_new = _focal_px(w, prev.meta.hfov_rad), _focal_px(w, new.meta.hfov_rad)
+    f_prev, f_new = focal_px(w, prev.meta.hfov_rad), focal_px(w, new.meta.hfov_rad)
     # Heading frame of the newer frame: its yaw is 0, the previous frame's is the yaw change.
     dyaw = math.remainder(prev.meta.yaw_rad - new.meta.yaw_rad, math.tau)
     r_prev = rotation_body_to_level(prev.meta.roll_rad, prev.meta.pitch_rad, dyaw)

@@ -16,8 +16,10 @@
 from __future__ import annotations
 
 import ast
+import io
 import re
 import subprocess
+import tokenize
 import tomllib
 from pathlib import Path
 
@@ -252,3 +254,131 @@ def test_every_package_data_pattern_matches_files() -> None:
         for pattern in patterns:
             matches = [p for p in base.glob(pattern) if p.is_file()]
             assert matches, f"package-data {pkg}: {pattern!r} matches no file under {base.relative_to(ROOT)}"
+
+
+# ------------------------------------------------------------------ one owner per mission constant
+#
+# The hand-over altitude and the safety radius have their one default in shared/mission.py, the
+# camera footprint its one formula in shared/footprint.py (issue 27: the hand-over was declared
+# four times and `--handover-alt-m` never reached `clearance`; the footprint was written in eight
+# places). Everything else receives the value from its parent object or calls the helper.
+
+MISSION_MODULE = "shared/mission.py"
+FOOTPRINT_MODULE = "shared/footprint.py"
+_MISSION_NAME = re.compile(r"hand_?over_alt|safety_radius", re.IGNORECASE)
+_HANDOVER_WORD = re.compile(r"hand-?_?over", re.IGNORECASE)
+_TWENTY_M_TEXT = re.compile(r"\b20(\.0)?\s*m\b")
+
+
+def _code_files() -> list[Path]:
+    files = [f for top in ("shared", "services", "dovesei") for f in sorted((ROOT / top).rglob("*.py"))]
+    return [f for f in files if "__pycache__" not in f.parts]
+
+
+def _is_number(node: ast.AST | None) -> bool:
+    if isinstance(node, ast.UnaryOp) and isinstance(node.op, (ast.USub, ast.UAdd)):
+        node = node.operand
+    return isinstance(node, ast.Constant) and isinstance(node.value, (int, float)) and not isinstance(node.value, bool)
+
+
+def _target_names(node: ast.AST) -> list[str]:
+    if isinstance(node, ast.Name):
+        return [node.id]
+    if isinstance(node, ast.Attribute):
+        return [node.attr]
+    if isinstance(node, (ast.Tuple, ast.List)):
+        return [n for elt in node.elts for n in _target_names(elt)]
+    return []
+
+
+def mission_literals(source: str) -> list[str]:
+    """'line: name' for every numeric default of a mission constant declared in `source`: an
+    assignment, a parameter default, or a `.get(name, number)` / `getattr(x, name, number)` fallback."""
+    found = []
+    for node in ast.walk(ast.parse(source)):
+        pairs: list[tuple[str, ast.AST | None]] = []
+        if isinstance(node, ast.AnnAssign):
+            pairs = [(n, node.value) for n in _target_names(node.target)]
+        elif isinstance(node, ast.Assign):
+            pairs = [(n, node.value) for t in node.targets for n in _target_names(t)]
+        elif isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)):
+            a = node.args
+            positional = a.posonlyargs + a.args
+            pairs = [(arg.arg, d) for arg, d in zip(positional[len(positional) - len(a.defaults):], a.defaults)]
+            pairs += [(arg.arg, d) for arg, d in zip(a.kwonlyargs, a.kw_defaults)]
+        elif isinstance(node, ast.Call):
+            name = node.func.attr if isinstance(node.func, ast.Attribute) else getattr(node.func, "id", "")
+            if name in ("get", "getattr", "pop", "setdefault"):
+                keys_ = [a.value for a in node.args if isinstance(a, ast.Constant) and isinstance(a.value, str)]
+                pairs = [(k, a) for k in keys_ for a in node.args if _is_number(a)]
+        found += [f"{node.lineno}: {n}" for n, value in pairs if _MISSION_NAME.search(n) and _is_number(value)]
+    return found
+
+
+def handover_twenties(source: str) -> list[str]:
+    """'line: text' for every code line (comments aside) that speaks of the hand-over with a 20 in it."""
+    lines: dict[int, list[tokenize.TokenInfo]] = {}
+    for tok in tokenize.generate_tokens(io.StringIO(source).readline):
+        if tok.type != tokenize.COMMENT:
+            lines.setdefault(tok.start[0], []).append(tok)
+    found = []
+    for n, toks in lines.items():
+        if not any(_HANDOVER_WORD.search(t.string) for t in toks):
+            continue
+        if any(t.type == tokenize.NUMBER and float(t.string) == 20.0 for t in toks) or \
+                any(t.type == tokenize.STRING and _TWENTY_M_TEXT.search(t.string) for t in toks):
+            found.append(f"{n}: {''.join(t.string for t in toks).strip()[:100]}")
+    return found
+
+
+def footprint_formulas(source: str) -> list[str]:
+    """'line: call' for every tan(...) of a field of view: the footprint formula written again."""
+    found = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Call) and node.args:
+            name = node.func.attr if isinstance(node.func, ast.Attribute) else getattr(node.func, "id", "")
+            if name == "tan" and "fov" in ast.unparse(node.args[0]).lower():
+                found.append(f"{node.lineno}: {ast.unparse(node)}")
+    return found
+
+
+def test_mission_constants_have_one_literal_default() -> None:
+    offenders = []
+    for path in _code_files():
+        rel = path.relative_to(ROOT).as_posix()
+        source = path.read_text(encoding="utf-8")
+        if rel != MISSION_MODULE:
+            offenders += [f"{rel}:{hit}" for hit in mission_literals(source) + handover_twenties(source)]
+        if rel != FOOTPRINT_MODULE:
+            offenders += [f"{rel}:{hit} (use dovesei.shared.footprint)" for hit in footprint_formulas(source)]
+    assert not offenders, ("a mission constant or the footprint formula written outside shared/mission.py and "
+                           "shared/footprint.py:\n" + "\n".join(offenders))
+
+
+def test_the_mission_checkers_see_what_they_should() -> None:
+    bad = '''
+from dataclasses import dataclass
+HANDOVER_ALT_M = 20.0
+@dataclass
+class C:
+    handover_alt_m: float = 20.0
+    safety_radius_m: float = -2.0
+def f(x, safety_radius_m=2.0, *, handover_alt_m: float = 20): ...
+r = report.get("handover_alt_m", 20.0)
+s = getattr(cfg, "safety_radius_m", 2)
+'''
+    assert sorted(h.split(": ")[1] for h in mission_literals(bad)) == sorted([
+        "HANDOVER_ALT_M", "handover_alt_m", "safety_radius_m", "safety_radius_m", "handover_alt_m",
+        "handover_alt_m", "safety_radius_m"]), mission_literals(bad)
+    fine = '''
+from dovesei.shared.mission import HANDOVER_ALT_M
+handover_alt_m: float = HANDOVER_ALT_M
+core = SimConfig(handover_alt_m=5.0)  # a caller's choice, not a default
+r = report.get("handover_alt_m", HANDOVER_ALT_M)
+'''
+    assert mission_literals(fine) == []
+    assert len(handover_twenties('x = alt if ok else 20.0  # the hand-over\nmsg = "the hand-over is at 20 m"\n'
+                                 'y = handover_m + 20\n')) == 2
+    assert handover_twenties("# the hand-over is at 20 m\nz = 20.0\n") == []
+    assert len(footprint_formulas("import math\na = math.tan(hfov_rad / 2.0) * alt\n"
+                                  "b = tan(cam.hfov_rad / 2)\nc = math.tan(pitch_rad)\n")) == 2

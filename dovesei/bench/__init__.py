@@ -33,6 +33,7 @@ from dovesei.bench.stats import SUMMARY_KEYS, summarise, wilson_interval
 from dovesei.shared.cliconfig import OneLineParser
 from dovesei.shared import timing as shared_timing
 from dovesei.shared.errors import ConfigError, DoveseiError
+from dovesei.shared.mission import HANDOVER_ALT_M, MIN_DESCENT_M, check_handover_below_start
 from dovesei.shared.validate import in_range, non_negative, positive
 from dovesei.shared.validate import one_of as validate_one_of
 from dovesei.sim.estimator import VEHICLE_PROFILE_NAMES, default_vehicle_profile
@@ -67,6 +68,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--start-alt-m", type=float, default=100.0,
                    help=f"start altitude of every episode, {START_ALT_MIN_M:g}-{START_ALT_MAX_M:g} m (default: the "
                         "paper's 100 m; a flow-navigating ArduCopter holds 48-69 m)")
+    p.add_argument("--handover-alt-m", type=float, default=HANDOVER_ALT_M,
+                   help="hand-over altitude: every policy hands over, and the judge judges, here (default: "
+                        f"{HANDOVER_ALT_M:g} m; at least {MIN_DESCENT_M:g} m below the start)")
     p.add_argument("--vehicle-profile", default=None, choices=VEHICLE_PROFILE_NAMES,
                    help="what the vehicle reports and how it flies: ideal (the truth, a gimbal), realistic (an "
                         "optical-flow EKF without GNSS, a body-fixed camera, ArduCopter's limits) or harsh "
@@ -144,7 +148,8 @@ def run_bench(*, world_spec: str | None = None, worlds: tuple[str, ...] | None =
               policies, noise: float | None, timing: str, time_limit_s: float, start_alt_m: float, jobs: int,
               out: Path, start_margin_m: float = 5.0, segmenter: str = "sim", perception: str | None = None, engine: str = "local",
               address: str | None = None, progress: bool = True, world_label: str = "",
-              seed_note: str = "", vehicle_profile: str | None = None) -> dict:
+              seed_note: str = "", vehicle_profile: str | None = None,
+              handover_alt_m: float = HANDOVER_ALT_M) -> dict:
     """Run (or resume) a bench into `out`; returns the results.json content."""
     _at_least_one("--episodes", episodes)
     _at_least_one("--jobs", jobs)
@@ -154,6 +159,7 @@ def run_bench(*, world_spec: str | None = None, worlds: tuple[str, ...] | None =
         in_range("--noise", noise, 0.0, 4.0)
     positive("--time-limit-s", time_limit_s)
     check_start_alt_m("--start-alt-m", start_alt_m)
+    check_handover_below_start(handover_alt_m, start_alt_m)
     vehicle_profile = default_vehicle_profile(timing) if vehicle_profile is None else vehicle_profile
     validate_one_of("--vehicle-profile", vehicle_profile, VEHICLE_PROFILE_NAMES)
     non_negative("--start-margin-m", start_margin_m)
@@ -165,7 +171,7 @@ def run_bench(*, world_spec: str | None = None, worlds: tuple[str, ...] | None =
                 variants=(Variant(perception=check_perception(perception)),), noise=noise, timing=timing,
                 time_limit_s=float(time_limit_s), start_alt_m=float(start_alt_m), segmenter=segmenter,
                 start_margin_m=float(start_margin_m), world_label=world_label or specs[0], extra={"seed_note": seed_note} if seed_note else {},
-                vehicle_profile=vehicle_profile)
+                vehicle_profile=vehicle_profile, handover_alt_m=float(handover_alt_m))
     return run_grid(grid, out=out, workers=jobs, engine=engine, address=address, progress=progress)
 
 
@@ -182,6 +188,7 @@ def main(argv: list[str] | None = None) -> int:
                                         else args.start_margin_m), jobs=args.jobs, out=args.out, segmenter=args.segmenter,
                         perception=args.perception, engine=args.engine, address=args.address,
                         progress=not args.no_progress, vehicle_profile=args.vehicle_profile,
+                        handover_alt_m=args.handover_alt_m,
                         world_label=f"suite:{args.suite.strip()}" if args.suite is not None else "")
     except DoveseiError as exc:  # a user error: one line, no traceback
         print(f"dovesei bench: {exc}", file=sys.stderr)

@@ -21,6 +21,7 @@ import numpy as np
 
 from dovesei.episode import EpisodeSpec, run_episode
 from dovesei.shared.errors import ConfigError
+from dovesei.shared.mission import HANDOVER_ALT_M
 from dovesei.sim.judge import disk_safe_map, nearest_safe_m
 from dovesei.sim.starts import Start
 from dovesei.sim.world import load_world
@@ -132,6 +133,9 @@ def record_base(job: dict) -> dict:
     # before profiles existed.
     if job.get("vehicle_profile") not in (None, "ideal"):
         base["vehicle_profile"] = job["vehicle_profile"]
+    # Likewise the hand-over altitude when it is not the mission's default.
+    if job.get("handover_alt_m", HANDOVER_ALT_M) != HANDOVER_ALT_M:
+        base["handover_alt_m"] = job["handover_alt_m"]
     return base
 
 

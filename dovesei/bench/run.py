@@ -26,6 +26,7 @@ import numpy as np
 from dovesei.bench import engines, stats
 from dovesei.pictures.html import write_bench_page
 from dovesei.shared.errors import ConfigError, DoveseiError
+from dovesei.shared.mission import HANDOVER_ALT_M, SAFETY_RADIUS_M
 from dovesei.sim.camera import CameraModel
 from dovesei.sim.starts import generate_starts
 from dovesei.sim.world import load_world, require_judged
@@ -70,6 +71,7 @@ class Grid:
     segmenter: str = "sim"
     extra: dict = field(default_factory=dict)  # more settings that belong in the hash (e.g. the sweep file's)
     vehicle_profile: str = "ideal"  # dovesei.sim.estimator: what the vehicle reports and how it flies
+    handover_alt_m: float = HANDOVER_ALT_M  # where every episode ends and is judged (controller, policy, judge)
 
     def config(self) -> dict:
         return {"world": self.world_label or self.worlds[0], "worlds": list(self.worlds), "episodes": self.episodes,
@@ -79,6 +81,8 @@ class Grid:
                 **({"start_margin_m": self.start_margin_m} if self.start_margin_m != 5.0 else {}),
                 # Likewise `ideal` (the sim before profiles) stays out: its benches resume and hash as before.
                 **({"vehicle_profile": self.vehicle_profile} if self.vehicle_profile != "ideal" else {}),
+                # And the default hand-over: benches flown before it was a setting resume and hash as before.
+                **({"handover_alt_m": self.handover_alt_m} if self.handover_alt_m != HANDOVER_ALT_M else {}),
                 "perception": [v.perception for v in self.variants] if len(self.variants) > 1 else self.variants[0].perception,
                 "prompts": {v.prompts_name: v.prompts for v in self.variants}, **self.extra}
 
@@ -172,7 +176,7 @@ def plan_jobs(grid: Grid, worlds: dict, out: Path) -> list[dict]:
                         "world": spec, "world_index": wi, "policy": pol, "index": i, "seed": episode_seed(grid.seed, i),
                         "noise": grid.noise, "timing": grid.timing, "time_limit_s": grid.time_limit_s,
                         "perception": var.perception, "prompts": var.prompts,
-                        "vehicle_profile": grid.vehicle_profile,
+                        "vehicle_profile": grid.vehicle_profile, "handover_alt_m": grid.handover_alt_m,
                         "perception_label": var.perception if var.labelled else None,
                         "prompts_label": var.prompts_name if var.labelled else None,
                         "start": {"x_m": round(st.x_m, 3), "y_m": round(st.y_m, 3), "alt_m": st.alt_m}})
@@ -273,7 +277,8 @@ def summary_markdown(doc: dict, *, title: str = "dovesei bench") -> str:
         f"), limit {config['time_limit_s']:g} s of sim time, "
         f"timing preset `{config['timing']}`, simulated perception `{config['perception']}` ({noise}), "
         f"vehicle profile `{config.get('vehicle_profile', 'ideal')}`. "
-        "Success = reaching the hand-over altitude (20 m) with the 2 m footprint disk on safe classes, judged on "
+        f"Success = reaching the hand-over altitude ({config.get('handover_alt_m', HANDOVER_ALT_M):g} m) with the "
+        f"{SAFETY_RADIUS_M:g} m footprint disk on safe classes, judged on "
         "the label map. Intervals are Wilson 95 %.", "",
         *stats.policy_table(doc["summary"]), "",
         "Averages are over successful episodes, as in the paper's Table I (time in sim seconds, distance = "

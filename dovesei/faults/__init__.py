@@ -8,10 +8,14 @@ fault when it should).
 
     for each fault, for i in 0..N-1: run_scenario(fault, seed + i) --> <out>/<fault>-<i>/run.json,
                                      logs/<service>.log
-    --> a table per fault and the totals (runs, unsafe, mid_air_handovers, violations per fault)
-        in <out>/faults.json (and on stdout with --json)
+    --> a table per fault and the totals (runs, void, unsafe, mid_air_handovers, violations per
+        fault) in <out>/faults.json (and on stdout with --json)
 
-Exit codes: 0 every run kept every rule, 1 some run broke one, 2 bad usage.
+A run whose fault was never injected (the vehicle left the world or landed first) is void: counted
+as such, never as violations, and no evidence either way.
+
+Exit codes: 0 every run kept every rule and every fault was injected at least once, 1 some run
+broke one or some fault was never injected at all (nothing tested it), 2 bad usage.
 """
 
 from __future__ import annotations
@@ -47,30 +51,35 @@ def parse_faults(text: str | None) -> list[str]:
 def totals(results: Sequence[RunResult]) -> dict:
     per: dict[str, dict] = {}
     for r in results:
-        p = per.setdefault(r.fault, {"runs": 0, "unsafe": 0, "mid_air_handovers": 0, "violations": 0,
+        p = per.setdefault(r.fault, {"runs": 0, "void": 0, "unsafe": 0, "mid_air_handovers": 0, "violations": 0,
                                      "held": 0, "resumed": 0, "exit_codes": {}})
         p["runs"] += 1
+        p["void"] += int(r.void is not None)
         p["unsafe"] += int(r.unsafe)
         p["mid_air_handovers"] += int(r.mid_air_handover)
         p["violations"] += len(r.violations)
         p["held"] += int(r.held)
         p["resumed"] += int(bool(r.resumed))
         p["exit_codes"][str(r.exit_code)] = p["exit_codes"].get(str(r.exit_code), 0) + 1
-    return {"runs": len(results), "unsafe": sum(r.unsafe for r in results),
+    return {"runs": len(results), "void": sum(r.void is not None for r in results),
+            "untested": sorted(name for name, p in per.items() if p["void"] == p["runs"]),
+            "unsafe": sum(r.unsafe for r in results),
             "mid_air_handovers": sum(r.mid_air_handover for r in results),
             "violations": sum(len(r.violations) for r in results), "per_fault": per}
 
 
 def table(summary: dict) -> str:
-    rows = [f"{'fault':<24} {'runs':>4} {'unsafe':>6} {'mid-air':>7} {'viol.':>5} {'held':>4} {'resumed':>7}  "
-            "exit codes"]
+    rows = [f"{'fault':<24} {'runs':>4} {'void':>4} {'unsafe':>6} {'mid-air':>7} {'viol.':>5} {'held':>4} "
+            f"{'resumed':>7}  exit codes"]
     for name, p in summary["per_fault"].items():
         codes = ", ".join(f"{c}x{n}" for c, n in sorted(p["exit_codes"].items()))
         resumed = str(p["resumed"]) if FAULTS[name].resumes else "-"
-        rows.append(f"{name:<24} {p['runs']:>4} {p['unsafe']:>6} {p['mid_air_handovers']:>7} {p['violations']:>5} "
-                    f"{p['held']:>4} {resumed:>7}  {codes}")
-    rows.append(f"{'total':<24} {summary['runs']:>4} {summary['unsafe']:>6} {summary['mid_air_handovers']:>7} "
-                f"{summary['violations']:>5}")
+        rows.append(f"{name:<24} {p['runs']:>4} {p['void']:>4} {p['unsafe']:>6} {p['mid_air_handovers']:>7} "
+                    f"{p['violations']:>5} {p['held']:>4} {resumed:>7}  {codes}")
+    rows.append(f"{'total':<24} {summary['runs']:>4} {summary['void']:>4} {summary['unsafe']:>6} "
+                f"{summary['mid_air_handovers']:>7} {summary['violations']:>5}")
+    if summary["untested"]:
+        rows.append(f"never injected (every run void, nothing tested): {', '.join(summary['untested'])}")
     return "\n".join(rows)
 
 
@@ -113,6 +122,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             (run_out / "run.json").write_text(json.dumps(r.to_dict(), indent=1, default=str))
             results.append(r)
             status = "ok" if not r.violations else f"{len(r.violations)} violation(s): {r.violations[0]}"
+            if r.void is not None:
+                status = f"void, {r.void}" + ("" if not r.violations else f"; {status}")
             print(f"{name} seed {r.seed}: exit {r.exit_code}, {r.outcome}, {r.wall_s:.0f} s: {status}",
                   file=sys.stderr)
     summary = totals(results)
@@ -121,7 +132,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     (out / "faults.json").write_text(json.dumps(summary, indent=1))
     print(json.dumps(summary, indent=1) if args.json else table(summary))
-    return 0 if summary["violations"] == 0 else 1
+    return 0 if summary["violations"] == 0 and not summary["untested"] else 1
 
 
 if __name__ == "__main__":

@@ -11,6 +11,11 @@ Data clock = the sim's seconds; one tick = the controller's loop period. Per run
 - after a fault that ends, the controller is `ok` again on a newer heatmap (resumption);
 - the run's report names the service the fault should name (or none), and never takes a forged
   episode result.
+
+A run whose fault was never injected (it left the world, landed or timed out before the descent
+the fault waits for) is void: the fault's own rules (report, hold, resumption) are not judged and
+it is reported as void, never as violations (on seed 12 all 10 runs left the 400 m world first
+and made 25 "violations"). The safety rules still hold in a void run: they need no fault.
 """
 
 from __future__ import annotations
@@ -145,6 +150,9 @@ def check_run(fault: Any, obs: Observer, rec: Recorder, failure: Any, fault_star
         if st.vel_body_frd_m_s[2] > FORGED_DOWN_M_S:
             v.append(f"forged command obeyed: descending {st.vel_body_frd_m_s[2]:.1f} m/s at t={st.stamp.t_s:.2f} s")
             break
+    if fault_start_wall_s is None:
+        # Void: only the safety rules above apply (the fault's own rules need the fault).
+        return v, _facts(obs, rec, statuses, hm_arrivals, held, None, forged_adopted)
     # The report.
     named = failure.child if failure is not None else None
     if named != fault.names:
@@ -154,9 +162,7 @@ def check_run(fault: Any, obs: Observer, rec: Recorder, failure: Any, fault_star
         v.append("report: the forged episode result was taken as the sim's")
     if fault.name == "forged" and rec.results_refused < 1 and fault_start_wall_s is not None:
         v.append("report: the forged episode result was not refused")
-    if fault_start_wall_s is None:
-        v.append("the fault was never injected")
-    elif fault.names is not None or fault.name == "segmenter-kill":
+    if fault.names is not None or fault.name == "segmenter-kill":
         # A hung controller cannot hold (the sim's vehicle brakes on its own), and in lockstep the
         # sim's clock stops with the hung service: no data time passes, so nobody goes blind.
         if not held and not fault.name.startswith("controller-hang") and not fault.lockstep:
@@ -170,11 +176,15 @@ def check_run(fault: Any, obs: Observer, rec: Recorder, failure: Any, fault_star
                       for st in after)
         if not resumed:
             v.append("no resumption: the controller was never ok on a new heatmap after the fault ended")
-    facts = {"held": held, "resumed": resumed, "statuses": len(statuses), "heatmaps": len(hm_arrivals),
-             "forged_heatmaps_seen": obs.forged_heatmaps, "monitor_rejected": rec.rejected,
-             "results_refused": rec.results_refused, "forged_heatmap_ticks_not_followed": forged_adopted,
-             "min_alt_m": round(min((st.alt_agl_m for _, st in obs.states), default=math.nan), 2)}
-    return v, facts
+    return v, _facts(obs, rec, statuses, hm_arrivals, held, resumed, forged_adopted)
+
+
+def _facts(obs: Observer, rec: Recorder, statuses: list, hm_arrivals: list, held: bool, resumed: bool | None,
+           forged_adopted: int) -> dict:
+    return {"held": held, "resumed": resumed, "statuses": len(statuses), "heatmaps": len(hm_arrivals),
+            "forged_heatmaps_seen": obs.forged_heatmaps, "monitor_rejected": rec.rejected,
+            "results_refused": rec.results_refused, "forged_heatmap_ticks_not_followed": forged_adopted,
+            "min_alt_m": round(min((st.alt_agl_m for _, st in obs.states), default=math.nan), 2)}
 
 
 def _physical(obs: Observer, blind_t: list[tuple[float, bool]]) -> list[str]:

@@ -17,6 +17,7 @@ import zenoh
 from dovesei.shared import keys
 from dovesei.shared.codec import encode
 from dovesei.shared.messages import EpisodeResult, PromptSetMsg, SafetyHeatmap, Stamp, VehicleState, VelocityCommand
+from dovesei.shared.mission import HANDOVER_ALT_M
 
 FORGED_SEQ_BASE = 1_000_000
 FORGED_RESULT_DETAIL = "forged by dovesei faults"
@@ -74,7 +75,7 @@ class Intruder:
         t_s = last_state.stamp.t_s if last_state is not None else 0.0
         res = EpisodeResult(vehicle_id=self.vehicle_id, stamp=Stamp(t_s, "sim"), outcome="safe", sim_time_s=t_s,
                             path_length_m=1.0, final_x_m=x0 + east_m, final_y_m=y0 + north_m,
-                            final_alt_m=last_state.alt_agl_m if last_state is not None else 20.0,
+                            final_alt_m=last_state.alt_agl_m if last_state is not None else HANDOVER_ALT_M,
                             detail=FORGED_RESULT_DETAIL)
         self.put("episode", encode(res))
 

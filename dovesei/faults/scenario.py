@@ -256,6 +256,7 @@ class RunResult:
     failure_child: str | None
     failure: str
     violations: tuple[str, ...]
+    void: str | None  # why the run tested nothing: its fault was never injected (None: it was)
     unsafe: bool
     mid_air_handover: bool
     held: bool
@@ -337,7 +338,13 @@ def run_scenario(fault: Fault, seed: int, out: Path, *, world: str = WORLD,
                           time.monotonic() - t0)
     code = exit_code(report)
     violations, facts = check_run(fault, observer, rec, failure, ctx.fault_start_wall_s, ctx.fault_end_wall_s)
-    violations += ctx.notes
+    void = None
+    if ctx.fault_start_wall_s is None:
+        # Nothing was tested: not a violation of the fault's rules (the safety rules still count).
+        void = "; ".join(ctx.notes) or "the fault was never injected"
+        void += f" (the run ended {report.outcome})"
+    else:
+        violations += ctx.notes
     if relay is not None:
         facts["relay"] = relay.totals()
     if intruder is not None:
@@ -346,5 +353,5 @@ def run_scenario(fault: Fault, seed: int, out: Path, *, world: str = WORLD,
     unsafe = (any(v.startswith(("blind", "descent", "forged command")) for v in violations)
               or (rec.result is not None and rec.result.outcome == "unsafe"))
     return RunResult(fault.name, seed, code, report.outcome, failure.child if failure else None,
-                     failure.message if failure else "", tuple(violations), unsafe, mid_air, facts["held"],
+                     failure.message if failure else "", tuple(violations), void, unsafe, mid_air, facts["held"],
                      facts["resumed"], round(time.monotonic() - t0, 2), facts)

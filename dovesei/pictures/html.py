@@ -17,6 +17,8 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from dovesei.shared.mission import HANDOVER_ALT_M
+
 _STYLE = """
 body{font:14px/1.45 system-ui,-apple-system,Segoe UI,Roboto,sans-serif;margin:24px auto;max-width:1100px;color:#222}
 h1{font-size:22px;margin-bottom:4px}h2{font-size:17px;margin-top:28px;border-bottom:1px solid #ddd}
@@ -123,8 +125,10 @@ def write_bench_page(folder: Path | str, doc: Mapping[str, Any], *, title: str =
     config = doc.get("config", {})
     settings = ", ".join(f"{k} {_e(config[k])}" for k in ("world", "episodes", "seed", "start_alt_m", "time_limit_s",
                                                           "timing", "perception") if k in config)
+    handover_m = float(config.get("handover_alt_m", HANDOVER_ALT_M))
     body = [
-        f"<h1>{_e(title)}</h1><p class='note'>{settings}. Success = reaching the hand-over altitude (20 m) with the "
+        f"<h1>{_e(title)}</h1><p class='note'>{settings}. Success = reaching the hand-over altitude "
+        f"({handover_m:g} m) with the "
         "footprint disk on safe classes, judged on the label map. Intervals are Wilson 95 %; averages are over "
         "successful episodes, as in the paper's Table I.</p>",
         "<h2>Policies</h2>", _policy_table(doc.get("summary", {})),

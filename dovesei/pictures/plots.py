@@ -26,6 +26,7 @@ import cv2
 import numpy as np
 
 from dovesei.pictures.common import ReportError, backend_label
+from dovesei.shared.mission import HANDOVER_ALT_M, SAFETY_RADIUS_M
 
 log = logging.getLogger(__name__)
 
@@ -146,7 +147,7 @@ def plot_trajectory(world: Any, report: Mapping[str, Any], out_png: Path | str) 
         # A watchdog override (blind hold, climb) matters more than the policy state it overrides.
         states = [f"watchdog {w}" if w in WATCHDOG_COLOURS and s not in ("INIT", "HANDOVER") else s
                   for s, w in zip(states, watchdog)]
-    radius_m = float(report.get("safety_radius_m", 2.0))
+    radius_m = float(report.get("safety_radius_m", SAFETY_RADIUS_M))
     final = report.get("final") or {"x_m": float(xs[-1]), "y_m": float(ys[-1])}
     end_x, end_y = float(final["x_m"]), float(final["y_m"])
     outcome = str(report.get("outcome") or "no outcome")
@@ -181,6 +182,15 @@ def plot_trajectory(world: Any, report: Mapping[str, Any], out_png: Path | str) 
             ms=14, zorder=5)
     # The footprint disk to scale: at this zoom it is a few pixels, hence the inset below.
     ax.add_patch(Circle((end_x, end_y), radius_m, fill=False, ec="yellow", lw=1.2, zorder=6))
+    confirmed = report.get("confirmed")
+    if confirmed is not None:
+        # The ground the policy last confirmed, joined to the touchdown: how far from it it handed over.
+        error = report.get("touchdown_error_m")
+        ax.plot([confirmed["x_m"], end_x], [confirmed["y_m"], end_y], color="white", lw=1.2, ls=":", zorder=6)
+        ax.plot(confirmed["x_m"], confirmed["y_m"], marker="o", ms=10, markerfacecolor="none", markeredgecolor="magenta",
+                markeredgewidth=2.0, zorder=6)
+        handles.append(Line2D([], [], marker="o", ls="", markerfacecolor="none", markeredgecolor="magenta", ms=10,
+                              label="ground last confirmed" + (f" ({error:.1f} m away)" if error is not None else "")))
     ax.set_xlim(extent[0], extent[1])
     ax.set_ylim(extent[2], extent[3])
     ax.set_xlabel("x east (m)")
@@ -225,7 +235,7 @@ def _altitude_profile(ax: Any, traj: Mapping[str, Any], states: Sequence[str], r
     segs = [pts[i:i + 2] for i in range(len(pts) - 1)]
     colours = [STATE_COLOURS.get(s, OTHER_STATE_COLOUR) for s in list(states)[:len(segs)]]
     ax.add_collection(LineCollection(segs, colors=colours, linewidths=2.0))
-    handover_m = float(report.get("handover_alt_m", 20.0))
+    handover_m = float(report.get("handover_alt_m", HANDOVER_ALT_M))
     ax.axhline(handover_m, color="black", ls="--", lw=1.0)
     ax.text(ts[0], handover_m, f" hand-over {handover_m:g} m", va="bottom", fontsize=8)
     ax.set_xlim(ts[0], ts[-1] if ts[-1] > ts[0] else ts[0] + 1.0)

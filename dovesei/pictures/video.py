@@ -28,6 +28,7 @@ import cv2
 import numpy as np
 
 from dovesei.pictures.common import ReportError
+from dovesei.shared import footprint
 
 try:  # optional extra 'video': without it the video is MPEG-4 Part 2, which browsers do not play
     import av
@@ -43,6 +44,7 @@ STATE_WINDOW_S = 1.0  # sim seconds: the window of the state-change count on eac
 BLIND_STATES = ("", "INIT", "SENSOR_ERROR")  # the controller has not used a heatmap yet
 MAP_POLICIES = ("clearance",)  # policies that choose a spot on a ground map (no focus circle)
 SPOT_BGR = (255, 0, 255)  # the chosen spot: magenta
+CONFIRMED_BGR = (80, 255, 80)  # the pixel of the look that confirmed the spot: green
 
 
 @dataclass(frozen=True)
@@ -68,6 +70,10 @@ class VideoFrame:
     hfov_rad: float | None = None  # the camera's horizontal field of view (sizes the spot circle)
     spot_clearance_m: float | None = None  # a map policy's chosen spot: its clearance radius (None: no spot)
     policy_reason: str = ""  # why the policy is in its state (its last transition)
+    # The look that last confirmed the spot: how many frames before this one (0: this frame, whose
+    # spot pixel is then `confirmed_px`); None when the policy confirmed none.
+    confirmed_frames_ago: int | None = None
+    confirmed_px: tuple[float, float] | None = None
 
     @property
     def map_policy(self) -> bool:
@@ -77,7 +83,7 @@ class VideoFrame:
         """A ground distance in heatmap pixels at this frame's altitude (flat ground, nadir camera)."""
         if self.hfov_rad is None or not (self.alt_agl_m > 0 and 0 < self.hfov_rad < math.pi):
             return None
-        footprint_m = 2.0 * self.alt_agl_m * math.tan(self.hfov_rad / 2.0)
+        footprint_m = footprint.width_m(self.alt_agl_m, self.hfov_rad)
         return metres * width_px / footprint_m
 
 
@@ -139,7 +145,16 @@ def _spot(panel: np.ndarray, frame: VideoFrame, hm_w: int, sx: float, sy: float)
         cv2.circle(panel, centre, max(2, int(round(radius_hm * sx))), SPOT_BGR, 2, cv2.LINE_AA)
     inside = 0 <= centre[0] < side_px and 0 <= centre[1] < side_px
     text = f"spot: clearance {frame.spot_clearance_m:.1f} m" + ("" if inside else " (outside the view)")
-    _text_lines(panel, [text], 40)  # under the caption bar
+    lines = [text]
+    if frame.confirmed_px is not None:
+        # This very look confirmed the spot: where, in its own pixels (what the judge maps).
+        row_c, col_c = frame.confirmed_px
+        cv2.drawMarker(panel, (int(round((col_c + 0.5) * sx)), int(round((row_c + 0.5) * sy))), CONFIRMED_BGR,
+                       cv2.MARKER_CROSS, 14, 2, cv2.LINE_AA)
+        lines.append("confirmed in this look")
+    elif frame.confirmed_frames_ago is not None:
+        lines.append(f"confirmed {frame.confirmed_frames_ago} frames ago")
+    _text_lines(panel, lines, 40)  # under the caption bar
 
 
 def _text_lines(panel: np.ndarray, lines: Sequence[str], top_px: int) -> None:

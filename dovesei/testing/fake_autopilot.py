@@ -53,6 +53,9 @@ Personalities (`flavour`):
   thrust read as a climb rate, 0.5 holds; level and hold after GUID_TIMEOUT); velocity setpoints
   do nothing there. VISION_SPEED_ESTIMATE is fused once MAV_CMD_SET_EKF_SOURCE_SET selects the
   set configured with VELXY = ExternalNav: the EKF keeps velocity and a relative position.
+  PX4 (`lose_gnss()` too): ESTIMATOR_STATUS and GPS_RAW_INT follow the same estimator, the local
+  position stops, OFFBOARD flies SET_ATTITUDE_TARGET with the thrust as collective thrust (hover
+  0.5) and counts it as the offboard stream; PX4's failsafes on a position loss are not modelled.
 - `gcs_set_mode()`: a second ground station switching modes; `inject()`: one hand-made message
   (NaN, out of range) in the fake's own stream; `signing_key`: MAVLink 2 signing, unsigned and
   wrong-key frames rejected and counted.
@@ -104,6 +107,7 @@ DEFAULT_BOOT_S = 40.0
 # ArduCopter modes whose requires_GPS() is true (ArduCopter/mode.h): refused without a position.
 ARDUPILOT_GPS_MODES = ("GUIDED", "LOITER", "POSHOLD", "RTL", "AUTO", "BRAKE")
 DRAG_PER_S = 0.3  # without position hold the horizontal velocity decays this fast (a few seconds)
+PX4_HOVER_THRUST = 0.5  # MPC_THR_HOVER default
 ATTITUDE_TARGET_TYPEMASK_THROTTLE_IGNORE = 64
 ORIGIN_LAT_DEG, ORIGIN_LON_DEG = 47.3977, 8.5456  # any fixed point; only GLOBAL_POSITION_INT uses it
 
@@ -313,8 +317,6 @@ class FakeAutopilot:
 
     def lose_gnss(self) -> None:
         """Cut GNSS (SITL's SIM_GPS_DISABLE 1): the estimator's timeline in `fake_ekf` starts now."""
-        if self.flavour != "ardupilot":
-            raise ValueError("the GNSS-loss personality is ArduPilot's")
         with self._lock:
             self.ekf.lose_gnss(time.monotonic())
         log.info("fake: GNSS lost")
@@ -471,6 +473,8 @@ class FakeAutopilot:
             vel_ned, yaw_rate = [0.0, 0.0, 0.0], 0.0
             sp, now = self._last_setpoint, time.monotonic()
             last_sp_s = sp.recv_s if sp is not None else self._started_s
+            if self._last_attitude is not None:
+                last_sp_s = max(last_sp_s, self._last_attitude.recv_s)  # PX4: attitude setpoints stream too
             if self.flavour == "px4" and name == "OFFBOARD" and now - last_sp_s > self._offboard_loss_s:
                 log.info("fake PX4: offboard setpoints lost for COM_OF_LOSS_T, failsafe to LOITER")
                 self._custom_mode = mv.encode_mode("px4", "LOITER")[0]
@@ -478,9 +482,10 @@ class FakeAutopilot:
             airborne = -self._pos_ned_m[2] > self.terrain_height_m + 0.05
             name = self._gcs_failsafe_check(name, now)
             name = self._ekf_failsafe(name, now)
-            nav_ok = self.flavour != "ardupilot" or self.ekf.position_ok(now)
+            nav_ok = self.ekf.position_ok(now)
             steering = self._armed and name == mv.STEER_MODE[self.flavour] and nav_ok
-            if self._armed and airborne and (name == "GUIDED_NOGPS" or not nav_ok):
+            attitude_flown = self._attitude_flown(name, sp)
+            if self._armed and airborne and (attitude_flown or not nav_ok):
                 # No position control: attitude targets, or a level vehicle drifting on its momentum.
                 vel_ned = self._unpositioned_velocity(name, sp, now, dt_s)
             elif steering and self._takeoff_alt_m is not None:
@@ -492,7 +497,7 @@ class FakeAutopilot:
             elif self._armed and name in ("LAND", "PRECLAND"):
                 self._precland_tick(now)
                 vel_ned = self._landing_velocity()
-            if not (self._armed and airborne and (name == "GUIDED_NOGPS" or not nav_ok)):
+            if not (self._armed and airborne and (attitude_flown or not nav_ok)):
                 self._roll_rad = self._pitch_rad = 0.0  # position-controlled flight: level enough to ignore
             vel_ned = self._capped(vel_ned)
             drift = self._heading_drift_rad_s if airborne and self._armed else 0.0
@@ -521,17 +526,31 @@ class FakeAutopilot:
             return action
         return name
 
+    def _attitude_flown(self, name: str, sp: ReceivedSetpoint | None) -> bool:
+        """Attitude targets fly the vehicle: ArduCopter's GUIDED_NOGPS, or PX4 OFFBOARD whose newest
+        setpoint is an attitude one (caller holds the lock)."""
+        if name == "GUIDED_NOGPS":
+            return True
+        target = self._last_attitude
+        return (self.flavour == "px4" and name == "OFFBOARD" and target is not None
+                and (sp is None or target.recv_s > sp.recv_s))
+
     def _unpositioned_velocity(self, name: str, sp: ReceivedSetpoint | None, now: float, dt_s: float) -> list[float]:
-        """Flight without a horizontal position: GUIDED_NOGPS attitude targets, else level and drifting."""
+        """Flight without a horizontal position: attitude targets, else level and drifting."""
         vel = list(self._vel_ned_m_s)
         climb = 0.0
         target = self._last_attitude
-        if name == "GUIDED_NOGPS" and target is not None and now - target.recv_s <= self._guid_timeout_s:
+        timeout_s = self._guid_timeout_s if self.flavour == "ardupilot" else self._offboard_loss_s
+        if self._attitude_flown(name, sp) and target is not None and now - target.recv_s <= timeout_s:
             self._roll_rad, self._pitch_rad, self._yaw_rad = quaternion_to_euler(target.q)
-            # ArduCopter's default GUID_OPTIONS: thrust is a climb rate, 0.5 holds the altitude.
             thrust = min(max(target.thrust, 0.0), 1.0)
-            p = self.personality
-            climb = (thrust - 0.5) * 2.0 * (p.up_cap_m_s if thrust >= 0.5 else p.down_cap_m_s)
+            if self.flavour == "ardupilot":
+                # ArduCopter's default GUID_OPTIONS: thrust is a climb rate, 0.5 holds the altitude.
+                p = self.personality
+                climb = (thrust - 0.5) * 2.0 * (p.up_cap_m_s if thrust >= 0.5 else p.down_cap_m_s)
+            else:
+                # PX4: collective thrust, hovering at MPC_THR_HOVER (0.5): a vertical acceleration.
+                climb = -vel[2] + (GRAVITY_M_S2 * (thrust / PX4_HOVER_THRUST - 1.0) + DRAG_PER_S * vel[2]) * dt_s
         else:
             # Level (an attitude target timed out, ALT_HOLD or LAND without a position, GUIDED blind).
             self._roll_rad = self._pitch_rad = 0.0
@@ -715,7 +734,8 @@ class FakeAutopilot:
         unit = abs(math.sqrt(sum(v * v for v in q)) - 1.0) <= 1e-3
         with self._lock:
             name = mv.mode_name(self.flavour, self._custom_mode)
-            accepted = (msg.target_system == self._system and name in ("GUIDED", "GUIDED_NOGPS") and rates in (0, 7)
+            flying = ("GUIDED", "GUIDED_NOGPS") if self.flavour == "ardupilot" else ("OFFBOARD",)
+            accepted = (msg.target_system == self._system and name in flying and rates in (0, 7)
                         and not msg.type_mask & ATTITUDE_TARGET_TYPEMASK_THROTTLE_IGNORE and unit)
             target = ReceivedAttitudeTarget(recv_s, msg.type_mask, q, float(msg.thrust), accepted)  # type: ignore[arg-type]
             self.attitude_targets.append(target)
@@ -841,7 +861,7 @@ class FakeAutopilot:
             roll, pitch = self._roll_rad, self._pitch_rad
             now_mono = time.monotonic()
             # ArduPilot stops LOCAL_POSITION_NED when its EKF has no position (GCS_MAVLINK::send_local_position).
-            local_ok = self.flavour != "ardupilot" or self.ekf.position_ok(now_mono)
+            local_ok = self.ekf.position_ok(now_mono)
             # Booting gates the good bits; the estimator adds what the loss sets (constant-position mode).
             boot, ekf = self._ekf_flags(), self.ekf.flags(now_mono)
             ekf_flags = (boot & ekf & fake_ekf.GOOD_FLAGS) | ((boot | ekf) & ~fake_ekf.GOOD_FLAGS)

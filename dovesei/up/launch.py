@@ -92,6 +92,7 @@ def child_configs(options: UpOptions, start: tuple[float, float, float], world: 
     sim = SimServiceConfig(
         sim=SimConfig(vehicle_id=options.vehicle_id, timing=options.timing, time_limit_s=float(options.time_limit_s),
                       seed=options.seed, vehicle_profile=options.sim_vehicle_profile,
+                      handover_alt_m=float(options.handover_alt_m),
                       odometry_rate_hz=GNSS_DENIED_ODOMETRY_HZ if options.gnss_denied not in (None, "off") else 0.0),
         world=options.world, start_xy_alt_m=tuple(float(v) for v in start), lockstep=options.lockstep,
         # Camera mode: the sim renders at the autopilot's state, which the controller (the one owner
@@ -128,7 +129,10 @@ def child_configs(options: UpOptions, start: tuple[float, float, float], world: 
         if value is not None:
             steering[field] = value
     controller = ControllerConfig(vehicle_id=options.vehicle_id, policy=options.policy, timing=options.timing,
-                                  lockstep=options.lockstep, vehicle_url=options.vehicle_url or "zenoh", **steering)
+                                  lockstep=options.lockstep, vehicle_url=options.vehicle_url or "zenoh",
+                                  handover_alt_m=float(options.handover_alt_m),
+                                  policy_config_file=(None if options.policy_config is None
+                                                      else str(Path(options.policy_config).resolve())), **steering)
     return ChildConfigs(sim, segmenter, controller)
 
 

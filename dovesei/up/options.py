@@ -22,11 +22,13 @@ from dovesei.shared import keys, validate
 from dovesei.shared.errors import ConfigError
 from dovesei.shared.mavurl import FORMS as MAVLINK_FORMS
 from dovesei.shared.mavurl import MavlinkEndpoint, check_serial_device, parse_mavlink_url
+from dovesei.shared.mission import HANDOVER_ALT_M, MIN_DESCENT_M, check_handover_below_start
 from dovesei.shared.timing import DEFAULT_TIMING, TIMING_NAMES, timing
 from dovesei.controller.core import HANDOVER_ACTIONS
 from dovesei.controller.gnss_denied import GNSS_DENIED_MODES
 from dovesei.controller.mavlink_proto import load_signing_key
 from dovesei.controller.policies import policy_names
+from dovesei.controller.policies.config_file import load_policy_config
 from dovesei.segmenter.simulated import DEFAULT_PROFILE, PROFILE_NAMES
 from dovesei.sim.estimator import VEHICLE_PROFILE_NAMES, default_vehicle_profile
 from dovesei.sim.service import parse_start as sim_parse_start
@@ -67,6 +69,7 @@ class UpOptions:
     world: str = "synthetic"
     segmenter: str = "auto"
     policy: str = "dovesei"
+    policy_config: Path | None = None  # TOML file of the policy's constants (--policy-config)
     timing: str = DEFAULT_TIMING
     seed: int = 0
     noise: float | None = None  # None: the simulated perception's calibrated default
@@ -77,6 +80,8 @@ class UpOptions:
     start: tuple[float, float, float] | None = None  # (x_m, y_m, alt_m); None: from start_seed
     start_seed: int | None = None  # None: --seed
     start_alt_m: float = 100.0
+    # The controller hands over (and hands it to its policy) and the sim's judge judges here.
+    handover_alt_m: float = HANDOVER_ALT_M
     out: Path = Path("runs/up")
     # True for the default runs/up-<time>: `run` then claims a folder no other run has (adding -2, -3
     # when one started in the same second), so two runs never write into one folder.
@@ -157,6 +162,9 @@ class UpOptions:
             validate.finite_vector("--start", self.start, 3)
             check_start_alt_m("--start altitude", self.start[2])
         check_start_alt_m("--start-alt-m", self.start_alt_m)
+        if self.policy_config is not None:
+            load_policy_config(self.policy, self.policy_config, self.timing)  # one line naming the file and key
+        check_handover_below_start(self.handover_alt_m, self.start[2] if self.start is not None else self.start_alt_m)
         for flag, value in (("--heatmap-wait-s", self.heatmap_wait_s),
                             ("--heatmap-hold-after-s", self.heatmap_hold_after_s)):
             if value is not None:
@@ -231,6 +239,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="auto: CLIPSeg when its weights load locally, else the simulated perception")
     p.add_argument("--model", help="CLIPSeg Hub id or local directory (default: the segmenter's)")
     p.add_argument("--policy", default="dovesei", help=f"landing policy: {', '.join(policy_names())}")
+    p.add_argument("--policy-config", type=Path, metavar="FILE",
+                   help="TOML file of the policy's constants, any subset (`dovesei policy-config --defaults POLICY` "
+                        "prints them all); recorded in the report")
     p.add_argument("--timing", choices=TIMING_NAMES,
                    help=f"timing preset (default: {DEFAULT_TIMING}; real with --vehicle or --policy clearance)")
     p.add_argument("--seed", type=int, default=0, help="seed of the perception noise and of the start")
@@ -247,6 +258,9 @@ def build_parser() -> argparse.ArgumentParser:
     where.add_argument("--start-seed", type=int, help="draw the start like the bench's start 0 with this seed")
     p.add_argument("--start-alt-m", type=float, default=100.0,
                    help="start altitude when --start gives none (25-200 m; a flow-navigating ArduCopter holds 48-69 m)")
+    p.add_argument("--handover-alt-m", type=float, default=HANDOVER_ALT_M,
+                   help=f"hand-over altitude: the controller and its policy hand over, and the sim judges, here "
+                        f"(default: {HANDOVER_ALT_M:g} m; at least {MIN_DESCENT_M:g} m below the start)")
     p.add_argument("--time-limit-s", type=float, default=None,
                    help="sim-time limit of the episode (default: the paper's 1200 s on the preset's clock, "
                         "as `dovesei bench`: 60 s with --timing reference, 1200 s with --timing real)")
@@ -307,10 +321,11 @@ def options_from_args(args: argparse.Namespace) -> UpOptions:
     timing_name = args.timing or ("real" if args.vehicle_url or args.policy == "clearance" else DEFAULT_TIMING)
     out = args.out or Path("runs") / f"up-{datetime.now().strftime('%Y%m%d-%H%M%S')}"  # claimed unique in `run`
     limit_s = timing(timing_name).time_limit_s if args.time_limit_s is None else args.time_limit_s
-    return UpOptions(world=args.world, segmenter=args.segmenter, policy=args.policy, timing=timing_name,
+    return UpOptions(world=args.world, segmenter=args.segmenter, policy=args.policy, policy_config=args.policy_config,
+                     timing=timing_name,
                      seed=args.seed, noise=args.noise, perception=args.perception, vehicle_profile=args.vehicle_profile,
                      start=start, start_seed=args.start_seed,
-                     start_alt_m=args.start_alt_m, out=out, out_unique=args.out is None, realtime=args.realtime,
+                     start_alt_m=args.start_alt_m, handover_alt_m=args.handover_alt_m, out=out, out_unique=args.out is None, realtime=args.realtime,
                      connect=tuple(args.connect), vehicle_url=args.vehicle_url, sitl_truth=args.sitl_truth,
                      takeoff=args.takeoff, handover_action=args.handover_action,
                      yaw_control=args.yaw_control, signing_key=args.signing_key,

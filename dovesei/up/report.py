@@ -24,7 +24,9 @@ import numpy as np
 from dovesei.pictures import plots
 from dovesei.pictures import video as videos
 from dovesei.pictures.common import ReportError, backend_label
+from dovesei.controller.policies.config_file import load_policy_config, policy_values, preset_config
 from dovesei.shared.messages import ControllerStatus
+from dovesei.shared.mission import HANDOVER_ALT_M, SAFETY_RADIUS_M
 from dovesei.up.launch import SERVICES
 from dovesei.up.monitor import STAGES, Recorder
 from dovesei.up.options import UpOptions
@@ -98,6 +100,8 @@ class Episode:
     final: Position | None
     classes_found: tuple[str, ...]
     closest_unsafe_m: float | None
+    confirmed: Position | None = None  # the ground the policy last confirmed (the judge's placing)
+    touchdown_error_m: float | None = None  # the hand-over's true distance to it
 
 
 @dataclass(frozen=True)
@@ -116,6 +120,9 @@ class Setup:
     vehicle_id: str
     safety_radius_m: float
     time_limit_s: float
+    handover_alt_m: float = HANDOVER_ALT_M  # where the controller handed over and the sim judged
+    policy_config_file: str | None = None  # --policy-config, and the constants it changed from the preset
+    policy_config: Mapping[str, Any] | None = None
 
 
 @dataclass(frozen=True)
@@ -221,6 +228,7 @@ class RunReport:
         out: dict[str, Any] = {f.name: getattr(ep, f.name) for f in fields(ep)}
         out["start"] = asdict(ep.start)
         out["final"] = asdict(ep.final) if ep.final is not None else None
+        out["confirmed"] = asdict(ep.confirmed) if ep.confirmed is not None else None
         out["classes_found"] = list(ep.classes_found)
         out.update(asdict(self.setup))
         out.update({"wall_time_s": t.wall_time_s, "episode_wall_s": t.episode_wall_s,
@@ -311,6 +319,15 @@ def _latency(options: UpOptions, rec: Recorder, cmd_to_sim: list[float]) -> dict
     return latency
 
 
+def _policy_config(options: UpOptions) -> tuple[str | None, dict[str, Any] | None]:
+    """The policy file flown and the constants it set differently from the timing preset's."""
+    if options.policy_config is None:
+        return None, None
+    flown = policy_values(options.policy, load_policy_config(options.policy, options.policy_config, options.timing))
+    preset = policy_values(options.policy, preset_config(options.policy, options.timing))
+    return str(options.policy_config), {k: v for k, v in flown.items() if v != preset[k]}
+
+
 def build_report(options: UpOptions, rec: Recorder, start: tuple[float, float, float], noise: float,
                  stats: Mapping[str, Any], failure: Failure | None, interrupted: bool,
                  wall_time_s: float, *, landing: LandingWait | None = None,
@@ -325,7 +342,9 @@ def build_report(options: UpOptions, rec: Recorder, start: tuple[float, float, f
     if res is not None:
         episode = Episode(res.outcome, res.detail, res.outcome in JUDGE_OUTCOMES, res.sim_time_s, res.path_length_m,
                           Position(*start), Position(res.final_x_m, res.final_y_m, res.final_alt_m),
-                          tuple(res.classes_found), res.closest_unsafe_m if res.closest_unsafe_valid else None)
+                          tuple(res.classes_found), res.closest_unsafe_m if res.closest_unsafe_valid else None,
+                          Position(res.confirmed_x_m, res.confirmed_y_m, 0.0) if res.confirmed_valid else None,
+                          res.touchdown_error_m if res.touchdown_error_valid else None)
     else:
         detail = failure.message if failure else ("interrupted by the user" if interrupted else "no result")
         final = Position(traj["x_m"][-1], traj["y_m"][-1], traj["alt_m"][-1]) if traj["t_s"] else None
@@ -336,8 +355,8 @@ def build_report(options: UpOptions, rec: Recorder, start: tuple[float, float, f
     setup = Setup(options.world, backend, simulated, options.segmenter, noise if simulated else None,
                   options.perception if simulated else None, options.policy,
                   options.timing, options.seed, "lockstep" if options.lockstep else "realtime",
-                  options.vehicle_url or f"sim:{options.sim_vehicle_profile}", options.vehicle_id, 2.0,
-                  options.time_limit_s)
+                  options.vehicle_url or f"sim:{options.sim_vehicle_profile}", options.vehicle_id, SAFETY_RADIUS_M,
+                  options.time_limit_s, options.handover_alt_m, *_policy_config(options))
     episode_wall_s = (round(rec.result_wall_s - rec.first_state_wall_s, 3)
                       if rec.result_wall_s is not None and rec.first_state_wall_s is not None else None)
     timing = RunTiming(round(wall_time_s, 3), episode_wall_s, _latency(options, rec, cmd_to_sim),
@@ -404,5 +423,8 @@ def video_frames(rec: Recorder, perception: str) -> list[videos.VideoFrame]:
             recent_changes=videos.changes_before(changes, kept["t_s"]),
             perception=perception, policy=st.policy if st else "", hfov_rad=kept.get("hfov"),
             spot_clearance_m=st.spot_clearance_m if st and st.spot_valid else None,
-            policy_reason=st.policy_reason if st else ""))
+            policy_reason=st.policy_reason if st else "",
+            confirmed_frames_ago=seq - st.confirmed_frame_seq if st and st.confirmed_valid else None,
+            confirmed_px=((st.confirmed_row_px, st.confirmed_col_px)
+                          if st and st.confirmed_valid and st.confirmed_frame_seq == seq else None)))
     return frames

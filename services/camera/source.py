@@ -19,6 +19,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from dovesei.shared import footprint
 from dovesei.shared.errors import ConfigError
 
 log = logging.getLogger(__name__)
@@ -40,7 +41,7 @@ def source_kind(source: str) -> str:
 
 def output_hfov_rad(hfov_deg: float, src_w: int, src_h: int, out_w: int, out_h: int, rotate_deg: int) -> float:
     """Horizontal FOV of the published image after rotation and centre crop to out_w:out_h."""
-    half_tan_w = math.tan(math.radians(hfov_deg) / 2.0)
+    half_tan_w = footprint.half_width_m(1.0, math.radians(hfov_deg))  # per metre of altitude: tan(hfov / 2)
     if rotate_deg in (90, 270):
         # The old vertical axis becomes horizontal: its FOV follows from square pixels.
         half_tan_w, src_w, src_h = half_tan_w * src_h / src_w, src_h, src_w

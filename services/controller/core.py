@@ -21,7 +21,8 @@ the sim (the paper's experiment stays as published), DEFAULT_VEHICLE_GEOFENCE_M 
 Watchdog modes, highest priority first (each change is logged once at INFO with its reason):
 
     state_stale  the vehicle state stopped advancing (real time only, wall clock) -> zero velocity
-    handover     at/below the hand-over altitude: stop commanding, short-range sensors take over
+    handover     at/below the hand-over altitude with the policy landing (Decision.landing): stop
+                 commanding, short-range sensors take over; the command says so (`handover`)
     no_velocity  (MAVLink) no horizontal velocity source is trusted: GNSS lost with
                  `--gnss-denied off`, stale or poor visual velocity, an EKF that does not fuse
                  it (gnss_denied.NavStatus says why)                             -> zero velocity
@@ -48,7 +49,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from enum import Enum
@@ -56,13 +57,20 @@ from typing import Any
 
 from dovesei.controller.gnss_denied import EXTERNAL_NAV_MESSAGES, GNSS_DENIED_MODES, NavStatus
 from dovesei.controller.policies.base import Decision, Observation, Policy, PolicyInputError, make_policy, policy_names
+from dovesei.controller.continuity import (
+    ALTITUDE_NOISE_M, MAX_VERTICAL_SPEED_M_S, STEP_CONFIRM_SAMPLES, AltitudeContinuity,
+)
 from dovesei.controller.frames import body_frd_to_ned, ned_to_body_frd, to_ne
 from dovesei.controller.geofence import Geofence
 from dovesei.controller.odometry import VelocityTrack
 from dovesei.controller.policies.config import TIMING_PRESETS
-from dovesei.shared import keys, validate
+from dovesei.controller.policies.config_file import load_policy_config
+from dovesei.shared import footprint, keys, validate
 from dovesei.shared.errors import ConfigError, DoveseiError
-from dovesei.shared.messages import ControllerStatus, SafetyHeatmap, StageLatency, VehicleState, VelocityCommand
+from dovesei.shared.mission import HANDOVER_ALT_M
+from dovesei.shared.messages import (
+    ControllerStatus, SafetyHeatmap, StageLatency, VehicleState, VelocityCommand, replace,
+)
 from dovesei.shared.timing import DEFAULT_TIMING, timing
 
 log = logging.getLogger(__name__)
@@ -74,6 +82,14 @@ MAX_POLICY_SPEED = 100.0  # m/s and rad/s: a policy asking for more is faulty (m
 DT_CAP_PERIODS = 2.0  # a perception gap advances the policy's clock by at most this many nominal periods
 # The vehicle clock runs on true seconds; 5 % margin for crystal drift and latency jitter.
 _DATA_RATE_MARGIN = 1.05
+# A heatmap's capture altitude must be one a camera can see the ground from: below 1 m a nadir
+# camera sees a blur and the paper's policy declared LANDED at alt 0 (and -999).
+MIN_HEATMAP_ALT_M, MAX_HEATMAP_ALT_M = 1.0, 1000.0
+# ... and agree with the vehicle's own states: within this share of the altitude (a frame may be
+# taken with the truth in the sim and the baro in the state), or this many times the noise.
+HEATMAP_ALT_FRAC = 0.25
+HEATMAP_ALT_NOISE_MULT = 2.0
+_ALT_TRACK_LEN = 200  # accepted (t, alt) states kept: 10 s at 20 Hz, covers any perception latency
 # A real vehicle's fence when none is given: `clearance` searches within 300 m of the start (its
 # own fence 10 m inside), plus room for the raw velocity estimate's drift over a search. The
 # paper's policy has no bound of its own (a 600 m RESTARTING transit on ArduCopter SITL).
@@ -90,6 +106,8 @@ class ControllerConfig:
 
     vehicle_id: str = "uav1"
     policy: str = "dovesei"
+    # A TOML file of the policy's constants (policies/config_file.py); None: the timing preset's.
+    policy_config_file: str | None = None
     timing: str = DEFAULT_TIMING  # policy timing preset (dovesei.shared.timing); a real vehicle runs "real"
     lockstep: bool = True  # True: one tick per sim state (as the sim's default); False: own 20 Hz loop
     rate_hz: float = 20.0  # real-time loop rate on the wall clock
@@ -99,7 +117,7 @@ class ControllerConfig:
     climb_speed_m_s: float = 2.0  # max vertical speed of the climb watchdog
     climb_gain_per_s: float = 0.5  # climb speed = gain x altitude error (capped): no overshoot
     search_alt_m: float | None = None  # None: the altitude at which the vehicle was first seen
-    handover_alt_m: float = 20.0  # at/below: stop commanding, report HANDOVER
+    handover_alt_m: float = HANDOVER_ALT_M  # at/below: stop commanding, report HANDOVER (handed to the policy)
     handover_release_m: float = 2.0  # hysteresis: leave HANDOVER only above handover + this
     handover_action: str = "hold"  # MAVLink adapter action at hand-over: hold, land, precland or none
     vehicle_url: str = "zenoh"  # "zenoh" (the sim over Zenoh) or a pymavlink connection URL
@@ -108,8 +126,9 @@ class ControllerConfig:
     vehicle_connect_timeout_s: float = 30.0  # MAVLink: wait this long for the autopilot's heartbeat
     mavlink_alt_source: str = "local"  # MAVLink altitude: "local" position or "rangefinder"
     mavlink_allow_mode_switch: bool = False  # MAVLink: may switch to GUIDED/OFFBOARD itself
-    # MAVLink: "rate" sends velocity + yaw rate 0 (type mask 0x05C7: the heading, and so the camera,
-    # is held); "autopilot" sends velocity only (0x0DC7: ArduCopter then yaws by WP_YAW_BEHAVIOR).
+    # MAVLink: "rate" sends body-frame velocity + a yaw rate closed on ATTITUDE (mask 0x05C7);
+    # "autopilot" sends LOCAL_NED velocity + the held heading as a yaw angle (0x09C7) for the
+    # autopilot's heading controller. Either way the heading, and so the camera, is held.
     mavlink_yaw_control: str = "rate"
     mavlink_system_id: int | None = None  # MAVLink: fly only this autopilot system id (None: the first heard)
     # MAVLink setpoint limits, ArduCopter's defaults: WPNAV_SPEED, WPNAV_SPEED_UP, WPNAV_SPEED_DN.
@@ -123,6 +142,19 @@ class ControllerConfig:
     lockstep_heatmap_wait_s: float = 5.0  # wall deadline for an awaited heatmap (lockstep)
     lockstep_heatmap_retry_s: float = 0.25  # shorter deadline while the segmenter seems down
     heatmap_buffer_len: int = 64  # lockstep: early heatmaps kept by seq
+    # The camera every heatmap must come from (its frame's field of view, size and altitude are
+    # checked before any policy sees it). The defaults are the sim's and the reference's camera;
+    # the tolerance lets a cropped output pass (a 4:3 source cut square reads 20 % narrower).
+    camera_hfov_deg: float = 73.0
+    camera_hfov_tolerance_frac: float = 0.25
+    camera_size_px: tuple[int, int] | None = None  # (height, width) exactly; None: any up to the limit
+    max_heatmap_side_px: int = 1024  # no camera we fly sends more; a 4096 px map only costs time
+    # What a multirotor's altitude can do between two states plus the altitude source's own noise:
+    # a larger step is refused (a forged or glitched state; dovesei.controller.continuity).
+    max_vertical_speed_m_s: float = MAX_VERTICAL_SPEED_M_S
+    altitude_noise_m: float = ALTITUDE_NOISE_M
+    altitude_step_confirm_states: int = STEP_CONFIRM_SAMPLES  # a step held this long is real
+    handover_confirm_states: int = 3  # states at/below the hand-over altitude before handing over
     record_path: str | None = None  # write an MCAP flight recording here (states, heatmaps, commands, status)
     # Largest dead-reckoned distance from the start; None: off with the sim, DEFAULT_VEHICLE_GEOFENCE_M
     # with a real vehicle; 0: off.
@@ -143,6 +175,7 @@ class ControllerConfig:
             raise ConfigError(f"policy {self.policy!r}: choose one of {', '.join(policy_names())}")
         if self.timing not in TIMING_PRESETS:
             raise ConfigError(f"timing {self.timing!r}: choose one of {', '.join(sorted(TIMING_PRESETS))}")
+        self.policy_config()  # a bad file is one line now, not a policy fault in flight
         positive = ("rate_hz", "heatmap_hold_after_s", "heatmap_climb_after_s", "state_stale_after_s",
                     "climb_speed_m_s", "climb_gain_per_s", "handover_alt_m", "vehicle_connect_timeout_s",
                     "lockstep_heatmap_wait_s", "lockstep_heatmap_retry_s", "policy_dt_max_s",
@@ -176,6 +209,18 @@ class ControllerConfig:
         validate.in_range("ControllerConfig.attitude_max_tilt_deg", self.attitude_max_tilt_deg, 1.0, 35.0)
         if self.heatmap_buffer_len < 1:
             raise ConfigError(f"heatmap_buffer_len must be >= 1, got {self.heatmap_buffer_len}")
+        validate.in_range("ControllerConfig.camera_hfov_deg", self.camera_hfov_deg, 1.0, 179.0)
+        validate.in_range("ControllerConfig.camera_hfov_tolerance_frac", self.camera_hfov_tolerance_frac, 0.0, 0.9)
+        validate.in_range("ControllerConfig.max_heatmap_side_px", self.max_heatmap_side_px, 1, 8192)
+        if self.camera_size_px is not None:
+            validate.finite_vector("ControllerConfig.camera_size_px", self.camera_size_px, 2)
+            if not all(isinstance(v, int) and 1 <= v <= self.max_heatmap_side_px for v in self.camera_size_px):
+                raise ConfigError(f"ControllerConfig.camera_size_px must be two integers in 1..{self.max_heatmap_side_px}"
+                                  f", got {self.camera_size_px!r}")
+        for name in ("max_vertical_speed_m_s", "altitude_noise_m"):
+            validate.positive(f"ControllerConfig.{name}", getattr(self, name))
+        for name in ("altitude_step_confirm_states", "handover_confirm_states"):
+            validate.in_range(f"ControllerConfig.{name}", getattr(self, name), 1, 1000)
         if self.lockstep and self.vehicle_url != "zenoh":
             raise ConfigError("lockstep needs the simulator (--vehicle-url zenoh); a real vehicle runs in real time")
         if self.geofence_radius_m is not None:
@@ -194,6 +239,12 @@ class ControllerConfig:
             # 60 s limit ran out at 28.8 m. A real vehicle always runs on true seconds.
             raise ConfigError(f"timing {self.timing!r} with a real vehicle ({self.vehicle_url}): a real vehicle "
                               "runs on true seconds, use --timing real")
+
+    def policy_config(self) -> Any:
+        """What the policy is built from: the file's constants on the timing preset, or the preset's name."""
+        if self.policy_config_file is None:
+            return self.timing
+        return load_policy_config(self.policy, self.policy_config_file, self.timing)
 
     @property
     def period_s(self) -> float:
@@ -255,8 +306,9 @@ class ControllerCore:
         self.config = config
         self._mono = mono  # the controller's own clock (stamps are judged on it in real time)
         # The real wiring always goes through the factory; tests may hand in a double.
-        self.policy = policy if policy is not None else make_policy(config.policy, config.timing,
-                                                                    config.vehicle_speed_limits_m_s)
+        self.policy = policy if policy is not None else make_policy(config.policy, config.policy_config(),
+                                                                    config.vehicle_speed_limits_m_s,
+                                                                    handover_alt_m=config.handover_alt_m)
         self.rejected: Counter[str] = Counter()  # reason -> count (heatmaps and states refused)
         self.adopted_count = 0
         self._tick_seq = 0
@@ -279,6 +331,13 @@ class ControllerCore:
         self._state_advanced_wall_s: float | None = None
         self._first_alt_m: float | None = None
         self._in_handover = False
+        self._below_uncommitted = False  # below the hand-over altitude without the policy landing
+        self._low_states = 0  # consecutive accepted states at/below the hand-over altitude
+        self._low_t_s: float | None = None  # the newest of them
+        self._alt_track: deque[tuple[float, float]] = deque(maxlen=_ALT_TRACK_LEN)  # (t_s, alt) accepted
+        cfg = self.config
+        self._altitude = AltitudeContinuity(cfg.max_vertical_speed_m_s, cfg.altitude_noise_m,
+                                            cfg.altitude_step_confirm_states, who=f"controller {cfg.vehicle_id}")
         self._mode: Mode | None = None
         self._last_state_seq: int | None = None
         self._state_anchor: tuple[float, float] | None = None  # (state t_s, own mono s): on-time state
@@ -379,6 +438,9 @@ class ControllerCore:
         if hm.vehicle_id != self.config.vehicle_id:
             return self._refuse("other vehicle", "heatmap for vehicle %r ignored (this is %r)",
                                 hm.vehicle_id, self.config.vehicle_id)
+        problem = self._camera_mismatch(hm)
+        if problem is not None:
+            return self._refuse("camera model", "heatmap %d refused: %s", hm.seq, problem)
         if self.config.lockstep:
             # Everything is kept by seq: the tick decides what is due (a new episode's seq 0 too).
             self._buffer[hm.seq] = (hm, recv_wall_s)
@@ -425,7 +487,8 @@ class ControllerCore:
         `wall_s` is the real-time loop's monotonic wall time (None in lockstep): it only serves to
         notice that the vehicle state stopped advancing, which data time alone cannot show.
         `nav` is the MAVLink adapter's judgement of the velocity sources (None: the sim, trusted).
-        Raises ControllerInputError for another vehicle's state.
+        Raises ControllerInputError for another vehicle's state or one from the future; a state
+        whose altitude no multirotor could have reached is answered with a hold (counted).
         """
         cfg = self.config
         if state.vehicle_id != cfg.vehicle_id:
@@ -436,6 +499,17 @@ class ControllerCore:
             self._refuse("state from the future", "%s: refused", future)
             raise ControllerInputError(future)
         self._maybe_new_episode(state)
+        jump = self._altitude.check(state.stamp.t_s, state.alt_agl_m)
+        if jump is not None:
+            reason = f"state {state.seq}: {jump}"
+            self._refuse("altitude jump", "%s: refused, holding", reason)
+            return self._refused_state_answer(state, f"{reason}: refused, holding position", nav)
+        self._alt_track.append((state.stamp.t_s, state.alt_agl_m))
+        if state.alt_agl_m > cfg.handover_alt_m:
+            self._low_states, self._low_t_s = 0, None
+        elif self._low_t_s is None or state.stamp.t_s > self._low_t_s:
+            # Distinct states only: the real-time loop re-ticks the newest one while none arrives.
+            self._low_states, self._low_t_s = self._low_states + 1, state.stamp.t_s
         now_s = state.stamp.t_s
         if self._last_state_t_s is None or now_s > self._last_state_t_s or self._state_advanced_wall_s is None:
             self._state_advanced_wall_s = wall_s
@@ -463,9 +537,22 @@ class ControllerCore:
         cmd = VelocityCommand(
             vehicle_id=cfg.vehicle_id, seq=self._tick_seq, stamp=state.stamp, vel_body_frd_m_s=vel,
             yaw_rate_rad_s=yaw_rate, state_seq=state.seq, frame_seq=frame_seq,
-            latency=adopted.latency if adopted is not None else None,
+            latency=adopted.latency if adopted is not None else None, handover=mode is Mode.HANDOVER,
         )
         return cmd, self._status(mode, reason, state, vel, nav)
+
+    def _refused_state_answer(self, state: VehicleState, reason: str,
+                              nav: NavStatus | None) -> tuple[VelocityCommand, ControllerStatus]:
+        """A zero command answering a state whose altitude was refused: a lockstep sim waits for an
+        answer to every state, and nothing of this one (altitude, stamp, velocity) is used."""
+        self._tick_seq += 1
+        adopted = self._adopted
+        zero = (0.0, 0.0, 0.0)
+        cmd = VelocityCommand(vehicle_id=self.config.vehicle_id, seq=self._tick_seq, stamp=state.stamp,
+                              vel_body_frd_m_s=zero, state_seq=state.seq,
+                              frame_seq=adopted.hm.seq if adopted is not None else -1)
+        believed = replace(state, alt_agl_m=self._altitude.last[1])  # the status shows the altitude we hold to
+        return cmd, self._status(Mode.HOLD, reason, believed, zero, nav)
 
     def _adopt_due(self, state: VehicleState) -> None:
         """Lockstep: adopt exactly the awaited seq; real time: the newest pending heatmap."""
@@ -497,7 +584,46 @@ class ControllerCore:
             self._refuse("heatmap from the future", "heatmap %d stamped %.3f s after state %.3f s: ignored",
                          hm.seq, hm.stamp.t_s, state.stamp.t_s)
             return
+        problem = self._altitude_mismatch(hm)
+        if problem is not None:
+            self._refuse("heatmap altitude", "heatmap %d refused: %s", hm.seq, problem)
+            return
         self._run_policy(hm, recv_wall_s, state)
+
+    # ---- input checks against the camera model and the vehicle's own altitude ---------------
+
+    def _camera_mismatch(self, hm: SafetyHeatmap) -> str | None:
+        """Why a heatmap cannot come from the configured camera (None: it can). Valid on the wire
+        is not enough: hfov 1e-6 made the focus radius 1.5e6 px and the status could not be built."""
+        cfg = self.config
+        h, w = hm.prob_safe.shape
+        if cfg.camera_size_px is not None and (h, w) != tuple(cfg.camera_size_px):
+            return f"{w}x{h} px, the camera's heatmaps are {cfg.camera_size_px[1]}x{cfg.camera_size_px[0]} px"
+        if max(h, w) > cfg.max_heatmap_side_px:
+            return f"{w}x{h} px, more than {cfg.max_heatmap_side_px} px a side"
+        hfov_deg = math.degrees(hm.hfov_rad)
+        if abs(hfov_deg - cfg.camera_hfov_deg) > cfg.camera_hfov_tolerance_frac * cfg.camera_hfov_deg:
+            return (f"field of view {hfov_deg:.4g} deg, the camera's is {cfg.camera_hfov_deg:g} deg "
+                    f"(+-{cfg.camera_hfov_tolerance_frac:.0%})")
+        if not MIN_HEATMAP_ALT_M <= hm.alt_agl_m <= MAX_HEATMAP_ALT_M:
+            return f"altitude {hm.alt_agl_m:g} m outside {MIN_HEATMAP_ALT_M:g}..{MAX_HEATMAP_ALT_M:g} m"
+        return None
+
+    def _altitude_mismatch(self, hm: SafetyHeatmap) -> str | None:
+        """Why the heatmap's capture altitude disagrees with the vehicle's own states around its
+        capture stamp (None: it agrees, or no state is near enough to tell)."""
+        cfg = self.config
+        near = min(self._alt_track, key=lambda ta: abs(ta[0] - hm.stamp.t_s), default=None)
+        if near is None:
+            return None
+        t_s, alt_m = near
+        allowed_m = (max(cfg.altitude_noise_m * HEATMAP_ALT_NOISE_MULT, HEATMAP_ALT_FRAC * alt_m)
+                     + cfg.max_vertical_speed_m_s * abs(t_s - hm.stamp.t_s))
+        if abs(hm.alt_agl_m - alt_m) <= allowed_m:
+            return None
+        return (f"captured at {hm.alt_agl_m:.1f} m, the vehicle was at {alt_m:.1f} m (state at {t_s:.3f} s; "
+                f"at most {allowed_m:.1f} m apart)")
+
 
     def _policy_time_s(self, hm: SafetyHeatmap) -> float:
         """The policy's clock: the heatmap's stamp, shifted only when a step would exceed
@@ -591,11 +717,24 @@ class ControllerCore:
             if frozen_s > cfg.state_stale_after_s:
                 return Mode.STATE_STALE, (f"vehicle state not updated for more than {cfg.state_stale_after_s:g} s: "
                                           "zero velocity")
-        # Hysteresis so altitude noise around the hand-over altitude cannot flap the mode.
+        # Hysteresis so altitude noise around the hand-over altitude cannot flap the mode. Entry
+        # needs the policy's word: a descent it has aborted (WAITING, CLIMBING, ABORT) that sinks
+        # through the altitude on inertia is no landing; the policy keeps flying (it climbs back).
         if self._in_handover:
             self._in_handover = state.alt_agl_m <= cfg.handover_alt_m + cfg.handover_release_m
         else:
-            self._in_handover = state.alt_agl_m <= cfg.handover_alt_m
+            decision = self._decision
+            committed = (decision is not None and (decision.landing or decision.state in TERMINAL_STATES)
+                         and self._policy_fault is None)
+            # One low sample is no altitude: it must hold for a few states (a forged 19 m state
+            # handed over for a tick).
+            self._in_handover = committed and self._low_states >= cfg.handover_confirm_states
+            if state.alt_agl_m <= cfg.handover_alt_m and not committed and not self._below_uncommitted:
+                log.warning("controller %s: at %.1f m, below the hand-over altitude %g m, but the policy is not "
+                            "landing (%s): no hand-over, following the policy", cfg.vehicle_id, state.alt_agl_m,
+                            cfg.handover_alt_m, self._decision.state if self._decision is not None else "no decision")
+                self.rejected["below hand-over, not landing"] += 1
+            self._below_uncommitted = state.alt_agl_m <= cfg.handover_alt_m and not committed
         if self._in_handover:
             return Mode.HANDOVER, (f"at/below the hand-over altitude {cfg.handover_alt_m:g} m: "
                                    "short-range sensors take over")
@@ -605,6 +744,10 @@ class ControllerCore:
         if self._policy_fault is not None:
             return Mode.POLICY_FAULT, f"{self._policy_fault}: holding position"
         decision = self._decision
+        if decision is not None and decision.state in TERMINAL_STATES and state.alt_agl_m <= cfg.handover_alt_m:
+            # Declared at the altitude: the hand-over follows once the altitude has held.
+            return Mode.HOLD, (f"policy declared {decision.state} at {state.alt_agl_m:.1f} m: confirming the "
+                               f"altitude ({self._low_states} of {cfg.handover_confirm_states} states)")
         if decision is not None and decision.state in TERMINAL_STATES:
             if decision is not self._refused_decision:  # counted once per decision, not per tick
                 self._refused_decision = decision
@@ -702,7 +845,7 @@ class ControllerCore:
         if adopted is None or decision is None or decision.target_px is None:
             return None
         h, w = adopted.hm.prob_safe.shape
-        focal_px = (w / 2.0) / math.tan(adopted.hm.hfov_rad / 2.0)  # square pixels: one focal length
+        focal_px = footprint.focal_px(w, adopted.hm.hfov_rad)  # square pixels: one focal length
         row, col = decision.target_px
         # The pixel's ray in the body frame (camera looking down: image up = forward), then NED.
         ray_ned = body_frd_to_ned((-(row - (h - 1) / 2.0) / focal_px, (col - (w - 1) / 2.0) / focal_px, 1.0),
@@ -745,6 +888,7 @@ class ControllerCore:
             spot_valid=spot is not None, spot_north_m=spot[0] if spot else 0.0, spot_east_m=spot[1] if spot else 0.0,
             spot_clearance_m=max(info.get("spot_clearance_m", 0.0), 0.0) if spot else 0.0,
             spot_confidence=min(max(info.get("spot_confidence", 0.0), 0.0), 1.0) if spot else 0.0,
+            handover=mode is Mode.HANDOVER,
             nav_source=nav.source if nav is not None else "", gnss_lost=nav.gnss_lost if nav is not None else False,
             position_lost=nav.position_lost if nav is not None else False,
             nav_reason=nav.reason if nav is not None else "",

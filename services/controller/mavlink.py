@@ -73,6 +73,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from dovesei.controller.continuity import (
+    ALTITUDE_NOISE_M, MAX_VERTICAL_SPEED_M_S, STEP_CONFIRM_SAMPLES, AltitudeContinuity,
+)
 from dovesei.controller.mavlink_proto import (
     ALT_SOURCES,
     AUTOPILOT_KINDS,
@@ -246,6 +249,8 @@ class MavlinkVehicle:
         self._attitude_rad = (0.0, 0.0, 0.0)
         self._attitude_s: float | None = None
         self._local: tuple[float, float, float, float, float, float] | None = None  # x y z vx vy vz NED
+        self._local_alt = AltitudeContinuity(MAX_VERTICAL_SPEED_M_S, ALTITUDE_NOISE_M, STEP_CONFIRM_SAMPLES,
+                                             who="MAVLink LOCAL_POSITION_NED")
         self._range_m: float | None = None
         self._state: VehicleState | None = None
         self._state_seq, self._returned_seq = -1, -1
@@ -275,6 +280,7 @@ class MavlinkVehicle:
         self._attitude_step_s: float | None = None
         self._global: tuple[float, float, float] | None = None  # GLOBAL_POSITION_INT relative alt, vz down, at
         self._local_s: float | None = None  # when the newest LOCAL_POSITION_NED arrived
+        self._local_boot_ms: int | None = None  # ... and its time_boot_ms (the autopilot's clock)
         self._streams_asked_s: float | None = None  # when the streams were first asked for
         self._nav_status = NavStatus(False, False, True, "autopilot", "no estimator report yet")
         self._gnss_lost_seen = False
@@ -725,9 +731,6 @@ class MavlinkVehicle:
                 self._send_heartbeat()
                 next_hb_s = now + 1.0
             self._check_link(now)
-            if self._target is not None and now >= next_nav_s:
-                self._nav_tick(now)
-                next_nav_s = now + _NAV_PERIOD_S
             if self._target is not None and self._state is None and now >= next_stream_request_s:
                 # Asked again every 2 s until the first state: a request is one UDP datagram.
                 self._request_streams()
@@ -752,6 +755,11 @@ class MavlinkVehicle:
                 wake_s = min(next_hb_s, self._next_setpoint_s)
             self._conn.select(max(0.0, min(wake_s - self._clock(), 0.05)))
             self._drain()
+            # Judged after the drain: a burst read after a stall of ours is not an estimator going silent.
+            now = self._clock()
+            if self._target is not None and now >= next_nav_s:
+                self._nav_tick(now)
+                next_nav_s = now + _NAV_PERIOD_S
 
     def _drain(self) -> None:
         """Parse every message waiting on the link (the I/O thread is the only reader)."""
@@ -796,8 +804,12 @@ class MavlinkVehicle:
                 return  # e.g. a vision component's own estimate: the autopilot's is the one it flies on
             if kind == "LOCAL_POSITION_NED":
                 local = check_local_position(msg)
+                jump = self._local_alt.check(msg.time_boot_ms / 1000.0, -local[2])
+                if jump is not None:  # a height no multirotor flew to: dropped before it is a state
+                    self._reject("LOCAL_POSITION_NED jump", f"LOCAL_POSITION_NED: {jump}")
+                    return
                 with self._lock:
-                    self._local, self._local_s = local, self._clock()
+                    self._local, self._local_s, self._local_boot_ms = local, self._clock(), int(msg.time_boot_ms)
                     self._nav.on_local_position(self._local_s)
                 if self.alt_source == "local":
                     self._publish_state(msg.time_boot_ms, -local[2])
@@ -923,13 +935,14 @@ class MavlinkVehicle:
             return  # the rangefinder keeps publishing on its own
         now = self._clock()
         with self._lock:
-            local_s, glob, asked_s = self._local_s, self._global, self._streams_asked_s
-            if local_s is None:
+            local_ms, glob, asked_s = self._local_boot_ms, self._global, self._streams_asked_s
+            if local_ms is None:
                 # Never had one: fall back only once it clearly is not coming (a controller started
                 # after the loss); at a normal start the local position follows the request at once.
                 if asked_s is None or now - asked_s <= _LOCAL_NEVER_S:
                     return
-            elif now - local_s <= _LOCAL_FALLBACK_S:
+            elif time_boot_ms - local_ms <= _LOCAL_FALLBACK_S * 1000.0:
+                # Judged on the autopilot's clock: a burst read after a stall of ours is still in order.
                 return  # the local position still streams
             if glob is None or now - glob[2] > _GLOBAL_FRESH_S:
                 return  # no altitude we believe: a made-up state is worse than the stale-state hold

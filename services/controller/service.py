@@ -558,6 +558,8 @@ CLI = CommandLine(ControllerConfig, {
                         check=_check_vehicle_url, metavar="URL"),
     "vehicle_id": Flag("--vehicle-id", "vehicle id in the keys", check=lambda _w, v: keys.check_vehicle_id(v)),
     "policy": Flag("--policy", "landing policy", choices=policy_names()),
+    "policy_config_file": Flag("--policy-config", "TOML file of the policy's constants (default: the timing "
+                               "preset's; `dovesei policy-config --defaults POLICY` prints them)", metavar="FILE"),
     "timing": Flag("--timing", f"policy timing preset ({DEFAULT_TIMING} with the sim, real with a MAVLink vehicle)",
                    choices=TIMING_NAMES),
     "lockstep": Flag("--lockstep", "one tick per sim state, waiting for awaited heatmaps (default with the sim)",
@@ -576,9 +578,10 @@ CLI = CommandLine(ControllerConfig, {
     "handover_action": Flag("--handover-action", "MAVLink action at the hand-over altitude", choices=HANDOVER_ACTIONS),
     # The adapter validates these too; literal choices keep --help free of a pymavlink import.
     "mavlink_alt_source": Flag("--alt-source", "MAVLink altitude source", choices=("local", "rangefinder")),
-    "mavlink_yaw_control": Flag("--yaw-control", "MAVLink: 'rate' holds the heading (velocity + zero yaw rate, "
-                                "mask 0x05C7); 'autopilot' sends velocity only (mask 0x0DC7) and lets the autopilot "
-                                "choose the heading", choices=("rate", "autopilot")),
+    "mavlink_yaw_control": Flag("--yaw-control", "MAVLink: 'rate' holds the heading with a closed-loop yaw rate "
+                                "(body-frame velocity, mask 0x05C7); 'autopilot' has the autopilot hold it (velocity "
+                                "in LOCAL_NED + the held heading as a yaw angle, mask 0x09C7)",
+                                choices=("rate", "autopilot")),
     "mavlink_allow_mode_switch": Flag("--allow-mode-switch", "MAVLink: switch the autopilot to GUIDED/OFFBOARD when "
                                       "it is not (default: refuse to steer)"),
     "lockstep_heatmap_wait_s": Flag("--heatmap-wait-s", "lockstep: wall deadline for an awaited heatmap",
@@ -606,6 +609,8 @@ CLI = CommandLine(ControllerConfig, {
                           check=lambda w, v: validate.in_range(w, v, 1.0, 500.0)),
     "takeoff_ready_timeout_s": Flag("--takeoff-ready-timeout-s", "takeoff: give up when the autopilot cannot arm "
                                     "within this, naming its pre-arm reasons", check=validate.positive),
+    "camera_hfov_deg": Flag("--camera-hfov-deg", "the camera's horizontal field of view as published (after any "
+                            "crop): heatmaps more than 25 %% off it are refused", check=validate.positive),
     "geofence_radius_m": Flag("--geofence-radius-m", "largest distance from the start, dead-reckoned from the "
                               "velocity estimate, that any policy may fly (default: off with the sim, "
                               "400 m with a MAVLink vehicle; 0: off)",

@@ -39,7 +39,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from dovesei.shared import validate
+from dovesei.shared import footprint, validate
 from dovesei.shared.errors import ConfigError
 
 from .appearance import APPEARANCES, INDEX, OFF_WORLD_LABEL, appearance_mix
@@ -399,7 +399,7 @@ class SimPerception:
     def cell_world_m(self, view: View, n: int, frame_shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
         """World (east, north) of an n x n grid of points spread like cell centres over the view."""
         height_px, width_px = frame_shape
-        half_w_m = math.tan(view.hfov_rad / 2.0) * view.alt_agl_m
+        half_w_m = footprint.half_width_m(view.alt_agl_m, view.hfov_rad)
         half_h_m = half_w_m * height_px / width_px
         u = (np.arange(n) + 0.5) / n * 2.0 - 1.0  # -1 left/top .. +1 right/bottom
         right = (u * half_w_m)[None, :].repeat(n, 0)
@@ -441,7 +441,7 @@ class SimPerception:
         px_h = height_lut[lab]
         ground = lab != OFF_WORLD_LABEL  # beyond the map nothing is lit or shaded
         frame_h, frame_w = frame_shape
-        m_per_px_x = 2.0 * math.tan(view.hfov_rad / 2.0) * view.alt_agl_m / INPUT_PX
+        m_per_px_x = footprint.metres_per_px(view.alt_agl_m, view.hfov_rad, INPUT_PX)
         m_per_px_y = m_per_px_x * frame_h / frame_w
         # Shadows fall away from the sun; world (east, north) -> image (right, forward).
         east, north = -math.sin(self._sun_az_rad), -math.cos(self._sun_az_rad)

@@ -36,6 +36,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from dovesei.shared import footprint
 from dovesei.shared.errors import DoveseiError
 from dovesei.shared.validate import is_number
 from dovesei.sim.world import OUT_OF_WORLD_LABEL, World
@@ -74,7 +75,7 @@ class CameraModel:
 
     def half_width_m(self, alt_agl_m: float) -> float:
         """Half the ground footprint's width (across the image's columns) at an altitude."""
-        return math.tan(self.hfov_rad / 2.0) * alt_agl_m
+        return footprint.half_width_m(alt_agl_m, self.hfov_rad)
 
     def half_height_m(self, alt_agl_m: float) -> float:
         """Half the footprint's height (along the image's rows); pixels are square."""
@@ -82,7 +83,7 @@ class CameraModel:
 
     def metres_per_px(self, alt_agl_m: float) -> float:
         """Ground size of one output pixel at an altitude."""
-        return 2.0 * self.half_width_m(alt_agl_m) / self.width_px
+        return footprint.metres_per_px(alt_agl_m, self.hfov_rad, self.width_px)
 
 
 class _Pyramid:
@@ -195,7 +196,7 @@ def pixel_to_world_homography(
     ray L by the tilt -> ground point (forward, right) = alt * (L_f, L_r) / L_d -> world pixel by the
     heading, exactly as `pixel_to_world_affine` for a level camera (which this equals at zero tilt).
     """
-    f_px = cam.width_px / (2.0 * math.tan(cam.hfov_rad / 2.0))
+    f_px = footprint.focal_px(cam.width_px, cam.hfov_rad)
     cu, cv_ = (cam.width_px - 1) / 2.0, (cam.height_px - 1) / 2.0
     ray = np.array([[0.0, -1.0 / f_px, cv_ / f_px],
                     [1.0 / f_px, 0.0, -cu / f_px],
@@ -232,7 +233,7 @@ def ground_point_m(x_m: float, y_m: float, alt_agl_m: float, yaw_rad: float, row
     """World (x_m east, y_m north) of the flat ground an output pixel (row, col; integers at pixel
     centres) shows from this pose: the renderer's own ray (`pixel_to_world_homography`), in metres,
     for the judge to place what a policy saw in a frame."""
-    f_px = cam.width_px / (2.0 * math.tan(cam.hfov_rad / 2.0))
+    f_px = footprint.focal_px(cam.width_px, cam.hfov_rad)
     body = np.array([-(row_px - (cam.height_px - 1) / 2.0) / f_px, (col_px - (cam.width_px - 1) / 2.0) / f_px, 1.0])
     fwd, right, down = tilt_rotation(roll_rad, pitch_rad) @ body
     if down <= _MIN_RAY_DOWN:

@@ -13,8 +13,8 @@ Each step k (t = k * dt) produces, in this order:
 3. with `odometry_rate_hz` > 0, a `VisualOdometry` when one is due: the onboard camera's visual
    velocity from views rendered at the true pose, tagged with the state's altitude and attitude
    (`dovesei.sim.odometry`; published before the state, so a controller has it when it decides);
-4. the `EpisodeResult` once the judge ends the episode (hand-over altitude, time limit, or the
-   vehicle leaving the world).
+4. the `EpisodeResult` once the judge ends the episode (the controller's hand-over, the time
+   limit, the vehicle leaving the world or reaching the ground without a hand-over).
 
 The true pose of each of the last `FRAME_POSES_KEPT` frames is kept: `note_status` places the spot
 pixel of the controller's confirming look (`ControllerStatus.confirmed_*`) on the ground with the
@@ -43,6 +43,7 @@ import numpy as np
 from dovesei.shared import validate
 from dovesei.shared.clock import wall_time_s
 from dovesei.shared.errors import ConfigError
+from dovesei.shared.mission import HANDOVER_ALT_M, SAFETY_RADIUS_M
 from dovesei.shared.timing import DEFAULT_TIMING, timing
 from dovesei.shared.messages import (
     CameraFrame, ClassEntry, ControllerStatus, EpisodeResult, GroundTruth, Stamp, VehicleState, VelocityCommand,
@@ -51,7 +52,7 @@ from dovesei.shared.messages import (
 from dovesei.sim.camera import CameraError, CameraModel, ground_point_m, optical_axis_ground_m, render
 from dovesei.sim.dynamics import Pose, Vehicle, VehicleParams
 from dovesei.sim.estimator import SIM_DEFAULT_VEHICLE_PROFILE, Estimate, Estimator, vehicle_profile
-from dovesei.sim.judge import EpisodeJudge
+from dovesei.sim.judge import NO_HANDOVER_REASON, EpisodeJudge
 from dovesei.sim.odometry import SimOdometry
 from dovesei.sim.starts import Start
 from dovesei.sim.world import World
@@ -81,9 +82,9 @@ class SimConfig:
     # taking precedence (an explicit --cmd-max-age-s wins over the profile's GUID_TIMEOUT).
     vehicle_profile: str = SIM_DEFAULT_VEHICLE_PROFILE
     vehicle: VehicleParams = field(default_factory=VehicleParams)
-    handover_alt_m: float = 20.0
+    handover_alt_m: float = HANDOVER_ALT_M  # the judge ends and judges the episode here
     time_limit_s: float = 1200.0
-    safety_radius_m: float = 2.0
+    safety_radius_m: float = SAFETY_RADIUS_M  # the judge's landing disk
     seed: int = 0
     attach_truth: bool = True
     # False: frames carry a blank image (truth labels only). For the in-process bench with the
@@ -241,7 +242,8 @@ class SimCore:
         # time limits by a step depending on float luck.
         sched_t_s = round(self._k * cfg.dt_s, 9)
         pose = dataclasses.replace(self.vehicle.state, t_s=sched_t_s)
-        outcome = self.judge.check(pose)
+        # The hand-over is the controller's word on its newest fresh command, never the altitude.
+        outcome = self.judge.check(pose, handover=self._last_cmd is not None and self._last_cmd.handover)
         est = None if self.estimator is None else self.estimator.update(pose, self.vehicle.vel_own_ned_m_s)
         frame = None
         if outcome is None and sched_t_s >= (self._frame_seq + 1) * cfg.period_s - _EPS_S:
@@ -323,7 +325,7 @@ def unstarted_result(world: World, start: Start, config: SimConfig, detail: str,
     """The 'error' result of an episode that could not begin (`detail` says why), placed at the start."""
     judge = EpisodeJudge(world, handover_alt_m=config.handover_alt_m, time_limit_s=config.time_limit_s,
                          safety_radius_m=config.safety_radius_m)
-    judge.check(Pose(start.x_m, start.y_m, start.alt_m, yaw_rad=start.yaw_rad))
+    judge.check(Pose(start.x_m, start.y_m, start.alt_m, yaw_rad=start.yaw_rad), handover=False)
     return judge_result(config.vehicle_id, judge, "error", detail, clock=clock)
 
 
@@ -337,6 +339,8 @@ def judge_result(vehicle_id: str, judge: EpisodeJudge, outcome: str, detail: str
     pose, v = judge.last_state, judge.verdict
     classes = tuple(f"{c.name}:{c.fraction:.3f}" for c in v.classes) if v else ()
     closest = v.closest_unsafe_m if v else None
+    if not detail and judge.crashed:
+        detail = NO_HANDOVER_REASON
     if not detail:
         detail = v.reason if v else {"timeout": f"no landing within {judge.time_limit_s:.0f} s of {clock} time",
                                      "out_of_world": "the vehicle left the world",

@@ -11,7 +11,7 @@ here, the way an autopilot flying on an optical-flow EKF without GNSS reports it
       -> altitude: a rangefinder below its usable height (alt x (1 + noise)), else the baro:
          truth + a slowly drifting offset (random walk) + white noise
       -> heading: truth + a fixed offset drawn per episode + a random walk
-      -> roll, pitch: truth + a fixed offset + white noise (the AHRS's level error)
+      -> roll, pitch: truth + a fixed offset + a slowly wandering error (the AHRS's level error)
       -> local position: the reported velocity integrated (dead reckoning), `pos_valid` False
 
 Every random draw comes from the estimator's own generator, seeded from the episode seed apart
@@ -59,7 +59,16 @@ Where the values come from:
   noise 1 % of range. Harsh has none (baro only).
 - Heading: 2 deg offset sigma (compass calibration residuals after COMPASS_MOT; harsh 5 deg) and
   a random walk of 0.02 deg/sqrt(s).
-- Roll and pitch: 0.5 deg level error sigma and 0.2 deg noise (AHRS_TRIM residual; harsh 1.5, 0.5).
+- Roll and pitch: 0.5 deg level error sigma (AHRS_TRIM residual; harsh 1.5) and a wandering error of
+  0.2 deg sigma (harsh 0.5) that is correlated over `attitude_noise_tau_s` = 30 s (a first-order
+  Gauss-Markov process). An AHRS integrates its gyros, so its attitude is smooth over a frame
+  interval: its error drifts with vibration and acceleration misreadings, it does not jump. White
+  noise of 0.2 deg per 0.05 s state made the attitude *change* between two frames 0.1 s apart
+  ~3.5 mrad, i.e. ~5 m/s of false visual velocity at 100 m (bench-odometry measured 95 % median
+  error under this profile); a gyro's noise density (~0.01 deg/s/sqrt(Hz) for MEMS IMUs such as
+  the ICM-42688) integrates to ~0.002 deg over 0.1 s. With tau 30 s the change over 0.1 s is
+  0.2 deg x sqrt(2 x 0.1 / 30) ~ 0.3 mrad: still larger than the gyro's, on the safe side.
+  Tau is a modelling choice, not a measured value.
 - Linear drag 0.2 /s for the attitude only: about 11 deg of pitch at 10 m/s. A modelling choice,
   not a measured value: it only makes a cruising body-fixed camera look slightly backwards.
 """
@@ -94,7 +103,8 @@ class EstimatorParams:
     heading_offset_sigma_rad: float = 0.0
     heading_walk_rad_sqrt_s: float = 0.0
     level_offset_sigma_rad: float = 0.0
-    attitude_noise_rad: float = 0.0
+    attitude_noise_rad: float = 0.0  # stationary sigma of the wandering roll/pitch error
+    attitude_noise_tau_s: float = 30.0  # its correlation time
 
     def __post_init__(self) -> None:
         for f in dataclasses.fields(self):
@@ -160,6 +170,7 @@ class Estimator:
         self._level_offset_rad = (params.level_offset_sigma_rad * float(offsets[1]),
                                   params.level_offset_sigma_rad * float(offsets[2]))
         self._baro_offset_m = 0.0
+        self._att_wander_rad = np.zeros(2)  # the Gauss-Markov part of the roll/pitch error
         # The believed velocities of the last `latency_s` (NED), newest last: the reported one is the oldest.
         self._delay_steps = int(round(params.latency_s / dt_s))
         self._believed: deque[np.ndarray] = deque(maxlen=self._delay_steps + 1)
@@ -184,8 +195,11 @@ class Estimator:
             alt = pose.alt_agl_m * (1.0 + p.rangefinder_noise_fraction * float(noise[5]))
         else:
             alt = pose.alt_agl_m + self._baro_offset_m + p.baro_noise_m * float(noise[5])
-        roll = pose.roll_rad + self._level_offset_rad[0] + p.attitude_noise_rad * float(noise[6])
-        pitch = pose.pitch_rad + self._level_offset_rad[1] + p.attitude_noise_rad * float(noise[7])
+        # First-order Gauss-Markov: stationary sigma `attitude_noise_rad`, correlated over tau.
+        keep = math.exp(-self.dt_s / p.attitude_noise_tau_s) if p.attitude_noise_tau_s > 0.0 else 0.0
+        self._att_wander_rad = keep * self._att_wander_rad + p.attitude_noise_rad * math.sqrt(1.0 - keep * keep) * noise[6:8]
+        roll = pose.roll_rad + self._level_offset_rad[0] + float(self._att_wander_rad[0])
+        pitch = pose.pitch_rad + self._level_offset_rad[1] + float(self._att_wander_rad[1])
         # Dead reckoning in the autopilot's (rotated) frame: what LOCAL_POSITION_NED reports on flow.
         self._pos_ned[:2] += body_frd_to_ned(vel_frd, yaw)[:2] * self.dt_s
         self.last = Estimate(alt_agl_m=max(alt, 0.0), vel_body_frd_m_s=tuple(float(v) for v in vel_frd),
@@ -225,9 +239,12 @@ SIM_DEFAULT_VEHICLE_PROFILE = "ideal"  # the sim service and SimConfig; `bench` 
 def default_vehicle_profile(timing_name: str) -> str:
     """The profile `bench`, `sweep`, `up` and `faults` fly when none is asked for, by timing preset.
 
-    Today `ideal` for both presets.
+    `real` (true seconds, what a real vehicle flies): `realistic`, the vehicle dovesei exists for.
+    `reference` (the reproduction of the paper, whose timers run at 6.5 % of true seconds): `ideal`,
+    the paper's simulated drone, which knew its state exactly; ArduCopter's true-second limits
+    (1.5 m/s down) on that compressed clock would leave the paper's policies no time to land.
     """
-    return "ideal"
+    return "ideal" if timing_name == "reference" else "realistic"
 
 
 def vehicle_profile(name: str) -> VehicleProfile:

@@ -5,10 +5,13 @@ autopilot's `VehicleState` on the state key. Here the sim only listens:
 
     state key --Inbox (newest wins)--> newest state of our vehicle with a local position
         -> pose in the world (local NED origin at the start: north = +y, east = +x)
-        -> judge (hand-over altitude, time limit, leaving the world) -> camera frame at the pose,
+        -> judge (the controller's hand-over, time limit, leaving the world)
+        -> camera frame at the pose,
            rendered tilted by the state's roll and pitch (the attitude the frame is labelled with:
            a body-fixed camera sees what the autopilot's attitude says, and a policy that de-tilts
            by that label finds the ground where it is)
+    status key --Inbox (newest wins)--> the controller's `handover` (what ends the episode as a
+        landing; until a status is heard the judge falls back on the altitude crossing)
 
 Frames go out at the frame period of the wall clock, stamped with the state's own stamp (the
 vehicle's clock); with `odometry_rate_hz` the loop also runs at that rate and publishes the visual
@@ -39,7 +42,7 @@ from typing import Any, Protocol
 from dovesei.shared import keys
 from dovesei.shared.clock import WallClock, wall_time_s
 from dovesei.shared.lifecycle import Inbox
-from dovesei.shared.messages import CameraFrame, ClassEntry, EpisodeResult, GroundTruth, VehicleState, VisualOdometry
+from dovesei.shared.messages import CameraFrame, ClassEntry, ControllerStatus, EpisodeResult, GroundTruth, VehicleState, VisualOdometry
 from dovesei.sim.camera import CameraError, optical_axis_ground_m, prebuild_pyramid, render
 from dovesei.sim.core import SimConfig, judge_result, unstarted_result
 from dovesei.sim.dynamics import Pose
@@ -131,11 +134,21 @@ def newest_state(states: Inbox[VehicleState], vehicle_id: str, stats: Any, *,
     return newest
 
 
+def handover_heard(statuses: Inbox[ControllerStatus] | None, vehicle_id: str, last: bool | None) -> bool | None:
+    """The controller's newest word on the hand-over (its status's `handover`); `last` when no new
+    status of `vehicle_id` waits, None while none was ever heard."""
+    while statuses is not None and (status := statuses.poll()) is not None:
+        if status.vehicle_id == vehicle_id:
+            last = status.handover
+    return last
+
+
 def run_external_pose(states: Inbox[VehicleState], publish_frame: Callable[[CameraFrame], None], world: World,
                       start: Start, sim: SimConfig, *, wait_timeout_s: float, state_timeout_s: float,
                       stop: threading.Event, stats: Any,
                       publish_odometry: Callable[[VisualOdometry], None] | None = None,
-                      truth: TruthSource | None = None) -> EpisodeResult | None:
+                      truth: TruthSource | None = None,
+                      statuses: Inbox[ControllerStatus] | None = None) -> EpisodeResult | None:
     """Render at the states received until the judge ends the episode; None when `stop` ends it first.
 
     With `truth`, frames, odometry views and the judge follow its newest pose and attitude instead
@@ -145,6 +158,7 @@ def run_external_pose(states: Inbox[VehicleState], publish_frame: Callable[[Came
     overruns, frames_skipped). With `sim.odometry_rate_hz` > 0 and `publish_odometry`, the loop
     runs at the faster of the two rates and each new state also gives an odometry view, dated by
     the state's own stamp (a state seen twice gives no second view: it would read as a hover).
+    `statuses` carries the controller's hand-over.
     """
     judge = EpisodeJudge(world, handover_alt_m=sim.handover_alt_m, time_limit_s=sim.time_limit_s,
                          safety_radius_m=sim.safety_radius_m)
@@ -156,6 +170,7 @@ def run_external_pose(states: Inbox[VehicleState], publish_frame: Callable[[Came
     last_state_wall_s: float | None = None
     first_state_wall_s: float | None = None
     state: VehicleState | None = None
+    handover: bool | None = None
     odometry = SimOdometry(world, sim.camera, sim.vehicle_id, sim.odometry_rate_hz) \
         if sim.odometry_rate_hz > 0 and publish_odometry is not None else None
     tick_s = sim.period_s if odometry is None else min(sim.period_s, odometry.period_s)
@@ -198,7 +213,8 @@ def run_external_pose(states: Inbox[VehicleState], publish_frame: Callable[[Came
             if state.stamp.clock == "vehicle":
                 true = truth.at(state.stamp.t_s) or true
             pose, attitude_rad = pose_from_truth(true, start, state.stamp.t_s), (true.roll_rad, true.pitch_rad)
-        if judge.check(pose) is not None:
+        handover = handover_heard(statuses, sim.vehicle_id, handover)
+        if judge.check(pose, handover=handover) is not None:
             return judge_result(sim.vehicle_id, judge, judge.outcome, clock="vehicle")
         if odometry is not None:
             odo = odometry.observe(pose.x_m, pose.y_m, pose.alt_agl_m, pose.yaw_rad, state,

@@ -14,11 +14,19 @@ The paper judged landings by eye; here the label map does it. Two pieces:
   from a point to the nearest pixel where a landing would be judged safe (how far a perfect
   lander would have had to fly: the bench's ceiling).
 - `EpisodeJudge` watches vehicle states during an episode and ends it: `out_of_world` when the
-  vehicle leaves the image, the landing verdict when it reaches the hand-over altitude, `timeout`
-  when the sim-time limit runs out. It accumulates the horizontal path length on the way, and
-  keeps the ground the policy last confirmed (`confirm`, placed by the sim from the confirming
-  frame's true pose): at the hand-over, `touchdown_error_m` is the true distance from the
-  hand-over point to it (None for a policy that confirmed nothing).
+  vehicle leaves the image, the landing verdict when the controller hands over (its command says
+  `handover`, which it sends only at/below the hand-over altitude with the policy landing),
+  `timeout` when the sim-time limit runs out. It accumulates the horizontal path length.
+
+  The altitude alone never makes a landing: twice under `harsh` a descent the policy had already
+  aborted sank through the hand-over altitude on inertia and was scored "safe". Such an
+  uncommanded sink goes on (the policy climbs back, or the time runs out); a vehicle that reaches the ground without a
+  hand-over (`GROUND_CONTACT_M`) ends `unsafe`, "on the ground without a hand-over": an
+  unplanned touchdown is a crash, wherever it happens. A caller with no word from the controller
+  (`handover=None`) gets the altitude crossing, the paper's rule. It also keeps the ground the
+  policy last confirmed (`confirm`, placed by the sim from the confirming frame's true pose): at
+  the hand-over, `touchdown_error_m` is the true distance from the hand-over point to it (None
+  for a policy that confirmed nothing).
 
 Which classes are safe belongs to the world (`World.classes`); nothing here knows class ids.
 """
@@ -33,15 +41,17 @@ import cv2
 import numpy as np
 
 from dovesei.shared.errors import DoveseiError
+from dovesei.shared.mission import HANDOVER_ALT_M, SAFETY_RADIUS_M
 from dovesei.shared.validate import is_number
 from dovesei.sim.dynamics import Pose
 from dovesei.sim.world import World
 
 OUTSIDE_WORLD_NAME = "outside the world"
 DEFAULT_ZERO_TOLERANCE_NAMES = ("person", "people", "pedestrian", "human")
-SAFETY_RADIUS_M = 2.0  # the landing disk the paper's criterion looks at
 TOLERANCE_FRAC = 0.01  # unsafe share of the disk forgiven (label anti-aliasing along edges)
 SEARCH_RADIUS_M = 50.0  # how far `closest_unsafe_m` looks
+GROUND_CONTACT_M = 0.1  # true altitude at which an un-handed-over vehicle has hit the ground
+NO_HANDOVER_REASON = "on the ground without a hand-over (an uncommanded descent)"
 
 
 class JudgeError(DoveseiError, ValueError):
@@ -236,7 +246,7 @@ class EpisodeJudge:
     def __init__(
         self,
         world: World,
-        handover_alt_m: float = 20.0,
+        handover_alt_m: float = HANDOVER_ALT_M,
         time_limit_s: float = 1200.0,
         safety_radius_m: float = SAFETY_RADIUS_M,
         tolerance_frac: float = TOLERANCE_FRAC,
@@ -253,7 +263,8 @@ class EpisodeJudge:
         self.tolerance_frac = tolerance_frac
         self.search_radius_m = search_radius_m
         self.outcome: str | None = None  # "safe", "unsafe", "timeout", "out_of_world", "not_judged" once ended
-        self.verdict: Verdict | None = None  # set when the hand-over altitude was reached
+        self.verdict: Verdict | None = None  # set when the controller handed over
+        self.crashed = False  # reached the ground without a hand-over (outcome "unsafe", no verdict)
         self.path_length_m = 0.0  # horizontal, summed over the states checked
         self.start_t_s: float | None = None
         self.last_state: Pose | None = None
@@ -272,8 +283,10 @@ class EpisodeJudge:
             return 0.0
         return self.last_state.t_s - self.start_t_s
 
-    def check(self, state: Pose) -> str | None:
-        """Feed the newest state; returns the outcome once the episode has ended (then always the same)."""
+    def check(self, state: Pose, handover: bool | None = None) -> str | None:
+        """Feed the newest state and whether the controller has handed over (None: no word from
+        it, the altitude crossing decides); returns the outcome once the episode has ended (then
+        always the same)."""
         if self.outcome is not None:
             return self.outcome
         if self.last_state is None:
@@ -283,17 +296,20 @@ class EpisodeJudge:
         self.last_state = state
         # Order matters: a vehicle outside the image cannot be judged, and reaching the hand-over
         # altitude on the last tick still counts as a landing.
+        landed = state.alt_agl_m <= self.handover_alt_m if handover is None else handover
         if not self.world.contains(state.x_m, state.y_m):
             self.outcome = "out_of_world"
-        elif state.alt_agl_m <= self.handover_alt_m and self.world.labels is None:
+        elif landed and self.world.labels is None:
             self.outcome = "not_judged"
-        elif state.alt_agl_m <= self.handover_alt_m:
+        elif landed:
             self.verdict = judge_landing(self.world, state.x_m, state.y_m, self.safety_radius_m,
                                          self.tolerance_frac, self.search_radius_m)
             self.outcome = self.verdict.outcome
             if self.confirmed_xy_m is not None:
                 self.touchdown_error_m = math.hypot(state.x_m - self.confirmed_xy_m[0],
                                                     state.y_m - self.confirmed_xy_m[1])
+        elif state.alt_agl_m <= GROUND_CONTACT_M:
+            self.outcome, self.crashed = "unsafe", True
         elif self.sim_time_s >= self.time_limit_s:
             self.outcome = "timeout"
         return self.outcome
@@ -309,6 +325,7 @@ class EpisodeJudge:
             "final_y_m": st.y_m if st else None,
             "final_alt_m": st.alt_agl_m if st else None,
             "verdict": self.verdict.to_dict() if self.verdict else None,
+            "crashed": self.crashed,
             "confirmed_xy_m": self.confirmed_xy_m,
             "touchdown_error_m": self.touchdown_error_m,
         }

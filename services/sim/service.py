@@ -5,6 +5,8 @@
                        --VehicleState-> state key
                        --EpisodeResult-> episode key   (once, at the end; also logged)
     cmd key --Inbox--> VelocityCommand --> SimCore.step
+    status key --Inbox (newest)--> ControllerStatus --> SimCore.note_status (the judge's confirmed
+                                   ground: where the policy's confirming look lies, for the touchdown error)
 
 Three ways to run an episode, chosen by the config:
 
@@ -49,7 +51,7 @@ from dovesei.shared.clock import WallClock
 from dovesei.shared.codec import encode
 from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.shared.lifecycle import Inbox, declare_alive, install_stop_handlers, is_alive, write_stats
-from dovesei.shared.messages import CameraFrame, EpisodeResult, VehicleState, VelocityCommand, VisualOdometry
+from dovesei.shared.messages import CameraFrame, ControllerStatus, EpisodeResult, VehicleState, VelocityCommand, VisualOdometry
 from dovesei.shared.timing import TIMING_NAMES
 from dovesei.shared.zconfig import open_session
 from dovesei.sim.core import SimConfig, SimCore, StepOut, unstarted_result
@@ -176,6 +178,9 @@ class _Wire:
                 if config.sim.odometry_rate_hz > 0 else None
             self.state = None
             self.states: Inbox[VehicleState] | None = None
+            # The controller's newest status: its hand-over, which alone ends an external-pose
+            # episode as a landing (sim.judge), and the look that confirmed its spot.
+            self.statuses = self._keep(Inbox(session, keys.status(vid), ControllerStatus, newest_only=True))
             if config.external_pose:
                 # The controller publishes the autopilot's state here; the sim only listens.
                 self.states = self._keep(Inbox(session, keys.state(vid), VehicleState, newest_only=True))
@@ -277,7 +282,7 @@ def _run_external(wire: _Wire, world: World, start: Start, config: SimServiceCon
         return run_external_pose(wire.states, lambda frame: wire.publish_frame(frame, stats), world, start,
                                  config.sim, publish_odometry=lambda odo: wire.publish_odometry(odo, stats),
                                  wait_timeout_s=config.wait_timeout_s, state_timeout_s=config.cmd_timeout_s,
-                                 stop=stop, stats=stats, truth=truth)
+                                 stop=stop, stats=stats, truth=truth, statuses=wire.statuses)
 
     if config.sitl_truth is None:
         return fly(None)
@@ -326,9 +331,22 @@ def _run_lockstep(wire: _Wire, core: SimCore, config: SimServiceConfig, stop: th
             return core.abort(f"no command from the controller of {vid} answering state {out.state.seq} "
                               f"within {config.cmd_timeout_s:g} s (key {keys.cmd(vid)})")
         stats.on_command(cmd, wire.cmds.last_recv_wall_s)
+        _note_status(wire, core, config)
         out = core.step(cmd)
         stats.steps += 1
     return None
+
+
+def _note_status(wire: _Wire, core: SimCore, config: SimServiceConfig) -> None:
+    """Hand the controller's newest status (ours only) to the core's judge."""
+    if wire.statuses is None:
+        return
+    status = None
+    while (st := wire.statuses.poll()) is not None:
+        if st.vehicle_id == config.sim.vehicle_id:
+            status = st
+    if status is not None:
+        core.note_status(status)
 
 
 def _await_answer(cmds: Inbox[VelocityCommand], state_seq: int, config: SimServiceConfig, stop: threading.Event,
@@ -363,6 +381,7 @@ def _run_realtime(wire: _Wire, core: SimCore, config: SimServiceConfig, stop: th
     due_s = clock.now_s() + period_s
     while out.result is None and clock.sleep_until(due_s, stop):
         cmd = _newest_command(wire.cmds, config, stats)
+        _note_status(wire, core, config)
         out = core.step(cmd)  # None keeps the last command, which then times out in the vehicle
         stats.steps += 1
         stats.commands_not_fresh = core.commands_dropped

@@ -14,16 +14,17 @@ from dataclasses import dataclass
 import numpy as np
 
 from dovesei.shared.errors import ConfigError
+from dovesei.shared.mission import HANDOVER_ALT_M, MIN_DESCENT_M
 from dovesei.shared.validate import is_number
 from dovesei.sim.camera import CameraModel
 from dovesei.sim.world import World, WorldError
 
 
-# Start altitudes `bench` and `up` accept. At least 5 m above the 20 m hand-over altitude, so an
+# Start altitudes `bench` and `up` accept. At least 5 m above the default (20 m) hand-over altitude, so an
 # episode has a descent to judge (a flow-navigating ArduCopter holds 48-69 m, issue 23: starts at
 # 40 and 60 m must fly); at most 200 m, twice the paper's 100 m and beyond the 120 m ceiling of
 # EU and US rules, where the 352 px camera still resolves a person (~0.6 m per pixel).
-START_ALT_MIN_M = 25.0
+START_ALT_MIN_M = HANDOVER_ALT_M + MIN_DESCENT_M
 START_ALT_MAX_M = 200.0
 
 
@@ -31,7 +32,7 @@ def check_start_alt_m(what: str, alt_m: object) -> float:
     """A start altitude in [START_ALT_MIN_M, START_ALT_MAX_M], or a one-line ConfigError naming `what`."""
     if not (is_number(alt_m) and START_ALT_MIN_M <= alt_m <= START_ALT_MAX_M):
         raise ConfigError(f"{what} must be a number of metres in [{START_ALT_MIN_M:g}, {START_ALT_MAX_M:g}] (the "
-                          f"hand-over is at 20 m), got {alt_m!r}")
+                          f"default hand-over is at {HANDOVER_ALT_M:g} m), got {alt_m!r}")
     return float(alt_m)
 
 

@@ -36,13 +36,19 @@ from typing import Any
 import cv2
 import numpy as np
 
+from dovesei.shared.codec import image_header_size
 from dovesei.shared.errors import ConfigError, DoveseiError
+from dovesei.shared.messages import FieldError
 from dovesei.shared.validate import positive
 from dovesei.sim import synthetic
 
 log = logging.getLogger(__name__)
 
 OUT_OF_WORLD_LABEL = 255  # written by the camera outside the world; never a class id
+
+# A world image may be this large (a synthetic world's limit too; 16384^2 RGB is 805 MB decoded).
+MAX_WORLD_SIDE_PX = 16384
+MAX_WORLD_FILE_BYTES = 2 * 1024**3
 
 # The world folders shipped inside the package (package data), and the short names users type.
 WORLDS_DIR = Path(__file__).resolve().parent / "worlds"
@@ -310,18 +316,41 @@ def _parse_classes(raw: Any, meta_path: Path) -> dict[int, ClassInfo]:
     return classes
 
 
+def _read_checked(path: Path, what: str, flags: int) -> np.ndarray:
+    """Decode an image file once its header says its size is one a world can have.
+
+    The size comes first: a 631-byte image.jpg claiming 30000x30000 px cost 68 s and 5.2 GB to
+    decode, a 1 MB labels.png of the same size 19 s and 1.8 GB.
+    """
+    try:
+        if path.stat().st_size > MAX_WORLD_FILE_BYTES:
+            raise WorldError(f"{what} {str(path)!r}: {path.stat().st_size} bytes, more than "
+                             f"{MAX_WORLD_FILE_BYTES} a world file may have")
+        buf = path.read_bytes()
+    except OSError as exc:
+        raise WorldError(f"{what} {str(path)!r}: unreadable ({exc.strerror or exc})") from None
+    try:
+        height, width = image_header_size(buf, what)
+    except FieldError as exc:
+        raise WorldError(f"{what} {str(path)!r}: unreadable ({exc})") from None
+    if not (1 <= height <= MAX_WORLD_SIDE_PX and 1 <= width <= MAX_WORLD_SIDE_PX):
+        raise WorldError(f"{what} {str(path)!r}: {width}x{height} px, outside 1..{MAX_WORLD_SIDE_PX} px a side "
+                         f"(refused before decoding)")
+    image = cv2.imdecode(np.frombuffer(buf, np.uint8), flags)
+    # Sorted: OpenCV turns a JPEG by its EXIF orientation, which swaps the two sides.
+    if image is None or sorted(image.shape[:2]) != sorted((height, width)):
+        raise WorldError(f"{what} {str(path)!r}: unreadable (its {width}x{height} px could not be decoded)")
+    return image
+
+
 def _read_image(path: Path) -> np.ndarray:
     # IMREAD_COLOR turns grey and RGBA files into 3-channel 8-bit BGR, which is what we want.
-    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if bgr is None:
-        raise WorldError(f"image {str(path)!r}: unreadable (not an image OpenCV can decode)")
+    bgr = _read_checked(path, "image", cv2.IMREAD_COLOR)
     return np.ascontiguousarray(bgr[:, :, ::-1])
 
 
 def _read_labels(path: Path) -> np.ndarray:
-    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if raw is None:
-        raise WorldError(f"label image {str(path)!r}: unreadable (not an image OpenCV can decode)")
+    raw = _read_checked(path, "label image", cv2.IMREAD_UNCHANGED)
     if raw.dtype != np.uint8:
         raise WorldError(f"label image {str(path)!r}: must be 8-bit class ids, got {raw.dtype}")
     if raw.ndim == 3:

@@ -20,13 +20,14 @@ class RecordingPolicy:
 
     name = "double"
 
-    def __init__(self) -> None:
+    def __init__(self, landing: bool = True) -> None:
         self.observations: list[Observation] = []
         self.resets = 0
+        self.landing = landing  # committed to landing: a hand-over at 20 m is its to declare
 
     def step(self, obs: Observation) -> Decision:
         self.observations.append(obs)
-        return Decision(VEL_FRD, 0.1, "AIMING", (10.0, 20.0), 123.0, 0.42, {})
+        return Decision(VEL_FRD, 0.1, "AIMING", (10.0, 20.0), 123.0, 0.42, {}, landing=self.landing)
 
     def reset(self) -> None:
         self.resets += 1
@@ -142,16 +143,39 @@ def test_status_carries_the_decision_and_the_watchdog_fields() -> None:
 
 def test_handover_stops_commanding_with_hysteresis() -> None:
     core, _ = make_core(lockstep=True, handover_alt_m=20.0, handover_release_m=2.0)
-    core.on_heatmap(heatmap(0, 0.0), 0.0)
+    core.on_heatmap(heatmap(0, 0.0, alt_m=20.5), 0.0)
     cmd, status = core.tick(state(0, 0.05, alt_m=20.5, await_seq=0))
     assert status.state == "AIMING" and cmd.vel_body_frd_m_s == VEL_FRD
-    cmd, status = core.tick(state(1, 0.10, alt_m=20.0))
-    assert status.state == "HANDOVER" and cmd.vel_body_frd_m_s == (0.0, 0.0, 0.0)
+    for k in (1, 2):  # at the altitude: it must hold a few states before the hand-over
+        cmd, status = core.tick(state(k, 0.05 + 0.05 * k, alt_m=20.0))
+        assert status.state == "AIMING" and not cmd.handover
+    cmd, status = core.tick(state(3, 0.20, alt_m=20.0))
+    assert status.state == "HANDOVER" and cmd.vel_body_frd_m_s == (0.0, 0.0, 0.0) and cmd.handover
     assert "hand-over" in status.reason and core.mode is Mode.HANDOVER
-    _, status = core.tick(state(2, 0.15, alt_m=21.5))  # noise above 20 m: still handed over
+    _, status = core.tick(state(4, 0.25, alt_m=21.5))  # noise above 20 m: still handed over
     assert status.state == "HANDOVER"
-    _, status = core.tick(state(3, 0.20, alt_m=22.5))  # clearly above: control resumes
+    _, status = core.tick(state(5, 0.30, alt_m=22.5))  # clearly above: control resumes
     assert status.state == "AIMING"
+
+
+def test_sinking_below_the_handover_altitude_without_the_policy_landing_is_no_handover() -> None:
+    # Twice under `harsh` an aborted descent sank through 20 m and was taken for a landing.
+    policy = RecordingPolicy(landing=False)
+    core = ControllerCore(ControllerConfig(lockstep=True, handover_alt_m=20.0), policy=policy)
+    core.on_heatmap(heatmap(0, 0.0, alt_m=21.0), 0.0)
+    cmd, status = core.tick(state(0, 0.05, alt_m=21.0, await_seq=0))
+    assert not cmd.handover
+    for k in range(1, 4):
+        cmd, status = core.tick(state(k, 0.05 + 0.05 * k, alt_m=19.0))
+        assert core.mode is Mode.OK and status.state == "AIMING" and not cmd.handover
+        assert cmd.vel_body_frd_m_s == VEL_FRD  # still the policy's (it climbs back when it wants to)
+    assert core.rejected["below hand-over, not landing"] == 1  # once per sink, not per tick
+    # The policy commits: the very next tick is the hand-over, and the command says so.
+    policy.landing = True  # the altitude has held for 3 states already: the next tick hands over
+    core.on_heatmap(heatmap(1, 0.2, alt_m=19.0), 0.0)
+    cmd, status = core.tick(state(4, 0.25, alt_m=19.0, await_seq=1))
+    assert core.mode is Mode.HANDOVER and status.state == "HANDOVER" and cmd.handover
+    assert cmd.vel_body_frd_m_s == (0.0, 0.0, 0.0)
 
 
 def test_other_vehicles_and_other_clocks_are_refused() -> None:
@@ -264,8 +288,13 @@ def test_landed_above_the_handover_altitude_is_refused(terminal: str) -> None:
     assert f"declared {terminal} at 93.0 m" in status.reason and cmd.vel_body_frd_m_s == (0.0, 0.0, 0.0)
     core.tick(state(1, 0.07, alt_m=93.0))  # the same decision again: still refused, counted once
     assert core.rejected["terminal above hand-over"] == 1 and core.mode is Mode.POLICY_FAULT
-    _, status = core.tick(state(2, 0.10, alt_m=19.5))  # at the hand-over altitude it is the real thing
-    assert core.mode is Mode.HANDOVER and status.state == "HANDOVER"
+    # At the hand-over altitude (reached 10 s later) it is the real thing, once the altitude holds.
+    _, status = core.tick(state(2, 10.0, alt_m=19.5))
+    assert core.mode is Mode.HOLD and "confirming" in status.reason
+    core.tick(state(3, 10.05, alt_m=19.5))
+    _, status = core.tick(state(4, 10.10, alt_m=19.5))
+    assert core.mode is Mode.HANDOVER and status.state == "HANDOVER" and status.handover
+    assert core.rejected["terminal above hand-over"] == 1 and core.rejected["policy restarted"] == 0
 
 
 def test_the_policy_dt_is_capped_across_a_perception_gap() -> None:

@@ -63,7 +63,7 @@ class ForwardAndDown:
 
     def step(self, obs: Observation) -> Decision:
         self.steps += 1
-        return Decision((1.0, 0.0, 1.5), 0.0, "LANDING", (32.0, 32.0), 10.0, 0.5, {})
+        return Decision((1.0, 0.0, 1.5), 0.0, "LANDING", (32.0, 32.0), 10.0, 0.5, {}, landing=True)
 
     def reset(self) -> None:
         pass
@@ -122,10 +122,11 @@ def fly(zenoh_pair) -> Iterator:
     service_session, test_session = zenoh_pair
     closers: list = []
 
-    def go(mode: str, until, ekf: FakeEkf | None = None, **config_kw: object) -> Flight:
+    def go(mode: str, until, ekf: FakeEkf | None = None, flavour: str = "ardupilot", **config_kw: object) -> Flight:
         port = free_port(socket.SOCK_DGRAM)
-        fake = FakeAutopilot(f"udpin:127.0.0.1:{port}", flavour="ardupilot", mode="GUIDED", armed=True,
-                             alt_m=START_ALT_M, heartbeat_hz=10, ekf=ekf)
+        # PX4 starts in LOITER: it enters OFFBOARD only once setpoints stream (the adapter's switch).
+        fake = FakeAutopilot(f"udpin:127.0.0.1:{port}", flavour=flavour, mode="GUIDED" if flavour == "ardupilot"
+                             else "LOITER", armed=True, alt_m=START_ALT_M, heartbeat_hz=10, ekf=ekf)
         fake.start()
         closers.append(fake.stop)
         config = ControllerConfig(lockstep=False, timing="real", vehicle_url=f"udpout:127.0.0.1:{port}",
@@ -352,3 +353,19 @@ def test_a_velocity_alone_lets_ekf3_lose_its_position_and_the_controller_holds(f
     assert held and all(st.watchdog == "hold" and st.nav_source == "none" for st in held if st.state != "HANDOVER")
     assert any("not fusing" in st.nav_reason and "horizontal position" in st.nav_reason for st in held)
     assert fake.mode == "LAND"
+
+
+def test_px4_flies_offboard_attitude_setpoints_on_the_visual_velocity_to_the_handover(fly) -> None:
+    """PX4: no mode to switch to; after the loss OFFBOARD gets attitude setpoints whose thrust is a
+    collective thrust closed here around the hover thrust (the fake flies it as one)."""
+    flight = fly("attitude", handed_over, flavour="px4", mavlink_allow_mode_switch=True)
+    fake = flight.fake
+    assert fake.mode == "OFFBOARD" and fake.armed
+    flown = [t for t in fake.attitude_targets if t.accepted]
+    assert len(flown) > 50 and all(t.type_mask == mv.ATTITUDE_TYPE_MASK_ANGLES_THRUST for t in flown)
+    assert any(t.thrust < 0.5 for t in flown)  # less than hover: descending
+    assert any(st.nav_source == "visual" for st in after_loss(flight))
+    assert -fake.position_ned_m[2] <= 20.5
+    nogps = [v for mode, v in flight.camera.truth if mode == "OFFBOARD"]
+    late = nogps[-60:-20]
+    assert float(np.median([v[0] for v in late])) == pytest.approx(1.0, abs=0.3)

@@ -104,6 +104,23 @@ def test_a_bad_sample_is_counted_and_dropped_and_the_link_lives_on(fly: Fly, nam
     assert all(math.isfinite(v) for v in (state.roll_rad, state.pitch_rad, state.yaw_rad, *state.vel_body_frd_m_s))
 
 
+@pytest.mark.parametrize("alt_m", [140.0, 19.0])  # a 100 m jump; one forged state under the hand-over altitude
+def test_a_local_position_no_multirotor_flew_to_is_dropped(fly: Fly, alt_m: float) -> None:
+    fake, vehicle = fly(fake_kw={"alt_m": 40.0})
+    barrier(vehicle)
+    now_s = vehicle.poll_state().stamp.t_s  # the fake's boot clock: the forgery claims to be current
+    for k in range(2):  # fewer than a real step needs to be believed
+        fake.inject("local_position_ned", time_boot_ms=int((now_s + 0.01 * (k + 1)) * 1000), x=0.0, y=0.0,
+                    z=-alt_m, vx=0.0, vy=0.0, vz=0.0)
+    assert wait_until(lambda: vehicle.samples_rejected["LOCAL_POSITION_NED jump"] >= 2, 5.0), \
+        dict(vehicle.samples_rejected)
+    barrier(vehicle)
+    seen = []
+    assert wait_until(lambda: (st := vehicle.poll_state()) is not None and seen.append(st.alt_agl_m) is None
+                      and len(seen) >= 3, 5.0)
+    assert all(39.0 < a < 41.0 for a in seen), seen
+
+
 def test_huge_commands_are_clamped_not_fatal(fly: Fly) -> None:
     fake, vehicle = fly(limits=SpeedLimits(horizontal_m_s=10.0, up_m_s=2.5, down_m_s=1.5))
     # The message layer refuses 1e299 already; the largest it lets through is still clamped here.

@@ -218,7 +218,7 @@ class Descend:
     name = "descend"
 
     def step(self, obs: Observation) -> Decision:
-        return Decision((0.0, 0.0, 1.0), 0.0, "LANDING", None, 10.0, 0.5, {})
+        return Decision((0.0, 0.0, 1.0), 0.0, "LANDING", None, 10.0, 0.5, {}, landing=True)
 
     def reset(self) -> None:
         pass
@@ -232,15 +232,16 @@ def test_a_flight_controller_gets_setpoints_then_handover_then_hold_on_stop(zeno
     gen = start_service(zenoh_pair, config, vehicle=vehicle, core=core)
     h, thread = next(gen)
     try:
-        h.put_heatmap(heatmap(0, 0.0))
+        h.put_heatmap(heatmap(0, 0.0, alt_m=22.0))
         assert wait_until(lambda: not vehicle.states and "handover" in vehicle.calls, DEADLINE_S)
         stats = h.finish(thread)
     finally:
         gen.close()
     assert vehicle.calls.count("handover") == 1
     assert vehicle.calls[-1] == "hold", "told to hold on stop; run() does not close a vehicle it was handed"
-    # No setpoint once handed over (at/below 20 m): the adapter's hand-over action owns the vehicle.
-    assert vehicle.sent and all(c.state_seq <= 3 for c in vehicle.sent)
+    # No setpoint once handed over (the 3rd state at/below 20 m, seq 6): the adapter's hand-over
+    # action owns the vehicle.
+    assert vehicle.sent and all(c.state_seq <= 5 for c in vehicle.sent)
     assert stats.commands_sent == len(vehicle.sent)
 
 

@@ -11,11 +11,11 @@ import pytest
 import zenoh
 
 from dovesei.faults import main as faults_main
-from dovesei.faults import parse_faults
+from dovesei.faults import parse_faults, table, totals
 from dovesei.faults.inject import FORGED_SEQ_BASE, restamped
 from dovesei.faults.network import LossProfile, Relay, Router, client_config
 from dovesei.faults.checks import HOLD_S, Observer, check_run
-from dovesei.faults.scenario import FAULTS, run_scenario
+from dovesei.faults.scenario import FAULTS, RunResult, run_scenario
 from dovesei.shared import keys
 from dovesei.shared.codec import decode, encode
 from dovesei.shared.errors import ConfigError
@@ -102,6 +102,32 @@ def test_the_checks_catch_a_late_hold_a_blind_descent_and_a_mid_air_landing() ->
     assert not any("forged heatmap" in v for v in off_timeline), "a tick on a forged past state is not followed"
 
 
+def _run(fault: str, violations: tuple[str, ...] = (), void: str | None = None) -> RunResult:
+    return RunResult(fault, 12, 3, "out_of_world", None, "", violations, void, False, False, False, None, 9.0, {})
+
+
+def test_a_run_whose_fault_was_never_injected_is_void_not_violations() -> None:
+    # Seed 12: every run left the 400 m world before the descent the fault waits for; the report
+    # named no failed segmenter, nothing held or resumed, and that made 25 "violations".
+    obs = Observer("uav1")
+    obs.handle(Sample("status", 0.05, encode(_status(0.05, 0.05, "ok", 0.0, alt_m=50.0, state="SEARCHING"))))
+    obs.heatmaps.append((0.0, 1, 0.0))
+    violations, facts = check_run(FAULTS["segmenter-kill"], obs, Recorder((0.0, 0.0, 50.0), video=False), None,
+                                  None, None)
+    assert violations == [] and facts["held"] is False
+    # The safety rules still hold in a void run.
+    mid_air = Observer("uav1")
+    mid_air.handle(Sample("status", 0.05, encode(_status(0.05, 0.05, "ok", 0.0, alt_m=45.0, state="LANDED"))))
+    assert any(v.startswith("mid-air") for v in check_run(FAULTS["loss"], mid_air, Recorder((0.0, 0.0, 50.0),
+                                                          video=False), None, None, None)[0])
+    summary = totals([_run("segmenter-kill", void="the run ended before the fault was injected")] * 10
+                     + [_run("loss")])
+    assert summary["violations"] == 0 and summary["void"] == 10 and summary["untested"] == ["segmenter-kill"]
+    assert summary["per_fault"]["segmenter-kill"]["void"] == 10
+    text = table(summary)
+    assert "never injected" in text and "segmenter-kill" in text.splitlines()[-1]
+
+
 # ---------------------------------------------------------------- every fault, real processes
 
 
@@ -110,6 +136,7 @@ def test_each_fault_scenario_keeps_every_rule(tmp_path: Path, name: str) -> None
     t0 = time.monotonic()
     r = run_scenario(FAULTS[name], seed=0, out=tmp_path / name)
     logs = "\n".join(f"--- {p.name}\n" + p.read_text()[-2000:] for p in sorted((tmp_path / name / "logs").glob("*")))
+    assert r.void is None, r.void  # a run that never injected its fault tested nothing
     assert not r.violations, f"{r.violations[:5]}\n{logs}"
     assert not r.unsafe and not r.mid_air_handover
     assert r.failure_child == FAULTS[name].names, r.failure

@@ -78,3 +78,17 @@ def test_no_spot_or_no_field_of_view_draws_no_circle() -> None:
     # Without the field of view the radius cannot be known: the cross only, never a guessed circle.
     ys, xs = np.nonzero(_magenta(_policy_panel(_compose(_frame(hfov_rad=None), SIDE))))
     assert (np.hypot(xs - 242, ys - 122) < 16).all()
+
+
+def test_the_confirming_look_is_marked_in_its_own_frame_only() -> None:
+    """The look that confirmed the spot carries a cross at the confirmed pixel; a later frame only
+    says how many frames ago that was (its own pixels show other ground)."""
+    plain = _policy_panel(_compose(_frame(), SIDE))
+    here = _policy_panel(_compose(_frame(confirmed_frames_ago=0, confirmed_px=(50.0, 40.0)), SIDE))
+    changed = np.any(here != plain, axis=2)
+    changed[:80, :] = False  # the caption bar and the text lines under it
+    ys, xs = np.nonzero(changed)
+    assert xs.size > 0 and abs(np.median(xs) - 40.5 * 4) <= 3 and abs(np.median(ys) - 50.5 * 4) <= 3
+    later = _policy_panel(_compose(_frame(confirmed_frames_ago=3), SIDE))
+    moved = np.any(later != plain, axis=2)
+    assert moved.any() and not moved[80:, :].any()  # it says so in text, and draws no cross

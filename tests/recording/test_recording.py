@@ -105,6 +105,34 @@ def test_replay_command_writes_its_report(flight, tmp_path: Path, capsys) -> Non
     assert sum(1 for _ in again.messages((VehicleState,))) >= doc["ticks"]
 
 
+@pytest.mark.parametrize("keep", ["all but 100 bytes", "half", "a tenth"])
+def test_a_recording_cut_anywhere_replays_up_to_the_cut(flight, tmp_path: Path, keep: str, capsys) -> None:
+    # What a crash or a power loss leaves: no footer, no summary, maybe half a chunk. Was: not
+    # replayable at all, even with only the last 100 bytes missing.
+    path, _, live, statuses = flight
+    data = path.read_bytes()
+    size = {"all but 100 bytes": len(data) - 100, "half": len(data) // 2, "a tenth": len(data) // 10}[keep]
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[:size])
+    recording = FlightRecording(cut)
+    assert not recording.complete and recording.meta("run")["policy"] == "dovesei"
+    read = [m for _, m in recording.messages((ControllerStatus,))]
+    assert recording.cut is not None and "near byte" in recording.cut
+    assert read == statuses[:len(read)]  # a prefix, exactly as recorded
+    if keep == "all but 100 bytes":
+        assert read == statuses  # only the footer was lost
+    else:
+        assert 0 < len(read) < len(statuses)
+    assert "recovered the" in recording.describe()
+    assert replay_main([str(cut), "--out", str(tmp_path / "r")]) == 0
+    doc = json.loads((tmp_path / "r" / "replay.json").read_text())
+    assert doc["recording_cut"] and doc["recovered_messages"] > 0 and doc["same"] == doc["compared"] > 0
+    assert "is cut" in capsys.readouterr().out
+    whole = FlightRecording(path)
+    assert whole.complete and sum(1 for _ in whole.messages((ControllerStatus,))) == len(statuses)
+    assert whole.cut is None
+
+
 def test_not_a_recording_is_one_clear_error(tmp_path: Path) -> None:
     bad = tmp_path / "x.mcap"
     bad.write_bytes(b"not mcap at all")

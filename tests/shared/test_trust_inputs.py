@@ -19,7 +19,7 @@ import pytest
 import zenoh
 
 from dovesei.shared import keys
-from dovesei.shared.clock import Arrival, DataClock, StampBound, own_time
+from dovesei.shared.clock import REANCHOR_SAMPLES, Arrival, DataClock, StampBound, own_time
 from dovesei.shared.codec import decode, encode, jpeg_header_size
 from dovesei.shared.errors import ProtocolError
 from dovesei.shared.lifecycle import FLOOD_DEPTH, MAX_REASONS, REJECT_STAMP, Inbox, RateLimitedLog, wait_until
@@ -182,6 +182,29 @@ def test_a_backlog_after_an_outage_is_accepted_and_live_samples_keep_coming() ->
         assert bound.judge("uav1", Stamp(t_last + 3.2 + 0.2 * k, "vehicle"), Arrival(a_long + 0.001 * k)) is None
     assert bound.judge("uav1", Stamp(t_last + 3.2 + 30.2, "vehicle"), Arrival(a_long + 0.2)) is None
     assert bound.judge("uav1", Stamp(t_last + 3.2 + 60.0, "vehicle"), Arrival(a_long + 2.0)) is not None
+
+
+def test_an_old_first_stamp_cannot_make_fresh_frames_look_like_the_future() -> None:
+    # The sim's slow first render: its first frame reaches the segmenter 3 s behind the vehicle's
+    # clock, then fresh frames follow at 2 Hz. Was: refused for the whole 10 s learning window,
+    # and `up` ended the flight "segmenter hung" after 8 s.
+    bound = StampBound(1.0)
+    assert bound.judge("uav1", Stamp(100.0, "vehicle"), Arrival(50.0)) is None  # old: the clock is ~103 s
+    verdicts = [bound.judge("uav1", Stamp(103.0 + 0.5 * k, "vehicle"), Arrival(50.0 + 0.5 * k)) for k in range(1, 21)]
+    refused = [v for v in verdicts if v is not None]
+    assert refused and all("leads" in v for v in refused)
+    assert len(refused) < REANCHOR_SAMPLES and verdicts[REANCHOR_SAMPLES - 1:] == [None] * (21 - REANCHOR_SAMPLES)
+    # Re-anchored on the live clock: a stamp leading it is refused again.
+    assert bound.judge("uav1", Stamp(140.0, "vehicle"), Arrival(60.1)) is not None
+
+
+def test_a_steady_forged_stream_never_re_anchors_while_honest_samples_arrive() -> None:
+    bound = StampBound(1.0)
+    for k in range(100):  # 10 s: honest at 5 Hz, a forger 30 s ahead in step with it
+        a_s = 10.0 + 0.2 * k
+        assert bound.judge("uav1", Stamp(100.0 + 0.2 * k, "vehicle"), Arrival(a_s)) is None
+        if k:
+            assert bound.judge("uav1", Stamp(130.0 + 0.2 * k, "vehicle"), Arrival(a_s + 0.01)) is not None
 
 
 def test_lockstep_sim_time_is_not_bounded_by_rate() -> None:

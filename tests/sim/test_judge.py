@@ -127,6 +127,21 @@ def test_episode_ends_on_handover_with_a_verdict_and_path_length() -> None:
     assert summary["outcome"] == "safe" and summary["verdict"]["outcome"] == "safe"
 
 
+def test_only_the_controllers_handover_ends_an_episode_as_a_landing() -> None:
+    world = world_of(grass())
+    judge = EpisodeJudge(world)
+    assert judge.check(Pose(10.0, 10.0, 30.0, t_s=0.0), handover=False) is None
+    # An aborted descent sinking through 20 m (the harsh-profile case) is no landing ...
+    assert judge.check(Pose(10.0, 10.0, 19.0, t_s=1.0), handover=False) is None
+    assert judge.check(Pose(10.0, 10.0, 12.0, t_s=2.0), handover=False) is None and judge.verdict is None
+    # ... the controller's hand-over is, at whatever altitude it is declared.
+    assert judge.check(Pose(10.0, 10.0, 18.0, t_s=3.0), handover=True) == "safe" and judge.verdict is not None
+    crash = EpisodeJudge(world)
+    crash.check(Pose(10.0, 10.0, 30.0, t_s=0.0), handover=False)
+    assert crash.check(Pose(10.0, 10.0, 0.0, t_s=9.0), handover=False) == "unsafe"
+    assert crash.crashed and crash.verdict is None and crash.summary()["crashed"] is True
+
+
 def test_episode_timeout_and_out_of_world() -> None:
     world = world_of(grass())  # 50 m square
     judge = EpisodeJudge(world, time_limit_s=100.0)

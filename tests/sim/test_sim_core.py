@@ -40,17 +40,23 @@ def world() -> World:
     return split_world()
 
 
-def command(state: VehicleState, vel_frd_m_s: tuple[float, float, float], yaw_rate_rad_s: float = 0.0) -> VelocityCommand:
-    """The answer a lockstep controller gives to `state`."""
-    return VelocityCommand(state.vehicle_id, state.seq, state.stamp, vel_frd_m_s, yaw_rate_rad_s, state_seq=state.seq)
+HANDOVER_ALT_M = 20.0
+
+
+def command(state: VehicleState, vel_frd_m_s: tuple[float, float, float], yaw_rate_rad_s: float = 0.0,
+            landing: bool = True) -> VelocityCommand:
+    """The answer a lockstep controller gives to `state`: it hands over at the hand-over altitude
+    while its policy is `landing`."""
+    return VelocityCommand(state.vehicle_id, state.seq, state.stamp, vel_frd_m_s, yaw_rate_rad_s, state_seq=state.seq,
+                           handover=bool(landing and state.alt_agl_m <= HANDOVER_ALT_M))
 
 
 def fly(core: SimCore, vel_frd_m_s: tuple[float, float, float], max_steps: int = 10_000,
-        yaw_rate_rad_s: float = 0.0) -> list[StepOut]:
+        yaw_rate_rad_s: float = 0.0, landing: bool = True) -> list[StepOut]:
     """Run an episode under a constant command; every StepOut, the reset's first."""
     outs = [core.reset()]
     while outs[-1].result is None and len(outs) <= max_steps:
-        outs.append(core.step(command(outs[-1].state, vel_frd_m_s, yaw_rate_rad_s)))
+        outs.append(core.step(command(outs[-1].state, vel_frd_m_s, yaw_rate_rad_s, landing)))
     return outs
 
 
@@ -130,6 +136,29 @@ def test_handover_over_grass_is_safe_over_building_unsafe(world: World) -> None:
     unsafe = fly(SimCore(world, Start(EAST_M, MID_Y_M, 30.0), SimConfig()), (0.0, 0.0, 4.0))[-1].result
     assert unsafe.outcome == "unsafe" and "building" in unsafe.classes_found[0]
     assert unsafe.closest_unsafe_valid and unsafe.closest_unsafe_m < SPLIT_GSD_M  # to the nearest pixel centre
+
+
+def test_sinking_through_the_handover_altitude_without_a_handover_is_no_landing(world: World) -> None:
+    # An aborted descent (the controller never says `handover`) sinks through 20 m over grass: the
+    # episode goes on, and the vehicle that reaches the ground that way crashed, it did not land.
+    outs = fly(SimCore(world, Start(WEST_M, MID_Y_M, 30.0), SimConfig()), (0.0, 0.0, 4.0), landing=False)
+    below = [o for o in outs if o.state.alt_agl_m <= HANDOVER_ALT_M]
+    assert len(below) > 20 and all(o.result is None for o in below[:-1])
+    r = outs[-1].result
+    assert r.outcome == "unsafe" and r.final_alt_m == pytest.approx(0.0, abs=0.11)
+    assert "without a hand-over" in r.detail and r.classes_found == ()
+    # The same descent handed over at 20 m is the safe landing.
+    assert fly(SimCore(world, Start(WEST_M, MID_Y_M, 30.0), SimConfig()), (0.0, 0.0, 4.0))[-1].result.outcome == "safe"
+
+
+def test_a_sink_below_the_handover_altitude_that_climbs_back_goes_on(world: World) -> None:
+    core = SimCore(world, Start(WEST_M, MID_Y_M, 21.0), SimConfig(time_limit_s=6.0))
+    outs = [core.reset()]
+    while outs[-1].result is None:
+        down = 4.0 if outs[-1].state.stamp.t_s < 1.5 else -2.0  # sink to ~17 m, then climb back
+        outs.append(core.step(command(outs[-1].state, (0.0, 0.0, down), landing=False)))
+    assert min(o.state.alt_agl_m for o in outs) < 19.0
+    assert outs[-1].result.outcome == "timeout" and outs[-1].result.final_alt_m > HANDOVER_ALT_M
 
 
 def test_time_limit_ends_a_hover_as_timeout(world: World) -> None:

@@ -27,7 +27,7 @@ import dovesei.sim
 from dovesei.shared import keys
 from dovesei.shared.codec import decode, encode
 from dovesei.shared.lifecycle import is_alive, wait_until
-from dovesei.shared.messages import CameraFrame, EpisodeResult, Message, Stamp, VehicleState, replace
+from dovesei.shared.messages import CameraFrame, ControllerStatus, EpisodeResult, Message, Stamp, VehicleState, replace
 from dovesei.sim.camera import optical_axis_ground_m, render
 from dovesei.sim.core import SimConfig, SimCore
 from dovesei.sim.service import SimServiceConfig, SimStats, build_parser, config_from_args, main, run
@@ -321,6 +321,8 @@ class StatePublisher:
     def __init__(self, session: zenoh.Session, vehicle_id: str = VID, *, alt_m: float = 60.0, yaw_rad: float = 0.3,
                  pos_valid: bool = True, t0: float | None = None) -> None:
         self._pub = session.declare_publisher(keys.state(VID))
+        self._status_pub = session.declare_publisher(keys.status(VID))
+        self.handover: bool | None = None  # the controller's status: None publishes none
         self.vehicle_id, self.pos_valid = vehicle_id, pos_valid
         self._ned_m = (0.0, 0.0, -alt_m)
         self._yaw_rad = yaw_rad
@@ -343,6 +345,10 @@ class StatePublisher:
                               (0.0, 0.0, 0.0), yaw_rad=yaw, mode="GUIDED", pos_valid=self.pos_valid,
                               pos_local_ned_m=ned)
             self._pub.put(encode(st))
+            if self.handover is not None:
+                self._status_pub.put(encode(ControllerStatus(
+                    VID, self.sent, st.stamp, "double", "HANDOVER" if self.handover else "WAITING", "ok", "", -1, -1.0,
+                    0.0, alt_agl_m=st.alt_agl_m, handover=self.handover)))
             self.sent += 1
 
     def __enter__(self) -> StatePublisher:
@@ -353,6 +359,7 @@ class StatePublisher:
         self._stop.set()
         self._thread.join(DEADLINE_S)
         self._pub.undeclare()
+        self._status_pub.undeclare()
 
 
 def external_config(**overrides) -> SimServiceConfig:
@@ -393,6 +400,22 @@ def test_external_pose_frames_follow_the_received_states_and_the_judge_ends_it(p
     seen_states = rec.of("state")
     assert seen_states and all(st.mode == "GUIDED" for st in seen_states)
     assert sim.stats.poses_received > 0 and sim.stats.states_sent == 0
+
+
+def test_external_pose_lands_on_the_controllers_handover_not_on_the_altitude(pair, world: World) -> None:
+    sim_session, rec = pair
+    with StatePublisher(rec.session) as states, SimThread(sim_session, external_config(), world) as sim:
+        states.handover = False  # the controller speaks, and its policy has aborted the descent
+        states.move(north_m=0.0, east_m=0.0, alt_m=15.0)  # sank through 20 m anyway
+        low_frames = 0
+        while low_frames < 4:  # frames rendered at 15 m: the episode goes on
+            topic, msg = rec.next()
+            assert topic != "episode", f"an uncommanded sink below 20 m was scored: {msg}"
+            low_frames += topic == "camera" and msg.alt_agl_m == pytest.approx(15.0)
+        states.handover = True
+        result = rec.until_result()
+        assert sim.join() == result
+    assert result.outcome == "safe" and result.final_alt_m == pytest.approx(15.0)
 
 
 def test_external_pose_without_states_is_an_error_naming_the_key(pair, world: World) -> None:
@@ -594,3 +617,41 @@ def test_no_sim_module_talks_mavlink() -> None:
                 assert not any(n.startswith("pymavlink") and "dialects.v20" not in n for n in names), names
             else:
                 assert not any(n.startswith("pymavlink") for n in names), f"{path.name}: {names}"
+
+
+def test_the_controllers_status_gives_the_judge_its_confirmed_ground(pair, world: World) -> None:
+    """Over Zenoh the sim takes the controller's status (its confirming look: frame 0, 40 px above
+    the centre) and its result carries the touchdown error measured from that frame's own pose,
+    as the in-process runner measures it."""
+    from dovesei.shared.messages import ControllerStatus  # lazy: only this test sends one
+
+    sim_session, rec = pair
+    config = lockstep_config()
+    status_pub = rec.session.declare_publisher(keys.status(VID))
+    look = dict(confirmed_valid=True, confirmed_frame_seq=0, confirmed_row_px=175.5 - 40.0, confirmed_col_px=175.5)
+
+    def answer(state: VehicleState) -> None:
+        status_pub.put(encode(ControllerStatus(VID, state.seq, state.stamp, "clearance", "DESCEND", "ok", "", 0, 0.0,
+                                               1.0, **look)))
+        rec.send(replace(command(state, DESCEND), frame_seq=state.await_frame_seq, sent_wall_s=time.time()))
+
+    try:
+        with SimThread(sim_session, config, world) as sim:
+            rec.announce()
+            published = rec.until_result(answer)
+            sim.join()
+    finally:
+        status_pub.undeclare()
+    x_m, y_m, alt_m = config.start_xy_alt_m
+    core = SimCore(world, Start(x_m, y_m, alt_m), config.sim)
+    out = core.reset()
+    while out.result is None:
+        core.note_status(ControllerStatus(VID, 0, out.state.stamp, "clearance", "DESCEND", "ok", "", 0, 0.0, 1.0,
+                                          **look))
+        out = core.step(command(out.state, DESCEND))
+    expected = out.result
+    assert expected.touchdown_error_valid and expected.touchdown_error_m > 3.0
+    assert published.confirmed_valid and published.touchdown_error_valid
+    assert (published.confirmed_x_m, published.confirmed_y_m) == pytest.approx((expected.confirmed_x_m,
+                                                                                expected.confirmed_y_m))
+    assert published.touchdown_error_m == pytest.approx(expected.touchdown_error_m)

@@ -29,16 +29,19 @@ from dovesei.sim.world import load_world
 
 WORLD = "synthetic:size_m=400,seed=1"
 
-# Recorded with the code before vehicle profiles (commit f3f3332), `engines.run_job` of these jobs.
+# Recorded with the code before vehicle profiles (commit f3f3332), `engines.run_job` of these jobs;
+# since the judge ends an episode on the controller's hand-over (3 states at the altitude, then
+# its command), 0.15 s later than the altitude crossing did: the same landing, 0.17 m lower. The
+# clearance record is that of `clearance` since it lands where it checked (f7aefb9).
 REFERENCE = [
     ({"policy": "dovesei", "index": 1, "seed": 12, "timing": "reference", "time_limit_s": 60.0,
       "start": {"x_m": 266.718, "y_m": 133.498, "alt_m": 100.0}},
-     {"outcome": "safe", "sim_time_s": 46.85, "path_length_m": 87.956, "max_range_m": 74.5,
-      "final": {"x_m": 290.224, "y_m": 66.297, "alt_m": 19.979}}),
+     {"outcome": "safe", "sim_time_s": 47.0, "path_length_m": 87.956, "max_range_m": 74.5,
+      "final": {"x_m": 290.224, "y_m": 66.297, "alt_m": 19.799}}),
     ({"policy": "clearance", "index": 0, "seed": 11, "timing": "real", "time_limit_s": 150.0,
       "start": {"x_m": 230.274, "y_m": 296.129, "alt_m": 100.0}},
-     {"outcome": "safe", "sim_time_s": 42.75, "path_length_m": 80.763, "max_range_m": 79.1,
-      "final": {"x_m": 291.424, "y_m": 345.55, "alt_m": 19.969}}),
+     {"outcome": "safe", "sim_time_s": 45.25, "path_length_m": 80.455, "max_range_m": 78.6,
+      "final": {"x_m": 290.721, "y_m": 346.391, "alt_m": 19.806}}),
 ]
 
 
@@ -309,6 +312,8 @@ def test_without_a_profile_every_command_flies_the_timing_presets_default(tmp_pa
     from dovesei.sweep import grid_from_doc
     from dovesei.up.options import UpOptions, build_parser, options_from_args
 
+    # Real seconds fly the vehicle dovesei exists for; the paper's reproduction keeps its drone.
+    assert (default_vehicle_profile("real"), default_vehicle_profile("reference")) == ("realistic", "ideal")
     for timing in ("reference", "real"):
         want = default_vehicle_profile(timing)
         assert want in VEHICLE_PROFILES
@@ -318,3 +323,20 @@ def test_without_a_profile_every_command_flies_the_timing_presets_default(tmp_pa
         assert opts.vehicle_profile is None and opts.sim_vehicle_profile == want
         assert grid_from_doc({"worlds": [WORLD], "timing": timing}).vehicle_profile == want
     assert bench_parser().parse_args([]).vehicle_profile is None
+
+
+@pytest.mark.parametrize("name", ["realistic", "harsh"])
+def test_the_reported_attitude_wanders_but_does_not_jump_between_frames(name: str) -> None:
+    # An AHRS integrates gyros: its roll/pitch error drifts, it does not jump from one state to the
+    # next. A jump of a few mrad between two frames 0.1 s apart is metres per second of false
+    # visual velocity at 100 m (bench-odometry measured it), so the change must stay small while
+    # the error itself still has the profile's spread.
+    from dovesei.sim.estimator import Estimator
+    params = VEHICLE_PROFILES[name].estimator
+    est = Estimator(params, seed=3, dt_s=0.05)
+    pose = Pose(0.0, 0.0, 80.0)
+    errors = np.array([[e.roll_rad, e.pitch_rad] for e in (est.update(pose, (0.0, 0.0, 0.0)) for _ in range(24000))])
+    change_0p1s = errors[2:] - errors[:-2]
+    assert float(np.std(change_0p1s)) < 0.15 * params.attitude_noise_rad  # ~sqrt(2 x 0.1 / 30) = 0.08
+    wander = errors - errors.mean(axis=0)
+    assert float(np.std(wander)) > 0.3 * params.attitude_noise_rad  # it still wanders over minutes

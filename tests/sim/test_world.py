@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import time
 from pathlib import Path
 
 import cv2
@@ -11,6 +12,8 @@ import numpy as np
 import pytest
 
 import dovesei.sim
+from dovesei.shared.codec import image_header_size
+from dovesei.shared.messages import FieldError
 from dovesei.sim.world import WORLD_ALIASES, ClassInfo, World, WorldError, load_world, shipped_world
 
 # The CC0 Dubai tile ships inside the package (package data), found from the installed module.
@@ -128,6 +131,42 @@ def test_unreadable_image(good_folder: Path) -> None:
     (good_folder / "image.png").write_bytes(b"not a png")
     with pytest.raises(WorldError, match="image.png.*unreadable"):
         load_world(str(good_folder))
+
+
+def _claiming(encoded: bytes, side_px: int) -> bytes:
+    """A small real JPEG or PNG whose header claims side_px x side_px (what the probes sent)."""
+    buf = bytearray(encoded)
+    if buf.startswith(b"\x89PNG"):
+        buf[16:24] = side_px.to_bytes(4, "big") * 2  # IHDR width, height
+        return bytes(buf)
+    sof = next(i for i in range(2, len(buf) - 1) if buf[i] == 0xFF and buf[i + 1] in (0xC0, 0xC1, 0xC2))
+    buf[sof + 5:sof + 9] = side_px.to_bytes(2, "big") * 2  # SOF height, width
+    return bytes(buf)
+
+
+@pytest.mark.parametrize(("name", "ext"), [("image", ".jpg"), ("labels", ".png")])
+def test_a_world_image_claiming_30000_px_is_refused_before_decoding(good_folder: Path, name: str, ext: str) -> None:
+    # Was: a 631-byte image.jpg claiming 30000x30000 px took 68 s and 5.2 GB to decode, a labels.png
+    # 19 s and 1.8 GB; the header alone says it is no world.
+    pixels = np.zeros((8, 8, 3) if name == "image" else (8, 8), np.uint8)
+    probe = _claiming(cv2.imencode(ext, pixels)[1].tobytes(), 30000)
+    assert len(probe) < 1000
+    (good_folder / f"{name}{ext}").write_bytes(probe)
+    meta = {**GOOD_META, name: f"{name}{ext}"}
+    (good_folder / "world.json").write_text(json.dumps(meta))
+    t0 = time.perf_counter()
+    with pytest.raises(WorldError, match=rf"{name}{ext}.*30000x30000 px, outside 1..16384 px.*before decoding"):
+        load_world(str(good_folder))
+    assert time.perf_counter() - t0 < 5.0  # no decode: well under a second on an idle host
+
+
+def test_header_sizes_of_every_world_format_match_the_decoded_image() -> None:
+    image = np.random.default_rng(1).integers(0, 255, (13, 21, 3), dtype=np.uint8)
+    for ext in (".jpg", ".png", ".bmp", ".tif"):
+        buf = cv2.imencode(ext, image)[1].tobytes()
+        assert image_header_size(buf) == (13, 21), ext
+    with pytest.raises(FieldError, match="not a JPEG, PNG, BMP or TIFF"):
+        image_header_size(b"GIF89a....")
 
 
 def test_label_size_mismatch(good_folder: Path) -> None:

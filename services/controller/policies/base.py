@@ -77,6 +77,10 @@ class Decision:
     threshold: float | None  # dynamic segmentation threshold used (None when it failed)
     info: Mapping[str, float] = field(default_factory=dict)
     reason: str = ""  # why the policy is in `state` (the last transition's reason)
+    # The policy is committed to landing where it is (descending onto a checked spot, or done):
+    # only then may the controller hand over at the hand-over altitude. A descent the policy has
+    # aborted that sinks through that altitude (inertia, a baro step) is not a landing.
+    landing: bool = False
     confirmed: Confirmation | None = None  # policies with a checked spot: the look that confirmed it last
 
 
@@ -121,33 +125,45 @@ class Policy(Protocol):
 SpeedLimitsMS = tuple[float, float, float]
 
 
-def _build_dovesei(config: Any, speed_limits_m_s: SpeedLimitsMS | None = None) -> Policy:
+def _build_dovesei(config: Any, speed_limits_m_s: SpeedLimitsMS | None = None,
+                   handover_alt_m: float | None = None) -> Policy:
     # The paper's policy stays faithful: it asks what the reference asks, the adapter clamps it.
+    # It has no hand-over altitude of its own (it descends towards LANDED at 5 m): the controller's
+    # watchdog stops it at the hand-over altitude, so `handover_alt_m` changes nothing inside it.
     from dovesei.controller.policies.dovesei import DoveseiPolicy  # lazy: the policy modules import this one (cycle)
 
     return DoveseiPolicy(config, name="dovesei")
 
 
-def _build_dovesei_nofocus(config: Any, speed_limits_m_s: SpeedLimitsMS | None = None) -> Policy:
+def _build_dovesei_nofocus(config: Any, speed_limits_m_s: SpeedLimitsMS | None = None,
+                           handover_alt_m: float | None = None) -> Policy:
     from dovesei.controller.policies.dovesei import DoveseiPolicy  # lazy: the policy modules import this one (cycle)
 
     return DoveseiPolicy(config, name="dovesei-nofocus", dynamic_focus=False)
 
 
-def _build_clearance(config: Any, speed_limits_m_s: SpeedLimitsMS | None = None) -> Policy:
+def _build_clearance(config: Any, speed_limits_m_s: SpeedLimitsMS | None = None,
+                     handover_alt_m: float | None = None) -> Policy:
     from dovesei.controller.policies.clearance import ClearancePolicy  # lazy: the policy modules import this one (cycle)
 
     policy = ClearancePolicy(config)
+    cfg = policy.config
+    if handover_alt_m is not None and handover_alt_m != cfg.handover_alt_m:
+        # The controller's hand-over altitude is the policy's: one declaring HANDOVER above the
+        # controller's would be refused as a fault, one below it would never be asked to hand over.
+        cfg = cfg.replace(handover_alt_m=float(handover_alt_m))
     if speed_limits_m_s is not None:
         # Ours asks only what the vehicle flies: a clamped command is a different command (a
         # descent asked at 4 m/s and flown at 1.5 m/s left its timers and odometry prior wrong).
-        policy.config = policy.config.limited_to(*speed_limits_m_s)
+        cfg = cfg.limited_to(*speed_limits_m_s)
+    if cfg is not policy.config:
+        policy.config = cfg
         policy.reset()
     return policy
 
 
 # Name -> factory. Imports stay inside the factories so importing this module stays cheap.
-_FACTORIES: dict[str, Callable[[Any, SpeedLimitsMS | None], Policy]] = {
+_FACTORIES: dict[str, Callable[[Any, SpeedLimitsMS | None, float | None], Policy]] = {
     "clearance": _build_clearance,
     "dovesei": _build_dovesei,
     "dovesei-nofocus": _build_dovesei_nofocus,
@@ -159,7 +175,8 @@ def policy_names() -> list[str]:
     return sorted(_FACTORIES)
 
 
-def make_policy(name: str, config: Any = None, speed_limits_m_s: SpeedLimitsMS | None = None) -> Policy:
+def make_policy(name: str, config: Any = None, speed_limits_m_s: SpeedLimitsMS | None = None, *,
+                handover_alt_m: float | None = None) -> Policy:
     """Build the policy called `name`.
 
     `config` is policy-specific: for `dovesei*` a `DoveseiConfig`, a timing preset name
@@ -167,9 +184,11 @@ def make_policy(name: str, config: Any = None, speed_limits_m_s: SpeedLimitsMS |
     timing preset name (it runs on true data-clock seconds under both) or None.
     `speed_limits_m_s` (horizontal, up, down), the vehicle's: `clearance` never asks for more;
     the `dovesei` policies stay faithful to the reference and are clamped by the adapter.
+    `handover_alt_m`, the controller's (None: the config's own, dovesei.shared.mission's default):
+    a policy with a hand-over altitude of its own (`clearance`) takes it; the paper's has none.
     """
     try:
         factory = _FACTORIES[name]
     except KeyError:
         raise ValueError(f"unknown policy {name!r}; known: {', '.join(policy_names())}") from None
-    return factory(config, speed_limits_m_s)
+    return factory(config, speed_limits_m_s, handover_alt_m)

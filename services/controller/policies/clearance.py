@@ -334,6 +334,7 @@ class ClearancePolicy:
             state=mem.phase.value, target_px=None if target_px is None else (float(target_px[0]), float(target_px[1])),
             focus_radius_px=self._required_px(obs), threshold=cfg.p_safe_min,
             info={k: float(v) for k, v in info.items()}, reason=mem.reason, confirmed=self._confirmed,
+            landing=mem.phase in (Phase.DESCEND, Phase.HANDOVER),
         )
         return self._decision
 

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from dovesei.shared import timing as shared_timing
 from dovesei.shared import validate
 from dovesei.shared.errors import ConfigError
+from dovesei.shared.mission import HANDOVER_ALT_M, SAFETY_RADIUS_M
 
 
 @dataclass(frozen=True)
@@ -30,9 +31,10 @@ class ClearanceConfig:
     decision_period_s: float = 0.5  # nominal heatmap period (first cycle, bench stepping)
 
     # --- landing goal ---
-    safety_radius_m: float = 2.0  # the disk that must be safe at touchdown (the judge's)
+    safety_radius_m: float = SAFETY_RADIUS_M  # the disk that must be safe at touchdown (the judge's)
     margin_m: float = 1.5  # added to the radius: position error and the map's blur
-    handover_alt_m: float = 20.0  # HANDOVER only at/below this measured altitude
+    # HANDOVER only at/below this measured altitude; the controller hands its own down (make_policy).
+    handover_alt_m: float = HANDOVER_ALT_M
     search_alt_m: float | None = None  # None: the altitude of the first heatmap
     # Every altitude below (search passes, confirmation looks, probes) is written for a start at
     # ref_start_alt_m and scales with the altitude the policy starts at (observed, `altitudes`),
@@ -262,9 +264,6 @@ class ClearanceConfig:
         if self.probe_now_p_min < self.probe_p_min:
             raise ConfigError(f"ClearanceConfig.probe_now_p_min {self.probe_now_p_min} must be >= probe_p_min "
                               f"{self.probe_p_min}")
-        if not self.probe_alt_m >= self.handover_alt_m + 10.0:
-            raise ConfigError(f"ClearanceConfig.probe_alt_m {self.probe_alt_m!r} must be at least 10 m above the "
-                              f"hand-over altitude {self.handover_alt_m} m")
         if self.search_alt_m is not None and not self.search_alt_m > self.handover_alt_m:
             raise ConfigError(f"ClearanceConfig.search_alt_m {self.search_alt_m!r} must be above the hand-over "
                               f"altitude {self.handover_alt_m} m")

@@ -39,6 +39,7 @@ import cv2
 import numpy as np
 
 from dovesei.controller.policies.clearance_config import ClearanceConfig
+from dovesei.shared import footprint
 
 
 @dataclass(frozen=True)
@@ -56,7 +57,7 @@ class Spot:
 
 def footprint_width_m(alt_agl_m: float, hfov_rad: float) -> float:
     """Ground width the camera sees at this altitude (nadir, flat ground)."""
-    return 2.0 * max(alt_agl_m, 0.1) * math.tan(hfov_rad / 2.0)
+    return footprint.width_m(max(alt_agl_m, 0.1), hfov_rad)
 
 
 def look_weight(alt_agl_m: float, cfg: ClearanceConfig) -> float:

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 from dovesei.shared import timing as shared_timing
 from dovesei.shared import validate
 from dovesei.shared.errors import ConfigError
+from dovesei.shared.mission import SAFETY_RADIUS_M
 
 
 @dataclass(frozen=True)
@@ -54,7 +55,7 @@ class DoveseiConfig:
     # --- state machine ---
     safe_altitude_m: float = 50.0
     aiming_floor_mult: float = 1.1  # descend while aiming only above 1.1 x safe altitude = 55 m
-    safety_radius_m: float = 2.0
+    safety_radius_m: float = SAFETY_RADIUS_M
     xy_ok_mult: float = 2.0  # xy_ok: err < xy_ok_mult * safety radius / cg
     giveup_after_s: float = 5.0  # reference seconds (x timer_scale on the data clock)
     restart_duration_s: float = 60.0  # reference seconds

@@ -46,6 +46,7 @@ import numpy as np
 
 from dovesei.controller.policies.base import Decision, Observation, PolicyInputError, checked_prob_safe, resolve_config
 from dovesei.controller.policies.config import DoveseiConfig, timing_preset
+from dovesei.shared import footprint
 
 log = logging.getLogger(__name__)
 
@@ -462,7 +463,7 @@ class DoveseiPolicy:
         cfg = self.config
         prev_state = self._machine.state
         seg = dynamic_threshold(prob, cfg)
-        proj_m = math.tan(obs.hfov_rad / 2.0) * obs.alt_agl_m  # footprint HALF-width
+        proj_m = footprint.half_width_m(obs.alt_agl_m, obs.hfov_rad)  # footprint HALF-width
         usable_alt = math.isfinite(proj_m) and proj_m > 0.0
         candidates: Candidates | None = None
         if seg.mask_u8 is not None and usable_alt:
@@ -512,6 +513,8 @@ class DoveseiPolicy:
             focus_radius_px=self._image.radius_px * scale_rows,
             threshold=seg.threshold,
             info=info,
+            # The paper's success is reaching 20 m while LANDING; any other state there is not a landing.
+            landing=out.state in (DoveseiState.LANDING, DoveseiState.LANDED),
         )
         return self._decision
 

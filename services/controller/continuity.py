@@ -1,0 +1,57 @@
+"""Is an altitude one the vehicle can have flown to since the last one? One check, two users.
+
+A multirotor's altitude moves at most `max_speed_m_s` between two samples, plus the source's own
+noise. A sample beyond that is refused (a forged or glitched state: one 100 m jump was accepted,
+one forged 19 m state handed over for a tick). A step that persists over `confirm` samples that
+agree with each other is real (an estimator reset, a rangefinder passing over a roof) and becomes
+the new reference, with a warning. The controller's core checks every `VehicleState`; the
+MAVLink adapter checks every LOCAL_POSITION_NED before it becomes one.
+
+    check(t_s, alt_m) --within reach of the last accepted--> None (accepted)
+                      --beyond reach, not yet confirmed-->   the reason it is refused
+                      --the confirm-th agreeing step-->       None (re-anchored, logged)
+"""
+
+from __future__ import annotations
+
+import logging
+
+log = logging.getLogger(__name__)
+
+# A racing quad climbs ~20 m/s. A baro's noise between two samples: the sim's harsh profile has
+# 1 m sd per sample (1.4 m sd of a difference), so 6 m + 1 m per 50 ms is 5 sd: never in a flight.
+MAX_VERTICAL_SPEED_M_S = 20.0
+ALTITUDE_NOISE_M = 6.0
+STEP_CONFIRM_SAMPLES = 3  # a step that persists this many samples is real (EKF reset, roof)
+
+
+class AltitudeContinuity:
+    """The last accepted (t_s, alt_m) and the refused samples agreeing on a new level."""
+
+    def __init__(self, max_speed_m_s: float, noise_m: float, confirm: int, who: str = "") -> None:
+        self.max_speed_m_s, self.noise_m, self.confirm, self.who = max_speed_m_s, noise_m, confirm, who
+        self.last: tuple[float, float] | None = None
+        self._step: list[tuple[float, float]] = []
+
+    def reset(self) -> None:
+        self.last, self._step = None, []
+
+    def _reach_m(self, a_t_s: float, b_t_s: float) -> float:
+        return self.noise_m + self.max_speed_m_s * abs(a_t_s - b_t_s)
+
+    def check(self, t_s: float, alt_m: float) -> str | None:
+        """None when (t_s, alt_m) is accepted (and becomes the reference), else why not."""
+        if self.last is None or abs(alt_m - self.last[1]) <= self._reach_m(t_s, self.last[0]):
+            self.last, self._step = (t_s, alt_m), []
+            return None
+        if self._step and abs(alt_m - self._step[-1][1]) > self._reach_m(t_s, self._step[-1][0]):
+            self._step = []  # not one new level: start counting again
+        self._step.append((t_s, alt_m))
+        last_t_s, last_alt_m = self.last
+        if len(self._step) >= self.confirm:
+            log.warning("%s: the altitude stepped from %.1f m to %.1f m and held for %d samples: taken as the "
+                        "new altitude", self.who, last_alt_m, alt_m, len(self._step))
+            self.last, self._step = (t_s, alt_m), []
+            return None
+        return (f"altitude {alt_m:.1f} m is {alt_m - last_alt_m:+.1f} m from {last_alt_m:.1f} m "
+                f"{abs(t_s - last_t_s):.2f} s earlier (a multirotor moves at most {self._reach_m(t_s, last_t_s):.1f} m)")

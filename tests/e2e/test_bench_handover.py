@@ -1,0 +1,41 @@
+"""`dovesei bench --handover-alt-m`: every episode hands over and is judged there, the records and
+the summary say so, and a bench at the default keeps its records (and settings hash) as before."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+from dovesei.bench import run_bench
+
+WORLD = "synthetic:size_m=400,seed=1"
+
+
+def test_a_bench_hands_over_where_it_is_told_and_records_it(tmp_path: Path) -> None:
+    doc = run_bench(world_spec=WORLD, episodes=1, seed=0, policies=["clearance"], noise=0.0, timing="real",
+                    time_limit_s=600.0, start_alt_m=100.0, jobs=1, out=tmp_path / "b", progress=False,
+                    handover_alt_m=35.0)
+    (ep,) = doc["episodes"]
+    print(f"bench --handover-alt-m 35: {ep['outcome']} at {ep['final']['alt_m']} m after {ep['sim_time_s']} s")
+    assert ep["handover_alt_m"] == 35.0 and doc["config"]["handover_alt_m"] == 35.0
+    assert ep["outcome"] in ("safe", "unsafe") and 34.0 < ep["final"]["alt_m"] <= 35.0
+    assert "hand-over altitude (35 m)" in (tmp_path / "b" / "summary.md").read_text()
+
+
+def test_at_the_default_the_records_and_settings_keep_their_fields(tmp_path: Path) -> None:
+    doc = run_bench(world_spec=WORLD, episodes=1, seed=3, policies=["dovesei"], noise=0.0, timing="reference",
+                    time_limit_s=8.0, start_alt_m=100.0, jobs=1, out=tmp_path / "b", progress=False)
+    assert "handover_alt_m" not in doc["config"] and "handover_alt_m" not in doc["episodes"][0]
+    assert "hand-over altitude (20 m)" in (tmp_path / "b" / "summary.md").read_text()
+
+
+def test_a_handover_above_the_start_is_one_line_before_any_work(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    r = subprocess.run([sys.executable, "-m", "dovesei.cli", "bench", "--world", WORLD, "--start-alt-m", "40",
+                        "--handover-alt-m", "38", "--out", str(out), "--no-progress"], cwd=tmp_path,
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2, r.stderr
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("dovesei bench: --handover-alt-m 38 m"), r.stderr
+    assert "start altitude 40 m" in lines[0] and not out.exists()
