@@ -16,11 +16,12 @@ there is no heatmap.
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 import textwrap
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from fractions import Fraction
 from pathlib import Path
 
@@ -45,6 +46,10 @@ BLIND_STATES = ("", "INIT", "SENSOR_ERROR")  # the controller has not used a hea
 MAP_POLICIES = ("clearance",)  # policies that choose a spot on a ground map (no focus circle)
 SPOT_BGR = (255, 0, 255)  # the chosen spot: magenta
 CONFIRMED_BGR = (80, 255, 80)  # the pixel of the look that confirmed the spot: green
+ENDING_HOLD_S = 2.5  # wall seconds the outcome frame stays on screen at the end of the video
+# The episode's outcome on the last frame, in the colours of the trajectory plot's end marker (BGR).
+OUTCOME_BGR = {"safe": (44, 160, 44), "unsafe": (40, 39, 214), "timeout": (14, 127, 255),
+               "out_of_world": (127, 127, 127)}
 
 
 @dataclass(frozen=True)
@@ -176,9 +181,28 @@ def _reason(panel: np.ndarray, reason: str) -> None:
     _text_lines(panel, lines, panel.shape[0] - 8 - 14 * (len(lines) - 1))
 
 
-def _compose(frame: VideoFrame, side_px: int, legend: np.ndarray | None = None) -> np.ndarray:
+def _ending(panels: np.ndarray, outcome: str, detail: str) -> None:
+    """The episode's outcome across the panels: a band in the outcome's colour, the judge's detail under it."""
+    colour = OUTCOME_BGR.get(outcome, (0, 0, 0))
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    width = panels.shape[1]
+    lines = textwrap.wrap(detail, max(30, width // 11), max_lines=3, placeholder=" ...") if detail else []
+    top = panels.shape[0] // 2 - 40
+    bottom = top + 56 + 24 * len(lines)
+    cv2.rectangle(panels, (0, top), (width, bottom), colour, -1)
+    cv2.rectangle(panels, (0, top), (width, bottom), (255, 255, 255), 2)
+    title = f"END: {outcome.upper().replace('_', ' ')}"
+    (w, _), _ = cv2.getTextSize(title, font, 1.2, 2)
+    cv2.putText(panels, title, ((width - w) // 2, top + 40), font, 1.2, (255, 255, 255), 2, cv2.LINE_AA)
+    for i, line in enumerate(lines):
+        (w, _), _ = cv2.getTextSize(line, font, 0.6, 1)
+        cv2.putText(panels, line, ((width - w) // 2, top + 70 + 24 * i), font, 0.6, (255, 255, 255), 1, cv2.LINE_AA)
+
+
+def _compose(frame: VideoFrame, side_px: int, legend: np.ndarray | None = None, outcome: str = "",
+             detail: str = "") -> np.ndarray:
     """camera | heatmap | policy view (BGR), with focus circle (or a map policy's spot), target, a text
-    bar and the legend."""
+    bar and the legend; with an `outcome`, the episode's end written across the panels."""
     cam = cv2.resize(cv2.cvtColor(np.ascontiguousarray(frame.image_rgb), cv2.COLOR_RGB2BGR), (side_px, side_px),
                      interpolation=cv2.INTER_AREA)
     has_heatmap = frame.prob_safe is not None
@@ -226,6 +250,8 @@ def _compose(frame: VideoFrame, side_px: int, legend: np.ndarray | None = None) 
     width = PANELS * side_px
     bar = np.zeros((BAR_PX, width, 3), np.uint8)
     text = f"t {frame.t_s:7.2f} s   alt {frame.alt_agl_m:6.1f} m AGL   state {frame.state or '-'}"
+    if outcome:
+        text += f"   episode: {outcome}"
     if frame.recent_changes > 1:
         # Frames are a sample; a policy that flips state between them would look erratic unexplained.
         text += f" ({frame.recent_changes} state changes in the last {STATE_WINDOW_S:g} s)"
@@ -234,7 +260,29 @@ def _compose(frame: VideoFrame, side_px: int, legend: np.ndarray | None = None) 
     cv2.putText(bar, text, (8, 23), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 1, cv2.LINE_AA)
     if legend is None:
         legend = _legend(width, frame.map_policy)
-    return np.vstack([np.hstack([cam, heat, policy]), bar, legend])
+    panels = np.hstack([cam, heat, policy])
+    if outcome:
+        _ending(panels, outcome, detail)
+    return np.vstack([panels, bar, legend])
+
+
+def _fill_status(frames: Sequence[VideoFrame], policy: str) -> list[VideoFrame]:
+    """Frames recorded without a controller status (the last ones, after the controller stopped)
+    keep the policy flown, its threshold and its last state, marked as the last one: a blank status
+    drew the `dovesei` panel and `state -`."""
+    flown = policy or next((f.policy for f in reversed(frames) if f.policy), "")
+    out: list[VideoFrame] = []
+    last: VideoFrame | None = None
+    for f in frames:
+        if f.state:
+            last = f
+        elif last is not None:
+            state = last.state if last.state.endswith("(last status)") else f"{last.state} (last status)"
+            f = replace(f, state=state, threshold=f.threshold if f.threshold is not None else last.threshold)
+        if not f.policy:
+            f = replace(f, policy=flown)
+        out.append(f)
+    return out
 
 
 def state_change_times(states_by_t: Mapping[float, str]) -> np.ndarray:
@@ -261,16 +309,24 @@ def _opening(frames: Sequence[VideoFrame]) -> int:
     return 0
 
 
-def write_video(frames: Sequence[VideoFrame], out: Path | str, fps: float = 10.0, side_px: int = 352) -> Path:
-    """Write the frames as H.264 MP4 (PyAV), else OpenCV mp4v or MJPG .avi. Returns the file written."""
+def write_video(frames: Sequence[VideoFrame], out: Path | str, fps: float = 10.0, side_px: int = 352,
+                outcome: str = "", detail: str = "", policy: str = "") -> Path:
+    """Write the frames as H.264 MP4 (PyAV), else OpenCV mp4v or MJPG .avi. Returns the file written.
+
+    `outcome` and `detail` (the judge's) are written on the last frame, held ENDING_HOLD_S; `policy`
+    names the policy flown for frames recorded without a controller status.
+    """
     if not frames:
         raise ReportError("no frames to write: the video needs at least one camera frame")
     if not (math.isfinite(fps) and fps > 0):
         raise ReportError(f"fps must be > 0, got {fps!r}")
     side_px += side_px % 2  # H.264 in yuv420p needs even sides
-    frames = frames[_opening(frames):]
+    frames = _fill_status(frames[_opening(frames):], policy)
     legend = _legend(PANELS * side_px, map_policy=any(f.map_policy for f in frames))
     images = (_compose(f, side_px, legend) for f in frames)
+    if outcome:
+        ending = _compose(frames[-1], side_px, legend, outcome, detail)
+        images = itertools.chain(images, itertools.repeat(ending, max(1, round(ENDING_HOLD_S * fps))))
     out = Path(out)
     if av is not None:
         return _write_h264(images, out.with_suffix(".mp4"), fps)

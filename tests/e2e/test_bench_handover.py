@@ -19,7 +19,8 @@ def test_a_bench_hands_over_where_it_is_told_and_records_it(tmp_path: Path) -> N
     (ep,) = doc["episodes"]
     print(f"bench --handover-alt-m 35: {ep['outcome']} at {ep['final']['alt_m']} m after {ep['sim_time_s']} s")
     assert ep["handover_alt_m"] == 35.0 and doc["config"]["handover_alt_m"] == 35.0
-    assert ep["outcome"] in ("safe", "unsafe") and 34.0 < ep["final"]["alt_m"] <= 35.0
+    # Judged where the controller handed over on the vehicle's measured altitude: the true one within its error.
+    assert ep["outcome"] in ("safe", "unsafe") and abs(ep["final"]["alt_m"] - 35.0) < 1.0
     assert "hand-over altitude (35 m)" in (tmp_path / "b" / "summary.md").read_text()
 
 
