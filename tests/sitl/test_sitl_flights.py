@@ -18,6 +18,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -78,11 +79,27 @@ def _fly_up(tmp_path: Path, *up_args: str, params: dict[str, float] | None = Non
         if cut_gps_below_m is not None:
             assert wait_until(lambda: watch.gps_fix_type >= 3 and watch.ekf_has_absolute_position, 120.0, poll_s=0.5), \
                 "SITL: no 3D fix and EKF position in 120 s"
-        done = subprocess.run(argv, cwd=REPO, capture_output=True, text=True, timeout=1400, env=env)
+        code, stderr = _run_up(argv, env)
         time.sleep(settle_s)
         after = (watch.custom_mode, watch.armed, watch.rel_alt_m)
     report = json.loads((out / "report.json").read_text())
-    return done.returncode, done.stderr[-3000:], report, watch, after
+    return code, stderr[-3000:], report, watch, after
+
+
+def _run_up(argv: list[str], env: dict[str, str]) -> tuple[int, str]:
+    """`up` to its end; interrupted (Ctrl-C, the test's timeout), it gets SIGINT and stops its own
+    services (a SIGKILL, what subprocess.run sends, would leave them running)."""
+    proc = subprocess.Popen(argv, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        _out, stderr = proc.communicate(timeout=1400)
+    except BaseException:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.communicate(timeout=60)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+        raise
+    return proc.returncode, stderr
 
 
 @pytest.mark.timeout(1500)
