@@ -8,7 +8,7 @@ threshold (when it had one), dimmed outside the dynamic-focus circle, with the c
 policy that picks a spot on a ground map (`clearance`) has no focus circle: its panel shows the
 spot as a circle of the spot's clearance radius where the spot lies relative to the vehicle (the
 status' target pixel; metres -> pixels with the camera footprint at the frame's altitude), and
-the policy's reason for its state. Frames
+the policy's reason for its state (in a row under the panels, not over the view). Frames
 before the first heatmap are not shown at the start (the controller is blind then and says
 SENSOR_ERROR, which is not what the flight was about); the focus circle is never drawn where
 there is no heatmap.
@@ -40,6 +40,9 @@ log = logging.getLogger(__name__)
 
 BAR_PX = 34  # the text bar under the panels
 LEGEND_PX = 30  # the legend row under the text bar
+# The policy's own words (a map policy's spot figures and reason) in a row under the panels: written
+# over the policy view they hid the below-threshold ground that the spot circle reaches near 20 m.
+POLICY_TEXT_PX = 48
 PANELS = 3  # camera | heatmap | policy view
 STATE_WINDOW_S = 1.0  # sim seconds: the window of the state-change count on each frame
 BLIND_STATES = ("", "INIT", "SENSOR_ERROR")  # the controller has not used a heatmap yet
@@ -137,17 +140,20 @@ def _legend(width_px: int, map_policy: bool = False) -> np.ndarray:
     return row
 
 
-def _spot(panel: np.ndarray, frame: VideoFrame, hm_w: int, sx: float, sy: float) -> None:
-    """A map policy's chosen spot: its clearance circle at its place in the view, and its figures."""
+def _spot(panel: np.ndarray, frame: VideoFrame, hm_w: int, sx: float, sy: float) -> list[str]:
+    """A map policy's chosen spot: its clearance circle at its place in the view; returns its figures."""
     side_px = panel.shape[0]
     if frame.target_px is None or frame.spot_clearance_m is None:
-        return
+        return []
     row, col = frame.target_px
     centre = (int(round((col + 0.5) * sx)), int(round((row + 0.5) * sy)))
     radius_hm = frame.metres_to_heatmap_px(frame.spot_clearance_m, hm_w)
     if radius_hm is not None:
-        # Clipped by the panel when the spot lies near or beyond the edge of the view.
-        cv2.circle(panel, centre, max(2, int(round(radius_hm * sx))), SPOT_BGR, 2, cv2.LINE_AA)
+        # Clipped by the panel when the spot lies near or beyond the edge of the view. An outline on a
+        # dark casing: readable over bright and dimmed (below threshold) ground, hiding neither.
+        radius = max(2, int(round(radius_hm * sx)))
+        cv2.circle(panel, centre, radius, (0, 0, 0), 4, cv2.LINE_AA)
+        cv2.circle(panel, centre, radius, SPOT_BGR, 2, cv2.LINE_AA)
     inside = 0 <= centre[0] < side_px and 0 <= centre[1] < side_px
     text = f"spot: clearance {frame.spot_clearance_m:.1f} m" + ("" if inside else " (outside the view)")
     lines = [text]
@@ -159,26 +165,21 @@ def _spot(panel: np.ndarray, frame: VideoFrame, hm_w: int, sx: float, sy: float)
         lines.append("confirmed in this look")
     elif frame.confirmed_frames_ago is not None:
         lines.append(f"confirmed {frame.confirmed_frames_ago} frames ago")
-    _text_lines(panel, lines, 40)  # under the caption bar
+    return lines
 
 
-def _text_lines(panel: np.ndarray, lines: Sequence[str], top_px: int) -> None:
-    """Small white lines on a dark band (readable over any heatmap colour)."""
-    font, scale = cv2.FONT_HERSHEY_SIMPLEX, 0.4
+def _policy_text(width_px: int, spot: Sequence[str], reason: str) -> np.ndarray:
+    """The row under the panels: the spot's figures on the first line, the policy's reason (wrapped,
+    at most two lines) under it."""
+    row = np.zeros((POLICY_TEXT_PX, width_px, 3), np.uint8)
+    lines = ["policy: " + ", ".join(spot)] if spot else []
+    if reason:
+        lines += textwrap.wrap("reason: " + reason, max(20, width_px // 7), max_lines=3 - len(lines),
+                               placeholder=" ...")
+    font = cv2.FONT_HERSHEY_SIMPLEX
     for i, line in enumerate(lines):
-        y = top_px + 14 * i
-        (w, h), _ = cv2.getTextSize(line, font, scale, 1)
-        cv2.rectangle(panel, (2, y - h - 3), (8 + w, y + 4), (0, 0, 0), -1)
-        cv2.putText(panel, line, (5, y), font, scale, (255, 255, 255), 1, cv2.LINE_AA)
-
-
-def _reason(panel: np.ndarray, reason: str) -> None:
-    """The policy's reason for its state, wrapped at the panel's bottom (at most three lines)."""
-    if not reason:
-        return
-    width_chars = max(20, panel.shape[1] // 7)
-    lines = textwrap.wrap(reason, width_chars, max_lines=3, placeholder=" ...")
-    _text_lines(panel, lines, panel.shape[0] - 8 - 14 * (len(lines) - 1))
+        cv2.putText(row, line, (8, 14 + 14 * i), font, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
+    return row
 
 
 def _ending(panels: np.ndarray, outcome: str, detail: str) -> None:
@@ -206,6 +207,7 @@ def _compose(frame: VideoFrame, side_px: int, legend: np.ndarray | None = None, 
     cam = cv2.resize(cv2.cvtColor(np.ascontiguousarray(frame.image_rgb), cv2.COLOR_RGB2BGR), (side_px, side_px),
                      interpolation=cv2.INTER_AREA)
     has_heatmap = frame.prob_safe is not None
+    spot_lines: list[str] = []
     if has_heatmap:
         prob = np.asarray(frame.prob_safe, dtype=np.float32)
         hm_h, hm_w = prob.shape
@@ -237,13 +239,11 @@ def _compose(frame: VideoFrame, side_px: int, legend: np.ndarray | None = None, 
                 centre = (int(round((col + 0.5) * sx)), int(round((row + 0.5) * sy)))
                 cv2.drawMarker(panel, centre, SPOT_BGR, cv2.MARKER_TILTED_CROSS, 18, 3, cv2.LINE_AA)
         if frame.map_policy:
-            _spot(policy, frame, hm_w, sx, sy)
+            spot_lines = _spot(policy, frame, hm_w, sx, sy)
     _caption(cam, "camera")
     _caption(heat, "heatmap P(safe)")
     thr = f" >= {frame.threshold:.2f}" if frame.threshold is not None else ""
     _caption(policy, f"policy view: P{thr}, chosen spot" if frame.map_policy else f"policy view: P{thr}, in focus")
-    if frame.map_policy:
-        _reason(policy, frame.policy_reason)
     if frame.perception:
         cv2.putText(heat, frame.perception, (8, side_px - 10), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1,
                     cv2.LINE_AA)
@@ -263,7 +263,8 @@ def _compose(frame: VideoFrame, side_px: int, legend: np.ndarray | None = None, 
     panels = np.hstack([cam, heat, policy])
     if outcome:
         _ending(panels, outcome, detail)
-    return np.vstack([panels, bar, legend])
+    words = _policy_text(width, spot_lines, frame.policy_reason if frame.map_policy else "")
+    return np.vstack([panels, words, bar, legend])
 
 
 def _fill_status(frames: Sequence[VideoFrame], policy: str) -> list[VideoFrame]:

@@ -8,7 +8,7 @@ from pathlib import Path
 import av
 import numpy as np
 
-from dovesei.pictures.video import BAR_PX, LEGEND_PX, PANELS, VideoFrame, _compose, write_video
+from dovesei.pictures.video import BAR_PX, LEGEND_PX, PANELS, POLICY_TEXT_PX, VideoFrame, _compose, write_video
 
 SIDE_PX = 352
 
@@ -34,7 +34,7 @@ def test_video_is_h264_mp4_and_opens_on_the_first_heatmap(tmp_path: Path) -> Non
         assert stream.codec_context.pix_fmt == "yuv420p"  # what browsers decode
         frames = [f.to_ndarray(format="bgr24") for f in container.decode(video=0)]
     assert len(frames) == 12  # the three blind frames before the first heatmap are not the opening
-    assert frames[0].shape[:2] == (SIDE_PX + BAR_PX + LEGEND_PX, PANELS * SIDE_PX)
+    assert frames[0].shape[:2] == (SIDE_PX + POLICY_TEXT_PX + BAR_PX + LEGEND_PX, PANELS * SIDE_PX)
     # Policy view (third panel): inside the focus circle, below the 0.5 threshold is dimmed and the
     # safe half bright green; outside the circle the safe half is dimmed too.
     panel = frames[0][:SIDE_PX, 2 * SIDE_PX:3 * SIDE_PX].astype(int)
@@ -61,7 +61,7 @@ def test_state_changes_between_frames_are_counted_and_shown() -> None:
     assert changes_before(times, 0.25) == 3 and changes_before(times, 1.15) == 1 and changes_before(times, 2.0) == 0
     quiet = _compose(_frames(1)[0], SIDE_PX)
     busy = _compose(VideoFrame(**{**_frames(1)[0].__dict__, "recent_changes": 5}), SIDE_PX)
-    bar = slice(SIDE_PX, SIDE_PX + BAR_PX)
+    bar = slice(SIDE_PX + POLICY_TEXT_PX, SIDE_PX + POLICY_TEXT_PX + BAR_PX)
     assert (busy[bar] > 128).sum() > (quiet[bar] > 128).sum()  # the count is written in the bar
 
 
