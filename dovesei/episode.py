@@ -19,10 +19,13 @@ import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
 from dovesei.controller.core import ControllerConfig, ControllerCore
+from dovesei.controller.policies.base import make_policy
+from dovesei.controller.policies.config_file import config_from_values
 from dovesei.segmenter.core import SegmenterConfig, SegmenterCore, make_backend
 from dovesei.segmenter.prompts import REFERENCE_PROMPTS, PromptSet
 from dovesei.segmenter.simulated import DEFAULT_NOISE, DEFAULT_PROFILE, PROFILE_NAMES
@@ -81,6 +84,9 @@ class EpisodeSpec:
     prompts: PromptSet = REFERENCE_PROMPTS
     vehicle_profile: str = SIM_DEFAULT_VEHICLE_PROFILE  # what the autopilot reports (dovesei.sim.estimator)
     handover_alt_m: float = HANDOVER_ALT_M  # handed to the controller (and so the policy) and the sim's judge
+    # The policy's constants that differ from the timing preset's (a --policy-config file's), as
+    # sorted (name, value) pairs so the spec stays hashable; () = the preset.
+    policy_config: tuple[tuple[str, Any], ...] = ()
 
     @classmethod
     def from_job(cls, job: dict, start: Start) -> EpisodeSpec:
@@ -89,7 +95,9 @@ class EpisodeSpec:
                    time_limit_s=job["time_limit_s"], perception=job.get("perception") or DEFAULT_PERCEPTION,
                    prompts=prompt_set(job.get("prompts")),
                    vehicle_profile=job.get("vehicle_profile") or SIM_DEFAULT_VEHICLE_PROFILE,
-                   handover_alt_m=job.get("handover_alt_m", HANDOVER_ALT_M))
+                   handover_alt_m=job.get("handover_alt_m", HANDOVER_ALT_M),
+                   policy_config=tuple(sorted((k, tuple(v) if isinstance(v, list) else v)
+                                              for k, v in (job.get("policy_config") or {}).items())))
 
 
 @dataclass
@@ -118,8 +126,13 @@ def build_cores(world: World, spec: EpisodeSpec, *, render_images: bool = False
                                                handover_alt_m=spec.handover_alt_m))
     seg_config = segmenter_config(spec)
     seg = SegmenterCore(make_backend(seg_config), seg_config)
-    ctrl = ControllerCore(ControllerConfig(vehicle_id=spec.vehicle_id, policy=spec.policy, timing=spec.timing,
-                                           lockstep=True, handover_alt_m=spec.handover_alt_m))
+    ctrl_config = ControllerConfig(vehicle_id=spec.vehicle_id, policy=spec.policy, timing=spec.timing,
+                                   lockstep=True, handover_alt_m=spec.handover_alt_m)
+    # A policy file's constants, checked as the file was; the hand-over still the controller's.
+    policy = None if not spec.policy_config else make_policy(
+        spec.policy, config_from_values(spec.policy, dict(spec.policy_config), spec.timing, "episode policy_config"),
+        handover_alt_m=spec.handover_alt_m)
+    ctrl = ControllerCore(ctrl_config, policy=policy)
     return sim, seg, ctrl
 
 

@@ -27,6 +27,7 @@ from pathlib import Path
 from dovesei.bench.run import Grid, Variant, run_grid, summary_markdown
 from dovesei.controller.policies import policy_names
 from dovesei.controller.policies.clearance_config import ClearanceConfig
+from dovesei.controller.policies.config_file import load_policy_config, policy_values, preset_config
 from dovesei.episode import DEFAULT_PERCEPTION
 from dovesei.episode import perception_names as _perception_names
 from dovesei.bench.stats import SUMMARY_KEYS, summarise, wilson_interval
@@ -71,6 +72,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--handover-alt-m", type=float, default=HANDOVER_ALT_M,
                    help="hand-over altitude: every policy hands over, and the judge judges, here (default: "
                         f"{HANDOVER_ALT_M:g} m; at least {MIN_DESCENT_M:g} m below the start)")
+    p.add_argument("--policy-config", type=Path, default=None, metavar="FILE",
+                   help="TOML file of the policy's constants (one --policy; `dovesei policy-config --defaults "
+                        "POLICY` prints them all); recorded in results.json")
     p.add_argument("--vehicle-profile", default=None, choices=VEHICLE_PROFILE_NAMES,
                    help="what the vehicle reports and how it flies: ideal (the truth, a gimbal), realistic (an "
                         "optical-flow EKF without GNSS, a body-fixed camera, ArduCopter's limits) or harsh "
@@ -149,7 +153,7 @@ def run_bench(*, world_spec: str | None = None, worlds: tuple[str, ...] | None =
               out: Path, start_margin_m: float = 5.0, segmenter: str = "sim", perception: str | None = None, engine: str = "local",
               address: str | None = None, progress: bool = True, world_label: str = "",
               seed_note: str = "", vehicle_profile: str | None = None,
-              handover_alt_m: float = HANDOVER_ALT_M) -> dict:
+              handover_alt_m: float = HANDOVER_ALT_M, policy_config: Path | None = None) -> dict:
     """Run (or resume) a bench into `out`; returns the results.json content."""
     _at_least_one("--episodes", episodes)
     _at_least_one("--jobs", jobs)
@@ -160,6 +164,13 @@ def run_bench(*, world_spec: str | None = None, worlds: tuple[str, ...] | None =
     positive("--time-limit-s", time_limit_s)
     check_start_alt_m("--start-alt-m", start_alt_m)
     check_handover_below_start(handover_alt_m, start_alt_m)
+    changed: dict = {}
+    if policy_config is not None:
+        if len(policies) != 1:
+            raise ConfigError(f"--policy-config is one policy's: fly it with one --policy, not {', '.join(policies)}")
+        (name,) = policies
+        flown = policy_values(name, load_policy_config(name, policy_config, timing))
+        changed = {k: v for k, v in flown.items() if v != policy_values(name, preset_config(name, timing))[k]}
     vehicle_profile = default_vehicle_profile(timing) if vehicle_profile is None else vehicle_profile
     validate_one_of("--vehicle-profile", vehicle_profile, VEHICLE_PROFILE_NAMES)
     non_negative("--start-margin-m", start_margin_m)
@@ -171,7 +182,7 @@ def run_bench(*, world_spec: str | None = None, worlds: tuple[str, ...] | None =
                 variants=(Variant(perception=check_perception(perception)),), noise=noise, timing=timing,
                 time_limit_s=float(time_limit_s), start_alt_m=float(start_alt_m), segmenter=segmenter,
                 start_margin_m=float(start_margin_m), world_label=world_label or specs[0], extra={"seed_note": seed_note} if seed_note else {},
-                vehicle_profile=vehicle_profile, handover_alt_m=float(handover_alt_m))
+                vehicle_profile=vehicle_profile, handover_alt_m=float(handover_alt_m), policy_config=changed)
     return run_grid(grid, out=out, workers=jobs, engine=engine, address=address, progress=progress)
 
 
@@ -188,7 +199,7 @@ def main(argv: list[str] | None = None) -> int:
                                         else args.start_margin_m), jobs=args.jobs, out=args.out, segmenter=args.segmenter,
                         perception=args.perception, engine=args.engine, address=args.address,
                         progress=not args.no_progress, vehicle_profile=args.vehicle_profile,
-                        handover_alt_m=args.handover_alt_m,
+                        handover_alt_m=args.handover_alt_m, policy_config=args.policy_config,
                         world_label=f"suite:{args.suite.strip()}" if args.suite is not None else "")
     except DoveseiError as exc:  # a user error: one line, no traceback
         print(f"dovesei bench: {exc}", file=sys.stderr)

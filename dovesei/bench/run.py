@@ -72,6 +72,8 @@ class Grid:
     extra: dict = field(default_factory=dict)  # more settings that belong in the hash (e.g. the sweep file's)
     vehicle_profile: str = "ideal"  # dovesei.sim.estimator: what the vehicle reports and how it flies
     handover_alt_m: float = HANDOVER_ALT_M  # where every episode ends and is judged (controller, policy, judge)
+    # --policy-config: the constants a file changed from the preset's ({} = none), for its one policy.
+    policy_config: dict = field(default_factory=dict)
 
     def config(self) -> dict:
         return {"world": self.world_label or self.worlds[0], "worlds": list(self.worlds), "episodes": self.episodes,
@@ -83,6 +85,7 @@ class Grid:
                 **({"vehicle_profile": self.vehicle_profile} if self.vehicle_profile != "ideal" else {}),
                 # And the default hand-over: benches flown before it was a setting resume and hash as before.
                 **({"handover_alt_m": self.handover_alt_m} if self.handover_alt_m != HANDOVER_ALT_M else {}),
+                **({"policy_config": self.policy_config} if self.policy_config else {}),
                 "perception": [v.perception for v in self.variants] if len(self.variants) > 1 else self.variants[0].perception,
                 "prompts": {v.prompts_name: v.prompts for v in self.variants}, **self.extra}
 
@@ -177,6 +180,7 @@ def plan_jobs(grid: Grid, worlds: dict, out: Path) -> list[dict]:
                         "noise": grid.noise, "timing": grid.timing, "time_limit_s": grid.time_limit_s,
                         "perception": var.perception, "prompts": var.prompts,
                         "vehicle_profile": grid.vehicle_profile, "handover_alt_m": grid.handover_alt_m,
+                        "policy_config": grid.policy_config or None,
                         "perception_label": var.perception if var.labelled else None,
                         "prompts_label": var.prompts_name if var.labelled else None,
                         "start": {"x_m": round(st.x_m, 3), "y_m": round(st.y_m, 3), "alt_m": st.alt_m}})

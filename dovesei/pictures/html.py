@@ -25,7 +25,7 @@ h1{font-size:22px;margin-bottom:4px}h2{font-size:17px;margin-top:28px;border-bot
 table{border-collapse:collapse;margin:8px 0}th,td{padding:4px 10px;border-bottom:1px solid #eee;text-align:right}
 th{background:#f4f4f4}td:first-child,th:first-child{text-align:left}
 .ci{display:inline-block;width:120px;height:10px;background:#eee;position:relative;vertical-align:middle}
-.ci span{position:absolute;top:0;height:10px;background:#3a8d3a}
+.ci span{position:absolute;top:0;height:10px}
 .ci i{position:absolute;top:-2px;width:2px;height:14px;background:#111}
 .note{color:#555;font-size:13px}img{max-width:100%;border:1px solid #ddd}
 """
@@ -39,12 +39,25 @@ def _pct(lo_hi: Sequence[float]) -> str:
     return f"{100 * lo_hi[0]:.0f}&ndash;{100 * lo_hi[1]:.0f} %"
 
 
+def rate_colour(rate: float | None) -> str:
+    """The bar's colour for a success rate: red (0 %) through yellow to green (100 %), grey for none.
+
+    One colour for every bar made 0/2 read like 2/2: the wide intervals of small benches look alike,
+    so the colour carries the point estimate.
+    """
+    if rate is None or not 0.0 <= rate <= 1.0:
+        return "#9e9e9e"
+    red, green = min(1.0, 2.0 - 2.0 * rate), min(1.0, 2.0 * rate)  # the video's P(safe) ramp
+    return f"#{round(200 * red):02x}{round(170 * green):02x}30"
+
+
 def _ci_bar(rate: float | None, lo_hi: Sequence[float]) -> str:
-    """The interval as a bar on 0..100 %, the point estimate as a tick."""
+    """The interval as a bar on 0..100 % coloured by the point estimate, which is a tick."""
     lo, hi = 100 * lo_hi[0], 100 * lo_hi[1]
     tick = "" if rate is None else f'<i style="left:{100 * rate:.1f}%"></i>'
     return (f'<span class="ci" title="Wilson 95 % interval {lo:.0f}-{hi:.0f} %">'
-            f'<span style="left:{lo:.1f}%;width:{max(hi - lo, 0.5):.1f}%"></span>{tick}</span>')
+            f'<span style="left:{lo:.1f}%;width:{max(hi - lo, 0.5):.1f}%;background:{rate_colour(rate)}"></span>'
+            f'{tick}</span>')
 
 
 def _fmt(v: float | None) -> str:

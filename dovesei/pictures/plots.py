@@ -100,6 +100,15 @@ def _world_crop(world: Any, box_m: tuple[float, float, float, float],
     return crop, extent
 
 
+def _marker_xy(x: float, y: float, extent: Sequence[float], margin_frac: float = 0.035) -> tuple[float, float]:
+    """Where to draw a point's marker: the point, or for one at or past the panel's edge (a track that
+    left the map) the nearest place a whole marker fits inside the axes. Matplotlib draws a marker
+    whose centre is inside the axes unclipped, so one on the top edge sat on the panel's title."""
+    mx = margin_frac * (extent[1] - extent[0])
+    my = margin_frac * (extent[3] - extent[2])
+    return (min(max(x, extent[0] + mx), extent[1] - mx), min(max(y, extent[2] + my), extent[3] - my))
+
+
 def _labels_crop(world: Any, box_m: tuple[float, float, float, float]) -> np.ndarray | None:
     if world.labels is None:
         return None
@@ -178,7 +187,7 @@ def plot_trajectory(world: Any, report: Mapping[str, Any], out_png: Path | str) 
     handles.append(Line2D([], [], marker="X", ls="", color=OUTCOME_COLOURS.get(outcome, "black"),
                           markeredgecolor="white", ms=12, label=f"end: {outcome}"))
     ax.plot(xs[0], ys[0], marker="^", color="white", markeredgecolor="black", ms=13, zorder=5)
-    ax.plot(end_x, end_y, marker="X", color=OUTCOME_COLOURS.get(outcome, "black"), markeredgecolor="white",
+    ax.plot(*_marker_xy(end_x, end_y, extent), marker="X", color=OUTCOME_COLOURS.get(outcome, "black"), markeredgecolor="white",
             ms=14, zorder=5)
     # The footprint disk to scale: at this zoom it is a few pixels, hence the inset below.
     ax.add_patch(Circle((end_x, end_y), radius_m, fill=False, ec="yellow", lw=1.2, zorder=6))
@@ -355,9 +364,10 @@ def plot_bench_paths(world: Any, doc: Mapping[str, Any], tracks_dir: Path | str,
             ax.plot(track[:, 1], track[:, 2], color=colour[pol], lw=1.8, alpha=0.85, zorder=top)
             # The end: a disc in the policy's colour under an X in the outcome's, white-edged, so it
             # stands out on any ground and says both whose end it is and how it ended.
-            ax.plot(track[-1, 1], track[-1, 2], marker="o", ms=17, color=colour[pol], markeredgecolor="white",
+            end = _marker_xy(track[-1, 1], track[-1, 2], extent)  # off the map: at the panel's edge
+            ax.plot(*end, marker="o", ms=17, color=colour[pol], markeredgecolor="white",
                     markeredgewidth=1.5, zorder=10 + top)
-            ax.plot(track[-1, 1], track[-1, 2], marker="X", ms=11, color=OUTCOME_COLOURS.get(ep["outcome"], "black"),
+            ax.plot(*end, marker="X", ms=11, color=OUTCOME_COLOURS.get(ep["outcome"], "black"),
                     markeredgecolor="white", markeredgewidth=1.2, zorder=11 + top)
             # The ground the policy last confirmed (a ring in its colour) joined to the touchdown:
             # how far from the checked ground it handed over.

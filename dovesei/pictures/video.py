@@ -8,7 +8,7 @@ threshold (when it had one), dimmed outside the dynamic-focus circle, with the c
 policy that picks a spot on a ground map (`clearance`) has no focus circle: its panel shows the
 spot as a circle of the spot's clearance radius where the spot lies relative to the vehicle (the
 status' target pixel; metres -> pixels with the camera footprint at the frame's altitude), and
-the policy's reason for its state. Frames
+the policy's reason for its state (in a row under the panels, not over the view). Frames
 before the first heatmap are not shown at the start (the controller is blind then and says
 SENSOR_ERROR, which is not what the flight was about); the focus circle is never drawn where
 there is no heatmap.
@@ -16,11 +16,12 @@ there is no heatmap.
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 import textwrap
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from fractions import Fraction
 from pathlib import Path
 
@@ -39,12 +40,19 @@ log = logging.getLogger(__name__)
 
 BAR_PX = 34  # the text bar under the panels
 LEGEND_PX = 30  # the legend row under the text bar
+# The policy's own words (a map policy's spot figures and reason) in a row under the panels: written
+# over the policy view they hid the below-threshold ground that the spot circle reaches near 20 m.
+POLICY_TEXT_PX = 48
 PANELS = 3  # camera | heatmap | policy view
 STATE_WINDOW_S = 1.0  # sim seconds: the window of the state-change count on each frame
 BLIND_STATES = ("", "INIT", "SENSOR_ERROR")  # the controller has not used a heatmap yet
 MAP_POLICIES = ("clearance",)  # policies that choose a spot on a ground map (no focus circle)
 SPOT_BGR = (255, 0, 255)  # the chosen spot: magenta
 CONFIRMED_BGR = (80, 255, 80)  # the pixel of the look that confirmed the spot: green
+ENDING_HOLD_S = 2.5  # wall seconds the outcome frame stays on screen at the end of the video
+# The episode's outcome on the last frame, in the colours of the trajectory plot's end marker (BGR).
+OUTCOME_BGR = {"safe": (44, 160, 44), "unsafe": (40, 39, 214), "timeout": (14, 127, 255),
+               "out_of_world": (127, 127, 127)}
 
 
 @dataclass(frozen=True)
@@ -132,17 +140,20 @@ def _legend(width_px: int, map_policy: bool = False) -> np.ndarray:
     return row
 
 
-def _spot(panel: np.ndarray, frame: VideoFrame, hm_w: int, sx: float, sy: float) -> None:
-    """A map policy's chosen spot: its clearance circle at its place in the view, and its figures."""
+def _spot(panel: np.ndarray, frame: VideoFrame, hm_w: int, sx: float, sy: float) -> list[str]:
+    """A map policy's chosen spot: its clearance circle at its place in the view; returns its figures."""
     side_px = panel.shape[0]
     if frame.target_px is None or frame.spot_clearance_m is None:
-        return
+        return []
     row, col = frame.target_px
     centre = (int(round((col + 0.5) * sx)), int(round((row + 0.5) * sy)))
     radius_hm = frame.metres_to_heatmap_px(frame.spot_clearance_m, hm_w)
     if radius_hm is not None:
-        # Clipped by the panel when the spot lies near or beyond the edge of the view.
-        cv2.circle(panel, centre, max(2, int(round(radius_hm * sx))), SPOT_BGR, 2, cv2.LINE_AA)
+        # Clipped by the panel when the spot lies near or beyond the edge of the view. An outline on a
+        # dark casing: readable over bright and dimmed (below threshold) ground, hiding neither.
+        radius = max(2, int(round(radius_hm * sx)))
+        cv2.circle(panel, centre, radius, (0, 0, 0), 4, cv2.LINE_AA)
+        cv2.circle(panel, centre, radius, SPOT_BGR, 2, cv2.LINE_AA)
     inside = 0 <= centre[0] < side_px and 0 <= centre[1] < side_px
     text = f"spot: clearance {frame.spot_clearance_m:.1f} m" + ("" if inside else " (outside the view)")
     lines = [text]
@@ -154,34 +165,49 @@ def _spot(panel: np.ndarray, frame: VideoFrame, hm_w: int, sx: float, sy: float)
         lines.append("confirmed in this look")
     elif frame.confirmed_frames_ago is not None:
         lines.append(f"confirmed {frame.confirmed_frames_ago} frames ago")
-    _text_lines(panel, lines, 40)  # under the caption bar
+    return lines
 
 
-def _text_lines(panel: np.ndarray, lines: Sequence[str], top_px: int) -> None:
-    """Small white lines on a dark band (readable over any heatmap colour)."""
-    font, scale = cv2.FONT_HERSHEY_SIMPLEX, 0.4
+def _policy_text(width_px: int, spot: Sequence[str], reason: str) -> np.ndarray:
+    """The row under the panels: the spot's figures on the first line, the policy's reason (wrapped,
+    at most two lines) under it."""
+    row = np.zeros((POLICY_TEXT_PX, width_px, 3), np.uint8)
+    lines = ["policy: " + ", ".join(spot)] if spot else []
+    if reason:
+        lines += textwrap.wrap("reason: " + reason, max(20, width_px // 7), max_lines=3 - len(lines),
+                               placeholder=" ...")
+    font = cv2.FONT_HERSHEY_SIMPLEX
     for i, line in enumerate(lines):
-        y = top_px + 14 * i
-        (w, h), _ = cv2.getTextSize(line, font, scale, 1)
-        cv2.rectangle(panel, (2, y - h - 3), (8 + w, y + 4), (0, 0, 0), -1)
-        cv2.putText(panel, line, (5, y), font, scale, (255, 255, 255), 1, cv2.LINE_AA)
+        cv2.putText(row, line, (8, 14 + 14 * i), font, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
+    return row
 
 
-def _reason(panel: np.ndarray, reason: str) -> None:
-    """The policy's reason for its state, wrapped at the panel's bottom (at most three lines)."""
-    if not reason:
-        return
-    width_chars = max(20, panel.shape[1] // 7)
-    lines = textwrap.wrap(reason, width_chars, max_lines=3, placeholder=" ...")
-    _text_lines(panel, lines, panel.shape[0] - 8 - 14 * (len(lines) - 1))
+def _ending(panels: np.ndarray, outcome: str, detail: str) -> None:
+    """The episode's outcome across the panels: a band in the outcome's colour, the judge's detail under it."""
+    colour = OUTCOME_BGR.get(outcome, (0, 0, 0))
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    width = panels.shape[1]
+    lines = textwrap.wrap(detail, max(30, width // 11), max_lines=3, placeholder=" ...") if detail else []
+    top = panels.shape[0] // 2 - 40
+    bottom = top + 56 + 24 * len(lines)
+    cv2.rectangle(panels, (0, top), (width, bottom), colour, -1)
+    cv2.rectangle(panels, (0, top), (width, bottom), (255, 255, 255), 2)
+    title = f"END: {outcome.upper().replace('_', ' ')}"
+    (w, _), _ = cv2.getTextSize(title, font, 1.2, 2)
+    cv2.putText(panels, title, ((width - w) // 2, top + 40), font, 1.2, (255, 255, 255), 2, cv2.LINE_AA)
+    for i, line in enumerate(lines):
+        (w, _), _ = cv2.getTextSize(line, font, 0.6, 1)
+        cv2.putText(panels, line, ((width - w) // 2, top + 70 + 24 * i), font, 0.6, (255, 255, 255), 1, cv2.LINE_AA)
 
 
-def _compose(frame: VideoFrame, side_px: int, legend: np.ndarray | None = None) -> np.ndarray:
+def _compose(frame: VideoFrame, side_px: int, legend: np.ndarray | None = None, outcome: str = "",
+             detail: str = "") -> np.ndarray:
     """camera | heatmap | policy view (BGR), with focus circle (or a map policy's spot), target, a text
-    bar and the legend."""
+    bar and the legend; with an `outcome`, the episode's end written across the panels."""
     cam = cv2.resize(cv2.cvtColor(np.ascontiguousarray(frame.image_rgb), cv2.COLOR_RGB2BGR), (side_px, side_px),
                      interpolation=cv2.INTER_AREA)
     has_heatmap = frame.prob_safe is not None
+    spot_lines: list[str] = []
     if has_heatmap:
         prob = np.asarray(frame.prob_safe, dtype=np.float32)
         hm_h, hm_w = prob.shape
@@ -213,19 +239,19 @@ def _compose(frame: VideoFrame, side_px: int, legend: np.ndarray | None = None) 
                 centre = (int(round((col + 0.5) * sx)), int(round((row + 0.5) * sy)))
                 cv2.drawMarker(panel, centre, SPOT_BGR, cv2.MARKER_TILTED_CROSS, 18, 3, cv2.LINE_AA)
         if frame.map_policy:
-            _spot(policy, frame, hm_w, sx, sy)
+            spot_lines = _spot(policy, frame, hm_w, sx, sy)
     _caption(cam, "camera")
     _caption(heat, "heatmap P(safe)")
     thr = f" >= {frame.threshold:.2f}" if frame.threshold is not None else ""
     _caption(policy, f"policy view: P{thr}, chosen spot" if frame.map_policy else f"policy view: P{thr}, in focus")
-    if frame.map_policy:
-        _reason(policy, frame.policy_reason)
     if frame.perception:
         cv2.putText(heat, frame.perception, (8, side_px - 10), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1,
                     cv2.LINE_AA)
     width = PANELS * side_px
     bar = np.zeros((BAR_PX, width, 3), np.uint8)
     text = f"t {frame.t_s:7.2f} s   alt {frame.alt_agl_m:6.1f} m AGL   state {frame.state or '-'}"
+    if outcome:
+        text += f"   episode: {outcome}"
     if frame.recent_changes > 1:
         # Frames are a sample; a policy that flips state between them would look erratic unexplained.
         text += f" ({frame.recent_changes} state changes in the last {STATE_WINDOW_S:g} s)"
@@ -234,7 +260,30 @@ def _compose(frame: VideoFrame, side_px: int, legend: np.ndarray | None = None) 
     cv2.putText(bar, text, (8, 23), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 1, cv2.LINE_AA)
     if legend is None:
         legend = _legend(width, frame.map_policy)
-    return np.vstack([np.hstack([cam, heat, policy]), bar, legend])
+    panels = np.hstack([cam, heat, policy])
+    if outcome:
+        _ending(panels, outcome, detail)
+    words = _policy_text(width, spot_lines, frame.policy_reason if frame.map_policy else "")
+    return np.vstack([panels, words, bar, legend])
+
+
+def _fill_status(frames: Sequence[VideoFrame], policy: str) -> list[VideoFrame]:
+    """Frames recorded without a controller status (the last ones, after the controller stopped)
+    keep the policy flown, its threshold and its last state, marked as the last one: a blank status
+    drew the `dovesei` panel and `state -`."""
+    flown = policy or next((f.policy for f in reversed(frames) if f.policy), "")
+    out: list[VideoFrame] = []
+    last: VideoFrame | None = None
+    for f in frames:
+        if f.state:
+            last = f
+        elif last is not None:
+            state = last.state if last.state.endswith("(last status)") else f"{last.state} (last status)"
+            f = replace(f, state=state, threshold=f.threshold if f.threshold is not None else last.threshold)
+        if not f.policy:
+            f = replace(f, policy=flown)
+        out.append(f)
+    return out
 
 
 def state_change_times(states_by_t: Mapping[float, str]) -> np.ndarray:
@@ -261,16 +310,24 @@ def _opening(frames: Sequence[VideoFrame]) -> int:
     return 0
 
 
-def write_video(frames: Sequence[VideoFrame], out: Path | str, fps: float = 10.0, side_px: int = 352) -> Path:
-    """Write the frames as H.264 MP4 (PyAV), else OpenCV mp4v or MJPG .avi. Returns the file written."""
+def write_video(frames: Sequence[VideoFrame], out: Path | str, fps: float = 10.0, side_px: int = 352,
+                outcome: str = "", detail: str = "", policy: str = "") -> Path:
+    """Write the frames as H.264 MP4 (PyAV), else OpenCV mp4v or MJPG .avi. Returns the file written.
+
+    `outcome` and `detail` (the judge's) are written on the last frame, held ENDING_HOLD_S; `policy`
+    names the policy flown for frames recorded without a controller status.
+    """
     if not frames:
         raise ReportError("no frames to write: the video needs at least one camera frame")
     if not (math.isfinite(fps) and fps > 0):
         raise ReportError(f"fps must be > 0, got {fps!r}")
     side_px += side_px % 2  # H.264 in yuv420p needs even sides
-    frames = frames[_opening(frames):]
+    frames = _fill_status(frames[_opening(frames):], policy)
     legend = _legend(PANELS * side_px, map_policy=any(f.map_policy for f in frames))
     images = (_compose(f, side_px, legend) for f in frames)
+    if outcome:
+        ending = _compose(frames[-1], side_px, legend, outcome, detail)
+        images = itertools.chain(images, itertools.repeat(ending, max(1, round(ENDING_HOLD_S * fps))))
     out = Path(out)
     if av is not None:
         return _write_h264(images, out.with_suffix(".mp4"), fps)

@@ -394,7 +394,8 @@ def write_outputs(world: Any, report: RunReport, rec: Recorder, out: Path, video
             log.warning("no trajectory plot: %s", exc)
     if video and rec.video_frames:
         try:
-            path = videos.write_video(video_frames(rec, report.perception_text()), out / "episode.mp4")
+            path = videos.write_video(video_frames(rec, report.perception_text()), out / "episode.mp4",
+                                      outcome=report.outcome, detail=report.episode.detail, policy=report.setup.policy)
             files["video"] = path.name
         except ReportError as exc:
             log.warning("no video: %s", exc)

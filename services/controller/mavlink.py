@@ -484,9 +484,12 @@ class MavlinkVehicle:
             previous, self._nav_status = self._nav_status, status
             target = self._target
             # Counted with the status that shows it, so a reader never sees one without the other. A
-            # position lost without a fix ever seen (started after the loss) counts as the same loss.
+            # position lost without a fix ever seen (started after the loss) counts as the same loss,
+            # but only once the vehicle is armed: on the ground before its first fix an EKF without a
+            # position is booting, not lost (SITL: a controller started at boot latched that as the
+            # loss, began flying attitude targets in STABILIZE and refused every command after takeoff).
             lost = status.gnss_lost or status.position_lost
-            first_loss = lost and not self._gnss_lost_seen
+            first_loss = lost and self._armed and not self._gnss_lost_seen
             if first_loss:
                 self._gnss_lost_seen = True
                 self.gnss_losses += 1

@@ -116,3 +116,25 @@ def test_a_controller_started_after_the_loss_still_gets_states_from_the_baromete
     # It never saw a fix, so it cannot tell GNSS went; it sees the position gone and trusts nothing.
     assert vehicle.nav_status().position_lost and not vehicle.nav_status().velocity_trusted
     assert wait_until(lambda: vehicle.counters()["gnss_losses"] == 1, 2.0)  # counted as the loss it is
+
+
+def test_booting_without_a_fix_is_not_a_loss_until_the_vehicle_is_armed(link) -> None:
+    """SITL: a controller started while the autopilot boots (disarmed, no GPS fix yet, EKF without a
+    position) took that for a GNSS loss, started flying attitude targets in STABILIZE and refused every
+    command once the vehicle had taken off in GUIDED."""
+    def booting(fake: FakeAutopilot) -> None:
+        fake.set_armed(False)
+        fake.lose_gnss()
+
+    fake, vehicle = link("ardupilot", gnss_denied="attitude", before=booting)
+    assert wait_until(lambda: vehicle.nav_status().position_lost, 5.0)  # it sees no position...
+    assert not wait_until(lambda: vehicle.counters()["gnss_losses"] > 0, 1.5)  # ...and no loss on the ground
+    fake.restore_gnss()  # the fix comes; ArduPilot arms only with a position (a pre-arm check)
+    assert wait_until(lambda: not vehicle.nav_status().position_lost, 10.0)
+    fake.set_armed(True)  # and the vehicle took off in GUIDED
+    assert wait_until(lambda: vehicle.armed and vehicle.poll_state() is not None, 10.0)
+    vehicle.send(VelocityCommand("uav1", 0, Stamp(0.0, "vehicle"), (1.0, 0.0, 0.0)))  # steered in GUIDED
+    assert fake.mode == "GUIDED" and vehicle.counters()["gnss_losses"] == 0
+    fake.lose_gnss()  # the real loss, in flight, is acted on
+    assert wait_until(lambda: fake.mode == "GUIDED_NOGPS", 10.0)
+    assert vehicle.counters()["gnss_losses"] == 1

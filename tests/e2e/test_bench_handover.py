@@ -19,7 +19,8 @@ def test_a_bench_hands_over_where_it_is_told_and_records_it(tmp_path: Path) -> N
     (ep,) = doc["episodes"]
     print(f"bench --handover-alt-m 35: {ep['outcome']} at {ep['final']['alt_m']} m after {ep['sim_time_s']} s")
     assert ep["handover_alt_m"] == 35.0 and doc["config"]["handover_alt_m"] == 35.0
-    assert ep["outcome"] in ("safe", "unsafe") and 34.0 < ep["final"]["alt_m"] <= 35.0
+    # Judged where the controller handed over on the vehicle's measured altitude: the true one within its error.
+    assert ep["outcome"] in ("safe", "unsafe") and abs(ep["final"]["alt_m"] - 35.0) < 1.0
     assert "hand-over altitude (35 m)" in (tmp_path / "b" / "summary.md").read_text()
 
 
@@ -39,3 +40,39 @@ def test_a_handover_above_the_start_is_one_line_before_any_work(tmp_path: Path) 
     lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1 and lines[0].startswith("dovesei bench: --handover-alt-m 38 m"), r.stderr
     assert "start altitude 40 m" in lines[0] and not out.exists()
+
+
+def test_a_policy_file_is_flown_and_recorded_and_refused_with_two_policies(tmp_path: Path) -> None:
+    path = tmp_path / "mine.toml"
+    path.write_text("p_safe_min = 0.9\nmargin_m = 1.5\n")  # margin_m is the default: not a change
+    doc = run_bench(world_spec=WORLD, episodes=1, seed=0, policies=["clearance"], noise=0.0, timing="real",
+                    time_limit_s=600.0, start_alt_m=100.0, jobs=1, out=tmp_path / "b", progress=False,
+                    policy_config=path)
+    assert doc["config"]["policy_config"] == {"p_safe_min": 0.9}
+    assert doc["episodes"][0]["outcome"] in ("safe", "unsafe", "timeout")
+    r = subprocess.run([sys.executable, "-m", "dovesei.cli", "bench", "--world", WORLD, "--policy", "dovesei,clearance",
+                        "--policy-config", str(path), "--out", str(tmp_path / "o"), "--no-progress"], cwd=tmp_path,
+                       capture_output=True, text=True, timeout=120)
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert r.returncode == 2 and len(lines) == 1 and "one --policy" in lines[0], r.stderr
+    path.write_text("p_safe_min = 'x'\n")
+    r = subprocess.run([sys.executable, "-m", "dovesei.cli", "bench", "--world", WORLD, "--policy", "clearance",
+                        "--policy-config", str(path), "--out", str(tmp_path / "o"), "--no-progress"], cwd=tmp_path,
+                       capture_output=True, text=True, timeout=120)
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert r.returncode == 2 and len(lines) == 1 and "mine.toml: p_safe_min must be a finite number" in lines[0]
+    assert not (tmp_path / "o").exists()
+
+
+def test_an_episode_builds_its_policy_from_the_jobs_constants() -> None:
+    from dovesei.episode import EpisodeSpec, build_cores
+    from dovesei.sim.starts import Start
+    from dovesei.sim.world import load_world
+
+    job = {"policy": "clearance", "timing": "real", "seed": 0, "time_limit_s": 60.0, "handover_alt_m": 12.0,
+           "policy_config": {"p_safe_min": 0.9, "lower_search_fracs": [0.5]}}
+    spec = EpisodeSpec.from_job(job, Start(200.0, 200.0, 100.0))
+    _, _, ctrl = build_cores(load_world(WORLD), spec)
+    cfg = ctrl.policy.config
+    assert (cfg.p_safe_min, cfg.lower_search_fracs, cfg.handover_alt_m) == (0.9, (0.5,), 12.0)
+    assert ctrl.config.handover_alt_m == 12.0

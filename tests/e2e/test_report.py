@@ -10,7 +10,7 @@ import pytest
 
 from dovesei.pictures.common import ReportError, backend_label
 from dovesei.pictures.plots import plot_bench_paths, plot_trajectory
-from dovesei.pictures.video import BAR_PX, LEGEND_PX, PANELS, VideoFrame, write_video
+from dovesei.pictures.video import BAR_PX, LEGEND_PX, PANELS, POLICY_TEXT_PX, VideoFrame, write_video
 from dovesei.sim.world import ClassInfo, World
 
 SIDE_PX = 352
@@ -119,7 +119,7 @@ def test_video_has_every_frame_and_the_heatmap_colours(tmp_path) -> None:
     finally:
         cap.release()
     assert count == 12
-    assert first.shape[:2] == (SIDE_PX + BAR_PX + LEGEND_PX, PANELS * SIDE_PX)  # camera | heatmap | policy view
+    assert first.shape[:2] == (SIDE_PX + POLICY_TEXT_PX + BAR_PX + LEGEND_PX, PANELS * SIDE_PX)  # camera | heatmap | policy view
     # Heatmap panel (right half of the frame): P=0 is red, P=1 is green (BGR), away from overlays.
     unsafe_bgr = first[40, SIDE_PX + 10].astype(int)
     safe_bgr = first[40, 2 * SIDE_PX - 10].astype(int)

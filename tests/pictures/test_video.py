@@ -8,7 +8,7 @@ from pathlib import Path
 import av
 import numpy as np
 
-from dovesei.pictures.video import BAR_PX, LEGEND_PX, PANELS, VideoFrame, _compose, write_video
+from dovesei.pictures.video import BAR_PX, LEGEND_PX, PANELS, POLICY_TEXT_PX, VideoFrame, _compose, write_video
 
 SIDE_PX = 352
 
@@ -34,7 +34,7 @@ def test_video_is_h264_mp4_and_opens_on_the_first_heatmap(tmp_path: Path) -> Non
         assert stream.codec_context.pix_fmt == "yuv420p"  # what browsers decode
         frames = [f.to_ndarray(format="bgr24") for f in container.decode(video=0)]
     assert len(frames) == 12  # the three blind frames before the first heatmap are not the opening
-    assert frames[0].shape[:2] == (SIDE_PX + BAR_PX + LEGEND_PX, PANELS * SIDE_PX)
+    assert frames[0].shape[:2] == (SIDE_PX + POLICY_TEXT_PX + BAR_PX + LEGEND_PX, PANELS * SIDE_PX)
     # Policy view (third panel): inside the focus circle, below the 0.5 threshold is dimmed and the
     # safe half bright green; outside the circle the safe half is dimmed too.
     panel = frames[0][:SIDE_PX, 2 * SIDE_PX:3 * SIDE_PX].astype(int)
@@ -61,5 +61,37 @@ def test_state_changes_between_frames_are_counted_and_shown() -> None:
     assert changes_before(times, 0.25) == 3 and changes_before(times, 1.15) == 1 and changes_before(times, 2.0) == 0
     quiet = _compose(_frames(1)[0], SIDE_PX)
     busy = _compose(VideoFrame(**{**_frames(1)[0].__dict__, "recent_changes": 5}), SIDE_PX)
-    bar = slice(SIDE_PX, SIDE_PX + BAR_PX)
+    bar = slice(SIDE_PX + POLICY_TEXT_PX, SIDE_PX + POLICY_TEXT_PX + BAR_PX)
     assert (busy[bar] > 128).sum() > (quiet[bar] > 128).sum()  # the count is written in the bar
+
+
+def _decode(path: Path) -> list[np.ndarray]:
+    with av.open(str(path)) as container:
+        return [f.to_ndarray(format="bgr24") for f in container.decode(video=0)]
+
+
+def test_the_last_frame_shows_the_outcome_and_the_policy_flown(tmp_path: Path) -> None:
+    """The controller stops before the recorder: the last frames carry no status. They keep the
+    clearance policy's panel (not the default one) and the video ends on the outcome, held."""
+    from dovesei.pictures.video import ENDING_HOLD_S, OUTCOME_BGR
+
+    flown = [VideoFrame(**{**f.__dict__, "policy": "clearance", "focus_radius_px": 0.0, "hfov_rad": 1.0,
+                           "target_px": None, "state": "DESCEND"}) for f in _frames(4)]
+    blank = [VideoFrame(**{**flown[-1].__dict__, "t_s": 2.0 + 0.25 * i, "state": "", "policy": "", "threshold": None})
+             for i in range(2)]
+    fps = 10.0
+    frames = _decode(write_video(flown + blank, tmp_path / "e.mp4", fps=fps, outcome="safe",
+                                 detail="0.0% of the disk is unsafe", policy="clearance"))
+    assert len(frames) == 6 + round(ENDING_HOLD_S * fps)
+    caption = (slice(0, 22), slice(2 * SIDE_PX, 3 * SIDE_PX))
+    # The status-less frame is drawn as the clearance policy's view (same panel title), not dovesei's.
+    first, plain_last = frames[0][caption].astype(int), frames[5][caption].astype(int)
+    assert np.abs(first - plain_last).mean() < 3
+    default = _compose(blank[0], SIDE_PX)[caption].astype(int)  # what a blank status used to draw
+    assert np.abs(default - plain_last).mean() > 3
+    # The outcome band, in the outcome's colour across the panels, only on the ending frames.
+    def band(img: np.ndarray) -> int:
+        return int((np.abs(img[:SIDE_PX].astype(int) - np.array(OUTCOME_BGR["safe"])) < 25).all(axis=-1).sum())
+    assert band(frames[-1]) > 10 * SIDE_PX and band(frames[5]) < SIDE_PX
+    unsafe = _decode(write_video(flown, tmp_path / "u.mp4", fps=fps, outcome="unsafe", detail="on a road"))[-1]
+    assert band(unsafe) < SIDE_PX  # another outcome, another colour

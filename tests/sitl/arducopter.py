@@ -101,13 +101,15 @@ class ArduCopterSitl:
 
 
 class MavlinkWatch:
-    """The test's own read of a SITL output: STATUSTEXT lines, mode changes, altitude and armed state.
+    """The test's own read of a SITL output: STATUSTEXT lines, mode changes, altitude, armed state, GPS fix.
 
-    Parsed with pymavlink's MAVLink 2 dialect on a plain UDP socket (nothing is sent but one request
-    for GLOBAL_POSITION_INT and HEARTBEAT-driven reading); `texts` and `modes` grow as the flight goes.
+    Parsed with pymavlink's MAVLink 2 dialect on a plain UDP socket; it asks for GLOBAL_POSITION_INT
+    GPS_RAW_INT and EKF_STATUS_REPORT at 2 Hz, and with `cut_gps_below_m` it disables SITL's GPS (PARAM_SET
+    SIM_GPS_DISABLE 1) once the copter, armed, has been 10 m above that altitude and sinks below it
+    (`gps_cut_alt_m` records where). `texts` and `modes` grow as the flight goes.
     """
 
-    def __init__(self, port: int) -> None:
+    def __init__(self, port: int, *, cut_gps_below_m: float | None = None) -> None:
         import threading  # noqa: PLC0415 (kept beside the one class that needs it)
 
         from pymavlink.dialects.v20 import ardupilotmega  # noqa: PLC0415 (only the sitl tier parses MAVLink here)
@@ -123,6 +125,11 @@ class MavlinkWatch:
         self.rel_alt_m: float | None = None
         self.armed = False
         self.custom_mode: int | None = None
+        self.gps_fix_type = 0
+        self.ekf_flags = 0  # EKF_STATUS_REPORT flags
+        self.cut_gps_below_m = cut_gps_below_m
+        self.gps_cut_alt_m: float | None = None
+        self._above = False
         self._thread = threading.Thread(target=self._run, name="sitl-watch", daemon=True)
 
     def _run(self) -> None:
@@ -139,15 +146,39 @@ class MavlinkWatch:
                     if (msg.custom_mode, armed) != (self.custom_mode, self.armed):
                         self.modes.append((msg.custom_mode, armed))
                     self.custom_mode, self.armed = msg.custom_mode, armed
-                    if time.monotonic() - asked > 5.0:  # GLOBAL_POSITION_INT at 2 Hz on this output
-                        packet = self._mav.command_long_encode(msg.get_srcSystem(), msg.get_srcComponent(), 511, 0,
-                                                               33, 500_000, 0, 0, 0, 0, 0).pack(self._mav)
-                        self._sock.sendto(packet, addr)
+                    target = (msg.get_srcSystem(), msg.get_srcComponent())
+                    if time.monotonic() - asked > 5.0:  # GLOBAL_POSITION_INT, GPS_RAW_INT, EKF_STATUS_REPORT
+                        for msg_id in (33, 24, 193):
+                            packet = self._mav.command_long_encode(*target, 511, 0, msg_id, 500_000, 0, 0, 0, 0,
+                                                                   0).pack(self._mav)
+                            self._sock.sendto(packet, addr)
                         asked = time.monotonic()
+                    self._maybe_cut_gps(target, addr)
                 elif kind == "STATUSTEXT":
                     self.texts.append(msg.text)
                 elif kind == "GLOBAL_POSITION_INT":
                     self.rel_alt_m = msg.relative_alt / 1000.0
+                elif kind == "GPS_RAW_INT":
+                    self.gps_fix_type = msg.fix_type
+                elif kind == "EKF_STATUS_REPORT":
+                    self.ekf_flags = msg.flags
+
+    @property
+    def ekf_has_absolute_position(self) -> bool:
+        """EKF_STATUS_REPORT: an absolute horizontal position (16), not in constant-position mode (128)."""
+        return bool(self.ekf_flags & 16) and not self.ekf_flags & 128
+
+    def _maybe_cut_gps(self, target: tuple[int, int], addr: tuple[str, int]) -> None:
+        """SIM_GPS_DISABLE 1 (an INT8 parameter) below `cut_gps_below_m`, re-sent each heartbeat until
+        the fix is gone."""
+        if self.cut_gps_below_m is None or not self.armed or self.rel_alt_m is None:
+            return
+        self._above = self._above or self.rel_alt_m > self.cut_gps_below_m + 10.0
+        if self._above and self.rel_alt_m < self.cut_gps_below_m and self.gps_fix_type >= 2:
+            if self.gps_cut_alt_m is None:
+                self.gps_cut_alt_m = self.rel_alt_m
+            packet = self._mav.param_set_encode(*target, b"SIM_GPS_DISABLE", 1.0, 2).pack(self._mav)
+            self._sock.sendto(packet, addr)
 
     def __enter__(self) -> MavlinkWatch:
         self._thread.start()

@@ -9,6 +9,8 @@ ArduPilot build outside this repository (docs/sitl.md).
   ground the judge (at SITL's true pose) calls safe, the copter left hovering there.
 - The same with `--handover-action precland` (PLND_ENABLED 1, PLND_TYPE 1): LANDING_TARGET streams
   until ArduCopter has landed on the spot and disarmed.
+- GPS cut (SIM_GPS_DISABLE 1) below 80 m with `--gnss-denied attitude`: GUIDED_NOGPS on the visual
+  velocity, no EKF failsafe LAND, hand-over at 20 m.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -31,7 +34,7 @@ from tests.sitl.arducopter import ArduCopterSitl, MavlinkWatch, sitl_tree
 pytestmark = pytest.mark.sitl
 
 REPO = Path(__file__).resolve().parents[2]
-GUIDED, LAND = 4, 9  # ArduCopter custom mode numbers
+GUIDED, LAND, GUIDED_NOGPS = 4, 9, 20  # ArduCopter custom mode numbers
 HANDOVER_ALT_M = 20.0
 
 
@@ -56,10 +59,13 @@ def test_the_truth_reader_follows_arducopters_sim_state(tmp_path: Path) -> None:
     assert truth.rejected == 0
 
 
-def _fly_up(tmp_path: Path, *up_args: str, params: dict[str, float] | None = None, settle_s: float = 3.0):
+def _fly_up(tmp_path: Path, *up_args: str, params: dict[str, float] | None = None, settle_s: float = 3.0,
+            cut_gps_below_m: float | None = None):
     """`dovesei up --takeoff --policy clearance` against a fresh SITL: (exit, stderr, report, watch, after).
 
-    `after` is (custom mode, armed, relative altitude) `settle_s` after `up` returned.
+    `after` is (custom mode, armed, relative altitude) `settle_s` after `up` returned. With
+    `cut_gps_below_m`, `up` starts once SITL's EKF has its GPS position (a controller that starts
+    before reads the boot as a GNSS loss: see docs/sitl.md) and the GPS is cut there.
     """
     ports = _ports()
     out = tmp_path / "up"
@@ -69,12 +75,31 @@ def _fly_up(tmp_path: Path, *up_args: str, params: dict[str, float] | None = Non
     env = {**os.environ, "PYTHONUNBUFFERED": "1", "HF_HUB_OFFLINE": "1"}
     with ArduCopterSitl(sitl_tree(), tmp_path / "sitl", controller_port=ports["controller"],
                         truth_port=ports["truth"], monitor_port=ports["monitor"], params=params), \
-            MavlinkWatch(ports["monitor"]) as watch:
-        done = subprocess.run(argv, cwd=REPO, capture_output=True, text=True, timeout=1400, env=env)
+            MavlinkWatch(ports["monitor"], cut_gps_below_m=cut_gps_below_m) as watch:
+        if cut_gps_below_m is not None:
+            assert wait_until(lambda: watch.gps_fix_type >= 3 and watch.ekf_has_absolute_position, 120.0, poll_s=0.5), \
+                "SITL: no 3D fix and EKF position in 120 s"
+        code, stderr = _run_up(argv, env)
         time.sleep(settle_s)
         after = (watch.custom_mode, watch.armed, watch.rel_alt_m)
     report = json.loads((out / "report.json").read_text())
-    return done.returncode, done.stderr[-3000:], report, watch, after
+    return code, stderr[-3000:], report, watch, after
+
+
+def _run_up(argv: list[str], env: dict[str, str]) -> tuple[int, str]:
+    """`up` to its end; interrupted (Ctrl-C, the test's timeout), it gets SIGINT and stops its own
+    services (a SIGKILL, what subprocess.run sends, would leave them running)."""
+    proc = subprocess.Popen(argv, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        _out, stderr = proc.communicate(timeout=1400)
+    except BaseException:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.communicate(timeout=60)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+        raise
+    return proc.returncode, stderr
 
 
 @pytest.mark.timeout(1500)
@@ -105,3 +130,19 @@ def test_up_precland_hands_over_and_arducopter_lands_on_the_spot(tmp_path: Path)
     # Down on the ground the judge called safe at the hand-over: within 2 m of that point.
     final, touchdown = report["final"], landing["touchdown"]
     assert math.dist((final["x_m"], final["y_m"]), (touchdown["x_m"], touchdown["y_m"])) < 2.0, (final, touchdown)
+
+
+@pytest.mark.timeout(1500)
+def test_gps_cut_mid_descent_attitude_mode_keeps_control_to_the_hand_over(tmp_path: Path) -> None:
+    # Stock parameters: GUIDED without a position would end in ArduCopter's EKF failsafe (LAND);
+    # with --gnss-denied attitude dovesei switches to GUIDED_NOGPS and flies attitude targets on the
+    # camera's visual velocity (the sim's odometry, rendered at SITL's true pose) down to 20 m.
+    code, tail, report, watch, after = _fly_up(tmp_path, "--gnss-denied", "attitude", "--time-limit-s", "600",
+                                               cut_gps_below_m=80.0)
+    assert watch.gps_cut_alt_m is not None and watch.gps_cut_alt_m > 60.0, watch.gps_cut_alt_m
+    nav = report["navigation"]
+    assert nav["gnss_lost"] and "visual" in nav["sources"], nav
+    assert code == 0 and report["outcome"] == "safe", tail
+    assert report["final"]["alt_m"] == pytest.approx(HANDOVER_ALT_M, abs=1.5), report["final"]
+    assert (GUIDED_NOGPS, True) in watch.modes and LAND not in [m for m, _ in watch.modes], watch.modes
+    assert after[0] == GUIDED_NOGPS and after[1], after

@@ -75,7 +75,7 @@ def _checked_value(where: str, hint: Any, value: Any) -> Any:
             return value
         raise ConfigError(f"{where} must be a string, got {value!r}")
     if origin is tuple:
-        if not isinstance(value, list):
+        if not isinstance(value, (list, tuple)):  # a file's array, or a spec's tuple
             raise ConfigError(f"{where} must be an array of numbers, got {value!r}")
         return tuple(_checked_value(f"{where}[{i}]", args[0], v) for i, v in enumerate(value))
     raise ConfigError(f"{where}: cannot be set from a file")  # a field type this loader does not know
