@@ -25,7 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from dovesei.controller.frames import ned_to_body_frd
+from dovesei.controller.frames import body_frd_to_ned, ned_to_body_frd
 from dovesei.shared import validate
 from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.shared.mavurl import check_serial_device, parse_mavlink_url
@@ -217,14 +217,7 @@ def ned_to_frd(vel_ned: tuple[float, ...], roll_rad: float, pitch_rad: float,
 def frd_to_ned(vel_frd: tuple[float, ...], roll_rad: float, pitch_rad: float,
                yaw_rad: float) -> tuple[float, float, float]:
     """Rotate a body FRD vector into NED (the transpose of `ned_to_frd`)."""
-    f, r, d = (float(v) for v in vel_frd)
-    cr, sr, cp, sp = math.cos(roll_rad), math.sin(roll_rad), math.cos(pitch_rad), math.sin(pitch_rad)
-    cy, sy = math.cos(yaw_rad), math.sin(yaw_rad)
-    # Columns of R_body<-ned are the rows of R_ned<-body.
-    n = cp * cy * f + (sr * sp * cy - cr * sy) * r + (cr * sp * cy + sr * sy) * d
-    e = cp * sy * f + (sr * sp * sy + cr * cy) * r + (cr * sp * sy - sr * cy) * d
-    dn = -sp * f + sr * cp * r + cr * cp * d
-    return (n, e, dn)
+    return body_frd_to_ned(vel_frd, roll_rad, pitch_rad, yaw_rad)
 
 
 # ---------------------------------------------------------------------- incoming samples
