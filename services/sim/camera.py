@@ -269,6 +269,7 @@ def render(
     with_labels: bool = True,
     with_image: bool = True,
     interpolation: str = "auto",
+    t_s: float = 0.0,
 ) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray]:
     """The camera's view: (image_rgb HxWx3 uint8, labels HxW uint8 or None, valid_mask HxW bool).
 
@@ -277,7 +278,8 @@ def render(
 
     labels is None when the world has none or with_labels is False (labels cost ~25 % of a frame);
     image is None with with_image=False (a consumer of the labels alone skips the costly warp).
-    interpolation "auto" reads the half-octave pyramid level closest to the needed scale with a
+    t_s: the time (seconds since the episode began) at which the world's people and cars are
+    drawn (`World.population`, at the view's own resolution). interpolation "auto" reads the half-octave pyramid level closest to the needed scale with a
     nearest lookup (the level already averaged the right area) and switches to bilinear where the
     view magnifies the world (low altitude); "linear" is bilinear at every scale: softer, and
     ~1.4x slower over an episode's mix of altitudes (measured with bench_render).
@@ -315,6 +317,10 @@ def render(
     if world.labels is not None and with_labels:
         labels = warp(world.labels, m0, size, flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
                       borderMode=cv2.BORDER_CONSTANT, borderValue=OUT_OF_WORLD_LABEL)
+    if world.population is not None and (image is not None or labels is not None):
+        # People and cars at this view's own resolution; those the texture already holds (baked)
+        # only when the view is finer than the texture (k < 1 world pixel per output pixel).
+        world.population.draw(image, labels, world_m_to_output_px(world, m0), t_s, skip_baked=k >= 1.0)
     valid = _valid_mask(world, m0, cam)
     if valid is None:
         valid = np.ones((cam.height_px, cam.width_px), dtype=bool)
@@ -325,6 +331,16 @@ def render(
         if labels is not None:
             labels[~valid] = OUT_OF_WORLD_LABEL
     return image, labels, valid
+
+
+def world_m_to_output_px(world: World, m0: np.ndarray) -> np.ndarray:
+    """3x3 map from world metres (x east, y north, 1) to output pixels (col, row, w), the inverse of
+    a view's output -> world pixel map m0 (2x3 affine or 3x3 homography) composed with the world's
+    metres -> pixel scale: what `objects.ObjectLayer.draw` takes."""
+    m = np.vstack([m0, [0.0, 0.0, 1.0]]) if m0.shape[0] == 2 else m0
+    g = world.gsd_m
+    metres_to_px = np.array([[1.0 / g, 0.0, -0.5], [0.0, -1.0 / g, world.height_px - 0.5], [0.0, 0.0, 1.0]])
+    return np.linalg.inv(m) @ metres_to_px
 
 
 def _level_index(k: float) -> int:
