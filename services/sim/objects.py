@@ -226,8 +226,14 @@ class ObjectLayer:
             if image is not None:
                 self._paint(image, m, st, sel, kind, bodies, body_px, ppm[sel], (sx, sy))
             if labels is not None:
-                # LINE_8 without anti-aliasing: a pixel takes the class id or keeps its own.
-                cv2.fillPoly(labels, list(body_px), int(label_ids[kind]), cv2.LINE_8, _SHIFT)
+                # A pixel takes the class id when its centre lies on the object, as the camera's
+                # nearest lookup labels the world. OpenCV's polygon fill also takes every pixel the
+                # outline touches: right for large objects, four times too many for one pixel's size.
+                small = ppm[sel] * np.maximum(self.length_m[sel], self.width_m[sel]) < 4.0
+                if (~small).any():
+                    cv2.fillPoly(labels, list(body_px[~small]), int(label_ids[kind]), cv2.LINE_8, _SHIFT)
+                if small.any():
+                    self._label_centres(labels, m, st, sel[small], pc[sel[small]], int(label_ids[kind]))
         if keep_img is not None:
             image[~valid] = keep_img
         if keep_lab is not None:
@@ -260,6 +266,23 @@ class ObjectLayer:
                 for local in (_CAR_WINDSCREEN, _CAR_REAR_WINDOW):
                     part = self._outlines(one, st, local)[0]
                     cv2.fillPoly(image, [_fixed(_project(m, part))], _GLASS, cv2.LINE_AA, _SHIFT)
+
+    def _label_centres(self, labels: np.ndarray, m: np.ndarray, st: ObjectStates, sel: np.ndarray, pc: np.ndarray,
+                       label_id: int) -> None:
+        """Label the pixels around each small object whose centres lie on its footprint."""
+        offs = np.stack(np.meshgrid(np.arange(-2, 3), np.arange(-2, 3)), -1).reshape(-1, 2)  # (25, 2) col, row
+        cells = np.round(pc)[:, None, :] + offs[None]  # (n, 25, 2) candidate pixel centres
+        inv = np.linalg.inv(m)
+        world = _project(inv, cells.reshape(-1, 2)).reshape(len(sel), -1, 2)
+        dx, dy = world[..., 0] - st.x_m[sel][:, None], world[..., 1] - st.y_m[sel][:, None]
+        sh, ch = np.sin(st.heading_rad[sel])[:, None], np.cos(st.heading_rad[sel])[:, None]
+        a, b = dx * sh + dy * ch, dx * ch - dy * sh
+        half_l, half_w = 0.5 * self.length_m[sel][:, None], 0.5 * self.width_m[sel][:, None]
+        person = (self.kind[sel] == PERSON)[:, None]
+        inside = np.where(person, a * a + b * b <= half_w * half_w, (np.abs(a) <= half_l) & (np.abs(b) <= half_w))
+        col, row = cells[..., 0].astype(np.int64), cells[..., 1].astype(np.int64)
+        inside &= (col >= 0) & (col < labels.shape[1]) & (row >= 0) & (row < labels.shape[0])
+        labels[row[inside], col[inside]] = label_id
 
     def _outlines(self, sel: np.ndarray, st: ObjectStates, local: np.ndarray) -> np.ndarray:
         """(n, V, 2) world metres of a unit outline (along, across) scaled to each selected object

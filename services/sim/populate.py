@@ -53,7 +53,7 @@ _CAR_COLOURS = ((232, 232, 230), (30, 30, 34), (118, 120, 124), (176, 178, 182),
 class Density:
     """How busy a world is: objects per hectare of walkable / drivable ground, crowds per km^2."""
 
-    walkers_per_ha: float = 2.0
+    walkers_per_ha: float = 4.0
     standing_per_ha: float = 0.6
     cars_per_ha_road: float = 5.0
     crowds_per_km2: float = 0.0
@@ -123,7 +123,7 @@ class _Ground:
             ys = y_m[:, None] + steps * dn - off * de
             ok &= lut[self.ids(xs, ys)]
         first_bad = np.where(ok.all(axis=1), len(steps), np.argmin(ok, axis=1))
-        return np.where(first_bad > 0, steps[np.maximum(first_bad - 1, 0)], 0.0) * (first_bad > 0)
+        return np.where(first_bad > 0, steps[np.maximum(first_bad - 1, 0)], 0.0)
 
 
 def populate(labels: np.ndarray, gsd_m: float, class_names: Mapping[int, str], seed: int,
@@ -184,12 +184,15 @@ def _cars(ground: _Ground, rng: np.random.Generator, pts: np.ndarray, drive: np.
     x = np.repeat(pts[:, 0], len(headings))
     y = np.repeat(pts[:, 1], len(headings))
     h = np.tile(headings, n)
-    ahead = ground.run_m(x, y, h, drive, 150.0, half).reshape(n, -1)
-    behind = ground.run_m(x, y, h + math.pi, drive, 150.0, half).reshape(n, -1)
-    best = np.argmax(ahead + behind, axis=1)
-    run = (ahead + behind)[np.arange(n), best]
-    back = behind[np.arange(n), best]
-    heading = headings[best]
+    # The road's direction is where its centre line runs longest through the point; then the car's
+    # whole width must fit along it (a point by the kerb has no room and drives nowhere).
+    line = ground.run_m(x, y, h, drive, 150.0) + ground.run_m(x, y, h + math.pi, drive, 150.0)
+    heading = headings[np.argmax(line.reshape(n, -1), axis=1)]
+    ahead = ground.run_m(pts[:, 0], pts[:, 1], heading, drive, 150.0, half)
+    back = ground.run_m(pts[:, 0], pts[:, 1], heading + math.pi, drive, 150.0, half)
+    at_point = drive[ground.ids(pts[:, 0] + half * np.cos(heading), pts[:, 1] - half * np.sin(heading))] & \
+        drive[ground.ids(pts[:, 0] - half * np.cos(heading), pts[:, 1] + half * np.sin(heading))]
+    run = np.where(at_point, ahead + back, 0.0)
     speed = rng.uniform(*DRIVE_SPEED_M_S, n)
     flip = rng.random(n) < 0.5  # half of them start from the other end
     colour = rng.integers(0, len(_CAR_COLOURS), n)
