@@ -37,6 +37,7 @@ import cv2
 import numpy as np
 
 from dovesei.shared import footprint
+from dovesei.shared.footprint import tilt_rotation
 from dovesei.shared.errors import DoveseiError
 from dovesei.shared.validate import is_number
 from dovesei.sim.world import OUT_OF_WORLD_LABEL, World
@@ -171,14 +172,6 @@ def pixel_to_world_affine(
         ],
         dtype=np.float64,
     )
-
-
-def tilt_rotation(roll_rad: float, pitch_rad: float) -> np.ndarray:
-    """Body (forward, right, down) -> heading-level (forward, right, down): R_y(pitch) @ R_x(roll)."""
-    cr, sr, cp, sp = math.cos(roll_rad), math.sin(roll_rad), math.cos(pitch_rad), math.sin(pitch_rad)
-    return np.array([[cp, sp * sr, sp * cr],
-                     [0.0, cr, -sr],
-                     [-sp, cp * sr, cp * cr]], dtype=np.float64)
 
 
 # The steepest corner ray a tilted render accepts: cos of 85 deg from straight down. Beyond it the
@@ -341,6 +334,25 @@ def world_m_to_output_px(world: World, m0: np.ndarray) -> np.ndarray:
     g = world.gsd_m
     metres_to_px = np.array([[1.0 / g, 0.0, -0.5], [0.0, -1.0 / g, world.height_px - 0.5], [0.0, 0.0, 1.0]])
     return np.linalg.inv(m) @ metres_to_px
+
+
+# The virtual camera a ground square is rendered through: a level nadir camera whose footprint is
+# the square (any field of view gives the same affine map; this one keeps `render`'s checks happy).
+_SQUARE_HFOV_DEG = 73.0
+
+
+def render_ground_square(world: World, centre_x_m: float, centre_y_m: float, yaw_rad: float, side_m: float,
+                         out_px: int, *, with_image: bool = True, with_labels: bool = True,
+                         t_s: float = 0.0) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray]:
+    """A square of the world `side_m` wide centred on (x east, y north), image up along the heading
+    `yaw_rad`, at `out_px` a side: what a close-look crop shows, people and cars where they are at
+    `t_s` (seconds since the episode began) drawn at the crop's resolution. Same outputs as `render`."""
+    if not (is_number(side_m) and side_m > 0.0):
+        raise CameraError(f"side_m must be finite and > 0, got {side_m!r}")
+    cam = CameraModel(out_px, out_px, _SQUARE_HFOV_DEG)
+    alt_m = side_m / footprint.width_m(1.0, cam.hfov_rad)  # the altitude whose footprint is the square
+    return render(world, centre_x_m, centre_y_m, alt_m, yaw_rad, cam, with_image=with_image, with_labels=with_labels,
+                  t_s=t_s)
 
 
 def _level_index(k: float) -> int:
