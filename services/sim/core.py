@@ -302,7 +302,8 @@ class SimCore:
         roll, pitch = (0.0, 0.0) if self._gimbal else (pose.roll_rad, pose.pitch_rad)
         image, labels, _valid = render(self.world, pose.x_m, pose.y_m, alt_m, pose.yaw_rad, cfg.camera,
                                        roll_rad=roll, pitch_rad=pitch, with_image=cfg.render_image,
-                                       with_labels=cfg.attach_truth)  # labels unused: skip their warp
+                                       with_labels=cfg.attach_truth,  # labels unused: skip their warp
+                                       t_s=pose.t_s)  # people and cars where they are now
         if image is None:
             image = self._blank_image()
         centre = (pose.x_m, pose.y_m) if roll == 0.0 and pitch == 0.0 else \
