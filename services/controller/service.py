@@ -80,7 +80,7 @@ _MAX_LATENESS_SAMPLES = 200_000
 
 
 class Vehicle(Protocol):
-    """What the loop needs from a vehicle; `ZenohVehicle` here, `MavlinkVehicle` in mavlink.py."""
+    """What the loop needs from a vehicle; `ZenohVehicle` here, `MavlinkVehicle` in mavlink/vehicle.py."""
 
     def poll_state(self) -> VehicleState | None: ...
 

@@ -32,7 +32,7 @@ from dovesei.controller.mavlink.proto import (
 from dovesei.shared import validate
 from dovesei.shared.messages import Stamp, VelocityCommand
 
-if TYPE_CHECKING:  # only for annotations: mavlink.py imports this module (no cycle at run time)
+if TYPE_CHECKING:  # only for annotations: vehicle.py imports this module (no cycle at run time)
     from dovesei.controller.mavlink.vehicle import MavlinkVehicle
 
 log = logging.getLogger(__name__)

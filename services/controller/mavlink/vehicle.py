@@ -29,15 +29,15 @@ Without GNSS (`gnss_denied`, the judgement and the attitude loop in `gnss_denied
         the barometric height above home), horizontal velocity from the good visual velocity or zero
 
 Size: one class, one lock domain (the I/O thread and the caller share every field below under
-`_lock`); the pure parts live beside it (`mavlink_proto` numbers and checks, `mavlink_readiness`,
-`mavlink_takeoff`, `mavlink_signing`), and splitting the rest would scatter the locking.
+`_lock`); the pure parts live beside it (`proto` numbers and checks, `readiness`,
+`takeoff`, `signing`), and splitting the rest would scatter the locking.
 
 Why one thread and no callbacks into the caller: pymavlink's parser is not thread-safe, and the
 controller's loop must never block on the radio. Sends from the caller's thread share a transmit
 lock with the I/O thread (pymavlink's sequence counter and socket writes are not thread-safe).
 
 Conventions (ArduPilot "Copter Commands in Guided Mode", PX4 offboard docs; numbers in
-`mavlink_proto`): body-frame velocities in MAV_FRAME_BODY_OFFSET_NED (ArduPilot) or
+`proto`): body-frame velocities in MAV_FRAME_BODY_OFFSET_NED (ArduPilot) or
 MAV_FRAME_BODY_NED (PX4), both heading-level frames; type mask 0x05C7 (velocity + yaw rate).
 Heading: with `yaw_control="rate"` the yaw rate sent is the policy's plus a proportional
 correction towards the heading held since steering began (read from ATTITUDE), so the camera does

@@ -5,16 +5,16 @@ Per heatmap, data flows one way:
     Observation (P(safe), camera model, altitude + attitude at capture, velocity estimate and its
                  displacement since the previous capture, time)
       -> EgoMotion   predict with the estimate's displacement (+ learnt bias), correct by
-                     registering the heatmap against a keyframe and against anchors (clearance_motion)
+                     registering the heatmap against a keyframe and against anchors (motion)
       -> GroundMap   decay, follow the vehicle and the altitude's resolution, fuse the heatmap
-                     in log-odds at the estimated pose                         (clearance_map)
+                     in log-odds at the estimated pose                         (ground_map)
       -> high map    the looks from high up only, over the whole search area, never decayed:
                      its promise (the log-odds mean over the clearance disk) confirms spots and
-                     plans probes                                              (clearance_map)
+                     plans probes                                              (ground_map)
       -> spots       clearance = metric distance to the nearest unsafe/unknown cell; the best
                      confirmed spot, the current target re-checked, the most promising area
-                     worth a probe                                             (clearance_map)
-      -> machine     one pure step: phase, target, reasons, velocity          (clearance_machine)
+                     worth a probe                                             (ground_map)
+      -> machine     one pure step: phase, target, reasons, velocity          (machine)
       -> Decision    body FRD velocity, state, target pixel, reason, info (spot, clearance,
                      confidence, position estimate, bias, registration, probes)
 
