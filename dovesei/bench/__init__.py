@@ -25,7 +25,7 @@ import sys
 from pathlib import Path
 
 from dovesei.bench.run import Grid, Variant, run_grid, summary_markdown
-from dovesei.controller.policies import policy_names
+from dovesei.controller.policies.registry import policy_names
 from dovesei.controller.policies.clearance.config import ClearanceConfig
 from dovesei.controller.policies.config_file import load_policy_config, policy_values, preset_config
 from dovesei.episode import DEFAULT_PERCEPTION

@@ -27,7 +27,7 @@ from dovesei.shared.timing import DEFAULT_TIMING, TIMING_NAMES, timing
 from dovesei.controller.core import HANDOVER_ACTIONS
 from dovesei.controller.gnss_denied import GNSS_DENIED_MODES
 from dovesei.controller.mavlink.proto import load_signing_key
-from dovesei.controller.policies import policy_names
+from dovesei.controller.policies.registry import policy_names
 from dovesei.controller.policies.config_file import load_policy_config
 from dovesei.segmenter.simulated import DEFAULT_PROFILE, PROFILE_NAMES
 from dovesei.sim.estimator import VEHICLE_PROFILE_NAMES, default_vehicle_profile

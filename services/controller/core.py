@@ -56,7 +56,8 @@ from enum import Enum
 from typing import Any
 
 from dovesei.controller.gnss_denied import EXTERNAL_NAV_MESSAGES, GNSS_DENIED_MODES, NavStatus
-from dovesei.controller.policies.base import Decision, Observation, Policy, PolicyInputError, make_policy, policy_names
+from dovesei.controller.policies.base import Decision, Observation, Policy, PolicyInputError
+from dovesei.controller.policies.registry import make_policy, policy_names
 from dovesei.controller.continuity import (
     ALTITUDE_NOISE_M, MAX_VERTICAL_SPEED_M_S, STEP_CONFIRM_SAMPLES, AltitudeContinuity,
 )

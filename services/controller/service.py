@@ -53,7 +53,7 @@ from dovesei.controller.gnss_denied import (
     OdometryLimits,
 )
 from dovesei.controller.mavlink.proto import SpeedLimits, load_signing_key
-from dovesei.controller.policies.base import policy_names
+from dovesei.controller.policies.registry import policy_names
 from dovesei.shared import keys, validate
 from dovesei.shared.cliconfig import CommandLine, Flag, non_blank
 from dovesei.shared.clock import WallClock, wall_time_s

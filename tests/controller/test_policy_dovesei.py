@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from dovesei.benchmarks import policy as bench
-from dovesei.controller.policies.base import Observation, PolicyInputError, make_policy, policy_names
+from dovesei.controller.policies.base import Observation, PolicyInputError
+from dovesei.controller.policies.registry import make_policy, policy_names
 from dovesei.controller.policies.dovesei.config import DoveseiConfig, real_timing
 from dovesei.controller.policies.dovesei.policy import (
     DoveseiPolicy,

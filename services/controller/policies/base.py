@@ -1,4 +1,4 @@
-"""What every landing policy takes and returns, and the factory that builds one by name.
+"""What every landing policy takes and returns (the contract; `registry` builds one by name).
 
 Data flow: the controller loop turns the newest heatmap and vehicle state into an `Observation`,
 calls `Policy.step` once per loop tick and sends the `Decision`'s body-frame FRD velocity. A
@@ -119,76 +119,3 @@ class Policy(Protocol):
     def step(self, obs: Observation) -> Decision: ...
 
     def reset(self) -> None: ...
-
-
-# (horizontal, up, down) m/s: the largest velocities the vehicle flies (the MAVLink adapter's limits).
-SpeedLimitsMS = tuple[float, float, float]
-
-
-def _build_dovesei(config: Any, speed_limits_m_s: SpeedLimitsMS | None = None,
-                   handover_alt_m: float | None = None) -> Policy:
-    # The paper's policy stays faithful: it asks what the reference asks, the adapter clamps it.
-    # It has no hand-over altitude of its own (it descends towards LANDED at 5 m): the controller's
-    # watchdog stops it at the hand-over altitude, so `handover_alt_m` changes nothing inside it.
-    from dovesei.controller.policies.dovesei.policy import DoveseiPolicy  # lazy: the policy modules import this one (cycle)
-
-    return DoveseiPolicy(config, name="dovesei")
-
-
-def _build_dovesei_nofocus(config: Any, speed_limits_m_s: SpeedLimitsMS | None = None,
-                           handover_alt_m: float | None = None) -> Policy:
-    from dovesei.controller.policies.dovesei.policy import DoveseiPolicy  # lazy: the policy modules import this one (cycle)
-
-    return DoveseiPolicy(config, name="dovesei-nofocus", dynamic_focus=False)
-
-
-def _build_clearance(config: Any, speed_limits_m_s: SpeedLimitsMS | None = None,
-                     handover_alt_m: float | None = None) -> Policy:
-    from dovesei.controller.policies.clearance.policy import ClearancePolicy  # lazy: the policy modules import this one (cycle)
-
-    policy = ClearancePolicy(config)
-    cfg = policy.config
-    if handover_alt_m is not None and handover_alt_m != cfg.handover_alt_m:
-        # The controller's hand-over altitude is the policy's: one declaring HANDOVER above the
-        # controller's would be refused as a fault, one below it would never be asked to hand over.
-        cfg = cfg.replace(handover_alt_m=float(handover_alt_m))
-    if speed_limits_m_s is not None:
-        # Ours asks only what the vehicle flies: a clamped command is a different command (a
-        # descent asked at 4 m/s and flown at 1.5 m/s left its timers and odometry prior wrong).
-        cfg = cfg.limited_to(*speed_limits_m_s)
-    if cfg is not policy.config:
-        policy.config = cfg
-        policy.reset()
-    return policy
-
-
-# Name -> factory. Imports stay inside the factories so importing this module stays cheap.
-_FACTORIES: dict[str, Callable[[Any, SpeedLimitsMS | None, float | None], Policy]] = {
-    "clearance": _build_clearance,
-    "dovesei": _build_dovesei,
-    "dovesei-nofocus": _build_dovesei_nofocus,
-}
-
-
-def policy_names() -> list[str]:
-    """Every name `make_policy` accepts."""
-    return sorted(_FACTORIES)
-
-
-def make_policy(name: str, config: Any = None, speed_limits_m_s: SpeedLimitsMS | None = None, *,
-                handover_alt_m: float | None = None) -> Policy:
-    """Build the policy called `name`.
-
-    `config` is policy-specific: for `dovesei*` a `DoveseiConfig`, a timing preset name
-    ("reference" or "real") or None (the `real` preset); for `clearance` a `ClearanceConfig`, a
-    timing preset name (it runs on true data-clock seconds under both) or None.
-    `speed_limits_m_s` (horizontal, up, down), the vehicle's: `clearance` never asks for more;
-    the `dovesei` policies stay faithful to the reference and are clamped by the adapter.
-    `handover_alt_m`, the controller's (None: the config's own, dovesei.shared.mission's default):
-    a policy with a hand-over altitude of its own (`clearance`) takes it; the paper's has none.
-    """
-    try:
-        factory = _FACTORIES[name]
-    except KeyError:
-        raise ValueError(f"unknown policy {name!r}; known: {', '.join(policy_names())}") from None
-    return factory(config, speed_limits_m_s, handover_alt_m)
