@@ -23,7 +23,7 @@ FENCE_M = CFG.fence_m
 def test_bench_starts_keep_the_whole_fenced_search_area_on_every_suite_world() -> None:
     # A bench that flies `clearance` draws its starts so that the fence plus a drift allowance
     # lies on the map, around every start, on every world of the suite.
-    from dovesei.bench import default_start_margin_m  # lazy: the CLI layer, only for this check
+    from dovesei.flight_defaults import default_start_margin_m  # lazy: the CLI layer, only for this check
     from dovesei.sim.starts import generate_starts
     from dovesei.sim.suite import DEFAULT_SUITE
     from dovesei.sim.world import load_world
