@@ -199,14 +199,34 @@ def _value_noise(x: np.ndarray, y: np.ndarray, z: np.ndarray, key: np.ndarray) -
     tx, ty, tz = (t * t * (3.0 - 2.0 * t) for t in (tx, ty, tz))
     ix, iy, iz = fx.astype(np.int64), fy.astype(np.int64), fz.astype(np.int64)
     out = np.zeros(np.broadcast_shapes(x.shape, key.shape))
+    corner = _corner_table(ix, iy, iz, key)
     for dx in (0, 1):
         wx = tx if dx else 1.0 - tx
         for dy in (0, 1):
             wy = ty if dy else 1.0 - ty
             for dz in (0, 1):
                 wz = tz if dz else 1.0 - tz
-                out += wx * wy * wz * _hash_unit(ix + dx, iy + dy, iz + dz, key)
+                out += wx * wy * wz * corner(dx, dy, dz)
     return out
+
+
+def _corner_table(ix: np.ndarray, iy: np.ndarray, iz: np.ndarray, key: np.ndarray):
+    """corner(dx, dy, dz) -> the hash at every point's lattice corner (ix + dx, iy + dy, iz + dz).
+
+    Neighbouring points share corners (a view's 16 x 16 points cover about 10 x 10 lattice cells),
+    so each corner of the points' bounding box is hashed once and gathered; the values are the
+    same as hashing per point. Points spread thinly over a large box are hashed per point.
+    """
+    lo = [int(a.min()) for a in (ix, iy, iz)]
+    n = [int(a.max()) - l + 2 for a, l in zip((ix, iy, iz), lo)]
+    if key.size * n[0] * n[1] * n[2] > 8 * key.size * ix.size or key.shape[1:] != (1,) * (key.ndim - 1):
+        return lambda dx, dy, dz: _hash_unit(ix + dx, iy + dy, iz + dz, key)
+    gx, gy, gz = (np.arange(l, l + m, dtype=np.int64) for l, m in zip(lo, n))
+    table = _hash_unit(gx[None, None, :], gy[None, :, None], gz[:, None, None], key.reshape(-1, 1, 1, 1))
+    jx, jy, jz = ix - lo[0], iy - lo[1], iz - lo[2]
+    flat = table.reshape(table.shape[0], -1)
+    return lambda dx, dy, dz: flat[:, ((jz + dz) * n[1] + (jy + dy)) * n[0] + (jx + dx)].reshape(
+        np.broadcast_shapes(ix.shape, key.shape))
 
 
 # Two octaves of trilinear value noise have a std of about 0.33 (measured over 10^6 points);
@@ -230,8 +250,19 @@ def world_field(east_m: np.ndarray, north_m: np.ndarray, alt_m: float, keys: np.
 
 @dataclass(frozen=True)
 class _Classes:
+    """A world's class table as the per-frame path needs it, built once per table.
+
+    Label ids with the same appearance mix are interchangeable for the perception, so each is
+    given the code of its distinct mix row: the frame's labels become codes with one lookup
+    (`code_lut`), and the appearance fractions come from one histogram of (cell, code, shadowed).
+    """
+
     mix: np.ndarray  # (256, A) appearance weights per label id (255 = off_world)
     height_m: np.ndarray  # (256,) caster height per label id
+    code_lut: np.ndarray  # (256,) uint8 (uint16 past 128 codes): label id -> code of its distinct mix row
+    code_mix: np.ndarray  # (K, A) the mix of each code
+    rank_first_code: np.ndarray  # (R + 2,) first code of each caster rank (rank 0 casts nothing; [R+1] = K)
+    rank_height_m: np.ndarray  # (R + 1,) height of each rank, [0] = 0
 
 
 def _class_names(classes: Mapping[int, object] | Iterable[object]) -> dict[int, str]:
@@ -269,7 +300,20 @@ def _build_classes(names: Mapping[int, str]) -> _Classes:
     heights = np.zeros(A)
     for app, h in CASTER_HEIGHT_M.items():
         heights[INDEX[app]] = h
-    return _Classes(mix=mix, height_m=mix @ heights)
+    height_m = mix @ heights
+    # Heights under half a metre cast nothing (a lawn's mix may carry a little tree).
+    rank_height_m = np.concatenate([[0.0], np.unique(height_m[height_m > 0.5])])
+    rank = np.searchsorted(rank_height_m, np.where(height_m > 0.5, height_m, 0.0))
+    # Codes ordered by (off-world first, caster rank, mix row): "at least rank r" and "lower than
+    # rank r, in the world" are then code ranges, compared on the code image directly.
+    rows = np.concatenate([(np.arange(256) != OFF_WORLD_LABEL)[:, None], rank[:, None], mix], axis=1)
+    uniq, code = np.unique(rows, axis=0, return_inverse=True)
+    code = code.reshape(-1)
+    rank_first = np.searchsorted(uniq[:, 1], np.arange(rank_height_m.size + 1), side="left")
+    rank_first[0] = 1  # code 0 is off-world, never lit nor shaded
+    k = uniq.shape[0]
+    return _Classes(mix=mix, height_m=height_m, code_lut=code.astype(np.uint8 if 2 * k <= 256 else np.uint16),
+                    code_mix=uniq[:, 2:], rank_first_code=rank_first.astype(np.int64), rank_height_m=rank_height_m)
 
 
 class SimPerception:
@@ -292,7 +336,9 @@ class SimPerception:
         self._sun_az_rad = 2.0 * math.pi * ((self.seed * 0.6180339887 + 0.23) % 1.0)
         self.grid = INPUT_PX // params.cell_px
         iy, ix = np.divmod(np.arange(INPUT_PX * INPUT_PX), INPUT_PX)
-        self._cell_of_px = ((iy // params.cell_px) * self.grid + ix // params.cell_px).astype(np.int64)
+        self._cell_of_px = ((iy // params.cell_px) * self.grid + ix // params.cell_px).astype(np.intp)
+        self._cell_bases: dict[int, np.ndarray] = {}
+        self._key = np.empty(INPUT_PX * INPUT_PX, np.intp)  # the per-frame histogram key, reused
 
     def describe(self) -> str:
         return f"SIMULATED perception profile={self.params.name} noise={self.params.noise:g} seed={self.seed}"
@@ -327,25 +373,38 @@ class SimPerception:
         """(grid, grid, A) appearance fractions per cell, shadows included, before any error."""
         lab = _input_labels(labels)
         tables = self._tables(classes)
-        present = np.flatnonzero(np.bincount(lab.ravel(), minlength=256))
-        compact = np.zeros(256, np.int64)
-        compact[present] = np.arange(present.size)
-        k = present.size
-        shadow = self._shadow_mask(lab, tables, view, labels.shape) if self._strength["shadow"] > 0 else None
-        key = self._cell_of_px * (2 * k) + compact[lab.ravel()]
-        if shadow is not None:
-            key += shadow.ravel().astype(np.int64) * k
+        k = tables.code_mix.shape[0]
+        # Each pixel's code (its class's mix row, + k when shadowed), then one histogram per cell.
+        code = cv2.LUT(lab, tables.code_lut) if tables.code_lut.dtype == np.uint8 else tables.code_lut[lab]
+        if self._strength["shadow"] > 0:
+            shadow = self._shadow_mask(code, tables, view, labels.shape)
+            code += shadow.view(np.uint8) * code.dtype.type(k)
         n_cells = self.grid * self.grid
+        key = np.add(self._cell_base(2 * k), code.reshape(-1), out=self._key)
         counts = np.bincount(key, minlength=n_cells * 2 * k).reshape(n_cells, 2, k).astype(np.float64)
-        mix = tables.mix[present]  # (k, A)
-        shadow_mix = (1.0 - self._strength["shadow"]) * mix
+        shadow_mix = (1.0 - self._strength["shadow"]) * tables.code_mix
         shadow_mix[:, INDEX["shadow"]] += self._strength["shadow"]
-        frac = (counts[:, 0] @ mix + counts[:, 1] @ shadow_mix) / float(self.params.cell_px ** 2)
+        frac = (counts[:, 0] @ tables.code_mix + counts[:, 1] @ shadow_mix) / float(self.params.cell_px ** 2)
         return frac.reshape(self.grid, self.grid, A)
+
+    def _cell_base(self, stride: int) -> np.ndarray:
+        """Each input pixel's cell index times ``stride`` (cached: one array per code count)."""
+        base = self._cell_bases.get(stride)
+        if base is None:
+            if len(self._cell_bases) >= 8:
+                self._cell_bases.clear()
+            base = self._cell_bases[stride] = self._cell_of_px * stride
+        return base
 
     def logits(self, labels: np.ndarray, classes: Mapping[int, object] | Iterable[object], view: View,
                frame_seq: int, prompts: PromptSet) -> tuple[np.ndarray, np.ndarray]:
         """(P, grid, grid) prompt logits and the (grid, grid) in-world share of each cell."""
+        out, in_world = self._logits_hwp(labels, classes, view, frame_seq, prompts)
+        return np.ascontiguousarray(out.transpose(2, 0, 1)), in_world
+
+    def _logits_hwp(self, labels: np.ndarray, classes: Mapping[int, object] | Iterable[object], view: View,
+                    frame_seq: int, prompts: PromptSet) -> tuple[np.ndarray, np.ndarray]:
+        """`logits` with the prompt axis last (grid, grid, P), as OpenCV resizes it."""
         frame_seq = _check_seq(frame_seq)
         frac = self.fractions(labels, classes, view)
         in_world = 1.0 - frac[..., INDEX["off_world"]]
@@ -369,18 +428,17 @@ class SimPerception:
             field = rng.standard_normal((6, 6, n_p)).astype(np.float32) * s["flicker_logit"]
             out += cv2.resize(field, (grid, grid), interpolation=cv2.INTER_CUBIC).reshape(grid, grid, n_p)
             out += (rng.standard_normal(n_p) * s["flicker_offset"]).astype(np.float32)
-        return np.ascontiguousarray(out.transpose(2, 0, 1)), in_world.astype(np.float32)
+        return out, in_world.astype(np.float32)
 
     def safe_probability(self, labels: np.ndarray, classes: Mapping[int, object] | Iterable[object], view: View,
                          frame_seq: int, prompts: PromptSet, fusion: FusionConfig = FusionConfig(),
                          out_size: tuple[int, int] | None = None) -> np.ndarray:
         """P(safe) float32 in [0, 1] at ``out_size`` (height, width; default the labels' size)."""
-        logits, in_world = self.logits(labels, classes, view, frame_seq, prompts)
+        logits, in_world = self._logits_hwp(labels, classes, view, frame_seq, prompts)
         grid = max(self.params.fusion_grid_px, self.grid)
-        up = logits
         if grid != self.grid:
-            up = cv2.resize(logits.transpose(1, 2, 0), (grid, grid), interpolation=cv2.INTER_LINEAR)
-            up = up.reshape(grid, grid, -1).transpose(2, 0, 1)
+            logits = cv2.resize(logits, (grid, grid), interpolation=cv2.INTER_LINEAR).reshape(grid, grid, -1)
+        up = np.ascontiguousarray(logits.transpose(2, 0, 1))  # the fusion reads prompt planes
         if grid == INPUT_PX:
             prob = fuse(up, prompts.n_positive, fusion.mode, fusion.temperature, fusion.blur_px)
         else:
@@ -388,7 +446,8 @@ class SimPerception:
             # smooth below a token, so this is the exact path to within ~0.01 at a tenth of its cost.
             prob = fuse(up, prompts.n_positive, fusion.mode, fusion.temperature, 1)
             prob = blur_prob(cv2.resize(prob, (INPUT_PX, INPUT_PX), interpolation=cv2.INTER_LINEAR), fusion.blur_px)
-        prob *= cv2.resize(in_world, (INPUT_PX, INPUT_PX), interpolation=cv2.INTER_LINEAR)
+        if in_world.min() < 1.0:  # most frames lie wholly inside the world: nothing to scale
+            prob *= cv2.resize(in_world, (INPUT_PX, INPUT_PX), interpolation=cv2.INTER_LINEAR)
         height_px, width_px = labels.shape if out_size is None else out_size
         if (height_px, width_px) != prob.shape:
             prob = cv2.resize(prob, (int(width_px), int(height_px)), interpolation=cv2.INTER_LINEAR)
@@ -411,35 +470,36 @@ class SimPerception:
     def _confuse(self, g: np.ndarray, view: View, frame_shape: tuple[int, int]) -> np.ndarray:
         east, north = self.cell_world_m(view, FIELD_GRID, frame_shape)
         p = self.params
-        out = g.copy()
         top = g.max(axis=(0, 1))
         # Only appearances in view need their fields (not in view: nothing to misread).
         pairs = [(INDEX[a], INDEX[b], w / sum(partners.values()))
                  for a, partners in CONFUSIONS.items() if top[INDEX[a]] >= 0.02 for b, w in partners.items()]
         if not pairs:
-            return out
+            return g.copy()
         keys = np.array([self.seed * 1_000_003 + a * 97 + b for a, b, _ in pairs])
         z = world_field(east, north, view.alt_agl_m, keys, p).astype(np.float32)  # (n, F, F)
         z = cv2.resize(np.ascontiguousarray(z.transpose(1, 2, 0)), (self.grid, self.grid),
                        interpolation=cv2.INTER_LINEAR).reshape(self.grid, self.grid, len(pairs))
         share = np.clip(z - p.confusion_onset, 0.0, 1.0) * (self._strength["confusion"] *
                                                              np.array([w for _, _, w in pairs], np.float32))
-        for i, (a, b, _) in enumerate(pairs):
-            moved = g[..., a] * share[..., i]
-            out[..., a] -= moved
-            out[..., b] += moved
-        return out
+        # Each pair moves share x its source appearance to its partner, all read from the same g:
+        # one product with a (pairs, A) table of -1 at the source and +1 at the partner.
+        move = np.zeros((len(pairs), A))
+        src = np.array([a for a, _, _ in pairs])
+        move[np.arange(len(pairs)), src] -= 1.0
+        move[np.arange(len(pairs)), [b for _, b, _ in pairs]] += 1.0
+        return g + (g[..., src] * share) @ move
 
-    def _shadow_mask(self, lab: np.ndarray, tables: _Classes, view: View, frame_shape: tuple[int, int]) -> np.ndarray:
-        """Input pixels in the shadow of something taller, sun fixed in the world."""
-        height_lut = tables.height_m
-        heights = np.unique(height_lut[np.flatnonzero(np.bincount(lab.ravel(), minlength=256))])
-        heights = heights[heights > 0.5]
-        shadow = np.zeros(lab.shape, dtype=bool)
-        if heights.size == 0:
-            return shadow
-        px_h = height_lut[lab]
-        ground = lab != OFF_WORLD_LABEL  # beyond the map nothing is lit or shaded
+    def _shadow_mask(self, code: np.ndarray, tables: _Classes, view: View,
+                     frame_shape: tuple[int, int]) -> np.ndarray:
+        """Input pixels in the shadow of something taller, sun fixed in the world.
+
+        Each caster height in view (a rank: a range of codes) throws every pixel at least that
+        tall half and all of its shadow length away from the sun, onto in-world ground lower than it.
+        """
+        first = tables.rank_first_code
+        top = int(code.max())
+        shadow = np.zeros(code.shape, dtype=bool)
         frame_h, frame_w = frame_shape
         m_per_px_x = footprint.metres_per_px(view.alt_agl_m, view.hfov_rad, INPUT_PX)
         m_per_px_y = m_per_px_x * frame_h / frame_w
@@ -448,24 +508,30 @@ class SimPerception:
         c, s = math.cos(view.yaw_rad), math.sin(view.yaw_rad)
         right, forward = c * east - s * north, s * east + c * north
         per_m = 1.0 / math.tan(math.radians(self.params.sun_elevation_deg))
-        for h in heights:
-            caster = px_h >= h
-            length_m = h * per_m
+        for r in range(1, first.size - 1):
+            if first[r] > top:
+                break
+            # Only heights in view cast: a rank with no pixel of its own adds no shadow length.
+            if not cv2.countNonZero(cv2.inRange(code, int(first[r]), int(first[r + 1]) - 1)):
+                continue
+            caster = code >= first[r]
+            lower = (code < first[r]) & (code >= 1)
+            length_m = tables.rank_height_m[r] * per_m
             for frac in (0.5, 1.0):
                 dx = int(round(right * length_m * frac / m_per_px_x))
                 dy = int(round(-forward * length_m * frac / m_per_px_y))
-                shadow |= _shifted(caster, dx, dy) & (px_h < h) & ground
+                _or_shifted(shadow, caster, lower, dx, dy)
         return shadow
 
 
-def _shifted(mask: np.ndarray, dx: int, dy: int) -> np.ndarray:
-    """mask moved by (dx right, dy down) pixels, False where nothing moved in."""
-    out = np.zeros_like(mask)
+def _or_shifted(out: np.ndarray, mask: np.ndarray, where: np.ndarray, dx: int, dy: int) -> None:
+    """out |= (mask moved by dx right, dy down) & where, in place; nothing moves in at the edges."""
     h, w = mask.shape
     if abs(dx) >= w or abs(dy) >= h:
-        return out
-    out[max(dy, 0):h + min(dy, 0), max(dx, 0):w + min(dx, 0)] = mask[max(-dy, 0):h - max(dy, 0), max(-dx, 0):w - max(dx, 0)]
-    return out
+        return
+    dst = (slice(max(dy, 0), h + min(dy, 0)), slice(max(dx, 0), w + min(dx, 0)))
+    src = (slice(max(-dy, 0), h - max(dy, 0)), slice(max(-dx, 0), w - max(dx, 0)))
+    out[dst] |= mask[src] & where[dst]
 
 
 def _input_labels(labels: object) -> np.ndarray:
