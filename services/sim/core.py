@@ -292,7 +292,8 @@ class SimCore:
             image = self._blank_image()
         centre = (pose.x_m, pose.y_m) if roll == 0.0 and pitch == 0.0 else \
             optical_axis_ground_m(pose.x_m, pose.y_m, alt_m, pose.yaw_rad, roll, pitch)
-        truth = GroundTruth(labels, self._classes, centre) if cfg.attach_truth and labels is not None else None
+        truth = GroundTruth(labels, self._classes, centre, self.world.name) \
+            if cfg.attach_truth and labels is not None else None
         self._frame_seq += 1
         if est is None:
             frame = CameraFrame(cfg.vehicle_id, self._frame_seq, Stamp(pose.t_s, "sim"), image, cfg.camera.hfov_rad,
