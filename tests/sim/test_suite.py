@@ -20,7 +20,7 @@ from dovesei.sim.synthetic import (
 )
 from dovesei.sim.world import load_world
 
-NEW_STYLES = ("downtown", "villas", "desert", "coast", "parkland")
+NEW_STYLES = ("downtown", "villas", "desert", "coast", "parkland", "crowded")
 
 
 def fractions(labels: np.ndarray) -> np.ndarray:
@@ -33,7 +33,7 @@ def worlds() -> dict[str, np.ndarray]:
             for style in ("city", *NEW_STYLES)}
 
 
-def test_the_default_suite_is_dubai_and_the_five_styles_each_at_least_1_5_km() -> None:
+def test_the_default_suite_is_dubai_and_the_six_styles_each_at_least_1_5_km() -> None:
     assert DEFAULT_SUITE[0] == "dubai" and suite("default") == DEFAULT_SUITE
     params = [parse_spec(spec) for spec in DEFAULT_SUITE[1:]]
     assert sorted(p.style for p in params) == sorted(NEW_STYLES)
