@@ -24,7 +24,9 @@ import os
 import sys
 from pathlib import Path
 
+from dovesei.bench import shift
 from dovesei.bench.run import Grid, Variant, run_grid, summary_markdown
+from dovesei.bench.shift import parse_shift
 from dovesei.controller.policies.registry import policy_names
 from dovesei.controller.policies.config_file import load_policy_config, policy_values, preset_config
 from dovesei.episode import DEFAULT_PERCEPTION
@@ -63,6 +65,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="perception backend (the bench flies simulated perception; CLIPSeg runs in `dovesei up`)")
     p.add_argument("--perception", default=None, help="simulated perception profile (default: realistic)")
     p.add_argument("--noise", type=float, default=None, help="simulated perception noise scale (default: the profile's)")
+    p.add_argument("--perception-shift", default=None, metavar="A_LO,A_HI,B", help=shift.HELP)
     p.add_argument("--timing", default=None, help=f"timing preset: reference or real (default: real with `clearance` "
                                                    f"flown, else {shared_timing.DEFAULT_TIMING}; as `dovesei up`)")
     p.add_argument("--time-limit-s", type=float, default=None,
@@ -148,8 +151,13 @@ def make_grid(*, world_spec: str | None = None, worlds: tuple[str, ...] | None =
               policies, noise: float | None, timing: str, time_limit_s: float, start_alt_m: float,
               start_margin_m: float = 5.0, segmenter: str = "sim", perception: str | None = None,
               world_label: str = "", seed_note: str = "", vehicle_profile: str | None = None,
-              handover_alt_m: float = HANDOVER_ALT_M, policy_config: Path | None = None) -> Grid:
-    """The bench's grid, every setting checked (one line naming the flag otherwise)."""
+              handover_alt_m: float = HANDOVER_ALT_M, policy_config: Path | None = None,
+              perception_shift: str | tuple | None = None) -> Grid:
+    """The bench's grid, every setting checked (one line naming the flag otherwise).
+
+    With `perception_shift` ("A_LO,A_HI,B") every start is flown plainly and shifted (dovesei.bench.shift).
+    """
+    shifted = None if perception_shift is None else parse_shift(perception_shift)
     _at_least_one("--episodes", episodes)
     if seed < 0:
         raise ConfigError(f"--seed must be >= 0, got {seed}")
@@ -170,8 +178,10 @@ def make_grid(*, world_spec: str | None = None, worlds: tuple[str, ...] | None =
     non_negative("--start-margin-m", start_margin_m)
     shared_timing.timing(timing)
     specs = tuple(worlds) if worlds else (world_spec or "synthetic",)
+    plain = Variant(perception=check_perception(perception))
+    variants = (plain,) if shifted is None else (plain, Variant(perception=plain.perception, shift=shifted))
     return Grid(worlds=specs, episodes=episodes, seed=seed, policies=tuple(policies),
-                variants=(Variant(perception=check_perception(perception)),), noise=noise, timing=timing,
+                variants=variants, noise=noise, timing=timing,
                 time_limit_s=float(time_limit_s), start_alt_m=float(start_alt_m), segmenter=segmenter,
                 start_margin_m=float(start_margin_m), world_label=world_label or specs[0], extra={"seed_note": seed_note} if seed_note else {},
                 vehicle_profile=vehicle_profile, handover_alt_m=float(handover_alt_m), policy_config=changed)
@@ -188,7 +198,7 @@ def settings_from_args(args: argparse.Namespace) -> dict:
                 start_margin_m=default_start_margin_m(policies) if args.start_margin_m is None else args.start_margin_m,
                 segmenter=args.segmenter, perception=args.perception, vehicle_profile=args.vehicle_profile,
                 handover_alt_m=args.handover_alt_m, policy_config=args.policy_config,
-                world_label=f"suite:{args.suite.strip()}" if args.suite is not None else "")
+                perception_shift=args.perception_shift, world_label=f"suite:{args.suite.strip()}" if args.suite is not None else "")
 
 
 def main(argv: list[str] | None = None) -> int:
