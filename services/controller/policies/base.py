@@ -9,8 +9,8 @@ policy is pure: no Zenoh, MAVLink or wall clock inside, every time comes from `O
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any, Protocol
 
 import numpy as np
@@ -66,6 +66,18 @@ class Confirmation:
 
 
 @dataclass(frozen=True)
+class SpotReport:
+    """The spot a policy with a ground map has chosen, where it lies and how good it is."""
+
+    north_m: float  # local north/east of the policy's own position estimate's frame
+    east_m: float
+    clearance_m: float  # metres of checked safe ground around it (now, on the map)
+    confidence: float  # [0, 1]
+    p_safe: float  # fused P(safe) at the spot
+    distance_m: float  # from the estimated position
+
+
+@dataclass(frozen=True)
 class Decision:
     """What to do until the next decision, and why (for logs and the status key)."""
 
@@ -75,13 +87,16 @@ class Decision:
     target_px: tuple[float, float] | None  # (row, col) in the observation's heatmap pixels
     focus_radius_px: float
     threshold: float | None  # dynamic segmentation threshold used (None when it failed)
-    info: Mapping[str, float] = field(default_factory=dict)
     reason: str = ""  # why the policy is in `state` (the last transition's reason)
     # The policy is committed to landing where it is (descending onto a checked spot, or done):
     # only then may the controller hand over at the hand-over altitude. A descent the policy has
     # aborted that sinks through that altitude (inertia, a baro step) is not a landing.
     landing: bool = False
     confirmed: Confirmation | None = None  # policies with a checked spot: the look that confirmed it last
+    spot: SpotReport | None = None  # policies with a ground map: the chosen spot (the status carries it)
+    # The policy's own typed report of this decision, for logs, tests and overlays: a
+    # `ClearanceReport` or a `DoveseiReport` (None before the first one).
+    report: Any = None
 
 
 def checked_prob_safe(prob: Any, min_side_px: int) -> np.ndarray:

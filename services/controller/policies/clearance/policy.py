@@ -15,8 +15,9 @@ Per heatmap, data flows one way:
                      confirmed spot, the current target re-checked, the most promising area
                      worth a probe                                             (ground_map)
       -> machine     one pure step: phase, target, reasons, velocity          (machine)
-      -> Decision    body FRD velocity, state, target pixel, reason, info (spot, clearance,
-                     confidence, position estimate, bias, registration, probes)
+      -> Decision    body FRD velocity, state, target pixel, reason, spot (SpotReport: where,
+                     clearance, confidence) and report (ClearanceReport: position estimate,
+                     bias, registration, probes; report.py)
 
 Compared with `dovesei`: memory lives on the ground, not in the image (the drone's own motion is
 compensated); a spot's real size is checked in metres and confirmed by looks from another scale;
@@ -34,8 +35,8 @@ import math
 
 import numpy as np
 
-from dovesei.controller.policies.base import (Confirmation, Decision, Observation, PolicyInputError, checked_prob_safe,
-                                              resolve_config)
+from dovesei.controller.policies.base import (Confirmation, Decision, Observation, PolicyInputError, SpotReport,
+                                              checked_prob_safe, resolve_config)
 from dovesei.controller.policies.clearance.config import Altitudes, ClearanceConfig, clearance_preset
 from dovesei.controller.policies.clearance.machine import TERMINAL, Inputs, Memory, Phase, search_route, step, toward
 from dovesei.controller.policies.clearance.ground_map import (GroundMap, clearance_at, emphasise_dips, find_candidate,
@@ -43,6 +44,7 @@ from dovesei.controller.policies.clearance.ground_map import (GroundMap, clearan
 from dovesei.controller.frames import to_body, to_ne
 from dovesei.controller.geofence import cap_outward
 from dovesei.controller.policies.clearance.motion import EgoMotion, MotionStep, tilt_offset_ne
+from dovesei.controller.policies.clearance.report import ClearanceReport, ProbeReport, RegistrationReport
 
 log = logging.getLogger(__name__)
 
@@ -94,7 +96,7 @@ class ClearancePolicy:
         self._cmd: tuple[float, float, float] = (0.0, 0.0, 0.0)
         self._last_motion: MotionStep | None = None
         self._confirmed: Confirmation | None = None  # the look that last confirmed the target
-        self._decision = Decision((0.0, 0.0, 0.0), 0.0, Phase.WARMUP.value, None, 0.0, None, {}, "starting")
+        self._decision = Decision((0.0, 0.0, 0.0), 0.0, Phase.WARMUP.value, None, 0.0, None, "starting")
 
     def fence_m(self) -> float:
         """The fence for the estimate now: the search radius less the larger of the fence margin
@@ -260,10 +262,12 @@ class ClearancePolicy:
         f, r = toward(dn, de, cfg.hold_gain_per_s, cfg.hold_speed_max_m_s, obs.yaw_rad)
         vel, fenced = fence((f, r, 0.0), pn, pe, obs.yaw_rad, cfg, self.fence_m())
         self._cmd = vel
-        info = {**self._decision.info, "est_north_m": pn, "est_east_m": pe, "hold_error_m": math.hypot(dn, de),
-                "fenced": float(fenced)}
+        report = self._decision.report
+        if report is not None:
+            report = dataclasses.replace(report, est_north_m=pn, est_east_m=pe, hold_error_m=math.hypot(dn, de),
+                                         fenced=bool(fenced))
         self._decision = dataclasses.replace(self._decision, vel_body_frd_m_s=tuple(float(v) for v in vel),
-                                             info={k: float(v) for k, v in info.items()})
+                                             report=report)
         return self._decision
 
     def _decide(self, obs: Observation, *, fresh: bool, gap: bool, best, check, clearance,
@@ -292,29 +296,31 @@ class ClearancePolicy:
         if mem.phase is not prev.phase or mem.reason != prev.reason:
             log.info("clearance: %s -> %s at t=%.2f s, alt %.1f m: %s", prev.phase.value, mem.phase.value, obs.t_s,
                      obs.alt_agl_m, mem.reason)
-        info: dict[str, float] = {
-            "alt_agl_m": float(obs.alt_agl_m), "est_north_m": pn, "est_east_m": pe,
-            "bias_north_m_s": self.motion.bias_n_m_s, "bias_east_m_s": self.motion.bias_e_m_s,
-            "cell_m": self.map.cell_m, "aborts": float(mem.aborts), "blacklisted": float(len(mem.blacklist)),
-            "required_clearance_m": cfg.required_clearance_m, "waypoint": float(mem.waypoint),
-            "fenced": float(fenced), "fence_m": fence_m, "uncertainty_m": self.motion.uncertainty_m,
-            "anchors": float(self.motion.anchors), "probes": float(len(mem.probed)),
-        }
-        if mem.probe is not None:
-            info.update(probe_north_m=mem.probe.north_m, probe_east_m=mem.probe.east_m, probe_p_safe=mem.probe.p_safe)
         m = self._last_motion
-        if m is not None:
-            info.update(registered=float(m.registered), reg_response=m.response, reg_innovation_m=m.innovation_m,
-                        anchored=float(m.anchored), spot_fixed=float(m.spot_fixed), spot_response=m.spot_response,
-                        spot_since_s=min(self.motion.spot_since_s, 1e6))
+        report = ClearanceReport(
+            alt_agl_m=float(obs.alt_agl_m), est_north_m=pn, est_east_m=pe,
+            bias_north_m_s=self.motion.bias_n_m_s, bias_east_m_s=self.motion.bias_e_m_s,
+            cell_m=self.map.cell_m, aborts=int(mem.aborts), blacklisted=len(mem.blacklist),
+            required_clearance_m=cfg.required_clearance_m, waypoint=int(mem.waypoint),
+            fenced=bool(fenced), fence_m=float(fence_m), uncertainty_m=self.motion.uncertainty_m,
+            anchors=int(self.motion.anchors), probes=len(mem.probed),
+            probe=None if mem.probe is None else ProbeReport(mem.probe.north_m, mem.probe.east_m, mem.probe.p_safe),
+            registration=None if m is None else RegistrationReport(
+                registered=bool(m.registered), response=float(m.response), innovation_m=float(m.innovation_m),
+                anchored=bool(m.anchored), spot_fixed=bool(m.spot_fixed), spot_response=float(m.spot_response),
+                spot_since_s=min(self.motion.spot_since_s, 1e6)),
+        )
         target_px = None
+        spot_report = None
         spot = mem.target
         if spot is not None:
-            info.update(spot_north_m=spot.north_m, spot_east_m=spot.east_m, spot_confidence=spot.confidence,
-                        spot_p_safe=spot.p_safe, spot_distance_m=math.hypot(spot.north_m - pn, spot.east_m - pe))
             # The clearance the map gives the spot now (the target's own figure is from its last check).
-            info["spot_clearance_m"] = (clearance_at(self.map, clearance, spot.north_m, spot.east_m)
-                                        if clearance is not None else spot.clearance_m)
+            spot_report = SpotReport(
+                north_m=float(spot.north_m), east_m=float(spot.east_m),
+                clearance_m=float(clearance_at(self.map, clearance, spot.north_m, spot.east_m)
+                                  if clearance is not None else spot.clearance_m),
+                confidence=float(spot.confidence), p_safe=float(spot.p_safe),
+                distance_m=float(math.hypot(spot.north_m - pn, spot.east_m - pe)))
             if obs.prob_safe is not None:
                 h, w = obs.prob_safe.shape
                 gsd = footprint_width_m(obs.alt_agl_m, obs.hfov_rad) / w
@@ -333,7 +339,7 @@ class ClearancePolicy:
             vel_body_frd_m_s=(float(vel[0]), float(vel[1]), float(vel[2])), yaw_rate_rad_s=0.0,
             state=mem.phase.value, target_px=None if target_px is None else (float(target_px[0]), float(target_px[1])),
             focus_radius_px=self._required_px(obs), threshold=cfg.p_safe_min,
-            info={k: float(v) for k, v in info.items()}, reason=mem.reason, confirmed=self._confirmed,
+            reason=mem.reason, confirmed=self._confirmed, spot=spot_report, report=report,
             landing=mem.phase in (Phase.DESCEND, Phase.HANDOVER),
         )
         return self._decision
