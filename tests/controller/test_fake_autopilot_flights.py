@@ -153,12 +153,20 @@ def test_flies_from_boot_with_takeoff_steers_descends_and_hands_over(flight, fla
     # started on a loaded machine heard any), and at most 60 s.
     with FakeAutopilot(listen, flavour=flavour, armed=False, alt_m=0.0, heartbeat_hz=10, boot_s=60.0,
                        heading_drift_rad_s=math.radians(3.0), statustext_period_s=0.5) as fake:
-        def end_boot_once_heard() -> None:
-            wait_until(lambda: any(_is_prearm_said(r) for r in list(caplog.records)), FLIGHT_DEADLINE_S)
-            fake.end_boot()
+        handler, flown = caplog.handler, threading.Event()
 
-        threading.Thread(target=end_boot_once_heard, name="boot", daemon=True).start()
-        stats, perception = flight(fake, config, policy)
+        def end_boot_once_heard() -> None:
+            if wait_until(lambda: flown.is_set() or any(_is_prearm_said(r) for r in list(handler.records)),
+                          FLIGHT_DEADLINE_S):
+                fake.end_boot()
+
+        booting = threading.Thread(target=end_boot_once_heard, name="boot", daemon=True)
+        booting.start()
+        try:
+            stats, perception = flight(fake, config, policy)
+        finally:
+            flown.set()
+            booting.join(5.0)
         setpoints, _, commands = fake.received()
     # It waited: the first ARM came after the boot, and the autopilot's reasons were shown at INFO.
     arms = [c for c in commands if c.command == 400]
@@ -204,7 +212,7 @@ def test_flies_from_boot_with_takeoff_steers_descends_and_hands_over(flight, fla
 def _is_prearm_said(record: logging.LogRecord) -> bool:
     """The controller showed an autopilot's pre-arm failure at INFO."""
     message = record.getMessage()
-    return (record.name == "dovesei.controller.mavlink" and record.levelno == logging.INFO
+    return (record.name == "dovesei.controller.mavlink.vehicle" and record.levelno == logging.INFO
             and message.startswith("autopilot [") and "CRITICAL" in message
             and ("PreArm" in message or "Preflight" in message))
 
