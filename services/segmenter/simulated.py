@@ -51,7 +51,9 @@ class MissingTruthError(DoveseiError, ValueError):
 def view_of(frame: CameraFrame) -> View:
     """Where a frame's camera looked (the ground point comes with the sim's truth, if any)."""
     centre = frame.truth.centre_world_m if frame.truth is not None else None
-    return View(centre, float(frame.alt_agl_m), float(frame.hfov_rad), float(frame.yaw_rad))
+    world = frame.truth.world if frame.truth is not None else ""
+    return View(centre, float(frame.alt_agl_m), float(frame.hfov_rad), float(frame.yaw_rad), world,
+                float(frame.stamp.t_s))
 
 
 def demo_labels(size_px: int = 352) -> tuple[np.ndarray, dict[int, str]]:

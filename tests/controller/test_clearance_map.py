@@ -7,13 +7,13 @@ import math
 import numpy as np
 import pytest
 
-from dovesei.controller.policies.clearance_config import ClearanceConfig
-from dovesei.controller.policies.clearance_map import (GroundMap, clearance_at, emphasise_dips, find_candidate,
+from dovesei.controller.policies.clearance.config import ClearanceConfig
+from dovesei.controller.policies.clearance.ground_map import (GroundMap, clearance_at, emphasise_dips, find_candidate,
                                                       find_spot, footprint_width_m, logit, look_weight, promise)
 
 HFOV = math.radians(73.0)
 CFG = ClearanceConfig()
-# The map's tests are about geometry: the thresholds a scene would give (clearance_scene) are
+# The map's tests are about geometry: the thresholds a scene would give (scene) are
 # handed in as the policy hands them, in log-odds.
 SPOT_P, PROBE_P = 0.84, 0.78
 SPOT, PROBE = math.log(SPOT_P / (1 - SPOT_P)), math.log(PROBE_P / (1 - PROBE_P))

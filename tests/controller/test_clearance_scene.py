@@ -1,4 +1,4 @@
-"""The scene's thresholds (clearance_scene): read off the map's own log-odds, they move with any
+"""The scene's thresholds (scene): read off the map's own log-odds, they move with any
 recalibration logit P' = a logit P + b, a scene of one class is judged by the floor alone, and a
 scene whose best reads below even odds has nothing safe in it."""
 
@@ -9,8 +9,8 @@ import math
 import numpy as np
 import pytest
 
-from dovesei.controller.policies.clearance_config import ClearanceConfig
-from dovesei.controller.policies.clearance_scene import levels_from
+from dovesei.controller.policies.clearance.config import ClearanceConfig
+from dovesei.controller.policies.clearance.scene import levels_from
 
 CFG = ClearanceConfig()
 SHIFTS = [(0.6, -0.8), (0.6, 0.8), (1.0, 0.0), (1.6, -0.8), (1.6, 0.8)]

@@ -5,18 +5,18 @@ Per heatmap, data flows one way:
     Observation (P(safe), camera model, altitude + attitude at capture, velocity estimate and its
                  displacement since the previous capture, time)
       -> EgoMotion   predict with the estimate's displacement (+ learnt bias), correct by
-                     registering the heatmap against a keyframe and against anchors (clearance_motion)
+                     registering the heatmap against a keyframe and against anchors (motion)
       -> GroundMap   decay, follow the vehicle and the altitude's resolution, fuse the heatmap
-                     in log-odds at the estimated pose                         (clearance_map)
+                     in log-odds at the estimated pose                         (ground_map)
       -> high map    the looks from high up only, over the whole search area, never decayed:
                      its promise (the log-odds mean over the clearance disk) confirms spots and
-                     plans probes                                              (clearance_map)
+                     plans probes                                              (ground_map)
       -> levels      every threshold read off the high map's distribution of log-odds: the
-                     scene's top class and the class below it, never a fixed P (clearance_scene)
+                     scene: its best disk, its median, its noise; never a fixed P (scene)
       -> spots       clearance = metric distance to the nearest unsafe/unknown cell; the best
                      confirmed spot, the current target re-checked, the most promising area
-                     worth a probe                                             (clearance_map)
-      -> machine     one pure step: phase, target, reasons, velocity          (clearance_machine)
+                     worth a probe                                             (ground_map)
+      -> machine     one pure step: phase, target, reasons, velocity          (machine)
       -> Decision    body FRD velocity, state, target pixel, reason, info (spot, clearance,
                      confidence, position estimate, bias, registration, probes)
 
@@ -38,14 +38,14 @@ import numpy as np
 
 from dovesei.controller.policies.base import (Confirmation, Decision, Observation, PolicyInputError, checked_prob_safe,
                                               resolve_config)
-from dovesei.controller.policies.clearance_config import Altitudes, ClearanceConfig, clearance_preset
-from dovesei.controller.policies.clearance_machine import TERMINAL, Inputs, Memory, Phase, search_route, step, toward
-from dovesei.controller.policies.clearance_map import (GroundMap, clearance_at, emphasise_dips, find_candidate,
+from dovesei.controller.policies.clearance.config import Altitudes, ClearanceConfig, clearance_preset
+from dovesei.controller.policies.clearance.machine import TERMINAL, Inputs, Memory, Phase, search_route, step, toward
+from dovesei.controller.policies.clearance.ground_map import (GroundMap, clearance_at, emphasise_dips, find_candidate,
                                                       find_spot, footprint_width_m, logit, look_weight, promise)
-from dovesei.controller.policies.clearance_scene import SceneLevels, fine_noise, known_mean, map_levels, sigmoid
+from dovesei.controller.policies.clearance.scene import SceneLevels, fine_noise, known_mean, map_levels, sigmoid
 from dovesei.controller.frames import to_body, to_ne
 from dovesei.controller.geofence import cap_outward
-from dovesei.controller.policies.clearance_motion import EgoMotion, MotionStep, tilt_offset_ne
+from dovesei.controller.policies.clearance.motion import EgoMotion, MotionStep, tilt_offset_ne
 
 log = logging.getLogger(__name__)
 

@@ -56,7 +56,7 @@ class ClearanceConfig:
     p_clip: float = 1.0 / 255.0
     look_period_s: float = 0.5  # frames closer than this count as one look (errors correlate)
     decay_tau_s: float = 30.0  # evidence fades with this time constant
-    # --- thresholds from the scene (clearance_scene) ---
+    # --- thresholds from the scene (scene) ---
     # No threshold is a fixed P: each is read off the distribution of fused log-odds over the map
     # of the search area, so a recalibrated segmenter (logit P' = a logit P + b) moves them with it.
     # The one absolute level: a scene whose best class reads below even odds (P 0.5, what the

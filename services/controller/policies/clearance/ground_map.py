@@ -18,7 +18,7 @@ Resolution follows altitude: the cell is alt x `cell_per_alt`, in power-of-two s
 again at four times the resolution on the way down. A change of cell size or a vehicle near the
 edge resamples the map around the vehicle (mean values carry over; looks per cell too).
 
-Spots: a cell is safe when its fused log-odds reach the scene's spot threshold (clearance_scene)
+Spots: a cell is safe when its fused log-odds reach the scene's spot threshold (scene)
 and its looks >= `looks_min`; everything
 else (unsafe, unknown, off the map) is an obstacle. The clearance of a cell is its metric
 distance to the nearest obstacle (one distance transform); a spot is a cell whose clearance is at
@@ -39,7 +39,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from dovesei.controller.policies.clearance_config import ClearanceConfig
+from dovesei.controller.policies.clearance.config import ClearanceConfig
 from dovesei.shared import footprint
 
 
