@@ -33,6 +33,16 @@ class RegistrationReport:
 
 
 @dataclass(frozen=True)
+class SceneReport:
+    """The scene's levels read off the high map (log-odds); a threshold nothing meets reports as 99."""
+
+    spot_logit: float
+    gate_logit: float
+    best_logit: float
+    typical_logit: float
+
+
+@dataclass(frozen=True)
 class ClearanceReport:
     """One decision of the `clearance` policy, as it explains it."""
 
@@ -51,6 +61,7 @@ class ClearanceReport:
     uncertainty_m: float
     anchors: int
     probes: int  # areas probed so far
+    scene: SceneReport | None = None  # None until the high map has levels
     probe: ProbeReport | None = None
     registration: RegistrationReport | None = None
     hold_error_m: float | None = None  # while holding where the search gave up: distance from that point
