@@ -16,7 +16,8 @@ import cv2
 import numpy as np
 import pytest
 
-from dovesei.controller.policies.base import Observation, make_policy
+from dovesei.controller.policies.base import Observation
+from dovesei.controller.policies.registry import make_policy
 from dovesei.controller.policies.clearance.policy import ClearancePolicy
 from dovesei.controller.policies.clearance.config import ClearanceConfig
 from dovesei.controller.policies.clearance.ground_map import logit
