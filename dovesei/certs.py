@@ -60,17 +60,18 @@ ROLES: dict[str, Role] = {
     # The controller owns the autopilot link, so the vehicle's state in flight comes from it.
     # It flies on (or feeds the EKF with) the camera's visual velocity, which only the camera (or
     # the sim in its place) may publish.
+    # Its close looks: a crop from the camera (or the sim in its place), scored by the segmenter.
     "controller": Role(puts=("cmd", "status", "state"), subscribes=("heatmap", "state", "odometry"),
-                       alive_as=("controller", "mavlink")),
+                       asks=("crop", "segment"), alive_as=("controller", "mavlink")),
     "segmenter": Role(puts=("heatmap",), subscribes=("camera", "prompts"), answers=("segment",),
                       alive_as=("segmenter",)),
     # The sim hears the controller's status for its hand-over in external-pose mode (sim.judge).
     "sim": Role(puts=("camera", "state", "episode", "odometry"), subscribes=("cmd", "state", "status"),
-                alive_as=("sim",)),
-    "camera": Role(puts=("camera", "odometry"), subscribes=("state",), alive_as=("camera",)),
+                answers=("crop",), alive_as=("sim",)),
+    "camera": Role(puts=("camera", "odometry"), subscribes=("state",), answers=("crop",), alive_as=("camera",)),
     "operator": Role(puts=("prompts",), subscribes=("status", "episode", "heatmap", "state", "camera"),
                      asks=("segment",)),
-    "monitor": Role(subscribes=tuple(t for t in keys.TOPICS if t != "segment")),
+    "monitor": Role(subscribes=tuple(t for t in keys.TOPICS if t not in ("segment", "crop"))),
 }
 
 

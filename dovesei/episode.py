@@ -87,6 +87,8 @@ class EpisodeSpec:
     # The policy's constants that differ from the timing preset's (a --policy-config file's), as
     # sorted (name, value) pairs so the spec stays hashable; () = the preset.
     policy_config: tuple[tuple[str, Any], ...] = ()
+    # (a, b): every heatmap is recalibrated to sigmoid(a logit P + b) (the bench's --perception-shift).
+    perception_shift: tuple[float, float] | None = None
 
     @classmethod
     def from_job(cls, job: dict, start: Start) -> EpisodeSpec:
@@ -97,7 +99,9 @@ class EpisodeSpec:
                    vehicle_profile=job.get("vehicle_profile") or SIM_DEFAULT_VEHICLE_PROFILE,
                    handover_alt_m=job.get("handover_alt_m", HANDOVER_ALT_M),
                    policy_config=tuple(sorted((k, tuple(v) if isinstance(v, list) else v)
-                                              for k, v in (job.get("policy_config") or {}).items())))
+                                              for k, v in (job.get("policy_config") or {}).items())),
+                   perception_shift=None if job.get("perception_shift") is None else
+                   (float(job["perception_shift"]["a"]), float(job["perception_shift"]["b"])))
 
 
 @dataclass
@@ -143,7 +147,7 @@ def segmenter_config(spec: EpisodeSpec) -> SegmenterConfig:
     extra = {} if fusion is None else {"fusion": fusion}
     noise = DEFAULT_NOISE if spec.noise is None else spec.noise
     return SegmenterConfig(backend="sim", sim_profile=spec.perception, sim_noise=noise, sim_seed=spec.seed,
-                           prompts=spec.prompts, **extra)
+                           prompts=spec.prompts, prob_shift=spec.perception_shift, **extra)
 
 
 def run_episode(world: World, spec: EpisodeSpec, *, record_track: bool = True,

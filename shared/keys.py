@@ -10,7 +10,9 @@ Per vehicle, under `dovesei/<vehicle>/`:
     prompts   PromptSetMsg       operator -> segmenter
     episode   EpisodeResult      sim judge -> `dovesei up`, bench
     odometry  VisualOdometry     onboard camera -> controller (visual velocity for the autopilot)
-    segment   queryable: CameraFrame in, SafetyHeatmap out (request-reply segmentation)
+    segment   queryable: CameraFrame in, SafetyHeatmap out (request-reply segmentation);
+              CropFrame in, CropHeatmap out (a close look, scored with the "never" set too)
+    crop      queryable: CropRequest in, CropFrame out (answered onboard by the camera, or the sim)
     alive/<service>              liveliness tokens
 
 A ground-station segmenter serving several vehicles subscribes to `dovesei/*/camera` and declares
@@ -26,7 +28,7 @@ from dovesei.shared.errors import ConfigError
 ROOT = "dovesei"
 ANY_VEHICLE = "*"
 SERVICES = ("sim", "segmenter", "controller", "camera", "mavlink")
-TOPICS = ("camera", "state", "heatmap", "cmd", "status", "prompts", "episode", "segment", "odometry")
+TOPICS = ("camera", "state", "heatmap", "cmd", "status", "prompts", "episode", "segment", "odometry", "crop")
 _VEHICLE_RE = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
 
 
@@ -77,6 +79,10 @@ def odometry(vehicle: str) -> str:
 
 def segment(vehicle: str) -> str:
     return _key(vehicle, "segment")
+
+
+def crop(vehicle: str) -> str:
+    return _key(vehicle, "crop")
 
 
 def alive(vehicle: str, service: str) -> str:

@@ -304,6 +304,9 @@ class GroundTruth(Record):
     # The optical axis on the ground, world metres (x east, y north): the simulated perception
     # anchors its misreadings to the ground with it (the same ground misread the same way).
     centre_world_m: tuple[float, float] | None = None
+    # The world's name: the simulated perception's per-world confusions and per-episode draws
+    # are keyed by it ("" = unnamed: they are then the same for every world).
+    world: str = ""
 
 
 @message("dovesei.camera_frame", 1)
@@ -512,6 +515,111 @@ class PromptSetMsg(Message):
             raise FieldError(f"field 'template': {self.template!r} has no '{{}}' placeholder")
 
 
+# A close look (DESIGN.md 1, 5): a square of ground around a candidate spot, cut from the newest
+# full-resolution camera frame onboard (only the crop crosses the link) and scored by the segmenter
+# with the landing prompts and the "never" set. Geometry and limits: dovesei.shared.crop.
+CROP_RANGES: dict[str, tuple[float, float]] = {
+    "request_seq": SEQ, "centre_frd_m": (-1e4, 1e4), "side_m": (0.0, 1e4), "out_px": (1, MAX_IMAGE_SIDE_PX),
+    "source_m_per_px": (0.0, 1e4), "never_p_max": (0.0, 1.0),
+}
+
+
+@message("dovesei.crop_request", 1)
+class CropRequest(Message):
+    """Ask the camera for a square of ground: its centre (forward, right metres from the point below
+    the vehicle, heading-level body frame at the capture pose), its side in metres and the output
+    side in pixels. `frame_seq` -1 asks for the newest full-resolution frame (a camera keeps only
+    that one); `request_seq` comes back in the crop and its heatmap (correlation)."""
+
+    RANGES: ClassVar[dict[str, tuple[float, float]]] = CROP_RANGES
+    vehicle_id: str
+    request_seq: int
+    stamp: Stamp  # when asked, on the asker's data clock
+    centre_frd_m: tuple[float, float]
+    side_m: float
+    out_px: int
+    frame_seq: int = -1
+    sent_wall_s: float = 0.0
+
+
+@message("dovesei.crop", 1)
+class CropFrame(Message):
+    """The answer to a CropRequest: the crop (image up = body forward at capture) and the capture's
+    tags (the frame's seq, stamp, altitude and attitude, as a CameraFrame carries them), the square
+    actually cut, and the ground size of one source pixel at its centre (the detail really there)."""
+
+    ARRAYS: ClassVar[dict[str, ArraySpec]] = {"image_rgb": ArraySpec(("uint8",), 3, channels=3, image=True)}
+    RANGES: ClassVar[dict[str, tuple[float, float]]] = CROP_RANGES
+    vehicle_id: str
+    request_seq: int
+    frame_seq: int
+    stamp: Stamp  # the capture's
+    image_rgb: np.ndarray  # (out_px, out_px, 3) RGB
+    centre_frd_m: tuple[float, float]
+    side_m: float
+    alt_agl_m: float
+    source_m_per_px: float
+    roll_rad: float = 0.0
+    pitch_rad: float = 0.0
+    yaw_rad: float = 0.0
+    sent_wall_s: float = 0.0
+    truth: GroundTruth | None = None  # sim only: the crop's labels (centre_world_m = the square's centre)
+
+    def _check(self) -> None:
+        h, w = self.image_rgb.shape[:2]
+        if h != w:
+            raise FieldError(f"field 'image_rgb': a crop is square, got {w}x{h} px")
+        if not self.side_m > 0.0 or not self.alt_agl_m > 0.0:
+            raise FieldError(f"fields 'side_m' and 'alt_agl_m' must be > 0, got {self.side_m}, {self.alt_agl_m}")
+        if self.truth is not None and self.truth.labels.shape != (h, w):
+            raise FieldError(f"field 'truth': labels {self.truth.labels.shape} differ from the crop {(h, w)}")
+
+    @property
+    def hfov_rad(self) -> float:
+        """The field of view of a nadir camera at the capture altitude that would see just this square."""
+        return 2.0 * math.atan(self.side_m / (2.0 * self.alt_agl_m))
+
+    @property
+    def m_per_px(self) -> float:
+        return self.side_m / self.image_rgb.shape[1]
+
+
+_PROB_MAP = ArraySpec(("uint8", "float16", "float32"), 2, unit_range=True)
+
+
+@message("dovesei.crop_heatmap", 1)
+class CropHeatmap(Message):
+    """A crop scored by the segmenter: P(safe) with the landing prompts and P(never) (people,
+    vehicles, animals: anything of the "never" set), both at the crop's size."""
+
+    ARRAYS: ClassVar[dict[str, ArraySpec]] = {"prob_safe": _PROB_MAP, "prob_never": _PROB_MAP}
+    RANGES: ClassVar[dict[str, tuple[float, float]]] = CROP_RANGES
+    vehicle_id: str
+    request_seq: int
+    frame_seq: int
+    stamp: Stamp  # the capture's
+    prob_safe: np.ndarray  # uint8 = P * 255; float16/float32 = P
+    prob_never: np.ndarray
+    centre_frd_m: tuple[float, float]
+    side_m: float
+    alt_agl_m: float
+    backend: str
+    simulated: bool
+    prompt_set_id: str
+    never_set_id: str
+    inference_s: float
+    sent_wall_s: float = 0.0
+
+    def _check(self) -> None:
+        if self.prob_safe.shape != self.prob_never.shape:
+            raise FieldError(f"fields 'prob_safe' {self.prob_safe.shape} and 'prob_never' {self.prob_never.shape} differ")
+
+    def probabilities(self) -> tuple[np.ndarray, np.ndarray]:
+        """(P(safe), P(never)) as float32 in [0, 1] whatever the wire dtype."""
+        return tuple(a.astype(np.float32) * np.float32(1.0 / 255.0) if a.dtype == np.uint8
+                     else a.astype(np.float32, copy=False) for a in (self.prob_safe, self.prob_never))
+
+
 # "not_judged": the hand-over altitude was reached over a world without labels (tile worlds).
 OUTCOMES = ("safe", "unsafe", "timeout", "out_of_world", "error", "not_judged")
 
@@ -555,7 +663,7 @@ def replace(msg: Record, **changes: Any) -> Any:
 
 
 __all__ = [
-    "ArraySpec", "CameraFrame", "ClassEntry", "ControllerStatus", "EpisodeResult", "FieldError",
+    "ArraySpec", "CameraFrame", "ClassEntry", "ControllerStatus", "CropFrame", "CropHeatmap", "CropRequest", "EpisodeResult", "FieldError",
     "GroundTruth", "Message", "VisualOdometry", "OUTCOMES", "PromptSetMsg", "Record", "SCHEMAS", "SafetyHeatmap",
     "StageLatency", "Stamp", "VehicleState", "VelocityCommand", "field_range", "replace",
 ]

@@ -18,6 +18,11 @@ from dovesei.shared.validate import is_number
 HANDOVER_ALT_M = 20.0
 # The paper's landing disk: success means every class under this radius around the touchdown is safe.
 SAFETY_RADIUS_M = 2.0
+# Separation from what a lander must never come down near (DESIGN.md 1; SORA-style ground risk):
+# no person within 3 m and no vehicle within 5 m of the touchdown point. The close look checks
+# them before committing; the judge counts them.
+PERSON_SEPARATION_M = 3.0
+VEHICLE_SEPARATION_M = 5.0
 # A start must leave at least this much descent above the hand-over altitude, or there is nothing
 # to judge (the smallest start `bench` and `up` accept at the default hand-over is 25 m).
 MIN_DESCENT_M = 5.0

@@ -35,7 +35,7 @@ pre-arm report, "Arm: ..." when an ARM is refused).
 
 from __future__ import annotations
 
-from dovesei.controller import mavlink_proto as mv
+from dovesei.controller.mavlink import proto as mv
 
 VISION_FRESH_S = 0.5  # a vision velocity older than this is not being fused
 VISODOM_HEALTHY_S = 0.3  # AP_VISUALODOM_TIMEOUT_MS: the VisOdom pre-arm check's freshness

@@ -16,6 +16,9 @@ Data flow:
         `dovesei.shared.visual_velocity` against the previous one -> VisualOdometry on
         `dovesei/<vehicle>/odometry` (valid or not, with its reason logged at DEBUG); time between
         frames from their capture instants. frame_seq counts grabbed frames, not published ones.
+    crops:         the crop key's queries (`dovesei.shared.crop_server`, own thread) -> a square of
+        ground cut from the newest PUBLISHED frame at the device's full resolution, tagged like
+        that frame (`CameraPublisher.crop`; only crops cross the link, never the full frame)
 
 Newest frame wins: grabbing runs continuously so the published frame is never older than one
 capture period; a segmenter slower than the camera sees fresh frames, not a backlog. Cropping
@@ -44,13 +47,18 @@ from typing import Protocol
 
 import zenoh
 
+import cv2
+import numpy as np
+
 from dovesei.camera.source import ROTATIONS, Grabber, crop_resize, output_hfov_rad
 from dovesei.shared import keys, validate
+from dovesei.shared.crop import CropLimits, RateLimit, cut_crop, plan_crop
+from dovesei.shared.crop_server import CropServer
 from dovesei.shared.cliconfig import CommandLine, Flag, integer_in, non_blank
 from dovesei.shared.codec import encode
 from dovesei.shared.errors import ConfigError
 from dovesei.shared.lifecycle import Inbox, declare_alive, install_stop_handlers
-from dovesei.shared.messages import CameraFrame, Stamp, VehicleState
+from dovesei.shared.messages import CameraFrame, CropFrame, CropRequest, Stamp, VehicleState
 from dovesei.shared.recording import FlightRecorder
 from dovesei.shared.visual_velocity import FrameMeta, VisualVelocity, odometry_message
 from dovesei.shared.zconfig import SessionError, open_session
@@ -83,6 +91,10 @@ class CameraConfig:
     record_path: str | None = None  # write the published frames, their states and the odometry to this MCAP file
     odometry_rate_hz: float = 10.0  # visual velocity from consecutive grabbed frames; 0 = off
     odometry_width_px: int = 320  # frames are cropped like the published ones and shrunk to this width
+    # Close looks: the newest published frame is kept at the device's full resolution (whatever it
+    # delivers: set the size on the device or the pipeline, e.g. 4000x3000) and squares of it are
+    # cut on the crop key, at most this often.
+    crop_rate_hz: float = 5.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.source, str) or not self.source.strip():
@@ -99,6 +111,7 @@ class CameraConfig:
         for name in ("rate_hz", "stall_timeout_s", "state_timeout_s"):
             validate.positive(f"camera {name}", getattr(self, name))
         validate.in_range("camera odometry_rate_hz", self.odometry_rate_hz, 0.0, 200.0)
+        validate.in_range("camera crop_rate_hz", self.crop_rate_hz, 0.01, 100.0)
         if isinstance(self.odometry_width_px, bool) or not isinstance(self.odometry_width_px, int) \
                 or not 64 <= self.odometry_width_px <= 1280:
             raise ConfigError(f"camera odometry_width_px must be an integer in 64..1280, got {self.odometry_width_px!r}")
@@ -115,6 +128,8 @@ class CameraStats:
     withheld_no_state: int = 0
     odometry_published: int = 0
     odometry_valid: int = 0
+    crops_answered: int = 0
+    crops_refused: int = 0
     stalled: bool = False
     ended: bool = False
     warnings: list[str] = field(default_factory=list)
@@ -169,6 +184,11 @@ class CameraPublisher:
         self._last_new_frame_s = clock()
         self._no_state_reported = False
         self._hfov_cache: tuple[tuple[int, int], float] | None = None
+        # The newest published frame at full resolution and its tags, replaced whole (the crop
+        # thread reads it without a lock): (frame, BGR as captured).
+        self._newest_full: tuple[CameraFrame, np.ndarray] | None = None
+        self.crop_limits = CropLimits(rate_hz=config.crop_rate_hz, burst=max(1, round(config.crop_rate_hz)))
+        self._crop_rate = RateLimit(self.crop_limits.rate_hz, self.crop_limits.burst)
 
     def poll_state(self) -> None:
         """Drain the state source into the history (call often: receive times date the states)."""
@@ -210,6 +230,7 @@ class CameraPublisher:
             hfov_rad=self._hfov(bgr.shape[1], bgr.shape[0]), alt_agl_m=state.alt_agl_m,
             roll_rad=state.roll_rad, pitch_rad=state.pitch_rad, yaw_rad=state.yaw_rad, sent_wall_s=time.time())
         self.put(encode(frame, jpeg_quality=self.config.jpeg_quality))
+        self._newest_full = (frame, bgr)
         if self.recorder is not None:
             # The state that tagged the frame goes first (once, however many frames it tags).
             if state is not self._recorded_state:
@@ -265,6 +286,26 @@ class CameraPublisher:
         else:
             log.debug("odometry %d invalid: %s", msg.frame_seq, est.reason)
         return True
+
+    def crop(self, req: CropRequest) -> CropFrame:
+        """A square of ground cut from the newest published frame at the device's full resolution
+        (rotated like the published frames), tagged like that frame; CropRefused says why not.
+        Called from the crop server's thread: it reads one snapshot and never the loop's state."""
+        c, newest = self.config, self._newest_full
+        frame, bgr = newest if newest is not None else (None, None)
+        src_h, src_w = bgr.shape[:2] if bgr is not None else (1, 1)
+        width, height = (src_w, src_h) if c.rotate_deg in (0, 180) else (src_h, src_w)
+        hfov = output_hfov_rad(c.hfov_deg, src_w, src_h, width, height, c.rotate_deg)
+        plan = plan_crop(req, self.crop_limits, self._crop_rate, self._clock(), vehicle_id=c.vehicle_id,
+                         newest_seq=None if frame is None else frame.seq,
+                         alt_agl_m=frame.alt_agl_m if frame else 0.0, roll_rad=frame.roll_rad if frame else 0.0,
+                         pitch_rad=frame.pitch_rad if frame else 0.0, width_px=width, height_px=height, hfov_rad=hfov)
+        if ROTATIONS[c.rotate_deg] is not None:
+            bgr = cv2.rotate(bgr, ROTATIONS[c.rotate_deg])
+        rgb = cv2.cvtColor(cut_crop(bgr, plan.homography, req.out_px), cv2.COLOR_BGR2RGB)
+        return CropFrame(c.vehicle_id, req.request_seq, frame.seq, frame.stamp, rgb, req.centre_frd_m, req.side_m,
+                         frame.alt_agl_m, plan.source_m_per_px, roll_rad=frame.roll_rad, pitch_rad=frame.pitch_rad,
+                         yaw_rad=frame.yaw_rad, sent_wall_s=time.time())
 
     def _check_stall(self, now: float) -> None:
         if self.grabber.ended.is_set() and not self.stats.ended:
@@ -357,6 +398,7 @@ def _serve(session: zenoh.Session, config: CameraConfig, stop: threading.Event, 
     odometry = session.declare_publisher(keys.odometry(config.vehicle_id)) if config.odometry_rate_hz > 0 else None
     loop = CameraPublisher(config, grabber, state_source, publisher.put, stats=stats, recorder=recorder,
                            put_odometry=odometry.put if odometry is not None else None)
+    crops = CropServer(session, config.vehicle_id, loop.crop)
     log.info("camera %s (%s) -> %s at %.1f Hz, %dx%d, %s, state from %s; odometry %s", config.source, grabber.kind,
              keys.camera(config.vehicle_id), config.rate_hz, config.width_px, config.height_px,
              f"JPEG q{config.jpeg_quality}" if config.jpeg_quality else "raw RGB", keys.state(config.vehicle_id),
@@ -378,6 +420,8 @@ def _serve(session: zenoh.Session, config: CameraConfig, stop: threading.Event, 
             # At most one poll period: odometry waiting for its next frame looks again then.
             stop.wait(min(poll_s, max(0.0, next_pub_s - time.monotonic())))
     finally:
+        crops.close()
+        loop.stats.crops_answered, loop.stats.crops_refused = crops.answered, sum(crops.refused.values())
         grabber.close()
         if odometry is not None:
             odometry.undeclare()
@@ -406,6 +450,8 @@ CLI = CommandLine(CameraConfig, {
                              "at most this often (0 = off)", check=lambda w, v: validate.in_range(w, v, 0.0, 200.0)),
     "odometry_width_px": Flag("--odometry-width", "frames shrunk to this width for the visual velocity, pixels",
                               check=integer_in(64, 1280)),
+    "crop_rate_hz": Flag("--crop-rate-hz", "answer at most this many close-look crops a second on the crop key",
+                         check=lambda w, v: validate.in_range(w, v, 0.01, 100.0)),
     "record_path": Flag("--record", "write the published frames and their states as an MCAP recording to PATH",
                         check=non_blank, metavar="PATH"),
 }, prog="dovesei-camera", description="Publish an onboard camera as dovesei frames.")

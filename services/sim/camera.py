@@ -37,6 +37,7 @@ import cv2
 import numpy as np
 
 from dovesei.shared import footprint
+from dovesei.shared.footprint import tilt_rotation
 from dovesei.shared.errors import DoveseiError
 from dovesei.shared.validate import is_number
 from dovesei.sim.world import OUT_OF_WORLD_LABEL, World
@@ -173,14 +174,6 @@ def pixel_to_world_affine(
     )
 
 
-def tilt_rotation(roll_rad: float, pitch_rad: float) -> np.ndarray:
-    """Body (forward, right, down) -> heading-level (forward, right, down): R_y(pitch) @ R_x(roll)."""
-    cr, sr, cp, sp = math.cos(roll_rad), math.sin(roll_rad), math.cos(pitch_rad), math.sin(pitch_rad)
-    return np.array([[cp, sp * sr, sp * cr],
-                     [0.0, cr, -sr],
-                     [-sp, cp * sr, cp * cr]], dtype=np.float64)
-
-
 # The steepest corner ray a tilted render accepts: cos of 85 deg from straight down. Beyond it the
 # footprint runs to the horizon (and a homography would wrap the sky onto the ground).
 _MIN_RAY_DOWN = math.cos(math.radians(85.0))
@@ -269,6 +262,7 @@ def render(
     with_labels: bool = True,
     with_image: bool = True,
     interpolation: str = "auto",
+    t_s: float = 0.0,
 ) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray]:
     """The camera's view: (image_rgb HxWx3 uint8, labels HxW uint8 or None, valid_mask HxW bool).
 
@@ -277,7 +271,8 @@ def render(
 
     labels is None when the world has none or with_labels is False (labels cost ~25 % of a frame);
     image is None with with_image=False (a consumer of the labels alone skips the costly warp).
-    interpolation "auto" reads the half-octave pyramid level closest to the needed scale with a
+    t_s: the time (seconds since the episode began) at which the world's people and cars are
+    drawn (`World.population`, at the view's own resolution). interpolation "auto" reads the half-octave pyramid level closest to the needed scale with a
     nearest lookup (the level already averaged the right area) and switches to bilinear where the
     view magnifies the world (low altitude); "linear" is bilinear at every scale: softer, and
     ~1.4x slower over an episode's mix of altitudes (measured with bench_render).
@@ -315,6 +310,10 @@ def render(
     if world.labels is not None and with_labels:
         labels = warp(world.labels, m0, size, flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
                       borderMode=cv2.BORDER_CONSTANT, borderValue=OUT_OF_WORLD_LABEL)
+    if world.population is not None and (image is not None or labels is not None):
+        # People and cars at this view's own resolution; those the texture already holds (baked)
+        # only when the view is finer than the texture (k < 1 world pixel per output pixel).
+        world.population.draw(image, labels, world_m_to_output_px(world, m0), t_s, skip_baked=k >= 1.0)
     valid = _valid_mask(world, m0, cam)
     if valid is None:
         valid = np.ones((cam.height_px, cam.width_px), dtype=bool)
@@ -325,6 +324,35 @@ def render(
         if labels is not None:
             labels[~valid] = OUT_OF_WORLD_LABEL
     return image, labels, valid
+
+
+def world_m_to_output_px(world: World, m0: np.ndarray) -> np.ndarray:
+    """3x3 map from world metres (x east, y north, 1) to output pixels (col, row, w), the inverse of
+    a view's output -> world pixel map m0 (2x3 affine or 3x3 homography) composed with the world's
+    metres -> pixel scale: what `objects.ObjectLayer.draw` takes."""
+    m = np.vstack([m0, [0.0, 0.0, 1.0]]) if m0.shape[0] == 2 else m0
+    g = world.gsd_m
+    metres_to_px = np.array([[1.0 / g, 0.0, -0.5], [0.0, -1.0 / g, world.height_px - 0.5], [0.0, 0.0, 1.0]])
+    return np.linalg.inv(m) @ metres_to_px
+
+
+# The virtual camera a ground square is rendered through: a level nadir camera whose footprint is
+# the square (any field of view gives the same affine map; this one keeps `render`'s checks happy).
+_SQUARE_HFOV_DEG = 73.0
+
+
+def render_ground_square(world: World, centre_x_m: float, centre_y_m: float, yaw_rad: float, side_m: float,
+                         out_px: int, *, with_image: bool = True, with_labels: bool = True,
+                         t_s: float = 0.0) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray]:
+    """A square of the world `side_m` wide centred on (x east, y north), image up along the heading
+    `yaw_rad`, at `out_px` a side: what a close-look crop shows, people and cars where they are at
+    `t_s` (seconds since the episode began) drawn at the crop's resolution. Same outputs as `render`."""
+    if not (is_number(side_m) and side_m > 0.0):
+        raise CameraError(f"side_m must be finite and > 0, got {side_m!r}")
+    cam = CameraModel(out_px, out_px, _SQUARE_HFOV_DEG)
+    alt_m = side_m / footprint.width_m(1.0, cam.hfov_rad)  # the altitude whose footprint is the square
+    return render(world, centre_x_m, centre_y_m, alt_m, yaw_rad, cam, with_image=with_image, with_labels=with_labels,
+                  t_s=t_s)
 
 
 def _level_index(k: float) -> int:

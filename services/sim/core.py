@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 from collections import OrderedDict, deque
 from dataclasses import dataclass, field
 
@@ -42,14 +43,17 @@ import numpy as np
 
 from dovesei.shared import validate
 from dovesei.shared.clock import wall_time_s
+from dovesei.shared.crop import CropLimits, RateLimit, plan_crop
 from dovesei.shared.errors import ConfigError
 from dovesei.shared.mission import HANDOVER_ALT_M, SAFETY_RADIUS_M
 from dovesei.shared.timing import DEFAULT_TIMING, timing
 from dovesei.shared.messages import (
-    CameraFrame, ClassEntry, ControllerStatus, EpisodeResult, GroundTruth, Stamp, VehicleState, VelocityCommand,
-    VisualOdometry,
+    CameraFrame, ClassEntry, ControllerStatus, CropFrame, CropRequest, EpisodeResult, GroundTruth, Stamp, VehicleState,
+    VelocityCommand, VisualOdometry,
 )
-from dovesei.sim.camera import CameraError, CameraModel, ground_point_m, optical_axis_ground_m, render
+from dovesei.sim.camera import (
+    CameraError, CameraModel, ground_point_m, optical_axis_ground_m, render, render_ground_square,
+)
 from dovesei.sim.dynamics import Pose, Vehicle, VehicleParams
 from dovesei.sim.estimator import SIM_DEFAULT_VEHICLE_PROFILE, Estimate, Estimator, vehicle_profile
 from dovesei.sim.judge import NO_HANDOVER_REASON, EpisodeJudge
@@ -91,6 +95,10 @@ class SimConfig:
     # simulated perception, which reads only the labels: skips the costliest warp per frame.
     render_image: bool = True
     odometry_rate_hz: float = 0.0  # visual odometry views per sim second (10 = the camera's); 0 = off
+    # Close looks (`crop`): the simulated camera's full-resolution width (its frames are `camera`
+    # shrunk from it; a 12 MP drone camera is 4000 px wide) and what it agrees to cut, on sim time.
+    crop_source_px: int = 4000
+    crop_limits: CropLimits = field(default_factory=CropLimits)
 
     def __post_init__(self) -> None:
         timing(self.timing)  # a ConfigError naming the presets
@@ -99,6 +107,7 @@ class SimConfig:
             validate.positive(f"sim {name}", getattr(self, name))
         validate.non_negative("sim handover_alt_m", self.handover_alt_m)
         validate.in_range("sim odometry_rate_hz", self.odometry_rate_hz, 0.0, 100.0)
+        validate.in_range("sim crop_source_px", self.crop_source_px, self.camera.width_px, 16384)
         for name in ("frame_period_s", "latency_s"):
             if getattr(self, name) is not None:
                 validate.non_negative(f"sim {name}", getattr(self, name))
@@ -132,6 +141,8 @@ class SimCore:
         self._classes = tuple(ClassEntry(int(i), c.name, bool(c.safe)) for i, c in sorted(world.classes.items()))
         self.judge: EpisodeJudge | None = None
         self.vehicle: Vehicle | None = None
+        self._newest: tuple[CameraFrame, tuple[float, ...]] | None = None  # before reset: nothing to crop
+        self._crop_rate = RateLimit(config.crop_limits.rate_hz, config.crop_limits.burst)
 
     def reset(self) -> StepOut:
         cfg = self.config
@@ -153,6 +164,10 @@ class SimCore:
         # frame seq -> the true pose it was rendered at: x, y, altitude, yaw, roll, pitch
         self._frame_poses: OrderedDict[int, tuple[float, ...]] = OrderedDict()
         self._confirmed_look: tuple[int, float, float] | None = None
+        # The newest frame and the true pose it was rendered at (one tuple, replaced whole: a
+        # crop served from another thread reads it without a lock).
+        self._newest: tuple[CameraFrame, tuple[float, ...]] | None = None
+        self._crop_rate = RateLimit(cfg.crop_limits.rate_hz, cfg.crop_limits.burst)
         return self._emit()
 
     @property
@@ -287,12 +302,14 @@ class SimCore:
         roll, pitch = (0.0, 0.0) if self._gimbal else (pose.roll_rad, pose.pitch_rad)
         image, labels, _valid = render(self.world, pose.x_m, pose.y_m, alt_m, pose.yaw_rad, cfg.camera,
                                        roll_rad=roll, pitch_rad=pitch, with_image=cfg.render_image,
-                                       with_labels=cfg.attach_truth)  # labels unused: skip their warp
+                                       with_labels=cfg.attach_truth,  # labels unused: skip their warp
+                                       t_s=pose.t_s)  # people and cars where they are now
         if image is None:
             image = self._blank_image()
         centre = (pose.x_m, pose.y_m) if roll == 0.0 and pitch == 0.0 else \
             optical_axis_ground_m(pose.x_m, pose.y_m, alt_m, pose.yaw_rad, roll, pitch)
-        truth = GroundTruth(labels, self._classes, centre) if cfg.attach_truth and labels is not None else None
+        truth = GroundTruth(labels, self._classes, centre, self.world.name) \
+            if cfg.attach_truth and labels is not None else None
         self._frame_seq += 1
         if est is None:
             frame = CameraFrame(cfg.vehicle_id, self._frame_seq, Stamp(pose.t_s, "sim"), image, cfg.camera.hfov_rad,
@@ -306,9 +323,34 @@ class SimCore:
         # The TRUE pose the frame was rendered at, attitude included (not the frame's labels, which
         # are the estimate), for placing its pixels later.
         self._frame_poses[frame.seq] = (pose.x_m, pose.y_m, alt_m, pose.yaw_rad, roll, pitch)
+        self._newest = (frame, self._frame_poses[frame.seq])
         if len(self._frame_poses) > FRAME_POSES_KEPT:
             self._frame_poses.popitem(last=False)
         return frame
+
+    def crop(self, req: CropRequest) -> CropFrame:
+        """A close look: the square the request names, cut from the newest frame's full-resolution
+        view (rendered from the world at that frame's TRUE pose; tagged, like the frame, with what
+        the autopilot reported). CropRefused (one line) for a request a camera would refuse; the
+        rate limit runs on sim time, so a lockstep episode stays deterministic."""
+        cfg, newest = self.config, self._newest
+        frame, (x_m, y_m, alt_m, yaw_rad, roll, pitch) = newest if newest is not None else (None, (0.0,) * 6)
+        width = cfg.crop_source_px
+        height = round(width * cfg.camera.height_px / cfg.camera.width_px)
+        plan = plan_crop(req, cfg.crop_limits, self._crop_rate, self.t_s if self.vehicle is not None else 0.0, vehicle_id=cfg.vehicle_id,
+                         newest_seq=None if frame is None else frame.seq, alt_agl_m=alt_m, roll_rad=roll,
+                         pitch_rad=pitch, width_px=width, height_px=height, hfov_rad=cfg.camera.hfov_rad)
+        fwd, right = req.centre_frd_m
+        c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+        cx, cy = x_m + c * right + s * fwd, y_m + c * fwd - s * right  # as the renderer turns body into world
+        image, labels, _valid = render_ground_square(self.world, cx, cy, yaw_rad, req.side_m, req.out_px,
+                                                     with_image=cfg.render_image, with_labels=cfg.attach_truth)
+        if image is None:
+            image = np.zeros((req.out_px, req.out_px, 3), np.uint8)
+        truth = GroundTruth(labels, self._classes, (cx, cy), self.world.name) if labels is not None else None
+        return CropFrame(cfg.vehicle_id, req.request_seq, frame.seq, frame.stamp, image, req.centre_frd_m, req.side_m,
+                         frame.alt_agl_m, plan.source_m_per_px, roll_rad=frame.roll_rad, pitch_rad=frame.pitch_rad,
+                         yaw_rad=frame.yaw_rad, sent_wall_s=wall_time_s(), truth=truth)
 
     def _blank_image(self):
         if getattr(self, "_blank", None) is None:

@@ -80,6 +80,7 @@ class PoseCamera:
         self.world, self.sim = world, sim
         self.classes = tuple(ClassEntry(int(i), c.name, bool(c.safe)) for i, c in sorted(world.classes.items()))
         self.seq = -1
+        self._t0_s: float | None = None
 
     def frame(self, pose: Pose, state: VehicleState, attitude_rad: tuple[float, float] | None = None) -> CameraFrame:
         """The view at `pose` tilted by `attitude_rad` (roll, pitch; default the state's), labelled
@@ -92,10 +93,14 @@ class PoseCamera:
         roll_rad, pitch_rad = (state.roll_rad, state.pitch_rad) if attitude_rad is None else attitude_rad
         # A vehicle on the ground still needs a view; 0.1 m keeps the pinhole model defined.
         alt_m = max(pose.alt_agl_m, 0.1)
+        if self._t0_s is None:
+            self._t0_s = pose.t_s
+        # People walk on the episode's clock: seconds since the first frame, as the judge counts.
         image, labels, _valid = render(self.world, pose.x_m, pose.y_m, alt_m, pose.yaw_rad, cam,
-                                       roll_rad=roll_rad, pitch_rad=pitch_rad)
+                                       roll_rad=roll_rad, pitch_rad=pitch_rad, t_s=pose.t_s - self._t0_s)
         centre = optical_axis_ground_m(pose.x_m, pose.y_m, alt_m, pose.yaw_rad, roll_rad, pitch_rad)
-        truth = GroundTruth(labels, self.classes, centre) if self.sim.attach_truth and labels is not None else None
+        truth = GroundTruth(labels, self.classes, centre, self.world.name) \
+            if self.sim.attach_truth and labels is not None else None
         self.seq += 1
         return CameraFrame(self.sim.vehicle_id, self.seq, state.stamp, image, cam.hfov_rad, max(state.alt_agl_m, 0.0),
                            roll_rad=state.roll_rad, pitch_rad=state.pitch_rad, yaw_rad=state.yaw_rad,

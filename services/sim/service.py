@@ -4,6 +4,7 @@
                        --VisualOdometry-> odometry key (with --odometry-rate-hz; before the state)
                        --VehicleState-> state key
                        --EpisodeResult-> episode key   (once, at the end; also logged)
+    crop key (queryable) --CropServer thread--> SimCore.crop --> CropFrame (the newest frame's view)
     cmd key --Inbox--> VelocityCommand --> SimCore.step
     status key --Inbox (newest)--> ControllerStatus --> SimCore.note_status (the judge's confirmed
                                    ground: where the policy's confirming look lies, for the touchdown error)
@@ -50,6 +51,7 @@ from dovesei.shared import keys, validate
 from dovesei.shared.cliconfig import CommandLine, Flag, integer_in, non_blank
 from dovesei.shared.clock import WallClock
 from dovesei.shared.codec import encode
+from dovesei.shared.crop_server import CropServer
 from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.shared.lifecycle import Inbox, declare_alive, install_stop_handlers, is_alive, write_stats
 from dovesei.shared.messages import CameraFrame, ControllerStatus, EpisodeResult, VehicleState, VelocityCommand, VisualOdometry
@@ -137,6 +139,8 @@ class SimStats:
     states_foreign: int = 0  # external pose: a vehicle id other than ours on our state key
     overruns: int = 0  # real time: schedule restarts after falling behind
     frames_skipped: int = 0  # external pose: states whose attitude no frame can show (view at the horizon)
+    crops_answered: int = 0  # close looks served on the crop key
+    crops_refused: int = 0
     # Transport latency of each command used (wall: received here - sent by the controller), and
     # of the first command made from each frame's heatmap (for `dovesei up`'s per-frame budget).
     command_to_sim_s: deque[float] = field(default_factory=lambda: deque(maxlen=_MAX_LATENCY_SAMPLES))
@@ -279,10 +283,16 @@ def run(session: zenoh.Session, *, config: SimServiceConfig, stop: threading.Eve
             result = _run_external(wire, world, start, config, stop, stats)
         else:
             core = SimCore(world, start, config.sim)
-            if config.lockstep:
-                result = _run_lockstep(wire, core, config, stop, stats)
-            else:
-                result = _run_realtime(wire, core, config, stop, stats)
+            # The camera's close looks (crop key), answered on their own thread from the newest frame.
+            crops = CropServer(session, config.sim.vehicle_id, core.crop)
+            try:
+                if config.lockstep:
+                    result = _run_lockstep(wire, core, config, stop, stats)
+                else:
+                    result = _run_realtime(wire, core, config, stop, stats)
+            finally:
+                crops.close()
+                stats.crops_answered, stats.crops_refused = crops.answered, sum(crops.refused.values())
         if wire.cmds is not None:
             stats.commands_rejected = sum(wire.cmds.rejected.values())
         if wire.states is not None:

@@ -1,8 +1,8 @@
 """The world suite: the worlds a benchmark flies when asked for `--suite default`.
 
 `DEFAULT_SUITE` holds world specs as `load_world` takes them: the CC0 Dubai tile shipped with the
-package and one synthetic world of each style (`synth_styles`), each 1.6 km square at 0.25 m/px
-and seeded so the suite is the same on every machine. The synthetic worlds are generated once and
+package and one synthetic world of each style (`synth_styles`; `crowded`, the plazas and parks with
+crowds, last), each 1.6 km square at 0.25 m/px and seeded so the suite is the same on every machine. The synthetic worlds are generated once and
 then read from the disk cache (`synthetic.load_or_generate`).
 """
 
@@ -17,6 +17,7 @@ DEFAULT_SUITE: tuple[str, ...] = (
     "synthetic:style=desert,seed=3",
     "synthetic:style=coast,seed=4",
     "synthetic:style=parkland,seed=5",
+    "synthetic:style=crowded,seed=6",
 )
 SUITES: dict[str, tuple[str, ...]] = {"default": DEFAULT_SUITE}
 

@@ -25,6 +25,7 @@ refuses them from the spec alone (before any download) for the commands that jud
 from __future__ import annotations
 
 import json
+import zlib
 import logging
 import math
 from collections.abc import Mapping
@@ -40,7 +41,9 @@ from dovesei.shared.codec import image_header_size
 from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.shared.messages import FieldError
 from dovesei.shared.validate import positive
-from dovesei.sim import synthetic
+from dovesei.sim.synthetic import generate as synthetic
+from dovesei.sim.objects import Population
+from dovesei.sim.populate import DEFAULT_DENSITY, populate
 
 log = logging.getLogger(__name__)
 
@@ -89,6 +92,9 @@ class World:
     name: str
     home_xy_m: tuple[float, float] | None = None
     """Where a preset built around one start puts it (world metres); None: the starts are drawn."""
+    population: Population | None = None
+    """The people and vehicles about (`objects.py`): drawn by every renderer at its own resolution,
+    measured by the judge; None for a world nobody populated (no labels to place them by)."""
 
     def __post_init__(self) -> None:
         img = self.image_rgb
@@ -108,6 +114,11 @@ class World:
             if (not isinstance(home, tuple) or len(home) != 2 or not all(math.isfinite(float(v)) for v in home)
                     or not self.contains(float(home[0]), float(home[1]))):
                 raise WorldError(f"world {self.name!r}: home_xy_m must be a finite (x, y) on the image, got {home!r}")
+        if self.population is not None:
+            pop = self.population
+            if not isinstance(pop, Population) or any(i not in self.classes for i in pop.label_ids):
+                raise WorldError(f"world {self.name!r}: population must be a Population whose label ids are classes "
+                                 "of the world")
         for cid, info in self.classes.items():
             if not isinstance(cid, int) or isinstance(cid, bool) or not 0 <= cid <= 254:
                 raise WorldError(
@@ -236,9 +247,14 @@ def _load_synthetic(spec: str) -> World:
         params = synthetic.parse_spec(spec)
     except synthetic.SyntheticWorldError as exc:
         raise WorldError(str(exc)) from exc  # load_world callers handle one error type
-    image_rgb, labels = synthetic.load_or_generate(params)
+    gen = synthetic.load_or_generate_world(params)
     classes = {int(cid): ClassInfo(name, bool(safe)) for cid, (name, safe) in synthetic.SYNTHETIC_CLASSES.items()}
-    world = World(image_rgb, labels, float(params.gsd_m), classes, name=spec)
+    # The people and cars the generator drew stand where it drew them; the others walk and drive by
+    # the rules every labelled world is populated with, at the style's density.
+    about = populate(gen.labels, float(params.gsd_m), {c: i.name for c, i in classes.items()}, int(params.seed),
+                     synthetic.STYLE_DENSITY.get(params.style, DEFAULT_DENSITY))
+    population = Population(gen.baked.concat(about), (synthetic.PERSON, synthetic.CAR), gen.shadow_per_m)
+    world = World(gen.image, gen.labels, float(params.gsd_m), classes, name=spec, population=population)
     _check_label_ids(world.labels, classes, f"synthetic world {spec!r}")
     return world
 
@@ -272,12 +288,34 @@ def load_world_folder(folder: Path) -> World:
             f"but image {meta['image']!r} is {image_rgb.shape[1]}x{image_rgb.shape[0]} px"
         )
     _check_label_ids(labels, classes, f"{meta_path}: label image {meta['labels']!r}")
-    world = World(image_rgb, labels, gsd_m, classes, name=base.name)
+    classes, population = _populated(labels, gsd_m, classes, base.name)
+    world = World(image_rgb, labels, gsd_m, classes, name=base.name, population=population)
     log.info(
         "world %s: %dx%d px at %.3f m/px (%.0f x %.0f m), %d classes",
         world.name, world.width_px, world.height_px, gsd_m, world.width_m, world.height_m, len(classes),
     )
     return world
+
+
+def _populated(labels: np.ndarray, gsd_m: float, classes: dict[int, ClassInfo], name: str
+               ) -> tuple[dict[int, ClassInfo], Population | None]:
+    """People and cars placed by `populate` on a labelled world's walkable and drivable classes,
+    seeded by the world's name. A world whose classes name no person or car gets them as new
+    unsafe classes (the highest free ids), so frames can label what is drawn."""
+    layer = populate(labels, gsd_m, {c: i.name for c, i in classes.items()}, zlib.crc32(name.encode()), DEFAULT_DENSITY)
+    if not len(layer):
+        return classes, None
+    classes = dict(classes)
+    ids = []
+    for wanted in ("person", "car"):
+        found = [c for c, i in sorted(classes.items()) if wanted in i.name.lower().split()]
+        if found:
+            ids.append(found[0])
+        else:
+            free = max(c for c in range(255) if c not in classes)
+            classes[free] = ClassInfo(wanted, False)
+            ids.append(free)
+    return classes, Population(layer, (ids[0], ids[1]))
 
 
 def _file_field(meta: dict, key: str, meta_path: Path, base: Path) -> Path:

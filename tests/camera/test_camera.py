@@ -399,3 +399,40 @@ def test_the_camera_service_publishes_visual_odometry(service: tuple, tmp_path: 
     assert all(m.vehicle_id == "uav1" and m.alt_agl_m == ODO_ALT_M and 0 < m.dt_s < 1.0 for m in valid)
     assert [m.frame_seq for m in msgs] == sorted(m.frame_seq for m in msgs)
     assert all(m.prev_frame_seq < m.frame_seq for m in msgs)
+
+
+# ---------------------------------------------------------------------- close-look crops
+
+
+@pytest.mark.parametrize("rotate_deg", [0, 90])
+def test_a_crop_of_the_newest_full_resolution_frame_lands_on_the_known_ground(rotate_deg: int) -> None:
+    from dovesei.shared.crop import CropRefused
+    from dovesei.shared.messages import CropRequest
+    from dovesei.sim.camera import CameraModel, render
+    from tests.sim.test_crop import MARKER_FRD_M, START, marker_world
+
+    world, (roll, pitch) = marker_world(), (0.01, -0.02)  # the tags of `state()`
+    full_rgb, _, _ = render(world, START.x_m, START.y_m, START.alt_m, START.yaw_rad, CameraModel(1600, 1200, 73.0),
+                            roll_rad=roll, pitch_rad=pitch, with_labels=False, interpolation="linear")
+    bgr = cv2.cvtColor(full_rgb, cv2.COLOR_RGB2BGR)
+    hfov_deg = 73.0
+    if rotate_deg == 90:
+        # A sensor mounted sideways: it delivers the view turned back, and `--rotate 90` undoes it.
+        bgr = cv2.rotate(bgr, cv2.ROTATE_90_COUNTERCLOCKWISE)
+        hfov_deg = math.degrees(2 * math.atan(math.tan(math.radians(36.5)) * 1200 / 1600))
+    now = [0.0]
+    grabber, states = FakeGrabber(), ListStates()
+    loop = CameraPublisher(CameraConfig(source="0", width_px=96, height_px=96, hfov_deg=hfov_deg,
+                                        rotate_deg=rotate_deg), grabber, states, [].append, clock=lambda: now[0])
+    states.queue.append(state(START.alt_m, t_s=50.0))
+    loop.poll_state()
+    grabber.slot = (bgr, 0.1, 1)
+    now[0] = 0.2
+    assert loop.tick()
+    crop = loop.crop(CropRequest("uav1", 1, Stamp(50.0, "vehicle"), MARKER_FRD_M, 4.0, 128))
+    rows, cols = np.nonzero(crop.image_rgb.max(axis=2) > 150)
+    assert rows.size and crop.frame_seq == 0 and crop.stamp.t_s == pytest.approx(50.1)
+    assert math.hypot(rows.mean() - 63.5, cols.mean() - 63.5) * crop.m_per_px < 0.1
+    assert crop.source_m_per_px == pytest.approx(2 * 40.0 * math.tan(math.radians(36.5)) / 1600, rel=0.05)
+    with pytest.raises(CropRefused, match="outside the camera's view"):
+        loop.crop(CropRequest("uav1", 2, Stamp(50.0, "vehicle"), (35.0, 0.0), 4.0, 128))

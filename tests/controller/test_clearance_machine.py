@@ -7,14 +7,17 @@ import math
 
 import pytest
 
-from dovesei.controller.policies.clearance_config import ClearanceConfig
-from dovesei.controller.policies.clearance_machine import Inputs, Memory, Phase, search_pattern, search_route, step
-from dovesei.controller.policies.clearance_map import Spot
+from dovesei.controller.policies.clearance.config import ClearanceConfig
+from dovesei.controller.policies.clearance.machine import Inputs, Memory, Phase, search_pattern, search_route, step
+from dovesei.controller.policies.clearance.ground_map import Spot
 
 CFG = ClearanceConfig()
 SPACING_M = CFG.search_spacing_radius_frac * CFG.fence_m
 WAYPOINTS = search_pattern(SPACING_M, CFG.fence_m)
 ROUTE = search_route(((100.0, SPACING_M, CFG.fence_m),))
+
+
+LIKELY_P = 0.8
 
 
 def spot(n: float = 20.0, e: float = 0.0, score: float = 1.5) -> Spot:
@@ -24,8 +27,10 @@ def spot(n: float = 20.0, e: float = 0.0, score: float = 1.5) -> Spot:
 
 def inp(t: float, *, alt: float = 100.0, n: float = 0.0, e: float = 0.0, fresh: bool = True, gap: bool = False,
         best: Spot | None = None, check: Spot | None = None, candidate: Spot | None = None) -> Inputs:
+    # The policy calls a candidate likely from the scene's levels; here an area reading 0.8 or more is.
     return Inputs(t_s=t, alt_agl_m=alt, north_m=n, east_m=e, yaw_rad=0.0, fresh=fresh, gap=gap, search_alt_m=100.0,
-                  route=ROUTE, best=best, check=check, hfov_rad=math.radians(73.0), candidate=candidate)
+                  route=ROUTE, best=best, check=check, hfov_rad=math.radians(73.0), candidate=candidate,
+                  candidate_likely=candidate is not None and candidate.p_safe >= LIKELY_P)
 
 
 def at(phase: Phase, **kw: object) -> Memory:

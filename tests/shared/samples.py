@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from dovesei.shared.messages import (
-    CameraFrame, ClassEntry, ControllerStatus, EpisodeResult, GroundTruth, PromptSetMsg, SafetyHeatmap,
+    CameraFrame, ClassEntry, ControllerStatus, CropFrame, CropHeatmap, CropRequest, EpisodeResult, GroundTruth, PromptSetMsg, SafetyHeatmap,
     StageLatency, Stamp, VehicleState, VelocityCommand, VisualOdometry,
 )
 
@@ -30,4 +30,9 @@ def sample_messages(size_px: int = 32) -> list:
         PromptSetMsg(stamp, ("grass", "park"), ("building", "road"), "aerial photo of {}"),
         EpisodeResult("uav1", stamp, "safe", 410.0, 95.0, 300.0, 420.0, 19.9, ("grass",), True, 3.5, ""),
         VisualOdometry("uav1", 7, 6, stamp, (2.0, -0.5, 0.1), 0.04, 0.8, True, 0.1, 99.0),
+        CropRequest("uav1", 3, stamp, (1.5, -2.0), 12.0, 352, -1, 1.7e9),
+        CropFrame("uav1", 3, 7, stamp, image, (1.5, -2.0), 12.0, 40.0, 0.015, 0.01, -0.02, 0.3, 1.7e9, truth),
+        CropHeatmap("uav1", 3, 7, stamp, rng.random((size_px, size_px)).astype(np.float16),
+                    rng.integers(0, 255, (size_px, size_px), dtype=np.uint8), (1.5, -2.0), 12.0, 40.0, "simulated",
+                    True, "abc123", "def456", 0.02),
     ]

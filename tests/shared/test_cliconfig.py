@@ -48,7 +48,8 @@ NON_DEFAULT = {
             threads=3, fusion="dovesei", fusion_temperature=0.5, sim_profile="harsh", sim_noise=0.3, sim_seed=9,
             heatmap_dtype="float16",
             expected_size_px=(240, 320), max_side_px=2048,
-            prompts=PromptSet(positive=["grass, \"soft\""], negative=["road", "car"], template="a photo of {}.")),
+            prompts=PromptSet(positive=["grass, \"soft\""], negative=["road", "car"], template="a photo of {}."),
+            never=("people", "horse, cow")),
         vehicle_id="base", all_vehicles=True, lockstep=True, overload_report_s=2.5,
         variant="onnx-int8"),
     "controller": ControllerConfig(
@@ -66,7 +67,7 @@ NON_DEFAULT = {
     "camera": CameraConfig(source="rtsp://10.0.0.2/cam", vehicle_id="uav2", width_px=320, height_px=240,
                            hfov_deg=90.0, rotate_deg=180, rate_hz=5.0, jpeg_quality=85, stall_timeout_s=3.0,
                            state_timeout_s=0.5, loop_file=True, record_path="flights/cam.mcap", odometry_rate_hz=15.0,
-                           odometry_width_px=256),
+                           odometry_width_px=256, crop_rate_hz=2.5),
 }
 MODULES = {"sim": sim_service, "segmenter": segmenter_service, "controller": controller_service,
            "camera": camera_service}

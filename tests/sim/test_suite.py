@@ -10,17 +10,17 @@ import numpy as np
 import pytest
 
 from dovesei.shared.errors import ConfigError
-from dovesei.sim import synthetic as syn
+from dovesei.sim.synthetic import generate as syn
 from dovesei.sim.starts import generate_starts
 from dovesei.sim.suite import DEFAULT_SUITE, suite
-from dovesei.sim.synth_styles import STYLES
-from dovesei.sim.synthetic import (
+from dovesei.sim.synthetic.styles import STYLES
+from dovesei.sim.synthetic.generate import (
     BARE_SOIL, GRASS, ROOF_FLAT, ROOF_PITCHED, SYNTHETIC_CLASSES, TREE, WATER, SyntheticParams, generate_city,
     parse_spec,
 )
 from dovesei.sim.world import load_world
 
-NEW_STYLES = ("downtown", "villas", "desert", "coast", "parkland")
+NEW_STYLES = ("downtown", "villas", "desert", "coast", "parkland", "crowded")
 
 
 def fractions(labels: np.ndarray) -> np.ndarray:
@@ -33,7 +33,7 @@ def worlds() -> dict[str, np.ndarray]:
             for style in ("city", *NEW_STYLES)}
 
 
-def test_the_default_suite_is_dubai_and_the_five_styles_each_at_least_1_5_km() -> None:
+def test_the_default_suite_is_dubai_and_the_six_styles_each_at_least_1_5_km() -> None:
     assert DEFAULT_SUITE[0] == "dubai" and suite("default") == DEFAULT_SUITE
     params = [parse_spec(spec) for spec in DEFAULT_SUITE[1:]]
     assert sorted(p.style for p in params) == sorted(NEW_STYLES)

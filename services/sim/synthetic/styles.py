@@ -7,6 +7,9 @@ add what a grid of blocks cannot draw: `coast` is a city whose one side is the s
 a paved quay and piers with boats; `desert` is open sand with a few long roads, scattered walled
 compounds, warehouses, car parks and shrubs.
 
+`crowded` is a city of plazas and parks where crowds gather (groups of 20-80 people, some milling
+about) and many more walk and drive than elsewhere (`STYLE_DENSITY`, drawn by `populate`).
+
 Each style is a function of the seed alone. A style draws on the `Canvas` with the same routines
 as the city, so its label map is exactly what was drawn and the finishing pass (shadows,
 textures) is shared.
@@ -19,13 +22,14 @@ from collections.abc import Callable
 
 import numpy as np
 
-from dovesei.sim.synth_blocks import parking_lot
-from dovesei.sim.synth_canvas import Canvas, blob, jit, scaled, smooth_path, uni
-from dovesei.sim.synth_classes import (
+from dovesei.sim.populate import Density
+from dovesei.sim.synthetic.blocks import parking_lot
+from dovesei.sim.synthetic.canvas import Canvas, blob, jit, scaled, smooth_path, uni
+from dovesei.sim.synthetic.classes import (
     BARE_SOIL, PAL_ASPHALT, PAL_PAINT, PLAZA, ROAD, ROOF_FLAT, SIDEWALK, WATER,
 )
-from dovesei.sim.synth_layout import CityStyle
-from dovesei.sim.synth_objects import add_tree, draw_car, draw_person, flat_building, people_in
+from dovesei.sim.synthetic.layout import CityStyle
+from dovesei.sim.synthetic.objects import add_tree, draw_car, draw_person, flat_building, people_in
 
 CITY_STYLES: dict[str, CityStyle] = {
     "downtown": CityStyle(
@@ -40,6 +44,11 @@ CITY_STYLES: dict[str, CityStyle] = {
         kind_weights=(("park", 0.4), ("sports", 0.14), ("water", 0.07), ("apartments", 0.12), ("commercial", 0.1),
                       ("parking", 0.07), ("plaza", 0.07), ("residential", 0.03)),
         spacing_long_m=(120, 220), spacing_short_m=(90, 170), no_river_chance=0.3),
+    # A city of squares and parks, where the crowds are (their people: `STYLE_DENSITY`).
+    "crowded": CityStyle(
+        kind_weights=(("plaza", 0.3), ("park", 0.28), ("commercial", 0.16), ("apartments", 0.14), ("parking", 0.06),
+                      ("sports", 0.04), ("water", 0.02)),
+        spacing_long_m=(80, 150), spacing_short_m=(60, 120), no_river_chance=0.7),
     # The land side of the coast is an ordinary mixed city; `draw_coast` then floods one side.
     "coast": CityStyle(
         kind_weights=(("residential", 0.3), ("apartments", 0.24), ("commercial", 0.18), ("park", 0.1),
@@ -235,6 +244,12 @@ def draw_desert(cv: Canvas, rng_layout, rng) -> None:
                 draw_car(cv, rng, x + nx * side * width / 4, y + ny * side * width / 4,
                          ang + (0 if side > 0 else math.pi))
 
+
+# How busy each style is beyond what its drawing placed (`populate.Density`; the others: the default).
+STYLE_DENSITY: dict[str, Density] = {
+    "crowded": Density(walkers_per_ha=8.0, standing_per_ha=3.0, cars_per_ha_road=8.0, crowds_per_km2=25.0),
+    "desert": Density(walkers_per_ha=0.4, standing_per_ha=0.2, cars_per_ha_road=3.0),
+}
 
 # Styles that replace the street grid altogether: draw(canvas, layout rng, drawing rng).
 OPEN_STYLES: dict[str, Callable[[Canvas, object, object], None]] = {"desert": draw_desert}

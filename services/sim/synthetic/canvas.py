@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from dovesei.sim.synth_classes import RGB
+from dovesei.sim.synthetic.classes import RGB
 
 
 SHIFT = 3  # OpenCV sub-pixel bits: polygons are placed to 1/8 px
@@ -123,6 +123,9 @@ class Canvas:
         self.casts: list[tuple] = []
         self.soft_casts: list[tuple] = []
         self.trees: list[Tree] = []
+        # People and cars as drawn, canvas metres (x right, y down): (kind, x, y, angle from +x
+        # towards +y, length, width, rgb). They become the world's baked objects (`objects.py`).
+        self.objects: list[tuple] = []
         self._k = (1 << SHIFT) / gsd_m
         self._half = 0.5 * (1 << SHIFT)
 

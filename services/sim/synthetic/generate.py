@@ -45,18 +45,19 @@ import numpy as np
 
 from dovesei.shared import validate
 from dovesei.shared.errors import ConfigError
-from dovesei.sim.synth_blocks import draw_apartments, draw_commercial, draw_parking, draw_plaza, draw_residential
-from dovesei.sim.synth_canvas import Canvas, FastRng
-from dovesei.sim.synth_classes import (  # noqa: F401  (the class ids are part of this module's API)
+from dovesei.sim.objects import PERSON as OBJ_PERSON, ObjectLayer
+from dovesei.sim.synthetic.blocks import draw_apartments, draw_commercial, draw_parking, draw_plaza, draw_residential
+from dovesei.sim.synthetic.canvas import Canvas, FastRng
+from dovesei.sim.synthetic.classes import (  # noqa: F401  (the class ids are part of this module's API)
     BARE_SOIL, CAR, GRASS, PAL_ASPHALT, PARKING_LOT, PERSON, PLAZA, ROAD, ROOF_FLAT, ROOF_PITCHED, SIDEWALK,
     SPORTS_FIELD, SYNTHETIC_CLASSES, TREE, WATER,
 )
-from dovesei.sim.synth_layout import CITY, NO_TREES, CityStyle, make_layout, make_river
-from dovesei.sim.synth_objects import draw_tree
-from dovesei.sim.synth_parks import draw_construction, draw_park, draw_sports, draw_water
-from dovesei.sim.synth_render import finish_world
-from dovesei.sim.synth_streets import draw_river, draw_segment, draw_sidewalk, draw_street_life
-from dovesei.sim.synth_styles import CITY_EXTRAS, CITY_STYLES, OPEN_STYLES, STYLES
+from dovesei.sim.synthetic.layout import CITY, NO_TREES, CityStyle, make_layout, make_river
+from dovesei.sim.synthetic.objects import draw_tree
+from dovesei.sim.synthetic.parks import draw_construction, draw_park, draw_sports, draw_water
+from dovesei.sim.synthetic.render import finish_world
+from dovesei.sim.synthetic.streets import draw_river, draw_segment, draw_sidewalk, draw_street_life
+from dovesei.sim.synthetic.styles import CITY_EXTRAS, CITY_STYLES, OPEN_STYLES, STYLE_DENSITY, STYLES  # noqa: F401
 
 log = logging.getLogger(__name__)
 
@@ -149,6 +150,47 @@ BLOCK_RENDERERS = {"residential": draw_residential, "apartments": draw_apartment
 def generate_city(params: SyntheticParams) -> tuple[np.ndarray, np.ndarray]:
     """Build the world: RGB image (H, W, 3) uint8 and labels (H, W) uint8, class ids of
     `SYNTHETIC_CLASSES`. Pure: no I/O, same params -> same bytes."""
+    cv = _draw(params)
+    return cv.img, cv.lab
+
+
+def generate_world(params: SyntheticParams) -> SyntheticWorld:
+    """`generate_city` plus the people and cars its drawing placed (the baked objects)."""
+    cv = _draw(params)
+    return SyntheticWorld(cv.img, cv.lab, baked_objects(cv), _shadow_east_north(cv))
+
+
+@dataclass(frozen=True, eq=False)
+class SyntheticWorld:
+    """A generated world: image, labels, the people and cars drawn into them (static, `baked`),
+    and the sun's shadow offset (east, north metres per metre of height)."""
+
+    image: np.ndarray
+    labels: np.ndarray
+    baked: ObjectLayer
+    shadow_per_m: tuple[float, float]
+
+
+def _shadow_east_north(cv: Canvas) -> tuple[float, float]:
+    # The canvas's y runs down (south); the world's north.
+    return float(cv.shadow_per_m[0]), float(-cv.shadow_per_m[1])
+
+
+def baked_objects(cv: Canvas) -> ObjectLayer:
+    """The people and cars the drawing pass placed that are still visible in the finished labels
+    (a tree's canopy or the coast's sea may have covered some), in world coordinates."""
+    size_m = cv.side_px * cv.gsd_m
+    rows = []
+    for kind, x, y, ang, length, width, rgb in cv.objects:
+        if not cv.in_world(x, y, x, y) or cv.label_at(x, y) != (PERSON if kind == OBJ_PERSON else CAR):
+            continue
+        # Canvas angle from +x (east) towards +y (south) -> heading from north towards east.
+        heading = math.atan2(math.cos(ang), -math.sin(ang))
+        rows.append((kind, x, size_m - y, heading, 0.0, 0.0, 0.0, length, width, rgb, True))
+    return ObjectLayer.build(rows)
+
+
+def _draw(params: SyntheticParams) -> Canvas:
     if not isinstance(params, SyntheticParams):
         raise SyntheticWorldError(f"expected SyntheticParams, got {type(params).__name__}")
     t0, c0 = time.perf_counter(), time.process_time()
@@ -176,7 +218,7 @@ def generate_city(params: SyntheticParams) -> tuple[np.ndarray, np.ndarray]:
     log.debug("synthetic world %s: drawing %.2f s (cpu %.2f s), finishing %.2f s (cpu %.2f s), "
               "%d casters, %d trees", params, t1 - t0, c1 - c0, time.perf_counter() - t1,
               time.process_time() - c1, len(cv.casts), len(cv.trees))
-    return cv.img, cv.lab
+    return cv
 
 
 def _draw_city(cv: Canvas, rng_layout, rng, city: CityStyle) -> None:
@@ -246,9 +288,11 @@ def cache_path(params: SyntheticParams, cache_dir: Path | None = None) -> Path:
                    f"-size{params.size_m:g}m-gsd{params.gsd_m:g}m.npz")
 
 
-def _load_cached(path: Path, params: SyntheticParams) -> tuple[np.ndarray, np.ndarray]:
+def _load_cached(path: Path, params: SyntheticParams) -> SyntheticWorld:
     with np.load(path, allow_pickle=False) as z:
         image, labels = z["image"], z["labels"]
+        # A cache written before worlds kept their objects lacks these: KeyError, regenerated.
+        baked, shadow = ObjectLayer.from_arrays(z, "baked_"), tuple(float(v) for v in z["shadow_per_m"])
     side = params.side_px
     if image.shape != (side, side, 3) or image.dtype != np.uint8:
         raise ValueError(f"image has shape {image.shape} {image.dtype}, "
@@ -256,11 +300,19 @@ def _load_cached(path: Path, params: SyntheticParams) -> tuple[np.ndarray, np.nd
     if labels.shape != (side, side) or labels.dtype != np.uint8:
         raise ValueError(f"labels have shape {labels.shape} {labels.dtype}, "
                          f"expected ({side}, {side}) uint8")
-    return image, labels
+    if len(shadow) != 2:
+        raise ValueError(f"shadow_per_m has {len(shadow)} values, expected 2")
+    return SyntheticWorld(image, labels, baked, shadow)  # type: ignore[arg-type]
 
 
 def load_or_generate(params: SyntheticParams, cache_dir: Path | None = None
                      ) -> tuple[np.ndarray, np.ndarray]:
+    """Image and labels of the world for `params` (`load_or_generate_world`)."""
+    world = load_or_generate_world(params, cache_dir)
+    return world.image, world.labels
+
+
+def load_or_generate_world(params: SyntheticParams, cache_dir: Path | None = None) -> SyntheticWorld:
     """The world for `params`, from the disk cache when present, else generated and cached.
 
     A cache file that cannot be read is regenerated (with a warning). Writes are atomic: a
@@ -275,15 +327,16 @@ def load_or_generate(params: SyntheticParams, cache_dir: Path | None = None
         except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile) as exc:
             log.warning("synthetic world cache %s is unreadable (%s); regenerating", path, exc)
     t0 = time.perf_counter()
-    image, labels = generate_city(params)
-    log.info("synthetic world %s generated in %.1f s (safe fraction %.2f)",
-             params, time.perf_counter() - t0, safe_fraction(labels))
+    world = generate_world(params)
+    log.info("synthetic world %s generated in %.1f s (safe fraction %.2f, %d people and cars drawn)",
+             params, time.perf_counter() - t0, safe_fraction(world.labels), len(world.baked))
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
         try:
             with open(tmp, "wb") as fh:
-                np.savez(fh, image=image, labels=labels)
+                np.savez(fh, image=world.image, labels=world.labels, shadow_per_m=np.array(world.shadow_per_m),
+                         **world.baked.to_arrays("baked_"))
             os.replace(tmp, path)
         finally:
             if tmp.exists():
@@ -291,7 +344,7 @@ def load_or_generate(params: SyntheticParams, cache_dir: Path | None = None
     except OSError as exc:
         # A read-only or full disk costs speed next time, not correctness now.
         log.warning("could not cache synthetic world at %s: %s", path, exc)
-    return image, labels
+    return world
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -7,10 +7,11 @@ import math
 import cv2
 import numpy as np
 
-from dovesei.sim.synth_canvas import Canvas, jit, obb, pick, scaled, SHIFT, Tree, uni
-from dovesei.sim.synth_classes import (
+from dovesei.sim.synthetic.canvas import Canvas, jit, obb, pick, scaled, SHIFT, Tree, uni
+from dovesei.sim.synthetic.classes import (
     CAR, PAL_CAR, PAL_CLOTHES, PAL_ROOF_FLAT, PAL_TREE, PERSON, RGB, ROOF_FLAT, ROOF_PITCHED, TREE,
 )
+from dovesei.sim.objects import PERSON as OBJ_PERSON, VEHICLE
 
 
 def _lambert(cv: Canvas, out_xy: tuple[float, float], pitch_rad: float) -> float:
@@ -52,6 +53,7 @@ def draw_car(cv: Canvas, rng, cx: float, cy: float, ang_rad: float, rgb: RGB | N
     cv2.fillPoly(cv.lab, [body], CAR, cv2.LINE_8, SHIFT)
     cv2.fillPoly(cv.height_u, [body], cv._hu(1.5), cv2.LINE_8, SHIFT)
     cv2.fillConvexPoly(cv.img, px[8:12], _GLASS, cv2.LINE_8, SHIFT)
+    cv.objects.append((VEHICLE, cx, cy, ang_rad, length, width, rgb))
     if not van:
         cv2.fillConvexPoly(cv.img, px[12:16], _GLASS, cv2.LINE_8, SHIFT)
         cv2.fillConvexPoly(cv.img, px[16:20], scaled(rgb, 1.08), cv2.LINE_8, SHIFT)
@@ -61,7 +63,9 @@ def draw_person(cv: Canvas, rng, x: float, y: float) -> None:
     """A person seen from above: ~0.45-0.6 m across, with a long thin shadow."""
     r = uni(rng, 0.22, 0.3)
     cv.cast_disc((x, y), 0.15, 1.7)
-    cv.disc((x, y), r, jit(rng, PAL_CLOTHES[int(rng.integers(len(PAL_CLOTHES)))], 0.08), PERSON, 1.7)
+    rgb = jit(rng, PAL_CLOTHES[int(rng.integers(len(PAL_CLOTHES)))], 0.08)
+    cv.disc((x, y), r, rgb, PERSON, 1.7)
+    cv.objects.append((OBJ_PERSON, x, y, 0.0, 2 * r, 2 * r, rgb))
 
 
 def people_in(cv: Canvas, rng, x0, y0, x1, y1, n: int, allowed: set[int],
