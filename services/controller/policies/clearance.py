@@ -37,7 +37,9 @@ import numpy as np
 from dovesei.controller.policies.base import (Confirmation, Decision, Observation, PolicyInputError, checked_prob_safe,
                                               resolve_config)
 from dovesei.controller.policies.clearance_config import Altitudes, ClearanceConfig, clearance_preset
-from dovesei.controller.policies.clearance_machine import TERMINAL, Inputs, Memory, Phase, search_route, step, toward
+from dovesei.controller.policies.clearance_machine import (
+    TERMINAL, Inputs, Memory, Phase, reject_target, search_route, step, toward,
+)
 from dovesei.controller.policies.clearance_map import (GroundMap, clearance_at, emphasise_dips, find_candidate,
                                                       find_spot, footprint_width_m, look_weight, promise)
 from dovesei.controller.frames import to_body, to_ne
@@ -239,6 +241,17 @@ class ClearancePolicy:
                                     within_m=cfg.refine_radius_m, fence_m=fence_m, gate=gate)
         return self._decide(obs, fresh=True, gap=gap, best=best, check=check, clearance=clearance, fence_m=fence_m,
                             candidate=candidate, recheck=recheck)
+
+    def reject_target(self, t_s: float, alt_m: float, reason: str) -> None:
+        """Reject the current target for a reason the map cannot see (a close look found a person
+        inside its margin): blacklisted, and a descent aborts. Takes effect from the next step."""
+        if self.memory is not None:
+            mem = reject_target(self.memory, t_s, alt_m, reason)
+            if mem is not self.memory:
+                log.info("clearance: %s -> %s at t=%.2f s, alt %.1f m: %s", self.memory.phase.value, mem.phase.value,
+                         t_s, alt_m, mem.reason)
+                self.memory = mem
+                self.motion.clear_spot()
 
     def _spot_known(self) -> bool:
         """Was the target fixed by vision (or re-checked) recently enough to descend on?"""
