@@ -48,7 +48,7 @@ from dataclasses import asdict, dataclass
 import cv2
 import numpy as np
 
-from dovesei.controller.policies.dovesei import DoveseiConfig, dynamic_threshold
+from dovesei.controller.policies.dovesei.policy import DoveseiConfig, dynamic_threshold
 from dovesei.segmenter.fusion import FusionConfig, blur_prob
 from dovesei.segmenter.prompts import REFERENCE_PROMPTS
 from dovesei.segmenter.sim_backend import (

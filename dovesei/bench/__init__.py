@@ -26,7 +26,7 @@ from pathlib import Path
 
 from dovesei.bench.run import Grid, Variant, run_grid, summary_markdown
 from dovesei.controller.policies import policy_names
-from dovesei.controller.policies.clearance_config import ClearanceConfig
+from dovesei.controller.policies.clearance.config import ClearanceConfig
 from dovesei.controller.policies.config_file import load_policy_config, policy_values, preset_config
 from dovesei.episode import DEFAULT_PERCEPTION
 from dovesei.episode import perception_names as _perception_names

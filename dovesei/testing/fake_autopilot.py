@@ -76,7 +76,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from dovesei.controller import mavlink_proto as mv
+from dovesei.controller.mavlink import proto as mv
 from dovesei.controller.gnss_denied import GRAVITY_M_S2, quaternion_to_euler
 from dovesei.testing import fake_ekf
 from dovesei.testing.fake_ekf import FS_EKF_ACTIONS, FakeEkf

@@ -26,7 +26,7 @@ from dovesei.shared.mission import HANDOVER_ALT_M, MIN_DESCENT_M, check_handover
 from dovesei.shared.timing import DEFAULT_TIMING, TIMING_NAMES, timing
 from dovesei.controller.core import HANDOVER_ACTIONS
 from dovesei.controller.gnss_denied import GNSS_DENIED_MODES
-from dovesei.controller.mavlink_proto import load_signing_key
+from dovesei.controller.mavlink.proto import load_signing_key
 from dovesei.controller.policies import policy_names
 from dovesei.controller.policies.config_file import load_policy_config
 from dovesei.segmenter.simulated import DEFAULT_PROFILE, PROFILE_NAMES

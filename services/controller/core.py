@@ -66,7 +66,7 @@ from dovesei.controller.continuity import (
 from dovesei.controller.frames import body_frd_to_ned, ned_to_body_frd, to_ne
 from dovesei.controller.geofence import Geofence
 from dovesei.controller.odometry import VelocityTrack
-from dovesei.controller.policies.config import TIMING_PRESETS
+from dovesei.controller.policies.dovesei.config import TIMING_PRESETS
 from dovesei.controller.policies.config_file import load_policy_config
 from dovesei.shared import footprint, keys, validate
 from dovesei.shared.errors import ConfigError, DoveseiError

@@ -53,7 +53,7 @@ from dovesei.controller.gnss_denied import (
     NavStatus,
     OdometryLimits,
 )
-from dovesei.controller.mavlink_proto import SpeedLimits, load_signing_key
+from dovesei.controller.mavlink.proto import SpeedLimits, load_signing_key
 from dovesei.controller.policies.base import policy_names
 from dovesei.shared import keys, validate
 from dovesei.shared.cliconfig import CommandLine, Flag, non_blank
@@ -166,7 +166,7 @@ def open_vehicle(session: zenoh.Session, config: ControllerConfig) -> Vehicle:
         # Subscribers are declared now so no state published after start-up is missed.
         return ZenohVehicle(session, config.vehicle_id, lockstep=config.lockstep)
     try:
-        from dovesei.controller.mavlink import MavlinkVehicle  # lazy: only a real vehicle needs it; a broken
+        from dovesei.controller.mavlink.vehicle import MavlinkVehicle  # lazy: only a real vehicle needs it; a broken
         # pymavlink install then fails here with one clear line, never the sim's runs
     except ModuleNotFoundError as exc:
         raise ConfigError(

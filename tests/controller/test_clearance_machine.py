@@ -7,9 +7,9 @@ import math
 
 import pytest
 
-from dovesei.controller.policies.clearance_config import ClearanceConfig
-from dovesei.controller.policies.clearance_machine import Inputs, Memory, Phase, search_pattern, search_route, step
-from dovesei.controller.policies.clearance_map import Spot
+from dovesei.controller.policies.clearance.config import ClearanceConfig
+from dovesei.controller.policies.clearance.machine import Inputs, Memory, Phase, search_pattern, search_route, step
+from dovesei.controller.policies.clearance.ground_map import Spot
 
 CFG = ClearanceConfig()
 SPACING_M = CFG.search_spacing_radius_frac * CFG.fence_m

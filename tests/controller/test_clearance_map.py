@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from dovesei.controller.policies.clearance_config import ClearanceConfig
-from dovesei.controller.policies.clearance_map import (GroundMap, clearance_at, emphasise_dips, find_candidate,
+from dovesei.controller.policies.clearance.config import ClearanceConfig
+from dovesei.controller.policies.clearance.ground_map import (GroundMap, clearance_at, emphasise_dips, find_candidate,
                                                       find_spot, footprint_width_m, look_weight, promise)
 
 HFOV = math.radians(73.0)

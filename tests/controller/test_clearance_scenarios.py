@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 
 from dovesei.controller.policies.base import Observation, make_policy
-from dovesei.controller.policies.clearance import ClearancePolicy
-from dovesei.controller.policies.clearance_config import ClearanceConfig
+from dovesei.controller.policies.clearance.policy import ClearancePolicy
+from dovesei.controller.policies.clearance.config import ClearanceConfig
 
 HFOV = math.radians(73.0)
 GSD_M = 0.25  # world grid, metres per cell

@@ -154,7 +154,7 @@ def test_flies_from_boot_with_takeoff_steers_descends_and_hands_over(flight, fla
     # It waited: the first ARM came after the boot, and the autopilot's reasons were shown at INFO.
     arms = [c for c in commands if c.command == 400]
     assert arms and arms[-1].result == 0 and arms[0].recv_s >= fake.boot_end_s - 0.1
-    said = [r.getMessage() for r in caplog.records if r.name == "dovesei.controller.mavlink" and
+    said = [r.getMessage() for r in caplog.records if r.name == "dovesei.controller.mavlink.vehicle" and
             r.levelno == logging.INFO and r.getMessage().startswith("autopilot [")]
     assert any("CRITICAL" in m and ("PreArm" in m or "Preflight" in m) for m in said), said
     # Steered: forward 3 m/s in the body frame, descending within the 1.5 m/s limit.

@@ -35,7 +35,7 @@ import numpy as np
 import pytest
 import zenoh
 
-from dovesei.controller import mavlink_proto as mv
+from dovesei.controller.mavlink import proto as mv
 from dovesei.controller.core import ControllerConfig, ControllerCore
 from dovesei.controller.gnss_denied import quaternion_to_euler
 from dovesei.controller.policies.base import Decision, Observation

@@ -90,7 +90,7 @@ def test_dynamic_threshold_keeps_about_the_best_tenth() -> None:
 
 
 def test_gate_mask_is_the_controllers_dynamic_threshold() -> None:
-    from dovesei.controller.policies.dovesei import DoveseiConfig, dynamic_threshold
+    from dovesei.controller.policies.dovesei.policy import DoveseiConfig, dynamic_threshold
 
     rng = np.random.default_rng(3)
     for scale in (1.0, 0.5, 0.05, 0.002):  # from easy frames to ones needing a low threshold, or none

@@ -164,21 +164,21 @@ def _build_dovesei(config: Any, speed_limits_m_s: SpeedLimitsMS | None = None,
     # The paper's policy stays faithful: it asks what the reference asks, the adapter clamps it.
     # It has no hand-over altitude of its own (it descends towards LANDED at 5 m): the controller's
     # watchdog stops it at the hand-over altitude, so `handover_alt_m` changes nothing inside it.
-    from dovesei.controller.policies.dovesei import DoveseiPolicy  # lazy: the policy modules import this one (cycle)
+    from dovesei.controller.policies.dovesei.policy import DoveseiPolicy  # lazy: the policy modules import this one (cycle)
 
     return DoveseiPolicy(config, name="dovesei")
 
 
 def _build_dovesei_nofocus(config: Any, speed_limits_m_s: SpeedLimitsMS | None = None,
                            handover_alt_m: float | None = None) -> Policy:
-    from dovesei.controller.policies.dovesei import DoveseiPolicy  # lazy: the policy modules import this one (cycle)
+    from dovesei.controller.policies.dovesei.policy import DoveseiPolicy  # lazy: the policy modules import this one (cycle)
 
     return DoveseiPolicy(config, name="dovesei-nofocus", dynamic_focus=False)
 
 
 def _build_clearance(config: Any, speed_limits_m_s: SpeedLimitsMS | None = None,
                      handover_alt_m: float | None = None) -> Policy:
-    from dovesei.controller.policies.clearance import ClearancePolicy  # lazy: the policy modules import this one (cycle)
+    from dovesei.controller.policies.clearance.policy import ClearancePolicy  # lazy: the policy modules import this one (cycle)
 
     policy = ClearancePolicy(config)
     cfg = policy.config
@@ -233,7 +233,7 @@ def make_policy(name: str, config: Any = None, speed_limits_m_s: SpeedLimitsMS |
         raise ValueError(f"unknown policy {name!r}; known: {', '.join(policy_names())}") from None
     policy = factory(config, speed_limits_m_s, handover_alt_m)
     if close_look and name in CLOSE_LOOK_POLICIES:
-        from dovesei.controller.policies.closelook import CloseLookPolicy, close_look_config  # lazy: cycle
+        from dovesei.controller.policies.clearance.closelook import CloseLookPolicy, close_look_config  # lazy: cycle
 
         policy = CloseLookPolicy(policy, close_look_config(policy.config.handover_alt_m))
     return policy

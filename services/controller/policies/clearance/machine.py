@@ -44,8 +44,8 @@ from dataclasses import dataclass
 from enum import Enum
 
 from dovesei.controller.frames import to_body
-from dovesei.controller.policies.clearance_config import ClearanceConfig
-from dovesei.controller.policies.clearance_map import Spot, footprint_width_m
+from dovesei.controller.policies.clearance.config import ClearanceConfig
+from dovesei.controller.policies.clearance.ground_map import Spot, footprint_width_m
 
 
 class Phase(str, Enum):

@@ -36,15 +36,15 @@ import numpy as np
 
 from dovesei.controller.policies.base import (Confirmation, Decision, Observation, PolicyInputError, checked_prob_safe,
                                               resolve_config)
-from dovesei.controller.policies.clearance_config import Altitudes, ClearanceConfig, clearance_preset
-from dovesei.controller.policies.clearance_machine import (
+from dovesei.controller.policies.clearance.config import Altitudes, ClearanceConfig, clearance_preset
+from dovesei.controller.policies.clearance.machine import (
     TERMINAL, Inputs, Memory, Phase, reject_target, search_route, step, toward,
 )
-from dovesei.controller.policies.clearance_map import (GroundMap, clearance_at, emphasise_dips, find_candidate,
+from dovesei.controller.policies.clearance.ground_map import (GroundMap, clearance_at, emphasise_dips, find_candidate,
                                                       find_spot, footprint_width_m, look_weight, promise)
 from dovesei.controller.frames import to_body, to_ne
 from dovesei.controller.geofence import cap_outward
-from dovesei.controller.policies.clearance_motion import EgoMotion, MotionStep, tilt_offset_ne
+from dovesei.controller.policies.clearance.motion import EgoMotion, MotionStep, tilt_offset_ne
 
 log = logging.getLogger(__name__)
 

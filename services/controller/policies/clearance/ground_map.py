@@ -38,7 +38,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from dovesei.controller.policies.clearance_config import ClearanceConfig
+from dovesei.controller.policies.clearance.config import ClearanceConfig
 from dovesei.shared import footprint
 
 
