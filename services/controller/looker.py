@@ -22,6 +22,7 @@ from typing import Protocol
 from dovesei.controller.policies.base import LookResult
 from dovesei.shared import keys
 from dovesei.shared.codec import decode, encode
+from dovesei.shared.crop_server import ask_crop, query_one
 from dovesei.shared.errors import DoveseiError, ProtocolError
 from dovesei.shared.messages import CropFrame, CropHeatmap, CropRequest
 
@@ -42,13 +43,13 @@ class Looker(Protocol):
 
 def _answer(ask: Ask, req: CropRequest) -> LookResult:
     try:
-        crop, heatmap = ask(req)
+        _crop, heatmap = ask(req)
     except DoveseiError as exc:  # CropRefused, FrameRejected-as-query-error, QueryFailed, ProtocolError
         return LookResult(req.request_seq, refusal=str(exc))
     if heatmap.request_seq != req.request_seq or heatmap.vehicle_id != req.vehicle_id:
         return LookResult(req.request_seq, refusal=f"answer to request {heatmap.request_seq} of "
                                                    f"{heatmap.vehicle_id!r}, asked {req.request_seq}")
-    return LookResult(req.request_seq, heatmap=heatmap, crop=crop)
+    return LookResult(req.request_seq, heatmap=heatmap)  # the crop (with a sim's truth) stays here
 
 
 class SyncLooker:
@@ -95,8 +96,6 @@ class ThreadLooker:
 
 def zenoh_ask(session, *, crop_timeout_s: float = CROP_TIMEOUT_S, segment_timeout_s: float = SEGMENT_TIMEOUT_S) -> Ask:
     """Ask over Zenoh: the crop from the vehicle's camera, then its scores from the segmenter."""
-    from dovesei.shared.crop_server import ask_crop, query_one  # Zenoh plumbing, shared by camera and sim
-
     def ask(req: CropRequest) -> tuple[CropFrame, CropHeatmap]:
         crop = ask_crop(session, req, crop_timeout_s)
         key = keys.segment(req.vehicle_id)

@@ -35,13 +35,12 @@ class LookRequest:
 
 @dataclass(frozen=True)
 class LookResult:
-    """What came of a close look: the scored crop (`heatmap`, a CropHeatmap, with the `crop` it
-    scored), or why there is none (`refusal`: the camera refused, the segmenter failed, nobody
-    answered). `request_seq` is the CropRequest's; the controller fills it all in."""
+    """What came of a close look: the scored crop (`heatmap`, a CropHeatmap: probabilities and the
+    square's geometry, nothing of the sim's truth), or why there is none (`refusal`: the camera
+    refused, the segmenter failed, nobody answered). `request_seq` is the CropRequest's."""
 
     request_seq: int
     heatmap: Any = None  # dovesei.shared.messages.CropHeatmap
-    crop: Any = None  # dovesei.shared.messages.CropFrame
     refusal: str = ""
 
     @property
