@@ -28,7 +28,7 @@ from dovesei.shared.codec import decode
 from dovesei.shared.errors import ProtocolError
 from dovesei.shared.lifecycle import RateLimitedLog
 from dovesei.shared.messages import (
-    CameraFrame, ControllerStatus, EpisodeResult, SafetyHeatmap, VehicleState, VelocityCommand,
+    CameraFrame, ControllerStatus, CropFrame, CropHeatmap, EpisodeResult, SafetyHeatmap, VehicleState, VelocityCommand,
 )
 
 log = logging.getLogger("dovesei.up")
@@ -40,7 +40,8 @@ PROGRESS_EVERY_S = 10.0  # sim seconds between progress lines (state changes are
 STATE_LOG_MIN_S = 1.0  # sim seconds: faster state changes are counted, not logged one by one
 LIVELINESS = "alive"  # the Sample topic of a liveliness change (payload: the service name)
 _TYPES = {"state": VehicleState, "status": ControllerStatus, "cmd": VelocityCommand, "heatmap": SafetyHeatmap,
-          "camera": CameraFrame, "episode": EpisodeResult}
+          "camera": CameraFrame, "episode": EpisodeResult, "look": None}  # look: a CropFrame or a CropHeatmap
+LOOKS_KEPT = 600  # close looks kept for the video (crop + scores each): ten minutes of 1 Hz looks
 
 
 @dataclass(frozen=True)
@@ -99,6 +100,8 @@ class Recorder:
         self.video_period_s = video_period_s
         self._next_video_t_s = 0.0
         self.video_frames: dict[int, dict[str, Any]] = {}
+        # The controller's close looks by request: {"crop": CropFrame, "heatmap": CropHeatmap}.
+        self.looks: dict[int, dict[str, Any]] = {}
         # A heatmap or status can arrive before its (much larger) camera frame: held here by frame
         # seq until the frame comes, so the video does not lose them (bounded: the newest only).
         self._early: dict[int, dict[str, Any]] = {}
@@ -136,6 +139,16 @@ class Recorder:
             if s.topic == "camera":
                 self.camera_delivery_by_seq[msg.seq] = s.recv_wall_s - sent
         getattr(self, f"_on_{s.topic}")(msg, s)
+
+    def _on_look(self, msg: Any, s: Sample) -> None:
+        if not isinstance(msg, (CropFrame, CropHeatmap)):
+            self.rejected += 1
+            self._reject_log.warn("look", f"a look message of schema {msg.SCHEMA!r}")
+            return
+        if self.video:
+            self.looks.setdefault(msg.request_seq, {})["crop" if isinstance(msg, CropFrame) else "heatmap"] = msg
+            while len(self.looks) > LOOKS_KEPT:
+                del self.looks[min(self.looks)]
 
     def _on_state(self, st: VehicleState, s: Sample) -> None:
         if self.first_state_wall_s is None:
@@ -323,7 +336,7 @@ def _nearest(by_t: dict[float, Any], sorted_t: list[float], t_s: float, tol_s: f
 class Monitor:
     """`up`'s own Zenoh session: callbacks only stamp arrival and queue; `drain()` decodes."""
 
-    TOPICS = ("state", "status", "cmd", "heatmap", "camera", "episode")
+    TOPICS = ("state", "status", "cmd", "heatmap", "camera", "episode", "look")
 
     def __init__(self, session: Any, vehicle_id: str, recorder: Recorder, with_camera: bool) -> None:
         self.recorder = recorder

@@ -9,7 +9,8 @@ lockstep sim waits for our command meanwhile, so a look costs no sim time and th
 the same flight in one process or three); `ThreadLooker` answers on a worker thread (real time:
 the 20 Hz loop keeps commanding while a look is in flight; the policy holds meanwhile). Both take
 `ask(request) -> (CropFrame, CropHeatmap)`; `zenoh_ask` builds it over the crop and segment
-queryables. Every failure becomes a refusal text: a missing answer never becomes a verdict.
+queryables; `seen(crop, heatmap)`, if given, gets every answered look (the service publishes it on
+the look key for operators and reports; the policy itself gets the scores only). Every failure becomes a refusal text: a missing answer never becomes a verdict.
 """
 
 from __future__ import annotations
@@ -41,25 +42,30 @@ class Looker(Protocol):
         ...
 
 
-def _answer(ask: Ask, req: CropRequest) -> LookResult:
+Seen = Callable[[CropFrame, CropHeatmap], None]  # what the looker saw, for operators (the look key)
+
+
+def _answer(ask: Ask, req: CropRequest, seen: Seen | None = None) -> LookResult:
     try:
-        _crop, heatmap = ask(req)
+        crop, heatmap = ask(req)
     except DoveseiError as exc:  # CropRefused, FrameRejected-as-query-error, QueryFailed, ProtocolError
         return LookResult(req.request_seq, refusal=str(exc))
     if heatmap.request_seq != req.request_seq or heatmap.vehicle_id != req.vehicle_id:
         return LookResult(req.request_seq, refusal=f"answer to request {heatmap.request_seq} of "
                                                    f"{heatmap.vehicle_id!r}, asked {req.request_seq}")
+    if seen is not None:
+        seen(crop, heatmap)
     return LookResult(req.request_seq, heatmap=heatmap)  # the crop (with a sim's truth) stays here
 
 
 class SyncLooker:
     """Answers in `submit` (lockstep and in-process episodes)."""
 
-    def __init__(self, ask: Ask) -> None:
-        self._ask, self._result = ask, None
+    def __init__(self, ask: Ask, seen: Seen | None = None) -> None:
+        self._ask, self._seen, self._result = ask, seen, None
 
     def submit(self, req: CropRequest) -> None:
-        self._result = _answer(self._ask, req)
+        self._result = _answer(self._ask, req, self._seen)
 
     def poll(self) -> LookResult | None:
         result, self._result = self._result, None
@@ -69,8 +75,8 @@ class SyncLooker:
 class ThreadLooker:
     """Answers on a worker thread, one request at a time (a new one while busy is refused)."""
 
-    def __init__(self, ask: Ask) -> None:
-        self._ask = ask
+    def __init__(self, ask: Ask, seen: Seen | None = None) -> None:
+        self._ask, self._seen = ask, seen
         self._lock = threading.Lock()
         self._result: LookResult | None = None
         self._busy = False
@@ -84,7 +90,7 @@ class ThreadLooker:
         threading.Thread(target=self._run, args=(req,), name="close-look", daemon=True).start()
 
     def _run(self, req: CropRequest) -> None:
-        result = _answer(self._ask, req)
+        result = _answer(self._ask, req, self._seen)
         with self._lock:
             self._result, self._busy = result, False
 

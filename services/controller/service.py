@@ -45,6 +45,7 @@ from typing import Any, Protocol
 import zenoh
 
 from dovesei.controller.looker import Looker, SyncLooker, ThreadLooker, zenoh_ask
+from dovesei.shared.messages import CropFrame, CropHeatmap
 from dovesei.controller.core import HANDOVER_ACTIONS, ControllerConfig, ControllerCore, ControllerInputError, Mode
 from dovesei.controller.gnss_denied import (
     EXTERNAL_NAV_MESSAGES,
@@ -494,7 +495,14 @@ def make_looker(session: zenoh.Session, config: ControllerConfig) -> Looker | No
     if not config.close_look:
         return None
     ask = zenoh_ask(session)
-    return SyncLooker(ask) if config.lockstep else ThreadLooker(ask)
+    # Each look, crop and scores, on the look key (operators, `up`'s video); a put is thread-safe.
+    key = keys.look(config.vehicle_id)
+
+    def seen(crop: CropFrame, heatmap: CropHeatmap) -> None:
+        session.put(key, encode(crop, jpeg_quality=90))
+        session.put(key, encode(heatmap))
+
+    return SyncLooker(ask, seen) if config.lockstep else ThreadLooker(ask, seen)
 
 
 def open_recorder(config: ControllerConfig) -> FlightRecorder | contextlib.nullcontext[None]:
