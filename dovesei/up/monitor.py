@@ -268,17 +268,18 @@ class Recorder:
         """
         x0, y0, _ = self.start
         rows: dict[str, list] = {"t_s": [], "x_m": [], "y_m": [], "alt_m": [], "state": [], "watchdog": [],
-                                 "cmd_down_m_s": []}
+                                 "cmd_down_m_s": [], "look": []}
         start_t_s = self.mission_start_t_s
         states = [st for st in self.states if start_t_s is None or st.stamp.t_s >= start_t_s]
         status_t = sorted(self.statuses)
         state_t = [st.stamp.t_s for st in states]
         tol_s = 0.5 * max(_median_step(state_t), _median_step(status_t)) + 1e-9
-        name, watchdog, down_m_s = "INIT", "hold", 0.0
+        name, watchdog, down_m_s, look = "INIT", "hold", 0.0, ""
         for st in states:
             status = _nearest(self.statuses, status_t, st.stamp.t_s, tol_s)
             if status is not None:
                 name, watchdog, down_m_s = status.state, status.watchdog, status.vel_body_frd_m_s[2]
+                look = status.look_verdict
             north_m, east_m, _down_m = st.pos_local_ned_m
             rows["t_s"].append(st.stamp.t_s)
             rows["x_m"].append(x0 + east_m)
@@ -287,6 +288,7 @@ class Recorder:
             rows["state"].append(name)
             rows["watchdog"].append(watchdog)
             rows["cmd_down_m_s"].append(down_m_s)  # what the controller commanded at this tick
+            rows["look"].append(look)  # the policy's last close look's verdict ("" before any)
         return rows
 
     def transport_overhead_s(self, command_to_sim_s: dict[int, float] | None, lockstep: bool) -> list[float]:

@@ -161,6 +161,7 @@ class Trajectory:
     state: tuple[str, ...]
     watchdog: tuple[str, ...]
     cmd_down_m_s: tuple[float, ...]
+    look: tuple[str, ...] = ()  # the policy's last close look's verdict at each row ("" before any)
 
 
 @dataclass(frozen=True)

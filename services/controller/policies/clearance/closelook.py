@@ -5,13 +5,13 @@ cannot see them. So a descending `clearance` asks for a crop of its spot plus th
 margin (`LookRequest`: the controller gets it from the camera and has it scored with the "never"
 set, `dovesei.shared.crop`, docs/CROP.md) and gates its descent on the verdict:
 
-    DESCEND above look_alt_m ----------------------------------------------- descends as before
-    reaching look_alt_m (~40 m) --no clear look of THIS spot yet--> hold the altitude, ask
+    DESCEND above look_alt_m + brake_m ------------------------------------- descends as before
+    reaching it (~43 m) --no clear look of THIS spot yet--> hold the altitude (stops by ~40 m), ask
         clear_looks clear looks in a row (nothing of the never set within margin_m) --> descend on
         anything inside the margin -----------------------> reject the spot (blacklisted, abort:
                                                              the inner policy climbs back and searches)
         no answer / refused / failed --> keep holding, ask again every retry_s (never commits blind)
-    the last descent (below look_alt_m) --> a new look every look_period_s while descending
+    the last descent (past the gate) --> a new look every look_period_s while descending
         anything inside the margin --> wait (hold the altitude, keep looking: people walk through)
             resume_looks clear looks in a row --> descend on;  not so after wait_s --> reject (abort)
     within final_gate_m of the hand-over --> hold unless a clear look is fresher than fresh_s
@@ -46,6 +46,7 @@ class CloseLookConfig:
 
     handover_alt_m: float = HANDOVER_ALT_M
     look_alt_m: float = 40.0  # no descent below this without a clear look at the spot
+    brake_m: float = 3.0  # the gate closes this far above look_alt_m: a 2 m/s descent stops in time
     final_gate_m: float = 3.0  # within this of the hand-over, the clear look must be fresh
     # The margin around the spot a look must show clear: the separation from people plus the lateral
     # error of landing where it looked (touchdown error median 0.4 m in issue 23's suite). People set
@@ -72,7 +73,7 @@ class CloseLookConfig:
     spot_slack_m: float = 1.0  # a look covers the spot it was asked for, moved at most this far
 
     def __post_init__(self) -> None:
-        for name in ("handover_alt_m", "look_alt_m", "margin_m", "look_period_s", "retry_s", "answer_timeout_s",
+        for name in ("handover_alt_m", "look_alt_m", "brake_m", "margin_m", "look_period_s", "retry_s", "answer_timeout_s",
                      "wait_s", "fresh_s", "spot_slack_m"):
             validate.positive(f"close look {name}", getattr(self, name))
         validate.non_negative("close look final_gate_m", self.final_gate_m)
@@ -162,6 +163,7 @@ class CloseLookPolicy:
         self._last_ask_s = -math.inf
         self._clear: _Look | None = None  # the newest clear look
         self._streak = 0  # clear looks in a row of the spot `_clear` looked at
+        self._committed: _Look | None = None  # the spot the gate let the descent past (the last descent's)
         self._never_since_s: float | None = None  # the last descent: something inside the margin since
         self._verdict = ""
         self.looks = self.failures = self.findings = 0
@@ -200,11 +202,11 @@ class CloseLookPolicy:
         first = self._never_since_s is None
         self._never_since_s = obs.t_s if first else self._never_since_s
         waited_s = obs.t_s - self._never_since_s
-        if asked.alt_m > self._look_gate_m() or waited_s > cfg.wait_s:
-            # The first look from the gate altitude, or a wait that did not end: reject the spot.
+        if not self._covers(self._committed, (asked.north_m, asked.east_m)) or waited_s > cfg.wait_s:
+            # Before the gate let it past (the first looks), or a wait that did not end: reject the spot.
             why = f"close look: {self._verdict}" + (f", still there after {waited_s:.0f} s" if waited_s else "")
             self.inner.reject_target(obs.t_s, obs.alt_agl_m, why)
-            self._never_since_s = None
+            self._never_since_s, self._committed = None, None
         elif first:
             log.info("close look %d at %.1f m: %s: waiting", look.request_seq, asked.alt_m, self._verdict)
 
@@ -213,14 +215,10 @@ class CloseLookPolicy:
         return look is not None and math.hypot(look.north_m - spot[0], look.east_m - spot[1]) <= \
             self.look_config.spot_slack_m
 
-    def _look_gate_m(self) -> float:
-        """Altitudes at or below this are the last descent (the first look is taken on reaching it)."""
-        return self.look_config.look_alt_m + 1.0
-
     def _gate(self, obs: Observation, d: Decision) -> Decision:
         cfg, t, alt = self.look_config, obs.t_s, obs.alt_agl_m
         info = d.info
-        if d.state != "DESCEND" or "spot_north_m" not in info or alt > cfg.look_alt_m + 2.0:
+        if d.state != "DESCEND" or "spot_north_m" not in info or alt > cfg.look_alt_m + cfg.brake_m:
             if d.state not in ("DESCEND", "HANDOVER"):
                 self._never_since_s = None
             return dataclasses.replace(d, look_verdict=self._verdict)
@@ -228,6 +226,8 @@ class CloseLookPolicy:
         here = (info.get("est_north_m", 0.0), info.get("est_east_m", 0.0))
         cleared = (self._covers(self._clear, spot) and self._never_since_s is None
                    and self._streak >= cfg.clear_looks)
+        if cleared:
+            self._committed = self._clear  # the gate is open for this spot: findings now mean waiting
         fresh = cleared and t - self._clear.t_s <= cfg.fresh_s
         final = alt <= cfg.handover_alt_m + cfg.final_gate_m
         hold, why = False, ""
