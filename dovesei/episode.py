@@ -91,6 +91,8 @@ class EpisodeSpec:
     # `clearance` looks at its spot at full resolution before committing (issue 24): the sim cuts
     # the crop, the segmenter scores it with the never set, both in this process.
     close_look: bool = True
+    # (a, b): every heatmap is recalibrated to sigmoid(a logit P + b) (the bench's --perception-shift).
+    perception_shift: tuple[float, float] | None = None
 
     @classmethod
     def from_job(cls, job: dict, start: Start) -> EpisodeSpec:
@@ -102,7 +104,9 @@ class EpisodeSpec:
                    handover_alt_m=job.get("handover_alt_m", HANDOVER_ALT_M),
                    close_look=job.get("close_look", True),
                    policy_config=tuple(sorted((k, tuple(v) if isinstance(v, list) else v)
-                                              for k, v in (job.get("policy_config") or {}).items())))
+                                              for k, v in (job.get("policy_config") or {}).items())),
+                   perception_shift=None if job.get("perception_shift") is None else
+                   (float(job["perception_shift"]["a"]), float(job["perception_shift"]["b"])))
 
 
 @dataclass
@@ -165,7 +169,7 @@ def segmenter_config(spec: EpisodeSpec) -> SegmenterConfig:
     extra = {} if fusion is None else {"fusion": fusion}
     noise = DEFAULT_NOISE if spec.noise is None else spec.noise
     return SegmenterConfig(backend="sim", sim_profile=spec.perception, sim_noise=noise, sim_seed=spec.seed,
-                           prompts=spec.prompts, **extra)
+                           prompts=spec.prompts, prob_shift=spec.perception_shift, **extra)
 
 
 def run_episode(world: World, spec: EpisodeSpec, *, record_track: bool = True,

@@ -304,6 +304,9 @@ class GroundTruth(Record):
     # The optical axis on the ground, world metres (x east, y north): the simulated perception
     # anchors its misreadings to the ground with it (the same ground misread the same way).
     centre_world_m: tuple[float, float] | None = None
+    # The world's name: the simulated perception's per-world confusions and per-episode draws
+    # are keyed by it ("" = unnamed: they are then the same for every world).
+    world: str = ""
 
 
 @message("dovesei.camera_frame", 1)

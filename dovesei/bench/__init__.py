@@ -24,7 +24,9 @@ import os
 import sys
 from pathlib import Path
 
+from dovesei.bench import shift
 from dovesei.bench.run import Grid, Variant, run_grid, summary_markdown
+from dovesei.bench.shift import parse_shift
 from dovesei.controller.policies import policy_names
 from dovesei.controller.policies.clearance.config import ClearanceConfig
 from dovesei.controller.policies.config_file import load_policy_config, policy_values, preset_config
@@ -63,6 +65,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="perception backend (the bench flies simulated perception; CLIPSeg runs in `dovesei up`)")
     p.add_argument("--perception", default=None, help="simulated perception profile (default: realistic)")
     p.add_argument("--noise", type=float, default=None, help="simulated perception noise scale (default: the profile's)")
+    p.add_argument("--perception-shift", default=None, metavar="A_LO,A_HI,B", help=shift.HELP)
     p.add_argument("--timing", default=shared_timing.DEFAULT_TIMING, help="timing preset: reference or real")
     p.add_argument("--time-limit-s", type=float, default=None,
                    help="sim-time limit of an episode (default: the paper's 1200 s on the preset's clock)")
@@ -153,8 +156,13 @@ def run_bench(*, world_spec: str | None = None, worlds: tuple[str, ...] | None =
               out: Path, start_margin_m: float = 5.0, segmenter: str = "sim", perception: str | None = None, engine: str = "local",
               address: str | None = None, progress: bool = True, world_label: str = "",
               seed_note: str = "", vehicle_profile: str | None = None,
-              handover_alt_m: float = HANDOVER_ALT_M, policy_config: Path | None = None) -> dict:
-    """Run (or resume) a bench into `out`; returns the results.json content."""
+              handover_alt_m: float = HANDOVER_ALT_M, policy_config: Path | None = None,
+              perception_shift: str | tuple | None = None) -> dict:
+    """Run (or resume) a bench into `out`; returns the results.json content.
+
+    With `perception_shift` ("A_LO,A_HI,B") every start is flown plainly and shifted (dovesei.bench.shift).
+    """
+    shifted = None if perception_shift is None else parse_shift(perception_shift)
     _at_least_one("--episodes", episodes)
     _at_least_one("--jobs", jobs)
     if seed < 0:
@@ -178,8 +186,10 @@ def run_bench(*, world_spec: str | None = None, worlds: tuple[str, ...] | None =
     if address and engine != "ray":
         raise ConfigError("--address names a Ray cluster: use it with --engine ray")
     specs = tuple(worlds) if worlds else (world_spec or "synthetic",)
+    plain = Variant(perception=check_perception(perception))
+    variants = (plain,) if shifted is None else (plain, Variant(perception=plain.perception, shift=shifted))
     grid = Grid(worlds=specs, episodes=episodes, seed=seed, policies=tuple(policies),
-                variants=(Variant(perception=check_perception(perception)),), noise=noise, timing=timing,
+                variants=variants, noise=noise, timing=timing,
                 time_limit_s=float(time_limit_s), start_alt_m=float(start_alt_m), segmenter=segmenter,
                 start_margin_m=float(start_margin_m), world_label=world_label or specs[0], extra={"seed_note": seed_note} if seed_note else {},
                 vehicle_profile=vehicle_profile, handover_alt_m=float(handover_alt_m), policy_config=changed)
@@ -200,6 +210,7 @@ def main(argv: list[str] | None = None) -> int:
                         perception=args.perception, engine=args.engine, address=args.address,
                         progress=not args.no_progress, vehicle_profile=args.vehicle_profile,
                         handover_alt_m=args.handover_alt_m, policy_config=args.policy_config,
+                        perception_shift=args.perception_shift,
                         world_label=f"suite:{args.suite.strip()}" if args.suite is not None else "")
     except DoveseiError as exc:  # a user error: one line, no traceback
         print(f"dovesei bench: {exc}", file=sys.stderr)

@@ -315,6 +315,11 @@ class FakeAutopilot:
             self.commands.append(ReceivedCommand(time.monotonic(), mv.MAV_CMD_DO_SET_MODE, (1.0, p2, p3), result))
         log.info("fake: ground station %d switched the mode to %s (result %d)", gcs_system, name, result)
 
+    def end_boot(self) -> None:
+        """The pre-arm checks pass from now on (a boot the test ends once its peer has seen it)."""
+        with self._lock:
+            self._boot_s = min(self._boot_s, self._now_s())
+
     def lose_gnss(self) -> None:
         """Cut GNSS (SITL's SIM_GPS_DISABLE 1): the estimator's timeline in `fake_ekf` starts now."""
         with self._lock:

@@ -526,7 +526,7 @@ class ControllerCore:
         if self._last_state_t_s is None or now_s > self._last_state_t_s or self._state_advanced_wall_s is None:
             self._state_advanced_wall_s = wall_s
         self._last_state_t_s, self._last_state_seq = now_s, state.seq
-        self._track.add(now_s, state.vel_body_frd_m_s, state.yaw_rad)
+        self._track.add(now_s, state.vel_body_frd_m_s, state.yaw_rad, state.roll_rad, state.pitch_rad)
         if self.geofence is not None:
             self.geofence.add(now_s, state.vel_body_frd_m_s, state.yaw_rad)
         if self._first_alt_m is None:
@@ -671,11 +671,14 @@ class ControllerCore:
         odom = None
         if self._last_capture_t_s is not None:
             odom = self._track.displacement_ne_m(self._last_capture_t_s, hm.stamp.t_s)
+        # The attitude the frame was captured with (a body-fixed camera turns with the vehicle
+        # during the perception latency); this tick's only when the track does not reach back.
+        roll, pitch, yaw = self._track.attitude_at(hm.stamp.t_s) or (state.roll_rad, state.pitch_rad, state.yaw_rad)
         look, self._look_unanswered = self._look_unanswered, None
         if look is None and self.looker is not None:
             look = self.looker.poll()
         obs = Observation(t_s=self._policy_time_s(hm), alt_agl_m=hm.alt_agl_m, prob_safe=hm.probability(), hfov_rad=hm.hfov_rad,
-                          roll_rad=state.roll_rad, pitch_rad=state.pitch_rad, yaw_rad=state.yaw_rad,
+                          roll_rad=roll, pitch_rad=pitch, yaw_rad=yaw,
                           vel_est_body_frd_m_s=state.vel_body_frd_m_s, odom_delta_ne_m=odom, frame_seq=hm.seq,
                           look=look)
         start = time.perf_counter()
@@ -713,7 +716,7 @@ class ControllerCore:
         to_controller_s = recv_wall_s - hm.sent_wall_s if hm.sent_wall_s > 0.0 else 0.0
         latency = StageLatency(frame_to_segmenter_s=hm.frame_to_segmenter_s, inference_s=hm.inference_s,
                                heatmap_to_controller_s=to_controller_s, policy_s=policy_s)
-        self._adopted = _Adopted(hm, latency, (state.roll_rad, state.pitch_rad, state.yaw_rad))
+        self._adopted = _Adopted(hm, latency, (obs.roll_rad, obs.pitch_rad, obs.yaw_rad))
         self._decision = decision
         if decision.look_request is not None:
             self._request_look(decision.look_request, state)

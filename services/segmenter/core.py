@@ -45,7 +45,7 @@ from dovesei.shared.messages import CameraFrame, CropFrame, CropHeatmap, PromptS
 
 # `.clipseg` imports torch, which the onboard install does not have: it is imported only when a
 # CLIPSeg backend is built, so the simulated backend and the service run without torch.
-from .fusion import FUSION_MODES, FusionConfig, fuse
+from .fusion import FUSION_MODES, FusionConfig, fuse, shift_probability
 from .options import DEFAULT_MODEL, DTYPES
 from .prompts import NEVER_PROMPTS, REFERENCE_PROMPTS, PromptError, PromptSet, crop_prompt_set, never_prompts, never_set_id
 from .sim_backend import INPUT_PX
@@ -113,6 +113,9 @@ class SegmenterConfig:
     prompts: PromptSet = field(default=REFERENCE_PROMPTS)
     # Scored on crops only (close looks): what must never be inside the landing's separation margin.
     never: tuple[str, ...] = NEVER_PROMPTS
+    # (a, b): every heatmap becomes sigmoid(a logit P + b) before it is sent (the bench's
+    # --perception-shift: the same ranking, another calibration); None leaves P alone.
+    prob_shift: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
         _choice("backend", self.backend, BACKENDS)
@@ -137,6 +140,11 @@ class SegmenterConfig:
                 f"SegmenterConfig: frame side limits must satisfy 1 <= min_side_px <= max_side_px, "
                 f"got {self.min_side_px!r}..{self.max_side_px!r}"
             )
+        if self.prob_shift is not None:
+            shift = self.prob_shift
+            if not (isinstance(shift, tuple) and len(shift) == 2 and all(_is_number(v) for v in shift)
+                    and shift[0] > 0):
+                raise ConfigError(f"SegmenterConfig.prob_shift: expected (a > 0, b) finite numbers, got {shift!r}")
         if self.expected_size_px is not None:
             size = self.expected_size_px
             if not (isinstance(size, tuple) and len(size) == 2 and all(_is_int(s) and s >= 1 for s in size)):
@@ -442,6 +450,8 @@ class SegmenterCore:
             self.check_frame(frame)
             t0 = time.perf_counter()
             prob = self.backend.safe_probability(frame, self.prompts, self.fusion)
+            if self.config.prob_shift is not None:
+                prob = shift_probability(prob, *self.config.prob_shift)
             wire = to_wire(prob, self.config.heatmap_dtype)
             inference_s = time.perf_counter() - t0
         except FrameRejected as exc:

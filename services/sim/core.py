@@ -308,7 +308,8 @@ class SimCore:
             image = self._blank_image()
         centre = (pose.x_m, pose.y_m) if roll == 0.0 and pitch == 0.0 else \
             optical_axis_ground_m(pose.x_m, pose.y_m, alt_m, pose.yaw_rad, roll, pitch)
-        truth = GroundTruth(labels, self._classes, centre) if cfg.attach_truth and labels is not None else None
+        truth = GroundTruth(labels, self._classes, centre, self.world.name) \
+            if cfg.attach_truth and labels is not None else None
         self._frame_seq += 1
         if est is None:
             frame = CameraFrame(cfg.vehicle_id, self._frame_seq, Stamp(pose.t_s, "sim"), image, cfg.camera.hfov_rad,
@@ -347,7 +348,7 @@ class SimCore:
                                                      t_s=frame.stamp.t_s)  # people where they were at the capture
         if image is None:
             image = np.zeros((req.out_px, req.out_px, 3), np.uint8)
-        truth = GroundTruth(labels, self._classes, (cx, cy)) if labels is not None else None
+        truth = GroundTruth(labels, self._classes, (cx, cy), self.world.name) if labels is not None else None
         return CropFrame(cfg.vehicle_id, req.request_seq, frame.seq, frame.stamp, image, req.centre_frd_m, req.side_m,
                          frame.alt_agl_m, plan.source_m_per_px, roll_rad=frame.roll_rad, pitch_rad=frame.pitch_rad,
                          yaw_rad=frame.yaw_rad, sent_wall_s=wall_time_s(), truth=truth)

@@ -17,6 +17,9 @@ WAYPOINTS = search_pattern(SPACING_M, CFG.fence_m)
 ROUTE = search_route(((100.0, SPACING_M, CFG.fence_m),))
 
 
+LIKELY_P = 0.8
+
+
 def spot(n: float = 20.0, e: float = 0.0, score: float = 1.5) -> Spot:
     return Spot(north_m=n, east_m=e, clearance_m=6.0, confidence=0.8, p_safe=0.9, distance_m=math.hypot(n, e),
                 score=score)
@@ -24,8 +27,10 @@ def spot(n: float = 20.0, e: float = 0.0, score: float = 1.5) -> Spot:
 
 def inp(t: float, *, alt: float = 100.0, n: float = 0.0, e: float = 0.0, fresh: bool = True, gap: bool = False,
         best: Spot | None = None, check: Spot | None = None, candidate: Spot | None = None) -> Inputs:
+    # The policy calls a candidate likely from the scene's levels; here an area reading 0.8 or more is.
     return Inputs(t_s=t, alt_agl_m=alt, north_m=n, east_m=e, yaw_rad=0.0, fresh=fresh, gap=gap, search_alt_m=100.0,
-                  route=ROUTE, best=best, check=check, hfov_rad=math.radians(73.0), candidate=candidate)
+                  route=ROUTE, best=best, check=check, hfov_rad=math.radians(73.0), candidate=candidate,
+                  candidate_likely=candidate is not None and candidate.p_safe >= LIKELY_P)
 
 
 def at(phase: Phase, **kw: object) -> Memory:

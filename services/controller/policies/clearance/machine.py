@@ -108,6 +108,7 @@ class Inputs:
     probe_alt_m: float | None = None  # this flight's probe altitude (None: the config's)
     spot_known: bool = True  # the target was fixed by vision (or re-checked) within spot_trust_s
     recheck: Spot | None = None  # the footprint below, re-checked (None: it does not qualify)
+    candidate_likely: bool = False  # the candidate reads likely enough to probe during the top pass
 
 
 def search_pattern(spacing_m: float, radius_m: float) -> tuple[tuple[float, float], ...]:
@@ -251,7 +252,7 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
             p = Phase.APPROACH
         elif (inp.candidate is not None and len(mem.probed) < cfg.probe_max
               and t - mem.start_s <= cfg.no_spot_after_s
-              and (inp.candidate.p_safe >= cfg.probe_now_p_min or not _top_pass(mem.waypoint, inp))):
+              and (inp.candidate_likely or not _top_pass(mem.waypoint, inp))):
             c = inp.candidate
             return _go(mem, Phase.PROBE, t, f"promising ground {c.distance_m:.0f} m away (P {c.p_safe:.2f} over the "
                                             f"disk): a closer look from {probe_alt:.0f} m", probe=c), (0.0, 0.0, 0.0)
