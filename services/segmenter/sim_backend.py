@@ -248,10 +248,9 @@ def _value_noise(x: np.ndarray, y: np.ndarray, z: np.ndarray, key: np.ndarray) -
     for dx in (0, 1):
         wx = tx if dx else 1.0 - tx
         for dy in (0, 1):
-            wy = ty if dy else 1.0 - ty
+            wxy = wx * (ty if dy else 1.0 - ty)
             for dz in (0, 1):
-                wz = tz if dz else 1.0 - tz
-                out += wx * wy * wz * corner(dx, dy, dz)
+                out += wxy * (tz if dz else 1.0 - tz) * corner(dx, dy, dz)
     return out
 
 
@@ -647,6 +646,7 @@ class SimPerception:
         c, s = math.cos(view.yaw_rad), math.sin(view.yaw_rad)
         right, forward = c * east - s * north, s * east + c * north
         per_m = 1.0 / math.tan(math.radians(draw.sun_elevation_deg))
+        ground = code >= 1
         for r in range(1, first.size - 1):
             if first[r] > top:
                 break
@@ -654,7 +654,7 @@ class SimPerception:
             if not cv2.countNonZero(cv2.inRange(code, int(first[r]), int(first[r + 1]) - 1)):
                 continue
             caster = code >= first[r]
-            lower = (code < first[r]) & (code >= 1)
+            lower = (code < first[r]) & ground
             length_m = tables.rank_height_m[r] * per_m
             for frac in (0.5, 1.0):
                 dx = int(round(right * length_m * frac / m_per_px_x))
