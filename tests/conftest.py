@@ -92,6 +92,10 @@ def pytest_runtest_logreport(report: pytest.TestReport) -> None:
     cost = _COSTS.setdefault(report.nodeid, [0.0, 0.0])
     cost[0] += report.duration
     cost[1] += sum(value for name, value in report.user_properties if name == "cpu_s")
+    # DOVESEI_TEST_COSTS=<file>: every test's cost as it finishes, for a census during a long run.
+    if report.when == "teardown" and os.environ.get("DOVESEI_TEST_COSTS") and "PYTEST_XDIST_WORKER" not in os.environ:
+        with open(os.environ["DOVESEI_TEST_COSTS"], "a", encoding="utf-8") as out:
+            out.write(f"{cost[0]:.2f}\t{cost[1]:.2f}\t{report.nodeid}\n")
 
 
 def pytest_terminal_summary(terminalreporter, exitstatus: int, config: pytest.Config) -> None:

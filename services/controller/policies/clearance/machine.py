@@ -357,7 +357,8 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
                                               f"{inp.alt_agl_m:.0f} m (clearance {s.clearance_m:.1f} m)"), (0.0, 0.0, 0.0)
         vf, vr = toward(err_n, err_e, cfg.approach_gain_per_s, cfg.max_speed_m_s, inp.yaw_rad)
         return dataclasses.replace(mem, frames=looked, descending=False), (vf, vr, 0.0)
-    descending = err < lock_in or (mem.descending and err <= lock_out)
+    final = inp.alt_agl_m <= cfg.handover_alt_m + cfg.final_band_m  # centred on the spot for the hand-over
+    descending = err < lock_in or (mem.descending and err <= (lock_in if final else lock_out))
     if descending != mem.descending or mem.frames:
         mem = dataclasses.replace(mem, descending=descending, frames=0)
     vf, vr = toward(err_n, err_e, cfg.approach_gain_per_s, cfg.max_speed_m_s, inp.yaw_rad)
