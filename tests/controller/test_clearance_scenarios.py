@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 import pytest
 
-from dovesei.controller.policies.base import Observation, make_policy
+from dovesei.controller.policies.base import LookResult, Observation, make_policy
 from dovesei.controller.policies.clearance.policy import ClearancePolicy
 from dovesei.controller.policies.clearance.config import ClearanceConfig
 from dovesei.controller.policies.clearance.ground_map import logit
@@ -273,8 +273,10 @@ def test_without_registration_the_estimate_drifts() -> None:
 def test_the_observation_has_no_position_field() -> None:
     fields = {f.name for f in dataclasses.fields(Observation)}
     assert fields == {"t_s", "alt_agl_m", "prob_safe", "hfov_rad", "roll_rad", "pitch_rad", "yaw_rad",
-                      "vel_est_body_frd_m_s", "cmd_vel_body_frd_m_s", "odom_delta_ne_m", "frame_seq"}
+                      "vel_est_body_frd_m_s", "cmd_vel_body_frd_m_s", "odom_delta_ne_m", "frame_seq", "look"}
     assert not any("pos" in f or f.endswith(("_x_m", "_y_m")) for f in fields)
+    # A close look brings probabilities and the square's geometry, never the crop (a sim's truth).
+    assert {f.name for f in dataclasses.fields(LookResult)} == {"request_seq", "heatmap", "refusal"}
 
 
 def test_make_policy_builds_clearance_for_both_presets() -> None:

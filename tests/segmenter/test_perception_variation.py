@@ -17,7 +17,7 @@ from dovesei.segmenter import sim_backend
 from dovesei.segmenter.sim_backend import (
     INSTANCE_LOOKS, SimPerception, View, episode_draw, ground_field, profile_params,
 )
-from dovesei.sim.synthetic import SyntheticParams, generate_city
+from dovesei.sim.synthetic.generate import SyntheticParams, generate_city
 from dovesei.sim.world import load_world
 
 HFOV = math.radians(73.0)
@@ -160,7 +160,7 @@ def test_the_corner_table_gives_the_per_point_hash_values() -> None:
 @pytest.fixture(scope="module")
 def small_suite():
     """Dubai (shipped) and a 600 m world of each synthetic style: the suite's kinds of ground."""
-    from dovesei.sim.synth_classes import SYNTHETIC_CLASSES
+    from dovesei.sim.synthetic.classes import SYNTHETIC_CLASSES
     from dovesei.sim.world import ClassInfo, World
 
     classes = {cid: ClassInfo(name, safe) for cid, (name, safe) in SYNTHETIC_CLASSES.items()}

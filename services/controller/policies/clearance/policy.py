@@ -39,7 +39,9 @@ import numpy as np
 from dovesei.controller.policies.base import (Confirmation, Decision, Observation, PolicyInputError, checked_prob_safe,
                                               resolve_config)
 from dovesei.controller.policies.clearance.config import Altitudes, ClearanceConfig, clearance_preset
-from dovesei.controller.policies.clearance.machine import TERMINAL, Inputs, Memory, Phase, search_route, step, toward
+from dovesei.controller.policies.clearance.machine import (
+    TERMINAL, Inputs, Memory, Phase, reject_target, search_route, step, toward,
+)
 from dovesei.controller.policies.clearance.ground_map import (GroundMap, clearance_at, emphasise_dips, find_candidate,
                                                       find_spot, footprint_width_m, logit, look_weight, promise)
 from dovesei.controller.policies.clearance.scene import SceneLevels, fine_noise, known_mean, map_levels, sigmoid
@@ -270,6 +272,17 @@ class ClearancePolicy:
         likely = candidate is not None and candidate.p_safe >= sigmoid(levels.probe_now_logit)
         return self._decide(obs, fresh=True, gap=gap, best=best, check=check, clearance=clearance, fence_m=fence_m,
                             candidate=candidate, recheck=recheck, likely=likely)
+
+    def reject_target(self, t_s: float, alt_m: float, reason: str) -> None:
+        """Reject the current target for a reason the map cannot see (a close look found a person
+        inside its margin): blacklisted, and a descent aborts. Takes effect from the next step."""
+        if self.memory is not None:
+            mem = reject_target(self.memory, t_s, alt_m, reason)
+            if mem is not self.memory:
+                log.info("clearance: %s -> %s at t=%.2f s, alt %.1f m: %s", self.memory.phase.value, mem.phase.value,
+                         t_s, alt_m, mem.reason)
+                self.memory = mem
+                self.motion.clear_spot()
 
     def _spot_known(self) -> bool:
         """Was the target fixed by vision (or re-checked) recently enough to descend on?"""
