@@ -489,6 +489,9 @@ class ControllerStatus(Message):
     confirmed_frame_seq: int = -1
     confirmed_row_px: float = 0.0
     confirmed_col_px: float = 0.0
+    # The policy's last close look (issue 24): its verdict in one line ("clear: ...", "never set 2.1 m
+    # from the spot ...", "look failed: ..."); empty for policies that do not look.
+    look_verdict: str = ""
 
     RANGES: ClassVar[dict[str, tuple[float, float]]] = {
         "spot_north_m": (-1e7, 1e7), "spot_east_m": (-1e7, 1e7), "spot_clearance_m": (0.0, 1e6),

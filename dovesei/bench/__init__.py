@@ -76,6 +76,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--handover-alt-m", type=float, default=HANDOVER_ALT_M,
                    help="hand-over altitude: every policy hands over, and the judge judges, here (default: "
                         f"{HANDOVER_ALT_M:g} m; at least {MIN_DESCENT_M:g} m below the start)")
+    p.add_argument("--no-close-look", dest="close_look", action="store_false",
+                   help="fly clearance without its close looks (full-resolution crops of the spot before committing)")
     p.add_argument("--policy-config", type=Path, default=None, metavar="FILE",
                    help="TOML file of the policy's constants (one --policy; `dovesei policy-config --defaults "
                         "POLICY` prints them all); recorded in results.json")
@@ -152,7 +154,7 @@ def make_grid(*, world_spec: str | None = None, worlds: tuple[str, ...] | None =
               start_margin_m: float = 5.0, segmenter: str = "sim", perception: str | None = None,
               world_label: str = "", seed_note: str = "", vehicle_profile: str | None = None,
               handover_alt_m: float = HANDOVER_ALT_M, policy_config: Path | None = None,
-              perception_shift: str | tuple | None = None) -> Grid:
+              perception_shift: str | tuple | None = None, close_look: bool = True) -> Grid:
     """The bench's grid, every setting checked (one line naming the flag otherwise).
 
     With `perception_shift` ("A_LO,A_HI,B") every start is flown plainly and shifted (dovesei.bench.shift).
@@ -184,7 +186,8 @@ def make_grid(*, world_spec: str | None = None, worlds: tuple[str, ...] | None =
                 variants=variants, noise=noise, timing=timing,
                 time_limit_s=float(time_limit_s), start_alt_m=float(start_alt_m), segmenter=segmenter,
                 start_margin_m=float(start_margin_m), world_label=world_label or specs[0], extra={"seed_note": seed_note} if seed_note else {},
-                vehicle_profile=vehicle_profile, handover_alt_m=float(handover_alt_m), policy_config=changed)
+                vehicle_profile=vehicle_profile, handover_alt_m=float(handover_alt_m), policy_config=changed,
+                close_look=bool(close_look))
 
 
 def settings_from_args(args: argparse.Namespace) -> dict:
@@ -198,7 +201,7 @@ def settings_from_args(args: argparse.Namespace) -> dict:
                 start_margin_m=default_start_margin_m(policies) if args.start_margin_m is None else args.start_margin_m,
                 segmenter=args.segmenter, perception=args.perception, vehicle_profile=args.vehicle_profile,
                 handover_alt_m=args.handover_alt_m, policy_config=args.policy_config,
-                perception_shift=args.perception_shift, world_label=f"suite:{args.suite.strip()}" if args.suite is not None else "")
+                perception_shift=args.perception_shift, close_look=args.close_look, world_label=f"suite:{args.suite.strip()}" if args.suite is not None else "")
 
 
 def main(argv: list[str] | None = None) -> int:

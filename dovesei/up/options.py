@@ -84,6 +84,8 @@ class UpOptions:
     start_alt_m: float = 100.0
     # The controller hands over (and hands it to its policy) and the sim's judge judges here.
     handover_alt_m: float = HANDOVER_ALT_M
+    # `clearance` looks at its spot at full resolution before committing (issue 24), as `bench` flies it.
+    close_look: bool = True
     out: Path = Path("runs/up")
     # True for the default runs/up-<time>: `run` then claims a folder no other run has (adding -2, -3
     # when one started in the same second), so two runs never write into one folder.
@@ -263,6 +265,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--handover-alt-m", type=float, default=HANDOVER_ALT_M,
                    help=f"hand-over altitude: the controller and its policy hand over, and the sim judges, here "
                         f"(default: {HANDOVER_ALT_M:g} m; at least {MIN_DESCENT_M:g} m below the start)")
+    p.add_argument("--no-close-look", dest="close_look", action="store_false",
+                   help="clearance without its close looks (full-resolution crops of the spot before committing)")
     p.add_argument("--time-limit-s", type=float, default=None,
                    help="sim-time limit of the episode (default: the paper's 1200 s on the preset's clock, "
                         "as `dovesei bench`: 60 s with --timing reference, 1200 s with --timing real)")
@@ -325,7 +329,7 @@ def options_from_args(args: argparse.Namespace) -> UpOptions:
                      timing=timing_name,
                      seed=args.seed, noise=args.noise, perception=args.perception, vehicle_profile=args.vehicle_profile,
                      start=start, start_seed=args.start_seed,
-                     start_alt_m=args.start_alt_m, handover_alt_m=args.handover_alt_m, out=out, out_unique=args.out is None, realtime=args.realtime,
+                     start_alt_m=args.start_alt_m, handover_alt_m=args.handover_alt_m, close_look=args.close_look, out=out, out_unique=args.out is None, realtime=args.realtime,
                      connect=tuple(args.connect), vehicle_url=args.vehicle_url, sitl_truth=args.sitl_truth,
                      takeoff=args.takeoff, handover_action=args.handover_action,
                      yaw_control=args.yaw_control, signing_key=args.signing_key,

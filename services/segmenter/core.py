@@ -197,8 +197,8 @@ class FrameBackend(Protocol):
     def safe_probability(self, frame: CameraFrame, prompts: PromptSet, fusion: FusionConfig) -> np.ndarray: ...
 
     def crop_logits(self, crop: CropFrame, prompts: PromptSet) -> tuple[np.ndarray, np.ndarray | None]:
-        """(P, 352, 352) logits of a crop for `prompts` (landing + never), and the share of each
-        pixel inside the world (None: all of it)."""
+        """(P, n, n) logits of a crop for `prompts` (landing + never) on the backend's square output
+        grid, and the share of each cell inside the world (None: all of it)."""
         ...
 
 
@@ -277,12 +277,15 @@ class SimFrameBackend:
                                                  CROP_FLICKER_SEQ0 + crop.request_seq, prompts)
         except ValueError as exc:
             raise FrameRejected(REJECT_BAD_TRUTH, str(exc)) from None
-        # The token grid up to CLIPSeg's 352 output, where both fusions run as they do after CLIPSeg.
+        # Fused on the sim's fusion grid (88 for the profiles), as its frames are: a tenth of the cost of
+        # CLIPSeg's 352 output grid, and the logits are smooth below a cell anyway.
+        grid = max(self.model.params.fusion_grid_px, logits.shape[-1])
         n = logits.shape[0]
-        up = cv2.resize(np.ascontiguousarray(logits.transpose(1, 2, 0)), (INPUT_PX, INPUT_PX),
-                        interpolation=cv2.INTER_LINEAR).reshape(INPUT_PX, INPUT_PX, n)
-        return (np.ascontiguousarray(up.transpose(2, 0, 1)),
-                cv2.resize(in_world, (INPUT_PX, INPUT_PX), interpolation=cv2.INTER_LINEAR))
+        if grid != logits.shape[-1]:
+            logits = cv2.resize(np.ascontiguousarray(logits.transpose(1, 2, 0)), (grid, grid),
+                                interpolation=cv2.INTER_LINEAR).reshape(grid, grid, n).transpose(2, 0, 1)
+            in_world = cv2.resize(in_world, (grid, grid), interpolation=cv2.INTER_LINEAR)
+        return np.ascontiguousarray(logits), in_world
 
 
 def as_frame_backend(backend: object) -> FrameBackend:
@@ -385,13 +388,17 @@ def to_wire(prob: np.ndarray, dtype: str) -> np.ndarray:
 
 def crop_probabilities(logits: np.ndarray, in_world: np.ndarray | None, prompts: PromptSet, n_never: int,
                        fusion: FusionConfig, side_px: int) -> tuple[np.ndarray, np.ndarray]:
-    """(P(safe), P(never)) at side_px from the logits of `crop_prompt_set(prompts, never)`: the
-    landing prompts fused as every frame's are; the never prompts (the last `n_never`) against all
-    the landing ones, grouped (so their number does not drift P(never), as for P(safe))."""
-    n_land = prompts.n_prompts
-    prob_safe = fuse(logits[:n_land], prompts.n_positive, fusion.mode, fusion.temperature, fusion.blur_px)
+    """(P(safe), P(never)) at side_px from the logits of `crop_prompt_set(prompts, never)` on any
+    square grid (CLIPSeg's 352, the simulated perception's coarser one): the landing prompts fused
+    as every frame's are; the never prompts (the last `n_never`) against the landing positives,
+    grouped (the landing negatives hold "people" and "vehicle" themselves). The box blurs are sized
+    for CLIPSeg's 352 px grid and scaled to the logits' grid."""
+    n_land, grid = prompts.n_prompts, logits.shape[-1]
+    scale = grid / INPUT_PX
+    blur_safe, blur_never = (max(1, int(round(b * scale))) for b in (fusion.blur_px, NEVER_BLUR_PX))
+    prob_safe = fuse(logits[:n_land], prompts.n_positive, fusion.mode, fusion.temperature, blur_safe)
     prob_never = fuse(np.concatenate([logits[n_land:], logits[:prompts.n_positive]]), n_never, "grouped",
-                      fusion.temperature, NEVER_BLUR_PX)
+                      fusion.temperature, blur_never)
     if in_world is not None:
         prob_safe *= in_world  # unknown ground beyond the map is no landing place
     out = []

@@ -163,6 +163,25 @@ def test_each_search_pass_flies_lower_and_an_abort_resumes_the_route() -> None:
     assert mem.phase is Phase.SEARCH and mem.waypoint == 2 * len(WAYPOINTS)
 
 
+def test_the_last_metres_before_the_hand_over_descend_only_centred_on_the_spot() -> None:
+    """No hysteresis within final_band_m of the hand-over: 2.5 m off (inside lock_out, outside
+    lock_in) a descending vehicle goes on at 40 m but holds its altitude at 23 m and steers onto
+    the spot, so it never hands over metres from the ground it checked."""
+    target = spot(20.0, 0.0)
+    alt_final = CFG.handover_alt_m + CFG.final_band_m - 2.0
+    lock_in = CFG.lock_in_m + CFG.lock_alt_frac * alt_final
+    lock_out = CFG.lock_out_m + CFG.lock_alt_frac * alt_final
+    off = 17.5  # 2.5 m south of the target
+    assert lock_in < 20.0 - off < lock_out
+    for alt, descends in ((40.0, True), (alt_final, False)):
+        mem = at(Phase.DESCEND, target=target, descending=True)
+        mem, vel = step(mem, inp(1.0, alt=alt, n=off, check=target), CFG)
+        assert mem.phase is Phase.DESCEND and (vel[2] > 0.0) is descends, (alt, vel)
+        assert vel[0] > 0.0  # steering onto the spot either way
+    mem, vel = step(mem, inp(2.0, alt=alt_final, n=19.0, check=target), CFG)  # centred: down again
+    assert vel[2] > 0.0
+
+
 def test_approach_locks_with_hysteresis_and_descends() -> None:
     target = spot(20.0, 0.0)
     mem = at(Phase.APPROACH, target=target)

@@ -39,6 +39,7 @@ REFERENCE = [
      {"outcome": "safe", "sim_time_s": 47.0, "path_length_m": 87.956, "max_range_m": 74.5,
       "final": {"x_m": 290.224, "y_m": 66.297, "alt_m": 19.799}}),
     ({"policy": "clearance", "index": 0, "seed": 11, "timing": "real", "time_limit_s": 150.0,
+      "policy_config": {"scene_after_top_pass": False},  # a 400 m world: its scene is the first views
       "start": {"x_m": 230.274, "y_m": 296.129, "alt_m": 100.0}},
      {"outcome": "safe", "sim_time_s": 45.25, "path_length_m": 80.455, "max_range_m": 78.6,
       "final": {"x_m": 290.721, "y_m": 346.391, "alt_m": 19.806}}),

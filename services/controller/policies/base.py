@@ -23,6 +23,32 @@ class PolicyInputError(DoveseiError, ValueError):
 
 
 @dataclass(frozen=True)
+class LookRequest:
+    """A close look a policy asks for: a square of ground around a spot (dovesei.shared.crop),
+    centred `centre_frd_m` (forward, right metres from the point below the vehicle, heading-level
+    body frame, as the policy believes it now), `side_m` wide, at `out_px`."""
+
+    centre_frd_m: tuple[float, float]
+    side_m: float
+    out_px: int
+
+
+@dataclass(frozen=True)
+class LookResult:
+    """What came of a close look: the scored crop (`heatmap`, a CropHeatmap: probabilities and the
+    square's geometry, nothing of the sim's truth), or why there is none (`refusal`: the camera
+    refused, the segmenter failed, nobody answered). `request_seq` is the CropRequest's."""
+
+    request_seq: int
+    heatmap: Any = None  # dovesei.shared.messages.CropHeatmap
+    refusal: str = ""
+
+    @property
+    def ok(self) -> bool:
+        return self.heatmap is not None
+
+
+@dataclass(frozen=True)
 class Observation:
     """One look at the world, on the data clock: what a real vehicle without GNSS has.
 
@@ -49,6 +75,9 @@ class Observation:
     # The camera frame the heatmap came from (-1: unknown): a policy names it when it reports
     # which heatmap confirmed its spot (`Confirmation`), so a judge can map that look to the ground.
     frame_seq: int = -1
+    # The answer to the policy's last `Decision.look_request` (once, on the first observation after
+    # it came back); None: nothing new.
+    look: LookResult | None = None
 
 
 @dataclass(frozen=True)
@@ -75,6 +104,8 @@ class SpotReport:
     confidence: float  # [0, 1]
     p_safe: float  # fused P(safe) at the spot
     distance_m: float  # from the estimated position
+    est_north_m: float = 0.0  # the position estimate the spot is seen from (same frame)
+    est_east_m: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -97,6 +128,10 @@ class Decision:
     # The policy's own typed report of this decision, for logs, tests and overlays: a
     # `ClearanceReport` or a `DoveseiReport` (None before the first one).
     report: Any = None
+    # A close look to take now (the controller asks the camera and the segmenter; the answer comes
+    # back in a later `Observation.look`), and the last close look's verdict for status and video.
+    look_request: LookRequest | None = None
+    look_verdict: str = ""
 
 
 def checked_prob_safe(prob: Any, min_side_px: int) -> np.ndarray:

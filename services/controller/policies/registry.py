@@ -16,6 +16,7 @@ from types import MappingProxyType
 from typing import Any
 
 from dovesei.controller.policies.base import Policy
+from dovesei.controller.policies.clearance.closelook import CloseLookPolicy, close_look_config
 from dovesei.controller.policies.clearance.config import ClearanceConfig, clearance_preset
 from dovesei.controller.policies.clearance.policy import ClearancePolicy
 from dovesei.controller.policies.dovesei.config import DoveseiConfig, timing_preset
@@ -86,8 +87,12 @@ def entry(name: str) -> PolicyEntry:
         raise ValueError(f"unknown policy {name!r}; known: {', '.join(policy_names())}") from None
 
 
+# The policies whose descent a close look gates (the paper's stays as published).
+CLOSE_LOOK_POLICIES = ("clearance",)
+
+
 def make_policy(name: str, config: Any = None, speed_limits_m_s: SpeedLimitsMS | None = None, *,
-                handover_alt_m: float | None = None) -> Policy:
+                handover_alt_m: float | None = None, close_look: bool = False) -> Policy:
     """Build the policy called `name`.
 
     `config` is policy-specific: for `dovesei*` a `DoveseiConfig`, a timing preset name
@@ -97,5 +102,10 @@ def make_policy(name: str, config: Any = None, speed_limits_m_s: SpeedLimitsMS |
     the `dovesei` policies stay faithful to the reference and are clamped by the adapter.
     `handover_alt_m`, the controller's (None: the config's own, dovesei.shared.mission's default):
     a policy with a hand-over altitude of its own (`clearance`) takes it; the paper's has none.
+    `close_look`: `clearance` looks at its spot at full resolution before committing
+    (`clearance/closelook.py`); the controller must then carry out its look requests.
     """
-    return entry(name).build(config, speed_limits_m_s, handover_alt_m)
+    policy = entry(name).build(config, speed_limits_m_s, handover_alt_m)
+    if close_look and name in CLOSE_LOOK_POLICIES:
+        policy = CloseLookPolicy(policy, close_look_config(policy.config.handover_alt_m))
+    return policy

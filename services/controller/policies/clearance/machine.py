@@ -161,6 +161,18 @@ def _blacklisted(mem: Memory, spot: Spot, alt_m: float) -> tuple[tuple[float, fl
     return mem.blacklist + ((spot.north_m, spot.east_m, alt_m),)
 
 
+def reject_target(mem: Memory, t_s: float, alt_m: float, reason: str) -> Memory:
+    """The target rejected from outside the map (a close look saw what must never be near it): blacklisted;
+    a descent aborts (climbs back to the search altitude), an approach searches on."""
+    if mem.target is None or mem.phase in TERMINAL:
+        return mem
+    if mem.phase is Phase.DESCEND:
+        return _go(mem, Phase.ABORT, t_s, reason + ": abort, climbing back", target=None, aborts=mem.aborts + 1,
+                   blacklist=_blacklisted(mem, mem.target, alt_m))
+    return _go(mem, Phase.SEARCH, t_s, reason + ": rejected", target=None,
+               blacklist=_blacklisted(mem, mem.target, alt_m))
+
+
 def toward(north_err: float, east_err: float, gain: float, vmax: float, yaw: float) -> tuple[float, float]:
     """Body forward/right velocity = gain x the north/east error, capped at vmax."""
     vn, ve = gain * north_err, gain * east_err
@@ -345,7 +357,8 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
                                               f"{inp.alt_agl_m:.0f} m (clearance {s.clearance_m:.1f} m)"), (0.0, 0.0, 0.0)
         vf, vr = toward(err_n, err_e, cfg.approach_gain_per_s, cfg.max_speed_m_s, inp.yaw_rad)
         return dataclasses.replace(mem, frames=looked, descending=False), (vf, vr, 0.0)
-    descending = err < lock_in or (mem.descending and err <= lock_out)
+    final = inp.alt_agl_m <= cfg.handover_alt_m + cfg.final_band_m  # centred on the spot for the hand-over
+    descending = err < lock_in or (mem.descending and err <= (lock_in if final else lock_out))
     if descending != mem.descending or mem.frames:
         mem = dataclasses.replace(mem, descending=descending, frames=0)
     vf, vr = toward(err_n, err_e, cfg.approach_gain_per_s, cfg.max_speed_m_s, inp.yaw_rad)
