@@ -26,7 +26,7 @@ import numpy as np
 from dovesei.bench import engines, stats
 from dovesei.pictures.html import write_bench_page
 from dovesei.shared.errors import ConfigError, DoveseiError
-from dovesei.shared.mission import HANDOVER_ALT_M, SAFETY_RADIUS_M
+from dovesei.shared.mission import HANDOVER_ALT_M, PERSON_SEPARATION_M, SAFETY_RADIUS_M, VEHICLE_SEPARATION_M
 from dovesei.sim.camera import CameraModel
 from dovesei.sim.starts import generate_starts
 from dovesei.sim.world import load_world, require_judged
@@ -74,6 +74,8 @@ class Grid:
     handover_alt_m: float = HANDOVER_ALT_M  # where every episode ends and is judged (controller, policy, judge)
     # --policy-config: the constants a file changed from the preset's ({} = none), for its one policy.
     policy_config: dict = field(default_factory=dict)
+    # The judge's separations from people and vehicles (0: that rule off).
+    separation_m: tuple[float, float] = (PERSON_SEPARATION_M, VEHICLE_SEPARATION_M)
 
     def config(self) -> dict:
         return {"world": self.world_label or self.worlds[0], "worlds": list(self.worlds), "episodes": self.episodes,
@@ -86,6 +88,7 @@ class Grid:
                 # And the default hand-over: benches flown before it was a setting resume and hash as before.
                 **({"handover_alt_m": self.handover_alt_m} if self.handover_alt_m != HANDOVER_ALT_M else {}),
                 **({"policy_config": self.policy_config} if self.policy_config else {}),
+                "separation_m": list(self.separation_m),
                 "perception": [v.perception for v in self.variants] if len(self.variants) > 1 else self.variants[0].perception,
                 "prompts": {v.prompts_name: v.prompts for v in self.variants}, **self.extra}
 
@@ -180,7 +183,7 @@ def plan_jobs(grid: Grid, worlds: dict, out: Path) -> list[dict]:
                         "noise": grid.noise, "timing": grid.timing, "time_limit_s": grid.time_limit_s,
                         "perception": var.perception, "prompts": var.prompts,
                         "vehicle_profile": grid.vehicle_profile, "handover_alt_m": grid.handover_alt_m,
-                        "policy_config": grid.policy_config or None,
+                        "policy_config": grid.policy_config or None, "separation_m": list(grid.separation_m),
                         "perception_label": var.perception if var.labelled else None,
                         "prompts_label": var.prompts_name if var.labelled else None,
                         "start": {"x_m": round(st.x_m, 3), "y_m": round(st.y_m, 3), "alt_m": st.alt_m}})
@@ -283,7 +286,7 @@ def summary_markdown(doc: dict, *, title: str = "dovesei bench") -> str:
         f"vehicle profile `{config.get('vehicle_profile', 'ideal')}`. "
         f"Success = reaching the hand-over altitude ({config.get('handover_alt_m', HANDOVER_ALT_M):g} m) with the "
         f"{SAFETY_RADIUS_M:g} m footprint disk on safe classes, judged on "
-        "the label map. Intervals are Wilson 95 %.", "",
+        f"the label map, {stats.separation_text(config)}. Intervals are Wilson 95 %.", "",
         *stats.policy_table(doc["summary"]), "",
         "Averages are over successful episodes, as in the paper's Table I (time in sim seconds, distance = "
         "horizontal path length).", ""]
