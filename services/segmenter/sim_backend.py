@@ -12,7 +12,8 @@ Data flow for one frame (labels resized to CLIPSeg's 352x352 input, as CLIPSeg r
            + shadows: roofs/trees/cars cast a fixed-sun shadow (world direction) on lower ground
       --8x8-pixel cells, Gaussian ~1 token--> F: appearance fractions on a 44x44 grid. Detail
         under one token (1/22 of the view: ~6.7 m at 100 m, ~1.3 m at 20 m) is diluted into
-        its surroundings; people and cars weigh a little more than their area (salience)
+        its surroundings; a person or a car weighs by how many tokens it covers (the resolution
+        curve, `object_gain`): its area alone under one token, up to 3x its area across several
       --confusions anchored in WORLD metres--> each appearance is read partly as a partner
         (grey flat roof -> plaza, dark pond -> asphalt, lawn -> sports field) where a seeded
         value-noise field over (east, north, log2 altitude) is high: the same ground is misread
@@ -73,7 +74,33 @@ CONFUSIONS: dict[str, dict[str, float]] = {
 }
 # Height of what casts a shadow (m); the sun's elevation turns it into a length on the ground.
 CASTER_HEIGHT_M: dict[str, float] = {"flat_roof": 9.0, "pitched_roof": 7.0, "tree": 5.0, "vehicle": 1.5}
-SALIENCE: dict[str, float] = {"person": 2.0, "vehicle": 1.5}
+
+# The resolution curve of objects (people, vehicles): how strongly one connected object answers,
+# as a multiple of its area, against how many CLIPSeg tokens it covers (16 x 16 px of the 352 px
+# input, a ViT-B/16 patch):
+#
+#     gain(n) = 1 + (OBJECT_GAIN_MAX - 1) * n^2 / (n^2 + OBJECT_HALF_TOKENS^2),  n = area_px / 256
+#
+#     n (tokens)  0.004 (a person at 100 m: 1 px)   0.1 (a person at 20 m)   0.5   1     2     4 (a car at 20 m)
+#     gain        1.00                               1.02                     1.4   2.0   2.6   2.9
+#
+# Assumption (no per-object statistics of CLIPSeg were measured here): a patch embedding describes
+# what fills most of its 16 px; an object much smaller than a patch only shifts the patch's colour
+# and texture statistics in proportion to its area, so it is a dip of its area share and no more
+# (issue 24: a person under one token at 100 m read as ~0.02 in P, inside the ripple). An object
+# spanning a token or more is recognised as such, and CLIPSeg's upsampled 22 x 22 blobs outgrow
+# the objects they find, so across several tokens it answers up to OBJECT_GAIN_MAX times its area
+# (after the token blur that gives a blob about a token wider than the object). Monotone in n.
+OBJECT_APPEARANCES = ("person", "vehicle")
+OBJECT_GAIN_MAX = 3.0
+OBJECT_HALF_TOKENS = 1.0
+TOKEN_PX = 16
+
+
+def object_gain(tokens: np.ndarray | float) -> np.ndarray:
+    """The resolution curve: an object's response per unit of area against the tokens it covers."""
+    n2 = np.square(np.asarray(tokens, np.float64))
+    return 1.0 + (OBJECT_GAIN_MAX - 1.0) * n2 / (n2 + OBJECT_HALF_TOKENS ** 2)
 
 
 @dataclass(frozen=True)
@@ -284,10 +311,6 @@ class SimPerception:
         self._strength = params.scaled()
         self._classes: dict[tuple, _Classes] = {}
         self._responses: dict[str, np.ndarray] = {}
-        sal = np.ones(A)
-        for app, s in SALIENCE.items():
-            sal[INDEX[app]] = s
-        self._salience = sal
         # The sun stands in one world direction per seed, as over one real site on one afternoon.
         self._sun_az_rad = 2.0 * math.pi * ((self.seed * 0.6180339887 + 0.23) % 1.0)
         self.grid = INPUT_PX // params.cell_px
@@ -349,7 +372,7 @@ class SimPerception:
         frame_seq = _check_seq(frame_seq)
         frac = self.fractions(labels, classes, view)
         in_world = 1.0 - frac[..., INDEX["off_world"]]
-        g = frac * self._salience
+        g = frac * self._object_gain(labels, classes)
         g /= np.maximum(g.sum(axis=2, keepdims=True), 1e-12)
         if self.params.token_sigma_px > 0:
             sigma = self.params.token_sigma_px / self.params.cell_px
@@ -393,6 +416,28 @@ class SimPerception:
         if (height_px, width_px) != prob.shape:
             prob = cv2.resize(prob, (int(width_px), int(height_px)), interpolation=cv2.INTER_LINEAR)
         return np.clip(prob, 0.0, 1.0, out=prob)
+
+    def _object_gain(self, labels: np.ndarray, classes: Mapping[int, object] | Iterable[object]) -> np.ndarray:
+        """(grid, grid, A) weights: 1, except for person and vehicle appearances, whose weight in a
+        cell is the mean `object_gain` of the object pixels there (each connected object by its own
+        size in tokens of the 352 px input)."""
+        lab = _input_labels(labels)
+        tables = self._tables(classes)
+        out = np.ones((self.grid * self.grid, A))
+        n_cells = self.grid * self.grid
+        for app in OBJECT_APPEARANCES:
+            j = INDEX[app]
+            mask = (tables.mix[lab, j] >= 0.5).astype(np.uint8)
+            if not mask.any():
+                continue
+            n, comp, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+            gain = object_gain(stats[:, cv2.CC_STAT_AREA] / float(TOKEN_PX * TOKEN_PX))
+            on = comp.ravel() > 0
+            cells = self._cell_of_px[on]
+            total = np.bincount(cells, weights=gain[comp.ravel()[on]], minlength=n_cells)
+            count = np.bincount(cells, minlength=n_cells)
+            out[:, j] = np.where(count > 0, total / np.maximum(count, 1), 1.0)
+        return out.reshape(self.grid, self.grid, A)
 
     # --- errors ------------------------------------------------------------------------
 
