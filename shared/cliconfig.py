@@ -468,8 +468,8 @@ def non_blank(what: str, value: Any) -> None:
 
 
 def json_or_file(what: str, text: str) -> Any:
-    """Inline JSON (text starting with '{') or the JSON in the file named by `text`."""
-    if text.lstrip().startswith("{"):
+    """Inline JSON (text starting with '{' or '[') or the JSON in the file named by `text`."""
+    if text.lstrip().startswith(("{", "[")):
         source, where = text, "inline JSON"
     else:
         try:

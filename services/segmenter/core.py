@@ -37,16 +37,18 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Protocol
 
+import cv2
 import numpy as np
 
 from dovesei.shared.errors import ConfigError, DoveseiError
-from dovesei.shared.messages import CameraFrame, PromptSetMsg, SafetyHeatmap
+from dovesei.shared.messages import CameraFrame, CropFrame, CropHeatmap, PromptSetMsg, SafetyHeatmap
 
 # `.clipseg` imports torch, which the onboard install does not have: it is imported only when a
 # CLIPSeg backend is built, so the simulated backend and the service run without torch.
-from .fusion import FUSION_MODES, FusionConfig
+from .fusion import FUSION_MODES, FusionConfig, fuse
 from .options import DEFAULT_MODEL, DTYPES
-from .prompts import REFERENCE_PROMPTS, PromptError, PromptSet
+from .prompts import NEVER_PROMPTS, REFERENCE_PROMPTS, PromptError, PromptSet, crop_prompt_set, never_prompts, never_set_id
+from .sim_backend import INPUT_PX
 from .simulated import (
     DEFAULT_NOISE, DEFAULT_PROFILE, PROFILE_NAMES, MissingTruthError, SimPerception, profile_params, view_of,
 )
@@ -64,6 +66,10 @@ REJECT_NO_TRUTH = "no_truth"
 REJECT_BAD_TRUTH = "bad_truth"
 REJECT_IMAGE = "image"
 REJECT_VEHICLE = "vehicle_mismatch"  # used by the service: key and frame name different vehicles
+# The never map is blurred less than the landing map: a person is ~15-20 px of a 352 px crop, and the
+# landing map's 15 px box would halve its peak.
+NEVER_BLUR_PX = 5
+CROP_FLICKER_SEQ0 = 1 << 40
 
 
 class BackendUnavailableError(DoveseiError, RuntimeError):
@@ -105,6 +111,8 @@ class SegmenterConfig:
     max_side_px: int = 4096
     expected_size_px: tuple[int, int] | None = None
     prompts: PromptSet = field(default=REFERENCE_PROMPTS)
+    # Scored on crops only (close looks): what must never be inside the landing's separation margin.
+    never: tuple[str, ...] = NEVER_PROMPTS
 
     def __post_init__(self) -> None:
         _choice("backend", self.backend, BACKENDS)
@@ -140,6 +148,10 @@ class SegmenterConfig:
                 )
         if not isinstance(self.prompts, PromptSet):
             raise ConfigError(f"SegmenterConfig.prompts: expected a PromptSet, got {type(self.prompts).__name__}")
+        try:
+            crop_prompt_set(self.prompts, never_prompts(self.never))
+        except PromptError as exc:
+            raise ConfigError(f"SegmenterConfig.never: {exc}") from None
 
     @property
     def fusion_config(self) -> FusionConfig:
@@ -176,6 +188,11 @@ class FrameBackend(Protocol):
 
     def safe_probability(self, frame: CameraFrame, prompts: PromptSet, fusion: FusionConfig) -> np.ndarray: ...
 
+    def crop_logits(self, crop: CropFrame, prompts: PromptSet) -> tuple[np.ndarray, np.ndarray | None]:
+        """(P, 352, 352) logits of a crop for `prompts` (landing + never), and the share of each
+        pixel inside the world (None: all of it)."""
+        ...
+
 
 class ClipSegFrameBackend:
     """CLIPSeg on the frame's RGB image; text embeddings are cached per prompt set by the model."""
@@ -202,6 +219,13 @@ class ClipSegFrameBackend:
     def safe_probability(self, frame: CameraFrame, prompts: PromptSet, fusion: FusionConfig) -> np.ndarray:
         try:
             return self.model.safe_probability(frame.image_rgb, prompts, fusion)
+        except self._image_error as exc:
+            raise FrameRejected(REJECT_IMAGE, str(exc)) from None
+
+    def crop_logits(self, crop: CropFrame, prompts: PromptSet) -> tuple[np.ndarray, np.ndarray | None]:
+        # One vision pass decodes every prompt (landing and never) from the shared activations.
+        try:
+            return self.model.logits(crop.image_rgb, prompts), None
         except self._image_error as exc:
             raise FrameRejected(REJECT_IMAGE, str(exc)) from None
 
@@ -233,6 +257,24 @@ class SimFrameBackend:
                                                prompts, fusion, out_size=frame.image_rgb.shape[:2])
         except ValueError as exc:
             raise FrameRejected(REJECT_BAD_TRUTH, str(exc)) from None
+
+    def crop_logits(self, crop: CropFrame, prompts: PromptSet) -> tuple[np.ndarray, np.ndarray | None]:
+        """The crop's truth labels read as a frame from a camera that saw just the square: at its
+        resolution a person spans several tokens and is seen (at 100 m in the whole view, a dip)."""
+        if crop.truth is None:
+            raise FrameRejected(REJECT_NO_TRUTH, f"{MissingTruthError()} (crop {crop.request_seq} of {crop.vehicle_id})")
+        try:
+            # Flicker is seeded per look: a crop is keyed apart from the frames' own sequence.
+            logits, in_world = self.model.logits(crop.truth.labels, crop.truth.classes, view_of(crop),
+                                                 CROP_FLICKER_SEQ0 + crop.request_seq, prompts)
+        except ValueError as exc:
+            raise FrameRejected(REJECT_BAD_TRUTH, str(exc)) from None
+        # The token grid up to CLIPSeg's 352 output, where both fusions run as they do after CLIPSeg.
+        n = logits.shape[0]
+        up = cv2.resize(np.ascontiguousarray(logits.transpose(1, 2, 0)), (INPUT_PX, INPUT_PX),
+                        interpolation=cv2.INTER_LINEAR).reshape(INPUT_PX, INPUT_PX, n)
+        return (np.ascontiguousarray(up.transpose(2, 0, 1)),
+                cv2.resize(in_world, (INPUT_PX, INPUT_PX), interpolation=cv2.INTER_LINEAR))
 
 
 def as_frame_backend(backend: object) -> FrameBackend:
@@ -333,6 +375,25 @@ def to_wire(prob: np.ndarray, dtype: str) -> np.ndarray:
     return prob.astype(np.float16)
 
 
+def crop_probabilities(logits: np.ndarray, in_world: np.ndarray | None, prompts: PromptSet, n_never: int,
+                       fusion: FusionConfig, side_px: int) -> tuple[np.ndarray, np.ndarray]:
+    """(P(safe), P(never)) at side_px from the logits of `crop_prompt_set(prompts, never)`: the
+    landing prompts fused as every frame's are; the never prompts (the last `n_never`) against all
+    the landing ones, grouped (so their number does not drift P(never), as for P(safe))."""
+    n_land = prompts.n_prompts
+    prob_safe = fuse(logits[:n_land], prompts.n_positive, fusion.mode, fusion.temperature, fusion.blur_px)
+    prob_never = fuse(np.concatenate([logits[n_land:], logits[:prompts.n_positive]]), n_never, "grouped",
+                      fusion.temperature, NEVER_BLUR_PX)
+    if in_world is not None:
+        prob_safe *= in_world  # unknown ground beyond the map is no landing place
+    out = []
+    for prob in (prob_safe, prob_never):
+        if prob.shape != (side_px, side_px):
+            prob = cv2.resize(prob, (side_px, side_px), interpolation=cv2.INTER_LINEAR)
+        out.append(np.clip(prob, 0.0, 1.0, out=prob))
+    return out[0], out[1]
+
+
 class SegmenterCore:
     """Frames in, heatmaps out, with the current prompt set and counters of what happened.
 
@@ -350,6 +411,7 @@ class SegmenterCore:
         self.prompts: PromptSet = config.prompts
         self.backend.prepare(self.prompts)
         self.processed = 0
+        self.processed_crops = 0
         self.rejected: Counter[str] = Counter()
         self.prompt_changes = 0
 
@@ -395,6 +457,30 @@ class SegmenterCore:
         log.debug("frame %s/%d -> heatmap in %.4f s (%s)", frame.vehicle_id, frame.seq, inference_s, self.backend.name)
         return heatmap
 
+    def process_crop(self, crop: CropFrame) -> CropHeatmap:
+        """A close look: P(safe) with the landing prompts and P(never) (the never set against every
+        landing prompt, grouped fusion) at the crop's size; FrameRejected (counted) for a bad crop."""
+        if not isinstance(crop, CropFrame):
+            raise TypeError(f"process_crop() takes a CropFrame, got {type(crop).__name__}")
+        never = self.config.never
+        try:
+            side = crop.image_rgb.shape[0]
+            if not self.config.min_side_px <= side <= self.config.max_side_px:
+                raise FrameRejected(REJECT_SIZE, f"crop of {side} px outside {self.config.min_side_px}.."
+                                                 f"{self.config.max_side_px} px (vehicle {crop.vehicle_id})")
+            t0 = time.perf_counter()
+            logits, in_world = self.backend.crop_logits(crop, crop_prompt_set(self.prompts, never))
+            prob_safe, prob_never = crop_probabilities(logits, in_world, self.prompts, len(never), self.fusion, side)
+            wire_safe, wire_never = to_wire(prob_safe, self.config.heatmap_dtype), to_wire(prob_never, self.config.heatmap_dtype)
+            inference_s = time.perf_counter() - t0
+        except FrameRejected as exc:
+            self.count_rejected(exc.reason)
+            raise
+        self.processed_crops += 1
+        return CropHeatmap(crop.vehicle_id, crop.request_seq, crop.frame_seq, crop.stamp, wire_safe, wire_never,
+                           crop.centre_frd_m, crop.side_m, crop.alt_agl_m, self.backend.name, self.backend.simulated,
+                           self.prompts.set_id, never_set_id(never), inference_s)
+
     def count_rejected(self, reason: str) -> None:
         """Count a rejection found outside `process` too (the service's decode and key checks)."""
         self.rejected[reason] += 1
@@ -416,7 +502,8 @@ class SegmenterCore:
 
     def stats(self) -> Mapping[str, object]:
         """Counters for logs and reports."""
-        return {"backend": self.backend.name, "processed": self.processed, "rejected": dict(self.rejected),
+        return {"backend": self.backend.name, "processed": self.processed, "processed_crops": self.processed_crops,
+                "rejected": dict(self.rejected),
                 "prompt_set_id": self.prompts.set_id, "prompt_changes": self.prompt_changes}
 
 

@@ -135,3 +135,31 @@ REFERENCE_NEGATIVE = (
     "stairs, steps, footsteps",
 )
 REFERENCE_PROMPTS = PromptSet(positive=REFERENCE_POSITIVE, negative=REFERENCE_NEGATIVE, template=REFERENCE_TEMPLATE)
+
+
+# What a close look must never land near (DESIGN.md 5): scored on crops against every landing
+# prompt; any pixel where they win is kept clear by the separation margin. Each prompt one group of
+# synonyms, as the reference writes its negatives.
+NEVER_PROMPTS = (
+    "people, person, pedestrian, crowd",
+    "car, vehicle, truck, bus, van",
+    "bicycle, motorcycle, scooter",
+    "animal, dog, horse, cow",
+)
+
+
+def never_prompts(values: Sequence[str]) -> tuple[str, ...]:
+    """A validated "never" prompt tuple (the same rules as a prompt group; PromptError names the problem)."""
+    return _as_prompt_tuple("never", values)
+
+
+def crop_prompt_set(prompts: PromptSet, never: tuple[str, ...]) -> PromptSet:
+    """The landing prompts with the never set appended to the negatives: one model pass scores both
+    (the landing fusion then reads the first `prompts.n_prompts` logits, the never fusion the rest)."""
+    return PromptSet(positive=prompts.positive, negative=prompts.negative + never, template=prompts.template)
+
+
+def never_set_id(never: tuple[str, ...]) -> str:
+    """A short id of a never set, as `PromptSet.set_id` for the landing prompts."""
+    canonical = json.dumps(list(never), ensure_ascii=False, separators=(",", ":"))
+    return hashlib.sha256(canonical.encode("utf-8")).hexdigest()[:SET_ID_HEX_CHARS]

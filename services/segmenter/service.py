@@ -2,10 +2,11 @@
 
     dovesei/<vehicle>/camera   CameraFrame  --subscriber (newest wins; FIFO in --lockstep)--+
     dovesei/*/segment          CameraFrame  --queryable (request-reply)---------------------+--> SegmenterCore
+                               CropFrame (a close look: landing + never prompts) ----------+
     dovesei/<vehicle>/prompts  PromptSetMsg --subscriber (FIFO: every change applied once)--+
                                                                                             |
     dovesei/<vehicle>/heatmap  SafetyHeatmap <--publisher (streamed frames) <---------------+
-    query reply                SafetyHeatmap, or an error reply naming the reason
+    query reply                SafetyHeatmap (CropHeatmap for a crop), or an error reply naming the reason
     dovesei/<vehicle>/alive/segmenter  liveliness token
 
 One loop thread does all the work (CLIPSeg is not thread-safe and a second inference thread
@@ -50,7 +51,7 @@ from dovesei.shared.errors import ConfigError, DoveseiError, ProtocolError
 from dovesei.shared.lifecycle import (
     Inbox, RateLimitedLog, declare_alive, exit_process, install_stop_handlers, write_stats,
 )
-from dovesei.shared.messages import CameraFrame, PromptSetMsg, SafetyHeatmap, replace
+from dovesei.shared.messages import CameraFrame, CropFrame, PromptSetMsg, SafetyHeatmap, replace
 from dovesei.shared.zconfig import SessionError, open_session
 
 from .core import (
@@ -60,7 +61,7 @@ from .core import (
 from .fair import OVERLOAD_REPORT_INTERVAL_S, FairSlots
 from .fusion import FUSION_MODES
 from .options import CLIPSEG_VARIANTS
-from .prompts import PromptError, PromptSet
+from .prompts import PromptError, PromptSet, never_prompts
 from .simulated import PROFILE_NAMES
 
 log = logging.getLogger(__name__)
@@ -221,13 +222,20 @@ class SegmenterService:
                 self.core.count_rejected(REJECT_DECODE)
                 raise FrameRejected(REJECT_DECODE, "a segment query must carry an encoded CameraFrame")
             try:
-                frame = decode(query.payload.to_bytes(), CameraFrame, key=key)
+                frame = decode(query.payload.to_bytes(), key=key)
+                if not isinstance(frame, (CameraFrame, CropFrame)):
+                    raise ProtocolError(key, f"a segment query carries a CameraFrame or a CropFrame, "
+                                             f"got {frame.SCHEMA!r}")
             except ProtocolError as exc:
                 self.core.count_rejected(REJECT_DECODE)
                 raise FrameRejected(REJECT_DECODE, exc.problem) from None
             vehicle = self._vehicle_of_key(key, frame, wildcard_ok=True)
-            heatmap = self.core.process(frame)
-            query.reply(keys.segment(vehicle), encode(self._stamped(heatmap, frame, recv_wall_s)))
+            if isinstance(frame, CropFrame):
+                # A close look: scored with the landing prompts and the never set.
+                query.reply(keys.segment(vehicle), encode(replace(self.core.process_crop(frame), sent_wall_s=time.time())))
+            else:
+                heatmap = self.core.process(frame)
+                query.reply(keys.segment(vehicle), encode(self._stamped(heatmap, frame, recv_wall_s)))
             self.queries_answered += 1
         except FrameRejected as exc:
             self.queries_refused += 1
@@ -359,6 +367,19 @@ def _parse_prompts(text: str) -> PromptSet:
         raise ValueError(str(exc)) from None
 
 
+def _parse_never(text: str) -> tuple[str, ...]:
+    """A JSON list of never prompts, or a file holding one."""
+    data = json_or_file("--never-prompts", text)
+    try:
+        return never_prompts(data if isinstance(data, list) else "not a list")
+    except PromptError as exc:
+        raise ValueError(str(exc)) from None
+
+
+def _render_never(never: tuple[str, ...]) -> str:
+    return json.dumps(list(never), ensure_ascii=False)
+
+
 def _render_prompts(prompts: PromptSet) -> str:
     return json.dumps({"positive": list(prompts.positive), "negative": list(prompts.negative),
                        "template": prompts.template}, ensure_ascii=False)
@@ -394,6 +415,9 @@ CLI = CommandLine(ServiceConfig, {
     "segmenter.expected_size_px": Flag("--frame-size", "accept only frames of this size, e.g. 352x352",
                                        parse=_parse_frame_size, render=_render_frame_size, metavar="WxH"),
     "segmenter.max_side_px": Flag("--max-side-px", "largest accepted frame side", check=integer_at_least(1)),
+    "segmenter.never": Flag("--never-prompts", 'JSON list (or a file holding it) of what a close look must never '
+                            'land near, scored on crops (default: people, vehicles, bicycles, animals)',
+                            parse=_parse_never, render=_render_never, metavar="FILE"),
     "segmenter.prompts": Flag("--prompts", 'JSON file (or the JSON itself) {"positive": [...], "negative": [...], '
                               '"template": "... {} ..."} (default: the reference\'s)', parse=_parse_prompts,
                               render=_render_prompts, metavar="FILE"),

@@ -48,7 +48,8 @@ NON_DEFAULT = {
             threads=3, fusion="dovesei", fusion_temperature=0.5, sim_profile="harsh", sim_noise=0.3, sim_seed=9,
             heatmap_dtype="float16",
             expected_size_px=(240, 320), max_side_px=2048,
-            prompts=PromptSet(positive=["grass, \"soft\""], negative=["road", "car"], template="a photo of {}.")),
+            prompts=PromptSet(positive=["grass, \"soft\""], negative=["road", "car"], template="a photo of {}."),
+            never=("people", "horse, cow")),
         vehicle_id="base", all_vehicles=True, lockstep=True, overload_report_s=2.5,
         variant="onnx-int8"),
     "controller": ControllerConfig(
