@@ -348,8 +348,10 @@ class SimCore:
         fwd, right = req.centre_frd_m
         c, s = math.cos(yaw_rad), math.sin(yaw_rad)
         cx, cy = x_m + c * right + s * fwd, y_m + c * fwd - s * right  # as the renderer turns body into world
+        # People and cars where they were when that frame was taken (its sim time).
         image, labels, _valid = render_ground_square(self.world, cx, cy, yaw_rad, req.side_m, req.out_px,
-                                                     with_image=cfg.render_image, with_labels=cfg.attach_truth)
+                                                     with_image=cfg.render_image, with_labels=cfg.attach_truth,
+                                                     t_s=frame.stamp.t_s)
         if image is None:
             image = np.zeros((req.out_px, req.out_px, 3), np.uint8)
         truth = GroundTruth(labels, self._classes, (cx, cy)) if labels is not None else None
