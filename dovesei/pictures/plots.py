@@ -289,7 +289,7 @@ def with_people(world: Any, crop: np.ndarray, labels: np.ndarray | None, extent:
     crop = np.ascontiguousarray(np.repeat(np.repeat(crop, scale, 0), scale, 1))
     if labels is not None:
         labels = np.ascontiguousarray(np.repeat(np.repeat(labels, scale, 0), scale, 1))
-    world.population.draw(crop, labels, to_px, float(t_s))
+    world.population.draw(crop, labels, to_px, float(t_s), baked_labels=False)  # the crop's labels hold those
     return crop, labels
 
 
