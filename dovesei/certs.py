@@ -61,7 +61,7 @@ ROLES: dict[str, Role] = {
     # It flies on (or feeds the EKF with) the camera's visual velocity, which only the camera (or
     # the sim in its place) may publish.
     # Its close looks: a crop from the camera (or the sim in its place), scored by the segmenter.
-    "controller": Role(puts=("cmd", "status", "state"), subscribes=("heatmap", "state", "odometry"),
+    "controller": Role(puts=("cmd", "status", "state", "look"), subscribes=("heatmap", "state", "odometry"),
                        asks=("crop", "segment"), alive_as=("controller", "mavlink")),
     "segmenter": Role(puts=("heatmap",), subscribes=("camera", "prompts"), answers=("segment",),
                       alive_as=("segmenter",)),
@@ -69,7 +69,7 @@ ROLES: dict[str, Role] = {
     "sim": Role(puts=("camera", "state", "episode", "odometry"), subscribes=("cmd", "state", "status"),
                 answers=("crop",), alive_as=("sim",)),
     "camera": Role(puts=("camera", "odometry"), subscribes=("state",), answers=("crop",), alive_as=("camera",)),
-    "operator": Role(puts=("prompts",), subscribes=("status", "episode", "heatmap", "state", "camera"),
+    "operator": Role(puts=("prompts",), subscribes=("status", "episode", "heatmap", "state", "camera", "look"),
                      asks=("segment",)),
     "monitor": Role(subscribes=tuple(t for t in keys.TOPICS if t not in ("segment", "crop"))),
 }

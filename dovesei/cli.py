@@ -24,6 +24,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "bench-sim": ("dovesei.benchmarks.sim", "simulator speed: render fps and lockstep real-time factor"),
     "bench-segmenter": ("dovesei.benchmarks.segmenter", "CLIPSeg reference vs fast path, and the simulated backend"),
     "bench-policy": ("dovesei.benchmarks.policy", "policy compute time per heatmap at 352x352"),
+    "bench-closelook": ("dovesei.benchmarks.closelook", "close look: sim crop render ms, crop -> CLIPSeg -> verdict s"),
     "bench-loop": ("dovesei.benchmarks.loop", "controller loop jitter at 20 Hz with a 2 Hz segmenter"),
     "perception-stats": ("dovesei.perception_stats", "simulated perception vs real CLIPSeg statistics (threshold, precision)"),
     "preview": ("dovesei.preview", "PNG pictures of a world, the camera's view and the simulated perception"),

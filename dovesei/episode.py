@@ -24,13 +24,14 @@ from typing import Any
 import numpy as np
 
 from dovesei.controller.core import ControllerConfig, ControllerCore
+from dovesei.controller.looker import SyncLooker
 from dovesei.controller.policies.base import make_policy
 from dovesei.controller.policies.config_file import config_from_values
-from dovesei.segmenter.core import SegmenterConfig, SegmenterCore, make_backend
+from dovesei.segmenter.core import FrameRejected, SegmenterConfig, SegmenterCore, make_backend
 from dovesei.segmenter.prompts import REFERENCE_PROMPTS, PromptSet
 from dovesei.segmenter.simulated import DEFAULT_NOISE, DEFAULT_PROFILE, PROFILE_NAMES
-from dovesei.shared.errors import ConfigError
-from dovesei.shared.messages import EpisodeResult, Message, SafetyHeatmap
+from dovesei.shared.errors import ConfigError, DoveseiError
+from dovesei.shared.messages import CropFrame, CropHeatmap, CropRequest, EpisodeResult, Message, SafetyHeatmap
 from dovesei.shared.mission import HANDOVER_ALT_M, PERSON_SEPARATION_M, VEHICLE_SEPARATION_M
 from dovesei.sim.core import SimConfig, SimCore
 from dovesei.sim.estimator import SIM_DEFAULT_VEHICLE_PROFILE
@@ -89,6 +90,11 @@ class EpisodeSpec:
     # The policy's constants that differ from the timing preset's (a --policy-config file's), as
     # sorted (name, value) pairs so the spec stays hashable; () = the preset.
     policy_config: tuple[tuple[str, Any], ...] = ()
+    # `clearance` looks at its spot at full resolution before committing (issue 24): the sim cuts
+    # the crop, the segmenter scores it with the never set, both in this process.
+    close_look: bool = True
+    # (a, b): every heatmap is recalibrated to sigmoid(a logit P + b) (the bench's --perception-shift).
+    perception_shift: tuple[float, float] | None = None
 
     @classmethod
     def from_job(cls, job: dict, start: Start) -> EpisodeSpec:
@@ -99,8 +105,11 @@ class EpisodeSpec:
                    vehicle_profile=job.get("vehicle_profile") or SIM_DEFAULT_VEHICLE_PROFILE,
                    handover_alt_m=job.get("handover_alt_m", HANDOVER_ALT_M),
                    separation_m=tuple(job.get("separation_m") or (PERSON_SEPARATION_M, VEHICLE_SEPARATION_M)),
+                   close_look=job.get("close_look", True),
                    policy_config=tuple(sorted((k, tuple(v) if isinstance(v, list) else v)
-                                              for k, v in (job.get("policy_config") or {}).items())))
+                                              for k, v in (job.get("policy_config") or {}).items())),
+                   perception_shift=None if job.get("perception_shift") is None else
+                   (float(job["perception_shift"]["a"]), float(job["perception_shift"]["b"])))
 
 
 @dataclass
@@ -126,12 +135,14 @@ def separation_fields(r: EpisodeResult) -> dict:
             "separation_violated": bool(r.separation_violated) if judged else None}
 
 
-def build_cores(world: World, spec: EpisodeSpec, *, render_images: bool = False
-                ) -> tuple[SimCore, SegmenterCore, ControllerCore]:
+def build_cores(world: World, spec: EpisodeSpec, *, render_images: bool = False,
+                record: Callable[[Message], None] | None = None) -> tuple[SimCore, SegmenterCore, ControllerCore]:
     """The three cores as the three services build them from the same options.
 
     The simulated perception reads only the frames' truth labels, so by default the sim skips
-    drawing the pixels nobody looks at; the trajectory is the same either way.
+    drawing the pixels nobody looks at; the trajectory is the same either way. The controller's
+    close looks are answered by the sim's `crop` and the segmenter's `process_crop` at once (as the
+    lockstep services answer them while the sim waits); `record` sees each crop and its scores.
     """
     sim = SimCore(world, spec.start, SimConfig(vehicle_id=spec.vehicle_id, timing=spec.timing, seed=spec.seed,
                                                time_limit_s=spec.time_limit_s, render_image=render_images,
@@ -142,13 +153,28 @@ def build_cores(world: World, spec: EpisodeSpec, *, render_images: bool = False
     seg_config = segmenter_config(spec)
     seg = SegmenterCore(make_backend(seg_config), seg_config)
     ctrl_config = ControllerConfig(vehicle_id=spec.vehicle_id, policy=spec.policy, timing=spec.timing,
-                                   lockstep=True, handover_alt_m=spec.handover_alt_m)
+                                   lockstep=True, handover_alt_m=spec.handover_alt_m, close_look=spec.close_look)
     # A policy file's constants, checked as the file was; the hand-over still the controller's.
     policy = None if not spec.policy_config else make_policy(
         spec.policy, config_from_values(spec.policy, dict(spec.policy_config), spec.timing, "episode policy_config"),
-        handover_alt_m=spec.handover_alt_m)
-    ctrl = ControllerCore(ctrl_config, policy=policy)
+        handover_alt_m=spec.handover_alt_m, close_look=spec.close_look)
+    ctrl = ControllerCore(ctrl_config, policy=policy, looker=SyncLooker(in_process_ask(sim, seg, record)))
     return sim, seg, ctrl
+
+
+def in_process_ask(sim: SimCore, seg: SegmenterCore, record: Callable[[Message], None] | None = None):
+    """A close look answered in this process: the sim's crop, the segmenter's scores."""
+    def ask(req: CropRequest) -> tuple[CropFrame, CropHeatmap]:
+        crop = sim.crop(req)
+        try:
+            heatmap = seg.process_crop(crop)
+        except FrameRejected as exc:
+            raise DoveseiError(f"segment refused the crop: {exc}") from None
+        if record is not None:
+            record(crop)
+            record(heatmap)
+        return crop, heatmap
+    return ask
 
 
 def segmenter_config(spec: EpisodeSpec) -> SegmenterConfig:
@@ -158,7 +184,7 @@ def segmenter_config(spec: EpisodeSpec) -> SegmenterConfig:
     extra = {} if fusion is None else {"fusion": fusion}
     noise = DEFAULT_NOISE if spec.noise is None else spec.noise
     return SegmenterConfig(backend="sim", sim_profile=spec.perception, sim_noise=noise, sim_seed=spec.seed,
-                           prompts=spec.prompts, **extra)
+                           prompts=spec.prompts, prob_shift=spec.perception_shift, **extra)
 
 
 def run_episode(world: World, spec: EpisodeSpec, *, record_track: bool = True,
@@ -167,7 +193,7 @@ def run_episode(world: World, spec: EpisodeSpec, *, record_track: bool = True,
     (e.g. `dovesei.shared.recording.FlightRecorder.write`), in the order the services would."""
     record = record or (lambda msg: None)
     t0 = time.perf_counter()
-    sim, seg, ctrl = build_cores(world, spec)
+    sim, seg, ctrl = build_cores(world, spec, record=record)
     pending: dict[int, SafetyHeatmap] = {}  # heatmaps computed but not yet due
     rows: list[tuple[float, float, float, float]] = []
     states: list[str] = []

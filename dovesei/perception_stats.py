@@ -48,7 +48,7 @@ from dataclasses import asdict, dataclass
 import cv2
 import numpy as np
 
-from dovesei.controller.policies.dovesei import DoveseiConfig, dynamic_threshold
+from dovesei.controller.policies.dovesei.policy import DoveseiConfig, dynamic_threshold
 from dovesei.segmenter.fusion import FusionConfig, blur_prob
 from dovesei.segmenter.prompts import REFERENCE_PROMPTS
 from dovesei.segmenter.sim_backend import (
@@ -116,7 +116,7 @@ def world_stats(world: World, params: PerceptionParams, n_starts: int, frames_pe
             x_m = start.x_m + k * DRIFT_M_PER_FRAME * math.sin(heading)
             y_m = start.y_m + k * DRIFT_M_PER_FRAME * math.cos(heading)
             _, labels, _ = render(world, x_m, y_m, ALT_M, 0.0, cam, with_image=False)
-            view = View((x_m, y_m), ALT_M, cam.hfov_rad, 0.0)
+            view = View((x_m, y_m), ALT_M, cam.hfov_rad, 0.0, world.name)
             prob = perception.safe_probability(labels, names, view, i * 1000 + k, REFERENCE_PROMPTS, fusion)
             truth = _view_disk_safe(world, safe_map, x_m, y_m, cam)
             below_floor += float(np.count_nonzero(truth)) / truth.size < policy_cfg.seg_min_safe_fraction

@@ -18,7 +18,7 @@ from dovesei.pictures.world import render_preview, render_views, world_sheet
 from dovesei.shared.cliconfig import OneLineParser
 from dovesei.shared.errors import DoveseiError
 from dovesei.sim.camera import CameraModel, render
-from dovesei.sim.synthetic import parse_spec
+from dovesei.sim.synthetic.generate import parse_spec
 from dovesei.sim.world import load_world
 
 log = logging.getLogger(__name__)

@@ -11,6 +11,8 @@ prompt sets, described in a small YAML or JSON file, on either engine, resumable
     prompts:                          # name -> prompt set; null = the reference prompts
       reference: null
       lawns-only: {positive: [grass, lawn], negative: [building, road, water, tree]}
+    perception_shift: [null, "0.6,1.6,0.8"]   # optional axis: null = plain; "A_LO,A_HI,B" as in
+                                      # `dovesei bench --perception-shift` (a, b drawn per start)
     # optional: noise, time_limit_s, start_alt_m, vehicle_profile (ideal | realistic | harsh; default
     # as `dovesei bench` at this timing)
 
@@ -31,6 +33,7 @@ from pathlib import Path
 
 from dovesei.bench import check_perception, paper_time_limit_s, parse_policies, suite_worlds
 from dovesei.bench.run import Grid, Variant, run_grid
+from dovesei.bench.shift import parse_shift
 from dovesei.episode import prompt_set
 from dovesei.shared.cliconfig import OneLineParser
 from dovesei.shared import timing as shared_timing
@@ -42,7 +45,17 @@ from dovesei.sim.starts import check_start_alt_m
 log = logging.getLogger(__name__)
 
 KEYS = {"worlds", "suite", "episodes", "seed", "timing", "policies", "perception", "prompts", "noise", "time_limit_s",
-        "start_alt_m", "vehicle_profile"}
+        "start_alt_m", "vehicle_profile", "perception_shift"}
+
+
+def _shifts(doc: dict) -> list[tuple[float, float, float] | None]:
+    """The shift axis: null (plain) or "A_LO,A_HI,B" / [A_LO, A_HI, B] entries, each checked."""
+    value = doc.get("perception_shift", [None])
+    if not isinstance(value, list) or not value:
+        raise ConfigError(f"sweep file: 'perception_shift' must be a non-empty list of null or \"A_LO,A_HI,B\", "
+                          f"got {value!r}")
+    out = [None if v is None else parse_shift(v, "sweep file: 'perception_shift'") for v in value]
+    return list(dict.fromkeys(out))
 
 
 def _names(doc: dict, key: str, default: list[str] | None = None) -> list[str]:
@@ -126,8 +139,8 @@ def grid_from_doc(doc: dict) -> Grid:
         noise = in_range("sweep file: 'noise'", noise, 0.0, 4.0)
     limit = doc.get("time_limit_s")
     limit = paper_time_limit_s(timing) if limit is None else positive("sweep file: 'time_limit_s'", limit)
-    variants = tuple(Variant(perception=p, prompts_name=n, prompts=v, labelled=True)
-                     for p in perceptions for n, v in prompt_sets.items())
+    variants = tuple(Variant(perception=p, prompts_name=n, prompts=v, labelled=True, shift=s)
+                     for p in perceptions for n, v in prompt_sets.items() for s in _shifts(doc))
     return Grid(worlds=worlds, episodes=_int(doc, "episodes", 20, 1), seed=_int(doc, "seed", 0, 0),
                 policies=tuple(policies), variants=variants, noise=noise, timing=timing, time_limit_s=float(limit),
                 start_alt_m=check_start_alt_m("sweep file: 'start_alt_m'", doc.get("start_alt_m", 100.0)),
@@ -143,7 +156,8 @@ def plot_sweep(rows: list[dict], out_png: Path, title: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    labels = [f"{r['policy']}\n{r['perception']} / {r['prompts']}" for r in rows]
+    labels = [f"{r['policy']}\n{r['perception']} / {r['prompts']}" + (f"\nshift {r['shift']}" if r.get("shift") else "")
+              for r in rows]
     rates = [100.0 * r["safe"] / r["episodes"] if r["episodes"] else 0.0 for r in rows]
     lo = [rate - 100 * r["success_ci95"][0] for rate, r in zip(rates, rows)]
     hi = [100 * r["success_ci95"][1] - rate for rate, r in zip(rates, rows)]

@@ -13,6 +13,7 @@ Per vehicle, under `dovesei/<vehicle>/`:
     segment   queryable: CameraFrame in, SafetyHeatmap out (request-reply segmentation);
               CropFrame in, CropHeatmap out (a close look, scored with the "never" set too)
     crop      queryable: CropRequest in, CropFrame out (answered onboard by the camera, or the sim)
+    look      CropFrame + CropHeatmap  controller -> operators, reports (each close look it took)
     alive/<service>              liveliness tokens
 
 A ground-station segmenter serving several vehicles subscribes to `dovesei/*/camera` and declares
@@ -28,7 +29,7 @@ from dovesei.shared.errors import ConfigError
 ROOT = "dovesei"
 ANY_VEHICLE = "*"
 SERVICES = ("sim", "segmenter", "controller", "camera", "mavlink")
-TOPICS = ("camera", "state", "heatmap", "cmd", "status", "prompts", "episode", "segment", "odometry", "crop")
+TOPICS = ("camera", "state", "heatmap", "cmd", "status", "prompts", "episode", "segment", "odometry", "crop", "look")
 _VEHICLE_RE = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
 
 
@@ -83,6 +84,10 @@ def segment(vehicle: str) -> str:
 
 def crop(vehicle: str) -> str:
     return _key(vehicle, "crop")
+
+
+def look(vehicle: str) -> str:
+    return _key(vehicle, "look")
 
 
 def alive(vehicle: str, service: str) -> str:

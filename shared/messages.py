@@ -304,6 +304,9 @@ class GroundTruth(Record):
     # The optical axis on the ground, world metres (x east, y north): the simulated perception
     # anchors its misreadings to the ground with it (the same ground misread the same way).
     centre_world_m: tuple[float, float] | None = None
+    # The world's name: the simulated perception's per-world confusions and per-episode draws
+    # are keyed by it ("" = unnamed: they are then the same for every world).
+    world: str = ""
 
 
 @message("dovesei.camera_frame", 1)
@@ -486,6 +489,9 @@ class ControllerStatus(Message):
     confirmed_frame_seq: int = -1
     confirmed_row_px: float = 0.0
     confirmed_col_px: float = 0.0
+    # The policy's last close look (issue 24): its verdict in one line ("clear: ...", "never set 2.1 m
+    # from the spot ...", "look failed: ..."); empty for policies that do not look.
+    look_verdict: str = ""
 
     RANGES: ClassVar[dict[str, tuple[float, float]]] = {
         "spot_north_m": (-1e7, 1e7), "spot_east_m": (-1e7, 1e7), "spot_clearance_m": (0.0, 1e6),

@@ -44,7 +44,7 @@ from mcap.writer import CompressionType, Writer
 from dovesei.shared.codec import decode, encode
 from dovesei.shared.errors import ConfigError, DoveseiError, ProtocolError
 from dovesei.shared.messages import (
-    SCHEMAS, CameraFrame, ControllerStatus, EpisodeResult, Message, PromptSetMsg, SafetyHeatmap, VehicleState,
+    SCHEMAS, CameraFrame, ControllerStatus, CropFrame, CropHeatmap, EpisodeResult, Message, PromptSetMsg, SafetyHeatmap, VehicleState,
     VelocityCommand, VisualOdometry, field_hints,
 )
 
@@ -53,6 +53,7 @@ TOPICS: dict[type, str] = {
     VehicleState: "/dovesei/state", VelocityCommand: "/dovesei/cmd", ControllerStatus: "/dovesei/status",
     SafetyHeatmap: "/dovesei/heatmap", CameraFrame: "/dovesei/camera", EpisodeResult: "/dovesei/episode",
     PromptSetMsg: "/dovesei/prompts", VisualOdometry: "/dovesei/odometry",
+    CropFrame: "/dovesei/look/crop", CropHeatmap: "/dovesei/look/heatmap",
 }
 CAMERA_IMAGE_TOPIC = "/camera/image"
 HEATMAP_IMAGE_TOPIC = "/heatmap/image"

@@ -24,9 +24,11 @@ import os
 import sys
 from pathlib import Path
 
+from dovesei.bench import shift
 from dovesei.bench.run import Grid, Variant, run_grid, summary_markdown
+from dovesei.bench.shift import parse_shift
 from dovesei.controller.policies import policy_names
-from dovesei.controller.policies.clearance_config import ClearanceConfig
+from dovesei.controller.policies.clearance.config import ClearanceConfig
 from dovesei.controller.policies.config_file import load_policy_config, policy_values, preset_config
 from dovesei.episode import DEFAULT_PERCEPTION
 from dovesei.episode import perception_names as _perception_names
@@ -65,6 +67,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="perception backend (the bench flies simulated perception; CLIPSeg runs in `dovesei up`)")
     p.add_argument("--perception", default=None, help="simulated perception profile (default: realistic)")
     p.add_argument("--noise", type=float, default=None, help="simulated perception noise scale (default: the profile's)")
+    p.add_argument("--perception-shift", default=None, metavar="A_LO,A_HI,B", help=shift.HELP)
     p.add_argument("--timing", default=shared_timing.DEFAULT_TIMING, help="timing preset: reference or real")
     p.add_argument("--time-limit-s", type=float, default=None,
                    help="sim-time limit of an episode (default: the paper's 1200 s on the preset's clock)")
@@ -162,8 +165,13 @@ def run_bench(*, world_spec: str | None = None, worlds: tuple[str, ...] | None =
               address: str | None = None, progress: bool = True, world_label: str = "",
               seed_note: str = "", vehicle_profile: str | None = None,
               handover_alt_m: float = HANDOVER_ALT_M, policy_config: Path | None = None,
-              separation_m: tuple[float, float] = (PERSON_SEPARATION_M, VEHICLE_SEPARATION_M)) -> dict:
-    """Run (or resume) a bench into `out`; returns the results.json content."""
+              separation_m: tuple[float, float] = (PERSON_SEPARATION_M, VEHICLE_SEPARATION_M),
+              perception_shift: str | tuple | None = None) -> dict:
+    """Run (or resume) a bench into `out`; returns the results.json content.
+
+    With `perception_shift` ("A_LO,A_HI,B") every start is flown plainly and shifted (dovesei.bench.shift).
+    """
+    shifted = None if perception_shift is None else parse_shift(perception_shift)
     _at_least_one("--episodes", episodes)
     _at_least_one("--jobs", jobs)
     if seed < 0:
@@ -189,8 +197,10 @@ def run_bench(*, world_spec: str | None = None, worlds: tuple[str, ...] | None =
     if address and engine != "ray":
         raise ConfigError("--address names a Ray cluster: use it with --engine ray")
     specs = tuple(worlds) if worlds else (world_spec or "synthetic",)
+    plain = Variant(perception=check_perception(perception))
+    variants = (plain,) if shifted is None else (plain, Variant(perception=plain.perception, shift=shifted))
     grid = Grid(worlds=specs, episodes=episodes, seed=seed, policies=tuple(policies),
-                variants=(Variant(perception=check_perception(perception)),), noise=noise, timing=timing,
+                variants=variants, noise=noise, timing=timing,
                 time_limit_s=float(time_limit_s), start_alt_m=float(start_alt_m), segmenter=segmenter,
                 start_margin_m=float(start_margin_m), world_label=world_label or specs[0], extra={"seed_note": seed_note} if seed_note else {},
                 vehicle_profile=vehicle_profile, handover_alt_m=float(handover_alt_m), policy_config=changed,
@@ -213,6 +223,7 @@ def main(argv: list[str] | None = None) -> int:
                         progress=not args.no_progress, vehicle_profile=args.vehicle_profile,
                         handover_alt_m=args.handover_alt_m, policy_config=args.policy_config,
                         separation_m=(args.person_separation_m, args.vehicle_separation_m),
+                        perception_shift=args.perception_shift,
                         world_label=f"suite:{args.suite.strip()}" if args.suite is not None else "")
     except DoveseiError as exc:  # a user error: one line, no traceback
         print(f"dovesei bench: {exc}", file=sys.stderr)

@@ -127,9 +127,11 @@ def record_base(job: dict) -> dict:
     base = {"world": job["world"], "policy": job["policy"], "index": job["index"], "seed": job["seed"],
             "start": {"x_m": job["start"]["x_m"], "y_m": job["start"]["y_m"], "alt_m": job["start"]["alt_m"]}}
     # Only a sweep varies these within one run; a plain bench keeps its records as they were.
-    for key in ("perception", "prompts"):
+    for key in ("perception", "prompts", "shift"):
         if job.get(f"{key}_label") is not None:
             base[key] = job[f"{key}_label"]
+    if job.get("perception_shift") is not None:  # the (a, b) this episode's heatmaps were shifted by
+        base["perception_shift"] = dict(job["perception_shift"])
     # The vehicle profile is recorded when it is not `ideal`, whose records stay those of the sim
     # before profiles existed.
     if job.get("vehicle_profile") not in (None, "ideal"):

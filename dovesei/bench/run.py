@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dovesei.bench import engines, stats
+from dovesei.bench import engines, shift, stats
 from dovesei.pictures.html import write_bench_page
 from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.shared.mission import HANDOVER_ALT_M, PERSON_SEPARATION_M, SAFETY_RADIUS_M, VEHICLE_SEPARATION_M
@@ -51,6 +51,7 @@ class Variant:
     prompts_name: str = "reference"
     prompts: dict | None = None  # {"positive": [...], "negative": [...], "template": "..."}; None = the reference
     labelled: bool = False
+    shift: tuple[float, float, float] | None = None  # --perception-shift (A_LO, A_HI, B); None = plain
 
 
 @dataclass(frozen=True)
@@ -77,6 +78,11 @@ class Grid:
     # The judge's separations from people and vehicles (0: that rule off).
     separation_m: tuple[float, float] = (PERSON_SEPARATION_M, VEHICLE_SEPARATION_M)
 
+    @property
+    def shifted(self) -> bool:
+        """Whether any variant flies a perception shift (then every record names its shift)."""
+        return any(v.shift is not None for v in self.variants)
+
     def config(self) -> dict:
         return {"world": self.world_label or self.worlds[0], "worlds": list(self.worlds), "episodes": self.episodes,
                 "seed": self.seed, "policies": list(self.policies), "noise": self.noise, "timing": self.timing,
@@ -89,6 +95,8 @@ class Grid:
                 **({"handover_alt_m": self.handover_alt_m} if self.handover_alt_m != HANDOVER_ALT_M else {}),
                 **({"policy_config": self.policy_config} if self.policy_config else {}),
                 "separation_m": list(self.separation_m),
+                # Likewise a run without a perception shift hashes as before.
+                **({"perception_shift": [shift.label(v.shift) for v in self.variants]} if self.shifted else {}),
                 "perception": [v.perception for v in self.variants] if len(self.variants) > 1 else self.variants[0].perception,
                 "prompts": {v.prompts_name: v.prompts for v in self.variants}, **self.extra}
 
@@ -101,7 +109,7 @@ def _config_key(config: dict) -> str:
 
 
 def _record_key(rec: dict) -> tuple:
-    return (rec.get("world"), rec["policy"], rec.get("perception"), rec.get("prompts"), rec["index"])
+    return (rec.get("world"), rec["policy"], rec.get("perception"), rec.get("prompts"), rec.get("shift"), rec["index"])
 
 
 def load_journal(path: Path, key: str) -> dict[tuple, dict]:
@@ -186,6 +194,9 @@ def plan_jobs(grid: Grid, worlds: dict, out: Path) -> list[dict]:
                         "policy_config": grid.policy_config or None, "separation_m": list(grid.separation_m),
                         "perception_label": var.perception if var.labelled else None,
                         "prompts_label": var.prompts_name if var.labelled else None,
+                        "shift_label": shift.label(var.shift) if grid.shifted else None,
+                        "perception_shift": None if var.shift is None else dict(zip(
+                            ("a", "b"), shift.draw(var.shift, grid.seed, wi, i))),
                         "start": {"x_m": round(st.x_m, 3), "y_m": round(st.y_m, 3), "alt_m": st.alt_m}})
     return jobs
 
@@ -194,6 +205,8 @@ def _track_path(out: Path, grid: Grid, rec: dict) -> Path:
     parts = [] if len(grid.worlds) == 1 else [world_slug(grid.worlds.index(rec["world"]), rec["world"])]
     if rec.get("perception") is not None or rec.get("prompts") is not None:
         parts.append(f"{rec.get('perception')}-{rec.get('prompts')}")
+    if rec.get("shift") not in (None, shift.PLAIN_LABEL):  # the plain runs keep the plain folder
+        parts.append("shift-" + re.sub(r"[^0-9.]+", "-", rec["shift"]))
     folder = out.joinpath("tracks", *parts)
     folder.mkdir(parents=True, exist_ok=True)
     return folder / f"{rec['policy']}-{rec['index']:04d}.npy"
@@ -258,12 +271,18 @@ def _run(grid: Grid, jobs: list[dict], todo: list[dict], done: dict, worlds: dic
     results.sort(key=lambda e: order.get(_record_key(e), len(order)))
     episodes_out = [{k: v for k, v in e.items() if k != "config_key"} for e in results]
     limits = stats.limits_for(grid.timing, grid.time_limit_s)
-    doc = {"episodes": episodes_out, "summary": stats.summarise(episodes_out, grid.policies, limits=limits),
+    # With a perception shift the headline figures stay the plain runs'; the shift sits beside them.
+    plain = [e for e in episodes_out if e.get("shift") in (None, shift.PLAIN_LABEL)]
+    doc = {"episodes": episodes_out, "summary": stats.summarise(plain, grid.policies, limits=limits),
            "config": config}
     if len(grid.worlds) > 1:
-        doc["per_world"] = stats.summarise_by(episodes_out, ("world", "policy"))
+        doc["per_world"] = stats.summarise_by(episodes_out, ("world", "policy", "shift") if grid.shifted
+                                              else ("world", "policy"))
     if any(v.labelled for v in grid.variants):
-        doc["per_variant"] = stats.summarise_by(episodes_out, ("policy", "perception", "prompts"))
+        doc["per_variant"] = stats.summarise_by(episodes_out, ("policy", "perception", "prompts", "shift")
+                                                if grid.shifted else ("policy", "perception", "prompts"))
+    if grid.shifted:
+        doc["per_shift"] = stats.summarise_by(episodes_out, ("policy", "shift"))
     (out / "results.json").write_text(json.dumps(doc, indent=1))
     (out / "summary.md").write_text(summary_markdown(doc, title=title))
     _plot_paths(grid, worlds, doc, out)
@@ -295,11 +314,20 @@ def summary_markdown(doc: dict, *, title: str = "dovesei bench") -> str:
         lines += ["## Success against the time limit (the same runs, cut at each limit)", "",
                   "The paper's limits on its own clock and, in brackets, on this preset's sim clock.", "",
                   *limit_lines, ""]
+    if doc.get("per_shift"):
+        lines += ["## Plain and with the perception shift", "",
+                  "The same starts, every heatmap P turned into sigmoid(a logit(P) + b) with a and b drawn per "
+                  f"start from `{'`, `'.join(s for s in config['perception_shift'] if s != shift.PLAIN_LABEL)}` "
+                  "(A_LO,A_HI,B); `none` = the plain runs (the table above). Each episode's a and b are in "
+                  "results.json.", "",
+                  *stats.rows_table(doc["per_shift"], ("policy", "shift")), ""]
     if doc.get("per_world"):
-        lines += ["## Per world", "", *stats.rows_table(doc["per_world"], ("world", "policy")), ""]
+        keys = ("world", "policy", "shift") if "shift" in doc["per_world"][0] else ("world", "policy")
+        lines += ["## Per world", "", *stats.rows_table(doc["per_world"], keys), ""]
     if doc.get("per_variant"):
-        lines += ["## Per perception profile and prompt set", "",
-                  *stats.rows_table(doc["per_variant"], ("policy", "perception", "prompts")), ""]
+        keys = ("policy", "perception", "prompts", "shift") if "shift" in doc["per_variant"][0] \
+            else ("policy", "perception", "prompts")
+        lines += ["## Per perception profile and prompt set", "", *stats.rows_table(doc["per_variant"], keys), ""]
     return "\n".join(lines)
 
 
@@ -312,7 +340,9 @@ def _plot_paths(grid: Grid, worlds: dict, doc: dict, out: Path) -> None:
     if any(v.labelled for v in grid.variants):
         return  # a sweep's picture is its results plot; per-variant path panels would be unreadable
     for wi, spec in enumerate(grid.worlds):
-        sub = {**doc, "episodes": [e for e in doc["episodes"] if e.get("world") == spec]}
+        # The plain runs' paths (a shifted run's tracks lie in their own folder).
+        sub = {**doc, "episodes": [e for e in doc["episodes"] if e.get("world") == spec
+                                   and e.get("shift") in (None, shift.PLAIN_LABEL)]}
         if len(grid.worlds) == 1:
             plot_bench_paths(worlds[spec], sub, out / "tracks", out / "paths.png")
         else:

@@ -84,14 +84,14 @@ def _time_s(fn: Callable[[], object], repeats: int, cpu_s: list[float] | None = 
     return durations_s
 
 
-def _sim_backend_hz() -> float | None:
-    """Heatmaps per second of the simulated backend, if that module provides ``bench_hz``."""
+def _sim_backend_rates() -> dict[str, float] | None:
+    """Heatmaps per wall and per CPU second of the simulated backend, if that module provides them."""
     try:
         simulated = importlib.import_module("dovesei.segmenter.simulated")
     except ImportError:
         return None
-    bench_hz = getattr(simulated, "bench_hz", None)
-    return float(bench_hz()) if callable(bench_hz) else None
+    bench_rates = getattr(simulated, "bench_rates", None)
+    return bench_rates() if callable(bench_rates) else None
 
 
 GATE_WORLDS = ("synthetic", "dubai")
@@ -265,7 +265,7 @@ def run(args: argparse.Namespace, model_dir: str) -> dict:
     picked = _pick_variant(backend, args, threads)
     for figures in picked["backends"].values():  # each variant's xN against the stock forward of this run
         figures["speedup_vs_stock"] = reference_s_per_frame / figures["s_per_frame"]
-    sim_hz = _sim_backend_hz()
+    sim_rates = _sim_backend_rates()
     fairness = _fairness(args.fair_s)
     speedup = reference_s_per_frame / fast_s_per_frame
     result = {
@@ -294,7 +294,9 @@ def run(args: argparse.Namespace, model_dir: str) -> dict:
         "candidates": candidates,
         "peak_rss_mb": _peak_rss_mb(),
         "peak_rss_fast_only_mb": peak_rss_fast_mb,
-        "sim_backend_hz": sim_hz,
+        "sim_backend_hz": None if sim_rates is None else sim_rates["wall_hz"],
+        # Per CPU second of one core: on a machine shared with other jobs, what one core does.
+        "sim_backend_cpu_hz": None if sim_rates is None else sim_rates["cpu_hz"],
         **picked,
         "picked_speedup": reference_s_per_frame / picked["picked_s_per_frame"],
         # The same ratio in CPU seconds of this process: what other jobs on the machine disturb least.

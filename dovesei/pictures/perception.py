@@ -62,7 +62,7 @@ def _titled(rgb: np.ndarray, title: str) -> np.ndarray:
 
 def _threshold_mask(prob: np.ndarray) -> np.ndarray:
     """The reference's dynamic threshold (best ~10 % of pixels), as in perception-stats."""
-    from dovesei.controller.policies.dovesei import DoveseiConfig, dynamic_threshold
+    from dovesei.controller.policies.dovesei.policy import DoveseiConfig, dynamic_threshold
 
     res = dynamic_threshold(prob, DoveseiConfig())
     return np.zeros(prob.shape, bool) if res.mask_u8 is None else res.mask_u8 > 0

@@ -131,6 +131,32 @@ def _pyplot():
 # ---------------------------------------------------------------- one episode: trajectory.png
 
 
+# A close look's verdict (issue 24) where the vehicle took it: cleared, something of the never set
+# inside the margin, or no answer.
+LOOK_MARKERS = {"clear": ("o", "#2ca02c", "close look: clear"),
+                "never": ("X", "#d62728", "close look: never set inside the margin"),
+                "look failed": ("s", "#ff7f0e", "close look: no answer")}
+
+
+def _close_looks(ax: Any, xs: np.ndarray, ys: np.ndarray, looks: list[str]) -> list[Any]:
+    """Mark each new close-look verdict at the position it arrived; the legend handles of those shown."""
+    from matplotlib.lines import Line2D
+
+    if len(looks) != xs.size:
+        return []
+    shown = {}
+    for i, verdict in enumerate(looks):
+        if not verdict or (i and verdict == looks[i - 1]):
+            continue
+        kind = next((k for k in LOOK_MARKERS if verdict.startswith(k)), None)
+        if kind is None:
+            continue
+        marker, colour, label = LOOK_MARKERS[kind]
+        ax.plot(xs[i], ys[i], marker=marker, ls="", color=colour, markeredgecolor="white", ms=7, zorder=7)
+        shown[kind] = Line2D([], [], marker=marker, ls="", color=colour, markeredgecolor="white", ms=8, label=label)
+    return list(shown.values())
+
+
 def plot_trajectory(world: Any, report: Mapping[str, Any], out_png: Path | str) -> Path:
     """Draw one episode of `dovesei up` over the world image; returns the PNG's path.
 
@@ -201,6 +227,7 @@ def plot_trajectory(world: Any, report: Mapping[str, Any], out_png: Path | str) 
                 markeredgewidth=2.0, zorder=6)
         handles.append(Line2D([], [], marker="o", ls="", markerfacecolor="none", markeredgecolor="magenta", ms=10,
                               label="ground last confirmed" + (f" ({error:.1f} m away)" if error is not None else "")))
+    handles += _close_looks(ax, xs, ys, list(traj.get("look", [])))
     ax.set_xlim(extent[0], extent[1])
     ax.set_ylim(extent[2], extent[3])
     ax.set_xlabel("x east (m)")

@@ -82,6 +82,10 @@ class VideoFrame:
     # spot pixel is then `confirmed_px`); None when the policy confirmed none.
     confirmed_frames_ago: int | None = None
     confirmed_px: tuple[float, float] | None = None
+    look_verdict: str = ""  # the policy's last close look (issue 24): "clear: ...", "never set 2.1 m ...", ...
+    # That look's crop (RGB, square, image up = body forward) and its P(never) at the crop's size.
+    look_rgb: np.ndarray | None = None
+    look_never: np.ndarray | None = None
 
     @property
     def map_policy(self) -> bool:
@@ -168,18 +172,45 @@ def _spot(panel: np.ndarray, frame: VideoFrame, hm_w: int, sx: float, sy: float)
     return lines
 
 
-def _policy_text(width_px: int, spot: Sequence[str], reason: str) -> np.ndarray:
-    """The row under the panels: the spot's figures on the first line, the policy's reason (wrapped,
-    at most two lines) under it."""
+def _policy_text(width_px: int, spot: Sequence[str], reason: str, look: str = "") -> np.ndarray:
+    """The row under the panels: the spot's figures on the first line, the close look's verdict
+    (green clear, red something of the never set, orange a failed look), the policy's reason
+    (wrapped) under them; three lines at most."""
     row = np.zeros((POLICY_TEXT_PX, width_px, 3), np.uint8)
-    lines = ["policy: " + ", ".join(spot)] if spot else []
+    lines = [("policy: " + ", ".join(spot), (255, 255, 255))] if spot else []
+    if look:
+        colour = (80, 220, 80) if look.startswith("clear") else (60, 60, 255) if look.startswith("never") \
+            else (0, 165, 255)
+        lines.append(("close look: " + look, colour))
     if reason:
-        lines += textwrap.wrap("reason: " + reason, max(20, width_px // 7), max_lines=3 - len(lines),
-                               placeholder=" ...")
+        lines += [(t, (255, 255, 255)) for t in textwrap.wrap("reason: " + reason, max(20, width_px // 7),
+                                                             max_lines=3 - len(lines), placeholder=" ...")]
     font = cv2.FONT_HERSHEY_SIMPLEX
-    for i, line in enumerate(lines):
-        cv2.putText(row, line, (8, 14 + 14 * i), font, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
+    for i, (line, colour) in enumerate(lines[:3]):
+        cv2.putText(row, line, (8, 14 + 14 * i), font, 0.4, colour, 1, cv2.LINE_AA)
     return row
+
+
+LOOK_NEVER_P = 0.3  # the close look's own threshold (policies/clearance/closelook.py): tinted red above it
+
+
+def _look_inset(panel: np.ndarray, frame: VideoFrame) -> None:
+    """The last close look in the camera panel's lower right corner: the crop, red where P(never)
+    passes the look's threshold, its margin (the square's inscribed circle) and the verdict's colour."""
+    side = panel.shape[0] * 3 // 8
+    crop = cv2.resize(cv2.cvtColor(np.ascontiguousarray(frame.look_rgb), cv2.COLOR_RGB2BGR), (side, side),
+                      interpolation=cv2.INTER_AREA)
+    if frame.look_never is not None:
+        never = cv2.resize(np.asarray(frame.look_never, np.float32), (side, side), interpolation=cv2.INTER_LINEAR)
+        hot = never >= LOOK_NEVER_P
+        crop[hot] = (0.4 * crop[hot] + 0.6 * np.array([0, 0, 255])).astype(np.uint8)
+    colour = (80, 220, 80) if frame.look_verdict.startswith("clear") else (60, 60, 255)
+    cv2.circle(crop, (side // 2, side // 2), side // 2 - 1, colour, 1, cv2.LINE_AA)
+    cv2.drawMarker(crop, (side // 2, side // 2), SPOT_BGR, cv2.MARKER_TILTED_CROSS, 10, 1, cv2.LINE_AA)
+    y0, x0 = panel.shape[0] - side - 4, panel.shape[1] - side - 4
+    panel[y0:y0 + side, x0:x0 + side] = crop
+    cv2.rectangle(panel, (x0 - 1, y0 - 1), (x0 + side, y0 + side), colour, 2)
+    cv2.putText(panel, "close look", (x0 + 3, y0 + 13), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
 
 
 def _ending(panels: np.ndarray, outcome: str, detail: str) -> None:
@@ -240,6 +271,8 @@ def _compose(frame: VideoFrame, side_px: int, legend: np.ndarray | None = None, 
                 cv2.drawMarker(panel, centre, SPOT_BGR, cv2.MARKER_TILTED_CROSS, 18, 3, cv2.LINE_AA)
         if frame.map_policy:
             spot_lines = _spot(policy, frame, hm_w, sx, sy)
+    if frame.look_rgb is not None:
+        _look_inset(cam, frame)
     _caption(cam, "camera")
     _caption(heat, "heatmap P(safe)")
     thr = f" >= {frame.threshold:.2f}" if frame.threshold is not None else ""
@@ -263,7 +296,8 @@ def _compose(frame: VideoFrame, side_px: int, legend: np.ndarray | None = None, 
     panels = np.hstack([cam, heat, policy])
     if outcome:
         _ending(panels, outcome, detail)
-    words = _policy_text(width, spot_lines, frame.policy_reason if frame.map_policy else "")
+    words = _policy_text(width, spot_lines, frame.policy_reason if frame.map_policy else "",
+                         frame.look_verdict if frame.map_policy else "")
     return np.vstack([panels, words, bar, legend])
 
 

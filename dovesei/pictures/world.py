@@ -14,8 +14,8 @@ import cv2
 import numpy as np
 
 from dovesei.sim.camera import CameraModel, render
-from dovesei.sim.synth_classes import RGB
-from dovesei.sim.synthetic import (
+from dovesei.sim.synthetic.classes import RGB
+from dovesei.sim.synthetic.generate import (
     BARE_SOIL, CAR, GRASS, PARKING_LOT, PERSON, PLAZA, ROAD, ROOF_FLAT, ROOF_PITCHED, SIDEWALK, SPORTS_FIELD,
     SYNTHETIC_CLASSES, TREE, WATER, SyntheticParams, generate_city, safe_fraction,
 )

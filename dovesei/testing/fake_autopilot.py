@@ -76,7 +76,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from dovesei.controller import mavlink_proto as mv
+from dovesei.controller.mavlink import proto as mv
 from dovesei.controller.gnss_denied import GRAVITY_M_S2, quaternion_to_euler
 from dovesei.testing import fake_ekf
 from dovesei.testing.fake_ekf import FS_EKF_ACTIONS, FakeEkf
@@ -314,6 +314,11 @@ class FakeAutopilot:
             result = self._command(mv.MAV_CMD_DO_SET_MODE, (1.0, float(p2), float(p3), 0.0, 0.0, 0.0, 0.0))
             self.commands.append(ReceivedCommand(time.monotonic(), mv.MAV_CMD_DO_SET_MODE, (1.0, p2, p3), result))
         log.info("fake: ground station %d switched the mode to %s (result %d)", gcs_system, name, result)
+
+    def end_boot(self) -> None:
+        """The pre-arm checks pass from now on (a boot the test ends once its peer has seen it)."""
+        with self._lock:
+            self._boot_s = min(self._boot_s, self._now_s())
 
     def lose_gnss(self) -> None:
         """Cut GNSS (SITL's SIM_GPS_DISABLE 1): the estimator's timeline in `fake_ekf` starts now."""

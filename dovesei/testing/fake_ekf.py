@@ -25,7 +25,7 @@ constant-position mode: the velocity is still aided) and the failsafe follows.
 
 from __future__ import annotations
 
-from dovesei.controller import mavlink_proto as mv
+from dovesei.controller.mavlink import proto as mv
 
 VISION_FRESH_S = 0.5  # a vision velocity older than this is not being fused
 POS_RETRY_USE_VEL_S = 10.0  # EKF3's posRetryTimeUseVel_ms: position kept on a velocity alone this long

@@ -132,7 +132,7 @@ def child_configs(options: UpOptions, start: tuple[float, float, float], world: 
             steering[field] = value
     controller = ControllerConfig(vehicle_id=options.vehicle_id, policy=options.policy, timing=options.timing,
                                   lockstep=options.lockstep, vehicle_url=options.vehicle_url or "zenoh",
-                                  handover_alt_m=float(options.handover_alt_m),
+                                  handover_alt_m=float(options.handover_alt_m), close_look=options.close_look,
                                   policy_config_file=(None if options.policy_config is None
                                                       else str(Path(options.policy_config).resolve())), **steering)
     return ChildConfigs(sim, segmenter, controller)

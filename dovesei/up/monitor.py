@@ -28,7 +28,7 @@ from dovesei.shared.codec import decode
 from dovesei.shared.errors import ProtocolError
 from dovesei.shared.lifecycle import RateLimitedLog
 from dovesei.shared.messages import (
-    CameraFrame, ControllerStatus, EpisodeResult, SafetyHeatmap, VehicleState, VelocityCommand,
+    CameraFrame, ControllerStatus, CropFrame, CropHeatmap, EpisodeResult, SafetyHeatmap, VehicleState, VelocityCommand,
 )
 
 log = logging.getLogger("dovesei.up")
@@ -40,7 +40,8 @@ PROGRESS_EVERY_S = 10.0  # sim seconds between progress lines (state changes are
 STATE_LOG_MIN_S = 1.0  # sim seconds: faster state changes are counted, not logged one by one
 LIVELINESS = "alive"  # the Sample topic of a liveliness change (payload: the service name)
 _TYPES = {"state": VehicleState, "status": ControllerStatus, "cmd": VelocityCommand, "heatmap": SafetyHeatmap,
-          "camera": CameraFrame, "episode": EpisodeResult}
+          "camera": CameraFrame, "episode": EpisodeResult, "look": None}  # look: a CropFrame or a CropHeatmap
+LOOKS_KEPT = 600  # close looks kept for the video (crop + scores each): ten minutes of 1 Hz looks
 
 
 @dataclass(frozen=True)
@@ -99,6 +100,8 @@ class Recorder:
         self.video_period_s = video_period_s
         self._next_video_t_s = 0.0
         self.video_frames: dict[int, dict[str, Any]] = {}
+        # The controller's close looks by request: {"crop": CropFrame, "heatmap": CropHeatmap}.
+        self.looks: dict[int, dict[str, Any]] = {}
         # A heatmap or status can arrive before its (much larger) camera frame: held here by frame
         # seq until the frame comes, so the video does not lose them (bounded: the newest only).
         self._early: dict[int, dict[str, Any]] = {}
@@ -136,6 +139,16 @@ class Recorder:
             if s.topic == "camera":
                 self.camera_delivery_by_seq[msg.seq] = s.recv_wall_s - sent
         getattr(self, f"_on_{s.topic}")(msg, s)
+
+    def _on_look(self, msg: Any, s: Sample) -> None:
+        if not isinstance(msg, (CropFrame, CropHeatmap)):
+            self.rejected += 1
+            self._reject_log.warn("look", f"a look message of schema {msg.SCHEMA!r}")
+            return
+        if self.video:
+            self.looks.setdefault(msg.request_seq, {})["crop" if isinstance(msg, CropFrame) else "heatmap"] = msg
+            while len(self.looks) > LOOKS_KEPT:
+                del self.looks[min(self.looks)]
 
     def _on_state(self, st: VehicleState, s: Sample) -> None:
         if self.first_state_wall_s is None:
@@ -255,17 +268,18 @@ class Recorder:
         """
         x0, y0, _ = self.start
         rows: dict[str, list] = {"t_s": [], "x_m": [], "y_m": [], "alt_m": [], "state": [], "watchdog": [],
-                                 "cmd_down_m_s": []}
+                                 "cmd_down_m_s": [], "look": []}
         start_t_s = self.mission_start_t_s
         states = [st for st in self.states if start_t_s is None or st.stamp.t_s >= start_t_s]
         status_t = sorted(self.statuses)
         state_t = [st.stamp.t_s for st in states]
         tol_s = 0.5 * max(_median_step(state_t), _median_step(status_t)) + 1e-9
-        name, watchdog, down_m_s = "INIT", "hold", 0.0
+        name, watchdog, down_m_s, look = "INIT", "hold", 0.0, ""
         for st in states:
             status = _nearest(self.statuses, status_t, st.stamp.t_s, tol_s)
             if status is not None:
                 name, watchdog, down_m_s = status.state, status.watchdog, status.vel_body_frd_m_s[2]
+                look = status.look_verdict
             north_m, east_m, _down_m = st.pos_local_ned_m
             rows["t_s"].append(st.stamp.t_s)
             rows["x_m"].append(x0 + east_m)
@@ -274,6 +288,7 @@ class Recorder:
             rows["state"].append(name)
             rows["watchdog"].append(watchdog)
             rows["cmd_down_m_s"].append(down_m_s)  # what the controller commanded at this tick
+            rows["look"].append(look)  # the policy's last close look's verdict ("" before any)
         return rows
 
     def transport_overhead_s(self, command_to_sim_s: dict[int, float] | None, lockstep: bool) -> list[float]:
@@ -323,7 +338,7 @@ def _nearest(by_t: dict[float, Any], sorted_t: list[float], t_s: float, tol_s: f
 class Monitor:
     """`up`'s own Zenoh session: callbacks only stamp arrival and queue; `drain()` decodes."""
 
-    TOPICS = ("state", "status", "cmd", "heatmap", "camera", "episode")
+    TOPICS = ("state", "status", "cmd", "heatmap", "camera", "episode", "look")
 
     def __init__(self, session: Any, vehicle_id: str, recorder: Recorder, with_camera: bool) -> None:
         self.recorder = recorder

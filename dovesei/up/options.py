@@ -28,7 +28,7 @@ from dovesei.shared.mission import (
 from dovesei.shared.timing import DEFAULT_TIMING, TIMING_NAMES, timing
 from dovesei.controller.core import HANDOVER_ACTIONS
 from dovesei.controller.gnss_denied import GNSS_DENIED_MODES
-from dovesei.controller.mavlink_proto import load_signing_key
+from dovesei.controller.mavlink.proto import load_signing_key
 from dovesei.controller.policies import policy_names
 from dovesei.controller.policies.config_file import load_policy_config
 from dovesei.segmenter.simulated import DEFAULT_PROFILE, PROFILE_NAMES
@@ -87,6 +87,8 @@ class UpOptions:
     # The sim's judge: no person / vehicle closer than these to the touchdown (0: that rule off).
     person_separation_m: float = PERSON_SEPARATION_M
     vehicle_separation_m: float = VEHICLE_SEPARATION_M
+    # `clearance` looks at its spot at full resolution before committing (issue 24), as `bench` flies it.
+    close_look: bool = True
     out: Path = Path("runs/up")
     # True for the default runs/up-<time>: `run` then claims a folder no other run has (adding -2, -3
     # when one started in the same second), so two runs never write into one folder.
@@ -273,6 +275,8 @@ def build_parser() -> argparse.ArgumentParser:
                         f"(default: {PERSON_SEPARATION_M:g} m; 0 turns the rule off)")
     p.add_argument("--vehicle-separation-m", type=float, default=VEHICLE_SEPARATION_M,
                    help=f"... or a vehicle closer than this (default: {VEHICLE_SEPARATION_M:g} m; 0 turns the rule off)")
+    p.add_argument("--no-close-look", dest="close_look", action="store_false",
+                   help="clearance without its close looks (full-resolution crops of the spot before committing)")
     p.add_argument("--time-limit-s", type=float, default=None,
                    help="sim-time limit of the episode (default: the paper's 1200 s on the preset's clock, "
                         "as `dovesei bench`: 60 s with --timing reference, 1200 s with --timing real)")
@@ -337,7 +341,7 @@ def options_from_args(args: argparse.Namespace) -> UpOptions:
                      timing=timing_name,
                      seed=args.seed, noise=args.noise, perception=args.perception, vehicle_profile=args.vehicle_profile,
                      start=start, start_seed=args.start_seed,
-                     start_alt_m=args.start_alt_m, handover_alt_m=args.handover_alt_m,
+                     start_alt_m=args.start_alt_m, handover_alt_m=args.handover_alt_m, close_look=args.close_look,
                      person_separation_m=args.person_separation_m, vehicle_separation_m=args.vehicle_separation_m, out=out, out_unique=args.out is None, realtime=args.realtime,
                      connect=tuple(args.connect), vehicle_url=args.vehicle_url, sitl_truth=args.sitl_truth,
                      takeoff=args.takeoff, handover_action=args.handover_action,

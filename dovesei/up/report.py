@@ -167,6 +167,7 @@ class Trajectory:
     state: tuple[str, ...]
     watchdog: tuple[str, ...]
     cmd_down_m_s: tuple[float, ...]
+    look: tuple[str, ...] = ()  # the policy's last close look's verdict at each row ("" before any)
 
 
 @dataclass(frozen=True)
@@ -411,6 +412,17 @@ def write_outputs(world: Any, report: RunReport, rec: Recorder, out: Path, video
     return report
 
 
+def _look_at(rec: Recorder, t_s: float) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The newest complete close look captured at or before t_s (crop RGB, P(never)); Nones without one."""
+    best = None
+    for look in rec.looks.values():
+        crop, hm = look.get("crop"), look.get("heatmap")
+        if crop is not None and hm is not None and crop.stamp.t_s <= t_s and (best is None or
+                                                                                crop.stamp.t_s >= best[0].stamp.t_s):
+            best = (crop, hm)
+    return (best[0].image_rgb, best[1].probabilities()[1]) if best is not None else (None, None)
+
+
 def video_frames(rec: Recorder, perception: str) -> list[videos.VideoFrame]:
     frames = []
     changes = videos.state_change_times({t: st.state for t, st in rec.statuses.items()})
@@ -422,6 +434,7 @@ def video_frames(rec: Recorder, perception: str) -> list[videos.VideoFrame]:
             arr, is_u8 = kept["prob"]
             prob = arr.astype(np.float32) / 255.0 if is_u8 else arr.astype(np.float32)
         st: ControllerStatus | None = kept.get("status")
+        look_rgb, look_never = _look_at(rec, kept["t_s"]) if st is not None and st.look_verdict else (None, None)
         frames.append(videos.VideoFrame(
             t_s=kept["t_s"], image_rgb=image, prob_safe=prob, alt_agl_m=kept["alt"],
             state=st.state if st else "", watchdog=st.watchdog if st else "",
@@ -431,7 +444,8 @@ def video_frames(rec: Recorder, perception: str) -> list[videos.VideoFrame]:
             recent_changes=videos.changes_before(changes, kept["t_s"]),
             perception=perception, policy=st.policy if st else "", hfov_rad=kept.get("hfov"),
             spot_clearance_m=st.spot_clearance_m if st and st.spot_valid else None,
-            policy_reason=st.policy_reason if st else "",
+            policy_reason=st.policy_reason if st else "", look_verdict=st.look_verdict if st else "",
+            look_rgb=look_rgb, look_never=look_never,
             confirmed_frames_ago=seq - st.confirmed_frame_seq if st and st.confirmed_valid else None,
             confirmed_px=((st.confirmed_row_px, st.confirmed_col_px)
                           if st and st.confirmed_valid and st.confirmed_frame_seq == seq else None)))

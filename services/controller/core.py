@@ -56,20 +56,23 @@ from enum import Enum
 from typing import Any
 
 from dovesei.controller.gnss_denied import EXTERNAL_NAV_MESSAGES, GNSS_DENIED_MODES, NavStatus
-from dovesei.controller.policies.base import Decision, Observation, Policy, PolicyInputError, make_policy, policy_names
+from dovesei.controller.looker import Looker
+from dovesei.controller.policies.base import (
+    Decision, LookRequest, LookResult, Observation, Policy, PolicyInputError, make_policy, policy_names,
+)
 from dovesei.controller.continuity import (
     ALTITUDE_NOISE_M, MAX_VERTICAL_SPEED_M_S, STEP_CONFIRM_SAMPLES, AltitudeContinuity,
 )
 from dovesei.controller.frames import body_frd_to_ned, ned_to_body_frd, to_ne
 from dovesei.controller.geofence import Geofence
 from dovesei.controller.odometry import VelocityTrack
-from dovesei.controller.policies.config import TIMING_PRESETS
+from dovesei.controller.policies.dovesei.config import TIMING_PRESETS
 from dovesei.controller.policies.config_file import load_policy_config
 from dovesei.shared import footprint, keys, validate
 from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.shared.mission import HANDOVER_ALT_M
 from dovesei.shared.messages import (
-    ControllerStatus, SafetyHeatmap, StageLatency, VehicleState, VelocityCommand, replace,
+    ControllerStatus, CropRequest, FieldError, SafetyHeatmap, StageLatency, VehicleState, VelocityCommand, replace,
 )
 from dovesei.shared.timing import DEFAULT_TIMING, timing
 
@@ -108,6 +111,9 @@ class ControllerConfig:
     policy: str = "dovesei"
     # A TOML file of the policy's constants (policies/config_file.py); None: the timing preset's.
     policy_config_file: str | None = None
+    # `clearance` looks at its spot at full resolution before committing below ~40 m (issue 24;
+    # the crop and segment queryables must answer, or it holds there).
+    close_look: bool = False
     timing: str = DEFAULT_TIMING  # policy timing preset (dovesei.shared.timing); a real vehicle runs "real"
     lockstep: bool = True  # True: one tick per sim state (as the sim's default); False: own 20 Hz loop
     rate_hz: float = 20.0  # real-time loop rate on the wall clock
@@ -302,13 +308,19 @@ class ControllerCore:
     """Policy + heatmap buffer + watchdog; `tick` returns a command and a status every time."""
 
     def __init__(self, config: ControllerConfig, policy: Policy | None = None,
-                 mono: Callable[[], float] = time.monotonic) -> None:
+                 mono: Callable[[], float] = time.monotonic, looker: Looker | None = None) -> None:
         self.config = config
         self._mono = mono  # the controller's own clock (stamps are judged on it in real time)
         # The real wiring always goes through the factory; tests may hand in a double.
         self.policy = policy if policy is not None else make_policy(config.policy, config.policy_config(),
                                                                     config.vehicle_speed_limits_m_s,
-                                                                    handover_alt_m=config.handover_alt_m)
+                                                                    handover_alt_m=config.handover_alt_m,
+                                                                    close_look=config.close_look)
+        # Carries out the policy's close looks (camera crop + segmenter); None: every look is refused,
+        # and a policy gated on them never commits below its look altitude.
+        self.looker = looker
+        self._look_seq = 0
+        self._look_unanswered: LookResult | None = None
         self.rejected: Counter[str] = Counter()  # reason -> count (heatmaps and states refused)
         self.adopted_count = 0
         self._tick_seq = 0
@@ -514,7 +526,7 @@ class ControllerCore:
         if self._last_state_t_s is None or now_s > self._last_state_t_s or self._state_advanced_wall_s is None:
             self._state_advanced_wall_s = wall_s
         self._last_state_t_s, self._last_state_seq = now_s, state.seq
-        self._track.add(now_s, state.vel_body_frd_m_s, state.yaw_rad)
+        self._track.add(now_s, state.vel_body_frd_m_s, state.yaw_rad, state.roll_rad, state.pitch_rad)
         if self.geofence is not None:
             self.geofence.add(now_s, state.vel_body_frd_m_s, state.yaw_rad)
         if self._first_alt_m is None:
@@ -659,9 +671,16 @@ class ControllerCore:
         odom = None
         if self._last_capture_t_s is not None:
             odom = self._track.displacement_ne_m(self._last_capture_t_s, hm.stamp.t_s)
+        # The attitude the frame was captured with (a body-fixed camera turns with the vehicle
+        # during the perception latency); this tick's only when the track does not reach back.
+        roll, pitch, yaw = self._track.attitude_at(hm.stamp.t_s) or (state.roll_rad, state.pitch_rad, state.yaw_rad)
+        look, self._look_unanswered = self._look_unanswered, None
+        if look is None and self.looker is not None:
+            look = self.looker.poll()
         obs = Observation(t_s=self._policy_time_s(hm), alt_agl_m=hm.alt_agl_m, prob_safe=hm.probability(), hfov_rad=hm.hfov_rad,
-                          roll_rad=state.roll_rad, pitch_rad=state.pitch_rad, yaw_rad=state.yaw_rad,
-                          vel_est_body_frd_m_s=state.vel_body_frd_m_s, odom_delta_ne_m=odom, frame_seq=hm.seq)
+                          roll_rad=roll, pitch_rad=pitch, yaw_rad=yaw,
+                          vel_est_body_frd_m_s=state.vel_body_frd_m_s, odom_delta_ne_m=odom, frame_seq=hm.seq,
+                          look=look)
         start = time.perf_counter()
         try:
             decision = self.policy.step(obs)
@@ -697,10 +716,26 @@ class ControllerCore:
         to_controller_s = recv_wall_s - hm.sent_wall_s if hm.sent_wall_s > 0.0 else 0.0
         latency = StageLatency(frame_to_segmenter_s=hm.frame_to_segmenter_s, inference_s=hm.inference_s,
                                heatmap_to_controller_s=to_controller_s, policy_s=policy_s)
-        self._adopted = _Adopted(hm, latency, (state.roll_rad, state.pitch_rad, state.yaw_rad))
+        self._adopted = _Adopted(hm, latency, (obs.roll_rad, obs.pitch_rad, obs.yaw_rad))
         self._decision = decision
+        if decision.look_request is not None:
+            self._request_look(decision.look_request, state)
         self.adopted_count += 1
         log.debug("adopted heatmap %d: policy %.2f ms, state %s", hm.seq, policy_s * 1e3, decision.state)
+
+    def _request_look(self, look: LookRequest, state: VehicleState) -> None:
+        """Hand the policy's close look to the looker (its answer comes with a later heatmap)."""
+        self._look_seq += 1
+        try:
+            req = CropRequest(self.config.vehicle_id, self._look_seq, state.stamp, look.centre_frd_m, look.side_m,
+                              look.out_px, sent_wall_s=time.time())
+        except FieldError as exc:  # a policy asking for what no wire message can carry
+            self._look_unanswered = LookResult(self._look_seq, refusal=f"look request not sendable: {exc}")
+            return
+        if self.looker is None:
+            self._look_unanswered = LookResult(self._look_seq, refusal="no camera to look with (no looker configured)")
+            return
+        self.looker.submit(req)
 
     # ---- watchdog ------------------------------------------------------------------------
 
@@ -892,6 +927,7 @@ class ControllerCore:
             nav_source=nav.source if nav is not None else "", gnss_lost=nav.gnss_lost if nav is not None else False,
             position_lost=nav.position_lost if nav is not None else False,
             nav_reason=nav.reason if nav is not None else "",
+            look_verdict=decision.look_verdict if decision is not None else "",
             **_confirmed_fields(decision),
         )
 

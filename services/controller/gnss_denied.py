@@ -38,7 +38,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from dovesei.controller.mavlink_proto import (
+from dovesei.controller.mavlink.proto import (
     EKF_ATTITUDE,
     EKF_CONST_POS_MODE,
     EKF_POS_HORIZ_ABS,

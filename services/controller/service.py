@@ -44,6 +44,8 @@ from typing import Any, Protocol
 
 import zenoh
 
+from dovesei.controller.looker import Looker, SyncLooker, ThreadLooker, zenoh_ask
+from dovesei.shared.messages import CropFrame, CropHeatmap
 from dovesei.controller.core import HANDOVER_ACTIONS, ControllerConfig, ControllerCore, ControllerInputError, Mode
 from dovesei.controller.gnss_denied import (
     EXTERNAL_NAV_MESSAGES,
@@ -52,7 +54,7 @@ from dovesei.controller.gnss_denied import (
     NavStatus,
     OdometryLimits,
 )
-from dovesei.controller.mavlink_proto import SpeedLimits, load_signing_key
+from dovesei.controller.mavlink.proto import SpeedLimits, load_signing_key
 from dovesei.controller.policies.base import policy_names
 from dovesei.shared import keys, validate
 from dovesei.shared.cliconfig import CommandLine, Flag, non_blank
@@ -165,7 +167,7 @@ def open_vehicle(session: zenoh.Session, config: ControllerConfig) -> Vehicle:
         # Subscribers are declared now so no state published after start-up is missed.
         return ZenohVehicle(session, config.vehicle_id, lockstep=config.lockstep)
     try:
-        from dovesei.controller.mavlink import MavlinkVehicle  # lazy: only a real vehicle needs it; a broken
+        from dovesei.controller.mavlink.vehicle import MavlinkVehicle  # lazy: only a real vehicle needs it; a broken
         # pymavlink install then fails here with one clear line, never the sim's runs
     except ModuleNotFoundError as exc:
         raise ConfigError(
@@ -482,9 +484,25 @@ def run(session: zenoh.Session, *, config: ControllerConfig, stop: threading.Eve
     `vehicle` and `core` default to what `config` names (tests hand in doubles). With
     `config.record_path` the flight is recorded there (closed whatever ends the run).
     """
-    core = core if core is not None else ControllerCore(config)
+    core = core if core is not None else ControllerCore(config, looker=make_looker(session, config))
     with open_recorder(config) as recorder:
         return _serve(session, config, stop, vehicle, core, recorder)
+
+
+def make_looker(session: zenoh.Session, config: ControllerConfig) -> Looker | None:
+    """The close looks over Zenoh (crop key, then segment key): answered before the tick's command in
+    lockstep (the sim waits meanwhile), on a worker thread in real time (the loop keeps commanding)."""
+    if not config.close_look:
+        return None
+    ask = zenoh_ask(session)
+    # Each look, crop and scores, on the look key (operators, `up`'s video); a put is thread-safe.
+    key = keys.look(config.vehicle_id)
+
+    def seen(crop: CropFrame, heatmap: CropHeatmap) -> None:
+        session.put(key, encode(crop, jpeg_quality=90))
+        session.put(key, encode(heatmap))
+
+    return SyncLooker(ask, seen) if config.lockstep else ThreadLooker(ask, seen)
 
 
 def open_recorder(config: ControllerConfig) -> FlightRecorder | contextlib.nullcontext[None]:
@@ -565,6 +583,8 @@ CLI = CommandLine(ControllerConfig, {
     "lockstep": Flag("--lockstep", "one tick per sim state, waiting for awaited heatmaps (default with the sim)",
                      off="--realtime", off_help="own fixed-rate loop on the wall clock (the only mode with MAVLink)"),
     "rate_hz": Flag("--rate-hz", "real-time loop rate", check=validate.positive),
+    "close_look": Flag("--close-look", "clearance: look at the spot at full resolution (crop key + segmenter) "
+                       "before committing below ~40 m, and keep looking down to the hand-over (issue 24)"),
     "heatmap_hold_after_s": Flag("--heatmap-hold-after-s", "hold position when the heatmap is older than this "
                                  "(data clock)", check=validate.positive),
     "heatmap_climb_after_s": Flag("--heatmap-climb-after-s", "climb to the search altitude when the heatmap is "

@@ -45,7 +45,7 @@ from dovesei.shared.messages import CameraFrame, CropFrame, CropHeatmap, PromptS
 
 # `.clipseg` imports torch, which the onboard install does not have: it is imported only when a
 # CLIPSeg backend is built, so the simulated backend and the service run without torch.
-from .fusion import FUSION_MODES, FusionConfig, fuse
+from .fusion import FUSION_MODES, FusionConfig, fuse, shift_probability
 from .options import DEFAULT_MODEL, DTYPES
 from .prompts import NEVER_PROMPTS, REFERENCE_PROMPTS, PromptError, PromptSet, crop_prompt_set, never_prompts, never_set_id
 from .sim_backend import INPUT_PX
@@ -113,6 +113,9 @@ class SegmenterConfig:
     prompts: PromptSet = field(default=REFERENCE_PROMPTS)
     # Scored on crops only (close looks): what must never be inside the landing's separation margin.
     never: tuple[str, ...] = NEVER_PROMPTS
+    # (a, b): every heatmap becomes sigmoid(a logit P + b) before it is sent (the bench's
+    # --perception-shift: the same ranking, another calibration); None leaves P alone.
+    prob_shift: tuple[float, float] | None = None
 
     def __post_init__(self) -> None:
         _choice("backend", self.backend, BACKENDS)
@@ -137,6 +140,11 @@ class SegmenterConfig:
                 f"SegmenterConfig: frame side limits must satisfy 1 <= min_side_px <= max_side_px, "
                 f"got {self.min_side_px!r}..{self.max_side_px!r}"
             )
+        if self.prob_shift is not None:
+            shift = self.prob_shift
+            if not (isinstance(shift, tuple) and len(shift) == 2 and all(_is_number(v) for v in shift)
+                    and shift[0] > 0):
+                raise ConfigError(f"SegmenterConfig.prob_shift: expected (a > 0, b) finite numbers, got {shift!r}")
         if self.expected_size_px is not None:
             size = self.expected_size_px
             if not (isinstance(size, tuple) and len(size) == 2 and all(_is_int(s) and s >= 1 for s in size)):
@@ -189,8 +197,8 @@ class FrameBackend(Protocol):
     def safe_probability(self, frame: CameraFrame, prompts: PromptSet, fusion: FusionConfig) -> np.ndarray: ...
 
     def crop_logits(self, crop: CropFrame, prompts: PromptSet) -> tuple[np.ndarray, np.ndarray | None]:
-        """(P, 352, 352) logits of a crop for `prompts` (landing + never), and the share of each
-        pixel inside the world (None: all of it)."""
+        """(P, n, n) logits of a crop for `prompts` (landing + never) on the backend's square output
+        grid, and the share of each cell inside the world (None: all of it)."""
         ...
 
 
@@ -269,12 +277,15 @@ class SimFrameBackend:
                                                  CROP_FLICKER_SEQ0 + crop.request_seq, prompts)
         except ValueError as exc:
             raise FrameRejected(REJECT_BAD_TRUTH, str(exc)) from None
-        # The token grid up to CLIPSeg's 352 output, where both fusions run as they do after CLIPSeg.
+        # Fused on the sim's fusion grid (88 for the profiles), as its frames are: a tenth of the cost of
+        # CLIPSeg's 352 output grid, and the logits are smooth below a cell anyway.
+        grid = max(self.model.params.fusion_grid_px, logits.shape[-1])
         n = logits.shape[0]
-        up = cv2.resize(np.ascontiguousarray(logits.transpose(1, 2, 0)), (INPUT_PX, INPUT_PX),
-                        interpolation=cv2.INTER_LINEAR).reshape(INPUT_PX, INPUT_PX, n)
-        return (np.ascontiguousarray(up.transpose(2, 0, 1)),
-                cv2.resize(in_world, (INPUT_PX, INPUT_PX), interpolation=cv2.INTER_LINEAR))
+        if grid != logits.shape[-1]:
+            logits = cv2.resize(np.ascontiguousarray(logits.transpose(1, 2, 0)), (grid, grid),
+                                interpolation=cv2.INTER_LINEAR).reshape(grid, grid, n).transpose(2, 0, 1)
+            in_world = cv2.resize(in_world, (grid, grid), interpolation=cv2.INTER_LINEAR)
+        return np.ascontiguousarray(logits), in_world
 
 
 def as_frame_backend(backend: object) -> FrameBackend:
@@ -377,13 +388,17 @@ def to_wire(prob: np.ndarray, dtype: str) -> np.ndarray:
 
 def crop_probabilities(logits: np.ndarray, in_world: np.ndarray | None, prompts: PromptSet, n_never: int,
                        fusion: FusionConfig, side_px: int) -> tuple[np.ndarray, np.ndarray]:
-    """(P(safe), P(never)) at side_px from the logits of `crop_prompt_set(prompts, never)`: the
-    landing prompts fused as every frame's are; the never prompts (the last `n_never`) against all
-    the landing ones, grouped (so their number does not drift P(never), as for P(safe))."""
-    n_land = prompts.n_prompts
-    prob_safe = fuse(logits[:n_land], prompts.n_positive, fusion.mode, fusion.temperature, fusion.blur_px)
+    """(P(safe), P(never)) at side_px from the logits of `crop_prompt_set(prompts, never)` on any
+    square grid (CLIPSeg's 352, the simulated perception's coarser one): the landing prompts fused
+    as every frame's are; the never prompts (the last `n_never`) against the landing positives,
+    grouped (the landing negatives hold "people" and "vehicle" themselves). The box blurs are sized
+    for CLIPSeg's 352 px grid and scaled to the logits' grid."""
+    n_land, grid = prompts.n_prompts, logits.shape[-1]
+    scale = grid / INPUT_PX
+    blur_safe, blur_never = (max(1, int(round(b * scale))) for b in (fusion.blur_px, NEVER_BLUR_PX))
+    prob_safe = fuse(logits[:n_land], prompts.n_positive, fusion.mode, fusion.temperature, blur_safe)
     prob_never = fuse(np.concatenate([logits[n_land:], logits[:prompts.n_positive]]), n_never, "grouped",
-                      fusion.temperature, NEVER_BLUR_PX)
+                      fusion.temperature, blur_never)
     if in_world is not None:
         prob_safe *= in_world  # unknown ground beyond the map is no landing place
     out = []
@@ -435,6 +450,8 @@ class SegmenterCore:
             self.check_frame(frame)
             t0 = time.perf_counter()
             prob = self.backend.safe_probability(frame, self.prompts, self.fusion)
+            if self.config.prob_shift is not None:
+                prob = shift_probability(prob, *self.config.prob_shift)
             wire = to_wire(prob, self.config.heatmap_dtype)
             inference_s = time.perf_counter() - t0
         except FrameRejected as exc:

@@ -137,6 +137,24 @@ def fuse(
     return np.clip(prob, 0.0, 1.0, out=prob)
 
 
+# A shifted map keeps P off exactly 0 and 1 (logit(0) is -inf); 1e-6 lies below any uint8 step.
+SHIFT_EPS = 1e-6
+
+
+def shift_probability(prob: np.ndarray, a: float, b: float) -> np.ndarray:
+    """sigmoid(a * logit(P) + b) per pixel, float32: the same ranking of the ground, another calibration.
+
+    Monotone (strictly increasing in P for a > 0), so a policy that ranks ground by P alone sees
+    the same order; one that reads absolute levels sees them moved. P is clipped to
+    [SHIFT_EPS, 1 - SHIFT_EPS] first. FusionError for a <= 0 or a non-finite a or b.
+    """
+    if not (validate.is_number(a) and a > 0 and validate.is_number(b)):
+        raise FusionError(f"shift: a must be a finite number > 0 and b finite, got a={a!r}, b={b!r}")
+    p = np.clip(np.asarray(prob, dtype=np.float32), np.float32(SHIFT_EPS), np.float32(1.0 - SHIFT_EPS))
+    z = np.float32(a) * (np.log(p) - np.log1p(-p)) + np.float32(b)
+    return (0.5 * (1.0 + np.tanh(0.5 * z))).astype(np.float32, copy=False)
+
+
 def fuse_with(logits: np.ndarray, n_positive: int, config: FusionConfig) -> np.ndarray:
     """``fuse`` with the parameters taken from a FusionConfig."""
     return fuse(logits, n_positive, mode=config.mode, temperature=config.temperature, blur_px=config.blur_px)

@@ -9,24 +9,61 @@ P(safe), so changing the prompts changes the map through the response table (`re
 Data flow for one frame (labels resized to CLIPSeg's 352x352 input, as CLIPSeg resizes frames):
 
     labels --class names--> appearance mix per class (cached per class table)
-           + shadows: roofs/trees/cars cast a fixed-sun shadow (world direction) on lower ground
-      --8x8-pixel cells, Gaussian ~1 token--> F: appearance fractions on a 44x44 grid. Detail
-        under one token (1/22 of the view: ~6.7 m at 100 m, ~1.3 m at 20 m) is diluted into
-        its surroundings; a person or a car weighs by how many tokens it covers (the resolution
-        curve, `object_gain`): its area alone under one token, up to 3x its area across several
+           + shadows: roofs/trees/cars cast a shadow away from the episode's sun (world direction,
+             turning ~15 deg an hour with the frame's time) on lower ground
+      --8x8-pixel cells--> appearance fractions on a 44x44 grid; a person or a car weighs by how
+        many tokens it covers (the resolution curve, `object_gain`): its area alone under one
+        token, up to 3x its area across several
+      --per-patch looks, fixed on the GROUND--> an atypical patch of a class reads partly as its
+        other looks (INSTANCE_LOOKS: dry lawn -> soil, stained concrete -> asphalt, wet sand ->
+        pavement) where a seeded field over (east, north) keyed by (seed, world) is high
+      --Gaussian ~1 token--> detail under one token (1/22 of the view: ~6.7 m at 100 m, ~1.3 m
+        at 20 m) is diluted into its surroundings
       --confusions anchored in WORLD metres--> each appearance is read partly as a partner
         (grey flat roof -> plaza, dark pond -> asphalt, lawn -> sports field) where a seeded
         value-noise field over (east, north, log2 altitude) is high: the same ground is misread
-        the same way frame after frame and drifts as the altitude changes
+        the same way frame after frame and drifts as the altitude changes; how often and towards
+        which partner is the WORLD's own (a log-normal draw per world around CONFUSIONS)
       --context--> each cell pulled towards its neighbourhood and towards the whole view
-      --responses--> logits = logit_scale * G @ R (R: appearance x prompt affinities)
+      --responses--> logits = f * logit_scale * G @ R (R: appearance x prompt affinities), the
+        positives + o: the episode's calibration (f, o), drawn per (seed, world)
       + flicker: a small smooth per-frame field and per-prompt offsets (seed, frame_seq)
       --fusion (softmax or grouped) on an 88x88 grid, box blur at 352--> P(safe)
       --x fraction of the cell inside the world--> off-world reads 0, below any real class
       --bilinear--> frame size
 
+Variation between episodes and worlds, and where the ranges come from. The statistics we have of
+real CLIPSeg on this task are the authors' logs of the reference pipeline (the dynamic threshold's
+median 0.51, lowered below 0.85 on 99.8 % of frames) and PEACE (prompt wording alone moved safe-zone
+identification from 57 % to 92 %: CLIPSeg's absolute levels are not a property of the ground).
+
+- logit scale factor f, uniform in 1 +- 0.2 (`realistic`; 1 +- 0.3 `harsh`): with every other
+  draw held, `logit_scale` 4, 5 and 6 give a frame-weighted median threshold of 0.47, 0.53 and
+  0.59 (the test's six worlds, seeds 1-2, not the reported 0), all within the authors' 0.51 +- 0.1,
+  so a calibration anywhere from 4 to 6 is as consistent with their logs as the mean.
+- positive offset o, uniform in +-0.4 logit (`harsh` +-0.6): under both fusions it moves
+  logit P(safe) by o exactly, so +-0.4 moves the authors' median threshold 0.51 to 0.41-0.61,
+  the band the perception-stats test holds the suite to; `harsh` goes past it on purpose.
+- per-patch looks: up to 50 % (`harsh` 70 %) of a patch read as its other looks, on a 25 m
+  lattice (a lawn, a lot, a roof), half the area atypical at all: judgement, not a statistic;
+  the test holds perception-stats inside the authors' band with it on.
+- world confusion tables: log-normal sigma 0.5 (`harsh` 0.7) on each class's partner weights,
+  half that on its strength (capped at 0.95): CLIPSeg's misreadings follow the imagery (PEACE's
+  scenes needed different prompts), so each world gets its own.
+- sun elevation 45 +- 20 deg per episode (`harsh` +- 25), azimuth uniform: mid-morning to
+  mid-afternoon at mid latitudes.
+
+`clean` has none of it. ``noise`` scales every spread (0: none). `dovesei perception-stats` and
+tests/segmenter/test_perception_variation.py check the result against the statistics above.
+
 Determinism: the output is a pure function of (labels, class names, view, prompts, params,
-seed, frame_seq); every random draw comes from a hash or a fresh generator keyed by them.
+seed, frame_seq); every random draw comes from a hash or a fresh generator keyed by them (the
+world's name through crc32, never Python's salted str hash).
+
+Speed: the per-frame path reads each label pixel through lookup tables built once per world
+(`_Classes`: codes ordered so that "casts at least this tall" and "lower, in the world" are code
+ranges), counts (cell, code, shadowed) in one histogram and hashes each value-noise lattice corner
+once per view; tests/segmenter/test_perception_variation.py holds it equal to the plain formulas.
 """
 
 from __future__ import annotations
@@ -34,6 +71,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+import zlib
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 
@@ -101,6 +139,23 @@ def object_gain(tokens: np.ndarray | float) -> np.ndarray:
     """The resolution curve: an object's response per unit of area against the tokens it covers."""
     n2 = np.square(np.asarray(tokens, np.float64))
     return 1.0 + (OBJECT_GAIN_MAX - 1.0) * n2 / (n2 + OBJECT_HALF_TOKENS ** 2)
+# A class's other looks, patch by patch: a dry or dead lawn reads partly as bare soil, stained or
+# weathered concrete as asphalt, wet sand as pavement, a gravel or green roof as ground. Which
+# patches look atypical is fixed on the ground for an episode over a world (season, rain, the
+# day's light), the same at every altitude; how they split is this table.
+INSTANCE_LOOKS: dict[str, dict[str, float]] = {
+    "lawn": {"bare_ground": 0.7, "tree": 0.3},
+    "sports_field": {"bare_ground": 0.6, "lawn": 0.4},
+    "bare_ground": {"paved": 0.5, "road": 0.3, "water": 0.2},
+    "paved": {"road": 0.6, "bare_ground": 0.4},
+    "parking": {"paved": 0.6, "road": 0.4},
+    "road": {"paved": 0.6, "parking": 0.4},
+    "flat_roof": {"paved": 0.5, "bare_ground": 0.3, "lawn": 0.2},
+    "pitched_roof": {"flat_roof": 0.6, "bare_ground": 0.4},
+    "tree": {"lawn": 0.5, "bare_ground": 0.5},
+    "water": {"road": 0.6, "lawn": 0.4},
+}
+SUN_RATE_RAD_S = 2.0 * math.pi / 86400.0  # the sun's azimuth turns about 15 degrees an hour
 
 
 @dataclass(frozen=True)
@@ -132,6 +187,19 @@ class PerceptionParams:
     shadow: float = 0.5
     """Share of a shadowed patch that reads as shadow."""
     sun_elevation_deg: float = 45.0
+    """Mean sun elevation; each episode's is drawn uniform in +- `sun_elevation_spread_deg` of it."""
+    sun_elevation_spread_deg: float = 20.0
+    calibration_scale_spread: float = 0.2
+    """Per-episode calibration: `logit_scale` times a factor drawn uniform in 1 +- this."""
+    calibration_offset_logit: float = 0.4
+    """Per-episode calibration: every positive prompt's logit moved by a draw uniform in +- this,
+    which moves logit P(safe) by the same amount under either fusion."""
+    instance_variation: float = 0.5
+    """Largest share of a patch read as its class's other looks (dry grass, stained concrete...)."""
+    instance_length_m: float = 25.0
+    """Lattice spacing of the per-patch appearance field: about one lawn, lot or roof."""
+    world_confusion_spread: float = 0.5
+    """Log-normal sigma of each world's confusion partner weights and per-class confusion strength."""
     cell_px: int = 8
     """Side of the cells the appearance is counted on, input pixels (8: half a ViT token)."""
     token_sigma_px: float = 4.4
@@ -145,6 +213,9 @@ class PerceptionParams:
                   "field_octaves_per_doubling": (0.0, 5.0), "context_local": (0.0, 0.6),
                   "context_sigma_px": (1.0, 200.0), "context_global": (0.0, 0.4), "flicker_logit": (0.0, 5.0),
                   "flicker_offset": (0.0, 5.0), "shadow": (0.0, 1.0), "sun_elevation_deg": (10.0, 90.0),
+                  "sun_elevation_spread_deg": (0.0, 40.0), "calibration_scale_spread": (0.0, 0.6),
+                  "calibration_offset_logit": (0.0, 3.0), "instance_variation": (0.0, 0.95),
+                  "instance_length_m": (1.0, 1000.0), "world_confusion_spread": (0.0, 2.0),
                   "token_sigma_px": (0.0, 40.0)}
         for key, (lo, hi) in checks.items():
             validate.in_range(f"perception {self.name}: {key}", getattr(self, key), lo, hi)
@@ -162,7 +233,11 @@ class PerceptionParams:
             local, glob = 0.8 * local / (local + glob), 0.8 * glob / (local + glob)
         return {"confusion": min(0.95, self.confusion * n), "context_local": local, "context_global": glob,
                 "flicker_logit": self.flicker_logit * n, "flicker_offset": self.flicker_offset * n,
-                "shadow": min(1.0, self.shadow * n)}
+                "shadow": min(1.0, self.shadow * n), "sun_elevation_spread_deg": self.sun_elevation_spread_deg * n,
+                "calibration_scale_spread": min(0.9, self.calibration_scale_spread * n),
+                "calibration_offset_logit": self.calibration_offset_logit * n,
+                "instance_variation": min(0.95, self.instance_variation * n),
+                "world_confusion_spread": self.world_confusion_spread * n}
 
 
 # The profiles: `realistic` is calibrated on threshold statistics of the authors' logs and on
@@ -172,10 +247,13 @@ PROFILES: dict[str, PerceptionParams] = {
     # say about each appearance, nothing else.
     "clean": PerceptionParams(name="clean", logit_scale=15.0, cell_px=2, token_sigma_px=0.0, confusion=0.0,
                               context_local=0.0, context_global=0.0, flicker_logit=0.0, flicker_offset=0.0,
-                              shadow=0.0),
+                              shadow=0.0, sun_elevation_spread_deg=0.0, calibration_scale_spread=0.0,
+                              calibration_offset_logit=0.0, instance_variation=0.0, world_confusion_spread=0.0),
     "realistic": PerceptionParams(name="realistic"),
     "harsh": PerceptionParams(name="harsh", confusion=0.95, confusion_onset=-0.2, context_local=0.35,
-                              context_global=0.2, flicker_logit=0.4, flicker_offset=0.2, shadow=0.7),
+                              context_global=0.2, flicker_logit=0.4, flicker_offset=0.2, shadow=0.7,
+                              sun_elevation_spread_deg=25.0, calibration_scale_spread=0.3,
+                              calibration_offset_logit=0.6, instance_variation=0.7, world_confusion_spread=0.7),
 }
 DEFAULT_PROFILE = "realistic"
 
@@ -197,6 +275,10 @@ class View:
     alt_agl_m: float
     hfov_rad: float
     yaw_rad: float = 0.0
+    world: str = ""
+    """Which world (the sim's name for it): its confusions and per-episode draws are its own."""
+    time_s: float = 0.0
+    """The frame's time (sim seconds): the sun, and so the shadows, move with it."""
 
 
 # --- seeded value noise in world coordinates ------------------------------------------------
@@ -226,14 +308,33 @@ def _value_noise(x: np.ndarray, y: np.ndarray, z: np.ndarray, key: np.ndarray) -
     tx, ty, tz = (t * t * (3.0 - 2.0 * t) for t in (tx, ty, tz))
     ix, iy, iz = fx.astype(np.int64), fy.astype(np.int64), fz.astype(np.int64)
     out = np.zeros(np.broadcast_shapes(x.shape, key.shape))
+    corner = _corner_table(ix, iy, iz, key)
     for dx in (0, 1):
         wx = tx if dx else 1.0 - tx
         for dy in (0, 1):
-            wy = ty if dy else 1.0 - ty
+            wxy = wx * (ty if dy else 1.0 - ty)
             for dz in (0, 1):
-                wz = tz if dz else 1.0 - tz
-                out += wx * wy * wz * _hash_unit(ix + dx, iy + dy, iz + dz, key)
+                out += wxy * (tz if dz else 1.0 - tz) * corner(dx, dy, dz)
     return out
+
+
+def _corner_table(ix: np.ndarray, iy: np.ndarray, iz: np.ndarray, key: np.ndarray):
+    """corner(dx, dy, dz) -> the hash at every point's lattice corner (ix + dx, iy + dy, iz + dz).
+
+    Neighbouring points share corners (a view's 16 x 16 points cover about 10 x 10 lattice cells),
+    so each corner of the points' bounding box is hashed once and gathered; the values are the
+    same as hashing per point. Points spread thinly over a large box are hashed per point.
+    """
+    lo = [int(a.min()) for a in (ix, iy, iz)]
+    n = [int(a.max()) - l + 2 for a, l in zip((ix, iy, iz), lo)]
+    if key.size * n[0] * n[1] * n[2] > 8 * key.size * ix.size or key.shape[1:] != (1,) * (key.ndim - 1):
+        return lambda dx, dy, dz: _hash_unit(ix + dx, iy + dy, iz + dz, key)
+    gx, gy, gz = (np.arange(l, l + m, dtype=np.int64) for l, m in zip(lo, n))
+    table = _hash_unit(gx[None, None, :], gy[None, :, None], gz[:, None, None], key.reshape(-1, 1, 1, 1))
+    jx, jy, jz = ix - lo[0], iy - lo[1], iz - lo[2]
+    flat = table.reshape(table.shape[0], -1)
+    return lambda dx, dy, dz: flat[:, ((jz + dz) * n[1] + (jy + dy)) * n[0] + (jx + dx)].reshape(
+        np.broadcast_shapes(ix.shape, key.shape))
 
 
 # Two octaves of trilinear value noise have a std of about 0.33 (measured over 10^6 points);
@@ -244,12 +345,72 @@ _FIELD_STD = 0.33
 def world_field(east_m: np.ndarray, north_m: np.ndarray, alt_m: float, keys: np.ndarray,
                 params: PerceptionParams) -> np.ndarray:
     """Seeded smooth fields over the ground and log-altitude, about unit std: (len(keys),) + east_m.shape."""
-    keys = np.asarray(keys, dtype=np.int64).reshape((-1,) + (1,) * east_m.ndim)
     z = math.log2(max(alt_m, 0.5)) * params.field_octaves_per_doubling
-    length = params.field_length_m
+    return _field(east_m, north_m, z, keys, params.field_length_m)
+
+
+def ground_field(east_m: np.ndarray, north_m: np.ndarray, keys: np.ndarray, length_m: float) -> np.ndarray:
+    """`world_field` fixed on the ground (the same at every altitude): what the ground itself looks like."""
+    return _field(east_m, north_m, 0.0, keys, length_m)
+
+
+def _field(east_m: np.ndarray, north_m: np.ndarray, z: float, keys: np.ndarray, length: float) -> np.ndarray:
+    keys = np.asarray(keys, dtype=np.int64).reshape((-1,) + (1,) * east_m.ndim)
     coarse = _value_noise(east_m / length, north_m / length, np.full_like(east_m, z), keys)
     fine = _value_noise(east_m / (0.4 * length), north_m / (0.4 * length), np.full_like(east_m, z + 17.3), keys + 7)
     return (0.75 * coarse + 0.45 * fine) / _FIELD_STD
+
+
+# --- one episode over one world ---------------------------------------------------------------
+
+
+def world_key(world: str) -> int:
+    """A stable integer for a world's name (Python's own str hash changes between processes)."""
+    return zlib.crc32(world.encode("utf-8"))
+
+
+@dataclass(frozen=True)
+class EpisodeDraw:
+    """What one episode over one world gets; a pure function of (profile, seed, world).
+
+    The calibration and the sun are drawn per (seed, world); the confusion table per world alone
+    (the same imagery misleads alike in every episode; where it does is the seeded field's business).
+    """
+
+    logit_scale_factor: float
+    positive_offset_logit: float
+    sun_azimuth_rad: float  # at time 0; it turns at SUN_RATE_RAD_S
+    sun_elevation_deg: float
+    confusion: tuple[tuple[int, int, float], ...]  # (appearance, partner, share weight)
+
+
+def episode_draw(params: PerceptionParams, seed: int, world: str) -> EpisodeDraw:
+    """The per-episode calibration, sun and per-world confusions (see PerceptionParams)."""
+    s = params.scaled()
+    wk = world_key(world)
+    rng = np.random.default_rng([seed, wk, 23])
+    factor = 1.0 + rng.uniform(-1.0, 1.0) * s["calibration_scale_spread"]
+    offset = rng.uniform(-1.0, 1.0) * s["calibration_offset_logit"]
+    azimuth = rng.uniform(0.0, 2.0 * math.pi)
+    elevation = float(np.clip(params.sun_elevation_deg + rng.uniform(-1.0, 1.0) * s["sun_elevation_spread_deg"],
+                              10.0, 90.0))
+    world_rng = np.random.default_rng([wk, 29])
+    spread = s["world_confusion_spread"]
+    pairs = []
+    for a, partners in CONFUSIONS.items():
+        # Each world misreads each class more or less often (capped: a cell keeps some of its look)
+        # and towards its partners in its own proportions.
+        strength = min(math.exp(0.5 * spread * world_rng.standard_normal()), 0.95 / max(s["confusion"], 1e-9))
+        weights = {b: w * math.exp(spread * world_rng.standard_normal()) for b, w in partners.items()}
+        total = sum(weights.values())
+        pairs += [(INDEX[a], INDEX[b], strength * w / total) for b, w in weights.items()]
+    return EpisodeDraw(float(factor), float(offset), float(azimuth), elevation, tuple(pairs))
+
+
+def _field_keys(seed: int, world: str, ids: Iterable[int], tag: int = 0) -> np.ndarray:
+    """Keys of the seeded fields: one per id, distinct per seed, world and use (tag)."""
+    base = seed * 1_000_003 + (world_key(world) % 999_983) * 4099 + tag * 50_021
+    return np.array([base + i for i in ids], dtype=np.int64)
 
 
 # --- the model ---------------------------------------------------------------------------
@@ -257,8 +418,19 @@ def world_field(east_m: np.ndarray, north_m: np.ndarray, alt_m: float, keys: np.
 
 @dataclass(frozen=True)
 class _Classes:
+    """A world's class table as the per-frame path needs it, built once per table.
+
+    Label ids with the same appearance mix are interchangeable for the perception, so each is
+    given the code of its distinct mix row: the frame's labels become codes with one lookup
+    (`code_lut`), and the appearance fractions come from one histogram of (cell, code, shadowed).
+    """
+
     mix: np.ndarray  # (256, A) appearance weights per label id (255 = off_world)
     height_m: np.ndarray  # (256,) caster height per label id
+    code_lut: np.ndarray  # (256,) uint8 (uint16 past 128 codes): label id -> code of its distinct mix row
+    code_mix: np.ndarray  # (K, A) the mix of each code
+    rank_first_code: np.ndarray  # (R + 2,) first code of each caster rank (rank 0 casts nothing; [R+1] = K)
+    rank_height_m: np.ndarray  # (R + 1,) height of each rank, [0] = 0
 
 
 def _class_names(classes: Mapping[int, object] | Iterable[object]) -> dict[int, str]:
@@ -296,7 +468,20 @@ def _build_classes(names: Mapping[int, str]) -> _Classes:
     heights = np.zeros(A)
     for app, h in CASTER_HEIGHT_M.items():
         heights[INDEX[app]] = h
-    return _Classes(mix=mix, height_m=mix @ heights)
+    height_m = mix @ heights
+    # Heights under half a metre cast nothing (a lawn's mix may carry a little tree).
+    rank_height_m = np.concatenate([[0.0], np.unique(height_m[height_m > 0.5])])
+    rank = np.searchsorted(rank_height_m, np.where(height_m > 0.5, height_m, 0.0))
+    # Codes ordered by (off-world first, caster rank, mix row): "at least rank r" and "lower than
+    # rank r, in the world" are then code ranges, compared on the code image directly.
+    rows = np.concatenate([(np.arange(256) != OFF_WORLD_LABEL)[:, None], rank[:, None], mix], axis=1)
+    uniq, code = np.unique(rows, axis=0, return_inverse=True)
+    code = code.reshape(-1)
+    rank_first = np.searchsorted(uniq[:, 1], np.arange(rank_height_m.size + 1), side="left")
+    rank_first[0] = 1  # code 0 is off-world, never lit nor shaded
+    k = uniq.shape[0]
+    return _Classes(mix=mix, height_m=height_m, code_lut=code.astype(np.uint8 if 2 * k <= 256 else np.uint16),
+                    code_mix=uniq[:, 2:], rank_first_code=rank_first.astype(np.int64), rank_height_m=rank_height_m)
 
 
 class SimPerception:
@@ -311,14 +496,27 @@ class SimPerception:
         self._strength = params.scaled()
         self._classes: dict[tuple, _Classes] = {}
         self._responses: dict[str, np.ndarray] = {}
-        # The sun stands in one world direction per seed, as over one real site on one afternoon.
-        self._sun_az_rad = 2.0 * math.pi * ((self.seed * 0.6180339887 + 0.23) % 1.0)
+        self._draws: dict[str, EpisodeDraw] = {}
         self.grid = INPUT_PX // params.cell_px
         iy, ix = np.divmod(np.arange(INPUT_PX * INPUT_PX), INPUT_PX)
-        self._cell_of_px = ((iy // params.cell_px) * self.grid + ix // params.cell_px).astype(np.int64)
+        self._cell_of_px = ((iy // params.cell_px) * self.grid + ix // params.cell_px).astype(np.intp)
+        self._cell_bases: dict[int, np.ndarray] = {}
+        self._key = np.empty(INPUT_PX * INPUT_PX, np.intp)  # the per-frame histogram key, reused
 
     def describe(self) -> str:
         return f"SIMULATED perception profile={self.params.name} noise={self.params.noise:g} seed={self.seed}"
+
+    def draw(self, world: str = "") -> EpisodeDraw:
+        """This episode's calibration, sun and confusions over `world` (cached)."""
+        d = self._draws.get(world)
+        if d is None:
+            if len(self._draws) >= 16:
+                self._draws.clear()
+            d = self._draws[world] = episode_draw(self.params, self.seed, world)
+            log.info("simulated perception over %r, seed %d: logit scale x%.3f, positive offset %+.3f logit, "
+                     "sun elevation %.0f deg", world, self.seed, d.logit_scale_factor, d.positive_offset_logit,
+                     d.sun_elevation_deg)
+        return d
 
     def responses(self, prompts: PromptSet) -> np.ndarray:
         """(A, P) logits of a pure patch of each appearance for each prompt (cached per set)."""
@@ -350,60 +548,80 @@ class SimPerception:
         """(grid, grid, A) appearance fractions per cell, shadows included, before any error."""
         lab = _input_labels(labels)
         tables = self._tables(classes)
-        present = np.flatnonzero(np.bincount(lab.ravel(), minlength=256))
-        compact = np.zeros(256, np.int64)
-        compact[present] = np.arange(present.size)
-        k = present.size
-        shadow = self._shadow_mask(lab, tables, view, labels.shape) if self._strength["shadow"] > 0 else None
-        key = self._cell_of_px * (2 * k) + compact[lab.ravel()]
-        if shadow is not None:
-            key += shadow.ravel().astype(np.int64) * k
+        k = tables.code_mix.shape[0]
+        # Each pixel's code (its class's mix row, + k when shadowed), then one histogram per cell.
+        code = cv2.LUT(lab, tables.code_lut) if tables.code_lut.dtype == np.uint8 else tables.code_lut[lab]
+        if self._strength["shadow"] > 0:
+            shadow = self._shadow_mask(code, tables, view, labels.shape)
+            code += shadow.view(np.uint8) * code.dtype.type(k)
         n_cells = self.grid * self.grid
+        key = np.add(self._cell_base(2 * k), code.reshape(-1), out=self._key)
         counts = np.bincount(key, minlength=n_cells * 2 * k).reshape(n_cells, 2, k).astype(np.float64)
-        mix = tables.mix[present]  # (k, A)
-        shadow_mix = (1.0 - self._strength["shadow"]) * mix
+        shadow_mix = (1.0 - self._strength["shadow"]) * tables.code_mix
         shadow_mix[:, INDEX["shadow"]] += self._strength["shadow"]
-        frac = (counts[:, 0] @ mix + counts[:, 1] @ shadow_mix) / float(self.params.cell_px ** 2)
+        frac = (counts[:, 0] @ tables.code_mix + counts[:, 1] @ shadow_mix) / float(self.params.cell_px ** 2)
         return frac.reshape(self.grid, self.grid, A)
+
+    def _cell_base(self, stride: int) -> np.ndarray:
+        """Each input pixel's cell index times ``stride`` (cached: one array per code count)."""
+        base = self._cell_bases.get(stride)
+        if base is None:
+            if len(self._cell_bases) >= 8:
+                self._cell_bases.clear()
+            base = self._cell_bases[stride] = self._cell_of_px * stride
+        return base
 
     def logits(self, labels: np.ndarray, classes: Mapping[int, object] | Iterable[object], view: View,
                frame_seq: int, prompts: PromptSet) -> tuple[np.ndarray, np.ndarray]:
         """(P, grid, grid) prompt logits and the (grid, grid) in-world share of each cell."""
+        out, in_world = self._logits_hwp(labels, classes, view, frame_seq, prompts)
+        return np.ascontiguousarray(out.transpose(2, 0, 1)), in_world
+
+    def _logits_hwp(self, labels: np.ndarray, classes: Mapping[int, object] | Iterable[object], view: View,
+                    frame_seq: int, prompts: PromptSet) -> tuple[np.ndarray, np.ndarray]:
+        """`logits` with the prompt axis last (grid, grid, P), as OpenCV resizes it."""
         frame_seq = _check_seq(frame_seq)
+        draw = self.draw(view.world)
         frac = self.fractions(labels, classes, view)
         in_world = 1.0 - frac[..., INDEX["off_world"]]
         g = frac * self._object_gain(labels, classes)
         g /= np.maximum(g.sum(axis=2, keepdims=True), 1e-12)
+        s = self._strength
+        if s["instance_variation"] > 0:
+            g = self._instance_looks(g, view, labels.shape)
         if self.params.token_sigma_px > 0:
             sigma = self.params.token_sigma_px / self.params.cell_px
             g = cv2.GaussianBlur(g.astype(np.float32), (0, 0), sigma).astype(np.float64)
-        s = self._strength
         if s["confusion"] > 0:
-            g = self._confuse(g, view, labels.shape)
+            g = self._confuse(g, view, labels.shape, draw)
         if s["context_local"] > 0 or s["context_global"] > 0:
             near = cv2.GaussianBlur(g.astype(np.float32), (0, 0), self.params.context_sigma_px / self.params.cell_px)
             g = (1.0 - s["context_local"] - s["context_global"]) * g + s["context_local"] * near \
                 + s["context_global"] * g.mean(axis=(0, 1))
         grid = self.grid
         out = (g @ self.responses(prompts)).astype(np.float32)  # (grid, grid, P)
+        # The episode's calibration: all logits scaled alike, the positives moved against the rest.
+        if draw.logit_scale_factor != 1.0:
+            out *= np.float32(draw.logit_scale_factor)
+        if draw.positive_offset_logit != 0.0:
+            out[..., :prompts.n_positive] += np.float32(draw.positive_offset_logit)
         if s["flicker_logit"] > 0 or s["flicker_offset"] > 0:
             rng = np.random.default_rng([self.seed, 11, frame_seq])
             n_p = out.shape[2]
             field = rng.standard_normal((6, 6, n_p)).astype(np.float32) * s["flicker_logit"]
             out += cv2.resize(field, (grid, grid), interpolation=cv2.INTER_CUBIC).reshape(grid, grid, n_p)
             out += (rng.standard_normal(n_p) * s["flicker_offset"]).astype(np.float32)
-        return np.ascontiguousarray(out.transpose(2, 0, 1)), in_world.astype(np.float32)
+        return out, in_world.astype(np.float32)
 
     def safe_probability(self, labels: np.ndarray, classes: Mapping[int, object] | Iterable[object], view: View,
                          frame_seq: int, prompts: PromptSet, fusion: FusionConfig = FusionConfig(),
                          out_size: tuple[int, int] | None = None) -> np.ndarray:
         """P(safe) float32 in [0, 1] at ``out_size`` (height, width; default the labels' size)."""
-        logits, in_world = self.logits(labels, classes, view, frame_seq, prompts)
+        logits, in_world = self._logits_hwp(labels, classes, view, frame_seq, prompts)
         grid = max(self.params.fusion_grid_px, self.grid)
-        up = logits
         if grid != self.grid:
-            up = cv2.resize(logits.transpose(1, 2, 0), (grid, grid), interpolation=cv2.INTER_LINEAR)
-            up = up.reshape(grid, grid, -1).transpose(2, 0, 1)
+            logits = cv2.resize(logits, (grid, grid), interpolation=cv2.INTER_LINEAR).reshape(grid, grid, -1)
+        up = np.ascontiguousarray(logits.transpose(2, 0, 1))  # the fusion reads prompt planes
         if grid == INPUT_PX:
             prob = fuse(up, prompts.n_positive, fusion.mode, fusion.temperature, fusion.blur_px)
         else:
@@ -411,7 +629,8 @@ class SimPerception:
             # smooth below a token, so this is the exact path to within ~0.01 at a tenth of its cost.
             prob = fuse(up, prompts.n_positive, fusion.mode, fusion.temperature, 1)
             prob = blur_prob(cv2.resize(prob, (INPUT_PX, INPUT_PX), interpolation=cv2.INTER_LINEAR), fusion.blur_px)
-        prob *= cv2.resize(in_world, (INPUT_PX, INPUT_PX), interpolation=cv2.INTER_LINEAR)
+        if in_world.min() < 1.0:  # most frames lie wholly inside the world: nothing to scale
+            prob *= cv2.resize(in_world, (INPUT_PX, INPUT_PX), interpolation=cv2.INTER_LINEAR)
         height_px, width_px = labels.shape if out_size is None else out_size
         if (height_px, width_px) != prob.shape:
             prob = cv2.resize(prob, (int(width_px), int(height_px)), interpolation=cv2.INTER_LINEAR)
@@ -453,64 +672,103 @@ class SimPerception:
         cx, cy = view.centre_world_m if view.centre_world_m is not None else (0.0, 0.0)
         return cx + c * right + s * forward, cy + c * forward - s * right
 
-    def _confuse(self, g: np.ndarray, view: View, frame_shape: tuple[int, int]) -> np.ndarray:
-        east, north = self.cell_world_m(view, FIELD_GRID, frame_shape)
-        p = self.params
-        out = g.copy()
+    def _confuse(self, g: np.ndarray, view: View, frame_shape: tuple[int, int], draw: EpisodeDraw) -> np.ndarray:
         top = g.max(axis=(0, 1))
         # Only appearances in view need their fields (not in view: nothing to misread).
-        pairs = [(INDEX[a], INDEX[b], w / sum(partners.values()))
-                 for a, partners in CONFUSIONS.items() if top[INDEX[a]] >= 0.02 for b, w in partners.items()]
+        pairs = [(a, b, w) for a, b, w in draw.confusion if top[a] >= 0.02]
         if not pairs:
-            return out
-        keys = np.array([self.seed * 1_000_003 + a * 97 + b for a, b, _ in pairs])
-        z = world_field(east, north, view.alt_agl_m, keys, p).astype(np.float32)  # (n, F, F)
-        z = cv2.resize(np.ascontiguousarray(z.transpose(1, 2, 0)), (self.grid, self.grid),
-                       interpolation=cv2.INTER_LINEAR).reshape(self.grid, self.grid, len(pairs))
-        share = np.clip(z - p.confusion_onset, 0.0, 1.0) * (self._strength["confusion"] *
-                                                             np.array([w for _, _, w in pairs], np.float32))
-        for i, (a, b, _) in enumerate(pairs):
-            moved = g[..., a] * share[..., i]
-            out[..., a] -= moved
-            out[..., b] += moved
-        return out
+            return g.copy()
+        east, north = self.cell_world_m(view, FIELD_GRID, frame_shape)
+        keys = _field_keys(self.seed, view.world, (a * 97 + b for a, b, _ in pairs))
+        z = world_field(east, north, view.alt_agl_m, keys, self.params)
+        weights = self._strength["confusion"] * np.array([w for _, _, w in pairs], np.float32)
+        return _moved(g, pairs, self._on_grid(z) - np.float32(self.params.confusion_onset), weights)
 
-    def _shadow_mask(self, lab: np.ndarray, tables: _Classes, view: View, frame_shape: tuple[int, int]) -> np.ndarray:
-        """Input pixels in the shadow of something taller, sun fixed in the world."""
-        height_lut = tables.height_m
-        heights = np.unique(height_lut[np.flatnonzero(np.bincount(lab.ravel(), minlength=256))])
-        heights = heights[heights > 0.5]
-        shadow = np.zeros(lab.shape, dtype=bool)
-        if heights.size == 0:
-            return shadow
-        px_h = height_lut[lab]
-        ground = lab != OFF_WORLD_LABEL  # beyond the map nothing is lit or shaded
+    def _instance_looks(self, g: np.ndarray, view: View, frame_shape: tuple[int, int]) -> np.ndarray:
+        """Atypical patches read partly as their class's other looks (INSTANCE_LOOKS), fixed on the ground."""
+        top = g.max(axis=(0, 1))
+        sources = [a for a in INSTANCE_LOOKS if top[INDEX[a]] >= 0.02]
+        if not sources:
+            return g
+        east, north = self.cell_world_m(view, FIELD_GRID, frame_shape)
+        # One field per class (how atypical each patch of it is); its looks share the moved part.
+        z = ground_field(east, north, _field_keys(self.seed, view.world, (INDEX[a] for a in sources), tag=1),
+                         self.params.instance_length_m)
+        field = self._on_grid(z)
+        pairs, columns = [], []
+        for i, a in enumerate(sources):
+            for b, w in INSTANCE_LOOKS[a].items():
+                pairs.append((INDEX[a], INDEX[b], w))
+                columns.append(i)
+        weights = self._strength["instance_variation"] * np.array([w for _, _, w in pairs], np.float32)
+        return _moved(g, pairs, field[..., columns], weights)
+
+    def _on_grid(self, z: np.ndarray) -> np.ndarray:
+        """(n, F, F) fields at FIELD_GRID points -> (grid, grid, n) float32 on the cells."""
+        z = np.ascontiguousarray(z.astype(np.float32).transpose(1, 2, 0))
+        return cv2.resize(z, (self.grid, self.grid), interpolation=cv2.INTER_LINEAR).reshape(self.grid, self.grid, -1)
+
+    def _shadow_mask(self, code: np.ndarray, tables: _Classes, view: View,
+                     frame_shape: tuple[int, int]) -> np.ndarray:
+        """Input pixels in the shadow of something taller, sun fixed in the world.
+
+        Each caster height in view (a rank: a range of codes) throws every pixel at least that
+        tall half and all of its shadow length away from the sun, onto in-world ground lower than it.
+        """
+        first = tables.rank_first_code
+        top = int(code.max())
+        shadow = np.zeros(code.shape, dtype=bool)
         frame_h, frame_w = frame_shape
         m_per_px_x = footprint.metres_per_px(view.alt_agl_m, view.hfov_rad, INPUT_PX)
         m_per_px_y = m_per_px_x * frame_h / frame_w
         # Shadows fall away from the sun; world (east, north) -> image (right, forward).
-        east, north = -math.sin(self._sun_az_rad), -math.cos(self._sun_az_rad)
+        draw = self.draw(view.world)
+        azimuth = draw.sun_azimuth_rad + SUN_RATE_RAD_S * view.time_s
+        east, north = -math.sin(azimuth), -math.cos(azimuth)
         c, s = math.cos(view.yaw_rad), math.sin(view.yaw_rad)
         right, forward = c * east - s * north, s * east + c * north
-        per_m = 1.0 / math.tan(math.radians(self.params.sun_elevation_deg))
-        for h in heights:
-            caster = px_h >= h
-            length_m = h * per_m
+        per_m = 1.0 / math.tan(math.radians(draw.sun_elevation_deg))
+        ground = code >= 1
+        for r in range(1, first.size - 1):
+            if first[r] > top:
+                break
+            # Only heights in view cast: a rank with no pixel of its own adds no shadow length.
+            if not cv2.countNonZero(cv2.inRange(code, int(first[r]), int(first[r + 1]) - 1)):
+                continue
+            caster = code >= first[r]
+            lower = (code < first[r]) & ground
+            length_m = tables.rank_height_m[r] * per_m
             for frac in (0.5, 1.0):
                 dx = int(round(right * length_m * frac / m_per_px_x))
                 dy = int(round(-forward * length_m * frac / m_per_px_y))
-                shadow |= _shifted(caster, dx, dy) & (px_h < h) & ground
+                _or_shifted(shadow, caster, lower, dx, dy)
         return shadow
 
 
-def _shifted(mask: np.ndarray, dx: int, dy: int) -> np.ndarray:
-    """mask moved by (dx right, dy down) pixels, False where nothing moved in."""
-    out = np.zeros_like(mask)
+def _moved(g: np.ndarray, pairs: list[tuple[int, int, float]], excess: np.ndarray,
+           weights: np.ndarray) -> np.ndarray:
+    """g with each pair's share of its source appearance handed to its partner.
+
+    The share is clip(excess, 0, 1) x weight per cell; every pair reads the same g, so the moves
+    are one product with a (pairs, A) table of -1 at the source and +1 at the partner.
+    """
+    share = np.clip(excess, 0.0, 1.0) * weights
+    move = np.zeros((len(pairs), A))
+    rows = np.arange(len(pairs))
+    src = np.array([a for a, _, _ in pairs])
+    move[rows, src] -= 1.0
+    move[rows, [b for _, b, _ in pairs]] += 1.0
+    return g + (g[..., src] * share) @ move
+
+
+def _or_shifted(out: np.ndarray, mask: np.ndarray, where: np.ndarray, dx: int, dy: int) -> None:
+    """out |= (mask moved by dx right, dy down) & where, in place; nothing moves in at the edges."""
     h, w = mask.shape
     if abs(dx) >= w or abs(dy) >= h:
-        return out
-    out[max(dy, 0):h + min(dy, 0), max(dx, 0):w + min(dx, 0)] = mask[max(-dy, 0):h - max(dy, 0), max(-dx, 0):w - max(dx, 0)]
-    return out
+        return
+    dst = (slice(max(dy, 0), h + min(dy, 0)), slice(max(dx, 0), w + min(dx, 0)))
+    src = (slice(max(-dy, 0), h - max(dy, 0)), slice(max(-dx, 0), w - max(dx, 0)))
+    out[dst] |= mask[src] & where[dst]
 
 
 def _input_labels(labels: object) -> np.ndarray:

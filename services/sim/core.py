@@ -314,7 +314,8 @@ class SimCore:
             image = self._blank_image()
         centre = (pose.x_m, pose.y_m) if roll == 0.0 and pitch == 0.0 else \
             optical_axis_ground_m(pose.x_m, pose.y_m, alt_m, pose.yaw_rad, roll, pitch)
-        truth = GroundTruth(labels, self._classes, centre) if cfg.attach_truth and labels is not None else None
+        truth = GroundTruth(labels, self._classes, centre, self.world.name) \
+            if cfg.attach_truth and labels is not None else None
         self._frame_seq += 1
         if est is None:
             frame = CameraFrame(cfg.vehicle_id, self._frame_seq, Stamp(pose.t_s, "sim"), image, cfg.camera.hfov_rad,
@@ -348,13 +349,12 @@ class SimCore:
         fwd, right = req.centre_frd_m
         c, s = math.cos(yaw_rad), math.sin(yaw_rad)
         cx, cy = x_m + c * right + s * fwd, y_m + c * fwd - s * right  # as the renderer turns body into world
-        # People and cars where they were when that frame was taken (its sim time).
         image, labels, _valid = render_ground_square(self.world, cx, cy, yaw_rad, req.side_m, req.out_px,
                                                      with_image=cfg.render_image, with_labels=cfg.attach_truth,
-                                                     t_s=frame.stamp.t_s)
+                                                     t_s=frame.stamp.t_s)  # people where they were at the capture
         if image is None:
             image = np.zeros((req.out_px, req.out_px, 3), np.uint8)
-        truth = GroundTruth(labels, self._classes, (cx, cy)) if labels is not None else None
+        truth = GroundTruth(labels, self._classes, (cx, cy), self.world.name) if labels is not None else None
         return CropFrame(cfg.vehicle_id, req.request_seq, frame.seq, frame.stamp, image, req.centre_frd_m, req.side_m,
                          frame.alt_agl_m, plan.source_m_per_px, roll_rad=frame.roll_rad, pitch_rad=frame.pitch_rad,
                          yaw_rad=frame.yaw_rad, sent_wall_s=wall_time_s(), truth=truth)

@@ -93,7 +93,8 @@ class PoseCamera:
         image, labels, _valid = render(self.world, pose.x_m, pose.y_m, alt_m, pose.yaw_rad, cam,
                                        roll_rad=roll_rad, pitch_rad=pitch_rad, t_s=pose.t_s - self._t0_s)
         centre = optical_axis_ground_m(pose.x_m, pose.y_m, alt_m, pose.yaw_rad, roll_rad, pitch_rad)
-        truth = GroundTruth(labels, self.classes, centre) if self.sim.attach_truth and labels is not None else None
+        truth = GroundTruth(labels, self.classes, centre, self.world.name) \
+            if self.sim.attach_truth and labels is not None else None
         self.seq += 1
         return CameraFrame(self.sim.vehicle_id, self.seq, state.stamp, image, cam.hfov_rad, max(state.alt_agl_m, 0.0),
                            roll_rad=state.roll_rad, pitch_rad=state.pitch_rad, yaw_rad=state.yaw_rad,

@@ -35,7 +35,7 @@ import numpy as np
 
 from dovesei.shared import validate
 from dovesei.shared.errors import ConfigError
-from dovesei.sim.synthetic import default_cache_dir
+from dovesei.sim.synthetic.generate import default_cache_dir
 from dovesei.sim.world import World, WorldError
 
 log = logging.getLogger(__name__)

@@ -41,7 +41,7 @@ from dovesei.shared.codec import image_header_size
 from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.shared.messages import FieldError
 from dovesei.shared.validate import positive
-from dovesei.sim import synthetic
+from dovesei.sim.synthetic import generate as synthetic
 from dovesei.sim.objects import Population
 from dovesei.sim.populate import DEFAULT_DENSITY, populate
 

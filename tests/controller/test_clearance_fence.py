@@ -9,9 +9,9 @@ import math
 import numpy as np
 
 from dovesei.controller.policies.base import Decision, Observation
-from dovesei.controller.policies.clearance import ClearancePolicy, fence
-from dovesei.controller.policies.clearance_config import ClearanceConfig
-from dovesei.controller.policies.clearance_motion import to_body, to_ne
+from dovesei.controller.policies.clearance.policy import ClearancePolicy, fence
+from dovesei.controller.policies.clearance.config import ClearanceConfig
+from dovesei.controller.policies.clearance.motion import to_body, to_ne
 from tests.controller.test_clearance_scenarios import World, _textured, fly
 
 # The closed-loop flights search a 150 m radius: the whole route fits their 900 s (the default
@@ -135,7 +135,7 @@ def test_the_fence_shrinks_while_the_estimate_is_uncertain() -> None:
 def test_a_waypoint_beyond_a_shrunk_fence_is_flown_to_its_edge_and_passed() -> None:
     import dataclasses  # lazy: only here
 
-    from dovesei.controller.policies.clearance_machine import Inputs, Memory, Phase, search_route, step
+    from dovesei.controller.policies.clearance.machine import Inputs, Memory, Phase, search_route, step
 
     route = search_route(((100.0, 100.0, 140.0),))  # its first point: 100 m north
     mem = dataclasses.replace(Memory(), phase=Phase.SEARCH)

@@ -7,14 +7,17 @@ import math
 
 import pytest
 
-from dovesei.controller.policies.clearance_config import ClearanceConfig
-from dovesei.controller.policies.clearance_machine import Inputs, Memory, Phase, search_pattern, search_route, step
-from dovesei.controller.policies.clearance_map import Spot
+from dovesei.controller.policies.clearance.config import ClearanceConfig
+from dovesei.controller.policies.clearance.machine import Inputs, Memory, Phase, search_pattern, search_route, step
+from dovesei.controller.policies.clearance.ground_map import Spot
 
 CFG = ClearanceConfig()
 SPACING_M = CFG.search_spacing_radius_frac * CFG.fence_m
 WAYPOINTS = search_pattern(SPACING_M, CFG.fence_m)
 ROUTE = search_route(((100.0, SPACING_M, CFG.fence_m),))
+
+
+LIKELY_P = 0.8
 
 
 def spot(n: float = 20.0, e: float = 0.0, score: float = 1.5) -> Spot:
@@ -24,8 +27,10 @@ def spot(n: float = 20.0, e: float = 0.0, score: float = 1.5) -> Spot:
 
 def inp(t: float, *, alt: float = 100.0, n: float = 0.0, e: float = 0.0, fresh: bool = True, gap: bool = False,
         best: Spot | None = None, check: Spot | None = None, candidate: Spot | None = None) -> Inputs:
+    # The policy calls a candidate likely from the scene's levels; here an area reading 0.8 or more is.
     return Inputs(t_s=t, alt_agl_m=alt, north_m=n, east_m=e, yaw_rad=0.0, fresh=fresh, gap=gap, search_alt_m=100.0,
-                  route=ROUTE, best=best, check=check, hfov_rad=math.radians(73.0), candidate=candidate)
+                  route=ROUTE, best=best, check=check, hfov_rad=math.radians(73.0), candidate=candidate,
+                  candidate_likely=candidate is not None and candidate.p_safe >= LIKELY_P)
 
 
 def at(phase: Phase, **kw: object) -> Memory:
@@ -156,6 +161,25 @@ def test_each_search_pass_flies_lower_and_an_abort_resumes_the_route() -> None:
     # An abort climbs back to the search altitude, and the route goes on where it was left.
     mem, _ = step(at(Phase.ABORT, waypoint=2 * len(WAYPOINTS)), inp(1.0, alt=99.0), CFG)
     assert mem.phase is Phase.SEARCH and mem.waypoint == 2 * len(WAYPOINTS)
+
+
+def test_the_last_metres_before_the_hand_over_descend_only_centred_on_the_spot() -> None:
+    """No hysteresis within final_band_m of the hand-over: 2.5 m off (inside lock_out, outside
+    lock_in) a descending vehicle goes on at 40 m but holds its altitude at 23 m and steers onto
+    the spot, so it never hands over metres from the ground it checked."""
+    target = spot(20.0, 0.0)
+    alt_final = CFG.handover_alt_m + CFG.final_band_m - 2.0
+    lock_in = CFG.lock_in_m + CFG.lock_alt_frac * alt_final
+    lock_out = CFG.lock_out_m + CFG.lock_alt_frac * alt_final
+    off = 17.5  # 2.5 m south of the target
+    assert lock_in < 20.0 - off < lock_out
+    for alt, descends in ((40.0, True), (alt_final, False)):
+        mem = at(Phase.DESCEND, target=target, descending=True)
+        mem, vel = step(mem, inp(1.0, alt=alt, n=off, check=target), CFG)
+        assert mem.phase is Phase.DESCEND and (vel[2] > 0.0) is descends, (alt, vel)
+        assert vel[0] > 0.0  # steering onto the spot either way
+    mem, vel = step(mem, inp(2.0, alt=alt_final, n=19.0, check=target), CFG)  # centred: down again
+    assert vel[2] > 0.0
 
 
 def test_approach_locks_with_hysteresis_and_descends() -> None:

@@ -7,12 +7,16 @@ import math
 import numpy as np
 import pytest
 
-from dovesei.controller.policies.clearance_config import ClearanceConfig
-from dovesei.controller.policies.clearance_map import (GroundMap, clearance_at, emphasise_dips, find_candidate,
-                                                      find_spot, footprint_width_m, look_weight, promise)
+from dovesei.controller.policies.clearance.config import ClearanceConfig
+from dovesei.controller.policies.clearance.ground_map import (GroundMap, clearance_at, emphasise_dips, find_candidate,
+                                                      find_spot, footprint_width_m, logit, look_weight, promise)
 
 HFOV = math.radians(73.0)
 CFG = ClearanceConfig()
+# The map's tests are about geometry: the thresholds a scene would give (scene) are
+# handed in as the policy hands them, in log-odds.
+SPOT_P, PROBE_P = 0.84, 0.78
+SPOT, PROBE = math.log(SPOT_P / (1 - SPOT_P)), math.log(PROBE_P / (1 - PROBE_P))
 
 
 def _fuse(gmap: GroundMap, prob: np.ndarray, alt: float = 50.0, at: tuple[float, float] = (0.0, 0.0),
@@ -89,11 +93,11 @@ def _built_mask_map(safe_width_m: float, alt: float = 30.0) -> GroundMap:
 
 def test_a_3_m_strip_is_rejected_and_a_12_m_lawn_accepted() -> None:
     strip = _built_mask_map(3.0)
-    clear = strip.clearance_m()
+    clear = strip.clearance_m(SPOT)
     assert clearance_at(strip, clear, 0.0, 0.0) <= 1.6
     assert find_spot(strip, clear, CFG, north_m=0.0, east_m=0.0, blacklist=()) is None
     lawn = _built_mask_map(12.0)
-    clear = lawn.clearance_m()
+    clear = lawn.clearance_m(SPOT)
     spot = find_spot(lawn, clear, CFG, north_m=0.0, east_m=0.0, blacklist=())
     assert spot is not None
     assert spot.clearance_m >= CFG.required_clearance_m
@@ -104,7 +108,7 @@ def test_a_3_m_strip_is_rejected_and_a_12_m_lawn_accepted() -> None:
 
 def test_spots_respect_the_blacklist_and_the_search_radius() -> None:
     lawn = _built_mask_map(12.0)
-    clear = lawn.clearance_m()
+    clear = lawn.clearance_m(SPOT)
     spot = find_spot(lawn, clear, CFG, north_m=0.0, east_m=0.0, blacklist=())
     assert spot is not None
     again = find_spot(lawn, clear, CFG, north_m=0.0, east_m=0.0, blacklist=((spot.north_m, spot.east_m),))
@@ -119,9 +123,9 @@ def test_unknown_ground_is_never_a_spot() -> None:
     gmap = GroundMap(CFG)
     gmap.follow(30.0, 0.0, 0.0)
     _fuse(gmap, np.full((352, 352), 0.95, np.float32), alt=30.0, weight=0.5)  # half a look only
-    assert find_spot(gmap, gmap.clearance_m(), CFG, north_m=0.0, east_m=0.0, blacklist=()) is None
+    assert find_spot(gmap, gmap.clearance_m(SPOT), CFG, north_m=0.0, east_m=0.0, blacklist=()) is None
     _fuse(gmap, np.full((352, 352), 0.95, np.float32), alt=30.0, times=3)
-    assert find_spot(gmap, gmap.clearance_m(), CFG, north_m=0.0, east_m=0.0, blacklist=()) is not None
+    assert find_spot(gmap, gmap.clearance_m(SPOT), CFG, north_m=0.0, east_m=0.0, blacklist=()) is not None
 
 
 def test_a_promising_area_is_a_candidate_until_probed_and_a_poor_one_never() -> None:
@@ -135,16 +139,17 @@ def test_a_promising_area_is_a_candidate_until_probed_and_a_poor_one_never() -> 
     prob[np.abs(cols - 40.0) <= 8.0] = 0.82
     prob[np.abs(cols + 40.0) <= 8.0] = 0.7
     _fuse(gmap, np.tile(prob, (352, 1)), alt=100.0, times=3)
-    clear = gmap.clearance_m()
+    clear = gmap.clearance_m(SPOT)
     assert find_spot(gmap, clear, CFG, north_m=0.0, east_m=0.0, blacklist=()) is None
     around = promise(gmap, CFG, 0.0, 0.0, 150.0)
 
     def candidate(skip=(), fence_m=CFG.fence_m, within_m=200.0, p=around):
-        return find_candidate(gmap, p, CFG, north_m=0.0, east_m=0.0, skip=skip, fence_m=fence_m, within_m=within_m)
+        return find_candidate(gmap, p, CFG, north_m=0.0, east_m=0.0, skip=skip, fence_m=fence_m, within_m=within_m,
+                              min_logit=PROBE)
 
     cand = candidate()
     assert cand is not None and abs(cand.east_m - 40.0) <= 4.0
-    assert CFG.probe_p_min <= cand.p_safe <= 0.82 + 1e-6 and cand.distance_m == pytest.approx(math.hypot(cand.north_m, cand.east_m))
+    assert PROBE_P <= cand.p_safe <= 0.82 + 1e-6 and cand.distance_m == pytest.approx(math.hypot(cand.north_m, cand.east_m))
     # The nearest part of the band is preferred (the band runs north-south through the view).
     assert abs(cand.north_m) <= 2.0
     # Once probed, the band near that point is skipped; far along it, it is a candidate again.
@@ -162,7 +167,7 @@ def test_a_promising_area_is_a_candidate_until_probed_and_a_poor_one_never() -> 
     assert small.disk[r - small.r0, c - small.c0] == pytest.approx(around.disk[r - around.r0, c - around.c0])
 
 
-LAWN = CFG.p_safe_min + 0.05
+LAWN = SPOT_P + 0.05
 
 
 def _blob_view(size: int = 352, blob_px: int = 6, depth: float = 0.045, seed: int = 0) -> np.ndarray:
@@ -179,16 +184,28 @@ def _blob_view(size: int = 352, blob_px: int = 6, depth: float = 0.045, seed: in
 def test_a_shallow_small_dip_is_deepened_below_the_safe_threshold_and_wide_areas_are_left() -> None:
     p = _blob_view()
     kernel = int(round(CFG.dip_kernel_frac * 352))
-    out = emphasise_dips(p, kernel, CFG.dip_gain, CFG.dip_floor)
-    assert p[150, 170] >= CFG.p_safe_min  # as seen: the absolute threshold misses the person
-    assert out[150, 170] < CFG.p_safe_min  # deepened: now it is an obstacle
+    out = emphasise_dips(p, kernel, CFG.dip_gain, 0.02)
+    assert p[150, 170] >= SPOT_P  # as seen: the threshold misses the person
+    assert out[150, 170] < SPOT_P  # deepened: now it is an obstacle
     # Flat lawn away from the dip and the edge keeps its reading (pixel noise is no dip) ...
     assert abs(float(np.median(out[20:100, 20:100])) - LAWN) < 0.01
-    assert float(out[20:100, 20:100].min()) >= CFG.p_safe_min
+    assert float(out[20:100, 20:100].min()) >= SPOT_P
     # ... and the wide dark road is not made darker than it is.
     assert abs(float(out[100:250, 320:340].mean()) - 0.3) < 0.02
     # Off: gain 0 returns the map as it was.
     assert emphasise_dips(p, kernel, 0.0) is p
+
+
+@pytest.mark.parametrize("a,b", [(0.6, -0.8), (1.0, 0.0), (1.6, 0.8)])
+def test_dips_in_log_odds_move_with_a_recalibration(a: float, b: float) -> None:
+    """On log-odds, with the floor scaled as the scene's contrast scales, a recalibrated view is
+    deepened into the recalibrated result: the person stays an obstacle under every calibration."""
+    lg = logit(_blob_view(), CFG.p_clip)
+    kernel = int(round(CFG.dip_kernel_frac * 352))
+    base = emphasise_dips(lg, kernel, CFG.dip_gain, 0.1, clip=None)
+    shifted = emphasise_dips(a * lg + b, kernel, CFG.dip_gain, 0.1 * a, clip=None)
+    np.testing.assert_allclose(shifted, a * base + b, atol=2e-3 * a + 1e-4)
+    assert shifted[150, 170] < a * SPOT + b <= float(shifted[20:100, 20:100].min())
 
 
 def test_low_looks_outweigh_high_ones_by_the_token_area() -> None:
@@ -229,7 +246,7 @@ def test_a_mask_lands_on_another_grid_where_its_ground_is() -> None:
 
 def test_a_rechecked_target_stays_put_while_it_has_its_clearance_and_moves_when_it_lacks_it() -> None:
     lawn = _built_mask_map(16.0)
-    clear = lawn.clearance_m()
+    clear = lawn.clearance_m(SPOT)
     need = CFG.required_clearance_m
     hyst = need * CFG.recheck_hysteresis
 

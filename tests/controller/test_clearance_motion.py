@@ -8,9 +8,9 @@ import cv2
 import numpy as np
 import pytest
 
-from dovesei.controller.policies.clearance_config import ClearanceConfig
-from dovesei.controller.policies.clearance_map import footprint_width_m
-from dovesei.controller.policies.clearance_motion import EgoMotion, phase_shift, tilt_offset_ne, to_body, to_ne
+from dovesei.controller.policies.clearance.config import ClearanceConfig
+from dovesei.controller.policies.clearance.ground_map import footprint_width_m
+from dovesei.controller.policies.clearance.motion import EgoMotion, phase_shift, tilt_offset_ne, to_body, to_ne
 
 HFOV = math.radians(73.0)
 GROUND_GSD = 0.1  # metres per cell of the synthetic ground

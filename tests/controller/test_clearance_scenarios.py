@@ -16,9 +16,10 @@ import cv2
 import numpy as np
 import pytest
 
-from dovesei.controller.policies.base import Observation, make_policy
-from dovesei.controller.policies.clearance import ClearancePolicy
-from dovesei.controller.policies.clearance_config import ClearanceConfig
+from dovesei.controller.policies.base import LookResult, Observation, make_policy
+from dovesei.controller.policies.clearance.policy import ClearancePolicy
+from dovesei.controller.policies.clearance.config import ClearanceConfig
+from dovesei.controller.policies.clearance.ground_map import logit
 
 HFOV = math.radians(73.0)
 GSD_M = 0.25  # world grid, metres per cell
@@ -233,12 +234,6 @@ def test_perception_gap_without_heatmaps_at_all_holds_then_climbs() -> None:
     assert d.state == "ABORT" and d.vel_body_frd_m_s[2] < 0.0  # climbing (FRD: negative down)
 
 
-# A 12 m lawn of this harness reads 0.82-0.84 after its blur and noise, right at the default
-# threshold (set for the simulated CLIPSeg's lawns, ~0.86-0.89): these scenarios test odometry, not
-# the threshold, so they fly 0.8, over a 14 m lawn (a 12 m one sat exactly on the clearance test).
-ODOMETRY_P_SAFE_MIN = 0.8
-
-
 def _odometry_flight(config: ClearanceConfig) -> tuple[World, Flight]:
     rng = np.random.default_rng(3)
     safe = _textured(rng)
@@ -250,7 +245,7 @@ def _odometry_flight(config: ClearanceConfig) -> tuple[World, Flight]:
 
 
 def test_noisy_biased_odometry_and_wind_still_land_on_the_chosen_spot() -> None:
-    world, flight = _odometry_flight(ClearanceConfig(p_safe_min=ODOMETRY_P_SAFE_MIN))
+    world, flight = _odometry_flight(ClearanceConfig())
     assert flight.alt_m <= 20.0
     assert world.disk_safe(flight.north_m, flight.east_m, 2.0)
     assert math.hypot(flight.north_m - 35.0, flight.east_m + 50.0) < 4.0
@@ -264,7 +259,7 @@ def test_noisy_biased_odometry_and_wind_still_land_on_the_chosen_spot() -> None:
 def test_without_registration_the_estimate_drifts() -> None:
     """The same flight with registration off (no heatmap ever counts as textured): the position
     estimate drifts metres off, so the test above passes because of the registration."""
-    _, flight = _odometry_flight(ClearanceConfig(reg_min_std=1.0, p_safe_min=ODOMETRY_P_SAFE_MIN))
+    _, flight = _odometry_flight(ClearanceConfig(reg_min_std=1.0))
     info = flight.decision.info
     assert math.hypot(info["est_north_m"] - flight.north_m, info["est_east_m"] - flight.east_m) > 4.0
     assert info["bias_north_m_s"] == 0.0 and info["bias_east_m_s"] == 0.0
@@ -273,8 +268,10 @@ def test_without_registration_the_estimate_drifts() -> None:
 def test_the_observation_has_no_position_field() -> None:
     fields = {f.name for f in dataclasses.fields(Observation)}
     assert fields == {"t_s", "alt_agl_m", "prob_safe", "hfov_rad", "roll_rad", "pitch_rad", "yaw_rad",
-                      "vel_est_body_frd_m_s", "cmd_vel_body_frd_m_s", "odom_delta_ne_m", "frame_seq"}
+                      "vel_est_body_frd_m_s", "cmd_vel_body_frd_m_s", "odom_delta_ne_m", "frame_seq", "look"}
     assert not any("pos" in f or f.endswith(("_x_m", "_y_m")) for f in fields)
+    # A close look brings probabilities and the square's geometry, never the crop (a sim's truth).
+    assert {f.name for f in dataclasses.fields(LookResult)} == {"request_seq", "heatmap", "refusal"}
 
 
 def test_make_policy_builds_clearance_for_both_presets() -> None:
@@ -286,28 +283,24 @@ def test_make_policy_builds_clearance_for_both_presets() -> None:
         make_policy("clearance", 3.0)
 
 
-def test_a_lawn_too_blurred_from_100_m_is_probed_and_landed_on() -> None:
-    """A 10 m lawn 70 m away: from 100 m the token grid smears it below the spot test, but its
-    disk reads promising; a probe at 35 m confirms it long before a lower search pass would
-    pass over it."""
+def test_a_lawn_smeared_from_100_m_is_found_from_the_top_pass_and_landed_on() -> None:
+    """A 10 m lawn 70 m away among yards too small to land on: from 100 m the token grid smears
+    it, yet it stands out from the scene (the thresholds are the scene's), so it is chosen from the
+    top pass or after a probe at 35 m, long before a lower search pass would pass over it."""
     rng = np.random.default_rng(4)
     safe = _textured(rng)
     _lawn(safe, 50.0, -50.0, 10.0)
     world = World(safe)
-    # This harness's unsafe ground reads 0.1 (the simulated CLIPSeg's 0.5-0.6), which drags the
-    # lawn's log-odds disk mean from 100 m down to 0.72: the probe and confirmation thresholds
-    # are set below it.
-    cfg = ClearanceConfig(p_safe_min=ODOMETRY_P_SAFE_MIN, confirm_p_min=0.7, probe_p_min=0.7, probe_now_p_min=0.7)
+    cfg = ClearanceConfig()
     flight = fly(world, ClearancePolicy(cfg), seed=4)
     assert flight.alt_m <= 20.0
     assert world.disk_safe(flight.north_m, flight.east_m, 2.0)
     assert math.hypot(flight.north_m - 50.0, flight.east_m + 50.0) < 4.0
-    first_probe = flight.states.index("PROBE")
     chosen = next(i for i, s in enumerate(flight.states) if s in ("APPROACH", "DESCEND"))
-    assert first_probe < chosen
-    # Still on the first, 100 m pass when it went for a closer look, and never below the probe
-    # altitude before a spot was chosen.
-    assert all(alt > 95.0 for _, _, alt, _, _ in flight.track[:first_probe])
+    # Still on the first, 100 m pass when it chose the lawn or went for a closer look, and never
+    # below the probe altitude before a spot was chosen.
+    first = flight.states.index("PROBE") if "PROBE" in flight.states[:chosen] else chosen
+    assert all(alt > 95.0 for _, _, alt, _, _ in flight.track[:first])
     before = flight.track[:chosen]
     assert min(alt for _, _, alt, _, _ in before) >= ClearanceConfig().probe_alt_m - 3.0
 
@@ -327,6 +320,9 @@ class _LowTrap(World):
 
 def _trap_flight(config: ClearanceConfig) -> tuple[World, Flight]:
     safe = np.zeros((SIDE, SIDE), bool)
+    # A real lawn beyond the fence (80 m radius): seen from high up it gives the scene its level
+    # of safe ground, but it can hold no spot.
+    _lawn(safe, 0.0, 95.0, 24.0)
     trap = np.zeros((SIDE, SIDE), bool)
     _lawn(trap, 0.0, 0.0, 24.0)  # 24 m of "lawn" that is not one, under the start
     world = _LowTrap(safe, trap)
@@ -339,7 +335,7 @@ def test_ground_that_reads_safe_only_from_low_down_is_never_landed_on() -> None:
     assert flight.decision.state == "NO_SPOT", flight.decision.reason
     assert "DESCEND" not in flight.states
     # Without the confirmation from high up, the 40 m pass finds the trap and lands on it.
-    world, flight = _trap_flight(cfg.replace(confirm_p_min=0.0))
+    world, flight = _trap_flight(cfg.replace(confirm=False))
     assert flight.alt_m <= 20.0 and not world.disk_safe(flight.north_m, flight.east_m, 2.0)
 
 
@@ -383,7 +379,7 @@ def test_from_any_start_altitude_it_finds_confirms_and_lands(start_alt_m: float)
     safe = _textured(rng)
     _lawn(safe, 50.0, -50.0, 10.0)
     world = World(safe)
-    cfg = ClearanceConfig(p_safe_min=ODOMETRY_P_SAFE_MIN, confirm_p_min=0.7, probe_p_min=0.7, probe_now_p_min=0.7)
+    cfg = ClearanceConfig()
     policy = ClearancePolicy(cfg)
     flight = fly(world, policy, seed=4, start_alt_m=start_alt_m, t_max_s=600.0)
     assert flight.alt_m <= 20.0, flight.decision.reason
@@ -392,6 +388,80 @@ def test_from_any_start_altitude_it_finds_confirms_and_lands(start_alt_m: float)
     alts = cfg.altitudes(start_alt_m)
     chosen = next(i for i, s in enumerate(flight.states) if s in ("APPROACH", "DESCEND"))
     assert min(alt for _, _, alt, _, _ in flight.track[:chosen]) >= alts.probe_m - cfg.probe_alt_tol_m
-    # The spot was confirmed by the looks at or above the scaled confirmation altitude.
+    # The spot was confirmed by the looks at or above the scaled confirmation altitude: there the
+    # lawn reads well above the scene's median.
     p_high, looks = policy.high.at(50.0, -50.0)
-    assert looks > 0.0 and p_high > 0.5
+    levels = policy._levels
+    assert looks > 0.0 and math.log(p_high / (1.0 - p_high)) > levels.typical_logit + 0.5 * levels.contrast_logit
+
+
+def _fly_recalibrated(world: World, a: float, b: float, **kwargs) -> Flight:
+    """`fly` with every heatmap recalibrated, logit P' = a logit P + b (after the clip the policy
+    applies, so only the calibration changes)."""
+    clip = ClearanceConfig().p_clip
+    policy = ClearancePolicy(kwargs.pop("config", None))
+    original = policy.step
+
+    def step(obs: Observation):
+        if obs.prob_safe is not None:
+            lg = a * logit(obs.prob_safe, clip) + b
+            obs = dataclasses.replace(obs, prob_safe=(1.0 / (1.0 + np.exp(-lg))).astype(np.float32))
+        return original(obs)
+
+    policy.step = step  # type: ignore[method-assign]
+    return fly(world, policy, **kwargs)
+
+
+RECALIBRATIONS = [(1.0, 0.0), (0.6, -0.8), (0.6, 0.8), (1.6, -0.8), (1.6, 0.8)]
+
+
+def test_decisions_do_not_depend_on_the_calibration() -> None:
+    """The strip-and-lawn scenario flown through five calibrations of the perception, the corners of
+    the robustness bench's range (a in [0.6, 1.6], b in [-0.8, 0.8]): the same spot is chosen and
+    locked on (the landing within a metre or two of the plain flight's), the strip never."""
+    safe = np.zeros((SIDE, SIDE), bool)
+    mid = SIDE // 2
+    safe[:, mid - 6:mid + 6] = True
+    _lawn(safe, -40.0, 45.0, 12.0)
+    world = World(safe)
+    landed = []
+    for a, b in RECALIBRATIONS:
+        flight = _fly_recalibrated(world, a, b)
+        assert flight.alt_m <= 20.0, (a, b, flight.decision.reason)
+        assert world.disk_safe(flight.north_m, flight.east_m, 2.0), (a, b)
+        assert "DESCEND" in flight.states
+        for n, e, alt, state, down in flight.track:
+            if state == "DESCEND" and down > 0.0:
+                assert abs(e) > 10.0, (a, b, n, e, alt)
+        landed.append((flight.north_m, flight.east_m))
+    plain = landed[0]
+    assert all(math.hypot(n - plain[0], e - plain[1]) < 2.5 for n, e in landed), landed
+
+
+@pytest.mark.parametrize("a,b", [(0.6, 0.8), (1.6, 0.8)])
+def test_nothing_safe_is_nothing_safe_under_an_optimistic_calibration(a: float, b: float) -> None:
+    """Roofs and roads only, read as optimistically as the bench's range allows (b = +0.8): the
+    scene's best class still reads below even odds, so it holds with "no safe spot"."""
+    rng = np.random.default_rng(7)
+    safe = np.zeros((SIDE, SIDE), bool)
+    for _ in range(40):  # yards far too small to land on
+        r, c = rng.integers(0, SIDE - 8, 2)
+        safe[r:r + 6, c:c + 6] = True
+    world = World(safe)
+    flight = _fly_recalibrated(world, a, b, config=ClearanceConfig(search_radius_m=100.0), t_max_s=600.0)
+    assert flight.decision.state == "NO_SPOT", flight.decision.reason
+    assert "no safe spot found" in flight.decision.reason
+    assert "DESCEND" not in flight.states and "APPROACH" not in flight.states
+
+
+def test_a_small_lawn_between_houses_far_from_the_start_is_found_and_landed_on() -> None:
+    """A 14 m lawn between houses and roads 150 m from the start (beyond the first views, inside
+    the search radius), among yards too small to land on: found, looked at closer and landed on."""
+    rng = np.random.default_rng(11)
+    safe = _textured(rng)
+    _lawn(safe, 105.0, -105.0, 14.0)
+    world = World(safe)
+    flight = fly(world, ClearancePolicy(), seed=11, t_max_s=900.0)
+    assert flight.alt_m <= 20.0, flight.decision.reason
+    assert world.disk_safe(flight.north_m, flight.east_m, 2.0)
+    assert math.hypot(flight.north_m - 105.0, flight.east_m + 105.0) < 5.0

@@ -13,8 +13,8 @@ import math
 import cv2
 import numpy as np
 
-from dovesei.controller.policies.clearance import ClearancePolicy
-from dovesei.controller.policies.clearance_config import ClearanceConfig
+from dovesei.controller.policies.clearance.policy import ClearancePolicy
+from dovesei.controller.policies.clearance.config import ClearanceConfig
 from tests.controller.test_clearance_scenarios import SIDE, Flight, World, fly
 
 DRIFT = dict(bias_m_s=(1.0, -0.8), vel_noise_m_s=0.5, wind_m_s=(0.6, 0.4))

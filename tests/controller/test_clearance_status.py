@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from dovesei.controller.core import ControllerConfig, ControllerCore
-from dovesei.controller.policies.clearance import ClearancePolicy
+from dovesei.controller.policies.clearance.policy import ClearancePolicy
 from dovesei.shared.codec import decode, encode
 from dovesei.shared.messages import ControllerStatus, FieldError, SafetyHeatmap, Stamp, VehicleState
 

@@ -6,7 +6,7 @@ import math
 
 import pytest
 
-from dovesei.controller import mavlink_proto as mv
+from dovesei.controller.mavlink import proto as mv
 from dovesei.controller.core import ControllerConfig, ControllerCore, Mode
 from dovesei.controller.gnss_denied import (
     AttitudeGains,

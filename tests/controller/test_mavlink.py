@@ -14,9 +14,9 @@ from collections.abc import Callable, Iterator
 
 import pytest
 
-from dovesei.controller import mavlink_proto as mv
+from dovesei.controller.mavlink import proto as mv
 from dovesei.testing.fake_autopilot import FakeAutopilot
-from dovesei.controller.mavlink import MavlinkVehicle, NotSteerableError, VehicleConnectError
+from dovesei.controller.mavlink.vehicle import MavlinkVehicle, NotSteerableError, VehicleConnectError
 from dovesei.shared.errors import ConfigError
 from dovesei.shared.lifecycle import wait_until
 from dovesei.shared.messages import Stamp, VelocityCommand

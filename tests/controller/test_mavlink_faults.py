@@ -16,10 +16,10 @@ from collections.abc import Callable, Iterator
 
 import pytest
 
-from dovesei.controller import mavlink_proto as mv
-from dovesei.controller.mavlink import MavlinkVehicle, NotSteerableError, VehicleConnectError
-from dovesei.controller.mavlink_signing import LinkSigning
-from dovesei.controller.mavlink_proto import (
+from dovesei.controller.mavlink import proto as mv
+from dovesei.controller.mavlink.vehicle import MavlinkVehicle, NotSteerableError, VehicleConnectError
+from dovesei.controller.mavlink.signing import LinkSigning
+from dovesei.controller.mavlink.proto import (
     SpeedLimits,
     clamp_setpoint,
     load_signing_key,

@@ -8,8 +8,8 @@ from collections.abc import Iterator
 
 import pytest
 
-from dovesei.controller import mavlink_proto as mv
-from dovesei.controller.mavlink import MavlinkVehicle
+from dovesei.controller.mavlink import proto as mv
+from dovesei.controller.mavlink.vehicle import MavlinkVehicle
 from dovesei.shared.lifecycle import wait_until
 from dovesei.shared.messages import Stamp, VelocityCommand, VisualOdometry
 from dovesei.shared.zconfig import free_port

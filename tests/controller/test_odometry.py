@@ -102,3 +102,39 @@ def test_a_decision_refused_after_the_policy_took_its_heatmap_still_moves_the_ca
     deltas = [o.odom_delta_ne_m for o in policy.observations]
     assert deltas[0] is None and len(deltas) == 4
     assert all(d == pytest.approx((0.5, 0.0)) for d in deltas[1:])
+
+
+def test_the_policy_gets_the_attitude_at_capture_not_at_arrival() -> None:
+    """A body-fixed camera turns with the vehicle: a frame captured level and handed over 0.4 s
+    later, while the vehicle pitches and rolls at 30 deg/s, must reach the policy with the
+    attitude it was captured with (the heatmap is placed on the ground with it), not the tick's."""
+    policy = RecordingPolicy()
+    core = ControllerCore(ControllerConfig(lockstep=True), policy=policy)
+    rate = math.radians(30.0)
+
+    def attitude(t: float) -> tuple[float, float, float]:
+        return -rate * t, rate * t, 0.2 + 0.1 * t  # roll, pitch, yaw (radians)
+
+    for k in range(61):  # 3 s; heatmaps captured every 0.5 s, each due 0.4 s later
+        t = round(k * 0.05, 9)
+        if k % 10 == 0:
+            core.on_heatmap(heatmap(k // 10, t), 0.0)
+        due = (k - 8) // 10 if k >= 8 and (k - 8) % 10 == 0 else -1
+        roll, pitch, yaw = attitude(t)
+        core.tick(VehicleState("uav1", k, Stamp(t, "sim"), 80.0, (0.0, 0.0, 0.0), yaw_rad=yaw, roll_rad=roll,
+                               pitch_rad=pitch, await_frame_seq=due))
+    assert len(policy.observations) == 6
+    for i, o in enumerate(policy.observations):
+        roll, pitch, yaw = attitude(0.5 * i)  # at capture; at arrival each was 12 deg further
+        assert (o.roll_rad, o.pitch_rad, o.yaw_rad) == pytest.approx((roll, pitch, yaw), abs=1e-9)
+
+
+def test_the_attitude_track_interpolates_and_never_invents() -> None:
+    track = VelocityTrack(extrapolate_s=0.25)
+    track.add(0.0, (0.0, 0.0, 0.0), math.pi - 0.1, 0.0, 0.2)
+    track.add(0.1, (0.0, 0.0, 0.0), -math.pi + 0.1, 0.1, 0.0)  # the heading crosses +-pi
+    roll, pitch, yaw = track.attitude_at(0.05)
+    assert roll == pytest.approx(0.05) and pitch == pytest.approx(0.1)
+    assert abs(math.remainder(yaw - math.pi, 2.0 * math.pi)) < 1e-9  # the short way round, not through 0
+    assert track.attitude_at(0.3) == pytest.approx((0.1, 0.0, -math.pi + 0.1))  # the newest, a little past it
+    assert track.attitude_at(0.4) is None and track.attitude_at(-0.1) is None

@@ -30,12 +30,12 @@ def test_the_defaults_file_round_trips_to_the_preset(tmp_path: Path, policy: str
 
 def test_a_file_sets_only_what_it_names_and_the_controller_flies_it(tmp_path: Path) -> None:
     path = tmp_path / "mine.toml"
-    path.write_text("p_safe_min = 0.9\nlower_search_fracs = [0.5]\nmax_aborts = 3\n")
+    path.write_text("scene_floor_p = 0.9\nlower_search_fracs = [0.5]\nmax_aborts = 3\n")
     cfg = ControllerConfig(policy="clearance", timing="real", policy_config_file=str(path), handover_alt_m=12.0)
     policy = ControllerCore(cfg).policy.config
-    assert (policy.p_safe_min, policy.lower_search_fracs, policy.max_aborts) == (0.9, (0.5,), 3)
+    assert (policy.scene_floor_p, policy.lower_search_fracs, policy.max_aborts) == (0.9, (0.5,), 3)
     assert policy.handover_alt_m == 12.0  # still the controller's, handed down
-    assert policy.replace(p_safe_min=0.84, lower_search_fracs=(0.6, 0.4), max_aborts=8, handover_alt_m=20.0) == \
+    assert policy.replace(scene_floor_p=0.5, lower_search_fracs=(0.6, 0.4), max_aborts=8, handover_alt_m=20.0) == \
         preset_config("clearance", "real")
     # The controller service's own flags carry the file.
     argv = controller_service.to_argv(cfg)
@@ -44,16 +44,16 @@ def test_a_file_sets_only_what_it_names_and_the_controller_flies_it(tmp_path: Pa
 
 @pytest.mark.parametrize("text, needle", [
     ("no_such = 1\n", "no_such is not a constant of the clearance policy"),
-    ("p_safe_min = 'high'\n", "p_safe_min must be a finite number, got 'high'"),
-    ("p_safe_min = nan\n", "p_safe_min must be a finite number"),
-    ("p_safe_min = 2.0\n", "p_safe_min"),  # the config's own range check
+    ("scene_floor_p = 'high'\n", "scene_floor_p must be a finite number, got 'high'"),
+    ("scene_floor_p = nan\n", "scene_floor_p must be a finite number"),
+    ("scene_floor_p = 2.0\n", "scene_floor_p"),  # the config's own range check
     ("max_aborts = 2.5\n", "max_aborts must be an integer"),
     ("max_aborts = true\n", "max_aborts must be an integer"),
     ("lower_search_fracs = 0.5\n", "lower_search_fracs must be an array"),
     ("lower_search_fracs = [0.5, 'x']\n", "lower_search_fracs[1] must be a finite number"),
     ("handover_alt_m = 10.0\n", "handover_alt_m is set with --handover-alt-m"),
     ("timing_name = 'real'\n", "timing_name is set with --timing"),
-    ("p_safe_min = \n", "not TOML"),
+    ("scene_floor_p = \n", "not TOML"),
 ])
 def test_bad_keys_and_values_are_one_line_naming_file_and_key(tmp_path: Path, text: str, needle: str) -> None:
     path = tmp_path / "bad.toml"
@@ -82,11 +82,11 @@ def test_the_command_prints_the_defaults_and_checks_a_file(tmp_path: Path, capsy
 
 def test_up_hands_the_file_to_the_controller_and_reports_what_it_changed(tmp_path: Path) -> None:
     path = tmp_path / "mine.toml"
-    path.write_text("p_safe_min = 0.9\nmargin_m = 1.5\n")  # margin_m is the default: not a change
+    path.write_text("scene_floor_p = 0.9\nmargin_m = 1.5\n")  # margin_m is the default: not a change
     opts = UpOptions(world=WORLD, policy="clearance", timing="real", policy_config=path, out=tmp_path)
     configs = child_configs(opts, (200.0, 200.0, 100.0))
     assert configs.controller.policy_config_file == str(path.resolve())
-    assert _policy_config(opts) == (str(path), {"p_safe_min": 0.9})
-    path.write_text("p_safe_min = 0.9\nbogus = 1\n")
+    assert _policy_config(opts) == (str(path), {"scene_floor_p": 0.9})
+    path.write_text("scene_floor_p = 0.9\nbogus = 1\n")
     with pytest.raises(ConfigError, match="bogus is not a constant"):
         UpOptions(world=WORLD, policy="clearance", timing="real", policy_config=path, out=tmp_path)

@@ -15,8 +15,8 @@ import pytest
 
 from dovesei.benchmarks import policy as bench
 from dovesei.controller.policies.base import Observation, PolicyInputError, make_policy, policy_names
-from dovesei.controller.policies.config import DoveseiConfig, real_timing
-from dovesei.controller.policies.dovesei import (
+from dovesei.controller.policies.dovesei.config import DoveseiConfig, real_timing
+from dovesei.controller.policies.dovesei.policy import (
     DoveseiPolicy,
     DoveseiState,
     LanderImage,

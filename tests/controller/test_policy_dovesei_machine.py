@@ -12,10 +12,10 @@ import math
 import numpy as np
 import pytest
 
-from dovesei.controller.policies.config import DoveseiConfig, real_timing, reference_timing
+from dovesei.controller.policies.dovesei.config import DoveseiConfig, real_timing, reference_timing
 from dovesei.shared import timing as shared_timing
-from dovesei.controller.policies.dovesei import DoveseiState as S
-from dovesei.controller.policies.dovesei import MachineOutput, StateMachine, conservative_gain
+from dovesei.controller.policies.dovesei.policy import DoveseiState as S
+from dovesei.controller.policies.dovesei.policy import MachineOutput, StateMachine, conservative_gain
 
 PRESETS = {"real": real_timing, "reference": reference_timing}
 

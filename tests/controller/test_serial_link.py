@@ -16,8 +16,8 @@ from pathlib import Path
 
 import pytest
 
-from dovesei.controller import mavlink_proto as mv
-from dovesei.controller.mavlink import MavlinkVehicle, VehicleConnectError
+from dovesei.controller.mavlink import proto as mv
+from dovesei.controller.mavlink.vehicle import MavlinkVehicle, VehicleConnectError
 from dovesei.shared.errors import ConfigError
 from dovesei.shared.lifecycle import wait_until
 from dovesei.shared.mavurl import MavlinkEndpoint, check_serial_device, parse_mavlink_url

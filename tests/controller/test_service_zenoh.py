@@ -246,7 +246,7 @@ def test_a_flight_controller_gets_setpoints_then_handover_then_hold_on_stop(zeno
 
 
 def test_a_missing_mavlink_adapter_is_a_clear_error(zenoh_pair, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setitem(sys.modules, "dovesei.controller.mavlink", None)  # import now fails
+    monkeypatch.setitem(sys.modules, "dovesei.controller.mavlink.vehicle", None)  # import now fails
     config = ControllerConfig(lockstep=False, timing="real", vehicle_url="udpin:127.0.0.1:14550")
     with pytest.raises(ConfigError, match="MAVLink adapter"):
         open_vehicle(zenoh_pair[0], config)

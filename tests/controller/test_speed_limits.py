@@ -13,9 +13,9 @@ import math
 import numpy as np
 
 from dovesei.controller.core import ControllerConfig, ControllerCore
-from dovesei.controller.policies.clearance import ClearancePolicy
-from dovesei.controller.policies.clearance_config import ClearanceConfig
-from dovesei.controller.policies.dovesei import DoveseiPolicy
+from dovesei.controller.policies.clearance.policy import ClearancePolicy
+from dovesei.controller.policies.clearance.config import ClearanceConfig
+from dovesei.controller.policies.dovesei.policy import DoveseiPolicy
 from tests.controller.test_clearance_scenarios import SIDE, World, fly
 
 MAVLINK = dict(vehicle_url="udpout:127.0.0.1:14550", lockstep=False, timing="real")

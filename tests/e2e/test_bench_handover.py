@@ -44,23 +44,23 @@ def test_a_handover_above_the_start_is_one_line_before_any_work(tmp_path: Path) 
 
 def test_a_policy_file_is_flown_and_recorded_and_refused_with_two_policies(tmp_path: Path) -> None:
     path = tmp_path / "mine.toml"
-    path.write_text("p_safe_min = 0.9\nmargin_m = 1.5\n")  # margin_m is the default: not a change
+    path.write_text("scene_floor_p = 0.9\nmargin_m = 1.5\n")  # margin_m is the default: not a change
     doc = run_bench(world_spec=WORLD, episodes=1, seed=0, policies=["clearance"], noise=0.0, timing="real",
                     time_limit_s=600.0, start_alt_m=100.0, jobs=1, out=tmp_path / "b", progress=False,
                     policy_config=path)
-    assert doc["config"]["policy_config"] == {"p_safe_min": 0.9}
+    assert doc["config"]["policy_config"] == {"scene_floor_p": 0.9}
     assert doc["episodes"][0]["outcome"] in ("safe", "unsafe", "timeout")
     r = subprocess.run([sys.executable, "-m", "dovesei.cli", "bench", "--world", WORLD, "--policy", "dovesei,clearance",
                         "--policy-config", str(path), "--out", str(tmp_path / "o"), "--no-progress"], cwd=tmp_path,
                        capture_output=True, text=True, timeout=120)
     lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
     assert r.returncode == 2 and len(lines) == 1 and "one --policy" in lines[0], r.stderr
-    path.write_text("p_safe_min = 'x'\n")
+    path.write_text("scene_floor_p = 'x'\n")
     r = subprocess.run([sys.executable, "-m", "dovesei.cli", "bench", "--world", WORLD, "--policy", "clearance",
                         "--policy-config", str(path), "--out", str(tmp_path / "o"), "--no-progress"], cwd=tmp_path,
                        capture_output=True, text=True, timeout=120)
     lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
-    assert r.returncode == 2 and len(lines) == 1 and "mine.toml: p_safe_min must be a finite number" in lines[0]
+    assert r.returncode == 2 and len(lines) == 1 and "mine.toml: scene_floor_p must be a finite number" in lines[0]
     assert not (tmp_path / "o").exists()
 
 
@@ -70,9 +70,9 @@ def test_an_episode_builds_its_policy_from_the_jobs_constants() -> None:
     from dovesei.sim.world import load_world
 
     job = {"policy": "clearance", "timing": "real", "seed": 0, "time_limit_s": 60.0, "handover_alt_m": 12.0,
-           "policy_config": {"p_safe_min": 0.9, "lower_search_fracs": [0.5]}}
+           "policy_config": {"scene_floor_p": 0.9, "lower_search_fracs": [0.5]}}
     spec = EpisodeSpec.from_job(job, Start(200.0, 200.0, 100.0))
     _, _, ctrl = build_cores(load_world(WORLD), spec)
     cfg = ctrl.policy.config
-    assert (cfg.p_safe_min, cfg.lower_search_fracs, cfg.handover_alt_m) == (0.9, (0.5,), 12.0)
+    assert (cfg.scene_floor_p, cfg.lower_search_fracs, cfg.handover_alt_m) == (0.9, (0.5,), 12.0)
     assert ctrl.config.handover_alt_m == 12.0

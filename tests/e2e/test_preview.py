@@ -9,7 +9,7 @@ import cv2
 import dovesei.sim
 from dovesei.pictures.world import render_preview, render_views
 from dovesei.preview import main
-from dovesei.sim.synthetic import SyntheticParams
+from dovesei.sim.synthetic.generate import SyntheticParams
 from dovesei.sim.world import load_world
 
 DUBAI = Path(dovesei.sim.__file__).parent / "worlds" / "dubai-tile8-004"  # shipped as package data

@@ -31,6 +31,10 @@ from dovesei.up.report import Failure
 
 WORLD = "synthetic:size_m=400,seed=1"  # generated in about a second, cached on disk after
 LIMIT_S = 300.0
+# Bounds on waits for `up` (each returns as soon as its condition holds): generous, because on 2
+# shared cores at load 20 starting three services, or stopping them, can take minutes of wall time.
+UP_WAIT_S = 300.0
+UP_TEST_TIMEOUT_S = 1200  # pytest-timeout for a test that waits for up more than once
 REPO = Path(__file__).resolve().parents[2]
 
 
@@ -404,6 +408,7 @@ def _gone(pid: int) -> bool:
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(UP_TEST_TIMEOUT_S)
 def test_up_flies_to_the_judge_and_matches_the_in_process_runner(tmp_path: Path) -> None:
     from dovesei.episode import EpisodeSpec, run_episode
     from dovesei.sim.starts import Start
@@ -411,7 +416,7 @@ def test_up_flies_to_the_judge_and_matches_the_in_process_runner(tmp_path: Path)
 
     up = _Up(tmp_path / "run")
     try:
-        code, stdout, stderr = up.finish(timeout_s=150)
+        code, stdout, stderr = up.finish(timeout_s=UP_WAIT_S)
     finally:
         up.kill()
     report = json.loads((tmp_path / "run" / "report.json").read_text())
@@ -444,16 +449,17 @@ def test_up_flies_to_the_judge_and_matches_the_in_process_runner(tmp_path: Path)
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(UP_TEST_TIMEOUT_S)
 def test_segmenter_killed_mid_descent_controller_holds_and_up_fails(tmp_path: Path) -> None:
     out = tmp_path / "run"
     # Short controller deadlines so the watchdog's hold shows within a few wall seconds.
     up = _Up(out, "--no-video", "--heatmap-wait-s", "1", "--heatmap-hold-after-s", "0.25", "--after-failure-s", "15")
     try:
         # Mid-descent: the first progress line below 95 m (the start is at 100 m).
-        m = up.wait_for_line(r"alt ([2-8]\d|9[0-4])\.\d m: controller", timeout_s=90)
+        m = up.wait_for_line(r"alt ([2-8]\d|9[0-4])\.\d m: controller", timeout_s=UP_WAIT_S)
         assert m is not None, "\n".join(up.lines[-30:])
         os.kill(_pids(out)["segmenter"], signal.SIGKILL)
-        code, _stdout, stderr = up.finish(timeout_s=90)
+        code, _stdout, stderr = up.finish(timeout_s=UP_WAIT_S)
     finally:
         up.kill()
     assert code == 1, stderr[-3000:]
@@ -480,14 +486,15 @@ def test_segmenter_killed_mid_descent_controller_holds_and_up_fails(tmp_path: Pa
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(UP_TEST_TIMEOUT_S)
 def test_ctrl_c_leaves_no_process_behind(tmp_path: Path) -> None:
     out = tmp_path / "run"
     up = _Up(out, "--no-video")
     try:
-        assert up.wait_for_line(r"controller \S+ -> ", timeout_s=90) is not None, "\n".join(up.lines[-30:])
+        assert up.wait_for_line(r"controller \S+ -> ", timeout_s=UP_WAIT_S) is not None, "\n".join(up.lines[-30:])
         pids = _pids(out)
         up.proc.send_signal(signal.SIGINT)
-        code, _stdout, stderr = up.finish(timeout_s=60)
+        code, _stdout, stderr = up.finish(timeout_s=UP_WAIT_S)
     finally:
         up.kill()
     assert code == 130, stderr[-3000:]
@@ -498,6 +505,7 @@ def test_ctrl_c_leaves_no_process_behind(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(UP_TEST_TIMEOUT_S)
 @pytest.mark.parametrize(("service", "stream"), [("segmenter", "heatmap"), ("controller", "status")])
 def test_a_hung_service_is_named_and_up_fails(tmp_path: Path, service: str, stream: str) -> None:
     out = tmp_path / "run"
@@ -506,11 +514,11 @@ def test_a_hung_service_is_named_and_up_fails(tmp_path: Path, service: str, stre
              "--heatmap-hold-after-s", "0.25")
     pid = None
     try:
-        m = up.wait_for_line(r"alt ([2-8]\d|9[0-4])\.\d m: controller", timeout_s=90)
+        m = up.wait_for_line(r"alt ([2-8]\d|9[0-4])\.\d m: controller", timeout_s=UP_WAIT_S)
         assert m is not None, "\n".join(up.lines[-30:])
         pid = _pids(out)[service]
         os.kill(pid, signal.SIGSTOP)
-        code, _stdout, stderr = up.finish(timeout_s=90)
+        code, _stdout, stderr = up.finish(timeout_s=UP_WAIT_S)
     finally:
         if pid is not None and not _gone(pid):
             os.kill(pid, signal.SIGCONT)
@@ -529,6 +537,7 @@ def test_a_hung_service_is_named_and_up_fails(tmp_path: Path, service: str, stre
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(UP_TEST_TIMEOUT_S)
 def test_up_takes_off_and_flies_a_fake_autopilot_from_boot(tmp_path: Path) -> None:
     """--vehicle --takeoff: the controller alone holds the link, arms after the boot phase and climbs;
     the sim starts only then, renders at the states the controller publishes and judges."""
@@ -546,7 +555,8 @@ def test_up_takes_off_and_flies_a_fake_autopilot_from_boot(tmp_path: Path) -> No
                 "--time-limit-s", "150", "--out", str(out), "--no-video"]
         env = {**os.environ, "PYTHONUNBUFFERED": "1", "HF_HUB_OFFLINE": "1"}
         try:
-            done = subprocess.run(argv, cwd=REPO, capture_output=True, text=True, timeout=300, env=env)
+            done = subprocess.run(argv, cwd=REPO, capture_output=True, text=True, timeout=2 * UP_WAIT_S,
+                                  env=env)
         finally:
             if (out / "pids.json").exists():
                 for name, pid in _pids(out).items():
@@ -569,6 +579,7 @@ def test_up_takes_off_and_flies_a_fake_autopilot_from_boot(tmp_path: Path) -> No
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(UP_TEST_TIMEOUT_S)
 def test_up_precland_keeps_the_target_streaming_until_the_autopilot_has_landed(tmp_path: Path) -> None:
     """Issue 26: `up` stopped the controller 0.53 s after a precland hand-over; ArduCopter said
     "PrecLand: Target Found", "Init Failed" and landed blind. Now `up` waits for the disarm and the
@@ -597,7 +608,8 @@ def test_up_precland_keeps_the_target_streaming_until_the_autopilot_has_landed(t
                 "--handover-action", "precland", "--time-limit-s", "150", "--out", str(out), "--no-video"]
         env = {**os.environ, "PYTHONUNBUFFERED": "1", "HF_HUB_OFFLINE": "1"}
         try:
-            done = subprocess.run(argv, cwd=REPO, capture_output=True, text=True, timeout=400, env=env)
+            done = subprocess.run(argv, cwd=REPO, capture_output=True, text=True, timeout=2 * UP_WAIT_S,
+                                  env=env)
         finally:
             if (out / "pids.json").exists():
                 for name, pid in _pids(out).items():

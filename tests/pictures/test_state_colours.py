@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from dovesei.controller.policies.clearance_machine import Phase
-from dovesei.controller.policies.dovesei import DoveseiState
+from dovesei.controller.policies.clearance.machine import Phase
+from dovesei.controller.policies.dovesei.policy import DoveseiState
 from dovesei.pictures.plots import OTHER_STATE_COLOUR, STATE_COLOURS
 
 

@@ -19,7 +19,6 @@ from dovesei.segmenter.core import BackendUnavailableError, SegmenterConfig
 from dovesei.segmenter.fusion import FusionConfig
 from dovesei.segmenter.prompts import REFERENCE_PROMPTS
 from dovesei.segmenter.service import CLI, ServiceConfig, build_backend
-from dovesei.testing.random_model import build_random_clipseg
 
 
 @pytest.fixture(autouse=True)
@@ -31,8 +30,8 @@ def _offline(monkeypatch):
 
 
 @pytest.fixture(scope="module")
-def tiny_dir(tmp_path_factory):
-    return build_random_clipseg(tmp_path_factory.mktemp("clipseg") / "tiny", size="tiny", seed=0)
+def tiny_dir(tiny_clipseg_dir):
+    return tiny_clipseg_dir
 
 
 @pytest.fixture(scope="module")
@@ -90,7 +89,7 @@ def test_dynamic_threshold_keeps_about_the_best_tenth() -> None:
 
 
 def test_gate_mask_is_the_controllers_dynamic_threshold() -> None:
-    from dovesei.controller.policies.dovesei import DoveseiConfig, dynamic_threshold
+    from dovesei.controller.policies.dovesei.policy import DoveseiConfig, dynamic_threshold
 
     rng = np.random.default_rng(3)
     for scale in (1.0, 0.5, 0.05, 0.002):  # from easy frames to ones needing a low threshold, or none

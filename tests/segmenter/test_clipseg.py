@@ -19,7 +19,6 @@ from dovesei.segmenter.clipseg import (
 )
 from dovesei.segmenter.fusion import FusionConfig
 from dovesei.segmenter.prompts import REFERENCE_PROMPTS, PromptError, PromptSet
-from dovesei.testing.random_model import build_random_clipseg
 
 # fp32 fast path vs stock forward; the tiny model's logits have a spread of ~4.
 LOGIT_ATOL = 1e-4
@@ -35,8 +34,8 @@ def _offline(monkeypatch):
 
 
 @pytest.fixture(scope="module")
-def tiny_dir(tmp_path_factory):
-    return build_random_clipseg(tmp_path_factory.mktemp("clipseg") / "tiny", size="tiny", seed=0)
+def tiny_dir(tiny_clipseg_dir):
+    return tiny_clipseg_dir
 
 
 @pytest.fixture(scope="module")

@@ -18,7 +18,6 @@ from dovesei.segmenter.core import (
     DEFAULT_MODEL, DTYPES, BackendUnavailableError, ClipSegFrameBackend, FrameRejected, SegmenterConfig, SegmenterCore, SimFrameBackend, make_backend, to_wire,
 )
 from dovesei.segmenter.prompts import REFERENCE_PROMPTS, PromptError, PromptSet
-from dovesei.testing.random_model import build_random_clipseg
 from dovesei.shared.errors import ConfigError
 from dovesei.shared.messages import CameraFrame, ClassEntry, GroundTruth, PromptSetMsg, Stamp
 
@@ -178,8 +177,8 @@ def test_core_constants_mirror_the_clipseg_module() -> None:
 
 
 @pytest.fixture(scope="module")
-def tiny_model_dir(tmp_path_factory) -> str:
-    return str(build_random_clipseg(tmp_path_factory.mktemp("clipseg") / "tiny", size="tiny", seed=0))
+def tiny_model_dir(tiny_clipseg_dir) -> str:
+    return str(tiny_clipseg_dir)
 
 
 @pytest.fixture(scope="module")

@@ -20,7 +20,6 @@ from dovesei.shared.messages import CropFrame, CropHeatmap, CropRequest, Stamp, 
 from dovesei.sim.core import SimConfig, SimCore
 from dovesei.sim.starts import Start
 from dovesei.sim.world import ClassInfo, World
-from dovesei.testing.random_model import build_random_clipseg
 
 GSD_M = 0.05
 PERSON_XY_M = (62.0, 61.0)  # 2 m east and 1 m north of the vehicle
@@ -66,8 +65,8 @@ def test_a_crop_without_truth_is_refused_by_the_simulated_backend(person_crop: C
         core.process_crop(replace(person_crop, truth=None))
 
 
-def test_clipseg_scores_a_crop_with_one_pass_over_landing_and_never_prompts(tmp_path, person_crop) -> None:
-    model_dir = str(build_random_clipseg(tmp_path / "tiny", size="tiny", seed=0))
+def test_clipseg_scores_a_crop_with_one_pass_over_landing_and_never_prompts(tiny_clipseg_dir, person_crop) -> None:
+    model_dir = str(tiny_clipseg_dir)
     config = SegmenterConfig(backend="clipseg", model=model_dir, threads=1)
     backend = make_backend(config)
     assert isinstance(backend, ClipSegFrameBackend)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -17,7 +18,9 @@ from tests.sim.test_judge import blocks_world
 
 def test_statistics_are_in_range_and_the_judge_side_alone_reads_the_flags() -> None:
     stats = world_stats(blocks_world(), profile_params("realistic"), 6, 2, seed=3)
-    flipped = world_stats(blocks_world(flip=True), profile_params("realistic"), 6, 2, seed=3)
+    # The same world under the same name (its per-world draws are keyed by the name), flags flipped.
+    flipped = world_stats(dataclasses.replace(blocks_world(flip=True), name="blocks"), profile_params("realistic"),
+                          6, 2, seed=3)
     assert stats.frames == 12 and 0.0 < stats.median_threshold < 0.85
     assert 0.0 <= stats.lowered_fraction <= 1.0 and 0.0 <= stats.frame_agreement <= 1.0
     # The perception is blind to the flags: same thresholds and masks; only the verdicts flip.

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from dovesei.controller.core import ControllerConfig
-from dovesei.controller.policies.clearance_config import ClearanceConfig
-from dovesei.controller.policies.config import DoveseiConfig
+from dovesei.controller.policies.clearance.config import ClearanceConfig
+from dovesei.controller.policies.dovesei.config import DoveseiConfig
 from dovesei.shared import footprint
 from dovesei.shared.errors import ConfigError
 from dovesei.shared.mission import HANDOVER_ALT_M, MIN_DESCENT_M, SAFETY_RADIUS_M, check_handover_below_start

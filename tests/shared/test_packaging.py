@@ -15,7 +15,7 @@ def _python(code: str) -> subprocess.CompletedProcess:
 
 def test_controller_and_sim_import_without_torch() -> None:
     res = _python("import dovesei.controller, dovesei.sim, dovesei.controller.service, dovesei.sim.service, "
-                  "dovesei.camera.service, dovesei.controller.mavlink, dovesei.shared.codec; print('ok')")
+                  "dovesei.camera.service, dovesei.controller.mavlink.vehicle, dovesei.shared.codec; print('ok')")
     assert res.returncode == 0 and res.stdout.strip() == "ok", res.stderr
 
 

@@ -10,7 +10,7 @@ import pytest
 from dovesei.sim.camera import CameraModel, render
 from dovesei.sim.objects import PERSON, VEHICLE, ObjectLayer, ObjectLayerError, Population, empty_layer
 from dovesei.sim.populate import Density, class_roles, populate
-from dovesei.sim.synthetic import CAR, GRASS, PERSON as PERSON_ID, PLAZA, ROAD, SIDEWALK, SyntheticParams, \
+from dovesei.sim.synthetic.generate import CAR, GRASS, PERSON as PERSON_ID, PLAZA, ROAD, SIDEWALK, SyntheticParams, \
     generate_world
 from dovesei.sim.world import ClassInfo, World, load_world
 

@@ -100,10 +100,9 @@ def test_commands_that_judge_refuse_it_in_one_line_before_any_download(server: T
 
 
 @pytest.mark.slow
-def test_up_flies_it_with_clipseg_and_does_not_judge(server: TileServer, tmp_path: Path) -> None:
-    from dovesei.testing.random_model import build_random_clipseg
-
-    model = build_random_clipseg(tmp_path / "model", "tiny")
+def test_up_flies_it_with_clipseg_and_does_not_judge(server: TileServer, tmp_path: Path,
+                                                     tiny_clipseg_dir: Path) -> None:
+    model = tiny_clipseg_dir
     out = tmp_path / "run"
     spec = f"paper-paris:start=1,extent_m=300,url={local_url(server)}"
     env = {**os.environ, "PYTHONUNBUFFERED": "1", "HF_HUB_OFFLINE": "1", "DOVESEI_CACHE": str(tmp_path / "cache")}

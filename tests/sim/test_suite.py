@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 
 from dovesei.shared.errors import ConfigError
-from dovesei.sim import synthetic as syn
+from dovesei.sim.synthetic import generate as syn
 from dovesei.sim.starts import generate_starts
 from dovesei.sim.suite import DEFAULT_SUITE, suite
-from dovesei.sim.synth_styles import STYLES
-from dovesei.sim.synthetic import (
+from dovesei.sim.synthetic.styles import STYLES
+from dovesei.sim.synthetic.generate import (
     BARE_SOIL, GRASS, ROOF_FLAT, ROOF_PITCHED, SYNTHETIC_CLASSES, TREE, WATER, SyntheticParams, generate_city,
     parse_spec,
 )

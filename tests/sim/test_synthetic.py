@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from dovesei.shared.errors import ConfigError
-from dovesei.sim import synthetic as syn
-from dovesei.sim.synthetic import (
+from dovesei.sim.synthetic import generate as syn
+from dovesei.sim.synthetic.generate import (
     BARE_SOIL, CAR, GRASS, PERSON, ROAD, SIDEWALK, SYNTHETIC_CLASSES, TREE, WATER,
     SyntheticParams, SyntheticWorldError, generate_city, load_or_generate, parse_spec,
 )

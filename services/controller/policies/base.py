@@ -23,6 +23,32 @@ class PolicyInputError(DoveseiError, ValueError):
 
 
 @dataclass(frozen=True)
+class LookRequest:
+    """A close look a policy asks for: a square of ground around a spot (dovesei.shared.crop),
+    centred `centre_frd_m` (forward, right metres from the point below the vehicle, heading-level
+    body frame, as the policy believes it now), `side_m` wide, at `out_px`."""
+
+    centre_frd_m: tuple[float, float]
+    side_m: float
+    out_px: int
+
+
+@dataclass(frozen=True)
+class LookResult:
+    """What came of a close look: the scored crop (`heatmap`, a CropHeatmap: probabilities and the
+    square's geometry, nothing of the sim's truth), or why there is none (`refusal`: the camera
+    refused, the segmenter failed, nobody answered). `request_seq` is the CropRequest's."""
+
+    request_seq: int
+    heatmap: Any = None  # dovesei.shared.messages.CropHeatmap
+    refusal: str = ""
+
+    @property
+    def ok(self) -> bool:
+        return self.heatmap is not None
+
+
+@dataclass(frozen=True)
 class Observation:
     """One look at the world, on the data clock: what a real vehicle without GNSS has.
 
@@ -49,6 +75,9 @@ class Observation:
     # The camera frame the heatmap came from (-1: unknown): a policy names it when it reports
     # which heatmap confirmed its spot (`Confirmation`), so a judge can map that look to the ground.
     frame_seq: int = -1
+    # The answer to the policy's last `Decision.look_request` (once, on the first observation after
+    # it came back); None: nothing new.
+    look: LookResult | None = None
 
 
 @dataclass(frozen=True)
@@ -82,6 +111,10 @@ class Decision:
     # aborted that sinks through that altitude (inertia, a baro step) is not a landing.
     landing: bool = False
     confirmed: Confirmation | None = None  # policies with a checked spot: the look that confirmed it last
+    # A close look to take now (the controller asks the camera and the segmenter; the answer comes
+    # back in a later `Observation.look`), and the last close look's verdict for status and video.
+    look_request: LookRequest | None = None
+    look_verdict: str = ""
 
 
 def checked_prob_safe(prob: Any, min_side_px: int) -> np.ndarray:
@@ -130,21 +163,21 @@ def _build_dovesei(config: Any, speed_limits_m_s: SpeedLimitsMS | None = None,
     # The paper's policy stays faithful: it asks what the reference asks, the adapter clamps it.
     # It has no hand-over altitude of its own (it descends towards LANDED at 5 m): the controller's
     # watchdog stops it at the hand-over altitude, so `handover_alt_m` changes nothing inside it.
-    from dovesei.controller.policies.dovesei import DoveseiPolicy  # lazy: the policy modules import this one (cycle)
+    from dovesei.controller.policies.dovesei.policy import DoveseiPolicy  # lazy: the policy modules import this one (cycle)
 
     return DoveseiPolicy(config, name="dovesei")
 
 
 def _build_dovesei_nofocus(config: Any, speed_limits_m_s: SpeedLimitsMS | None = None,
                            handover_alt_m: float | None = None) -> Policy:
-    from dovesei.controller.policies.dovesei import DoveseiPolicy  # lazy: the policy modules import this one (cycle)
+    from dovesei.controller.policies.dovesei.policy import DoveseiPolicy  # lazy: the policy modules import this one (cycle)
 
     return DoveseiPolicy(config, name="dovesei-nofocus", dynamic_focus=False)
 
 
 def _build_clearance(config: Any, speed_limits_m_s: SpeedLimitsMS | None = None,
                      handover_alt_m: float | None = None) -> Policy:
-    from dovesei.controller.policies.clearance import ClearancePolicy  # lazy: the policy modules import this one (cycle)
+    from dovesei.controller.policies.clearance.policy import ClearancePolicy  # lazy: the policy modules import this one (cycle)
 
     policy = ClearancePolicy(config)
     cfg = policy.config
@@ -175,8 +208,12 @@ def policy_names() -> list[str]:
     return sorted(_FACTORIES)
 
 
+# The policies whose descent a close look gates (the paper's stays as published).
+CLOSE_LOOK_POLICIES = ("clearance",)
+
+
 def make_policy(name: str, config: Any = None, speed_limits_m_s: SpeedLimitsMS | None = None, *,
-                handover_alt_m: float | None = None) -> Policy:
+                handover_alt_m: float | None = None, close_look: bool = False) -> Policy:
     """Build the policy called `name`.
 
     `config` is policy-specific: for `dovesei*` a `DoveseiConfig`, a timing preset name
@@ -186,9 +223,16 @@ def make_policy(name: str, config: Any = None, speed_limits_m_s: SpeedLimitsMS |
     the `dovesei` policies stay faithful to the reference and are clamped by the adapter.
     `handover_alt_m`, the controller's (None: the config's own, dovesei.shared.mission's default):
     a policy with a hand-over altitude of its own (`clearance`) takes it; the paper's has none.
+    `close_look`: `clearance` looks at its spot at full resolution before committing
+    (`policies/closelook.py`); the controller must then carry out its look requests.
     """
     try:
         factory = _FACTORIES[name]
     except KeyError:
         raise ValueError(f"unknown policy {name!r}; known: {', '.join(policy_names())}") from None
-    return factory(config, speed_limits_m_s, handover_alt_m)
+    policy = factory(config, speed_limits_m_s, handover_alt_m)
+    if close_look and name in CLOSE_LOOK_POLICIES:
+        from dovesei.controller.policies.clearance.closelook import CloseLookPolicy, close_look_config  # lazy: cycle
+
+        policy = CloseLookPolicy(policy, close_look_config(policy.config.handover_alt_m))
+    return policy

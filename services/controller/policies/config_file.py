@@ -20,8 +20,8 @@ import typing
 from pathlib import Path
 from typing import Any
 
-from dovesei.controller.policies.clearance_config import ClearanceConfig, clearance_preset
-from dovesei.controller.policies.config import DoveseiConfig, timing_preset
+from dovesei.controller.policies.clearance.config import ClearanceConfig, clearance_preset
+from dovesei.controller.policies.dovesei.config import DoveseiConfig, timing_preset
 from dovesei.shared.errors import ConfigError
 
 # Policy name -> (config type, preset builder by timing name).

@@ -6,11 +6,11 @@ import math
 
 import numpy as np
 
-from dovesei.sim.synth_blocks import draw_grass, footpath, scatter_trees
-from dovesei.sim.synth_canvas import blob, Canvas, circle_pts, jit, scaled, smooth_path, uni
-from dovesei.sim.synth_classes import BARE_SOIL, GRASS, PAL_SOIL, PAL_WATER_POND, SIDEWALK, SPORTS_FIELD, WATER
-from dovesei.sim.synth_layout import Block
-from dovesei.sim.synth_objects import add_tree, draw_car, draw_person, flat_building, people_in
+from dovesei.sim.synthetic.blocks import draw_grass, footpath, scatter_trees
+from dovesei.sim.synthetic.canvas import blob, Canvas, circle_pts, jit, scaled, smooth_path, uni
+from dovesei.sim.synthetic.classes import BARE_SOIL, GRASS, PAL_SOIL, PAL_WATER_POND, SIDEWALK, SPORTS_FIELD, WATER
+from dovesei.sim.synthetic.layout import Block
+from dovesei.sim.synthetic.objects import add_tree, draw_car, draw_person, flat_building, people_in
 
 
 def draw_park(cv: Canvas, rng, blk: Block, riverside: bool = False) -> None:

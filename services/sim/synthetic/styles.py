@@ -23,13 +23,13 @@ from collections.abc import Callable
 import numpy as np
 
 from dovesei.sim.populate import Density
-from dovesei.sim.synth_blocks import parking_lot
-from dovesei.sim.synth_canvas import Canvas, blob, jit, scaled, smooth_path, uni
-from dovesei.sim.synth_classes import (
+from dovesei.sim.synthetic.blocks import parking_lot
+from dovesei.sim.synthetic.canvas import Canvas, blob, jit, scaled, smooth_path, uni
+from dovesei.sim.synthetic.classes import (
     BARE_SOIL, PAL_ASPHALT, PAL_PAINT, PLAZA, ROAD, ROOF_FLAT, SIDEWALK, WATER,
 )
-from dovesei.sim.synth_layout import CityStyle
-from dovesei.sim.synth_objects import add_tree, draw_car, draw_person, flat_building, people_in
+from dovesei.sim.synthetic.layout import CityStyle
+from dovesei.sim.synthetic.objects import add_tree, draw_car, draw_person, flat_building, people_in
 
 CITY_STYLES: dict[str, CityStyle] = {
     "downtown": CityStyle(

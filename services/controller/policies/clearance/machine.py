@@ -44,8 +44,8 @@ from dataclasses import dataclass
 from enum import Enum
 
 from dovesei.controller.frames import to_body
-from dovesei.controller.policies.clearance_config import ClearanceConfig
-from dovesei.controller.policies.clearance_map import Spot, footprint_width_m
+from dovesei.controller.policies.clearance.config import ClearanceConfig
+from dovesei.controller.policies.clearance.ground_map import Spot, footprint_width_m
 
 
 class Phase(str, Enum):
@@ -108,6 +108,7 @@ class Inputs:
     probe_alt_m: float | None = None  # this flight's probe altitude (None: the config's)
     spot_known: bool = True  # the target was fixed by vision (or re-checked) within spot_trust_s
     recheck: Spot | None = None  # the footprint below, re-checked (None: it does not qualify)
+    candidate_likely: bool = False  # the candidate reads likely enough to probe during the top pass
 
 
 def search_pattern(spacing_m: float, radius_m: float) -> tuple[tuple[float, float], ...]:
@@ -158,6 +159,18 @@ def _go(mem: Memory, phase: Phase, t_s: float, reason: str, **changes: object) -
 
 def _blacklisted(mem: Memory, spot: Spot, alt_m: float) -> tuple[tuple[float, float, float], ...]:
     return mem.blacklist + ((spot.north_m, spot.east_m, alt_m),)
+
+
+def reject_target(mem: Memory, t_s: float, alt_m: float, reason: str) -> Memory:
+    """The target rejected from outside the map (a close look saw what must never be near it): blacklisted;
+    a descent aborts (climbs back to the search altitude), an approach searches on."""
+    if mem.target is None or mem.phase in TERMINAL:
+        return mem
+    if mem.phase is Phase.DESCEND:
+        return _go(mem, Phase.ABORT, t_s, reason + ": abort, climbing back", target=None, aborts=mem.aborts + 1,
+                   blacklist=_blacklisted(mem, mem.target, alt_m))
+    return _go(mem, Phase.SEARCH, t_s, reason + ": rejected", target=None,
+               blacklist=_blacklisted(mem, mem.target, alt_m))
 
 
 def toward(north_err: float, east_err: float, gain: float, vmax: float, yaw: float) -> tuple[float, float]:
@@ -239,7 +252,7 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
             p = Phase.APPROACH
         elif (inp.candidate is not None and len(mem.probed) < cfg.probe_max
               and t - mem.start_s <= cfg.no_spot_after_s
-              and (inp.candidate.p_safe >= cfg.probe_now_p_min or not _top_pass(mem.waypoint, inp))):
+              and (inp.candidate_likely or not _top_pass(mem.waypoint, inp))):
             c = inp.candidate
             return _go(mem, Phase.PROBE, t, f"promising ground {c.distance_m:.0f} m away (P {c.p_safe:.2f} over the "
                                             f"disk): a closer look from {probe_alt:.0f} m", probe=c), (0.0, 0.0, 0.0)
@@ -344,7 +357,8 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
                                               f"{inp.alt_agl_m:.0f} m (clearance {s.clearance_m:.1f} m)"), (0.0, 0.0, 0.0)
         vf, vr = toward(err_n, err_e, cfg.approach_gain_per_s, cfg.max_speed_m_s, inp.yaw_rad)
         return dataclasses.replace(mem, frames=looked, descending=False), (vf, vr, 0.0)
-    descending = err < lock_in or (mem.descending and err <= lock_out)
+    final = inp.alt_agl_m <= cfg.handover_alt_m + cfg.final_band_m  # centred on the spot for the hand-over
+    descending = err < lock_in or (mem.descending and err <= (lock_in if final else lock_out))
     if descending != mem.descending or mem.frames:
         mem = dataclasses.replace(mem, descending=descending, frames=0)
     vf, vr = toward(err_n, err_e, cfg.approach_gain_per_s, cfg.max_speed_m_s, inp.yaw_rad)

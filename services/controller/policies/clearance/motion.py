@@ -32,8 +32,8 @@ import cv2
 import numpy as np
 
 from dovesei.controller.frames import to_body, to_ne
-from dovesei.controller.policies.clearance_config import ClearanceConfig
-from dovesei.controller.policies.clearance_map import footprint_width_m
+from dovesei.controller.policies.clearance.config import ClearanceConfig
+from dovesei.controller.policies.clearance.ground_map import footprint_width_m
 
 
 def phase_shift(ref: np.ndarray, cur: np.ndarray, window: np.ndarray) -> tuple[float, float, float]:

@@ -18,7 +18,8 @@ Resolution follows altitude: the cell is alt x `cell_per_alt`, in power-of-two s
 again at four times the resolution on the way down. A change of cell size or a vehicle near the
 edge resamples the map around the vehicle (mean values carry over; looks per cell too).
 
-Spots: a cell is safe when its fused P >= `p_safe_min` and its looks >= `looks_min`; everything
+Spots: a cell is safe when its fused log-odds reach the scene's spot threshold (scene)
+and its looks >= `looks_min`; everything
 else (unsafe, unknown, off the map) is an obstacle. The clearance of a cell is its metric
 distance to the nearest obstacle (one distance transform); a spot is a cell whose clearance is at
 least the safety radius + margin, i.e. the whole disk passes both thresholds, and where a gate
@@ -38,7 +39,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from dovesei.controller.policies.clearance_config import ClearanceConfig
+from dovesei.controller.policies.clearance.config import ClearanceConfig
 from dovesei.shared import footprint
 
 
@@ -73,8 +74,10 @@ def look_weight(alt_agl_m: float, cfg: ClearanceConfig) -> float:
     return min((cfg.look_ref_alt_m / max(alt_agl_m, 1.0)) ** 2, cfg.look_weight_max)
 
 
-def emphasise_dips(prob: np.ndarray, kernel_px: int, gain: float, floor: float = 0.0) -> np.ndarray:
-    """P with small dark features deepened: P - gain x max(closing(P) - P - floor, 0), in [0, 1].
+def emphasise_dips(prob: np.ndarray, kernel_px: int, gain: float, floor: float = 0.0,
+                   clip: tuple[float, float] | None = (0.0, 1.0)) -> np.ndarray:
+    """P (or log-odds, with `clip` None) with small dark features deepened:
+    P - gain x max(closing(P) - P - floor, 0), clipped to `clip`.
 
     CLIPSeg reads the image on a 22 x 22 token grid and upsamples: a person or a car under one
     token survives only as a shallow local dip (0.05-0.1 below the lawn around it at 20 m), which
@@ -83,6 +86,10 @@ def emphasise_dips(prob: np.ndarray, kernel_px: int, gain: float, floor: float =
     dark area, or the dark side of an edge, is left as it is); subtracting `gain` times it makes
     a dip as deep as the object would read if it filled its tokens. Dips shallower than `floor`
     are the map's own ripple (noise, flicker), not objects, and are left alone.
+
+    On log-odds (the policy's use) with a floor that scales with the scene's contrast, the result
+    moves with any recalibration a logit P + b: a closing commutes with increasing maps, the blur
+    with affine ones, so the same dips are deepened by the same share whatever the calibration.
     """
     if gain <= 0.0 or kernel_px < 3:
         return prob
@@ -101,10 +108,11 @@ def emphasise_dips(prob: np.ndarray, kernel_px: int, gain: float, floor: float =
     if f > 1:
         dip = cv2.resize(dip, (w, h), interpolation=cv2.INTER_LINEAR)
     out = prob - np.float32(gain) * dip
-    return np.clip(out, 0.0, 1.0, out=out)
+    return out if clip is None else np.clip(out, clip[0], clip[1], out=out)
 
 
-def _logit(p: np.ndarray, clip: float) -> np.ndarray:
+def logit(p: np.ndarray, clip: float) -> np.ndarray:
+    """log(P / (1 - P)) with P clipped to [clip, 1 - clip], float32."""
     q = np.clip(p, clip, 1.0 - clip)
     return np.log(q / (1.0 - q)).astype(np.float32)
 
@@ -195,15 +203,21 @@ class GroundMap:
     def fuse(self, prob: np.ndarray, alt_agl_m: float, hfov_rad: float, yaw_rad: float,
              centre_north_m: float, centre_east_m: float, weight: float) -> None:
         """Add one heatmap whose image centre looks at (centre_north, centre_east)."""
-        h, w = prob.shape
+        self.fuse_logit(logit(prob, self.cfg.p_clip), alt_agl_m, hfov_rad, yaw_rad, centre_north_m, centre_east_m,
+                        weight)
+
+    def fuse_logit(self, lg: np.ndarray, alt_agl_m: float, hfov_rad: float, yaw_rad: float,
+                   centre_north_m: float, centre_east_m: float, weight: float) -> None:
+        """Add one heatmap given as log-odds (averaged down in log-odds: the mean of a
+        recalibrated map is the recalibrated mean)."""
+        h, w = lg.shape
         width_m = footprint_width_m(alt_agl_m, hfov_rad)
         gsd_m = width_m / w  # square pixels: the same along rows
         # Average down to about the cell size first: warping alone would alias.
         factor = min(1.0, gsd_m / self.cell_m * 1.5)
         small_w, small_h = max(4, int(round(w * factor))), max(4, int(round(h * factor)))
-        small = cv2.resize(prob, (small_w, small_h), interpolation=cv2.INTER_AREA) if small_w < w else prob
+        small = cv2.resize(lg, (small_w, small_h), interpolation=cv2.INTER_AREA) if small_w < w else lg
         g = width_m / small.shape[1]
-        logit = _logit(small, self.cfg.p_clip)
         cx, cy = (small.shape[1] - 1) / 2.0, (small.shape[0] - 1) / 2.0
         cos_y, sin_y, c = math.cos(yaw_rad), math.sin(yaw_rad), self.cell_m
         m = np.array([
@@ -221,8 +235,8 @@ class GroundMap:
         m[0, 2] -= c0
         m[1, 2] -= r0
         size = (c1 - c0, r1 - r0)
-        warped = cv2.warpAffine(logit, m, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        inside = cv2.warpAffine(np.ones_like(logit), m, size, flags=cv2.INTER_NEAREST,
+        warped = cv2.warpAffine(small, m, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        inside = cv2.warpAffine(np.ones_like(small), m, size, flags=cv2.INTER_NEAREST,
                                 borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
         inside *= np.float32(weight)
         self.evidence[r0:r1, c0:c1] += warped * inside
@@ -238,10 +252,12 @@ class GroundMap:
     def confidence(self) -> np.ndarray:
         return confidence_of(self.looks, self.cfg).astype(np.float32)
 
-    def safe_mask(self) -> np.ndarray:
-        """uint8 1 where the cell is known and safe (L >= logit(p_safe_min) x W, W >= looks_min)."""
+    def safe_mask(self, spot_logit: float) -> np.ndarray:
+        """uint8 1 where the cell is known and safe (L >= spot_logit x W, W >= looks_min)."""
         cfg = self.cfg
-        lt = np.float32(_threshold_logit(cfg.p_safe_min))
+        if math.isinf(spot_logit):
+            return np.zeros((self.n, self.n), np.uint8)
+        lt = np.float32(spot_logit)
         mask = (self.evidence >= lt * self.looks) & (self.looks >= np.float32(cfg.looks_min))
         mask = mask.view(np.uint8)
         mask[0, :] = mask[-1, :] = mask[:, 0] = mask[:, -1] = 0  # off the map is unknown
@@ -259,10 +275,10 @@ class GroundMap:
         return cv2.warpAffine(mask, m, (other.n, other.n), flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
                               borderMode=cv2.BORDER_CONSTANT, borderValue=0)
 
-    def clearance_m(self) -> np.ndarray:
+    def clearance_m(self, spot_logit: float) -> np.ndarray:
         """Metric distance of each cell to the nearest unsafe or unknown cell (0 on obstacles)."""
         # The 5x5 mask is within ~2 % of the exact distance at a tenth of its cost.
-        dist = cv2.distanceTransform(self.safe_mask(), cv2.DIST_L2, 5)
+        dist = cv2.distanceTransform(self.safe_mask(spot_logit), cv2.DIST_L2, 5)
         # The distance runs centre to centre; the obstacle cell's own half-width is not free.
         return np.maximum(dist - 0.5, 0.0) * np.float32(self.cell_m)
 
@@ -276,12 +292,6 @@ class GroundMap:
         if looks <= 1e-6:
             return 0.5, 0.0
         return 1.0 / (1.0 + math.exp(-float(self.evidence[r, c]) / looks)), looks
-
-
-def _threshold_logit(p: float) -> float:
-    """logit(p) for a threshold, with p kept inside (0, 1)."""
-    p = min(max(p, 1e-6), 1.0 - 1e-6)
-    return math.log(p / (1.0 - p))
 
 
 def confidence_of(looks: np.ndarray, cfg: ClearanceConfig) -> np.ndarray:
@@ -377,9 +387,11 @@ class Promise:
     r0: int
     c0: int
 
-    def at_least(self, p_min: float) -> np.ndarray:
-        """uint8 1 where the cell is known and its promise is at least p_min (window cells)."""
-        return ((self.disk >= np.float32(_threshold_logit(p_min))) & self.known).view(np.uint8)
+    def at_least(self, min_logit: float) -> np.ndarray:
+        """uint8 1 where the cell is known and its promise is at least `min_logit` (window cells)."""
+        if math.isinf(min_logit):
+            return np.zeros(self.known.shape, np.uint8)
+        return ((self.disk >= np.float32(min_logit)) & self.known).view(np.uint8)
 
 
 def promise(gmap: GroundMap, cfg: ClearanceConfig, north_m: float, east_m: float, half_m: float) -> Promise:
@@ -405,15 +417,16 @@ def promise(gmap: GroundMap, cfg: ClearanceConfig, north_m: float, east_m: float
 
 
 def find_candidate(gmap: GroundMap, promise_: Promise, cfg: ClearanceConfig, *, north_m: float, east_m: float,
-                   skip: tuple[tuple[float, float], ...], fence_m: float, within_m: float) -> Spot | None:
+                   skip: tuple[tuple[float, float], ...], fence_m: float, within_m: float,
+                   min_logit: float) -> Spot | None:
     """The most promising area that is not yet a spot: worth a closer look from lower down.
 
-    A candidate is a cell of `promise_` (from `gmap`) whose promise is at least `probe_p_min`,
+    A candidate is a cell of `promise_` (from `gmap`) whose promise is at least `min_logit`,
     inside the fence, within `within_m` of the vehicle and farther than `probe_skip_m` from every
     point in `skip` (areas probed or rejected already). Ranked by that promise less distance /
     `probe_dist_m`.
     """
-    rows, cols = np.nonzero(promise_.at_least(cfg.probe_p_min))
+    rows, cols = np.nonzero(promise_.at_least(min_logit))
     if rows.size == 0:
         return None
     disk = promise_.disk[rows, cols]

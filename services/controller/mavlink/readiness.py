@@ -21,7 +21,7 @@ import time
 from collections import deque
 from dataclasses import dataclass
 
-from dovesei.controller.mavlink_proto import (
+from dovesei.controller.mavlink.proto import (
     EKF_ATTITUDE,
     EKF_FLAGS_NEEDED,
     EKF_POS_HORIZ_REL,

@@ -11,14 +11,14 @@ import math
 import cv2
 import numpy as np
 
-from dovesei.sim.synth_blocks import draw_grass
-from dovesei.sim.synth_canvas import Canvas, jit, rounded_rect, scaled, SHIFT, uni
-from dovesei.sim.synth_classes import (
+from dovesei.sim.synthetic.blocks import draw_grass
+from dovesei.sim.synthetic.canvas import Canvas, jit, rounded_rect, scaled, SHIFT, uni
+from dovesei.sim.synthetic.classes import (
     BARE_SOIL, GRASS, PAL_ASPHALT, PAL_GRASS, PAL_PAINT, PAL_SIDEWALK, PAL_TREE, PAL_WATER_RIVER, ROAD,
     SIDEWALK, WATER,
 )
-from dovesei.sim.synth_layout import Block, River, Road
-from dovesei.sim.synth_objects import add_tree, draw_car, draw_person
+from dovesei.sim.synthetic.layout import Block, River, Road
+from dovesei.sim.synthetic.objects import add_tree, draw_car, draw_person
 
 
 def draw_sidewalk(cv: Canvas, rng, blk: Block) -> None:

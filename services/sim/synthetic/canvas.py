@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from dovesei.sim.synth_classes import RGB
+from dovesei.sim.synthetic.classes import RGB
 
 
 SHIFT = 3  # OpenCV sub-pixel bits: polygons are placed to 1/8 px

@@ -7,6 +7,7 @@ the reference's, so a preset name only changes nothing but the name kept for rep
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 
 from dovesei.shared import timing as shared_timing
@@ -48,26 +49,47 @@ class ClearanceConfig:
     cell_per_alt: float = 0.01  # desired cell size = alt x this (1 m at 100 m) ...
     cell_min_m: float = 0.25  # ... within these bounds, in power-of-two steps
     cell_max_m: float = 1.0
-    p_clip: float = 0.02  # P clipped to [p_clip, 1 - p_clip] before the logit
+    # P clipped to [p_clip, 1 - p_clip] before the logit: one step of the uint8 heatmap the wire may
+    # carry (P x 255), so no reading is trusted beyond what the format resolves. A wider clip
+    # (0.02 before) flattened the top of a recalibrated map: a lawn at logit 4 and a person on it
+    # at 3 both read 3.9.
+    p_clip: float = 1.0 / 255.0
     look_period_s: float = 0.5  # frames closer than this count as one look (errors correlate)
     decay_tau_s: float = 30.0  # evidence fades with this time constant
-    # Fused P a cell needs to count as safe. With the simulated CLIPSeg (`realistic`) unsafe ground
-    # reads up to ~0.83 where it is confused with a lawn (Dubai's mixed "vegetation"), clear lawns
-    # and bare ground 0.86-0.89. Chosen on tuning seeds 1000+ of the suite, never on reported ones:
-    # 0.6-0.77 gave unsafe landings on the first release's tuning world; with the suite, 0.8 landed
-    # twice on Dubai vegetation at fused P 0.81 and 0.83 in 60 episodes (55 safe), 0.84 never (55
-    # safe, the two became "no safe spot" holds).
-    p_safe_min: float = 0.84
+    # --- thresholds from the scene (scene) ---
+    # No threshold is a fixed P: each is read off the distribution of fused log-odds over the map
+    # of the search area, so a recalibrated segmenter (logit P' = a logit P + b) moves them with it.
+    # The one absolute level: a scene whose best class reads below even odds (P 0.5, what the
+    # segmenter itself calls "more likely unsafe") has nothing safe in it.
+    scene_floor_p: float = 0.5
+    # A cell counts as safe within spot_frac of the scene's contrast (its best disk less its
+    # median) below the best disk, or spot_z of the map's own per-cell noise, whichever is wider (a
+    # scene of one class has no contrast). CLIPSeg's tokens mix a cell's reading with its
+    # neighbours' (its output is upsampled from a 22 x 22 grid): a cell taking a fifth of its
+    # reading from darker ground reads a fifth of the contrast low, so this admits the ground of
+    # the best class and its mixed edges up to a fifth, and nothing a fifth darker on its own.
+    spot_frac: float = 0.2
+    # A clearance disk holds ~600 cells (3.5 m at 0.25 m): at 4 sigma a Gaussian class loses 3e-5
+    # of its cells, so 2 % of its disks lose one to noise (at 3 sigma, 55 %).
+    spot_z: float = 4.0
+    # From high up the tokens smear a patch into its surroundings, so a disk's promise (its mean)
+    # is a mix: the gate admits disks that read within gate_frac of the contrast below the best
+    # (at least 70 % of the reading from ground like the best); during the top pass a probe
+    # goes only to disks within probe_now_frac (likely: 75 %).
+    gate_frac: float = 0.3
+    probe_now_frac: float = 0.25
+    # Dips shallower than this share of the contrast between the top class and the one below are
+    # the map's own ripple: a person on a lawn is a dip of a good part of that contrast.
+    dip_floor_frac: float = 0.1
     # A look from altitude h weighs (look_ref_alt_m / h)^2 (at most look_weight_max): sharp low looks
     # outvote the smeared high ones.
     look_ref_alt_m: float = 100.0
     look_weight_max: float = 30.0
     # Small dark features (people, cars under one CLIPSeg token) deepened before fusion: closing
     # disk = dip_kernel_frac x heatmap width (about two of CLIPSeg's 22 tokens), the depth beyond
-    # dip_floor (the map's own ripple) x dip_gain.
+    # the scene's dip floor (dip_floor_frac of its contrast: the map's own ripple) x dip_gain, in log-odds.
     dip_kernel_frac: float = 2.0 / 22.0
     dip_gain: float = 2.0
-    dip_floor: float = 0.02
     looks_min: float = 2.0  # evidence (looks) a cell needs to count as known
     looks_full: float = 6.0  # confidence = 1 - exp(-looks / looks_full)
 
@@ -154,29 +176,24 @@ class ClearanceConfig:
     # with the start, and at least confirm_above_probe_m above the probe altitude, so a probe's own
     # looks never confirm what it found; at most the search altitude) also go to a second map covering the whole
     # search area (1 m cells, never decayed), and a spot is taken only where that map's promise
-    # (the log-odds mean over the clearance disk) is at least confirm_p_min. On tuning seeds
+    # (the log-odds mean over the clearance disk) passes the gate. On tuning seeds
     # under harsh, probes chaining at 35 m over Dubai's lawn-and-tree "vegetation" landed on it
     # twice in 204 episodes (fused P 0.85-0.88 from 35 m down to 20 m); with the gate never.
-    # Measured from 100 m on tuning views: landable disks that pass at 35 m read 0.76-0.82 at
-    # their 5th percentile, the confusable vegetation 0.74-0.78 at its 90th.
-    # confirm_p_min 0 turns the gate off.
+    # The gate's level is the scene's (gate_frac); confirm False turns the gate off.
     confirm_alt_m: float = 55.0  # the 60 m search pass counts
     confirm_above_probe_m: float = 5.0
-    confirm_p_min: float = 0.78
+    confirm: bool = True
 
     # --- probes: a closer look at promising ground ---
     # From 100 m CLIPSeg's tokens (6.7 m) smear a lawn a few tokens wide into its surroundings:
     # ground that passes the spot test from 35 m reads a few tenths lower. While searching, an
-    # area within probe_reach_m whose promise from high up is at least probe_p_min (>=
-    # confirm_p_min: the gate would refuse a spot in anything less) is flown to and looked at from
+    # area within probe_reach_m whose promise from high up passes the gate (the gate would refuse
+    # a spot in anything less) is flown to and looked at from
     # probe_alt_m (scaled with the start, at least hand-over + 10 m) for probe_frames heatmaps; if no spot shows, it is
     # remembered as probed (nothing within probe_skip_m is probed again) and the search goes on.
-    probe_p_min: float = 0.78
-    # During the first, top pass only likely areas (promise >= probe_now_p_min) are probed; the
-    # rest wait until that pass has shown the whole area (on Dubai the first 12 probes once went
-    # to vegetation around the start while a 14 m patch of open land 174 m away read 0.82 and was
-    # never looked at). Landable disks read 0.83-0.86 from 100 m at their median.
-    probe_now_p_min: float = 0.8
+    # During the first, top pass only likely areas (probe_now_frac) are probed; the rest wait
+    # until that pass has shown the whole area (on Dubai the first 12 probes once went to
+    # vegetation around the start while a 14 m patch of open land 174 m away was never looked at).
     probe_alt_m: float = 35.0
     probe_alt_tol_m: float = 3.0  # "at the probe altitude" within this
     probe_descend_frac: float = 0.5  # descend once the area is within this share of the footprint width
@@ -193,6 +210,11 @@ class ClearanceConfig:
     lock_in_m: float = 1.5  # start descending within this (plus lock_alt_frac x altitude) ...
     lock_out_m: float = 3.0  # ... stop descending beyond this (hysteresis)
     lock_alt_frac: float = 0.02
+    # Within final_band_m of the hand-over altitude the descent goes on only within lock_in (no
+    # hysteresis): the hand-over is the vehicle over the checked ground. With the lock_out
+    # hysteresis down to the hand-over, a re-check at 21 m that moved the target 2.4 m handed
+    # over 3.1 m from it (tuning seed 1, Dubai, realistic vehicle: touchdown error 3.3 m).
+    final_band_m: float = 5.0
     switch_gain: float = 0.3  # a new spot must score this much better to replace the target
     refine_radius_m: float = 4.0  # a target that fails its re-check moves to the best cell within this
     descent_gain_per_s: float = 0.08  # descent speed = gain x height above hand-over + min
@@ -233,11 +255,17 @@ class ClearanceConfig:
         )
         for name in positive:
             validate.positive(f"ClearanceConfig.{name}", getattr(self, name))
-        for name in ("drift_frac", "drift_m_s", "anchor_gain_m", "margin_m", "dip_gain", "fence_margin_m", "reg_gate_frac", "reg_gate_m_s", "bias_max_m_s", "switch_gain"):
+        for name in ("final_band_m", "drift_frac", "drift_m_s", "anchor_gain_m", "margin_m", "dip_gain", "fence_margin_m", "reg_gate_frac", "reg_gate_m_s", "bias_max_m_s", "switch_gain"):
             validate.non_negative(f"ClearanceConfig.{name}", getattr(self, name))
-        for name in ("spot_min_response", "probe_descend_frac", "confirm_p_min", "probe_p_min", "probe_now_p_min", "anchor_min_response", "anchor_gate_frac", "p_clip", "p_safe_min", "reg_min_response", "reg_full_response", "reg_min_std", "reg_min_eigen_ratio", "reg_pos_gain", "cmd_weight",
-                     "key_shift_frac", "recheck_hysteresis", "dip_kernel_frac", "dip_floor"):
+        for name in ("spot_min_response", "probe_descend_frac", "anchor_min_response", "anchor_gate_frac", "reg_min_response", "reg_full_response", "reg_min_std", "reg_min_eigen_ratio", "reg_pos_gain", "cmd_weight",
+                     "key_shift_frac", "recheck_hysteresis", "dip_kernel_frac", "gate_frac", "probe_now_frac",
+                     "dip_floor_frac", "spot_frac"):
             validate.in_range(f"ClearanceConfig.{name}", getattr(self, name), 0.0, 1.0)
+        for name in ("p_clip", "scene_floor_p"):
+            validate.in_range(f"ClearanceConfig.{name}", getattr(self, name), 1e-6, 1.0 - 1e-6)
+        validate.non_negative("ClearanceConfig.spot_z", self.spot_z)
+        if not isinstance(self.confirm, bool):
+            raise ConfigError(f"ClearanceConfig.confirm must be true or false, got {self.confirm!r}")
         for frac in self.lower_search_fracs:
             validate.in_range("ClearanceConfig.lower_search_fracs item", frac, 0.05, 1.0)
         if not self.fence_margin_m < self.search_radius_m:
@@ -258,12 +286,9 @@ class ClearanceConfig:
             raise ConfigError("ClearanceConfig: map_cells must be >= 32 and reg_size_px >= 16")
         if isinstance(self.probe_max, bool) or not isinstance(self.probe_max, int) or self.probe_max < 0:
             raise ConfigError(f"ClearanceConfig.probe_max must be an integer >= 0, got {self.probe_max!r}")
-        if self.confirm_p_min > 0.0 and self.probe_p_min < self.confirm_p_min:
-            raise ConfigError(f"ClearanceConfig.probe_p_min {self.probe_p_min} is below confirm_p_min "
-                              f"{self.confirm_p_min}: a probe there could never confirm a spot")
-        if self.probe_now_p_min < self.probe_p_min:
-            raise ConfigError(f"ClearanceConfig.probe_now_p_min {self.probe_now_p_min} must be >= probe_p_min "
-                              f"{self.probe_p_min}")
+        if self.probe_now_frac > self.gate_frac:
+            raise ConfigError(f"ClearanceConfig.probe_now_frac {self.probe_now_frac} must be <= gate_frac "
+                              f"{self.gate_frac}: a likely area is one the gate admits")
         if self.search_alt_m is not None and not self.search_alt_m > self.handover_alt_m:
             raise ConfigError(f"ClearanceConfig.search_alt_m {self.search_alt_m!r} must be above the hand-over "
                               f"altitude {self.handover_alt_m} m")
@@ -275,6 +300,11 @@ class ClearanceConfig:
         scale = top / self.ref_start_alt_m
         floor = self.handover_alt_m + 15.0
         lower: tuple[float, ...] = ()
+        for name in ("p_clip", "scene_floor_p"):
+            validate.in_range(f"ClearanceConfig.{name}", getattr(self, name), 1e-6, 1.0 - 1e-6)
+        validate.non_negative("ClearanceConfig.spot_z", self.spot_z)
+        if not isinstance(self.confirm, bool):
+            raise ConfigError(f"ClearanceConfig.confirm must be true or false, got {self.confirm!r}")
         for frac in self.lower_search_fracs:
             alt = max(frac * top, floor)
             if alt < (lower[-1] if lower else top) - 5.0:  # a pass within 5 m of the one above adds nothing
@@ -282,6 +312,11 @@ class ClearanceConfig:
         probe = max(self.probe_alt_m * scale, self.handover_alt_m + 10.0)
         confirm = min(max(self.confirm_alt_m * scale, probe + self.confirm_above_probe_m), top)
         return Altitudes(search_m=top, lower_m=lower, confirm_m=confirm, probe_m=probe)
+
+    @property
+    def scene_floor_logit(self) -> float:
+        """The floor in log-odds (0 for P 0.5)."""
+        return math.log(self.scene_floor_p / (1.0 - self.scene_floor_p))
 
     @property
     def fence_m(self) -> float:

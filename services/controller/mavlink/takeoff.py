@@ -21,7 +21,7 @@ import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
-from dovesei.controller.mavlink_proto import (
+from dovesei.controller.mavlink.proto import (
     MAV_CMD_COMPONENT_ARM_DISARM,
     MAV_CMD_NAV_TAKEOFF,
     MAV_CMD_REQUEST_MESSAGE,
@@ -33,7 +33,7 @@ from dovesei.shared import validate
 from dovesei.shared.messages import Stamp, VelocityCommand
 
 if TYPE_CHECKING:  # only for annotations: mavlink.py imports this module (no cycle at run time)
-    from dovesei.controller.mavlink import MavlinkVehicle
+    from dovesei.controller.mavlink.vehicle import MavlinkVehicle
 
 log = logging.getLogger(__name__)
 

@@ -25,7 +25,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from dovesei.controller.mavlink_proto import (
+from dovesei.controller.mavlink.proto import (
     read_signing_timestamp,
     signing_timestamp_now,
     write_signing_timestamp,

@@ -9,13 +9,13 @@ import math
 
 import numpy as np
 
-from dovesei.sim.synth_canvas import Canvas, jit, mix, pick, scaled, smooth_path, Tree, uni
-from dovesei.sim.synth_classes import (
+from dovesei.sim.synthetic.canvas import Canvas, jit, mix, pick, scaled, smooth_path, Tree, uni
+from dovesei.sim.synthetic.classes import (
     BARE_SOIL, GRASS, PAL_ASPHALT, PAL_GRASS, PAL_LOT_ASPHALT, PAL_PAINT, PAL_ROOF_FLAT, PAL_ROOF_PITCHED,
     PAL_TREE, PAL_WATER_POOL, PARKING_LOT, PLAZA, RGB, ROAD, SIDEWALK, TREE, WATER,
 )
-from dovesei.sim.synth_layout import Block, BlockFrame
-from dovesei.sim.synth_objects import add_tree, draw_car, draw_person, flat_building, people_in, pitched_roof
+from dovesei.sim.synthetic.layout import Block, BlockFrame
+from dovesei.sim.synthetic.objects import add_tree, draw_car, draw_person, flat_building, people_in, pitched_roof
 
 
 def draw_grass(cv: Canvas, rng, x0, y0, x1, y1, stripes: bool | None = None,

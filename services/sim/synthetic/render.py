@@ -12,8 +12,8 @@ from dataclasses import field
 import cv2
 import numpy as np
 
-from dovesei.sim.synth_canvas import Canvas, uni
-from dovesei.sim.synth_classes import SHADOW_RGB, TEX_COARSE, TEX_GRAIN, TEX_MID, TEX_TINT
+from dovesei.sim.synthetic.canvas import Canvas, uni
+from dovesei.sim.synthetic.classes import SHADOW_RGB, TEX_COARSE, TEX_GRAIN, TEX_MID, TEX_TINT
 
 
 def _noise_field(rng, side_px: int, cell_px: float, octaves: int = 1) -> np.ndarray:

@@ -46,18 +46,18 @@ import numpy as np
 from dovesei.shared import validate
 from dovesei.shared.errors import ConfigError
 from dovesei.sim.objects import PERSON as OBJ_PERSON, ObjectLayer
-from dovesei.sim.synth_blocks import draw_apartments, draw_commercial, draw_parking, draw_plaza, draw_residential
-from dovesei.sim.synth_canvas import Canvas, FastRng
-from dovesei.sim.synth_classes import (  # noqa: F401  (the class ids are part of this module's API)
+from dovesei.sim.synthetic.blocks import draw_apartments, draw_commercial, draw_parking, draw_plaza, draw_residential
+from dovesei.sim.synthetic.canvas import Canvas, FastRng
+from dovesei.sim.synthetic.classes import (  # noqa: F401  (the class ids are part of this module's API)
     BARE_SOIL, CAR, GRASS, PAL_ASPHALT, PARKING_LOT, PERSON, PLAZA, ROAD, ROOF_FLAT, ROOF_PITCHED, SIDEWALK,
     SPORTS_FIELD, SYNTHETIC_CLASSES, TREE, WATER,
 )
-from dovesei.sim.synth_layout import CITY, NO_TREES, CityStyle, make_layout, make_river
-from dovesei.sim.synth_objects import draw_tree
-from dovesei.sim.synth_parks import draw_construction, draw_park, draw_sports, draw_water
-from dovesei.sim.synth_render import finish_world
-from dovesei.sim.synth_streets import draw_river, draw_segment, draw_sidewalk, draw_street_life
-from dovesei.sim.synth_styles import CITY_EXTRAS, CITY_STYLES, OPEN_STYLES, STYLE_DENSITY, STYLES  # noqa: F401
+from dovesei.sim.synthetic.layout import CITY, NO_TREES, CityStyle, make_layout, make_river
+from dovesei.sim.synthetic.objects import draw_tree
+from dovesei.sim.synthetic.parks import draw_construction, draw_park, draw_sports, draw_water
+from dovesei.sim.synthetic.render import finish_world
+from dovesei.sim.synthetic.streets import draw_river, draw_segment, draw_sidewalk, draw_street_life
+from dovesei.sim.synthetic.styles import CITY_EXTRAS, CITY_STYLES, OPEN_STYLES, STYLE_DENSITY, STYLES  # noqa: F401
 
 log = logging.getLogger(__name__)
 

@@ -45,7 +45,7 @@ import cv2
 import numpy as np
 
 from dovesei.controller.policies.base import Decision, Observation, PolicyInputError, checked_prob_safe, resolve_config
-from dovesei.controller.policies.config import DoveseiConfig, timing_preset
+from dovesei.controller.policies.dovesei.config import DoveseiConfig, timing_preset
 from dovesei.shared import footprint
 
 log = logging.getLogger(__name__)

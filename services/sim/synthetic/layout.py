@@ -11,8 +11,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from dovesei.sim.synth_canvas import uni
-from dovesei.sim.synth_classes import ROOF_FLAT, ROOF_PITCHED, WATER
+from dovesei.sim.synthetic.canvas import uni
+from dovesei.sim.synthetic.classes import ROOF_FLAT, ROOF_PITCHED, WATER
 
 
 @dataclass

@@ -76,7 +76,7 @@ from typing import Any
 from dovesei.controller.continuity import (
     ALTITUDE_NOISE_M, MAX_VERTICAL_SPEED_M_S, STEP_CONFIRM_SAMPLES, AltitudeContinuity,
 )
-from dovesei.controller.mavlink_proto import (
+from dovesei.controller.mavlink.proto import (
     ALT_SOURCES,
     AUTOPILOT_KINDS,
     HANDOVERS,
@@ -129,7 +129,7 @@ from dovesei.controller.mavlink_proto import (
     ned_to_frd,
     open_link,
 )
-from dovesei.controller import mavlink_takeoff
+from dovesei.controller.mavlink import takeoff as mavlink_takeoff
 from dovesei.controller.frames import to_ne
 from dovesei.controller.gnss_denied import (
     EXTERNAL_NAV_MESSAGES,
@@ -145,8 +145,8 @@ from dovesei.controller.gnss_denied import (
     SOURCE_VISUAL,
     vision_speed_covariance,
 )
-from dovesei.controller.mavlink_readiness import ArmReadiness
-from dovesei.controller.mavlink_signing import LinkSigning
+from dovesei.controller.mavlink.readiness import ArmReadiness
+from dovesei.controller.mavlink.signing import LinkSigning
 from dovesei.shared import validate
 from dovesei.shared.errors import ConfigError
 from dovesei.shared.keys import check_vehicle_id

@@ -5,16 +5,18 @@ Per heatmap, data flows one way:
     Observation (P(safe), camera model, altitude + attitude at capture, velocity estimate and its
                  displacement since the previous capture, time)
       -> EgoMotion   predict with the estimate's displacement (+ learnt bias), correct by
-                     registering the heatmap against a keyframe and against anchors (clearance_motion)
+                     registering the heatmap against a keyframe and against anchors (motion)
       -> GroundMap   decay, follow the vehicle and the altitude's resolution, fuse the heatmap
-                     in log-odds at the estimated pose                         (clearance_map)
+                     in log-odds at the estimated pose                         (ground_map)
       -> high map    the looks from high up only, over the whole search area, never decayed:
                      its promise (the log-odds mean over the clearance disk) confirms spots and
-                     plans probes                                              (clearance_map)
+                     plans probes                                              (ground_map)
+      -> levels      every threshold read off the high map's distribution of log-odds: the
+                     scene: its best disk, its median, its noise; never a fixed P (scene)
       -> spots       clearance = metric distance to the nearest unsafe/unknown cell; the best
                      confirmed spot, the current target re-checked, the most promising area
-                     worth a probe                                             (clearance_map)
-      -> machine     one pure step: phase, target, reasons, velocity          (clearance_machine)
+                     worth a probe                                             (ground_map)
+      -> machine     one pure step: phase, target, reasons, velocity          (machine)
       -> Decision    body FRD velocity, state, target pixel, reason, info (spot, clearance,
                      confidence, position estimate, bias, registration, probes)
 
@@ -36,13 +38,16 @@ import numpy as np
 
 from dovesei.controller.policies.base import (Confirmation, Decision, Observation, PolicyInputError, checked_prob_safe,
                                               resolve_config)
-from dovesei.controller.policies.clearance_config import Altitudes, ClearanceConfig, clearance_preset
-from dovesei.controller.policies.clearance_machine import TERMINAL, Inputs, Memory, Phase, search_route, step, toward
-from dovesei.controller.policies.clearance_map import (GroundMap, clearance_at, emphasise_dips, find_candidate,
-                                                      find_spot, footprint_width_m, look_weight, promise)
+from dovesei.controller.policies.clearance.config import Altitudes, ClearanceConfig, clearance_preset
+from dovesei.controller.policies.clearance.machine import (
+    TERMINAL, Inputs, Memory, Phase, reject_target, search_route, step, toward,
+)
+from dovesei.controller.policies.clearance.ground_map import (GroundMap, clearance_at, emphasise_dips, find_candidate,
+                                                      find_spot, footprint_width_m, logit, look_weight, promise)
+from dovesei.controller.policies.clearance.scene import SceneLevels, fine_noise, known_mean, map_levels, sigmoid
 from dovesei.controller.frames import to_body, to_ne
 from dovesei.controller.geofence import cap_outward
-from dovesei.controller.policies.clearance_motion import EgoMotion, MotionStep, tilt_offset_ne
+from dovesei.controller.policies.clearance.motion import EgoMotion, MotionStep, tilt_offset_ne
 
 log = logging.getLogger(__name__)
 
@@ -94,6 +99,8 @@ class ClearancePolicy:
         self._cmd: tuple[float, float, float] = (0.0, 0.0, 0.0)
         self._last_motion: MotionStep | None = None
         self._confirmed: Confirmation | None = None  # the look that last confirmed the target
+        self._levels: SceneLevels | None = None  # the scene's thresholds, from the high map
+        self._spot_t = math.inf  # the spot threshold on the map now (log-odds; nothing safe at first)
         self._decision = Decision((0.0, 0.0, 0.0), 0.0, Phase.WARMUP.value, None, 0.0, None, {}, "starting")
 
     def fence_m(self) -> float:
@@ -194,25 +201,34 @@ class ClearancePolicy:
         blind = gap or self.memory.phase is Phase.GAP_HOLD
         if not blind or motion.registered:
             tn, te = tilt_offset_ne(obs.alt_agl_m, obs.roll_rad, obs.pitch_rad, obs.yaw_rad)
-            seen = emphasise_dips(prob, int(round(cfg.dip_kernel_frac * prob.shape[1])), cfg.dip_gain, cfg.dip_floor)
+            # Dips are deepened in log-odds, beyond a floor from the scene's contrast (none before
+            # the scene is known: every dip counts).
+            dip_floor = self._levels.dip_floor_logit if self._levels is not None else 0.0
+            seen = emphasise_dips(logit(prob, cfg.p_clip), int(round(cfg.dip_kernel_frac * prob.shape[1])),
+                                  cfg.dip_gain, dip_floor, clip=None)
             weight = min(1.0, dt_c / cfg.look_period_s) * look_weight(obs.alt_agl_m, cfg)
-            self.map.fuse(seen, obs.alt_agl_m, obs.hfov_rad, obs.yaw_rad, pn + tn, pe + te, weight=weight)
+            self.map.fuse_logit(seen, obs.alt_agl_m, obs.hfov_rad, obs.yaw_rad, pn + tn, pe + te, weight=weight)
             if obs.alt_agl_m >= self._alts.confirm_m:
-                self.high.fuse(seen, obs.alt_agl_m, obs.hfov_rad, obs.yaw_rad, pn + tn, pe + te, weight=weight)
-        clearance = self.map.clearance_m()
+                self.high.fuse_logit(seen, obs.alt_agl_m, obs.hfov_rad, obs.yaw_rad, pn + tn, pe + te, weight=weight)
+                self._levels = None  # new looks from high up: the scene's levels are read again
+        if self._levels is None:
+            self._levels = map_levels(self.high, cfg)
+        levels = self._levels
+        self._spot_t = levels.spot_for(fine_noise(*known_mean(self.map, cfg)), cfg)
+        clearance = self.map.clearance_m(self._spot_t)
         # What looked promising from high up, around the vehicle: as far as the map reaches (the
         # gate) and as far as a probe may go.
         mem = self.memory
         plan_probe = mem.phase is Phase.SEARCH and len(mem.probed) < cfg.probe_max
         high = None
-        if cfg.confirm_p_min > 0.0 or plan_probe:
+        if cfg.confirm or plan_probe:
             half_m = max(self.map.n * self.map.cell_m / 2.0, cfg.probe_reach_m if plan_probe else 0.0)
             high = promise(self.high, cfg, pn, pe, half_m)
         # A spot only where the area looked promising from high up too (those looks err apart
         # from the low ones).
         gate = None
-        if cfg.confirm_p_min > 0.0:
-            gate = self.high.mask_onto(high.at_least(cfg.confirm_p_min), self.map, high.r0, high.c0)
+        if cfg.confirm:
+            gate = self.high.mask_onto(high.at_least(levels.gate_logit), self.map, high.r0, high.c0)
         # A spot rejected high up is looked at again once well below that altitude (finer detail
         # may show it is fine, or why not); one rejected low down stays rejected.
         blacklist = tuple((n, e) for n, e, alt in self.memory.blacklist if obs.alt_agl_m >= 0.8 * alt)
@@ -225,7 +241,7 @@ class ClearancePolicy:
         if best is None and plan_probe:
             skip = mem.probed + tuple((n, e) for n, e, _ in mem.blacklist)
             candidate = find_candidate(self.high, high, cfg, north_m=pn, east_m=pe, skip=skip, fence_m=fence_m,
-                                       within_m=cfg.probe_reach_m)
+                                       within_m=cfg.probe_reach_m, min_logit=levels.probe_logit)
         check = recheck = None
         target = self.memory.target
         if target is not None:
@@ -237,8 +253,20 @@ class ClearancePolicy:
                 # The footprint below, with the full clearance: what a re-check would land on.
                 recheck = find_spot(self.map, clearance, cfg, north_m=pn, east_m=pe, blacklist=(), near=(pn, pe),
                                     within_m=cfg.refine_radius_m, fence_m=fence_m, gate=gate)
+        likely = candidate is not None and candidate.p_safe >= sigmoid(levels.probe_now_logit)
         return self._decide(obs, fresh=True, gap=gap, best=best, check=check, clearance=clearance, fence_m=fence_m,
-                            candidate=candidate, recheck=recheck)
+                            candidate=candidate, recheck=recheck, likely=likely)
+
+    def reject_target(self, t_s: float, alt_m: float, reason: str) -> None:
+        """Reject the current target for a reason the map cannot see (a close look found a person
+        inside its margin): blacklisted, and a descent aborts. Takes effect from the next step."""
+        if self.memory is not None:
+            mem = reject_target(self.memory, t_s, alt_m, reason)
+            if mem is not self.memory:
+                log.info("clearance: %s -> %s at t=%.2f s, alt %.1f m: %s", self.memory.phase.value, mem.phase.value,
+                         t_s, alt_m, mem.reason)
+                self.memory = mem
+                self.motion.clear_spot()
 
     def _spot_known(self) -> bool:
         """Was the target fixed by vision (or re-checked) recently enough to descend on?"""
@@ -267,7 +295,7 @@ class ClearancePolicy:
         return self._decision
 
     def _decide(self, obs: Observation, *, fresh: bool, gap: bool, best, check, clearance,
-                fence_m: float, candidate=None, recheck=None) -> Decision:
+                fence_m: float, candidate=None, recheck=None, likely: bool = False) -> Decision:
         cfg = self.config
         assert self.memory is not None and self._search_alt_m is not None
         pn, pe = self.motion.north_m, self.motion.east_m
@@ -276,7 +304,7 @@ class ClearancePolicy:
                      passes=self._passes, fence_m=fence_m,
                      best=best, check=check, hfov_rad=obs.hfov_rad, candidate=candidate,
                      top_pass_end=self._top_pass_end, probe_alt_m=self._alts.probe_m,
-                     spot_known=self._spot_known(), recheck=recheck)
+                     spot_known=self._spot_known(), recheck=recheck, candidate_likely=likely)
         prev = self.memory
         mem, vel = step(prev, inp, cfg)
         fenced = False
@@ -300,6 +328,11 @@ class ClearancePolicy:
             "fenced": float(fenced), "fence_m": fence_m, "uncertainty_m": self.motion.uncertainty_m,
             "anchors": float(self.motion.anchors), "probes": float(len(mem.probed)),
         }
+        lv = self._levels
+        if lv is not None:
+            # The scene's levels (log-odds); a threshold nothing meets (nothing safe) reports as 99.
+            info.update(scene_spot_logit=min(self._spot_t, 99.0), scene_gate_logit=min(lv.gate_logit, 99.0),
+                        scene_best_logit=max(lv.best_logit, -99.0), scene_typical_logit=lv.typical_logit)
         if mem.probe is not None:
             info.update(probe_north_m=mem.probe.north_m, probe_east_m=mem.probe.east_m, probe_p_safe=mem.probe.p_safe)
         m = self._last_motion
@@ -332,7 +365,8 @@ class ClearancePolicy:
         self._decision = Decision(
             vel_body_frd_m_s=(float(vel[0]), float(vel[1]), float(vel[2])), yaw_rate_rad_s=0.0,
             state=mem.phase.value, target_px=None if target_px is None else (float(target_px[0]), float(target_px[1])),
-            focus_radius_px=self._required_px(obs), threshold=cfg.p_safe_min,
+            focus_radius_px=self._required_px(obs),
+            threshold=sigmoid(self._spot_t),
             info={k: float(v) for k, v in info.items()}, reason=mem.reason, confirmed=self._confirmed,
             landing=mem.phase in (Phase.DESCEND, Phase.HANDOVER),
         )
@@ -350,10 +384,14 @@ class ClearancePolicy:
     def map_view(self) -> dict[str, object]:
         """The fused map for pictures: P, confidence, clearance (metres) and its geometry."""
         return {"p_safe": self.map.fused_p(), "confidence": self.map.confidence(),
-                "clearance_m": self.map.clearance_m(), "cell_m": self.map.cell_m,
+                "clearance_m": self.map.clearance_m(self._spot_logit()), "cell_m": self.map.cell_m,
                 "north0_m": self.map.north0_m, "east0_m": self.map.east0_m,
                 "vehicle_ne_m": (self.motion.north_m, self.motion.east_m),
                 "blacklist": self.memory.blacklist if self.memory else ()}
+
+    def _spot_logit(self) -> float:
+        """The scene's spot threshold now (nothing safe before the scene is known)."""
+        return self._spot_t
 
     # ---- input checks ------------------------------------------------------------------
 

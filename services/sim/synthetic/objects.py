@@ -7,8 +7,8 @@ import math
 import cv2
 import numpy as np
 
-from dovesei.sim.synth_canvas import Canvas, jit, obb, pick, scaled, SHIFT, Tree, uni
-from dovesei.sim.synth_classes import (
+from dovesei.sim.synthetic.canvas import Canvas, jit, obb, pick, scaled, SHIFT, Tree, uni
+from dovesei.sim.synthetic.classes import (
     CAR, PAL_CAR, PAL_CLOTHES, PAL_ROOF_FLAT, PAL_TREE, PERSON, RGB, ROOF_FLAT, ROOF_PITCHED, TREE,
 )
 from dovesei.sim.objects import PERSON as OBJ_PERSON, VEHICLE

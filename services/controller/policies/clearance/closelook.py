@@ -1,0 +1,259 @@
+"""The close look: `clearance` looks at its spot at full resolution before it commits (issue 24).
+
+At 100 m a person is one pixel of the 352 px view and far under one CLIPSeg token: the ground map
+cannot see them. So a descending `clearance` asks for a crop of its spot plus the separation
+margin (`LookRequest`: the controller gets it from the camera and has it scored with the "never"
+set, `dovesei.shared.crop`, docs/CROP.md) and gates its descent on the verdict:
+
+    DESCEND above look_alt_m + brake_m ------------------------------------- descends as before
+    reaching it (~43 m) --no clear look of THIS spot yet--> hold the altitude (stops by ~40 m), ask
+        clear_looks clear looks in a row (nothing of the never set within margin_m) --> descend on
+        anything inside the margin -----------------------> reject the spot (blacklisted, abort:
+                                                             the inner policy climbs back and searches)
+        no answer / refused / failed --> keep holding, ask again every retry_s (never commits blind)
+    the last descent (past the gate) --> a new look every look_period_s while descending
+        anything inside the margin --> wait (hold the altitude, keep looking: people walk through)
+            resume_looks clear looks in a row --> descend on;  not so after wait_s --> reject (abort)
+    within final_gate_m of the hand-over --> hold unless a clear look is fresher than fresh_s
+        (the hand-over needs a recent close look, not one from 40 m)
+
+The wrapper is pure like every policy: the answer to a request comes back in a later
+`Observation.look`; nothing here talks to a camera. Only `clearance`'s DESCEND is gated (the
+paper's policy stays faithful to the reference). The spot and the vehicle are read from the inner
+decision's info (its own north/east frame), never from a true position.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from dovesei.controller.frames import to_body
+from dovesei.controller.policies.base import Decision, LookRequest, LookResult, Observation
+from dovesei.shared import validate
+from dovesei.shared.mission import HANDOVER_ALT_M, PERSON_SEPARATION_M
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class CloseLookConfig:
+    """When to look, how wide, and what a look must show; seconds on the data clock."""
+
+    handover_alt_m: float = HANDOVER_ALT_M
+    look_alt_m: float = 40.0  # no descent below this without a clear look at the spot
+    brake_m: float = 3.0  # the gate closes this far above look_alt_m: a 2 m/s descent stops in time
+    final_gate_m: float = 3.0  # within this of the hand-over, the clear look must be fresh
+    # The margin around the spot a look must show clear: the separation from people plus the lateral
+    # error of landing where it looked (touchdown error median 0.4 m in issue 23's suite). People set
+    # it: at 352 px an 8 m square is 2.3 cm/px and a person ~22 px, more than a CLIPSeg token; a
+    # square wide enough for the vehicles' 5 m would shrink them under one. Vehicles (4.5 m) are
+    # seen in the 352 px view itself from 40 m, and cut into the map's clearance there.
+    margin_m: float = PERSON_SEPARATION_M + 1.0
+    out_px: int = 352  # CLIPSeg's own input side
+    # P(never) at which a pixel counts as something of the never set: below even odds on purpose (the
+    # grouped fusion at 0.3 means the never prompts score within ~0.85 logit of the landing ones:
+    # ambiguous, and an ambiguous person is a person). Chosen on the hand-made lawn of
+    # tests/controller/test_close_look.py, not on the suite's reported seeds.
+    never_p_min: float = 0.3
+    never_min_px: int = 6  # ... and this many such pixels inside the margin make it a finding
+    look_period_s: float = 1.0  # the last descent looks again this often
+    # Looks miss (a person misread as lawn at some altitudes, flicker): the gate needs this many
+    # clear looks in a row, and a descent that found something resumes only after resume_looks.
+    clear_looks: int = 2
+    resume_looks: int = 4
+    retry_s: float = 1.0  # a failed or refused look is asked again after this
+    answer_timeout_s: float = 5.0  # a look with no answer after this is asked again
+    wait_s: float = 30.0  # something inside the margin during the last descent: wait this long, then abort
+    fresh_s: float = 3.0  # the hand-over needs a clear look at most this old
+    spot_slack_m: float = 1.0  # a look covers the spot it was asked for, moved at most this far
+
+    def __post_init__(self) -> None:
+        for name in ("handover_alt_m", "look_alt_m", "brake_m", "margin_m", "look_period_s", "retry_s", "answer_timeout_s",
+                     "wait_s", "fresh_s", "spot_slack_m"):
+            validate.positive(f"close look {name}", getattr(self, name))
+        validate.non_negative("close look final_gate_m", self.final_gate_m)
+        validate.in_range("close look never_p_min", self.never_p_min, 0.0, 1.0)
+        validate.in_range("close look out_px", self.out_px, 32, 1024)
+        validate.in_range("close look never_min_px", self.never_min_px, 1, 10_000)
+        validate.in_range("close look clear_looks", self.clear_looks, 1, 100)
+        validate.in_range("close look resume_looks", self.resume_looks, 1, 100)
+        if self.look_alt_m <= self.handover_alt_m + self.final_gate_m:
+            validate.in_range("close look look_alt_m", self.look_alt_m, self.handover_alt_m + self.final_gate_m + 1.0,
+                              1e4)
+
+    @property
+    def side_m(self) -> float:
+        """The square asked for: the margin around the spot on every side."""
+        return 2.0 * self.margin_m
+
+
+def close_look_config(handover_alt_m: float) -> CloseLookConfig:
+    """The defaults for a flight handing over at `handover_alt_m` (the first look at least 10 m above it)."""
+    base = CloseLookConfig()
+    return dataclasses.replace(base, handover_alt_m=handover_alt_m, look_alt_m=max(base.look_alt_m,
+                                                                                    handover_alt_m + 10.0))
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """One look's finding: is the margin around the spot clear of the never set?"""
+
+    clear: bool
+    nearest_m: float | None  # distance from the square's centre to the nearest never pixel inside it
+    p_max: float  # the largest P(never) within the margin
+
+    def text(self, margin_m: float) -> str:
+        if self.clear:
+            seen = f"nearest at {self.nearest_m:.1f} m" if self.nearest_m is not None else "none seen"
+            return f"clear: nothing of the never set within {margin_m:.1f} m ({seen}, P max {self.p_max:.2f})"
+        return f"never set {self.nearest_m:.1f} m from the spot (P max {self.p_max:.2f}, margin {margin_m:.1f} m)"
+
+
+def verdict(prob_never: np.ndarray, side_m: float, cfg: CloseLookConfig) -> Verdict:
+    """Where the never map crosses `never_p_min` around the square's centre (the spot asked for)."""
+    n = prob_never.shape[0]
+    m_per_px = side_m / n
+    c = (n - 1) / 2.0
+    rows, cols = np.nonzero(prob_never >= cfg.never_p_min)
+    dist_m = np.hypot(rows - c, cols - c) * m_per_px
+    yy, xx = np.mgrid[0:n, 0:n]
+    inside = np.hypot(yy - c, xx - c) * m_per_px <= cfg.margin_m
+    p_max = float(prob_never[inside].max()) if inside.any() else 0.0
+    nearest = float(dist_m.min()) if dist_m.size else None
+    found = int(np.count_nonzero(dist_m <= cfg.margin_m))
+    return Verdict(found < cfg.never_min_px, nearest, p_max)
+
+
+@dataclass(frozen=True)
+class _Look:
+    """A look asked or taken: the spot (policy north/east), the altitude and the time."""
+
+    north_m: float
+    east_m: float
+    alt_m: float
+    t_s: float
+
+
+class CloseLookPolicy:
+    """`clearance` (or any policy reporting a spot in its info) with its descent gated on close looks."""
+
+    def __init__(self, inner, config: CloseLookConfig = CloseLookConfig()) -> None:
+        self.inner, self.look_config = inner, config
+        self.reset()
+
+    @property
+    def name(self) -> str:
+        return self.inner.name
+
+    @property
+    def config(self):
+        return self.inner.config
+
+    def map_view(self) -> dict[str, object]:
+        return self.inner.map_view()
+
+    def reset(self) -> None:
+        self.inner.reset()
+        self._asked: _Look | None = None  # the look in flight
+        self._last_ask_s = -math.inf
+        self._clear: _Look | None = None  # the newest clear look
+        self._streak = 0  # clear looks in a row of the spot `_clear` looked at
+        self._committed: _Look | None = None  # the spot the gate let the descent past (the last descent's)
+        self._never_since_s: float | None = None  # the last descent: something inside the margin since
+        self._verdict = ""
+        self.looks = self.failures = self.findings = 0
+
+    # ---- the step ------------------------------------------------------------------------
+
+    def step(self, obs: Observation) -> Decision:
+        if obs.look is not None:
+            self._take(obs.look, obs)
+        return self._gate(obs, self.inner.step(obs))
+
+    def _take(self, look: LookResult, obs: Observation) -> None:
+        cfg, asked = self.look_config, self._asked
+        self._asked = None
+        if asked is None:
+            return  # an answer to a look this flight no longer waits for (after a reset)
+        if not look.ok:
+            self.failures += 1
+            self._verdict = f"look failed: {look.refusal}"
+            log.warning("close look %d at %.1f m failed: %s (holding, asking again)", look.request_seq, asked.alt_m,
+                        look.refusal)
+            return
+        self.looks += 1
+        _, never = look.heatmap.probabilities()
+        v = verdict(never, look.heatmap.side_m, cfg)
+        self._verdict = v.text(cfg.margin_m)
+        if v.clear:
+            self._streak = self._streak + 1 if self._covers(self._clear, (asked.north_m, asked.east_m)) else 1
+            self._clear = asked
+            if self._never_since_s is not None and self._streak >= cfg.resume_looks:
+                self._never_since_s = None  # clear long enough: the descent resumes
+            log.info("close look %d at %.1f m: %s", look.request_seq, asked.alt_m, self._verdict)
+            return
+        self.findings += 1
+        self._clear, self._streak = None, 0
+        first = self._never_since_s is None
+        self._never_since_s = obs.t_s if first else self._never_since_s
+        waited_s = obs.t_s - self._never_since_s
+        if not self._covers(self._committed, (asked.north_m, asked.east_m)) or waited_s > cfg.wait_s:
+            # Before the gate let it past (the first looks), or a wait that did not end: reject the spot.
+            why = f"close look: {self._verdict}" + (f", still there after {waited_s:.0f} s" if waited_s else "")
+            self.inner.reject_target(obs.t_s, obs.alt_agl_m, why)
+            self._never_since_s, self._committed = None, None
+        elif first:
+            log.info("close look %d at %.1f m: %s: waiting", look.request_seq, asked.alt_m, self._verdict)
+
+    def _covers(self, look: _Look | None, spot: tuple[float, float]) -> bool:
+        """Did `look` look at this spot (moved at most spot_slack_m since)?"""
+        return look is not None and math.hypot(look.north_m - spot[0], look.east_m - spot[1]) <= \
+            self.look_config.spot_slack_m
+
+    def _gate(self, obs: Observation, d: Decision) -> Decision:
+        cfg, t, alt = self.look_config, obs.t_s, obs.alt_agl_m
+        info = d.info
+        if d.state != "DESCEND" or "spot_north_m" not in info or alt > cfg.look_alt_m + cfg.brake_m:
+            if d.state not in ("DESCEND", "HANDOVER"):
+                self._never_since_s = None
+            return dataclasses.replace(d, look_verdict=self._verdict)
+        spot = (info["spot_north_m"], info["spot_east_m"])
+        here = (info.get("est_north_m", 0.0), info.get("est_east_m", 0.0))
+        cleared = (self._covers(self._clear, spot) and self._never_since_s is None
+                   and self._streak >= cfg.clear_looks)
+        if cleared:
+            self._committed = self._clear  # the gate is open for this spot: findings now mean waiting
+        fresh = cleared and t - self._clear.t_s <= cfg.fresh_s
+        final = alt <= cfg.handover_alt_m + cfg.final_gate_m
+        hold, why = False, ""
+        if not cleared:
+            hold = True
+            why = ("close look: waiting for the never set to clear the margin" if self._never_since_s is not None
+                   else "close look: holding until a look clears the spot")
+        elif final and not fresh:
+            hold, why = True, "close look: holding for a fresh look before the hand-over"
+        # Ask: before the first look, while waiting, and again every look_period_s of the last descent.
+        if self._asked is not None and t - self._asked.t_s > cfg.answer_timeout_s:
+            self.failures += 1
+            self._verdict = f"look failed: no answer within {cfg.answer_timeout_s:g} s"
+            self._asked = None
+        request = None
+        period = cfg.look_period_s if cleared or self._streak else cfg.retry_s
+        if self._asked is None and t - self._last_ask_s >= period:
+            fwd, right = to_body(spot[0] - here[0], spot[1] - here[1], obs.yaw_rad)
+            request = LookRequest((float(fwd), float(right)), cfg.side_m, cfg.out_px)
+            self._asked, self._last_ask_s = _Look(spot[0], spot[1], alt, t), t
+        if not hold:
+            return dataclasses.replace(d, look_request=request, look_verdict=self._verdict)
+        vf, vr, vz = d.vel_body_frd_m_s
+        # Hold the altitude (a descent is positive down); never climb here, the inner policy's abort does.
+        return dataclasses.replace(d, vel_body_frd_m_s=(vf, vr, min(vz, 0.0)), landing=False,
+                                   reason=f"{why} ({self._verdict or 'no look yet'})", look_request=request,
+                                   look_verdict=self._verdict,
+                                   info={**info, "look_hold": 1.0, "looks": float(self.looks),
+                                         "look_failures": float(self.failures)})

@@ -1,0 +1,169 @@
+"""The close look in flight (issue 24): `clearance` looks at its spot at full resolution before it
+commits, and keeps looking while it descends.
+
+Episodes are flown in-process (`dovesei.episode.run_episode`: the sim cuts each crop from its world
+with the people drawn at the crop's resolution, the simulated perception scores it) over a small
+world: roofs all round one 40 m lawn. The flight without anyone shows where the policy lands; then a
+person stands there, or walks through it; the policy never reads where they are.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from dovesei.controller.core import ControllerConfig, ControllerCore
+from dovesei.controller.looker import SyncLooker
+from dovesei.controller.policies.base import LookResult, Observation, make_policy
+from dovesei.controller.policies.clearance.closelook import CloseLookConfig, CloseLookPolicy, verdict
+from dovesei.episode import EpisodeSpec, run_episode
+from dovesei.shared.messages import ControllerStatus, CropFrame, CropHeatmap, VehicleState
+from dovesei.sim.camera import CameraModel
+from dovesei.sim.objects import PERSON, ObjectLayer, Population
+from dovesei.sim.starts import Start
+from dovesei.sim.world import ClassInfo, World
+
+GSD_M = 0.25
+SIDE_M = 200.0
+LAWN_M = 40.0
+CENTRE = (SIDE_M / 2, SIDE_M / 2)
+GRASS, ROOF, PERSON_ID, CAR_ID = 1, 2, 3, 4
+
+
+def lawn_world(people: list[tuple]) -> World:
+    """Flat roofs all round a 40 m lawn in the middle; `people` as ObjectLayer rows."""
+    n = int(SIDE_M / GSD_M)
+    labels = np.full((n, n), ROOF, np.uint8)
+    lo, hi = int((SIDE_M - LAWN_M) / 2 / GSD_M), int((SIDE_M + LAWN_M) / 2 / GSD_M)
+    labels[lo:hi, lo:hi] = GRASS
+    image = np.zeros((n, n, 3), np.uint8)
+    image[labels == ROOF] = (150, 150, 155)
+    image[labels == GRASS] = (70, 130, 60)
+    classes = {GRASS: ClassInfo("grass", True), ROOF: ClassInfo("roof_flat", False),
+               PERSON_ID: ClassInfo("person", False), CAR_ID: ClassInfo("car", False)}
+    return World(image, labels, GSD_M, classes, "lawn",
+                 population=Population(ObjectLayer.build(people), (PERSON_ID, CAR_ID)))
+
+
+def person(x_m: float, y_m: float, *, heading_rad: float = 0.0, speed_m_s: float = 0.0, path_m: float = 0.0,
+           phase_m: float = 0.0) -> tuple:
+    return (PERSON, x_m, y_m, heading_rad, speed_m_s, path_m, phase_m, 0.5, 0.5, (200, 40, 40), False)
+
+
+def fly(world: World, *, close_look: bool = True, time_limit_s: float = 400.0) -> tuple[list, object]:
+    statuses: list[ControllerStatus] = []
+    looks: list = []
+
+    def record(msg) -> None:
+        if isinstance(msg, ControllerStatus):
+            statuses.append(msg)
+        elif isinstance(msg, (CropFrame, CropHeatmap)):
+            looks.append(msg)
+
+    spec = EpisodeSpec(policy="clearance", start=Start(*CENTRE, 100.0), timing="real", perception="realistic",
+                       vehicle_profile="ideal", time_limit_s=time_limit_s, close_look=close_look)
+    rec = run_episode(world, spec, record=record)
+    return statuses, looks, rec
+
+
+@pytest.fixture(scope="module")
+def clear_flight():
+    """The flight over the empty lawn: it lands, every look clear; where it lands is the spot."""
+    return fly(lawn_world([]))
+
+
+def test_without_a_person_the_close_look_clears_the_spot_and_it_lands(clear_flight) -> None:
+    statuses, looks, rec = clear_flight
+    assert rec.result.outcome == "safe", rec.result.detail
+    verdicts = [s.look_verdict for s in statuses if s.look_verdict]
+    assert verdicts and all(v.startswith("clear") for v in verdicts)
+    crops = [m for m in looks if isinstance(m, CropFrame)]
+    assert len(crops) >= 3  # the first at the look altitude, then during the last descent
+    first_look = next(s for s in statuses if s.look_verdict)
+    assert first_look.alt_agl_m >= 38.0
+
+
+def test_people_under_one_token_at_100_m_are_found_by_the_close_look_at_40_m() -> None:
+    # People standing 5 m apart all over the lawn: wherever the spot is, one of them is within
+    # 3.6 m of it, inside the look's margin; at 100 m each is ~1.2 px, far under a 16 px token.
+    assert 0.5 / CameraModel().metres_per_px(100.0) < 2.0
+    lo, hi = CENTRE[0] - LAWN_M / 2 + 2.5, CENTRE[0] + LAWN_M / 2 - 2.5
+    grid = np.arange(lo, hi + 0.01, 5.0)
+    people = [person(x + 0.3, y - 0.2) for x in grid for y in grid]
+    statuses, looks, rec = fly(lawn_world(people), time_limit_s=300.0)
+    found = [s for s in statuses if s.look_verdict.startswith("never set")]
+    assert found, "no close look found anyone"
+    assert found[0].alt_agl_m >= 38.0  # seen from the look altitude, before committing below it
+    assert any("close look: never set" in s.policy_reason for s in statuses), "the spot was not rejected"
+    cleared_below = False
+    for s in statuses:  # below the look altitude only after a look cleared the spot it was over
+        cleared_below = cleared_below or s.look_verdict.startswith("clear")
+        assert s.alt_agl_m >= 38.0 or cleared_below
+    # It never handed over within 3 m of anyone.
+    layer = lawn_world(people).population.layer
+    if rec.result.outcome == "safe":
+        assert layer.nearest_m(rec.result.final_x_m, rec.result.final_y_m, rec.result.sim_time_s, PERSON) > 3.0
+
+
+def test_a_person_walking_into_the_disk_during_the_last_descent_makes_it_wait_or_abort(clear_flight) -> None:
+    statuses0, _, rec0 = clear_flight
+    spot = (rec0.result.final_x_m, rec0.result.final_y_m)
+    first_look_s = next(s.stamp.t_s for s in statuses0 if s.look_verdict)
+    # A walker on a 30 m east-west path through the spot at 1.2 m/s: 12 m or more away while the
+    # vehicle looks from 40 m, at the spot a few seconds into the last descent.
+    at_spot_s = first_look_s + 6.0
+    walker = person(spot[0] - 15.0, spot[1] + 0.3, heading_rad=math.pi / 2, speed_m_s=1.2, path_m=30.0,
+                    phase_m=15.0 - 1.2 * at_spot_s)
+    layer = lawn_world([walker]).population.layer
+    assert layer.nearest_m(*spot, first_look_s, PERSON) > 6.0 and layer.nearest_m(*spot, at_spot_s, PERSON) < 0.5
+    statuses, looks, rec = fly(lawn_world([walker]))
+    stopped = [s for s in statuses if "waiting for the never set" in s.policy_reason
+               or "close look: never set" in s.policy_reason]
+    assert stopped, "the walker never stopped the descent"
+    assert min(s.alt_agl_m for s in stopped) < 39.0  # during the last descent, not at the first look
+    if rec.result.outcome == "safe":
+        assert layer.nearest_m(rec.result.final_x_m, rec.result.final_y_m, rec.result.sim_time_s, PERSON) > 3.0
+
+
+def test_no_answer_means_no_descent_below_the_look_altitude() -> None:
+    """A controller whose looks all fail (no camera): the policy holds at the gate, never lower."""
+    from dovesei.episode import build_cores
+
+    world = lawn_world([])
+    spec = EpisodeSpec(policy="clearance", start=Start(*CENTRE, 100.0), timing="real", perception="realistic",
+                       vehicle_profile="ideal", time_limit_s=200.0)
+    sim, seg, ctrl = build_cores(world, spec)
+
+    def refuse(req):
+        from dovesei.shared.crop import CropRefused
+        raise CropRefused("camera unplugged")
+
+    ctrl.looker = SyncLooker(refuse)
+    out = sim.reset()
+    lowest = math.inf
+    pending = {}
+    failures = []
+    while out.result is None:
+        if out.frame is not None:
+            pending[out.frame.seq] = seg.process(out.frame)
+        if out.state.await_frame_seq >= 0:
+            ctrl.on_heatmap(pending.pop(out.state.await_frame_seq), 0.0)
+        cmd, status = ctrl.tick(out.state)
+        failures += [status.look_verdict] if status.look_verdict.startswith("look failed") else []
+        lowest = min(lowest, sim.true_pose().alt_agl_m)
+        out = sim.step(cmd)
+    assert failures and "camera unplugged" in failures[-1]
+    assert lowest > 38.0 and out.result.outcome != "safe"
+
+
+def test_the_verdict_measures_from_the_square_centre() -> None:
+    cfg = CloseLookConfig()
+    never = np.zeros((352, 352), np.float32)
+    assert verdict(never, cfg.side_m, cfg).clear
+    m_per_px = cfg.side_m / 352
+    row = int(round(175.5 - 2.0 / m_per_px))  # 2 m forward of the spot
+    never[row - 3:row + 3, 173:179] = 0.9
+    v = verdict(never, cfg.side_m, cfg)
+    assert not v.clear and v.nearest_m == pytest.approx(2.0, abs=0.15) and v.p_max == pytest.approx(0.9)
