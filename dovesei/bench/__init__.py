@@ -83,6 +83,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--vehicle-separation-m", type=float, default=VEHICLE_SEPARATION_M,
                    help="... or a vehicle closer than this (default: "
                         f"{VEHICLE_SEPARATION_M:g} m; 0 turns the rule off)")
+    p.add_argument("--no-close-look", dest="close_look", action="store_false",
+                   help="fly clearance without its close looks (full-resolution crops of the spot before committing)")
     p.add_argument("--policy-config", type=Path, default=None, metavar="FILE",
                    help="TOML file of the policy's constants (one --policy; `dovesei policy-config --defaults "
                         "POLICY` prints them all); recorded in results.json")
@@ -166,7 +168,7 @@ def run_bench(*, world_spec: str | None = None, worlds: tuple[str, ...] | None =
               seed_note: str = "", vehicle_profile: str | None = None,
               handover_alt_m: float = HANDOVER_ALT_M, policy_config: Path | None = None,
               separation_m: tuple[float, float] = (PERSON_SEPARATION_M, VEHICLE_SEPARATION_M),
-              perception_shift: str | tuple | None = None) -> dict:
+              perception_shift: str | tuple | None = None, close_look: bool = True) -> dict:
     """Run (or resume) a bench into `out`; returns the results.json content.
 
     With `perception_shift` ("A_LO,A_HI,B") every start is flown plainly and shifted (dovesei.bench.shift).
@@ -204,7 +206,7 @@ def run_bench(*, world_spec: str | None = None, worlds: tuple[str, ...] | None =
                 time_limit_s=float(time_limit_s), start_alt_m=float(start_alt_m), segmenter=segmenter,
                 start_margin_m=float(start_margin_m), world_label=world_label or specs[0], extra={"seed_note": seed_note} if seed_note else {},
                 vehicle_profile=vehicle_profile, handover_alt_m=float(handover_alt_m), policy_config=changed,
-                separation_m=(float(separation_m[0]), float(separation_m[1])))
+                separation_m=(float(separation_m[0]), float(separation_m[1])), close_look=bool(close_look))
     return run_grid(grid, out=out, workers=jobs, engine=engine, address=address, progress=progress)
 
 
@@ -223,7 +225,7 @@ def main(argv: list[str] | None = None) -> int:
                         progress=not args.no_progress, vehicle_profile=args.vehicle_profile,
                         handover_alt_m=args.handover_alt_m, policy_config=args.policy_config,
                         separation_m=(args.person_separation_m, args.vehicle_separation_m),
-                        perception_shift=args.perception_shift,
+                        perception_shift=args.perception_shift, close_look=args.close_look,
                         world_label=f"suite:{args.suite.strip()}" if args.suite is not None else "")
     except DoveseiError as exc:  # a user error: one line, no traceback
         print(f"dovesei bench: {exc}", file=sys.stderr)

@@ -77,6 +77,7 @@ class Grid:
     policy_config: dict = field(default_factory=dict)
     # The judge's separations from people and vehicles (0: that rule off).
     separation_m: tuple[float, float] = (PERSON_SEPARATION_M, VEHICLE_SEPARATION_M)
+    close_look: bool = True  # clearance looks at its spot at full resolution before committing (issue 24)
 
     @property
     def shifted(self) -> bool:
@@ -95,6 +96,9 @@ class Grid:
                 **({"handover_alt_m": self.handover_alt_m} if self.handover_alt_m != HANDOVER_ALT_M else {}),
                 **({"policy_config": self.policy_config} if self.policy_config else {}),
                 "separation_m": list(self.separation_m),
+                # clearance with and without close looks flies differently: such benches never resume
+                # one from the other (benches without the key predate the close look).
+                **({"close_look": self.close_look} if "clearance" in self.policies else {}),
                 # Likewise a run without a perception shift hashes as before.
                 **({"perception_shift": [shift.label(v.shift) for v in self.variants]} if self.shifted else {}),
                 "perception": [v.perception for v in self.variants] if len(self.variants) > 1 else self.variants[0].perception,
@@ -192,6 +196,7 @@ def plan_jobs(grid: Grid, worlds: dict, out: Path) -> list[dict]:
                         "perception": var.perception, "prompts": var.prompts,
                         "vehicle_profile": grid.vehicle_profile, "handover_alt_m": grid.handover_alt_m,
                         "policy_config": grid.policy_config or None, "separation_m": list(grid.separation_m),
+                        "close_look": grid.close_look,
                         "perception_label": var.perception if var.labelled else None,
                         "prompts_label": var.prompts_name if var.labelled else None,
                         "shift_label": shift.label(var.shift) if grid.shifted else None,

@@ -172,7 +172,8 @@ class Trajectory:
 
 @dataclass(frozen=True)
 class Landing:
-    """A real autopilot's own landing after the hand-over ('land' or 'precland'), as `up` waited for it."""
+    """A real autopilot's own landing after the hand-over ('land' or 'precland'; any action with
+    --gnss-denied external-nav), as `up` waited for it."""
 
     action: str
     landed: bool  # the autopilot reported itself disarmed
@@ -180,6 +181,7 @@ class Landing:
     waited_s: float
     touchdown: Position | None  # the last state's position (start + the autopilot's local NED)
     landing_targets_sent: int | None  # precision landing: LANDING_TARGET messages the controller sent
+    external_nav_sent: int | None = None  # external-nav: camera velocities the controller sent the EKF (whole run)
 
 
 @dataclass(frozen=True)
@@ -384,8 +386,10 @@ def build_report(options: UpOptions, rec: Recorder, start: tuple[float, float, f
         touchdown = (Position(start[0] + last.pos_local_ned_m[1], start[1] + last.pos_local_ned_m[0], last.alt_agl_m)
                      if last is not None else None)
         sent = link.get("landing_targets_sent")
+        vision = link.get("vision_speed_sent")
         landed = Landing(handover_action, landing.landed, landing.reason, landing.waited_s, touchdown,
-                         sent if isinstance(sent, int) and handover_action == "precland" else None)
+                         sent if isinstance(sent, int) and handover_action == "precland" else None,
+                         vision if isinstance(vision, int) and options.gnss_denied == "external-nav" else None)
     return RunReport(episode, setup, timing, counts, trajectory, dict(stats), failure, interrupted, landing=landed,
                      navigation=Navigation.of(rec.statuses))
 

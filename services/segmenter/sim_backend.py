@@ -555,11 +555,20 @@ class SimPerception:
             shadow = self._shadow_mask(code, tables, view, labels.shape)
             code += shadow.view(np.uint8) * code.dtype.type(k)
         n_cells = self.grid * self.grid
-        key = np.add(self._cell_base(2 * k), code.reshape(-1), out=self._key)
-        counts = np.bincount(key, minlength=n_cells * 2 * k).reshape(n_cells, 2, k).astype(np.float64)
         shadow_mix = (1.0 - self._strength["shadow"]) * tables.code_mix
         shadow_mix[:, INDEX["shadow"]] += self._strength["shadow"]
-        frac = (counts[:, 0] @ tables.code_mix + counts[:, 1] @ shadow_mix) / float(self.params.cell_px ** 2)
+        mix = np.concatenate([tables.code_mix, shadow_mix])  # (2k, A): lit codes, then shaded
+        if n_cells * 2 * k > 1 << 18:
+            # Fine cells (the clean profile's 2 px): count only the codes in view, not a mostly
+            # empty (cells x every code) table.
+            present = np.flatnonzero(np.bincount(code.reshape(-1), minlength=2 * k))
+            remap = np.zeros(2 * k, code.dtype)
+            remap[present] = np.arange(present.size)
+            code, mix = remap[code], mix[present]
+        m = mix.shape[0]
+        key = np.add(self._cell_base(m), code.reshape(-1), out=self._key)
+        counts = np.bincount(key, minlength=n_cells * m).reshape(n_cells, m).astype(np.float64)
+        frac = (counts @ mix) / float(self.params.cell_px ** 2)
         return frac.reshape(self.grid, self.grid, A)
 
     def _cell_base(self, stride: int) -> np.ndarray:
