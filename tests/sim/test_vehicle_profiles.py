@@ -44,6 +44,7 @@ REFERENCE = [
      {"outcome": "safe", "sim_time_s": 47.25, "path_length_m": 99.509, "max_range_m": 79.7,
       "final": {"x_m": 290.119, "y_m": 67.006, "alt_m": 19.797}}),
     ({"policy": "clearance", "index": 0, "seed": 11, "timing": "real", "time_limit_s": 150.0,
+      "policy_config": {"scene_after_top_pass": False},  # a 400 m world: its scene is the first views
       "start": {"x_m": 230.274, "y_m": 296.129, "alt_m": 100.0}},
      {"outcome": "safe", "sim_time_s": 44.4, "path_length_m": 80.351, "max_range_m": 78.5,
       "final": {"x_m": 290.075, "y_m": 346.298, "alt_m": 19.808}}),
