@@ -150,9 +150,14 @@ def _lawn(safe: np.ndarray, north_m: float, east_m: float, side_m: float) -> Non
     safe[row - half:row + half, col - half:col + half] = True
 
 
+# Scenarios about other mechanisms than the scene's levels take them from the first views (the
+# default waits for the top pass to show the search area; test_the_scene_is_the_search_area checks it).
+FIRST_VIEWS = ClearanceConfig(scene_after_top_pass=False)
+
+
 def test_open_desert_lands_near_the_start() -> None:
     world = World(np.ones((SIDE, SIDE), bool))
-    flight = fly(world, ClearancePolicy())
+    flight = fly(world, ClearancePolicy(FIRST_VIEWS))
     assert flight.alt_m <= 20.0
     assert world.disk_safe(flight.north_m, flight.east_m, 2.0)
     assert math.hypot(flight.north_m, flight.east_m) < 15.0
@@ -203,7 +208,7 @@ def test_sea_with_a_small_island_lands_on_it_or_holds() -> None:
 
 def test_perception_gap_holds_with_the_map_frozen_and_never_hands_over() -> None:
     world = World(np.ones((SIDE, SIDE), bool))
-    policy = ClearancePolicy()
+    policy = ClearancePolicy(FIRST_VIEWS)
     # The gap starts mid-descent (descent begins ~1 s in) and lasts 20 s; wind pushes meanwhile.
     flight = fly(world, policy, gap_s=(6.0, 26.0), wind_m_s=(0.3, 0.0))
     in_gap = [(alt, state, down) for (n, e, alt, state, down), t in
@@ -219,7 +224,7 @@ def test_perception_gap_holds_with_the_map_frozen_and_never_hands_over() -> None
 
 
 def test_perception_gap_without_heatmaps_at_all_holds_then_climbs() -> None:
-    policy = ClearancePolicy()
+    policy = ClearancePolicy(FIRST_VIEWS)
     world = World(np.ones((SIDE, SIDE), bool))
     rng = np.random.default_rng(1)
     for i in range(8):
@@ -454,14 +459,31 @@ def test_nothing_safe_is_nothing_safe_under_an_optimistic_calibration(a: float, 
     assert "DESCEND" not in flight.states and "APPROACH" not in flight.states
 
 
-def test_a_small_lawn_between_houses_far_from_the_start_is_found_and_landed_on() -> None:
-    """A 14 m lawn between houses and roads 150 m from the start (beyond the first views, inside
-    the search radius), among yards too small to land on: found, looked at closer and landed on."""
-    rng = np.random.default_rng(11)
+def test_a_narrow_lawn_between_two_rows_of_houses_far_from_the_start_is_found_and_landed_on() -> None:
+    """A lawn 9 m wide and 30 m long between two rows of houses (unsafe, 10 m each side), 180 m
+    north-east of the start (beyond the first views, inside the search radius), among yards too
+    small to land on: found, looked at closer and landed on, with the whole disk on the lawn."""
+    rng = np.random.default_rng(12)
     safe = _textured(rng)
-    _lawn(safe, 105.0, -105.0, 14.0)
+    c = 180.0 / math.sqrt(2.0)
+    row, col = int(round((SIDE - 1) / 2.0 - c / GSD_M)), int(round((SIDE - 1) / 2.0 + c / GSD_M))
+    half_w, half_l = int(round(4.5 / GSD_M)), int(round(15.0 / GSD_M))
+    safe[row - half_l - 40:row + half_l + 40, col - half_w - 40:col + half_w + 40] = False  # the houses
+    safe[row - half_l:row + half_l, col - half_w:col + half_w] = True  # the lawn between them
     world = World(safe)
-    flight = fly(world, ClearancePolicy(), seed=11, t_max_s=900.0)
+    flight = fly(world, ClearancePolicy(), seed=12, t_max_s=900.0)
     assert flight.alt_m <= 20.0, flight.decision.reason
     assert world.disk_safe(flight.north_m, flight.east_m, 2.0)
-    assert math.hypot(flight.north_m - 105.0, flight.east_m + 105.0) < 5.0
+    assert abs(flight.east_m - c) < 4.5 and abs(flight.north_m - c) < 15.0
+
+
+def test_the_scene_is_the_search_area_no_spot_before_the_top_pass_has_shown_it() -> None:
+    """By default no spot is taken (and no probe flown) before the top pass has flown: a lawn
+    under the start waits until the search area has been seen, then it is landed on."""
+    world = World(np.ones((SIDE, SIDE), bool))
+    policy = ClearancePolicy(ClearanceConfig(search_radius_m=120.0))
+    flight = fly(world, policy, t_max_s=600.0)
+    chosen = next(i for i, s in enumerate(flight.states) if s in ("APPROACH", "DESCEND"))
+    assert all(s in ("WARMUP", "SEARCH") for s in flight.states[:chosen])
+    assert policy.memory.waypoint >= policy._top_pass_end  # chosen only after the top pass
+    assert flight.alt_m <= 20.0 and world.disk_safe(flight.north_m, flight.east_m, 2.0)

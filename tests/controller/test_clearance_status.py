@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from dovesei.controller.core import ControllerConfig, ControllerCore
+from dovesei.controller.policies.clearance.config import ClearanceConfig
 from dovesei.controller.policies.clearance.policy import ClearancePolicy
 from dovesei.shared.codec import decode, encode
 from dovesei.shared.messages import ControllerStatus, FieldError, SafetyHeatmap, Stamp, VehicleState
@@ -18,10 +19,12 @@ def _open_ground(seq: int, t_s: float, rng: np.random.Generator) -> SafetyHeatma
 
 
 def test_status_carries_the_transition_reason_and_the_chosen_spot() -> None:
-    core = ControllerCore(ControllerConfig(lockstep=True, policy="clearance"), policy=ClearancePolicy())
+    # Open ground from the first views (the scene's levels without waiting for the top pass).
+    core = ControllerCore(ControllerConfig(lockstep=True, policy="clearance"),
+                          policy=ClearancePolicy(ClearanceConfig(scene_after_top_pass=False)))
     rng = np.random.default_rng(0)
     seen: list[ControllerStatus] = []
-    for seq in range(12):
+    for seq in range(30):  # the levels are read every 2 s: a few frames before the first spot
         t = 0.5 * seq
         core.on_heatmap(_open_ground(seq, t, rng), t)
         _, status = core.tick(VehicleState("uav1", seq, Stamp(t, "sim"), 100.0, (0.0, 0.0, 0.0), await_frame_seq=seq))

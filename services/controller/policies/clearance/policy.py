@@ -101,6 +101,10 @@ class ClearancePolicy:
         self._confirmed: Confirmation | None = None  # the look that last confirmed the target
         self._levels: SceneLevels | None = None  # the scene's thresholds, from the high map
         self._spot_t = math.inf  # the spot threshold on the map now (log-odds; nothing safe at first)
+        self._levels_t_s = -math.inf  # when the levels were last read
+        self._levels_stale = False  # the high map got new looks since
+        self._map_noise = 0.0  # the working map's per-cell scatter (log-odds), read with the levels
+        self._scene_seen = False  # the top pass has shown the search area (spots and probes allowed)
         self._decision = Decision((0.0, 0.0, 0.0), 0.0, Phase.WARMUP.value, None, 0.0, None, {}, "starting")
 
     def fence_m(self) -> float:
@@ -210,11 +214,17 @@ class ClearancePolicy:
             self.map.fuse_logit(seen, obs.alt_agl_m, obs.hfov_rad, obs.yaw_rad, pn + tn, pe + te, weight=weight)
             if obs.alt_agl_m >= self._alts.confirm_m:
                 self.high.fuse_logit(seen, obs.alt_agl_m, obs.hfov_rad, obs.yaw_rad, pn + tn, pe + te, weight=weight)
-                self._levels = None  # new looks from high up: the scene's levels are read again
-        if self._levels is None:
-            self._levels = map_levels(self.high, cfg)
+                self._levels_stale = True  # new looks from high up: the scene's levels are read again
+        # Read at most every levels_period_s: they move only as new ground comes into view (or the
+        # working map changes resolution).
+        if self._levels is None or obs.t_s - self._levels_t_s >= cfg.levels_period_s:
+            if self._levels is None or self._levels_stale:
+                self._levels, self._levels_stale = map_levels(self.high, cfg), False
+            # The working map's own per-cell noise (it changes with altitude and resolution), every
+            # other cell: as slow-moving as the levels.
+            self._map_noise, self._levels_t_s = fine_noise(*known_mean(self.map, cfg, stride=2)), obs.t_s
         levels = self._levels
-        self._spot_t = levels.spot_for(fine_noise(*known_mean(self.map, cfg)), cfg)
+        self._spot_t = levels.spot_for(self._map_noise, cfg)
         clearance = self.map.clearance_m(self._spot_t)
         # What looked promising from high up, around the vehicle: as far as the map reaches (the
         # gate) and as far as a probe may go.
@@ -233,12 +243,18 @@ class ClearancePolicy:
         # may show it is fine, or why not); one rejected low down stays rejected.
         blacklist = tuple((n, e) for n, e, alt in self.memory.blacklist if obs.alt_agl_m >= 0.8 * alt)
         fence_m = self.fence_m()
-        best = find_spot(self.map, clearance, cfg, north_m=pn, east_m=pe, blacklist=blacklist, fence_m=fence_m,
-                         gate=gate)
+        # The levels are the scene's only once the top pass has shown the search area: before,
+        # the best ground in view may be a second-rate class that better ground further out outranks.
+        if not self._scene_seen and (not cfg.scene_after_top_pass or mem.waypoint >= self._top_pass_end):
+            self._scene_seen = True
+            log.info("clearance: scene seen at t=%.1f s: best disk at log-odds %.2f, median %.2f", obs.t_s,
+                     levels.best_logit, levels.typical_logit)
+        best = None if not self._scene_seen else find_spot(
+            self.map, clearance, cfg, north_m=pn, east_m=pe, blacklist=blacklist, fence_m=fence_m, gate=gate)
         # A closer look is planned only while searching with nothing good enough in view, at what
         # looked promising from high up.
         candidate = None
-        if best is None and plan_probe:
+        if best is None and plan_probe and self._scene_seen:
             skip = mem.probed + tuple((n, e) for n, e, _ in mem.blacklist)
             candidate = find_candidate(self.high, high, cfg, north_m=pn, east_m=pe, skip=skip, fence_m=fence_m,
                                        within_m=cfg.probe_reach_m, min_logit=levels.probe_logit)
