@@ -36,7 +36,9 @@ from dovesei.bench.stats import SUMMARY_KEYS, summarise, wilson_interval
 from dovesei.shared.cliconfig import OneLineParser
 from dovesei.shared import timing as shared_timing
 from dovesei.shared.errors import ConfigError, DoveseiError
-from dovesei.shared.mission import HANDOVER_ALT_M, MIN_DESCENT_M, check_handover_below_start
+from dovesei.shared.mission import (
+    HANDOVER_ALT_M, MIN_DESCENT_M, PERSON_SEPARATION_M, VEHICLE_SEPARATION_M, check_handover_below_start,
+)
 from dovesei.shared.validate import in_range, non_negative, positive
 from dovesei.shared.validate import one_of as validate_one_of
 from dovesei.sim.estimator import VEHICLE_PROFILE_NAMES, default_vehicle_profile
@@ -76,6 +78,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--handover-alt-m", type=float, default=HANDOVER_ALT_M,
                    help="hand-over altitude: every policy hands over, and the judge judges, here (default: "
                         f"{HANDOVER_ALT_M:g} m; at least {MIN_DESCENT_M:g} m below the start)")
+    p.add_argument("--person-separation-m", type=float, default=PERSON_SEPARATION_M,
+                   help="the judge calls a landing unsafe with a person closer than this to the touchdown "
+                        f"(default: {PERSON_SEPARATION_M:g} m; 0 turns the rule off)")
+    p.add_argument("--vehicle-separation-m", type=float, default=VEHICLE_SEPARATION_M,
+                   help="... or a vehicle closer than this (default: "
+                        f"{VEHICLE_SEPARATION_M:g} m; 0 turns the rule off)")
     p.add_argument("--no-close-look", dest="close_look", action="store_false",
                    help="fly clearance without its close looks (full-resolution crops of the spot before committing)")
     p.add_argument("--policy-config", type=Path, default=None, metavar="FILE",
@@ -154,6 +162,7 @@ def make_grid(*, world_spec: str | None = None, worlds: tuple[str, ...] | None =
               start_margin_m: float = 5.0, segmenter: str = "sim", perception: str | None = None,
               world_label: str = "", seed_note: str = "", vehicle_profile: str | None = None,
               handover_alt_m: float = HANDOVER_ALT_M, policy_config: Path | None = None,
+              separation_m: tuple[float, float] = (PERSON_SEPARATION_M, VEHICLE_SEPARATION_M),
               perception_shift: str | tuple | None = None, close_look: bool = True) -> Grid:
     """The bench's grid, every setting checked (one line naming the flag otherwise).
 
@@ -168,6 +177,8 @@ def make_grid(*, world_spec: str | None = None, worlds: tuple[str, ...] | None =
     positive("--time-limit-s", time_limit_s)
     check_start_alt_m("--start-alt-m", start_alt_m)
     check_handover_below_start(handover_alt_m, start_alt_m)
+    non_negative("--person-separation-m", separation_m[0])
+    non_negative("--vehicle-separation-m", separation_m[1])
     changed: dict = {}
     if policy_config is not None:
         if len(policies) != 1:
@@ -187,7 +198,7 @@ def make_grid(*, world_spec: str | None = None, worlds: tuple[str, ...] | None =
                 time_limit_s=float(time_limit_s), start_alt_m=float(start_alt_m), segmenter=segmenter,
                 start_margin_m=float(start_margin_m), world_label=world_label or specs[0], extra={"seed_note": seed_note} if seed_note else {},
                 vehicle_profile=vehicle_profile, handover_alt_m=float(handover_alt_m), policy_config=changed,
-                close_look=bool(close_look))
+                separation_m=(float(separation_m[0]), float(separation_m[1])), close_look=bool(close_look))
 
 
 def settings_from_args(args: argparse.Namespace) -> dict:
@@ -201,6 +212,7 @@ def settings_from_args(args: argparse.Namespace) -> dict:
                 start_margin_m=default_start_margin_m(policies) if args.start_margin_m is None else args.start_margin_m,
                 segmenter=args.segmenter, perception=args.perception, vehicle_profile=args.vehicle_profile,
                 handover_alt_m=args.handover_alt_m, policy_config=args.policy_config,
+                separation_m=(args.person_separation_m, args.vehicle_separation_m),
                 perception_shift=args.perception_shift, close_look=args.close_look, world_label=f"suite:{args.suite.strip()}" if args.suite is not None else "")
 
 

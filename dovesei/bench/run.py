@@ -27,7 +27,7 @@ from dovesei.bench import engines, shift, stats
 from dovesei.flight_defaults import starts as bench_starts
 from dovesei.pictures.html import write_bench_page
 from dovesei.shared.errors import ConfigError, DoveseiError
-from dovesei.shared.mission import HANDOVER_ALT_M, SAFETY_RADIUS_M
+from dovesei.shared.mission import HANDOVER_ALT_M, PERSON_SEPARATION_M, SAFETY_RADIUS_M, VEHICLE_SEPARATION_M
 from dovesei.sim.world import load_world, require_judged
 
 log = logging.getLogger(__name__)
@@ -74,6 +74,8 @@ class Grid:
     handover_alt_m: float = HANDOVER_ALT_M  # where every episode ends and is judged (controller, policy, judge)
     # --policy-config: the constants a file changed from the preset's ({} = none), for its one policy.
     policy_config: dict = field(default_factory=dict)
+    # The judge's separations from people and vehicles (0: that rule off).
+    separation_m: tuple[float, float] = (PERSON_SEPARATION_M, VEHICLE_SEPARATION_M)
     close_look: bool = True  # clearance looks at its spot at full resolution before committing (issue 24)
 
     @property
@@ -92,6 +94,7 @@ class Grid:
                 # And the default hand-over: benches flown before it was a setting resume and hash as before.
                 **({"handover_alt_m": self.handover_alt_m} if self.handover_alt_m != HANDOVER_ALT_M else {}),
                 **({"policy_config": self.policy_config} if self.policy_config else {}),
+                "separation_m": list(self.separation_m),
                 # clearance with and without close looks flies differently: such benches never resume
                 # one from the other (benches without the key predate the close look).
                 **({"close_look": self.close_look} if "clearance" in self.policies else {}),
@@ -176,7 +179,8 @@ def plan_jobs(grid: Grid, worlds: dict, out: Path) -> list[dict]:
                         "noise": grid.noise, "timing": grid.timing, "time_limit_s": grid.time_limit_s,
                         "perception": var.perception, "prompts": var.prompts,
                         "vehicle_profile": grid.vehicle_profile, "handover_alt_m": grid.handover_alt_m,
-                        "policy_config": grid.policy_config or None, "close_look": grid.close_look,
+                        "policy_config": grid.policy_config or None, "separation_m": list(grid.separation_m),
+                        "close_look": grid.close_look,
                         "perception_label": var.perception if var.labelled else None,
                         "prompts_label": var.prompts_name if var.labelled else None,
                         "shift_label": shift.label(var.shift) if grid.shifted else None,
@@ -290,7 +294,7 @@ def summary_markdown(doc: dict, *, title: str = "dovesei bench") -> str:
         f"vehicle profile `{config.get('vehicle_profile', 'ideal')}`. "
         f"Success = reaching the hand-over altitude ({config.get('handover_alt_m', HANDOVER_ALT_M):g} m) with the "
         f"{SAFETY_RADIUS_M:g} m footprint disk on safe classes, judged on "
-        "the label map. Intervals are Wilson 95 %.", "",
+        f"the label map, {stats.separation_text(config)}. Intervals are Wilson 95 %.", "",
         *stats.policy_table(doc["summary"]), "",
         "Averages are over successful episodes, as in the paper's Table I (time in sim seconds, distance = "
         "horizontal path length).", ""]

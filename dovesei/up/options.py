@@ -22,7 +22,9 @@ from dovesei.shared import keys, validate
 from dovesei.shared.errors import ConfigError
 from dovesei.shared.mavurl import FORMS as MAVLINK_FORMS
 from dovesei.shared.mavurl import MavlinkEndpoint, check_serial_device, parse_mavlink_url
-from dovesei.shared.mission import HANDOVER_ALT_M, MIN_DESCENT_M, check_handover_below_start
+from dovesei.shared.mission import (
+    HANDOVER_ALT_M, MIN_DESCENT_M, PERSON_SEPARATION_M, VEHICLE_SEPARATION_M, check_handover_below_start,
+)
 from dovesei.shared.timing import DEFAULT_TIMING, TIMING_NAMES, timing
 from dovesei.controller.core import HANDOVER_ACTIONS
 from dovesei.controller.gnss_denied import GNSS_DENIED_MODES
@@ -84,6 +86,9 @@ class UpOptions:
     start_alt_m: float = 100.0
     # The controller hands over (and hands it to its policy) and the sim's judge judges here.
     handover_alt_m: float = HANDOVER_ALT_M
+    # The sim's judge: no person / vehicle closer than these to the touchdown (0: that rule off).
+    person_separation_m: float = PERSON_SEPARATION_M
+    vehicle_separation_m: float = VEHICLE_SEPARATION_M
     # `clearance` looks at its spot at full resolution before committing (issue 24), as `bench` flies it.
     close_look: bool = True
     out: Path = Path("runs/up")
@@ -169,6 +174,8 @@ class UpOptions:
         if self.policy_config is not None:
             load_policy_config(self.policy, self.policy_config, self.timing)  # one line naming the file and key
         check_handover_below_start(self.handover_alt_m, self.start[2] if self.start is not None else self.start_alt_m)
+        validate.non_negative("--person-separation-m", self.person_separation_m)
+        validate.non_negative("--vehicle-separation-m", self.vehicle_separation_m)
         for flag, value in (("--heatmap-wait-s", self.heatmap_wait_s),
                             ("--heatmap-hold-after-s", self.heatmap_hold_after_s)):
             if value is not None:
@@ -265,6 +272,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--handover-alt-m", type=float, default=HANDOVER_ALT_M,
                    help=f"hand-over altitude: the controller and its policy hand over, and the sim judges, here "
                         f"(default: {HANDOVER_ALT_M:g} m; at least {MIN_DESCENT_M:g} m below the start)")
+    p.add_argument("--person-separation-m", type=float, default=PERSON_SEPARATION_M,
+                   help="the judge calls a landing unsafe with a person closer than this to the touchdown "
+                        f"(default: {PERSON_SEPARATION_M:g} m; 0 turns the rule off)")
+    p.add_argument("--vehicle-separation-m", type=float, default=VEHICLE_SEPARATION_M,
+                   help=f"... or a vehicle closer than this (default: {VEHICLE_SEPARATION_M:g} m; 0 turns the rule off)")
     p.add_argument("--no-close-look", dest="close_look", action="store_false",
                    help="clearance without its close looks (full-resolution crops of the spot before committing)")
     p.add_argument("--time-limit-s", type=float, default=None,
@@ -329,7 +341,8 @@ def options_from_args(args: argparse.Namespace) -> UpOptions:
                      timing=timing_name,
                      seed=args.seed, noise=args.noise, perception=args.perception, vehicle_profile=args.vehicle_profile,
                      start=start, start_seed=args.start_seed,
-                     start_alt_m=args.start_alt_m, handover_alt_m=args.handover_alt_m, close_look=args.close_look, out=out, out_unique=args.out is None, realtime=args.realtime,
+                     start_alt_m=args.start_alt_m, handover_alt_m=args.handover_alt_m, close_look=args.close_look,
+                     person_separation_m=args.person_separation_m, vehicle_separation_m=args.vehicle_separation_m, out=out, out_unique=args.out is None, realtime=args.realtime,
                      connect=tuple(args.connect), vehicle_url=args.vehicle_url, sitl_truth=args.sitl_truth,
                      takeoff=args.takeoff, handover_action=args.handover_action,
                      yaw_control=args.yaw_control, signing_key=args.signing_key,

@@ -489,6 +489,10 @@ CLI = CommandLine(SimServiceConfig, {
     "sim.time_limit_s": Flag("--time-limit-s", "sim-time limit of the episode", check=validate.positive),
     "sim.handover_alt_m": Flag("--handover-alt-m", "the episode ends (and is judged) at this altitude",
                                check=validate.non_negative),
+    "sim.person_separation_m": Flag("--person-separation-m", "the judge calls a landing unsafe with a person closer "
+                                    "than this to the touchdown (0 = rule off)", check=validate.non_negative),
+    "sim.vehicle_separation_m": Flag("--vehicle-separation-m", "... or a vehicle closer than this (0 = rule off)",
+                                     check=validate.non_negative),
     "sim.seed": Flag("--seed", "seed of the vehicle's disturbances"),
     "sim.vehicle_profile": Flag("--vehicle-profile", "what the vehicle reports and how it flies: ideal (the truth, "
                                 "a gimbal), realistic (an optical-flow EKF without GNSS, a body-fixed camera, "
