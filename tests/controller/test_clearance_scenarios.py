@@ -420,27 +420,25 @@ def _fly_recalibrated(world: World, a: float, b: float, **kwargs) -> Flight:
 RECALIBRATIONS = [(1.0, 0.0), (0.6, -0.8), (0.6, 0.8), (1.6, -0.8), (1.6, 0.8)]
 
 
-def test_decisions_do_not_depend_on_the_calibration() -> None:
+@pytest.mark.parametrize("a,b", RECALIBRATIONS)
+def test_decisions_do_not_depend_on_the_calibration(a: float, b: float) -> None:
     """The strip-and-lawn scenario flown through five calibrations of the perception, the corners of
-    the robustness bench's range (a in [0.6, 1.6], b in [-0.8, 0.8]): the same spot is chosen and
-    locked on (the landing within a metre or two of the plain flight's), the strip never."""
+    the robustness bench's range (a in [0.6, 1.6], b in [-0.8, 0.8]) and the plain one: the same
+    spot is chosen and locked on (the 12 m lawn, within a few metres of its centre), the strip
+    never. A 100 m search radius keeps the top pass (and the test) short."""
     safe = np.zeros((SIDE, SIDE), bool)
     mid = SIDE // 2
     safe[:, mid - 6:mid + 6] = True
     _lawn(safe, -40.0, 45.0, 12.0)
     world = World(safe)
-    landed = []
-    for a, b in RECALIBRATIONS:
-        flight = _fly_recalibrated(world, a, b)
-        assert flight.alt_m <= 20.0, (a, b, flight.decision.reason)
-        assert world.disk_safe(flight.north_m, flight.east_m, 2.0), (a, b)
-        assert "DESCEND" in flight.states
-        for n, e, alt, state, down in flight.track:
-            if state == "DESCEND" and down > 0.0:
-                assert abs(e) > 10.0, (a, b, n, e, alt)
-        landed.append((flight.north_m, flight.east_m))
-    plain = landed[0]
-    assert all(math.hypot(n - plain[0], e - plain[1]) < 2.5 for n, e in landed), landed
+    flight = _fly_recalibrated(world, a, b, config=ClearanceConfig(search_radius_m=100.0))
+    assert flight.alt_m <= 20.0, (a, b, flight.decision.reason)
+    assert world.disk_safe(flight.north_m, flight.east_m, 2.0), (a, b)
+    assert math.hypot(flight.north_m + 40.0, flight.east_m - 45.0) < 4.0, (a, b, flight.north_m, flight.east_m)
+    assert "DESCEND" in flight.states
+    for n, e, alt, state, down in flight.track:
+        if state == "DESCEND" and down > 0.0:
+            assert abs(e) > 10.0, (a, b, n, e, alt)
 
 
 @pytest.mark.parametrize("a,b", [(0.6, 0.8), (1.6, 0.8)])
