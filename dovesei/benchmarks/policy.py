@@ -25,7 +25,8 @@ import time
 import cv2
 import numpy as np
 
-from dovesei.controller.policies.base import Observation, make_policy, policy_names
+from dovesei.controller.policies.base import Observation
+from dovesei.controller.policies.registry import make_policy, policy_names
 from dovesei.shared.cliconfig import OneLineParser
 
 
@@ -38,8 +39,8 @@ SCENES = ("landing", "search")
 
 def _heatmaps(count: int, size_px: int, seed: int, scene_name: str = "landing") -> list[np.ndarray]:
     """`count` frames of one scene, all in [0, 1]: a smooth random field plus per-frame smooth
-    noise (CLIPSeg-like flicker); `landing` adds a safe patch near the centre, `search` keeps every
-    pixel below 0.82 (nothing a clearance spot accepts) with a few patches worth a probe."""
+    noise (CLIPSeg-like flicker); `landing` adds a safe patch near the centre, `search` has ground below
+    even odds and a few lawn-like patches too small to land on (worth a probe, never a spot)."""
     rng = np.random.default_rng(seed)
     sigma_px = size_px / 40.0
 
@@ -54,11 +55,12 @@ def _heatmaps(count: int, size_px: int, seed: int, scene_name: str = "landing") 
         centre = size_px // 2
         cv2.circle(scene, (centre, centre), size_px // 8, 1.0, -1)
         return [np.clip(0.75 * scene + 0.25 * smooth_noise(), 0.0, 1.0) for _ in range(count)]
-    # Promising patches (0.81: worth a probe, short of a spot's 0.84) keep the probes busy.
-    scene = 0.6 * scene
+    # Ground below even odds with three lawn-like patches narrower than a landing disk (2.6 m
+    # across at 100 m, less lower down): the best the scene has, worth a probe, never a spot.
+    scene = 0.35 * scene
     for k in range(3):
         centre = (int(size_px * (0.25 + 0.25 * k)), int(size_px * (0.7 - 0.2 * k)))
-        cv2.circle(scene, centre, size_px // 10, 0.79, -1)
+        cv2.circle(scene, centre, max(2, size_px // 28), 0.9, -1)
     return [np.clip(scene + 0.02 * smooth_noise(), 0.0, 1.0) for _ in range(count)]
 
 

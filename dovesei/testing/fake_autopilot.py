@@ -42,6 +42,9 @@ Personalities (`flavour`):
   Complete"), else "PrecLand: Init Failed"; an initialised target not updated for 2 s is "PrecLand:
   Target Lost". Only an acquired target is flown to (and no descent while it is more than
   PLND_XY_DIST_MAX 2.5 m away); otherwise LAND descends straight down, blind.
+- VisOdom pre-arm (ArduPilot, `FakeEkf(viso_arming_check=True)`): while disarmed and no vision
+  message came within 300 ms, "PreArm: VisOdom: not healthy" is among the pre-arm failures (the
+  periodic report, SYS_STATUS's pre-arm bit, ARM refused with "Arm: VisOdom: not healthy").
 - `arm_refusals`: ARMs refused after boot by checks that run only at arming (a real case: the
   pre-arm bit says healthy, ARM still fails once).
 - GNSS loss (ArduPilot, `lose_gnss()`; the estimator in `fake_ekf.FakeEkf`): GPS_RAW_INT loses its
@@ -430,7 +433,12 @@ class FakeAutopilot:
 
     def _prearm_failures(self) -> list[str]:
         fraction = self._boot_fraction()
-        return [text for until, text in self.personality.prearm_failures if fraction < until]
+        failures = [text for until, text in self.personality.prearm_failures if fraction < until]
+        if self.flavour == "ardupilot" and not self._armed:
+            visodom = self.ekf.visodom_prearm_failure(time.monotonic())
+            if visodom is not None:
+                failures.append(f"PreArm: {visodom}")
+        return failures
 
     def _queue_statustext(self, severity: int, text: str) -> None:
         self.statustexts_sent.append((severity, text))

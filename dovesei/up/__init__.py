@@ -24,7 +24,10 @@ origin placed at --start) and judges there.
 With `--handover-action land` or `precland`, `up` keeps the controller running after the judged
 hand-over until the autopilot has landed and disarmed (bounded; `watch.wait_for_landing`): the
 autopilot lands on its own, and a precision landing needs the controller's LANDING_TARGET stream
-to touchdown. The report's `landing` section says how that wait ended.
+to touchdown. With `--gnss-denied external-nav` (any hand-over action) the sim's odometry and the
+controller's stream of it to the autopilot's EKF go on the same way, until the autopilot disarms
+(or the bound): stopped at the hand-over, ArduCopter's EKF failsafe took over ~5 s later. The
+report's `landing` section says how that wait ended.
 
 Exit codes: 0 landed safely; 3 the episode ran but ended unsafe, timed out or left the world;
 1 an error (a service died or hung, takeoff refused, an 'error' ending); 2 bad usage (flags, world,
@@ -57,7 +60,7 @@ from dovesei.sim.world import WorldError, load_world
 from dovesei.up.children import Children, describe_exit, last_error_line
 from dovesei.up.launch import (
     SERVICES, ChildConfigs, check_endpoint_free, check_link_owners, child_commands, child_configs, child_env,
-    zenoh_flags,
+    landing_timeout_s, zenoh_flags,
 )
 from dovesei.up.monitor import Monitor, Recorder, Sample
 from dovesei.up.options import (
@@ -65,7 +68,7 @@ from dovesei.up.options import (
 )
 from dovesei.up.report import RunReport, build_report, read_stats, write_outputs
 from dovesei.up.watch import (
-    RESULT_AFTER_EXIT_S, LandingWait, Watcher, WatchEnd, landing_timeout_s, port_collision, wait_for_landing,
+    RESULT_AFTER_EXIT_S, LandingWait, Watcher, WatchEnd, port_collision, wait_for_landing,
     wait_for_takeoff,
 )
 
@@ -200,15 +203,20 @@ def _fly(options: UpOptions, world: object, start: tuple[float, float, float], c
             children = Children(out / "logs")
             rec.alive.clear()
         if rec.result is not None:
-            # The sim ends its run once the result is out: a signal now would only cut its shutdown.
-            children.wait_exit("sim", RESULT_AFTER_EXIT_S)
+            # external-nav: the sim's odometry goes on after the result (the autopilot's EKF flies on it).
+            external_nav = configs.sim.odometry_after_result_s > 0
+            if not external_nav:
+                # The sim ends its run once the result is out: a signal now would only cut its shutdown.
+                children.wait_exit("sim", RESULT_AFTER_EXIT_S)
             # Give the controller's hand-over statuses a moment to arrive after the sim's result.
-            if options.vehicle_url and configs.controller.handover_action in ("land", "precland") and \
-                    _handover_reported(rec, monitor, stop):
+            if options.vehicle_url and (external_nav or configs.controller.handover_action in ("land", "precland")) \
+                    and _handover_reported(rec, monitor, stop):
                 # The autopilot lands on its own from here, and for a precision landing on the
-                # target the controller streams: both must outlive the judged episode.
+                # target the controller streams: both must outlive the judged episode; with
+                # external-nav so must the camera's velocity, whatever the hand-over action.
                 landing = wait_for_landing(rec, monitor, children, stop,
-                                           landing_timeout_s(configs.controller.handover_alt_m), options.stall_s)
+                                           landing_timeout_s(configs.controller.handover_alt_m), options.stall_s,
+                                           external_nav=external_nav)
     finally:
         rec.expect_exits = True
         codes = children.stop_all()

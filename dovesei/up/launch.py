@@ -70,6 +70,29 @@ class ChildConfigs:
 # --sitl-truth it renders only states with a position, so after a loss it goes quiet and the
 # controller holds: the truth the views need after a loss comes from SITL.
 GNSS_DENIED_ODOMETRY_HZ = 10.0
+# Waiting for an autopilot's landing after the hand-over (watch.wait_for_landing): the hand-over
+# altitude at this slowest descent (ArduCopter's LAND_SPEED is 0.5 m/s below LAND_ALT_LOW; a precision
+# landing also moves over the spot first), plus a margin.
+LANDING_MIN_DESCENT_M_S = 0.25
+LANDING_MARGIN_S = 30.0
+
+
+def landing_timeout_s(handover_alt_m: float) -> float:
+    return LANDING_MARGIN_S + handover_alt_m / LANDING_MIN_DESCENT_M_S
+
+
+# With --gnss-denied external-nav the autopilot's EKF flies on that odometry: after the judged
+# hand-over the sim keeps it going while `up` waits for the landing (watch.wait_for_landing, which
+# stops it); its own bound is that wait's plus this margin, so a sim left behind still ends.
+ODOMETRY_TAIL_MARGIN_S = 30.0
+
+
+def odometry_after_result_s(options: UpOptions) -> float:
+    """How long the sim's odometry may outlive the episode: the landing wait's bound + a margin, with a
+    real vehicle on --gnss-denied external-nav; 0 otherwise."""
+    if not options.vehicle_url or options.gnss_denied != "external-nav":
+        return 0.0
+    return landing_timeout_s(float(options.handover_alt_m)) + ODOMETRY_TAIL_MARGIN_S
 
 # A real vehicle flying a rendered world: the controller's geofence keeps it over the world, the
 # radius the start's distance to the nearest edge, within these bounds (the smallest leaves a
@@ -93,12 +116,15 @@ def child_configs(options: UpOptions, start: tuple[float, float, float], world: 
         sim=SimConfig(vehicle_id=options.vehicle_id, timing=options.timing, time_limit_s=float(options.time_limit_s),
                       seed=options.seed, vehicle_profile=options.sim_vehicle_profile,
                       handover_alt_m=float(options.handover_alt_m),
+                      person_separation_m=float(options.person_separation_m),
+                      vehicle_separation_m=float(options.vehicle_separation_m),
                       odometry_rate_hz=GNSS_DENIED_ODOMETRY_HZ if options.gnss_denied not in (None, "off") else 0.0),
         world=options.world, start_xy_alt_m=tuple(float(v) for v in start), lockstep=options.lockstep,
         # Camera mode: the sim renders at the autopilot's state, which the controller (the one owner
         # of the MAVLink link) publishes on the state key; against SITL with --sitl-truth it renders
         # at SITL's true pose, read on a separate SITL output (never the autopilot's link).
-        external_pose=bool(options.vehicle_url), sitl_truth=options.sitl_truth, wait_for=("segmenter", "controller"))
+        external_pose=bool(options.vehicle_url), sitl_truth=options.sitl_truth, wait_for=("segmenter", "controller"),
+        odometry_after_result_s=odometry_after_result_s(options))
     perception: dict[str, object] = {"backend": options.segmenter, "sim_seed": options.seed,
                                      "sim_profile": options.perception}
     fusion = fusion_for(options.policy)  # the paper's policies fly the reference's fusion, as in bench

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 from dovesei.shared.messages import EpisodeResult
 from dovesei.shared.zconfig import ADDRESS_IN_USE
 from dovesei.up.children import Children, describe_exit, last_error_line
+from dovesei.up.launch import odometry_after_result_s
 from dovesei.up.monitor import Monitor, Recorder
 from dovesei.up.options import UpOptions
 from dovesei.up.report import Failure
@@ -43,8 +44,6 @@ RESULT_POSITION_TOLERANCE_M = 10.0  # result's final position vs the last record
 # Waiting for an autopilot's landing after the hand-over: the hand-over altitude at this slowest
 # descent (ArduCopter's LAND_SPEED is 0.5 m/s below LAND_ALT_LOW; a precision landing also moves
 # over the spot first), plus a margin.
-LANDING_MIN_DESCENT_M_S = 0.25
-LANDING_MARGIN_S = 30.0
 LANDING_MODES = ("LAND", "PRECLAND")
 LANDING_MODE_GRACE_S = 10.0  # the adapter asks for LAND each second for 5 s
 
@@ -64,12 +63,8 @@ class LandingWait:
     waited_s: float
 
 
-def landing_timeout_s(handover_alt_m: float) -> float:
-    return LANDING_MARGIN_S + handover_alt_m / LANDING_MIN_DESCENT_M_S
-
-
 def wait_for_landing(rec: Recorder, monitor: Monitor, children: Children, stop: threading.Event,
-                     timeout_s: float, stall_s: float) -> LandingWait:
+                     timeout_s: float, stall_s: float, *, external_nav: bool = False) -> LandingWait:
     """After a 'land' or 'precland' hand-over: keep the controller running until the autopilot has landed.
 
     The controller is the one owner of the link and, for a precision landing, streams the spot
@@ -78,6 +73,12 @@ def wait_for_landing(rec: Recorder, monitor: Monitor, children: Children, stop: 
     means the autopilot reports itself disarmed (both autopilots disarm after a LAND). The wait
     also ends, unlanded, when the autopilot leaves its landing mode (a pilot took over), the
     controller exits, the states stop for `stall_s`, the operator stops `up`, or at `timeout_s`.
+
+    With `external_nav` (`--gnss-denied external-nav`, any hand-over action) the autopilot's EKF
+    flies on the camera's velocity that the controller streams from the sim's odometry: both must
+    outlive the episode until the vehicle has landed and disarmed, whatever its mode (a pilot who
+    takes over in LOITER needs that velocity too), or ArduCopter's EKF failsafe comes about 5 s
+    after they stop (SITL). The wait then also ends when the sim (the odometry) exits.
     """
     t0 = time.monotonic()
     seen_landing_mode = False
@@ -101,14 +102,18 @@ def wait_for_landing(rec: Recorder, monitor: Monitor, children: Children, stop: 
                                  f"{now - t0:.1f} s, at {state.alt_agl_m:.1f} m")
             if state.mode in LANDING_MODES:
                 seen_landing_mode = True
+            elif external_nav:
+                pass  # whatever the mode, the EKF needs the camera's velocity until the motors stop
             elif seen_landing_mode or now - t0 > LANDING_MODE_GRACE_S:
                 return end(False, f"the autopilot is in {state.mode or 'an unknown mode'}, not landing "
                                   "(a pilot or another station took over): not waiting")
         if stop.is_set():
             return end(False, "the operator ended the wait: the autopilot lands on its own, without our target")
-        dead = [name for name, _ in children.exited() if name == "controller"]
+        needed = ("controller", "sim") if external_nav else ("controller",)
+        dead = [name for name, _ in children.exited() if name in needed]
         if dead:
-            return end(False, "the controller exited before the autopilot landed")
+            what = "the camera's odometry (the sim)" if dead[0] == "sim" else "the controller"
+            return end(False, f"{what} exited before the autopilot landed")
         if time.time() - last_state_wall_s > stall_s:
             return end(False, f"no vehicle state for {stall_s:g} s")
         if now - t0 > timeout_s:
@@ -279,7 +284,10 @@ class Watcher:
         if not candidates:
             return False
         sim = self.children.procs.get("sim")
-        if sim is not None and sim.poll() is None:
+        # With --gnss-denied external-nav the sim ends its run by dropping its liveliness token with the
+        # result and keeps only the camera's odometry going (the autopilot's EKF flies on it).
+        tail = odometry_after_result_s(self.options) > 0 and self.rec.alive.get("sim") is False
+        if sim is not None and sim.poll() is None and not tail:
             if time.monotonic() < self._confirm_by:
                 return False
             log.warning("%d episode result(s) ignored: the sim kept running after them, so they are not the "

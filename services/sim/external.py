@@ -19,6 +19,12 @@ odometry of views rendered at the same pose (`dovesei.sim.odometry`), dated by t
 moved on by the wall time since it arrived. No state within `wait_timeout_s` of the start, or none for `state_timeout_s`
 later, ends the episode as 'error' naming the key.
 
+After the judged end, with `odometry_after_s` > 0, the camera's odometry goes on (no frames, no
+judge) for at most that long, until `stop` or until the states stop: an autopilot whose EKF flies
+on the camera's velocity (`--gnss-denied external-nav`) still needs it after the hand-over, until it
+has landed (ArduCopter SITL: "EKF variance" about 5 s after the odometry ended with the episode).
+The result goes out through `on_result` the moment it is judged, before that tail.
+
 With a truth source (ArduPilot SITL's SIM_STATE, `dovesei.sim.sitl_truth`) the images, the odometry
 views and the judge follow the simulator's TRUE pose and attitude instead, while everything a
 policy reads stays the estimate's:
@@ -153,7 +159,8 @@ def run_external_pose(states: Inbox[VehicleState], publish_frame: Callable[[Came
                       stop: threading.Event, stats: Any,
                       publish_odometry: Callable[[VisualOdometry], None] | None = None,
                       truth: TruthSource | None = None,
-                      statuses: Inbox[ControllerStatus] | None = None) -> EpisodeResult | None:
+                      statuses: Inbox[ControllerStatus] | None = None, odometry_after_s: float = 0.0,
+                      on_result: Callable[[EpisodeResult], None] | None = None) -> EpisodeResult | None:
     """Render at the states received until the judge ends the episode; None when `stop` ends it first.
 
     With `truth`, frames, odometry views and the judge follow its newest pose and attitude instead
@@ -163,10 +170,13 @@ def run_external_pose(states: Inbox[VehicleState], publish_frame: Callable[[Came
     overruns, frames_skipped). With `sim.odometry_rate_hz` > 0 and `publish_odometry`, the loop
     runs at the faster of the two rates and each new state also gives an odometry view, dated by
     the state's own stamp (a state seen twice gives no second view: it would read as a hover).
-    `statuses` carries the controller's hand-over.
+    `statuses` carries the controller's hand-over. With `odometry_after_s` > 0 (and odometry on)
+    the judged result goes to `on_result` at once and the odometry alone goes on for that long
+    (see the module docstring); the same result is returned at the end.
     """
     judge = EpisodeJudge(world, handover_alt_m=sim.handover_alt_m, time_limit_s=sim.time_limit_s,
-                         safety_radius_m=sim.safety_radius_m)
+                         safety_radius_m=sim.safety_radius_m,
+                         person_separation_m=sim.person_separation_m, vehicle_separation_m=sim.vehicle_separation_m)
     key = keys.state(sim.vehicle_id)
     camera = PoseCamera(world, sim)
     build_s = prebuild_pyramid(world, sim.camera, PREBUILD_ALT_FACTOR * start.alt_m)
@@ -180,6 +190,8 @@ def run_external_pose(states: Inbox[VehicleState], publish_frame: Callable[[Came
         if sim.odometry_rate_hz > 0 and publish_odometry is not None else None
     tick_s = sim.period_s if odometry is None else min(sim.period_s, odometry.period_s)
     due_s = next_frame_s = clock.now_s()
+    result: EpisodeResult | None = None  # judged; the odometry's tail runs until tail_end_s
+    tail_end_s = 0.0
     while clock.sleep_until(due_s, stop):
         due_s += tick_s
         if clock.now_s() - due_s > _MAX_BEHIND_S:
@@ -203,11 +215,20 @@ def run_external_pose(states: Inbox[VehicleState], publish_frame: Callable[[Came
                                         "the sim's own output?)", clock="vehicle")
             continue
         if clock.now_s() - last_state_wall_s > state_timeout_s:
+            if result is not None:
+                log.info("odometry after the episode ended: no vehicle state for %g s", state_timeout_s)
+                return result
             return judge_result(sim.vehicle_id, judge, "error", f"no vehicle state on {key} for {state_timeout_s:g} s",
                                 clock="vehicle")
         if true is not None and time.monotonic() - true.recv_monotonic_s > state_timeout_s:
+            if result is not None:
+                log.info("odometry after the episode ended: no SIM_STATE for %g s", state_timeout_s)
+                return result
             return judge_result(sim.vehicle_id, judge, "error",
                                 f"no SIM_STATE from SITL on {truth.url} for {state_timeout_s:g} s", clock="vehicle")
+        if result is not None and clock.now_s() > tail_end_s:
+            log.info("odometry after the episode ended: %g s are over", odometry_after_s)
+            return result
         if last_state_wall_s - first_state_wall_s < POSE_WARMUP_S:
             continue
         if true is None:
@@ -218,15 +239,22 @@ def run_external_pose(states: Inbox[VehicleState], publish_frame: Callable[[Came
             if state.stamp.clock == "vehicle":
                 true = truth.at(state.stamp.t_s) or true
             pose, attitude_rad = pose_from_truth(true, start, state.stamp.t_s), (true.roll_rad, true.pitch_rad)
-        handover = handover_heard(statuses, sim.vehicle_id, handover)
-        if judge.check(pose, handover=handover) is not None:
-            return judge_result(sim.vehicle_id, judge, judge.outcome, clock="vehicle")
+        if result is None:
+            handover = handover_heard(statuses, sim.vehicle_id, handover)
+            if judge.check(pose, handover=handover) is not None:
+                result = judge_result(sim.vehicle_id, judge, judge.outcome, clock="vehicle")
+                if odometry is None or odometry_after_s <= 0 or on_result is None:
+                    return result
+                on_result(result)
+                tail_end_s = clock.now_s() + odometry_after_s
+                log.info("episode judged; the camera's odometry goes on for up to %g s (the autopilot's EKF may fly "
+                         "on it until it lands)", odometry_after_s)
         if odometry is not None:
             odo = odometry.observe(pose.x_m, pose.y_m, pose.alt_agl_m, pose.yaw_rad, state,
                                    roll_rad=attitude_rad[0], pitch_rad=attitude_rad[1])
             if odo is not None:
                 publish_odometry(odo)
-        if clock.now_s() < next_frame_s - 1e-6:
+        if result is not None or clock.now_s() < next_frame_s - 1e-6:
             continue
         next_frame_s = next_frame_s + sim.period_s if clock.now_s() - next_frame_s < _MAX_BEHIND_S \
             else clock.now_s() + sim.period_s
@@ -238,4 +266,4 @@ def run_external_pose(states: Inbox[VehicleState], publish_frame: Callable[[Came
             continue
         publish_frame(frame)
         stats.steps += 1
-    return None
+    return result  # stopped: None, or the result already handed to on_result

@@ -27,7 +27,8 @@ Three ways to run an episode, chosen by the config:
   the controller's states there directly. With `--sitl-truth udpin:HOST:PORT` (ArduPilot SITL),
   the image and the judge follow SITL's TRUE pose, read from SIM_STATE on a SEPARATE SITL output
   (`dovesei.sim.sitl_truth`), while the frames keep the estimate's stamp, altitude and attitude:
-  the truth never reaches a policy.
+  the truth never reaches a policy. With `--odometry-after-result-s` the camera's odometry goes on
+  after the result (published at once) until stopped: the autopilot's EKF may fly on it to touchdown.
 
 `main` only parses flags, sets up logging and signals, loads the world, opens the session and
 calls `run`; `run` reads no flags or environment, so tests call it with a hand-made world.
@@ -91,6 +92,9 @@ class SimServiceConfig:
     wait_for: tuple[str, ...] = ()  # liveliness tokens to see before the episode starts
     wait_timeout_s: float = 60.0
     cmd_timeout_s: float = 10.0  # lockstep: wall wait for a command; external pose: for a new state
+    # External pose with odometry: after the judged end the camera's odometry goes on (no frames) for at
+    # most this long, until stopped: an autopilot whose EKF flies on it still needs it until it has landed.
+    odometry_after_result_s: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("speed", "wait_timeout_s", "cmd_timeout_s", "start_alt_m"):
@@ -102,6 +106,10 @@ class SimServiceConfig:
             raise ConfigError(f"--wait-for {','.join(unknown)}: choose among {','.join(WAITABLE)}")
         if self.start_xy_alt_m is not None:
             validate.finite_vector("--start", self.start_xy_alt_m, 3)
+        validate.in_range("--odometry-after-result-s", self.odometry_after_result_s, 0.0, 3600.0)
+        if self.odometry_after_result_s > 0 and not (self.external_pose and self.sim.odometry_rate_hz > 0):
+            raise ConfigError("--odometry-after-result-s applies to the camera mode with odometry only "
+                              "(--external-pose and --odometry-rate-hz above 0)")
         if not isinstance(self.external_pose, bool):
             raise ConfigError(f"sim service external_pose must be true or false, got {self.external_pose!r}")
         if self.sitl_truth is not None:
@@ -154,7 +162,8 @@ class SimStats:
 
 
 def resolve_start(world: World, config: SimServiceConfig) -> Start:
-    """The start of the episode: the explicit --start, else generate_starts(seed)[0]."""
+    """The start of the episode: the explicit --start; a world built around one start (paper-paris:
+    its home), as `dovesei up` flies it; else generate_starts(seed)[0]."""
     if config.start_xy_alt_m is not None:
         x_m, y_m, alt_m = config.start_xy_alt_m
         if not world.contains(x_m, y_m):
@@ -163,6 +172,8 @@ def resolve_start(world: World, config: SimServiceConfig) -> Start:
         if alt_m <= 0:
             raise ConfigError(f"--start altitude must be > 0 m, got {alt_m:g}")
         return Start(x_m, y_m, alt_m)
+    if world.home_xy_m is not None:
+        return Start(float(world.home_xy_m[0]), float(world.home_xy_m[1]), float(config.start_alt_m))
     return generate_starts(world, 1, config.start_seed, alt_m=config.start_alt_m, cam=config.sim.camera)[0]
 
 
@@ -200,6 +211,7 @@ class _Wire:
                                              newest_only=not config.lockstep))
             # Declared last: whoever sees the token knows our subscriber is already in place.
             self.token = self._keep(declare_alive(session, vid, "sim"))
+            self.result_sent = False
         except BaseException:
             self.close()
             raise
@@ -216,6 +228,21 @@ class _Wire:
             self.publish_odometry(out.odometry, stats)
         self.state.put(encode(out.state))
         stats.states_sent += 1
+
+    def publish_result(self, result: EpisodeResult) -> None:
+        """The episode's result, once (the camera mode may send it before its odometry's tail)."""
+        if not self.result_sent:
+            self.episode.put(encode(result))
+            self.result_sent = True
+
+    def end_episode(self, result: EpisodeResult) -> None:
+        """The result before the odometry's tail, and the run's liveliness token dropped with it: the
+        episode is over (a watcher takes a result as the sim's once the sim has ended its run; the
+        odometry that goes on is the camera's, not the episode's)."""
+        self.publish_result(result)
+        if self.token in self._closers:
+            self._closers.remove(self.token)
+            self.token.undeclare()
 
     def publish_frame(self, frame: CameraFrame, stats: SimStats) -> None:
         self.camera.put(encode(frame, jpeg_quality=self.jpeg_quality))
@@ -279,7 +306,7 @@ def run(session: zenoh.Session, *, config: SimServiceConfig, stop: threading.Eve
         log.info("episode %s: %s after %.1f s, path %.1f m, at (%.1f, %.1f) m alt %.1f m: %s",
                  result.vehicle_id, result.outcome, result.sim_time_s, result.path_length_m, result.final_x_m,
                  result.final_y_m, result.final_alt_m, result.detail)
-        wire.episode.put(encode(result))
+        wire.publish_result(result)
         return result
     finally:
         wire.close()
@@ -292,7 +319,8 @@ def _run_external(wire: _Wire, world: World, start: Start, config: SimServiceCon
         return run_external_pose(wire.states, lambda frame: wire.publish_frame(frame, stats), world, start,
                                  config.sim, publish_odometry=lambda odo: wire.publish_odometry(odo, stats),
                                  wait_timeout_s=config.wait_timeout_s, state_timeout_s=config.cmd_timeout_s,
-                                 stop=stop, stats=stats, truth=truth, statuses=wire.statuses)
+                                 stop=stop, stats=stats, truth=truth, statuses=wire.statuses,
+                                 odometry_after_s=config.odometry_after_result_s, on_result=wire.end_episode)
 
     if config.sitl_truth is None:
         return fly(None)
@@ -461,6 +489,10 @@ CLI = CommandLine(SimServiceConfig, {
     "sim.time_limit_s": Flag("--time-limit-s", "sim-time limit of the episode", check=validate.positive),
     "sim.handover_alt_m": Flag("--handover-alt-m", "the episode ends (and is judged) at this altitude",
                                check=validate.non_negative),
+    "sim.person_separation_m": Flag("--person-separation-m", "the judge calls a landing unsafe with a person closer "
+                                    "than this to the touchdown (0 = rule off)", check=validate.non_negative),
+    "sim.vehicle_separation_m": Flag("--vehicle-separation-m", "... or a vehicle closer than this (0 = rule off)",
+                                     check=validate.non_negative),
     "sim.seed": Flag("--seed", "seed of the vehicle's disturbances"),
     "sim.vehicle_profile": Flag("--vehicle-profile", "what the vehicle reports and how it flies: ideal (the truth, "
                                 "a gimbal), realistic (an optical-flow EKF without GNSS, a body-fixed camera, "
@@ -488,6 +520,10 @@ CLI = CommandLine(SimServiceConfig, {
                      "before starting", choices=WAITABLE, metavar="SERVICES"),
     "wait_timeout_s": Flag("--wait-timeout-s", "give up waiting for --wait-for services (or the first "
                            "external-pose state) after this long", check=validate.positive),
+    "odometry_after_result_s": Flag("--odometry-after-result-s", "camera mode with odometry: after the episode's "
+                                    "result keep publishing the camera's odometry (no frames) for at most this long, "
+                                    "until stopped (an autopilot flying on it needs it until it has landed)",
+                                    check=lambda w, v: validate.in_range(w, v, 0.0, 3600.0)),
     "cmd_timeout_s": Flag("--cmd-timeout-s", "lockstep: wall seconds to wait for each command (external pose: "
                           "for a new state) before ending the episode as 'error'", check=validate.positive),
 }, prog="dovesei-sim", description=__doc__.splitlines()[0])

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from dovesei.controller.core import ControllerConfig, ControllerCore
+from dovesei.controller.policies.clearance.config import ClearanceConfig
 from dovesei.controller.policies.clearance.policy import ClearancePolicy
 from dovesei.shared.codec import decode, encode
 from dovesei.shared.messages import ControllerStatus, FieldError, SafetyHeatmap, Stamp, VehicleState
@@ -18,10 +19,12 @@ def _open_ground(seq: int, t_s: float, rng: np.random.Generator) -> SafetyHeatma
 
 
 def test_status_carries_the_transition_reason_and_the_chosen_spot() -> None:
-    core = ControllerCore(ControllerConfig(lockstep=True, policy="clearance"), policy=ClearancePolicy())
+    # Open ground from the first views (the scene's levels without waiting for the top pass).
+    core = ControllerCore(ControllerConfig(lockstep=True, policy="clearance"),
+                          policy=ClearancePolicy(ClearanceConfig(scene_after_top_pass=False)))
     rng = np.random.default_rng(0)
     seen: list[ControllerStatus] = []
-    for seq in range(12):
+    for seq in range(30):  # the levels are read every 2 s: a few frames before the first spot
         t = 0.5 * seq
         core.on_heatmap(_open_ground(seq, t, rng), t)
         _, status = core.tick(VehicleState("uav1", seq, Stamp(t, "sim"), 100.0, (0.0, 0.0, 0.0), await_frame_seq=seq))
@@ -40,7 +43,7 @@ def test_status_carries_the_transition_reason_and_the_chosen_spot() -> None:
     assert approach.policy_reason == core.decision.reason
     assert approach.spot_valid and approach.spot_clearance_m >= core.policy.config.required_clearance_m
     assert 0.0 < approach.spot_confidence <= 1.0
-    assert approach.spot_north_m == pytest.approx(core.decision.info["spot_north_m"])
+    assert approach.spot_north_m == pytest.approx(core.decision.spot.north_m)
     assert approach.reason  # the watchdog's own reason is still there, separately
     back = decode(encode(approach), ControllerStatus)
     assert back.policy_reason == approach.policy_reason and back.spot_clearance_m == approach.spot_clearance_m

@@ -10,7 +10,7 @@ from __future__ import annotations
 import pytest
 
 from dovesei.controller.core import ControllerConfig, ControllerCore
-from dovesei.controller.policies.base import make_policy
+from dovesei.controller.policies.registry import make_policy
 from dovesei.episode import EpisodeSpec, run_episode
 from dovesei.shared.messages import ControllerStatus
 from dovesei.shared.mission import HANDOVER_ALT_M
@@ -44,8 +44,9 @@ def test_clearance_hands_over_and_is_judged_at_the_altitude_it_was_given(handove
     world = load_world(WORLD)
     start = generate_starts(world, 1, 0, alt_m=100.0)[0]
     statuses: list[ControllerStatus] = []
+    # The world is smaller than clearance's search area: its scene is the first views.
     spec = EpisodeSpec(policy="clearance", start=start, timing="real", seed=0, noise=0.0, time_limit_s=600.0,
-                       handover_alt_m=handover_alt_m)
+                       handover_alt_m=handover_alt_m, policy_config=(("scene_after_top_pass", False),))
     rec = run_episode(world, spec, record=lambda m: statuses.append(m) if isinstance(m, ControllerStatus) else None)
     res = rec.result
     print(f"handover {handover_alt_m:g} m: {res.outcome} at {res.final_alt_m:.2f} m after {res.sim_time_s:.1f} s")

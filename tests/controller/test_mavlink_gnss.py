@@ -138,3 +138,67 @@ def test_booting_without_a_fix_is_not_a_loss_until_the_vehicle_is_armed(link) ->
     fake.lose_gnss()  # the real loss, in flight, is acted on
     assert wait_until(lambda: fake.mode == "GUIDED_NOGPS", 10.0)
     assert vehicle.counters()["gnss_losses"] == 1
+
+
+# ---------------------------------------------------------------------- VISO_TYPE's pre-arm check
+
+
+@pytest.fixture
+def on_the_ground() -> Iterator:
+    """A disarmed fake ArduCopter on the ground with VISO_TYPE set and ARMING_CHECK's VISION bit."""
+    opened: list = []
+
+    def make(**vehicle_kw: object) -> tuple[FakeAutopilot, MavlinkVehicle]:
+        port = free_port(socket.SOCK_DGRAM)
+        fake = FakeAutopilot(f"udpin:127.0.0.1:{port}", flavour="ardupilot", mode="LOITER", armed=False, alt_m=0.0,
+                             boot_s=0.3, heartbeat_hz=20, statustext_period_s=0.3,
+                             ekf=FakeEkf(viso_arming_check=True)).start()
+        opened.append(fake)
+        vehicle = MavlinkVehicle(f"udpout:127.0.0.1:{port}", **vehicle_kw)  # type: ignore[arg-type]
+        opened.append(vehicle)
+        vehicle.connect(5.0)
+        return fake, vehicle
+
+    yield make
+    for thing in reversed(opened):
+        thing.stop() if isinstance(thing, FakeAutopilot) else thing.close()
+
+
+def test_visodom_refuses_to_arm_until_vision_data_streams(on_the_ground) -> None:
+    """ArduCopter with VISO_TYPE 1: no vision message within 300 ms, no arming ("VisOdom: not
+    healthy"); the camera's odometry cannot help on the ground (it measures from 1 m up)."""
+    fake, vehicle = on_the_ground(gnss_denied="off")
+    with pytest.raises(mv.NotSteerableError) as info:
+        vehicle.arm_and_takeoff(3.0, ready_timeout_s=2.0)
+    assert "PreArm: VisOdom: not healthy" in str(info.value)
+    assert not fake.armed and not fake.vision_speeds
+
+
+def test_external_nav_streams_a_zero_velocity_while_disarmed_so_arducopter_arms(on_the_ground) -> None:
+    fake, vehicle = on_the_ground(gnss_denied="external-nav")
+    vehicle.arm_and_takeoff(3.0, ready_timeout_s=20.0)
+    assert fake.armed and -fake.position_ned_m[2] >= 2.9
+    arms = [c for c in fake.received()[2] if c.command == mv.MAV_CMD_COMPONENT_ARM_DISARM]
+    assert arms[-1].result == mv.MAV_RESULT_ACCEPTED
+    armed_s = arms[-1].recv_s
+    # Before the ARM: zero velocities (10 Hz asked; the rate is load-dependent), both messages, standing still.
+    before = [v for v in fake.vision_speeds if v.recv_s < armed_s]
+    assert {v.kind for v in before} == {"VISION_SPEED_ESTIMATE", "VISION_POSITION_DELTA"}
+    assert all(v.vel_m_s == pytest.approx((0.0, 0.0, 0.0)) for v in before)
+    speeds = [v for v in before if v.kind == "VISION_SPEED_ESTIMATE"]
+    assert speeds
+    # Once armed (and flying) the zero stops: nothing more while the adapter keeps reading 20 states.
+    sent = vehicle.ground_vision_sent
+    assert sent >= len(speeds)  # counted per sample sent (both messages of it)
+    states = 0
+
+    def twenty_more_states() -> bool:
+        nonlocal states
+        states += vehicle.poll_state() is not None
+        return states >= 20
+
+    assert wait_until(twenty_more_states, 60.0, poll_s=0.01)
+    assert vehicle.ground_vision_sent == sent
+    # The camera's own samples go out as before, once armed.
+    vehicle.on_visual_odometry(odom(1, (1.0, 0.0, 0.0)))
+    assert wait_until(lambda: vehicle.vision_sent == 1, 5.0)

@@ -259,10 +259,23 @@ def test_a_real_vehicle_is_fenced_over_the_world_it_flies() -> None:
     assert world_geofence_m(big, (1000.0, 1000.0, 60.0)) == DEFAULT_VEHICLE_GEOFENCE_M
 
 
+def test_only_external_nav_keeps_the_sims_odometry_after_the_result() -> None:
+    from dovesei.up.launch import landing_timeout_s
+
+    world = type("World", (), {"width_m": 400.0, "height_m": 400.0})()
+    real = {"world": WORLD, "segmenter": "sim", "vehicle_url": "udpout:127.0.0.1:14550", "timing": "real"}
+    tails = {mode: child_configs(UpOptions(**real, gnss_denied=mode), (200.0, 200.0, 60.0), world)
+             .sim.odometry_after_result_s for mode in ("external-nav", "attitude", "off")}
+    assert tails["external-nav"] > landing_timeout_s(20.0) and tails["attitude"] == tails["off"] == 0.0
+    sim_only = child_configs(UpOptions(world=WORLD, segmenter="sim"), (200.0, 200.0, 60.0), world)
+    assert sim_only.sim.odometry_after_result_s == 0.0
+
+
 def test_up_waits_for_the_autopilot_to_land_after_a_land_handover(tmp_path: Path) -> None:
     """Issue 26: `up` stopped the controller 0.53 s after a precland hand-over; the target died and
     ArduCopter landed blind. Now it waits (bounded) until the autopilot disarms, and says so."""
-    from dovesei.up.watch import landing_timeout_s, wait_for_landing
+    from dovesei.up.launch import landing_timeout_s
+    from dovesei.up.watch import wait_for_landing
 
     rec = Recorder((10.0, 20.0, 100.0), video=False)
     descent = [("GUIDED", True, 20.0), *[("LAND", True, 20.0 - 2.0 * k) for k in range(10)], ("LAND", False, 0.0)]
@@ -578,6 +591,97 @@ def test_up_takes_off_and_flies_a_fake_autopilot_from_boot(tmp_path: Path) -> No
     assert traj["alt_m"][0] >= 0.9 * 26.0, traj["alt_m"][:5]  # the mission starts after the climb
 
 
+def _up_process(argv: list[str], out: Path, timeout_s: float) -> subprocess.CompletedProcess:
+    """`up` as a process to its end; any child it left behind (a timeout) is killed."""
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", "HF_HUB_OFFLINE": "1"}
+    try:
+        return subprocess.run(argv, cwd=REPO, capture_output=True, text=True, timeout=timeout_s, env=env)
+    finally:
+        if (out / "pids.json").exists():
+            for name, pid in _pids(out).items():
+                if name != "up" and not _gone(pid):
+                    os.kill(pid, signal.SIGKILL)
+
+
+def _lawn(folder: Path, size_px: int = 300, gsd_m: float = 1.0) -> str:
+    """A lawn `size_px` x `gsd_m` square: the policy finds its spot at once. Its texture is noise
+    at several scales, so the camera's odometry finds something to track from any altitude."""
+    import cv2
+
+    folder.mkdir()
+    rng = np.random.default_rng(0)
+    grey = np.zeros((size_px, size_px), np.float32)
+    for cells in (size_px, size_px // 8, size_px // 64):
+        layer = rng.normal(0.0, 1.0, (max(cells, 2), max(cells, 2))).astype(np.float32)
+        grey += cv2.resize(layer, (size_px, size_px), interpolation=cv2.INTER_CUBIC)
+    grey = np.clip(100.0 + 25.0 * grey, 0, 255).astype(np.uint8)
+    cv2.imwrite(str(folder / "image.png"), np.dstack([grey // 2, grey, grey // 3]))
+    cv2.imwrite(str(folder / "labels.png"), np.zeros((size_px, size_px), np.uint8))
+    (folder / "world.json").write_text(json.dumps({"gsd_m": gsd_m, "image": "image.png", "labels": "labels.png",
+                                                   "classes": {"0": {"name": "grass", "safe": True}}}))
+    return str(folder)
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(UP_TEST_TIMEOUT_S)
+def test_up_external_nav_keeps_the_ekf_flying_on_the_camera_until_the_autopilot_has_landed(tmp_path: Path) -> None:
+    """ArduCopter SITL: with --gnss-denied external-nav the EKF flew on the camera's velocity, `up`
+    ended at the hand-over with the sim's odometry, and about 5 s later "EKF variance" (the EKF
+    failsafe; in LAND it then lands blind). Now the odometry and the controller's stream of it
+    outlive the episode until the autopilot has landed and disarmed (the fake's EKF coasts 3 s
+    after the last body odometry, then its failsafe follows: it never comes)."""
+    import socket
+
+    from dovesei.controller.mavlink import proto as mv
+    from dovesei.shared.lifecycle import wait_until
+    from dovesei.shared.zconfig import free_port
+    from dovesei.testing.fake_autopilot import FakeAutopilot
+    from dovesei.testing.fake_ekf import FakeEkf
+
+    # 120 m square at 10 cm: the odometry tracks it down to the ground (at 1 m/px it went blind below ~15 m).
+    world = _lawn(tmp_path / "lawn", size_px=1200, gsd_m=0.1)
+    port = free_port(socket.SOCK_DGRAM)
+    out = tmp_path / "run"
+    cut = threading.Event()
+    with FakeAutopilot(f"udpin:127.0.0.1:{port}", flavour="ardupilot", mode="GUIDED", armed=True, alt_m=26.0,
+                       heartbeat_hz=10, ekf=FakeEkf()) as fake:
+        def cut_gnss_below_24_m() -> None:
+            # GNSS lost mid-descent, as SIM_GPS_DISABLE 1 in SITL.
+            if wait_until(lambda: -fake.position_ned_m[2] < 24.0 or cut.is_set(), 300.0, poll_s=0.05) and \
+                    not cut.is_set():
+                fake.lose_gnss()
+                cut.set()
+
+        cutter = threading.Thread(target=cut_gnss_below_24_m, daemon=True)
+        cutter.start()
+        argv = [sys.executable, "-m", "dovesei.cli", "up", "--world", world, "--segmenter", "sim", "--noise", "0",
+                "--start", "60,60,26", "--vehicle", f"udpout:127.0.0.1:{port}", "--gnss-denied", "external-nav",
+                "--handover-action", "land", "--time-limit-s", "150", "--out", str(out), "--no-video"]
+        try:
+            done = _up_process(argv, out, 2 * UP_WAIT_S)
+        finally:
+            cut.set()
+            cutter.join(5.0)
+        texts = [text for _, text in fake.statustexts_sent]
+        vision = list(fake.vision_speeds)
+        commands = fake.received()[2]
+    assert (out / "report.json").exists(), (done.returncode, done.stderr[-3000:])
+    report = json.loads((out / "report.json").read_text())
+    assert report["judged"] and report["outcome"] == "safe", done.stderr[-3000:]
+    assert report["navigation"]["gnss_lost"] and "external-nav" in report["navigation"]["sources"], report["navigation"]
+    # The EKF was switched to the ExternalNav set and never lost its position: no failsafe, before or after.
+    assert "EKF3 source set 2 selected" in texts and "EKF variance" not in texts, texts
+    assert not any(t.startswith("EKF Failsafe") for t in texts), texts
+    landing = report["landing"]
+    assert landing is not None and landing["landed"] and landing["action"] == "land", (landing, done.stderr[-3000:])
+    assert fake.touchdown_s is not None and not fake.armed
+    # The body odometry kept coming through the LAND descent (20 m at 1 m/s: ~200 at 10 Hz).
+    land_s = min(c.recv_s for c in commands if c.command == mv.MAV_CMD_DO_SET_MODE and int(c.params[1]) == 9)  # LAND
+    during = [v for v in vision if v.kind == "VISION_POSITION_DELTA" and land_s < v.recv_s <= fake.touchdown_s]
+    assert len(during) >= 50, len(during)
+    assert landing["external_nav_sent"] >= len(during)
+
+
 @pytest.mark.slow
 @pytest.mark.timeout(UP_TEST_TIMEOUT_S)
 def test_up_precland_keeps_the_target_streaming_until_the_autopilot_has_landed(tmp_path: Path) -> None:
@@ -589,32 +693,15 @@ def test_up_precland_keeps_the_target_streaming_until_the_autopilot_has_landed(t
     from dovesei.shared.zconfig import free_port
     from dovesei.testing.fake_autopilot import FakeAutopilot
 
-    import cv2
-
-    # A lawn 300 m square: the policy finds its spot at once and hands over at 20 m.
-    world = tmp_path / "lawn"
-    world.mkdir()
-    rng = np.random.default_rng(0)
-    cv2.imwrite(str(world / "image.png"), rng.integers(60, 140, (300, 300, 3), dtype=np.uint8))
-    cv2.imwrite(str(world / "labels.png"), np.zeros((300, 300), np.uint8))
-    (world / "world.json").write_text(json.dumps({"gsd_m": 1.0, "image": "image.png", "labels": "labels.png",
-                                                  "classes": {"0": {"name": "grass", "safe": True}}}))
+    world = _lawn(tmp_path / "lawn")  # the policy finds its spot at once and hands over at 20 m
     port = free_port(socket.SOCK_DGRAM)
     out = tmp_path / "run"
     with FakeAutopilot(f"udpin:127.0.0.1:{port}", flavour="ardupilot", mode="GUIDED", armed=True, alt_m=26.0,
                        heartbeat_hz=10) as fake:
-        argv = [sys.executable, "-m", "dovesei.cli", "up", "--world", str(world), "--segmenter", "sim", "--noise", "0",
+        argv = [sys.executable, "-m", "dovesei.cli", "up", "--world", world, "--segmenter", "sim", "--noise", "0",
                 "--start", "150,150,26", "--vehicle", f"udpout:127.0.0.1:{port}",
                 "--handover-action", "precland", "--time-limit-s", "150", "--out", str(out), "--no-video"]
-        env = {**os.environ, "PYTHONUNBUFFERED": "1", "HF_HUB_OFFLINE": "1"}
-        try:
-            done = subprocess.run(argv, cwd=REPO, capture_output=True, text=True, timeout=2 * UP_WAIT_S,
-                                  env=env)
-        finally:
-            if (out / "pids.json").exists():
-                for name, pid in _pids(out).items():
-                    if name != "up" and not _gone(pid):
-                        os.kill(pid, signal.SIGKILL)
+        done = _up_process(argv, out, 2 * UP_WAIT_S)
         texts = [text for _, text in fake.statustexts_sent]
         targets = list(fake.landing_targets)
     assert (out / "report.json").exists(), (done.returncode, done.stderr[-3000:])

@@ -559,6 +559,16 @@ def test_sitl_truth_needs_the_camera_mode_and_a_udp_listener() -> None:
         build_parser().parse_args(["--external-pose", "--sitl-truth", "udpout:127.0.0.1:14552"])
 
 
+def test_odometry_after_the_result_needs_the_camera_mode_with_odometry() -> None:
+    c = config_from_args(build_parser().parse_args(["--external-pose", "--odometry-rate-hz", "10",
+                                                    "--odometry-after-result-s", "110"]))
+    assert c.odometry_after_result_s == 110.0
+    with pytest.raises(ConfigError, match="--odometry-after-result-s applies to the camera mode with odometry"):
+        config_from_args(build_parser().parse_args(["--external-pose", "--odometry-after-result-s", "110"]))
+    with pytest.raises(ConfigError, match="--odometry-after-result-s"):
+        SimServiceConfig(external_pose=True, odometry_after_result_s=-1.0)
+
+
 def test_external_pose_flag_takes_no_url() -> None:
     assert config_from_args(build_parser().parse_args(["--external-pose"])).external_pose is True
     assert config_from_args(build_parser().parse_args([])).external_pose is False

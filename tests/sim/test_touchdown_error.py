@@ -95,7 +95,7 @@ class _Confirming:
         pass
 
     def step(self, obs: Observation) -> Decision:
-        return Decision((0.0, 0.0, 1.0), 0.0, "DESCEND", None, 1.0, None, {}, "descending",
+        return Decision((0.0, 0.0, 1.0), 0.0, "DESCEND", None, 1.0, None, "descending",
                         confirmed=Confirmation(obs.frame_seq, self.row_px, 5.0))
 
 
@@ -113,13 +113,19 @@ def test_controller_status_carries_the_confirming_look_and_drops_an_impossible_p
             assert (status.confirmed_frame_seq, status.confirmed_row_px, status.confirmed_col_px) == (7, 12.5, 5.0)
 
 
+SMALL_WORLD = (("scene_after_top_pass", False),)
+
+
 def test_a_bench_episode_records_the_error_for_clearance_and_none_for_dovesei() -> None:
     """In-process episodes on the split world's grass: `clearance` confirms a spot and hands over
     near it; the paper's policy has no confirmed spot, so its record has none (not 0)."""
     world = split_world()
     start = Start(WEST_M, MID_Y_M, 60.0)
+    # A 400 m world is smaller than clearance's search area: its scene is the first views
+    # (scene_after_top_pass off), not a top pass that would fly off the world.
     clearance = run_episode(world, EpisodeSpec("clearance", start, timing="real", seed=2, time_limit_s=300.0,
-                                               perception="clean"), record_track=False).result
+                                               perception="clean", policy_config=SMALL_WORLD),
+                            record_track=False).result
     assert clearance.outcome == "safe" and clearance.touchdown_error_valid, clearance
     assert clearance.touchdown_error_m < 10.0
     dovesei = run_episode(world, EpisodeSpec("dovesei", start, timing="real", seed=2, time_limit_s=60.0,

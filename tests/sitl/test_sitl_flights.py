@@ -11,6 +11,9 @@ ArduPilot build outside this repository (docs/sitl.md).
   until ArduCopter has landed on the spot and disarmed.
 - GPS cut (SIM_GPS_DISABLE 1) below 80 m with `--gnss-denied attitude`: GUIDED_NOGPS on the visual
   velocity, no EKF failsafe LAND, hand-over at 20 m.
+- The same cut with `--gnss-denied external-nav` (VISO_TYPE 1, EK3 source set 2 with VELXY
+  ExternalNav): armed through VisOdom's pre-arm check, GUIDED kept on the camera's velocity, a LAND
+  hand-over at 20 m and the camera's velocity streamed until ArduCopter disarmed: no EKF failsafe.
 """
 
 from __future__ import annotations
@@ -36,6 +39,10 @@ pytestmark = pytest.mark.sitl
 REPO = Path(__file__).resolve().parents[2]
 GUIDED, LAND, GUIDED_NOGPS = 4, 9, 20  # ArduCopter custom mode numbers
 HANDOVER_ALT_M = 20.0
+# docs/GNSS-DENIED.md, external-nav: source set 1 GPS (the defaults), set 2 the camera's velocity with
+# the barometer's height and the compass's heading; VISO_TYPE 1 (MAVLink) for both vision messages.
+EXTERNAL_NAV_PARAMS = {"VISO_TYPE": 1, "EK3_SRC2_POSXY": 0, "EK3_SRC2_VELXY": 6, "EK3_SRC2_POSZ": 1,
+                       "EK3_SRC2_VELZ": 0, "EK3_SRC2_YAW": 1, "EK3_SRC_OPTIONS": 0}
 
 
 def _ports() -> dict[str, int]:
@@ -132,6 +139,15 @@ def test_up_precland_hands_over_and_arducopter_lands_on_the_spot(tmp_path: Path)
     assert math.dist((final["x_m"], final["y_m"]), (touchdown["x_m"], touchdown["y_m"])) < 2.0, (final, touchdown)
 
 
+def _handed_over_after_the_cut(code: int, tail: str, report: dict, watch: MavlinkWatch, source: str) -> None:
+    """GPS cut on the way down from above 60 m, dovesei flew on `source` and handed over safely at 20 m."""
+    assert watch.gps_cut_alt_m is not None and watch.gps_cut_alt_m > 60.0, watch.gps_cut_alt_m
+    nav = report["navigation"]
+    assert nav["gnss_lost"] and source in nav["sources"], nav
+    assert code == 0 and report["outcome"] == "safe", tail
+    assert report["final"]["alt_m"] == pytest.approx(HANDOVER_ALT_M, abs=1.5), report["final"]
+
+
 @pytest.mark.timeout(1500)
 def test_gps_cut_mid_descent_attitude_mode_keeps_control_to_the_hand_over(tmp_path: Path) -> None:
     # Stock parameters: GUIDED without a position would end in ArduCopter's EKF failsafe (LAND);
@@ -139,10 +155,22 @@ def test_gps_cut_mid_descent_attitude_mode_keeps_control_to_the_hand_over(tmp_pa
     # camera's visual velocity (the sim's odometry, rendered at SITL's true pose) down to 20 m.
     code, tail, report, watch, after = _fly_up(tmp_path, "--gnss-denied", "attitude", "--time-limit-s", "600",
                                                cut_gps_below_m=80.0)
-    assert watch.gps_cut_alt_m is not None and watch.gps_cut_alt_m > 60.0, watch.gps_cut_alt_m
-    nav = report["navigation"]
-    assert nav["gnss_lost"] and "visual" in nav["sources"], nav
-    assert code == 0 and report["outcome"] == "safe", tail
-    assert report["final"]["alt_m"] == pytest.approx(HANDOVER_ALT_M, abs=1.5), report["final"]
+    _handed_over_after_the_cut(code, tail, report, watch, "visual")
     assert (GUIDED_NOGPS, True) in watch.modes and LAND not in [m for m, _ in watch.modes], watch.modes
     assert after[0] == GUIDED_NOGPS and after[1], after
+
+
+@pytest.mark.timeout(1500)
+def test_gps_cut_external_nav_keeps_guided_and_lands_on_the_camera_without_ekf_failsafe(tmp_path: Path) -> None:
+    # VISO_TYPE 1 refuses arming until vision data streams: the controller's zero velocity while
+    # disarmed lets `--takeoff` arm. After the cut the EKF flies on the camera's velocity (source
+    # set 2), and after the LAND hand-over `up` keeps it streaming until ArduCopter has disarmed.
+    code, tail, report, watch, after = _fly_up(tmp_path, "--gnss-denied", "external-nav", "--handover-action", "land",
+                                               "--time-limit-s", "600", params=EXTERNAL_NAV_PARAMS,
+                                               cut_gps_below_m=80.0)
+    _handed_over_after_the_cut(code, tail, report, watch, "external-nav")
+    landing = report["landing"]
+    assert landing["action"] == "land" and landing["landed"] and landing["external_nav_sent"] > 0, landing
+    assert GUIDED_NOGPS not in [m for m, _ in watch.modes] and (LAND, True) in watch.modes, watch.modes
+    assert after[0] == LAND and not after[1], after
+    assert not [t for t in watch.texts if "EKF variance" in t or "failsafe" in t.lower()], watch.texts

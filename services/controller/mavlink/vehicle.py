@@ -22,22 +22,25 @@ Without GNSS (`gnss_denied`, the judgement and the attitude loop in `gnss_denied
     on_visual_odometry(VisualOdometry) -> OdometryGate; "external-nav": each good sample out at once
         as VISION_SPEED_ESTIMATE (ArduPilot, NED via ATTITUDE, variance on the diagonal) or ODOMETRY
         (PX4, body-frame velocity), and on GNSS loss MAV_CMD_SET_EKF_SOURCE_SET(ekf_source_set)
-        until acknowledged; "attitude": on GNSS loss ArduPilot is switched GUIDED -> GUIDED_NOGPS and
-        every command streams as SET_ATTITUDE_TARGET from the AttitudeLoop (PX4 stays in OFFBOARD)
+        until acknowledged; while an ArduPilot is disarmed (on the ground, where the camera cannot
+        measure) "external-nav" streams a zero velocity at 10 Hz instead, so VISO_TYPE's pre-arm check
+        ("PreArm: VisOdom: not healthy") lets it arm; "attitude": on GNSS loss ArduPilot is
+        switched GUIDED -> GUIDED_NOGPS and every command streams as SET_ATTITUDE_TARGET from the
+        AttitudeLoop (PX4 stays in OFFBOARD)
     LOCAL_POSITION_NED stopped (ArduPilot's EKF without a position stops it): the state is then
         published on each ATTITUDE, altitude and climb rate from GLOBAL_POSITION_INT (relative_alt is
         the barometric height above home), horizontal velocity from the good visual velocity or zero
 
 Size: one class, one lock domain (the I/O thread and the caller share every field below under
-`_lock`); the pure parts live beside it (`mavlink_proto` numbers and checks, `mavlink_readiness`,
-`mavlink_takeoff`, `mavlink_signing`), and splitting the rest would scatter the locking.
+`_lock`); the pure parts live beside it (`proto` numbers and checks, `readiness`,
+`takeoff`, `signing`), and splitting the rest would scatter the locking.
 
 Why one thread and no callbacks into the caller: pymavlink's parser is not thread-safe, and the
 controller's loop must never block on the radio. Sends from the caller's thread share a transmit
 lock with the I/O thread (pymavlink's sequence counter and socket writes are not thread-safe).
 
 Conventions (ArduPilot "Copter Commands in Guided Mode", PX4 offboard docs; numbers in
-`mavlink_proto`): body-frame velocities in MAV_FRAME_BODY_OFFSET_NED (ArduPilot) or
+`proto`): body-frame velocities in MAV_FRAME_BODY_OFFSET_NED (ArduPilot) or
 MAV_FRAME_BODY_NED (PX4), both heading-level frames; type mask 0x05C7 (velocity + yaw rate).
 Heading: with `yaw_control="rate"` the yaw rate sent is the policy's plus a proportional
 correction towards the heading held since steering began (read from ATTITUDE), so the camera does
@@ -68,7 +71,8 @@ import math
 import threading
 import time
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -166,6 +170,13 @@ _GLOBAL_FRESH_S = 1.0  # the fallback state's altitude (GLOBAL_POSITION_INT) is 
 _LOCAL_FALLBACK_S = 0.5  # LOCAL_POSITION_NED silent this long: states come from ATTITUDE (no stale-state gap)
 _LOCAL_NEVER_S = 3.0  # ... or never heard this long after the streams were asked for
 _SOURCE_SET_RETRY_S, _SOURCE_SET_TRIES = 1.0, 10
+# "external-nav" on a disarmed ArduPilot: a zero velocity at 10 Hz. AP_VisualOdom is healthy only
+# while a vision message came within 300 ms (AP_VISUALODOM_TIMEOUT_MS), and with VISO_TYPE set
+# ArduCopter refuses to arm otherwise ("PreArm: VisOdom: not healthy", AP_Arming::visodom_checks);
+# the camera cannot measure on the ground (its odometry needs >= 1 m), but a disarmed multirotor
+# stands still on it.
+_GROUND_VISION_PERIOD_S = 0.1
+_GROUND_VISION_VAR_M2_S2 = 0.01  # (0.1 m/s)^2: standing still is known well; VISO_VEL_M_NSE floors it anyway
 
 
 @dataclass(frozen=True)
@@ -188,6 +199,9 @@ class MavlinkVehicle:
 
     # The controller owns this link alone and republishes its states on the state key.
     is_link_owner = True
+    # The adapter's own hand-over action flies the vehicle from there: no more setpoints.
+    commands_during_handover = False
+    wakeup = None  # the controller polls a real vehicle at its own rate
 
     def __init__(self, url: str, *, vehicle_id: str = "uav1", alt_source: str = "local",
                  handover: str = "hold", allow_mode_switch: bool = False, heartbeat_timeout_s: float = 3.0,
@@ -287,6 +301,8 @@ class MavlinkVehicle:
         self._source_set: tuple[int, float] | None = None  # (tries so far, next try) while switching
         # Counters for tests, operators' logs and the run's stats.
         self.vision_sent = 0
+        self.ground_vision_sent = 0  # zero velocities streamed while disarmed (the VisOdom pre-arm check)
+        self._ground_vision_logged = False
         self.attitude_targets_sent = 0
         self.gnss_losses = 0
         self.source_set_result: int | None = None  # MAV_RESULT of the source-set switch (None: none yet)
@@ -398,6 +414,11 @@ class MavlinkVehicle:
         """Frames refused by signing, by kind: unsigned, wrong key, replayed (empty without a key)."""
         return self._signing.rejected if self._signing is not None else Counter()
 
+    @property
+    def rejected(self) -> int:
+        """No Zenoh state payloads here: bad MAVLink samples are counted in counters()["samples_rejected"]."""
+        return 0
+
     def counters(self) -> dict[str, Any]:
         """What the link did, for the run's stats and the operator."""
         return {"setpoints_sent": self.setpoints_sent, "setpoints_clamped": self.setpoints_clamped,
@@ -406,7 +427,8 @@ class MavlinkVehicle:
                 "samples_rejected": dict(self.samples_rejected), "intruder_heartbeats": dict(self.intruders),
                 "signing_rejected": dict(self.signing_rejected), "send_failures": self.send_failures,
                 "lost_reason": self.lost_reason, "gnss_denied": self.gnss_denied, "gnss_losses": self.gnss_losses,
-                "vision_speed_sent": self.vision_sent, "attitude_targets_sent": self.attitude_targets_sent,
+                "vision_speed_sent": self.vision_sent, "ground_vision_sent": self.ground_vision_sent,
+                "attitude_targets_sent": self.attitude_targets_sent,
                 "ekf_source_set_result": self.source_set_result, "nav_reason": self.nav_status().reason}
 
     # ----------------------------------------------------------------- without GNSS
@@ -429,47 +451,73 @@ class MavlinkVehicle:
                 return
             good, _ = self._odometry.judge(now)
             attitude = self._attitude_rad if self._attitude_s is not None else None
+            ground = self._ground_vision_locked()
         if self.gnss_denied != "external-nav" or not good or self.read_only or self._target is None:
             return
         if attitude is None:
             return  # no heading yet: a body velocity cannot be put in NED
-        self._send_external_velocity(odom, attitude, now)
-
-    def _send_external_velocity(self, odom: VisualOdometry, attitude: tuple[float, float, float],
-                                now: float) -> None:
-        target = self._target
-        assert target is not None
+        if ground:
+            return  # disarmed on the ground: the zero stream speaks for the camera (one source at a time)
         # The capture time on the autopilot's clock when the camera tagged it so (time since boot,
         # what ArduPilot's jitter correction expects), else ours.
         t_s = odom.stamp.t_s if odom.stamp.clock == "vehicle" else now
+        if self._send_vision(t_s, odom.vel_body_frd_m_s, odom.vel_var_m2_s2, odom.dt_s, odom.quality, attitude):
+            self.vision_sent += 1
+
+    def _ground_vision_locked(self) -> bool:
+        """The zero-velocity stream applies now: "external-nav" on an ArduPilot that is disarmed. Caller holds the lock."""
+        return (self.gnss_denied == "external-nav" and not self.read_only and self._target is not None
+                and self._target.autopilot == "ardupilot" and not self._armed and self._lost_reason is None)
+
+    def _ground_vision_tick(self, now: float) -> None:
+        """While disarmed, a zero velocity for ArduPilot's VisOdom (its pre-arm check wants data within 300 ms).
+
+        Only what is known: a disarmed multirotor stands on the ground. It stops the moment the
+        heartbeat says armed (the arming itself was checked on it); from then on only the camera's
+        good samples go out. The EKF fuses it only where the active source set takes ExternalNav.
+        """
+        with self._lock:
+            if not self._ground_vision_locked():
+                return
+            attitude = self._attitude_rad
+        if not self._ground_vision_logged:
+            self._ground_vision_logged = True
+            log.info("external-nav: the autopilot is disarmed, streaming a zero velocity to its visual odometry "
+                     "at %.0f Hz until it arms (VISO_TYPE's pre-arm check wants data; the camera cannot measure "
+                     "on the ground)", 1.0 / _GROUND_VISION_PERIOD_S)
+        if self._send_vision(now, (0.0, 0.0, 0.0), _GROUND_VISION_VAR_M2_S2, _GROUND_VISION_PERIOD_S, 1.0, attitude):
+            self.ground_vision_sent += 1
+
+    def _send_vision(self, t_s: float, vel_body_frd_m_s: tuple[float, float, float], var: float, dt_s: float,
+                     quality: float, attitude: tuple[float, float, float]) -> bool:
+        """One velocity for the autopilot's EKF, in the message(s) its kind takes; True when written."""
+        target = self._target
+        assert target is not None
         usec = int(max(0.0, t_s) * 1e6)
-        var = odom.vel_var_m2_s2
         if target.autopilot == "px4":
             # PX4 has no VISION_SPEED_ESTIMATE handler: ODOMETRY with only a body-frame velocity (the
             # position fields NaN), fused with EKF2_EV_CTRL bit 2 (velocity).
             nan = float("nan")
-            fwd, right, down = odom.vel_body_frd_m_s
+            fwd, right, down = vel_body_frd_m_s
             velocity_cov = [var, 0.0, 0.0, 0.0, 0.0, 0.0, var, 0.0, 0.0, 0.0, 0.0, var] + [0.0] * 9
-            ok = self._tx(lambda mav: mav.odometry_send(
+            return self._tx(lambda mav: mav.odometry_send(
                 usec, MAV_FRAME_LOCAL_FRD, MAV_FRAME_BODY_FRD, nan, nan, nan, [nan, nan, nan, nan], fwd, right,
                 down, nan, nan, nan, [nan] + [0.0] * 20, velocity_cov, 0, MAV_ESTIMATOR_TYPE_VISION,
-                int(round(odom.quality * 100))))
-        else:
-            ok = True
-            if self.external_nav_message in ("both", "speed"):
-                vn, ve, vd = frd_to_ned(odom.vel_body_frd_m_s, *attitude)
-                cov = vision_speed_covariance(var)
-                ok = self._tx(lambda mav: mav.vision_speed_estimate_send(usec, vn, ve, vd, cov, 0))
-            if self.external_nav_message in ("both", "delta"):
-                # The displacement between the two frames, body FRD at the newer one; the rotation between
-                # them is left at zero: with the camera at the centre of gravity (VISO_POS_X/Y/Z 0) EKF3
-                # uses it only for the lever arm.
-                delta = [v * odom.dt_s for v in odom.vel_body_frd_m_s]
-                dt_us = int(odom.dt_s * 1e6)
-                ok = self._tx(lambda mav: mav.vision_position_delta_send(
-                    usec, dt_us, [0.0, 0.0, 0.0], delta, float(round(odom.quality * 100.0)))) and ok
-        if ok:
-            self.vision_sent += 1
+                int(round(quality * 100))))
+        ok = True
+        if self.external_nav_message in ("both", "speed"):
+            vn, ve, vd = frd_to_ned(vel_body_frd_m_s, *attitude)
+            cov = vision_speed_covariance(var)
+            ok = self._tx(lambda mav: mav.vision_speed_estimate_send(usec, vn, ve, vd, cov, 0))
+        if self.external_nav_message in ("both", "delta"):
+            # The displacement between the two frames, body FRD at the newer one; the rotation between
+            # them is left at zero: with the camera at the centre of gravity (VISO_POS_X/Y/Z 0) EKF3
+            # uses it only for the lever arm.
+            delta = [v * dt_s for v in vel_body_frd_m_s]
+            dt_us = int(dt_s * 1e6)
+            ok = self._tx(lambda mav: mav.vision_position_delta_send(
+                usec, dt_us, [0.0, 0.0, 0.0], delta, float(round(quality * 100.0)))) and ok
+        return ok
 
     def _nav_tick(self, now: float) -> None:
         """Judge the navigation; on a GNSS loss start what the mode asks (source set, GUIDED_NOGPS)."""
@@ -712,6 +760,53 @@ class MavlinkVehicle:
         return VelocityCommand(vehicle_id=self.vehicle_id, seq=seq, stamp=Stamp(0.0, "vehicle"),
                                vel_body_frd_m_s=(0.0, 0.0, 0.0))
 
+    # ----------------------------------------------------------------- for the takeoff sequence (takeoff.py)
+
+    def altitude_m(self) -> float | None:
+        """The newest altitude above ground, or None before the first state."""
+        with self._lock:
+            return self._state.alt_agl_m if self._state is not None else None
+
+    @property
+    def closed(self) -> bool:
+        """close() was called: every wait ends and nothing more is sent."""
+        return self._stop.is_set()
+
+    def pause(self, seconds: float) -> bool:
+        """Wait up to `seconds`; True when the adapter was closed meanwhile (the caller stops)."""
+        return self._stop.wait(seconds)
+
+    def connected_autopilot(self) -> str:
+        """'ardupilot' or 'px4'; NotSteerableError before connect()."""
+        return self._require_target().autopilot
+
+    def command_long(self, command: int, *params: float) -> None:
+        """Send COMMAND_LONG to the autopilot without waiting for its answer."""
+        self._send_command_long(command, *params)
+
+    def command_long_wait(self, command: int, *params: float, timeout_s: float) -> int | None:
+        """Send COMMAND_LONG and wait for its COMMAND_ACK result (None: no answer in time)."""
+        return self._command_long_wait(command, *params, timeout_s=timeout_s)
+
+    def wait_armed(self, timeout_s: float) -> bool:
+        """True once the autopilot's heartbeat says armed, within `timeout_s`."""
+        return self._wait(lambda: self._armed, timeout_s)
+
+    def zero_command(self) -> VelocityCommand:
+        """A zero-velocity command of this vehicle (hold where you are)."""
+        return self._zero()
+
+    @contextmanager
+    def prestreaming(self) -> Iterator[None]:
+        """Stream zero setpoints while no command is given (PX4 enters OFFBOARD only while they stream)."""
+        with self._lock:
+            self._prestream = True
+        try:
+            yield
+        finally:
+            with self._lock:
+                self._prestream = False
+
     # ----------------------------------------------------------------- internals: I/O thread
 
     def _io_main(self) -> None:
@@ -727,7 +822,7 @@ class MavlinkVehicle:
 
     def _io_loop(self) -> None:
         next_hb_s = self._clock()  # send at once: an udpout peer learns our address from it
-        next_stream_request_s = next_landing_s = next_sign_s = next_nav_s = 0.0
+        next_stream_request_s = next_landing_s = next_sign_s = next_nav_s = next_ground_s = 0.0
         while not self._stop.is_set():
             now = self._clock()
             if now >= next_hb_s:
@@ -751,6 +846,9 @@ class MavlinkVehicle:
             if self._precland and now >= next_landing_s:
                 self._send_landing_target(now)
                 next_landing_s = now + _LANDING_TARGET_PERIOD_S
+            if self.gnss_denied == "external-nav" and self._target is not None and now >= next_ground_s:
+                self._ground_vision_tick(now)
+                next_ground_s = now + _GROUND_VISION_PERIOD_S
             if self._signing is not None and now >= next_sign_s:
                 self._signing.tick(self._tx_lock)
                 next_sign_s = now + 1.0

@@ -17,8 +17,9 @@ Per heatmap, data flows one way:
                      confirmed spot, the current target re-checked, the most promising area
                      worth a probe                                             (ground_map)
       -> machine     one pure step: phase, target, reasons, velocity          (machine)
-      -> Decision    body FRD velocity, state, target pixel, reason, info (spot, clearance,
-                     confidence, position estimate, bias, registration, probes)
+      -> Decision    body FRD velocity, state, target pixel, reason, spot (SpotReport: where,
+                     clearance, confidence) and report (ClearanceReport: position estimate,
+                     bias, scene levels, registration, probes; report.py)
 
 Compared with `dovesei`: memory lives on the ground, not in the image (the drone's own motion is
 compensated); a spot's real size is checked in metres and confirmed by looks from another scale;
@@ -36,8 +37,8 @@ import math
 
 import numpy as np
 
-from dovesei.controller.policies.base import (Confirmation, Decision, Observation, PolicyInputError, checked_prob_safe,
-                                              resolve_config)
+from dovesei.controller.policies.base import (Confirmation, Decision, Observation, PolicyInputError, SpotReport,
+                                              checked_prob_safe, resolve_config)
 from dovesei.controller.policies.clearance.config import Altitudes, ClearanceConfig, clearance_preset
 from dovesei.controller.policies.clearance.machine import (
     TERMINAL, Inputs, Memory, Phase, reject_target, search_route, step, toward,
@@ -48,6 +49,8 @@ from dovesei.controller.policies.clearance.scene import SceneLevels, fine_noise,
 from dovesei.controller.frames import to_body, to_ne
 from dovesei.controller.geofence import cap_outward
 from dovesei.controller.policies.clearance.motion import EgoMotion, MotionStep, tilt_offset_ne
+from dovesei.controller.policies.clearance.report import (ClearanceReport, ProbeReport, RegistrationReport,
+                                                          SceneReport)
 
 log = logging.getLogger(__name__)
 
@@ -101,7 +104,11 @@ class ClearancePolicy:
         self._confirmed: Confirmation | None = None  # the look that last confirmed the target
         self._levels: SceneLevels | None = None  # the scene's thresholds, from the high map
         self._spot_t = math.inf  # the spot threshold on the map now (log-odds; nothing safe at first)
-        self._decision = Decision((0.0, 0.0, 0.0), 0.0, Phase.WARMUP.value, None, 0.0, None, {}, "starting")
+        self._levels_t_s = -math.inf  # when the levels were last read
+        self._levels_stale = False  # the high map got new looks since
+        self._map_noise = 0.0  # the working map's per-cell scatter (log-odds), read with the levels
+        self._scene_seen = False  # the top pass has shown the search area (spots and probes allowed)
+        self._decision = Decision((0.0, 0.0, 0.0), 0.0, Phase.WARMUP.value, None, 0.0, None, "starting")
 
     def fence_m(self) -> float:
         """The fence for the estimate now: the search radius less the larger of the fence margin
@@ -210,11 +217,17 @@ class ClearancePolicy:
             self.map.fuse_logit(seen, obs.alt_agl_m, obs.hfov_rad, obs.yaw_rad, pn + tn, pe + te, weight=weight)
             if obs.alt_agl_m >= self._alts.confirm_m:
                 self.high.fuse_logit(seen, obs.alt_agl_m, obs.hfov_rad, obs.yaw_rad, pn + tn, pe + te, weight=weight)
-                self._levels = None  # new looks from high up: the scene's levels are read again
-        if self._levels is None:
-            self._levels = map_levels(self.high, cfg)
+                self._levels_stale = True  # new looks from high up: the scene's levels are read again
+        # Read at most every levels_period_s: they move only as new ground comes into view (or the
+        # working map changes resolution).
+        if self._levels is None or obs.t_s - self._levels_t_s >= cfg.levels_period_s:
+            if self._levels is None or self._levels_stale:
+                self._levels, self._levels_stale = map_levels(self.high, cfg), False
+            # The working map's own per-cell noise (it changes with altitude and resolution), every
+            # other cell: as slow-moving as the levels.
+            self._map_noise, self._levels_t_s = fine_noise(*known_mean(self.map, cfg, stride=2)), obs.t_s
         levels = self._levels
-        self._spot_t = levels.spot_for(fine_noise(*known_mean(self.map, cfg)), cfg)
+        self._spot_t = levels.spot_for(self._map_noise, cfg)
         clearance = self.map.clearance_m(self._spot_t)
         # What looked promising from high up, around the vehicle: as far as the map reaches (the
         # gate) and as far as a probe may go.
@@ -233,12 +246,18 @@ class ClearancePolicy:
         # may show it is fine, or why not); one rejected low down stays rejected.
         blacklist = tuple((n, e) for n, e, alt in self.memory.blacklist if obs.alt_agl_m >= 0.8 * alt)
         fence_m = self.fence_m()
-        best = find_spot(self.map, clearance, cfg, north_m=pn, east_m=pe, blacklist=blacklist, fence_m=fence_m,
-                         gate=gate)
+        # The levels are the scene's only once the top pass has shown the search area: before,
+        # the best ground in view may be a second-rate class that better ground further out outranks.
+        if not self._scene_seen and (not cfg.scene_after_top_pass or mem.waypoint >= self._top_pass_end):
+            self._scene_seen = True
+            log.info("clearance: scene seen at t=%.1f s: best disk at log-odds %.2f, median %.2f", obs.t_s,
+                     levels.best_logit, levels.typical_logit)
+        best = None if not self._scene_seen else find_spot(
+            self.map, clearance, cfg, north_m=pn, east_m=pe, blacklist=blacklist, fence_m=fence_m, gate=gate)
         # A closer look is planned only while searching with nothing good enough in view, at what
         # looked promising from high up.
         candidate = None
-        if best is None and plan_probe:
+        if best is None and plan_probe and self._scene_seen:
             skip = mem.probed + tuple((n, e) for n, e, _ in mem.blacklist)
             candidate = find_candidate(self.high, high, cfg, north_m=pn, east_m=pe, skip=skip, fence_m=fence_m,
                                        within_m=cfg.probe_reach_m, min_logit=levels.probe_logit)
@@ -288,10 +307,12 @@ class ClearancePolicy:
         f, r = toward(dn, de, cfg.hold_gain_per_s, cfg.hold_speed_max_m_s, obs.yaw_rad)
         vel, fenced = fence((f, r, 0.0), pn, pe, obs.yaw_rad, cfg, self.fence_m())
         self._cmd = vel
-        info = {**self._decision.info, "est_north_m": pn, "est_east_m": pe, "hold_error_m": math.hypot(dn, de),
-                "fenced": float(fenced)}
+        report = self._decision.report
+        if report is not None:
+            report = dataclasses.replace(report, est_north_m=pn, est_east_m=pe, hold_error_m=math.hypot(dn, de),
+                                         fenced=bool(fenced))
         self._decision = dataclasses.replace(self._decision, vel_body_frd_m_s=tuple(float(v) for v in vel),
-                                             info={k: float(v) for k, v in info.items()})
+                                             report=report)
         return self._decision
 
     def _decide(self, obs: Observation, *, fresh: bool, gap: bool, best, check, clearance,
@@ -320,34 +341,37 @@ class ClearancePolicy:
         if mem.phase is not prev.phase or mem.reason != prev.reason:
             log.info("clearance: %s -> %s at t=%.2f s, alt %.1f m: %s", prev.phase.value, mem.phase.value, obs.t_s,
                      obs.alt_agl_m, mem.reason)
-        info: dict[str, float] = {
-            "alt_agl_m": float(obs.alt_agl_m), "est_north_m": pn, "est_east_m": pe,
-            "bias_north_m_s": self.motion.bias_n_m_s, "bias_east_m_s": self.motion.bias_e_m_s,
-            "cell_m": self.map.cell_m, "aborts": float(mem.aborts), "blacklisted": float(len(mem.blacklist)),
-            "required_clearance_m": cfg.required_clearance_m, "waypoint": float(mem.waypoint),
-            "fenced": float(fenced), "fence_m": fence_m, "uncertainty_m": self.motion.uncertainty_m,
-            "anchors": float(self.motion.anchors), "probes": float(len(mem.probed)),
-        }
-        lv = self._levels
-        if lv is not None:
-            # The scene's levels (log-odds); a threshold nothing meets (nothing safe) reports as 99.
-            info.update(scene_spot_logit=min(self._spot_t, 99.0), scene_gate_logit=min(lv.gate_logit, 99.0),
-                        scene_best_logit=max(lv.best_logit, -99.0), scene_typical_logit=lv.typical_logit)
-        if mem.probe is not None:
-            info.update(probe_north_m=mem.probe.north_m, probe_east_m=mem.probe.east_m, probe_p_safe=mem.probe.p_safe)
         m = self._last_motion
-        if m is not None:
-            info.update(registered=float(m.registered), reg_response=m.response, reg_innovation_m=m.innovation_m,
-                        anchored=float(m.anchored), spot_fixed=float(m.spot_fixed), spot_response=m.spot_response,
-                        spot_since_s=min(self.motion.spot_since_s, 1e6))
+        lv = self._levels
+        report = ClearanceReport(
+            alt_agl_m=float(obs.alt_agl_m), est_north_m=pn, est_east_m=pe,
+            bias_north_m_s=self.motion.bias_n_m_s, bias_east_m_s=self.motion.bias_e_m_s,
+            cell_m=self.map.cell_m, aborts=int(mem.aborts), blacklisted=len(mem.blacklist),
+            required_clearance_m=cfg.required_clearance_m, waypoint=int(mem.waypoint),
+            fenced=bool(fenced), fence_m=float(fence_m), uncertainty_m=self.motion.uncertainty_m,
+            anchors=int(self.motion.anchors), probes=len(mem.probed),
+            # The scene's levels (log-odds); a threshold nothing meets (nothing safe) reports as 99.
+            scene=None if lv is None else SceneReport(
+                spot_logit=float(min(self._spot_t, 99.0)), gate_logit=float(min(lv.gate_logit, 99.0)),
+                best_logit=float(max(lv.best_logit, -99.0)), typical_logit=float(lv.typical_logit)),
+            probe=None if mem.probe is None else ProbeReport(mem.probe.north_m, mem.probe.east_m, mem.probe.p_safe),
+            registration=None if m is None else RegistrationReport(
+                registered=bool(m.registered), response=float(m.response), innovation_m=float(m.innovation_m),
+                anchored=bool(m.anchored), spot_fixed=bool(m.spot_fixed), spot_response=float(m.spot_response),
+                spot_since_s=min(self.motion.spot_since_s, 1e6)),
+        )
         target_px = None
+        spot_report = None
         spot = mem.target
         if spot is not None:
-            info.update(spot_north_m=spot.north_m, spot_east_m=spot.east_m, spot_confidence=spot.confidence,
-                        spot_p_safe=spot.p_safe, spot_distance_m=math.hypot(spot.north_m - pn, spot.east_m - pe))
             # The clearance the map gives the spot now (the target's own figure is from its last check).
-            info["spot_clearance_m"] = (clearance_at(self.map, clearance, spot.north_m, spot.east_m)
-                                        if clearance is not None else spot.clearance_m)
+            spot_report = SpotReport(
+                north_m=float(spot.north_m), east_m=float(spot.east_m),
+                clearance_m=float(clearance_at(self.map, clearance, spot.north_m, spot.east_m)
+                                  if clearance is not None else spot.clearance_m),
+                confidence=float(spot.confidence), p_safe=float(spot.p_safe),
+                distance_m=float(math.hypot(spot.north_m - pn, spot.east_m - pe)),
+                est_north_m=float(pn), est_east_m=float(pe))
             if obs.prob_safe is not None:
                 h, w = obs.prob_safe.shape
                 gsd = footprint_width_m(obs.alt_agl_m, obs.hfov_rad) / w
@@ -367,7 +391,7 @@ class ClearancePolicy:
             state=mem.phase.value, target_px=None if target_px is None else (float(target_px[0]), float(target_px[1])),
             focus_radius_px=self._required_px(obs),
             threshold=sigmoid(self._spot_t),
-            info={k: float(v) for k, v in info.items()}, reason=mem.reason, confirmed=self._confirmed,
+            reason=mem.reason, confirmed=self._confirmed, spot=spot_report, report=report,
             landing=mem.phase in (Phase.DESCEND, Phase.HANDOVER),
         )
         return self._decision
