@@ -25,14 +25,14 @@ import numpy as np
 
 from dovesei.controller.core import ControllerConfig, ControllerCore
 from dovesei.controller.looker import SyncLooker
-from dovesei.controller.policies.base import make_policy
+from dovesei.controller.policies.registry import make_policy
 from dovesei.controller.policies.config_file import config_from_values
 from dovesei.segmenter.core import FrameRejected, SegmenterConfig, SegmenterCore, make_backend
 from dovesei.segmenter.prompts import REFERENCE_PROMPTS, PromptSet
 from dovesei.segmenter.simulated import DEFAULT_NOISE, DEFAULT_PROFILE, PROFILE_NAMES
 from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.shared.messages import CropFrame, CropHeatmap, CropRequest, EpisodeResult, Message, SafetyHeatmap
-from dovesei.shared.mission import HANDOVER_ALT_M
+from dovesei.shared.mission import HANDOVER_ALT_M, PERSON_SEPARATION_M, VEHICLE_SEPARATION_M
 from dovesei.sim.core import SimConfig, SimCore
 from dovesei.sim.estimator import SIM_DEFAULT_VEHICLE_PROFILE
 from dovesei.sim.starts import Start
@@ -85,6 +85,8 @@ class EpisodeSpec:
     prompts: PromptSet = REFERENCE_PROMPTS
     vehicle_profile: str = SIM_DEFAULT_VEHICLE_PROFILE  # what the autopilot reports (dovesei.sim.estimator)
     handover_alt_m: float = HANDOVER_ALT_M  # handed to the controller (and so the policy) and the sim's judge
+    # The judge's separations from people and vehicles at the hand-over (0: that rule off).
+    separation_m: tuple[float, float] = (PERSON_SEPARATION_M, VEHICLE_SEPARATION_M)
     # The policy's constants that differ from the timing preset's (a --policy-config file's), as
     # sorted (name, value) pairs so the spec stays hashable; () = the preset.
     policy_config: tuple[tuple[str, Any], ...] = ()
@@ -102,6 +104,7 @@ class EpisodeSpec:
                    prompts=prompt_set(job.get("prompts")),
                    vehicle_profile=job.get("vehicle_profile") or SIM_DEFAULT_VEHICLE_PROFILE,
                    handover_alt_m=job.get("handover_alt_m", HANDOVER_ALT_M),
+                   separation_m=tuple(job.get("separation_m") or (PERSON_SEPARATION_M, VEHICLE_SEPARATION_M)),
                    close_look=job.get("close_look", True),
                    policy_config=tuple(sorted((k, tuple(v) if isinstance(v, list) else v)
                                               for k, v in (job.get("policy_config") or {}).items())),
@@ -122,6 +125,16 @@ class EpisodeRecord:
     states: list[str] = dataclasses.field(repr=False, default_factory=list)
 
 
+def separation_fields(r: EpisodeResult) -> dict:
+    """The judge's separation figures of a landing it judged (null when it judged none): the
+    nearest person's and vehicle's footprint distance from the touchdown (null: none within the
+    judge's search radius) and whether one was closer than its separation."""
+    judged = bool(r.classes_found)  # a verdict always lists the disk's classes
+    return {"nearest_person_m": round(r.nearest_person_m, 3) if judged and r.nearest_person_valid else None,
+            "nearest_vehicle_m": round(r.nearest_vehicle_m, 3) if judged and r.nearest_vehicle_valid else None,
+            "separation_violated": bool(r.separation_violated) if judged else None}
+
+
 def build_cores(world: World, spec: EpisodeSpec, *, render_images: bool = False,
                 record: Callable[[Message], None] | None = None) -> tuple[SimCore, SegmenterCore, ControllerCore]:
     """The three cores as the three services build them from the same options.
@@ -134,7 +147,9 @@ def build_cores(world: World, spec: EpisodeSpec, *, render_images: bool = False,
     sim = SimCore(world, spec.start, SimConfig(vehicle_id=spec.vehicle_id, timing=spec.timing, seed=spec.seed,
                                                time_limit_s=spec.time_limit_s, render_image=render_images,
                                                vehicle_profile=spec.vehicle_profile,
-                                               handover_alt_m=spec.handover_alt_m))
+                                               handover_alt_m=spec.handover_alt_m,
+                                               person_separation_m=spec.separation_m[0],
+                                               vehicle_separation_m=spec.separation_m[1]))
     seg_config = segmenter_config(spec)
     seg = SegmenterCore(make_backend(seg_config), seg_config)
     ctrl_config = ControllerConfig(vehicle_id=spec.vehicle_id, policy=spec.policy, timing=spec.timing,

@@ -651,9 +651,18 @@ class EpisodeResult(Message):
     confirmed_y_m: float = 0.0
     touchdown_error_valid: bool = False
     touchdown_error_m: float = 0.0
+    # At the hand-over: the nearest person's and vehicle's footprint distance from the touchdown
+    # point (not valid: none within the judge's search radius, or no hand-over), and whether one
+    # was closer than its separation (the landing is then unsafe).
+    nearest_person_valid: bool = False
+    nearest_person_m: float = 0.0
+    nearest_vehicle_valid: bool = False
+    nearest_vehicle_m: float = 0.0
+    separation_violated: bool = False
 
     RANGES: ClassVar[dict[str, tuple[float, float]]] = {
-        "confirmed_x_m": (-1e9, 1e9), "confirmed_y_m": (-1e9, 1e9), "touchdown_error_m": (0.0, 1e9)}
+        "confirmed_x_m": (-1e9, 1e9), "confirmed_y_m": (-1e9, 1e9), "touchdown_error_m": (0.0, 1e9),
+        "nearest_person_m": (0.0, 1e9), "nearest_vehicle_m": (0.0, 1e9)}
 
     def _check(self) -> None:
         if self.outcome not in OUTCOMES:

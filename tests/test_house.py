@@ -258,14 +258,14 @@ def test_every_package_data_pattern_matches_files() -> None:
 
 # ------------------------------------------------------------------ one owner per mission constant
 #
-# The hand-over altitude and the safety radius have their one default in shared/mission.py, the
+# The hand-over altitude, the safety radius and the separations have their one default in shared/mission.py, the
 # camera footprint its one formula in shared/footprint.py (issue 27: the hand-over was declared
 # four times and `--handover-alt-m` never reached `clearance`; the footprint was written in eight
 # places). Everything else receives the value from its parent object or calls the helper.
 
 MISSION_MODULE = "shared/mission.py"
 FOOTPRINT_MODULE = "shared/footprint.py"
-_MISSION_NAME = re.compile(r"hand_?over_alt|safety_radius", re.IGNORECASE)
+_MISSION_NAME = re.compile(r"hand_?over_alt|safety_radius|separation_m", re.IGNORECASE)
 _HANDOVER_WORD = re.compile(r"hand-?_?over", re.IGNORECASE)
 _TWENTY_M_TEXT = re.compile(r"\b20(\.0)?\s*m\b")
 

@@ -19,7 +19,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from dovesei.episode import EpisodeSpec, run_episode
+from dovesei.episode import EpisodeSpec, run_episode, separation_fields
 from dovesei.shared.errors import ConfigError
 from dovesei.shared.mission import HANDOVER_ALT_M
 from dovesei.sim.judge import disk_safe_map, nearest_safe_m
@@ -118,6 +118,7 @@ def run_job(job: dict) -> dict:
             "confirmed": ({"x_m": round(r.confirmed_x_m, 3), "y_m": round(r.confirmed_y_m, 3)}
                           if r.confirmed_valid else None),
             "touchdown_error_m": round(r.touchdown_error_m, 3) if r.touchdown_error_valid else None,
+            **separation_fields(r),
             "_track": rec.track.astype(np.float32)}
 
 

@@ -24,11 +24,10 @@ from pathlib import Path
 import numpy as np
 
 from dovesei.bench import engines, shift, stats
+from dovesei.flight_defaults import starts as bench_starts
 from dovesei.pictures.html import write_bench_page
 from dovesei.shared.errors import ConfigError, DoveseiError
-from dovesei.shared.mission import HANDOVER_ALT_M, SAFETY_RADIUS_M
-from dovesei.sim.camera import CameraModel
-from dovesei.sim.starts import generate_starts
+from dovesei.shared.mission import HANDOVER_ALT_M, PERSON_SEPARATION_M, SAFETY_RADIUS_M, VEHICLE_SEPARATION_M
 from dovesei.sim.world import load_world, require_judged
 
 log = logging.getLogger(__name__)
@@ -75,6 +74,8 @@ class Grid:
     handover_alt_m: float = HANDOVER_ALT_M  # where every episode ends and is judged (controller, policy, judge)
     # --policy-config: the constants a file changed from the preset's ({} = none), for its one policy.
     policy_config: dict = field(default_factory=dict)
+    # The judge's separations from people and vehicles (0: that rule off).
+    separation_m: tuple[float, float] = (PERSON_SEPARATION_M, VEHICLE_SEPARATION_M)
     close_look: bool = True  # clearance looks at its spot at full resolution before committing (issue 24)
 
     @property
@@ -93,6 +94,7 @@ class Grid:
                 # And the default hand-over: benches flown before it was a setting resume and hash as before.
                 **({"handover_alt_m": self.handover_alt_m} if self.handover_alt_m != HANDOVER_ALT_M else {}),
                 **({"policy_config": self.policy_config} if self.policy_config else {}),
+                "separation_m": list(self.separation_m),
                 # clearance with and without close looks flies differently: such benches never resume
                 # one from the other (benches without the key predate the close look).
                 **({"close_look": self.close_look} if "clearance" in self.policies else {}),
@@ -164,27 +166,12 @@ def load_worlds(specs: Sequence[str]) -> dict:
     return {spec: load_world(spec) for spec in specs}
 
 
-def fitting_margin_m(world, alt_m: float, margin_m: float, floor_m: float = 5.0) -> float:
-    """The start margin, shrunk (with a warning) to what the world leaves room for, never below
-    `floor_m`: a small test world still gets starts, and the log says a bounded search may reach
-    its edge there."""
-    cam = CameraModel()
-    room = min(world.width_m / 2.0 - cam.half_width_m(alt_m), world.height_m / 2.0 - cam.half_height_m(alt_m)) - 1.0
-    if margin_m <= room or room < floor_m:
-        return margin_m  # fits, or does not fit even at the floor (generate_starts names the problem)
-    log.warning("world %s (%.0f x %.0f m) has room for a %.0f m start margin, not %.0f m: starts there lie "
-                "closer to the edge than a bounded search may fly", world.name, world.width_m, world.height_m, room,
-                margin_m)
-    return room
-
-
 def plan_jobs(grid: Grid, worlds: dict, out: Path) -> list[dict]:
     """Every episode of the grid as a job dict, in a fixed order (world, start, variant, policy)."""
     jobs = []
     for wi, spec in enumerate(grid.worlds):
-        margin = fitting_margin_m(worlds[spec], grid.start_alt_m, grid.start_margin_m)
-        starts = generate_starts(worlds[spec], grid.episodes, grid.seed, alt_m=grid.start_alt_m, margin_m=margin)
-        for i, st in enumerate(starts):
+        for i, st in enumerate(bench_starts(worlds[spec], grid.episodes, grid.seed, alt_m=grid.start_alt_m,
+                                            margin_m=grid.start_margin_m)):
             for var in grid.variants:
                 for pol in grid.policies:
                     jobs.append({
@@ -192,7 +179,8 @@ def plan_jobs(grid: Grid, worlds: dict, out: Path) -> list[dict]:
                         "noise": grid.noise, "timing": grid.timing, "time_limit_s": grid.time_limit_s,
                         "perception": var.perception, "prompts": var.prompts,
                         "vehicle_profile": grid.vehicle_profile, "handover_alt_m": grid.handover_alt_m,
-                        "policy_config": grid.policy_config or None, "close_look": grid.close_look,
+                        "policy_config": grid.policy_config or None, "separation_m": list(grid.separation_m),
+                        "close_look": grid.close_look,
                         "perception_label": var.perception if var.labelled else None,
                         "prompts_label": var.prompts_name if var.labelled else None,
                         "shift_label": shift.label(var.shift) if grid.shifted else None,
@@ -306,7 +294,7 @@ def summary_markdown(doc: dict, *, title: str = "dovesei bench") -> str:
         f"vehicle profile `{config.get('vehicle_profile', 'ideal')}`. "
         f"Success = reaching the hand-over altitude ({config.get('handover_alt_m', HANDOVER_ALT_M):g} m) with the "
         f"{SAFETY_RADIUS_M:g} m footprint disk on safe classes, judged on "
-        "the label map. Intervals are Wilson 95 %.", "",
+        f"the label map, {stats.separation_text(config)}. Intervals are Wilson 95 %.", "",
         *stats.policy_table(doc["summary"]), "",
         "Averages are over successful episodes, as in the paper's Table I (time in sim seconds, distance = "
         "horizontal path length).", ""]

@@ -12,12 +12,15 @@ from collections.abc import Iterable, Sequence
 import numpy as np
 
 from dovesei.shared.timing import PAPER_TIME_LIMIT_S, timing
+from dovesei.sim.judge import SEARCH_RADIUS_M
 
 OUTCOMES = ("safe", "unsafe", "timeout", "out_of_world", "error")
 SUMMARY_KEYS = ("episodes", *OUTCOMES)
 # The paper's limits on its own (wall) clock; each preset maps them onto sim seconds.
 PAPER_LIMITS_S = (60.0, 300.0, 600.0, PAPER_TIME_LIMIT_S)
 WILSON_Z_95 = 1.959963984540054
+# How far the judge looks for people and vehicles (its SEARCH_RADIUS_M): nobody that close reads as this.
+SEPARATION_SEARCH_M = SEARCH_RADIUS_M
 
 
 def wilson_interval(successes: int, n: int, z: float = WILSON_Z_95) -> tuple[float, float]:
@@ -51,10 +54,37 @@ def _counts(eps: list[dict]) -> dict:
     s["touchdown_error_episodes"] = len(errors)
     s["median_touchdown_error_m"] = round(float(np.median(errors)), 2) if errors else None
     s["max_touchdown_error_m"] = round(float(np.max(errors)), 2) if errors else None
+    s.update(separation_counts(eps))
     lo, hi = wilson_interval(s["safe"], len(eps))
     s["success_rate"] = round(s["safe"] / len(eps), 4) if eps else None
     s["success_ci95"] = [round(lo, 4), round(hi, 4)]
     return s
+
+
+def separation_counts(eps: list[dict]) -> dict:
+    """Hand-overs the judge measured separations for, how many were too close to a person or a
+    vehicle, and the nearest person's / vehicle's distance (median and min; nobody within the
+    judge's search radius counts as that radius, so a median never hides the far ones)."""
+    judged = [e for e in eps if e.get("separation_violated") is not None]
+    out: dict = {"separation_judged": len(judged),
+                 "separation_violations": sum(bool(e["separation_violated"]) for e in judged)}
+    for what in ("person", "vehicle"):
+        d = [SEPARATION_SEARCH_M if e.get(f"nearest_{what}_m") is None else e[f"nearest_{what}_m"] for e in judged]
+        out[f"median_nearest_{what}_m"] = round(float(np.median(d)), 2) if d else None
+        out[f"min_nearest_{what}_m"] = round(float(np.min(d)), 2) if d else None
+    return out
+
+
+def separation_text(config: dict) -> str:
+    """How the bench's judge counted separation (benches from before it did: not at all)."""
+    if "separation_m" not in config:
+        return "without separation from people and vehicles (a bench from before the judge counted it)"
+    person_m, vehicle_m = config["separation_m"]
+    rules = [f"no {what} within {m:g} m of the touchdown" for what, m in (("person", person_m), ("vehicle", vehicle_m))
+             if m > 0]
+    return ("and " + " and ".join(rules) if rules else "separation from people and vehicles off") + \
+        " (separation violations: hand-overs that broke it; nearest person: its median / min distance at the " \
+        f"judged hand-overs, nobody within {SEPARATION_SEARCH_M:g} m counting as {SEPARATION_SEARCH_M:g})"
 
 
 def limits_for(timing_name: str, run_limit_s: float) -> list[tuple[float, float]]:
@@ -112,14 +142,27 @@ def _fmt(v: float | None) -> str:
 
 def policy_table(summary: dict[str, dict]) -> list[str]:
     lines = ["| policy | success | 95 % CI | unsafe | timeout | out of world | error | avg. time (s) | avg. distance (m) "
-             "| touchdown error median / max (m) |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "| touchdown error median / max (m) | separation violations | nearest person median / min (m) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for pol, s in summary.items():
         n = s["episodes"]
         lines.append(f"| {pol} | {s['safe']}/{n} | {_pct(s['success_ci95'])} | {s['unsafe']}/{n} | {s['timeout']}/{n} | "
                      f"{s['out_of_world']}/{n} | {s['error']}/{n} | {_fmt(s['mean_sim_time_s'])} | "
-                     f"{_fmt(s['mean_path_length_m'])} | {_touchdown(s)} |")
+                     f"{_fmt(s['mean_path_length_m'])} | {_touchdown(s)} | {separation_cell(s)} | {nearest_cell(s)} |")
     return lines
+
+
+def separation_cell(s: dict) -> str:
+    """'violations/judged hand-overs' ('-' when none was judged)."""
+    return f"{s['separation_violations']}/{s['separation_judged']}" if s.get("separation_judged") else "-"
+
+
+def nearest_cell(s: dict, what: str = "person") -> str:
+    """Median / min distance of the nearest person (or vehicle) at the judged hand-overs."""
+    if not s.get("separation_judged"):
+        return "-"
+    fmt = (lambda v: f">= {v:.0f}" if v >= SEPARATION_SEARCH_M else f"{v:.1f}")
+    return f"{fmt(s[f'median_nearest_{what}_m'])} / {fmt(s[f'min_nearest_{what}_m'])}"
 
 
 def _touchdown(s: dict) -> str:
@@ -132,13 +175,14 @@ def _touchdown(s: dict) -> str:
 
 def rows_table(rows: list[dict], keys: Sequence[str]) -> list[str]:
     """A markdown table of `summarise_by` rows: the key columns, then success with its interval."""
-    lines = ["| " + " | ".join(keys) + " | success | 95 % CI | unsafe | timeout | out of world | error |",
-             "|" + "---|" * (len(keys) + 6)]
+    lines = ["| " + " | ".join(keys) + " | success | 95 % CI | unsafe | timeout | out of world | error "
+             "| separation violations | nearest person median / min (m) |",
+             "|" + "---|" * (len(keys) + 8)]
     for r in rows:
         n = r["episodes"]
         lines.append("| " + " | ".join(f"`{r[k]}`" if k == "world" else str(r[k]) for k in keys)
                      + f" | {r['safe']}/{n} | {_pct(r['success_ci95'])} | {r['unsafe']}/{n} | {r['timeout']}/{n} | "
-                     f"{r['out_of_world']}/{n} | {r['error']}/{n} |")
+                     f"{r['out_of_world']}/{n} | {r['error']}/{n} | {separation_cell(r)} | {nearest_cell(r)} |")
     return lines
 
 

@@ -65,16 +65,20 @@ def _fmt(v: float | None) -> str:
 
 
 def _policy_table(summary: Mapping[str, Mapping[str, Any]]) -> str:
+    from dovesei.bench.stats import nearest_cell, separation_cell  # lazy: dovesei.bench imports this module
     rows = []
     for pol, s in summary.items():
         n = s["episodes"]
         rows.append(f"<tr><td>{_e(pol)}</td><td>{s['safe']}/{n}</td><td>{_pct(s['success_ci95'])}</td>"
                     f"<td>{_ci_bar(s.get('success_rate'), s['success_ci95'])}</td><td>{s['unsafe']}</td>"
                     f"<td>{s['timeout']}</td><td>{s['out_of_world']}</td><td>{s['error']}</td>"
-                    f"<td>{_fmt(s['mean_sim_time_s'])}</td><td>{_fmt(s['mean_path_length_m'])}</td></tr>")
+                    f"<td>{_fmt(s['mean_sim_time_s'])}</td><td>{_fmt(s['mean_path_length_m'])}</td>"
+                    f"<td>{_e(separation_cell(s))}</td><td>{_e(nearest_cell(s))}</td>"
+                    f"<td>{_e(nearest_cell(s, 'vehicle'))}</td></tr>")
     return ("<table><tr><th>policy</th><th>success</th><th>95 % CI</th><th>interval</th><th>unsafe</th>"
             "<th>timeout</th><th>out of world</th><th>error</th><th>avg. time (sim s)</th><th>avg. distance (m)</th>"
-            "</tr>" + "".join(rows) + "</table>")
+            "<th>separation violations</th><th>nearest person median / min (m)</th>"
+            "<th>nearest vehicle median / min (m)</th></tr>" + "".join(rows) + "</table>")
 
 
 def _limit_table(summary: Mapping[str, Mapping[str, Any]]) -> str:
@@ -98,6 +102,7 @@ def _limit_table(summary: Mapping[str, Mapping[str, Any]]) -> str:
 def _rows_table(title: str, rows: Sequence[Mapping[str, Any]], keys: Sequence[str]) -> str:
     if not rows:
         return ""
+    from dovesei.bench.stats import nearest_cell, separation_cell  # lazy: dovesei.bench imports this module
     head = "".join(f"<th>{_e(k)}</th>" for k in keys)
     body = []
     for r in rows:
@@ -105,9 +110,11 @@ def _rows_table(title: str, rows: Sequence[Mapping[str, Any]], keys: Sequence[st
         body.append("<tr>" + "".join(f"<td>{_e(r.get(k))}</td>" for k in keys)
                     + f"<td>{r['safe']}/{n}</td><td>{_pct(r['success_ci95'])}</td>"
                     f"<td>{_ci_bar(r.get('success_rate'), r['success_ci95'])}</td><td>{r['unsafe']}</td>"
-                    f"<td>{r['timeout']}</td><td>{r['out_of_world']}</td></tr>")
+                    f"<td>{r['timeout']}</td><td>{r['out_of_world']}</td><td>{_e(separation_cell(r))}</td>"
+                    f"<td>{_e(nearest_cell(r))}</td></tr>")
     return (f"<h2>{_e(title)}</h2><table><tr>{head}<th>success</th><th>95 % CI</th><th>interval</th><th>unsafe</th>"
-            f"<th>timeout</th><th>out of world</th></tr>{''.join(body)}</table>")
+            f"<th>timeout</th><th>out of world</th><th>separation violations</th>"
+            f"<th>nearest person median / min (m)</th></tr>{''.join(body)}</table>")
 
 
 def _images(folder: Path) -> str:
@@ -134,6 +141,7 @@ def _episodes(folder: Path, episodes: Sequence[Mapping[str, Any]]) -> str:
 
 def write_bench_page(folder: Path | str, doc: Mapping[str, Any], *, title: str = "dovesei bench") -> Path:
     """Write <folder>/report.html from a bench's results.json dict; returns its path."""
+    from dovesei.bench.stats import separation_text  # lazy: dovesei.bench imports this module
     folder = Path(folder)
     config = doc.get("config", {})
     settings = ", ".join(f"{k} {_e(config[k])}" for k in ("world", "episodes", "seed", "start_alt_m", "time_limit_s",
@@ -142,7 +150,8 @@ def write_bench_page(folder: Path | str, doc: Mapping[str, Any], *, title: str =
     body = [
         f"<h1>{_e(title)}</h1><p class='note'>{settings}. Success = reaching the hand-over altitude "
         f"({handover_m:g} m) with the "
-        "footprint disk on safe classes, judged on the label map. Intervals are Wilson 95 %; averages are over "
+        f"footprint disk on safe classes, judged on the label map, {_e(separation_text(config))}. Intervals are "
+        "Wilson 95 %; averages are over "
         "successful episodes, as in the paper's Table I.</p>",
         "<h2>Policies</h2>", _policy_table(doc.get("summary", {})),
         _limit_table(doc.get("summary", {})),

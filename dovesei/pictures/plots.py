@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 
 from dovesei.pictures.common import ReportError, backend_label
-from dovesei.shared.mission import HANDOVER_ALT_M, SAFETY_RADIUS_M
+from dovesei.shared.mission import HANDOVER_ALT_M, PERSON_SEPARATION_M, SAFETY_RADIUS_M, VEHICLE_SEPARATION_M
 
 log = logging.getLogger(__name__)
 
@@ -189,6 +189,7 @@ def plot_trajectory(world: Any, report: Mapping[str, Any], out_png: Path | str) 
 
     box = _crop_box_m(xs, ys, world)
     crop, extent = _world_crop(world, box)
+    crop, _ = with_people(world, crop, None, extent, report.get("sim_time_s"), px_per_m=2.0)
     # The map above, the altitude profile below: seen from above a descent shrinks to a dot.
     fig, (ax, ax_alt) = plt.subplots(2, 1, figsize=(8.5, 10.4), dpi=110, gridspec_kw={"height_ratios": [4.0, 1.25]})
     ax.imshow(crop, extent=extent, interpolation="bilinear")
@@ -235,7 +236,7 @@ def plot_trajectory(world: Any, report: Mapping[str, Any], out_png: Path | str) 
     corners = _free_corners(xs, ys, (end_x, end_y), extent)
     if outcome in ("safe", "unsafe"):
         # Only a judged landing has a footprint worth zooming on.
-        _footprint_inset(ax, world, end_x, end_y, radius_m, outcome, corners[0])
+        _footprint_inset(ax, world, end_x, end_y, radius_m, outcome, corners[0], t_s=report.get("sim_time_s"))
     ax.legend(handles=handles, loc=corners[1], fontsize=8, framealpha=0.85)
 
     perception = backend_label(str(report.get("backend", "")), bool(report.get("simulated", False)),
@@ -300,33 +301,57 @@ def _free_corners(xs: np.ndarray, ys: np.ndarray, end_xy: tuple[float, float], e
     return sorted(_CORNERS, key=lambda c: cost[c])  # stable: ties keep the order above
 
 
+def with_people(world: Any, crop: np.ndarray, labels: np.ndarray | None, extent: Sequence[float],
+                t_s: float | None, px_per_m: float = 0.0) -> tuple[np.ndarray, np.ndarray | None]:
+    """A map crop (and its labels) with the world's people and cars drawn where they were at t_s,
+    upsampled first to at least px_per_m so a person is more than a speck; unchanged without them."""
+    if getattr(world, "population", None) is None or t_s is None:
+        return crop, labels
+    h_px, w_px = crop.shape[:2]
+    k_x, k_y = w_px / (extent[1] - extent[0]), h_px / (extent[3] - extent[2])
+    scale = max(1, int(np.ceil(px_per_m / max(k_x, 1e-9))))
+    # Integers at pixel centres of the upsampled crop (extent: left, right, bottom, top).
+    to_px = np.array([[scale * k_x, 0.0, -0.5 - scale * k_x * extent[0]],
+                      [0.0, -scale * k_y, scale * k_y * extent[3] - 0.5], [0.0, 0.0, 1.0]])
+    crop = np.ascontiguousarray(np.repeat(np.repeat(crop, scale, 0), scale, 1))
+    if labels is not None:
+        labels = np.ascontiguousarray(np.repeat(np.repeat(labels, scale, 0), scale, 1))
+    world.population.draw(crop, labels, to_px, float(t_s), baked_labels=False)  # the crop's labels hold those
+    return crop, labels
+
+
 def _footprint_inset(ax: Any, world: Any, x_m: float, y_m: float, radius_m: float, outcome: str,
-                     corner: str = "lower right") -> None:
-    """A zoom on the end point: the ground, unsafe classes tinted red, the footprint disk."""
+                     corner: str = "lower right", t_s: float | None = None) -> None:
+    """A zoom on the end point: the ground with its people and cars where they were at the hand-over
+    (t_s, drawn at the zoom's resolution), unsafe classes tinted red, the footprint disk and the
+    separation rings (no person within 3 m, no vehicle within 5 m)."""
     from matplotlib.patches import Circle
 
-    half_m = max(4.0 * radius_m, 6.0)
+    half_m = max(4.0 * radius_m, 6.0, VEHICLE_SEPARATION_M + 1.0)
     box = (x_m - half_m, x_m + half_m, y_m - half_m, y_m + half_m)
     try:
         crop, extent = _world_crop(world, box)
     except ReportError:
         return  # ended outside the world: nothing to zoom on
+    crop, labels = with_people(world, crop, _labels_crop(world, box), extent, t_s, px_per_m=8.0)
     ins = ax.inset_axes([*_CORNERS[corner], 0.34, 0.34])
     ins.imshow(crop, extent=extent, interpolation="nearest")
-    labels = _labels_crop(world, box)
     if labels is not None and labels.shape == crop.shape[:2]:
         unsafe = ~world.safe_lut[labels]
         overlay = np.zeros(unsafe.shape + (4,), dtype=np.float32)
         overlay[unsafe] = (1.0, 0.0, 0.0, 0.35)
         ins.imshow(overlay, extent=extent, interpolation="nearest")
     ins.add_patch(Circle((x_m, y_m), radius_m, fill=False, ec=OUTCOME_COLOURS.get(outcome, "yellow"), lw=2.0))
+    for sep_m in (PERSON_SEPARATION_M, VEHICLE_SEPARATION_M):
+        ins.add_patch(Circle((x_m, y_m), sep_m, fill=False, ec="white", lw=0.8, ls="--"))
     ins.plot(x_m, y_m, marker="+", color="white", ms=8)
     # The requested box, not the crop: near the world's edge the zoom stays square and to scale.
     ins.set_xlim(box[0], box[1])
     ins.set_ylim(box[2], box[3])
     ins.set_xticks([])
     ins.set_yticks([])
-    ins.set_title(f"zoom {2 * half_m:.0f} m wide: {2 * radius_m:g} m footprint (red: unsafe)", fontsize=7,
+    ins.set_title(f"zoom {2 * half_m:.0f} m: {2 * radius_m:g} m disk (red: unsafe),\nrings {PERSON_SEPARATION_M:g} / "
+                  f"{VEHICLE_SEPARATION_M:g} m: people / vehicles", fontsize=7,
                   color="white", backgroundcolor="#000000a0")
     for spine in ins.spines.values():
         spine.set_edgecolor("yellow")

@@ -116,6 +116,8 @@ def child_configs(options: UpOptions, start: tuple[float, float, float], world: 
         sim=SimConfig(vehicle_id=options.vehicle_id, timing=options.timing, time_limit_s=float(options.time_limit_s),
                       seed=options.seed, vehicle_profile=options.sim_vehicle_profile,
                       handover_alt_m=float(options.handover_alt_m),
+                      person_separation_m=float(options.person_separation_m),
+                      vehicle_separation_m=float(options.vehicle_separation_m),
                       odometry_rate_hz=GNSS_DENIED_ODOMETRY_HZ if options.gnss_denied not in (None, "off") else 0.0),
         world=options.world, start_xy_alt_m=tuple(float(v) for v in start), lockstep=options.lockstep,
         # Camera mode: the sim renders at the autopilot's state, which the controller (the one owner

@@ -25,6 +25,7 @@ from dovesei.pictures import plots
 from dovesei.pictures import video as videos
 from dovesei.pictures.common import ReportError, backend_label
 from dovesei.controller.policies.config_file import load_policy_config, policy_values, preset_config
+from dovesei.episode import separation_fields
 from dovesei.shared.messages import ControllerStatus
 from dovesei.shared.mission import HANDOVER_ALT_M, SAFETY_RADIUS_M
 from dovesei.up.launch import SERVICES
@@ -102,6 +103,11 @@ class Episode:
     closest_unsafe_m: float | None
     confirmed: Position | None = None  # the ground the policy last confirmed (the judge's placing)
     touchdown_error_m: float | None = None  # the hand-over's true distance to it
+    # At the hand-over: the nearest person's / vehicle's footprint distance (None: none within the
+    # judge's search radius, or not judged) and whether one was closer than its separation.
+    nearest_person_m: float | None = None
+    nearest_vehicle_m: float | None = None
+    separation_violated: bool | None = None
 
 
 @dataclass(frozen=True)
@@ -347,7 +353,8 @@ def build_report(options: UpOptions, rec: Recorder, start: tuple[float, float, f
                           Position(*start), Position(res.final_x_m, res.final_y_m, res.final_alt_m),
                           tuple(res.classes_found), res.closest_unsafe_m if res.closest_unsafe_valid else None,
                           Position(res.confirmed_x_m, res.confirmed_y_m, 0.0) if res.confirmed_valid else None,
-                          res.touchdown_error_m if res.touchdown_error_valid else None)
+                          res.touchdown_error_m if res.touchdown_error_valid else None,
+                          **separation_fields(res))
     else:
         detail = failure.message if failure else ("interrupted by the user" if interrupted else "no result")
         final = Position(traj["x_m"][-1], traj["y_m"][-1], traj["alt_m"][-1]) if traj["t_s"] else None

@@ -11,8 +11,9 @@ Data flow for one frame (labels resized to CLIPSeg's 352x352 input, as CLIPSeg r
     labels --class names--> appearance mix per class (cached per class table)
            + shadows: roofs/trees/cars cast a shadow away from the episode's sun (world direction,
              turning ~15 deg an hour with the frame's time) on lower ground
-      --8x8-pixel cells--> appearance fractions on a 44x44 grid; people and cars weigh a little
-        more than their area (salience)
+      --8x8-pixel cells--> appearance fractions on a 44x44 grid; a person or a car weighs by how
+        many tokens it covers (the resolution curve, `object_gain`): its area alone under one
+        token, up to 3x its area across several
       --per-patch looks, fixed on the GROUND--> an atypical patch of a class reads partly as its
         other looks (INSTANCE_LOOKS: dry lawn -> soil, stained concrete -> asphalt, wet sand ->
         pavement) where a seeded field over (east, north) keyed by (seed, world) is high
@@ -111,7 +112,33 @@ CONFUSIONS: dict[str, dict[str, float]] = {
 }
 # Height of what casts a shadow (m); the sun's elevation turns it into a length on the ground.
 CASTER_HEIGHT_M: dict[str, float] = {"flat_roof": 9.0, "pitched_roof": 7.0, "tree": 5.0, "vehicle": 1.5}
-SALIENCE: dict[str, float] = {"person": 2.0, "vehicle": 1.5}
+
+# The resolution curve of objects (people, vehicles): how strongly one connected object answers,
+# as a multiple of its area, against how many CLIPSeg tokens it covers (16 x 16 px of the 352 px
+# input, a ViT-B/16 patch):
+#
+#     gain(n) = 1 + (OBJECT_GAIN_MAX - 1) * n^2 / (n^2 + OBJECT_HALF_TOKENS^2),  n = area_px / 256
+#
+#     n (tokens)  0.004 (a person at 100 m: 1 px)   0.1 (a person at 20 m)   0.5   1     2     4 (a car at 20 m)
+#     gain        1.00                               1.02                     1.4   2.0   2.6   2.9
+#
+# Assumption (no per-object statistics of CLIPSeg were measured here): a patch embedding describes
+# what fills most of its 16 px; an object much smaller than a patch only shifts the patch's colour
+# and texture statistics in proportion to its area, so it is a dip of its area share and no more
+# (issue 24: a person under one token at 100 m read as ~0.02 in P, inside the ripple). An object
+# spanning a token or more is recognised as such, and CLIPSeg's upsampled 22 x 22 blobs outgrow
+# the objects they find, so across several tokens it answers up to OBJECT_GAIN_MAX times its area
+# (after the token blur that gives a blob about a token wider than the object). Monotone in n.
+OBJECT_APPEARANCES = ("person", "vehicle")
+OBJECT_GAIN_MAX = 3.0
+OBJECT_HALF_TOKENS = 1.0
+TOKEN_PX = 16
+
+
+def object_gain(tokens: np.ndarray | float) -> np.ndarray:
+    """The resolution curve: an object's response per unit of area against the tokens it covers."""
+    n2 = np.square(np.asarray(tokens, np.float64))
+    return 1.0 + (OBJECT_GAIN_MAX - 1.0) * n2 / (n2 + OBJECT_HALF_TOKENS ** 2)
 # A class's other looks, patch by patch: a dry or dead lawn reads partly as bare soil, stained or
 # weathered concrete as asphalt, wet sand as pavement, a gravel or green roof as ground. Which
 # patches look atypical is fixed on the ground for an episode over a world (season, rain, the
@@ -469,10 +496,6 @@ class SimPerception:
         self._strength = params.scaled()
         self._classes: dict[tuple, _Classes] = {}
         self._responses: dict[str, np.ndarray] = {}
-        sal = np.ones(A)
-        for app, s in SALIENCE.items():
-            sal[INDEX[app]] = s
-        self._salience = sal
         self._draws: dict[str, EpisodeDraw] = {}
         self.grid = INPUT_PX // params.cell_px
         iy, ix = np.divmod(np.arange(INPUT_PX * INPUT_PX), INPUT_PX)
@@ -570,7 +593,7 @@ class SimPerception:
         draw = self.draw(view.world)
         frac = self.fractions(labels, classes, view)
         in_world = 1.0 - frac[..., INDEX["off_world"]]
-        g = frac * self._salience
+        g = frac * self._object_gain(labels, classes)
         g /= np.maximum(g.sum(axis=2, keepdims=True), 1e-12)
         s = self._strength
         if s["instance_variation"] > 0:
@@ -621,6 +644,28 @@ class SimPerception:
         if (height_px, width_px) != prob.shape:
             prob = cv2.resize(prob, (int(width_px), int(height_px)), interpolation=cv2.INTER_LINEAR)
         return np.clip(prob, 0.0, 1.0, out=prob)
+
+    def _object_gain(self, labels: np.ndarray, classes: Mapping[int, object] | Iterable[object]) -> np.ndarray:
+        """(grid, grid, A) weights: 1, except for person and vehicle appearances, whose weight in a
+        cell is the mean `object_gain` of the object pixels there (each connected object by its own
+        size in tokens of the 352 px input)."""
+        lab = _input_labels(labels)
+        tables = self._tables(classes)
+        out = np.ones((self.grid * self.grid, A))
+        n_cells = self.grid * self.grid
+        for app in OBJECT_APPEARANCES:
+            j = INDEX[app]
+            mask = (tables.mix[lab, j] >= 0.5).astype(np.uint8)
+            if not mask.any():
+                continue
+            n, comp, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8)
+            gain = object_gain(stats[:, cv2.CC_STAT_AREA] / float(TOKEN_PX * TOKEN_PX))
+            on = comp.ravel() > 0
+            cells = self._cell_of_px[on]
+            total = np.bincount(cells, weights=gain[comp.ravel()[on]], minlength=n_cells)
+            count = np.bincount(cells, minlength=n_cells)
+            out[:, j] = np.where(count > 0, total / np.maximum(count, 1), 1.0)
+        return out.reshape(self.grid, self.grid, A)
 
     # --- errors ------------------------------------------------------------------------
 

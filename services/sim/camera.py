@@ -312,8 +312,10 @@ def render(
                       borderMode=cv2.BORDER_CONSTANT, borderValue=OUT_OF_WORLD_LABEL)
     if world.population is not None and (image is not None or labels is not None):
         # People and cars at this view's own resolution; those the texture already holds (baked)
-        # only when the view is finer than the texture (k < 1 world pixel per output pixel).
-        world.population.draw(image, labels, world_m_to_output_px(world, m0), t_s, skip_baked=k >= 1.0)
+        # only when the view is finer than the texture (k < 1 world pixel per output pixel), and
+        # into the image only: their labels are the world's own, sampled above like all ground.
+        world.population.draw(image, labels, world_m_to_output_px(world, m0), t_s, skip_baked=k >= 1.0,
+                              baked_labels=False)
     valid = _valid_mask(world, m0, cam)
     if valid is None:
         valid = np.ones((cam.height_px, cam.width_px), dtype=bool)

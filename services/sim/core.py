@@ -45,7 +45,7 @@ from dovesei.shared import validate
 from dovesei.shared.clock import wall_time_s
 from dovesei.shared.crop import CropLimits, RateLimit, plan_crop
 from dovesei.shared.errors import ConfigError
-from dovesei.shared.mission import HANDOVER_ALT_M, SAFETY_RADIUS_M
+from dovesei.shared.mission import HANDOVER_ALT_M, PERSON_SEPARATION_M, SAFETY_RADIUS_M, VEHICLE_SEPARATION_M
 from dovesei.shared.timing import DEFAULT_TIMING, timing
 from dovesei.shared.messages import (
     CameraFrame, ClassEntry, ControllerStatus, CropFrame, CropRequest, EpisodeResult, GroundTruth, Stamp, VehicleState,
@@ -89,6 +89,9 @@ class SimConfig:
     handover_alt_m: float = HANDOVER_ALT_M  # the judge ends and judges the episode here
     time_limit_s: float = 1200.0
     safety_radius_m: float = SAFETY_RADIUS_M  # the judge's landing disk
+    # The judge's separations from people and vehicles at the hand-over (0: that rule off).
+    person_separation_m: float = PERSON_SEPARATION_M
+    vehicle_separation_m: float = VEHICLE_SEPARATION_M
     seed: int = 0
     attach_truth: bool = True
     # False: frames carry a blank image (truth labels only). For the in-process bench with the
@@ -106,6 +109,8 @@ class SimConfig:
         for name in ("dt_s", "time_limit_s", "safety_radius_m"):
             validate.positive(f"sim {name}", getattr(self, name))
         validate.non_negative("sim handover_alt_m", self.handover_alt_m)
+        validate.non_negative("sim person_separation_m", self.person_separation_m)
+        validate.non_negative("sim vehicle_separation_m", self.vehicle_separation_m)
         validate.in_range("sim odometry_rate_hz", self.odometry_rate_hz, 0.0, 100.0)
         validate.in_range("sim crop_source_px", self.crop_source_px, self.camera.width_px, 16384)
         for name in ("frame_period_s", "latency_s"):
@@ -152,7 +157,8 @@ class SimCore:
         self._gimbal = profile.gimbal
         self.estimator = None if profile.estimator is None else Estimator(profile.estimator, cfg.seed, cfg.dt_s)
         self.judge = EpisodeJudge(self.world, handover_alt_m=cfg.handover_alt_m, time_limit_s=cfg.time_limit_s,
-                                  safety_radius_m=cfg.safety_radius_m)
+                                  safety_radius_m=cfg.safety_radius_m, person_separation_m=cfg.person_separation_m,
+                                  vehicle_separation_m=cfg.vehicle_separation_m)
         self._odometry = SimOdometry(self.world, cfg.camera, cfg.vehicle_id, cfg.odometry_rate_hz) \
             if cfg.odometry_rate_hz > 0 else None
         self._k = 0
@@ -367,7 +373,8 @@ class SimCore:
 def unstarted_result(world: World, start: Start, config: SimConfig, detail: str, clock: str = "sim") -> EpisodeResult:
     """The 'error' result of an episode that could not begin (`detail` says why), placed at the start."""
     judge = EpisodeJudge(world, handover_alt_m=config.handover_alt_m, time_limit_s=config.time_limit_s,
-                         safety_radius_m=config.safety_radius_m)
+                         safety_radius_m=config.safety_radius_m, person_separation_m=config.person_separation_m,
+                         vehicle_separation_m=config.vehicle_separation_m)
     judge.check(Pose(start.x_m, start.y_m, start.alt_m, yaw_rad=start.yaw_rad), handover=False)
     return judge_result(config.vehicle_id, judge, "error", detail, clock=clock)
 
@@ -398,4 +405,9 @@ def judge_result(vehicle_id: str, judge: EpisodeJudge, outcome: str, detail: str
                          confirmed_x_m=float(confirmed[0]) if confirmed is not None else 0.0,
                          confirmed_y_m=float(confirmed[1]) if confirmed is not None else 0.0,
                          touchdown_error_valid=error is not None,
-                         touchdown_error_m=float(error) if error is not None else 0.0)
+                         touchdown_error_m=float(error) if error is not None else 0.0,
+                         nearest_person_valid=v is not None and v.nearest_person_m is not None,
+                         nearest_person_m=float(v.nearest_person_m or 0.0) if v else 0.0,
+                         nearest_vehicle_valid=v is not None and v.nearest_vehicle_m is not None,
+                         nearest_vehicle_m=float(v.nearest_vehicle_m or 0.0) if v else 0.0,
+                         separation_violated=bool(v and v.separation_violated))

@@ -175,7 +175,8 @@ def run_external_pose(states: Inbox[VehicleState], publish_frame: Callable[[Came
     (see the module docstring); the same result is returned at the end.
     """
     judge = EpisodeJudge(world, handover_alt_m=sim.handover_alt_m, time_limit_s=sim.time_limit_s,
-                         safety_radius_m=sim.safety_radius_m)
+                         safety_radius_m=sim.safety_radius_m,
+                         person_separation_m=sim.person_separation_m, vehicle_separation_m=sim.vehicle_separation_m)
     key = keys.state(sim.vehicle_id)
     camera = PoseCamera(world, sim)
     build_s = prebuild_pyramid(world, sim.camera, PREBUILD_ALT_FACTOR * start.alt_m)

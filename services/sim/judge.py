@@ -28,12 +28,21 @@ The paper judged landings by eye; here the label map does it. Two pieces:
   the hand-over, `touchdown_error_m` is the true distance from the hand-over point to it (None
   for a policy that confirmed nothing).
 
+Separation (DESIGN.md 1, issue 24): besides the disk, a landing is `unsafe` when a person is within
+`person_separation_m` (3 m) or a vehicle within `vehicle_separation_m` (5 m) of the touchdown point
+at the hand-over. Distances are to the object's footprint (a person's disc, a car's rectangle) at
+the hand-over's episode time, from the world's people and vehicles (`World.population`, some of
+them walking and driving) and from labelled pixels of classes named like them (a world folder's own
+cars), whichever is nearer. A separation of 0 turns that rule off; a person or vehicle in the disk
+itself stays unsafe. Every verdict carries the nearest person's and vehicle's distance.
+
 Which classes are safe belongs to the world (`World.classes`); nothing here knows class ids.
 """
 
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -41,13 +50,14 @@ import cv2
 import numpy as np
 
 from dovesei.shared.errors import DoveseiError
-from dovesei.shared.mission import HANDOVER_ALT_M, SAFETY_RADIUS_M
+from dovesei.shared.mission import HANDOVER_ALT_M, PERSON_SEPARATION_M, SAFETY_RADIUS_M, VEHICLE_SEPARATION_M
 from dovesei.shared.validate import is_number
 from dovesei.sim.dynamics import Pose
 from dovesei.sim.world import World
 
 OUTSIDE_WORLD_NAME = "outside the world"
 DEFAULT_ZERO_TOLERANCE_NAMES = ("person", "people", "pedestrian", "human")
+VEHICLE_NAMES = ("car", "vehicle", "truck", "bus", "van", "automobile")
 TOLERANCE_FRAC = 0.01  # unsafe share of the disk forgiven (label anti-aliasing along edges)
 SEARCH_RADIUS_M = 50.0  # how far `closest_unsafe_m` looks
 GROUND_CONTACT_M = 0.1  # true altitude at which an un-handed-over vehicle has hit the ground
@@ -80,6 +90,10 @@ class Verdict:
     classes: tuple[ClassFraction, ...]  # largest fraction first
     closest_unsafe_m: float | None  # None: no unsafe pixel within the search radius
     reason: str
+    # Footprint distances from the touchdown point at the hand-over (None: none within the search radius).
+    nearest_person_m: float | None = None
+    nearest_vehicle_m: float | None = None
+    separation_violated: bool = False  # a person or vehicle closer than its separation
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -93,8 +107,13 @@ def judge_landing(
     tolerance_frac: float = TOLERANCE_FRAC,
     search_radius_m: float = SEARCH_RADIUS_M,
     zero_tolerance_names: tuple[str, ...] = DEFAULT_ZERO_TOLERANCE_NAMES,
+    *,
+    t_s: float = 0.0,
+    person_separation_m: float = PERSON_SEPARATION_M,
+    vehicle_separation_m: float = VEHICLE_SEPARATION_M,
 ) -> Verdict:
-    """Judge a landing at world point (x_m, y_m) from the world's label map."""
+    """Judge a landing at world point (x_m, y_m) from the world's label map, its people and vehicles
+    where they are at t_s (seconds since the episode began), and the separations (0: rule off)."""
     if world.labels is None:
         raise JudgeError(f"world {world.name!r} has no label map: landings on it cannot be judged")
     if not (is_number(x_m) and is_number(y_m)):
@@ -103,6 +122,7 @@ def judge_landing(
         raise JudgeError(f"safety_radius_m must be finite and >= 0, got {safety_radius_m!r}")
     if not 0.0 <= tolerance_frac < 1.0:
         raise JudgeError(f"tolerance_frac must be in [0, 1), got {tolerance_frac!r}")
+    check_separations(person_separation_m, vehicle_separation_m)
 
     ids, inside = _disk_labels(world, x_m, y_m, safety_radius_m)
     n = int(ids.size)  # never 0: the pixel under the vehicle always belongs to the disk
@@ -125,17 +145,54 @@ def judge_landing(
     found.sort(key=lambda c: (-c.fraction, c.name))
 
     unsafe_frac = unsafe_px / n
+    person_m, vehicle_m = nearest_objects_m(world, x_m, y_m, t_s, search_radius_m, zero_tolerance_names)
+    too_close = []
+    # A separation rule, or (with that rule off) the disk itself: nobody may be under the vehicle.
+    for what, dist, sep in (("person", person_m, person_separation_m), ("vehicle", vehicle_m, vehicle_separation_m)):
+        if dist is not None and dist < max(sep, safety_radius_m if what == "person" or sep == 0 else 0.0):
+            too_close.append(f"a {what} {dist:.1f} m from the touchdown" + (f" (separation {sep:g} m)" if sep else ""))
+    violated = any(d is not None and sep > 0 and d < sep
+                   for d, sep in ((person_m, person_separation_m), (vehicle_m, vehicle_separation_m)))
+    share = f"{unsafe_frac:.1%} of the disk is unsafe (tolerance {tolerance_frac:.1%})"
     if critical:
         outcome, reason = "unsafe", f"{', '.join(critical)} in the disk (no tolerance for them)"
     elif unsafe_frac > tolerance_frac:
-        outcome, reason = "unsafe", f"{unsafe_frac:.1%} of the disk is unsafe (tolerance {tolerance_frac:.1%})"
+        outcome, reason = "unsafe", share
     else:
-        outcome, reason = "safe", f"{unsafe_frac:.1%} of the disk is unsafe (tolerance {tolerance_frac:.1%})"
+        outcome, reason = "safe", share
+    if too_close:
+        outcome, reason = "unsafe", "; ".join([*too_close, reason])
     return Verdict(
         outcome=outcome, x_m=float(x_m), y_m=float(y_m), safety_radius_m=float(safety_radius_m),
         disk_px=n, unsafe_frac=float(unsafe_frac), classes=tuple(found),
         closest_unsafe_m=closest_unsafe_m(world, x_m, y_m, search_radius_m), reason=reason,
+        nearest_person_m=person_m, nearest_vehicle_m=vehicle_m, separation_violated=violated,
     )
+
+
+def check_separations(person_separation_m: object, vehicle_separation_m: object) -> None:
+    """JudgeError (one line) unless both separations are finite and >= 0 (0 turns a rule off)."""
+    for name, value in (("person_separation_m", person_separation_m), ("vehicle_separation_m", vehicle_separation_m)):
+        if not (is_number(value) and value >= 0):
+            raise JudgeError(f"{name} must be a finite number of metres >= 0 (0 turns the rule off), got {value!r}")
+
+
+def nearest_objects_m(world: World, x_m: float, y_m: float, t_s: float = 0.0,
+                      search_radius_m: float = SEARCH_RADIUS_M,
+                      person_names: tuple[str, ...] = DEFAULT_ZERO_TOLERANCE_NAMES) -> tuple[float | None, float | None]:
+    """(nearest person, nearest vehicle): footprint distance from the point at t_s, from the world's
+    population and from labelled pixels of classes named like them; None when none is within
+    search_radius_m."""
+    person, vehicle = world.population.nearest_m(x_m, y_m, t_s) if world.population is not None else (None, None)
+    out = []
+    for dist, ids in ((person, _zero_tolerance_ids(world, person_names)), (vehicle, _vehicle_ids(world))):
+        ids = np.array(sorted(ids), np.uint8)
+        if ids.size:
+            labelled = _nearest_m(world, lambda rs, cs: np.isin(world.labels[rs, cs], ids), x_m, y_m, search_radius_m)
+            if labelled is not None:
+                dist = labelled if dist is None else min(dist, labelled)
+        out.append(float(dist) if dist is not None and dist <= search_radius_m else None)
+    return out[0], out[1]
 
 
 def _zero_tolerance_ids(world: World, names: tuple[str, ...]) -> set[int]:
@@ -198,12 +255,16 @@ def closest_unsafe_m(world: World, x_m: float, y_m: float, search_radius_m: floa
 
 
 def disk_safe_map(world: World, radius_m: float = SAFETY_RADIUS_M, tolerance_frac: float = TOLERANCE_FRAC,
-                  zero_tolerance_names: tuple[str, ...] = DEFAULT_ZERO_TOLERANCE_NAMES) -> np.ndarray:
+                  zero_tolerance_names: tuple[str, ...] = DEFAULT_ZERO_TOLERANCE_NAMES,
+                  person_separation_m: float = PERSON_SEPARATION_M,
+                  vehicle_separation_m: float = VEHICLE_SEPARATION_M) -> np.ndarray:
     """uint8 map over the world: 1 where `judge_landing` would say "safe" at the pixel's centre.
 
     The same rule at every pixel at once: at most `tolerance_frac` of the disk unsafe, no person
-    in it at all, and beyond the world's edge is unsafe (the part of the disk that hangs outside
-    counts against it).
+    in it at all, beyond the world's edge is unsafe (the part of the disk that hangs outside
+    counts against it), and no labelled person or vehicle pixel within its separation (pixels at
+    exactly the separation count as too close: the map is never less strict than the judge).
+    The world's moving people and cars are not in it: they are nowhere in particular.
     """
     if world.labels is None:
         raise JudgeError(f"world {world.name!r} has no label map: landings on it cannot be judged")
@@ -218,11 +279,21 @@ def disk_safe_map(world: World, radius_m: float = SAFETY_RADIUS_M, tolerance_fra
     # disk that hangs outside.
     outside = 1.0 - cv2.filter2D(np.ones_like(unsafe), -1, disk, borderType=cv2.BORDER_CONSTANT)
     ok = (unsafe_frac + outside) <= tolerance_frac + 1e-6
-    never = sorted(_zero_tolerance_ids(world, zero_tolerance_names))
-    if never:
-        person = np.isin(world.labels, never).astype(np.uint8)
-        ok &= cv2.dilate(person, (disk > 0).astype(np.uint8), borderType=cv2.BORDER_CONSTANT) == 0
+    for ids, keep_m in ((_zero_tolerance_ids(world, zero_tolerance_names), max(radius_m, person_separation_m)),
+                        (_vehicle_ids(world), vehicle_separation_m)):
+        if ids and keep_m > 0:
+            near = np.isin(world.labels, sorted(ids)).astype(np.uint8)
+            k = int(math.ceil(keep_m / world.gsd_m))
+            yy, xx = np.mgrid[-k:k + 1, -k:k + 1]
+            kernel = ((xx * xx + yy * yy) * world.gsd_m ** 2 <= keep_m * keep_m).astype(np.uint8)
+            ok &= cv2.dilate(near, kernel, borderType=cv2.BORDER_CONSTANT) == 0
     return ok.astype(np.uint8)
+
+
+def _vehicle_ids(world: World) -> set[int]:
+    """Unsafe classes named as vehicles by a whole word ("car", not "carpark")."""
+    return {cid for cid, c in world.classes.items()
+            if not c.safe and set(re.split(r"[^a-z]+", c.name.lower())) & set(VEHICLE_NAMES)}
 
 
 def nearest_safe_m(world: World, safe_map: np.ndarray, x_m: float, y_m: float, within_m: float) -> float | None:
@@ -251,6 +322,8 @@ class EpisodeJudge:
         safety_radius_m: float = SAFETY_RADIUS_M,
         tolerance_frac: float = TOLERANCE_FRAC,
         search_radius_m: float = SEARCH_RADIUS_M,
+        person_separation_m: float = PERSON_SEPARATION_M,
+        vehicle_separation_m: float = VEHICLE_SEPARATION_M,
     ) -> None:
         # A world without labels (tiles, paper-paris) is flown to the hand-over altitude, the time
         # limit or its edge like any other, but its landings end "not_judged": nothing says safe.
@@ -262,6 +335,8 @@ class EpisodeJudge:
         self.safety_radius_m = safety_radius_m
         self.tolerance_frac = tolerance_frac
         self.search_radius_m = search_radius_m
+        check_separations(person_separation_m, vehicle_separation_m)
+        self.person_separation_m, self.vehicle_separation_m = float(person_separation_m), float(vehicle_separation_m)
         self.outcome: str | None = None  # "safe", "unsafe", "timeout", "out_of_world", "not_judged" once ended
         self.verdict: Verdict | None = None  # set when the controller handed over
         self.crashed = False  # reached the ground without a hand-over (outcome "unsafe", no verdict)
@@ -302,8 +377,11 @@ class EpisodeJudge:
         elif landed and self.world.labels is None:
             self.outcome = "not_judged"
         elif landed:
+            # People and cars where they are at the hand-over, on the episode's clock.
             self.verdict = judge_landing(self.world, state.x_m, state.y_m, self.safety_radius_m,
-                                         self.tolerance_frac, self.search_radius_m)
+                                         self.tolerance_frac, self.search_radius_m, t_s=self.sim_time_s,
+                                         person_separation_m=self.person_separation_m,
+                                         vehicle_separation_m=self.vehicle_separation_m)
             self.outcome = self.verdict.outcome
             if self.confirmed_xy_m is not None:
                 self.touchdown_error_m = math.hypot(state.x_m - self.confirmed_xy_m[0],

@@ -186,7 +186,7 @@ class ObjectLayer:
 
     def draw(self, image: np.ndarray | None, labels: np.ndarray | None, world_m_to_px: np.ndarray, t_s: float,
              label_ids: tuple[int, int], *, shadow_per_m: tuple[float, float] = (0.0, 0.0),
-             valid: np.ndarray | None = None, skip_baked: bool = False) -> int:
+             valid: np.ndarray | None = None, skip_baked: bool = False, baked_labels: bool = True) -> int:
         """Paint the objects visible in a view into its image (RGB uint8, anti-aliased, in place) and
         labels (class ids, in place; `label_ids` = (person id, vehicle id)); returns how many were drawn.
 
@@ -196,7 +196,8 @@ class ObjectLayer:
         `shadow_per_m`: ground offset (east, north metres) of a shadow per metre of height (away
         from the sun). Pixels with `valid` False (beyond the world) are left alone.
         `skip_baked`: leave out the objects the world's texture already holds (a view no finer
-        than the texture).
+        than the texture). `baked_labels` False: paint those into the image only, their labels
+        being the world's label map's own (which the judge and the camera's labels read).
         """
         h_px, w_px = (image.shape[:2] if image is not None else labels.shape if labels is not None else (0, 0))
         if not len(self) or not h_px:
@@ -225,7 +226,9 @@ class ObjectLayer:
             body_px = _fixed(_project(m, bodies.reshape(-1, 2))).reshape(len(sel), -1, 1, 2)
             if image is not None:
                 self._paint(image, m, st, sel, kind, bodies, body_px, ppm[sel], (sx, sy))
-            if labels is not None:
+            if labels is not None and not baked_labels:
+                sel, bodies, body_px = sel[~self.baked[sel]], bodies[~self.baked[sel]], body_px[~self.baked[sel]]
+            if labels is not None and sel.size:
                 # A pixel takes the class id when its centre lies on the object, as the camera's
                 # nearest lookup labels the world. OpenCV's polygon fill also takes every pixel the
                 # outline touches: right for large objects, four times too many for one pixel's size.
@@ -345,10 +348,10 @@ class Population:
     shadow_per_m: tuple[float, float] = (0.0, 0.0)  # ground offset (east, north) per metre of height
 
     def draw(self, image: np.ndarray | None, labels: np.ndarray | None, world_m_to_px: np.ndarray, t_s: float,
-             valid: np.ndarray | None = None, skip_baked: bool = False) -> int:
+             valid: np.ndarray | None = None, skip_baked: bool = False, baked_labels: bool = True) -> int:
         """`ObjectLayer.draw` with this world's label ids and sun."""
         return self.layer.draw(image, labels, world_m_to_px, t_s, self.label_ids, shadow_per_m=self.shadow_per_m,
-                               valid=valid, skip_baked=skip_baked)
+                               valid=valid, skip_baked=skip_baked, baked_labels=baked_labels)
 
     def nearest_m(self, x_m: float, y_m: float, t_s: float) -> tuple[float | None, float | None]:
         """(nearest person, nearest vehicle) footprint distances from a ground point at t_s (None: none)."""

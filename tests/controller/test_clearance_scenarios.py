@@ -16,7 +16,8 @@ import cv2
 import numpy as np
 import pytest
 
-from dovesei.controller.policies.base import LookResult, Observation, make_policy
+from dovesei.controller.policies.base import LookResult, Observation
+from dovesei.controller.policies.registry import make_policy
 from dovesei.controller.policies.clearance.policy import ClearancePolicy
 from dovesei.controller.policies.clearance.config import ClearanceConfig
 from dovesei.controller.policies.clearance.ground_map import logit
@@ -254,20 +255,20 @@ def test_noisy_biased_odometry_and_wind_still_land_on_the_chosen_spot() -> None:
     assert flight.alt_m <= 20.0
     assert world.disk_safe(flight.north_m, flight.east_m, 2.0)
     assert math.hypot(flight.north_m - 35.0, flight.east_m + 50.0) < 4.0
-    info = flight.decision.info
+    info = flight.decision.report
     # Registration kept the estimate on the truth (the start is (0, 0) in both frames) ...
-    assert math.hypot(info["est_north_m"] - flight.north_m, info["est_east_m"] - flight.east_m) < 3.0
+    assert math.hypot(info.est_north_m - flight.north_m, info.est_east_m - flight.east_m) < 3.0
     # ... and learnt the velocity error: truth - estimate = wind - bias = (-0.5, +1.1) m/s.
-    assert info["bias_north_m_s"] < -0.1 and info["bias_east_m_s"] > 0.5
+    assert info.bias_north_m_s < -0.1 and info.bias_east_m_s > 0.5
 
 
 def test_without_registration_the_estimate_drifts() -> None:
     """The same flight with registration off (no heatmap ever counts as textured): the position
     estimate drifts metres off, so the test above passes because of the registration."""
     _, flight = _odometry_flight(ClearanceConfig(reg_min_std=1.0))
-    info = flight.decision.info
-    assert math.hypot(info["est_north_m"] - flight.north_m, info["est_east_m"] - flight.east_m) > 4.0
-    assert info["bias_north_m_s"] == 0.0 and info["bias_east_m_s"] == 0.0
+    info = flight.decision.report
+    assert math.hypot(info.est_north_m - flight.north_m, info.est_east_m - flight.east_m) > 4.0
+    assert info.bias_north_m_s == 0.0 and info.bias_east_m_s == 0.0
 
 
 def test_the_observation_has_no_position_field() -> None:
@@ -420,27 +421,25 @@ def _fly_recalibrated(world: World, a: float, b: float, **kwargs) -> Flight:
 RECALIBRATIONS = [(1.0, 0.0), (0.6, -0.8), (0.6, 0.8), (1.6, -0.8), (1.6, 0.8)]
 
 
-def test_decisions_do_not_depend_on_the_calibration() -> None:
+@pytest.mark.parametrize("a,b", RECALIBRATIONS)
+def test_decisions_do_not_depend_on_the_calibration(a: float, b: float) -> None:
     """The strip-and-lawn scenario flown through five calibrations of the perception, the corners of
-    the robustness bench's range (a in [0.6, 1.6], b in [-0.8, 0.8]): the same spot is chosen and
-    locked on (the landing within a metre or two of the plain flight's), the strip never."""
+    the robustness bench's range (a in [0.6, 1.6], b in [-0.8, 0.8]) and the plain one: the same
+    spot is chosen and locked on (the 12 m lawn, within a few metres of its centre), the strip
+    never. A 100 m search radius keeps the top pass (and the test) short."""
     safe = np.zeros((SIDE, SIDE), bool)
     mid = SIDE // 2
     safe[:, mid - 6:mid + 6] = True
     _lawn(safe, -40.0, 45.0, 12.0)
     world = World(safe)
-    landed = []
-    for a, b in RECALIBRATIONS:
-        flight = _fly_recalibrated(world, a, b)
-        assert flight.alt_m <= 20.0, (a, b, flight.decision.reason)
-        assert world.disk_safe(flight.north_m, flight.east_m, 2.0), (a, b)
-        assert "DESCEND" in flight.states
-        for n, e, alt, state, down in flight.track:
-            if state == "DESCEND" and down > 0.0:
-                assert abs(e) > 10.0, (a, b, n, e, alt)
-        landed.append((flight.north_m, flight.east_m))
-    plain = landed[0]
-    assert all(math.hypot(n - plain[0], e - plain[1]) < 2.5 for n, e in landed), landed
+    flight = _fly_recalibrated(world, a, b, config=ClearanceConfig(search_radius_m=100.0))
+    assert flight.alt_m <= 20.0, (a, b, flight.decision.reason)
+    assert world.disk_safe(flight.north_m, flight.east_m, 2.0), (a, b)
+    assert math.hypot(flight.north_m + 40.0, flight.east_m - 45.0) < 4.0, (a, b, flight.north_m, flight.east_m)
+    assert "DESCEND" in flight.states
+    for n, e, alt, state, down in flight.track:
+        if state == "DESCEND" and down > 0.0:
+            assert abs(e) > 10.0, (a, b, n, e, alt)
 
 
 @pytest.mark.parametrize("a,b", [(0.6, 0.8), (1.6, 0.8)])

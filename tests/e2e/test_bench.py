@@ -204,7 +204,7 @@ def test_results_json_round_trips(tmp_path: Path) -> None:
 
 
 def test_the_start_margin_shrinks_to_what_a_small_world_leaves_room_for() -> None:
-    from dovesei.bench.run import fitting_margin_m  # lazy: this test only
+    from dovesei.flight_defaults import fitting_margin_m  # lazy: this test only
     from dovesei.sim.world import load_world
 
     small = load_world("synthetic:size_m=400,seed=1")
@@ -212,3 +212,28 @@ def test_the_start_margin_shrinks_to_what_a_small_world_leaves_room_for() -> Non
     assert 5.0 <= fitted < 180.0
     assert fitting_margin_m(small, 40.0, 20.0) == 20.0  # a margin that fits is kept
     assert fitting_margin_m(small, 40.0, 180.0, floor_m=fitted + 1.0) == 180.0  # no room even at the floor
+
+
+def test_records_carry_the_separation_figures_and_the_summary_counts_them(tmp_path: Path) -> None:
+    # From 25 m `clearance` reaches the 20 m hand-over within the limit on most starts (measured: 2
+    # of these 3); the judge measures the nearest person and vehicle there, and the summary and page
+    # count what broke the separation (a 50 m vehicle rule, which any city touchdown breaks).
+    doc = run_bench(world_spec=WORLD, episodes=3, seed=0, policies=["clearance"], noise=None, timing="real",
+                    time_limit_s=120.0, start_alt_m=25.0, handover_alt_m=20.0, jobs=1, out=tmp_path, progress=False,
+                    perception="clean", separation_m=(3.0, 50.0))
+    judged = [e for e in doc["episodes"] if e["separation_violated"] is not None]
+    assert judged, [e["outcome"] for e in doc["episodes"]]
+    for e in doc["episodes"]:
+        assert {"nearest_person_m", "nearest_vehicle_m", "separation_violated"} <= set(e)
+    for e in judged:  # a vehicle within 50 m of any touchdown in a city: the strict rule catches it
+        near_car = e["nearest_vehicle_m"] is not None and e["nearest_vehicle_m"] < 50.0
+        assert e["separation_violated"] == (near_car or (e["nearest_person_m"] or 99.0) < 3.0)
+        assert e["outcome"] == "unsafe" or not e["separation_violated"]
+    s = doc["summary"]["clearance"]
+    assert s["separation_judged"] == len(judged)
+    assert s["separation_violations"] == sum(e["separation_violated"] for e in judged)
+    assert doc["config"]["separation_m"] == [3.0, 50.0]
+    md = (tmp_path / "summary.md").read_text()
+    assert "separation violations" in md and "no vehicle within 50 m of the touchdown" in md
+    assert f"| {s['separation_violations']}/{len(judged)} |" in md
+    assert "nearest person median / min" in (tmp_path / "report.html").read_text()

@@ -53,7 +53,7 @@ NON_DEFAULT = {
         vehicle_id="base", all_vehicles=True, lockstep=True, overload_report_s=2.5,
         variant="onnx-int8"),
     "controller": ControllerConfig(
-        vehicle_id="uav3", policy="dovesei-nofocus", timing="real", lockstep=False, rate_hz=12.5,
+        vehicle_id="uav3", policy="dovesei-nofocus", timing="real", lockstep=False, rate_hz=12.5, close_look=True,
         heatmap_hold_after_s=2.0, heatmap_climb_after_s=12.0, state_stale_after_s=0.8, climb_speed_m_s=1.5,
         search_alt_m=80.0, handover_alt_m=15.0, handover_action="land", vehicle_url="udpin:0.0.0.0:14550",
         mavlink_alt_source="rangefinder", mavlink_allow_mode_switch=True, mavlink_yaw_control="autopilot",

@@ -32,17 +32,22 @@ WORLD = "synthetic:size_m=400,seed=1"
 # Recorded with the code before vehicle profiles (commit f3f3332), `engines.run_job` of these jobs;
 # since the judge ends an episode on the controller's hand-over (3 states at the altitude, then
 # its command), 0.15 s later than the altitude crossing did: the same landing, 0.17 m lower. The
-# clearance record is that of `clearance` since it lands where it checked (f7aefb9).
+# clearance record is that of `clearance` since it lands where it checked (f7aefb9). Re-recorded
+# for issue 24: people now walk and cars drive in every world (frames show them) and the simulated
+# perception weighs a person or car by the tokens it covers. Before: dovesei 47.0 s, 87.956 m,
+# landing at (290.224, 66.297); clearance 45.25 s, 80.455 m, at (290.721, 346.391). The same
+# landings within 0.8 m. With the moving objects left out and the old constant salience the
+# records were the old ones to the last digit (checked when re-recording).
 REFERENCE = [
     ({"policy": "dovesei", "index": 1, "seed": 12, "timing": "reference", "time_limit_s": 60.0,
       "start": {"x_m": 266.718, "y_m": 133.498, "alt_m": 100.0}},
-     {"outcome": "safe", "sim_time_s": 47.0, "path_length_m": 87.956, "max_range_m": 74.5,
-      "final": {"x_m": 290.224, "y_m": 66.297, "alt_m": 19.799}}),
+     {"outcome": "safe", "sim_time_s": 47.25, "path_length_m": 99.509, "max_range_m": 79.7,
+      "final": {"x_m": 290.119, "y_m": 67.006, "alt_m": 19.797}}),
     ({"policy": "clearance", "index": 0, "seed": 11, "timing": "real", "time_limit_s": 150.0,
       "policy_config": {"scene_after_top_pass": False},  # a 400 m world: its scene is the first views
       "start": {"x_m": 230.274, "y_m": 296.129, "alt_m": 100.0}},
-     {"outcome": "safe", "sim_time_s": 45.25, "path_length_m": 80.455, "max_range_m": 78.6,
-      "final": {"x_m": 290.721, "y_m": 346.391, "alt_m": 19.806}}),
+     {"outcome": "safe", "sim_time_s": 44.4, "path_length_m": 80.351, "max_range_m": 78.5,
+      "final": {"x_m": 290.075, "y_m": 346.298, "alt_m": 19.808}}),
 ]
 
 
