@@ -25,7 +25,7 @@ import numpy as np
 
 from dovesei.controller.core import ControllerConfig, ControllerCore
 from dovesei.controller.looker import SyncLooker
-from dovesei.controller.policies.base import make_policy
+from dovesei.controller.policies.registry import make_policy
 from dovesei.controller.policies.config_file import config_from_values
 from dovesei.segmenter.core import FrameRejected, SegmenterConfig, SegmenterCore, make_backend
 from dovesei.segmenter.prompts import REFERENCE_PROMPTS, PromptSet

@@ -12,7 +12,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from dovesei.controller.policies import policy_names
+from dovesei.controller.policies.registry import policy_names
 from dovesei.controller.policies.config_file import defaults_toml, load_policy_config, policy_values
 from dovesei.shared.cliconfig import OneLineParser
 from dovesei.shared.errors import ConfigError

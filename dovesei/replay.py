@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from dovesei.controller.core import ControllerConfig, ControllerCore, ControllerInputError
-from dovesei.controller.policies.base import make_policy, policy_names
+from dovesei.controller.policies.registry import make_policy, policy_names
 from dovesei.controller.policies.config_file import config_from_values, policy_values
 from dovesei.episode import EpisodeSpec, segmenter_config
 from dovesei.pictures import plots

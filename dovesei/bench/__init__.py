@@ -27,10 +27,10 @@ from pathlib import Path
 from dovesei.bench import shift
 from dovesei.bench.run import Grid, Variant, run_grid, summary_markdown
 from dovesei.bench.shift import parse_shift
-from dovesei.controller.policies import policy_names
-from dovesei.controller.policies.clearance.config import ClearanceConfig
+from dovesei.controller.policies.registry import policy_names
 from dovesei.controller.policies.config_file import load_policy_config, policy_values, preset_config
 from dovesei.episode import DEFAULT_PERCEPTION
+from dovesei.flight_defaults import default_start_margin_m, default_timing
 from dovesei.episode import perception_names as _perception_names
 from dovesei.bench.stats import SUMMARY_KEYS, summarise, wilson_interval
 from dovesei.shared.cliconfig import OneLineParser
@@ -68,7 +68,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--perception", default=None, help="simulated perception profile (default: realistic)")
     p.add_argument("--noise", type=float, default=None, help="simulated perception noise scale (default: the profile's)")
     p.add_argument("--perception-shift", default=None, metavar="A_LO,A_HI,B", help=shift.HELP)
-    p.add_argument("--timing", default=shared_timing.DEFAULT_TIMING, help="timing preset: reference or real")
+    p.add_argument("--timing", default=None, help=f"timing preset: reference or real (default: real with `clearance` "
+                                                   f"flown, else {shared_timing.DEFAULT_TIMING}; as `dovesei up`)")
     p.add_argument("--time-limit-s", type=float, default=None,
                    help="sim-time limit of an episode (default: the paper's 1200 s on the preset's clock)")
     p.add_argument("--start-alt-m", type=float, default=100.0,
@@ -147,35 +148,28 @@ def _at_least_one(flag: str, value: int) -> int:
     return value
 
 
-# The true track should stay inside the search radius (the fence inside it allows for drift); the
-# starts allow as much again beyond it, so a broken promise is measured, not cut off by the edge.
-DRIFT_ALLOWANCE_M = 30.0
-PLAIN_START_MARGIN_M = 5.0
+def run_bench(*, jobs: int, out: Path, engine: str = "local", address: str | None = None, progress: bool = True,
+              **settings) -> dict:
+    """Run (or resume) a bench into `out`; returns the results.json content. `settings`: `make_grid`'s."""
+    _at_least_one("--jobs", jobs)
+    if address and engine != "ray":
+        raise ConfigError("--address names a Ray cluster: use it with --engine ray")
+    return run_grid(make_grid(**settings), out=out, workers=jobs, engine=engine, address=address, progress=progress)
 
 
-def default_start_margin_m(policies) -> float:
-    """Where starts must lie so every bounded search flown keeps its search area on the map."""
-    if "clearance" in policies:
-        cfg = ClearanceConfig()
-        return cfg.search_radius_m + DRIFT_ALLOWANCE_M
-    return PLAIN_START_MARGIN_M
-
-
-def run_bench(*, world_spec: str | None = None, worlds: tuple[str, ...] | None = None, episodes: int, seed: int,
-              policies, noise: float | None, timing: str, time_limit_s: float, start_alt_m: float, jobs: int,
-              out: Path, start_margin_m: float = 5.0, segmenter: str = "sim", perception: str | None = None, engine: str = "local",
-              address: str | None = None, progress: bool = True, world_label: str = "",
-              seed_note: str = "", vehicle_profile: str | None = None,
+def make_grid(*, world_spec: str | None = None, worlds: tuple[str, ...] | None = None, episodes: int, seed: int,
+              policies, noise: float | None, timing: str, time_limit_s: float, start_alt_m: float,
+              start_margin_m: float = 5.0, segmenter: str = "sim", perception: str | None = None,
+              world_label: str = "", seed_note: str = "", vehicle_profile: str | None = None,
               handover_alt_m: float = HANDOVER_ALT_M, policy_config: Path | None = None,
               separation_m: tuple[float, float] = (PERSON_SEPARATION_M, VEHICLE_SEPARATION_M),
-              perception_shift: str | tuple | None = None, close_look: bool = True) -> dict:
-    """Run (or resume) a bench into `out`; returns the results.json content.
+              perception_shift: str | tuple | None = None, close_look: bool = True) -> Grid:
+    """The bench's grid, every setting checked (one line naming the flag otherwise).
 
     With `perception_shift` ("A_LO,A_HI,B") every start is flown plainly and shifted (dovesei.bench.shift).
     """
     shifted = None if perception_shift is None else parse_shift(perception_shift)
     _at_least_one("--episodes", episodes)
-    _at_least_one("--jobs", jobs)
     if seed < 0:
         raise ConfigError(f"--seed must be >= 0, got {seed}")
     if noise is not None:
@@ -196,37 +190,38 @@ def run_bench(*, world_spec: str | None = None, worlds: tuple[str, ...] | None =
     validate_one_of("--vehicle-profile", vehicle_profile, VEHICLE_PROFILE_NAMES)
     non_negative("--start-margin-m", start_margin_m)
     shared_timing.timing(timing)
-    if address and engine != "ray":
-        raise ConfigError("--address names a Ray cluster: use it with --engine ray")
     specs = tuple(worlds) if worlds else (world_spec or "synthetic",)
     plain = Variant(perception=check_perception(perception))
     variants = (plain,) if shifted is None else (plain, Variant(perception=plain.perception, shift=shifted))
-    grid = Grid(worlds=specs, episodes=episodes, seed=seed, policies=tuple(policies),
+    return Grid(worlds=specs, episodes=episodes, seed=seed, policies=tuple(policies),
                 variants=variants, noise=noise, timing=timing,
                 time_limit_s=float(time_limit_s), start_alt_m=float(start_alt_m), segmenter=segmenter,
                 start_margin_m=float(start_margin_m), world_label=world_label or specs[0], extra={"seed_note": seed_note} if seed_note else {},
                 vehicle_profile=vehicle_profile, handover_alt_m=float(handover_alt_m), policy_config=changed,
                 separation_m=(float(separation_m[0]), float(separation_m[1])), close_look=bool(close_look))
-    return run_grid(grid, out=out, workers=jobs, engine=engine, address=address, progress=progress)
+
+
+def settings_from_args(args: argparse.Namespace) -> dict:
+    """`make_grid`'s settings from the flags; what is left out is `dovesei.flight_defaults`' (as `up`)."""
+    policies = parse_policies(args.policy)
+    timing = args.timing or default_timing(policies)
+    return dict(world_spec=args.world, worlds=suite_worlds(args.suite.strip()) if args.suite is not None else None,
+                episodes=args.episodes, seed=args.seed, policies=policies, noise=args.noise, timing=timing,
+                time_limit_s=paper_time_limit_s(timing) if args.time_limit_s is None else args.time_limit_s,
+                start_alt_m=args.start_alt_m,
+                start_margin_m=default_start_margin_m(policies) if args.start_margin_m is None else args.start_margin_m,
+                segmenter=args.segmenter, perception=args.perception, vehicle_profile=args.vehicle_profile,
+                handover_alt_m=args.handover_alt_m, policy_config=args.policy_config,
+                separation_m=(args.person_separation_m, args.vehicle_separation_m),
+                perception_shift=args.perception_shift, close_look=args.close_look, world_label=f"suite:{args.suite.strip()}" if args.suite is not None else "")
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:
-        policies = parse_policies(args.policy)
-        limit_s = paper_time_limit_s(args.timing) if args.time_limit_s is None else args.time_limit_s
-        worlds = suite_worlds(args.suite.strip()) if args.suite is not None else None
-        doc = run_bench(world_spec=args.world, worlds=worlds, episodes=args.episodes, seed=args.seed,
-                        policies=policies, noise=args.noise, timing=args.timing, time_limit_s=limit_s,
-                        start_alt_m=args.start_alt_m, start_margin_m=(default_start_margin_m(policies) if args.start_margin_m is None
-                                        else args.start_margin_m), jobs=args.jobs, out=args.out, segmenter=args.segmenter,
-                        perception=args.perception, engine=args.engine, address=args.address,
-                        progress=not args.no_progress, vehicle_profile=args.vehicle_profile,
-                        handover_alt_m=args.handover_alt_m, policy_config=args.policy_config,
-                        separation_m=(args.person_separation_m, args.vehicle_separation_m),
-                        perception_shift=args.perception_shift, close_look=args.close_look,
-                        world_label=f"suite:{args.suite.strip()}" if args.suite is not None else "")
+        doc = run_bench(jobs=args.jobs, out=args.out, engine=args.engine, address=args.address,
+                        progress=not args.no_progress, **settings_from_args(args))
     except DoveseiError as exc:  # a user error: one line, no traceback
         print(f"dovesei bench: {exc}", file=sys.stderr)
         return 2

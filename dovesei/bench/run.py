@@ -24,11 +24,10 @@ from pathlib import Path
 import numpy as np
 
 from dovesei.bench import engines, shift, stats
+from dovesei.flight_defaults import starts as bench_starts
 from dovesei.pictures.html import write_bench_page
 from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.shared.mission import HANDOVER_ALT_M, PERSON_SEPARATION_M, SAFETY_RADIUS_M, VEHICLE_SEPARATION_M
-from dovesei.sim.camera import CameraModel
-from dovesei.sim.starts import generate_starts
 from dovesei.sim.world import load_world, require_judged
 
 log = logging.getLogger(__name__)
@@ -167,27 +166,12 @@ def load_worlds(specs: Sequence[str]) -> dict:
     return {spec: load_world(spec) for spec in specs}
 
 
-def fitting_margin_m(world, alt_m: float, margin_m: float, floor_m: float = 5.0) -> float:
-    """The start margin, shrunk (with a warning) to what the world leaves room for, never below
-    `floor_m`: a small test world still gets starts, and the log says a bounded search may reach
-    its edge there."""
-    cam = CameraModel()
-    room = min(world.width_m / 2.0 - cam.half_width_m(alt_m), world.height_m / 2.0 - cam.half_height_m(alt_m)) - 1.0
-    if margin_m <= room or room < floor_m:
-        return margin_m  # fits, or does not fit even at the floor (generate_starts names the problem)
-    log.warning("world %s (%.0f x %.0f m) has room for a %.0f m start margin, not %.0f m: starts there lie "
-                "closer to the edge than a bounded search may fly", world.name, world.width_m, world.height_m, room,
-                margin_m)
-    return room
-
-
 def plan_jobs(grid: Grid, worlds: dict, out: Path) -> list[dict]:
     """Every episode of the grid as a job dict, in a fixed order (world, start, variant, policy)."""
     jobs = []
     for wi, spec in enumerate(grid.worlds):
-        margin = fitting_margin_m(worlds[spec], grid.start_alt_m, grid.start_margin_m)
-        starts = generate_starts(worlds[spec], grid.episodes, grid.seed, alt_m=grid.start_alt_m, margin_m=margin)
-        for i, st in enumerate(starts):
+        for i, st in enumerate(bench_starts(worlds[spec], grid.episodes, grid.seed, alt_m=grid.start_alt_m,
+                                            margin_m=grid.start_margin_m)):
             for var in grid.variants:
                 for pol in grid.policies:
                     jobs.append({

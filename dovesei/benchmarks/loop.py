@@ -31,7 +31,7 @@ import numpy as np
 import zenoh
 
 from dovesei.controller.core import ControllerConfig
-from dovesei.controller.policies.base import policy_names
+from dovesei.controller.policies.registry import policy_names
 from dovesei.controller.service import RunStats, run
 from dovesei.shared.cliconfig import OneLineParser
 from dovesei.shared import keys

@@ -25,7 +25,8 @@ import time
 import cv2
 import numpy as np
 
-from dovesei.controller.policies.base import Observation, make_policy, policy_names
+from dovesei.controller.policies.base import Observation
+from dovesei.controller.policies.registry import make_policy, policy_names
 from dovesei.shared.cliconfig import OneLineParser
 
 

@@ -29,13 +29,15 @@ from dovesei.shared.timing import DEFAULT_TIMING, TIMING_NAMES, timing
 from dovesei.controller.core import HANDOVER_ACTIONS
 from dovesei.controller.gnss_denied import GNSS_DENIED_MODES
 from dovesei.controller.mavlink.proto import load_signing_key
-from dovesei.controller.policies import policy_names
+from dovesei.controller.policies.registry import policy_names
 from dovesei.controller.policies.config_file import load_policy_config
+from dovesei.flight_defaults import default_start_margin_m, default_timing
+from dovesei.flight_defaults import starts as bench_starts
 from dovesei.segmenter.simulated import DEFAULT_PROFILE, PROFILE_NAMES
 from dovesei.sim.estimator import VEHICLE_PROFILE_NAMES, default_vehicle_profile
 from dovesei.sim.service import parse_start as sim_parse_start
 from dovesei.sim.sitl_truth import parse_truth_url
-from dovesei.sim.starts import check_start_alt_m, generate_starts
+from dovesei.sim.starts import check_start_alt_m
 
 DESCRIPTION = "`dovesei up`: fly one episode with the three services as separate OS processes on Zenoh."
 SEGMENTERS = ("auto", "clipseg", "sim")
@@ -216,8 +218,8 @@ def parse_start(text: str) -> tuple[float, float, float | None]:
 def resolve_start(world: Any, options: UpOptions) -> tuple[float, float, float]:
     """The start `up` hands the sim explicitly, so it also knows where the local frame's origin is.
 
-    Without --start it is the first of `generate_starts(world, n, seed)`, i.e. exactly the bench's
-    start 0 for the same seed.
+    Without --start it is the start 0 of `dovesei bench --policy P` for the same seed and start
+    altitude (the same margin, fitted to the world the same way: `dovesei.flight_defaults`).
     """
     if options.start is not None:
         x_m, y_m, alt_m = options.start
@@ -229,7 +231,7 @@ def resolve_start(world: Any, options: UpOptions) -> tuple[float, float, float]:
     if home is not None:  # a preset built around one start (paper-paris): fly from it, as the paper did
         return float(home[0]), float(home[1]), float(options.start_alt_m)
     seed = options.seed if options.start_seed is None else options.start_seed
-    st = generate_starts(world, 1, seed, alt_m=options.start_alt_m)[0]
+    st = bench_starts(world, 1, seed, alt_m=options.start_alt_m, margin_m=default_start_margin_m([options.policy]))[0]
     return st.x_m, st.y_m, st.alt_m
 
 
@@ -252,7 +254,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="TOML file of the policy's constants, any subset (`dovesei policy-config --defaults POLICY` "
                         "prints them all); recorded in the report")
     p.add_argument("--timing", choices=TIMING_NAMES,
-                   help=f"timing preset (default: {DEFAULT_TIMING}; real with --vehicle or --policy clearance)")
+                   help=f"timing preset (default: {DEFAULT_TIMING}; real with --vehicle-url or --policy clearance, as `dovesei bench`)")
     p.add_argument("--seed", type=int, default=0, help="seed of the perception noise and of the start")
     p.add_argument("--perception", default=DEFAULT_PROFILE, choices=PROFILE_NAMES,
                    help=f"simulated perception profile (default: {DEFAULT_PROFILE}); a test instrument")
@@ -332,9 +334,7 @@ def options_from_args(args: argparse.Namespace) -> UpOptions:
     if args.start:
         x_m, y_m, alt_m = parse_start(args.start)
         start = (x_m, y_m, args.start_alt_m if alt_m is None else alt_m)
-    # `clearance` keeps its own true-second timers: the reference preset's 78 sim s limit (the
-    # paper's 1200 s scaled to its compressed clock) would cut its search short, so it flies real.
-    timing_name = args.timing or ("real" if args.vehicle_url or args.policy == "clearance" else DEFAULT_TIMING)
+    timing_name = args.timing or default_timing([args.policy], real_vehicle=bool(args.vehicle_url))
     out = args.out or Path("runs") / f"up-{datetime.now().strftime('%Y%m%d-%H%M%S')}"  # claimed unique in `run`
     limit_s = timing(timing_name).time_limit_s if args.time_limit_s is None else args.time_limit_s
     return UpOptions(world=args.world, segmenter=args.segmenter, policy=args.policy, policy_config=args.policy_config,

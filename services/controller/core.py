@@ -57,9 +57,8 @@ from typing import Any
 
 from dovesei.controller.gnss_denied import EXTERNAL_NAV_MESSAGES, GNSS_DENIED_MODES, NavStatus
 from dovesei.controller.looker import Looker
-from dovesei.controller.policies.base import (
-    Decision, LookRequest, LookResult, Observation, Policy, PolicyInputError, make_policy, policy_names,
-)
+from dovesei.controller.policies.base import Decision, LookRequest, LookResult, Observation, Policy, PolicyInputError
+from dovesei.controller.policies.registry import make_policy, policy_names
 from dovesei.controller.continuity import (
     ALTITUDE_NOISE_M, MAX_VERTICAL_SPEED_M_S, STEP_CONFIRM_SAMPLES, AltitudeContinuity,
 )
@@ -900,10 +899,8 @@ class ControllerCore:
         age_s = self.heatmap_age_s(state)
         target = decision.target_px if decision is not None else None
         threshold = decision.threshold if decision is not None else None
-        # The chosen spot, as a policy with a ground map reports it in Decision.info (explainable status).
-        info = decision.info if decision is not None else {}
-        spot = ((float(info["spot_north_m"]), float(info["spot_east_m"]))
-                if "spot_north_m" in info and "spot_east_m" in info else None)
+        # The chosen spot, as a policy with a ground map reports it (explainable status).
+        spot = decision.spot if decision is not None else None
         if mode is Mode.HANDOVER:
             state_name = "HANDOVER"
         else:
@@ -920,9 +917,10 @@ class ControllerCore:
             threshold_valid=threshold is not None, threshold=float(threshold) if threshold is not None else 0.0,
             vel_body_frd_m_s=vel, alt_agl_m=state.alt_agl_m,
             policy_reason=decision.reason if decision is not None else "",
-            spot_valid=spot is not None, spot_north_m=spot[0] if spot else 0.0, spot_east_m=spot[1] if spot else 0.0,
-            spot_clearance_m=max(info.get("spot_clearance_m", 0.0), 0.0) if spot else 0.0,
-            spot_confidence=min(max(info.get("spot_confidence", 0.0), 0.0), 1.0) if spot else 0.0,
+            spot_valid=spot is not None, spot_north_m=float(spot.north_m) if spot else 0.0,
+            spot_east_m=float(spot.east_m) if spot else 0.0,
+            spot_clearance_m=max(float(spot.clearance_m), 0.0) if spot else 0.0,
+            spot_confidence=min(max(float(spot.confidence), 0.0), 1.0) if spot else 0.0,
             handover=mode is Mode.HANDOVER,
             nav_source=nav.source if nav is not None else "", gnss_lost=nav.gnss_lost if nav is not None else False,
             position_lost=nav.position_lost if nav is not None else False,

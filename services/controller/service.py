@@ -40,7 +40,7 @@ import threading
 from collections import deque
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any
 
 import zenoh
 
@@ -55,7 +55,8 @@ from dovesei.controller.gnss_denied import (
     OdometryLimits,
 )
 from dovesei.controller.mavlink.proto import SpeedLimits, load_signing_key
-from dovesei.controller.policies.base import policy_names
+from dovesei.controller.policies.registry import policy_names
+from dovesei.controller.vehicle import Vehicle
 from dovesei.shared import keys, validate
 from dovesei.shared.cliconfig import CommandLine, Flag, non_blank
 from dovesei.shared.clock import WallClock, wall_time_s
@@ -81,29 +82,12 @@ log = logging.getLogger(__name__)
 _MAX_LATENESS_SAMPLES = 200_000
 
 
-class Vehicle(Protocol):
-    """What the loop needs from a vehicle; `ZenohVehicle` here, `MavlinkVehicle` in mavlink.py."""
-
-    def poll_state(self) -> VehicleState | None: ...
-
-    def send(self, cmd: VelocityCommand) -> None: ...
-
-    def hold(self) -> None: ...
-
-    def handover(self) -> None: ...
-
-    def close(self) -> None: ...
-
-    def nav_status(self) -> NavStatus | None: ...
-
-    def on_visual_odometry(self, odom: VisualOdometry) -> None: ...
-
-
 class ZenohVehicle:
     """The simulator seen through Zenoh: states from the `state` key, commands to the `cmd` key."""
 
     # The lockstep sim waits for one command per state, so zero commands keep flowing at hand-over.
     commands_during_handover = True
+    is_link_owner = False  # the sim publishes its own states
 
     def __init__(self, session: zenoh.Session, vehicle_id: str, *, lockstep: bool) -> None:
         # Set when a state arrives; the lockstep loop shares it with the heatmap inbox so that it
@@ -134,16 +118,21 @@ class ZenohVehicle:
         self._pub.put(encode(cmd))
         self._last_cmd = cmd  # remembered so `hold` can stamp its zero command consistently
 
-    def hold(self) -> None:
+    def hold(self) -> bool:
         """Publish a zero-velocity command; state_seq -1 marks it as no answer to a lockstep tick."""
         if self._last_cmd is None:
-            return  # never commanded anything: nothing to take back
+            return False  # never commanded anything: nothing to take back
         last = self._last_cmd
         self.send(VelocityCommand(last.vehicle_id, last.seq + 1, last.stamp, (0.0, 0.0, 0.0), 0.0,
                                   state_seq=-1, frame_seq=last.frame_seq, sent_wall_s=wall_time_s()))
+        return True
 
-    def handover(self) -> None:
+    def handover(self) -> bool:
         """The sim's judge ends the episode at the hand-over altitude: nothing to switch."""
+        return True
+
+    def set_landing_target(self, angle_x_rad: float, angle_y_rad: float, distance_m: float) -> None:
+        """The sim has no precision landing: the episode ends at the hand-over altitude."""
 
     def nav_status(self) -> NavStatus | None:
         """The sim publishes its velocity estimate as the state: no estimator health to judge."""
@@ -155,6 +144,10 @@ class ZenohVehicle:
     @property
     def rejected(self) -> int:
         return sum(self.states.rejected.values())
+
+    def counters(self) -> dict[str, Any]:
+        """No MAVLink link: nothing to count beyond `rejected`."""
+        return {}
 
     def close(self) -> None:
         self.states.close()
@@ -237,7 +230,7 @@ class _Loop:
         self._recorded_frame_seq = -1
         self.heatmaps: Inbox[SafetyHeatmap] = Inbox(session, keys.heatmap(config.vehicle_id), SafetyHeatmap,
                                                     newest_only=not config.lockstep,
-                                                    wakeup=getattr(vehicle, "wakeup", None))
+                                                    wakeup=vehicle.wakeup)
         self._state_pub: Any = None
         # The camera's velocity, every sample in order (each one is a measurement for the EKF).
         self.odometry: Inbox[VisualOdometry] | None = None
@@ -245,7 +238,7 @@ class _Loop:
             if config.gnss_denied != "off":
                 self.odometry = Inbox(session, keys.odometry(config.vehicle_id), VisualOdometry, newest_only=False)
             self._status_pub = session.declare_publisher(keys.status(config.vehicle_id))
-            if getattr(vehicle, "is_link_owner", False):
+            if vehicle.is_link_owner:
                 # Newest wins for a pose: a congested link drops old states rather than queue them.
                 self._state_pub = session.declare_publisher(keys.state(config.vehicle_id),
                                                             congestion_control=zenoh.CongestionControl.DROP)
@@ -339,7 +332,7 @@ class _Loop:
             self._stream_landing_target(state)
         # A MAVLink vehicle stops receiving setpoints at hand-over: its adapter does the action.
         sent: VelocityCommand | None = None
-        if mode is not Mode.HANDOVER or getattr(self.vehicle, "commands_during_handover", False):
+        if mode is not Mode.HANDOVER or self.vehicle.commands_during_handover:
             try:
                 out = replace(cmd, sent_wall_s=wall_time_s())
                 self.vehicle.send(out)
@@ -358,12 +351,11 @@ class _Loop:
     def _stream_landing_target(self, state: VehicleState) -> None:
         """Precision landing: the spot as LANDING_TARGET, refreshed every tick until the vehicle has
         landed (the adapter streams it at 10 Hz while the autopilot is armed in LAND/PRECLAND)."""
-        set_target = getattr(self.vehicle, "set_landing_target", None)
         target = self.core.landing_target(state)
-        if target is None or set_target is None:
+        if target is None:
             return
         try:
-            set_target(*target)
+            self.vehicle.set_landing_target(*target)
         except DoveseiError as exc:
             log.debug("landing target not set: %s", exc)
 
@@ -372,11 +364,10 @@ class _Loop:
         stats.heatmap_payloads_rejected = sum(self.heatmaps.rejected.values())
         if self.odometry is not None:
             stats.odometry_payloads_rejected = sum(self.odometry.rejected.values())
-        stats.state_payloads_rejected = int(getattr(self.vehicle, "rejected", 0))
+        stats.state_payloads_rejected = self.vehicle.rejected
         stats.core_refusals = dict(self.core.rejected)
         stats.geofence_clipped = self.core.geofence.clipped if self.core.geofence is not None else 0
-        counters = getattr(self.vehicle, "counters", None)
-        stats.vehicle_link = counters() if callable(counters) else {}
+        stats.vehicle_link = self.vehicle.counters()
         return stats
 
 

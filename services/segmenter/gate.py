@@ -11,7 +11,7 @@ from a heatmap with what it decides from the fp32 heatmap of the same frame:
 
 Per frame: mask IoU against fp32 (pass: >= MIN_MASK_IOU) and the distance between the two target
 pixels as a fraction of the frame width (pass: <= MAX_TARGET_SHIFT_FRAC); a variant passes when
-its worst frame passes both. The threshold is the controller's `policies.dovesei.dynamic_threshold`
+its worst frame passes both. The threshold is the controller's `policies.dovesei.policy.dynamic_threshold`
 written again here on purpose: a service imports only `dovesei.shared` and itself, and the gate
 runs inside the segmenter at start; a test holds the two masks equal. With random weights this checks the numerics only; the same figures
 on the real weights say whether a variant is safe to fly (README: run it once on the real model).

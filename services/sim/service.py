@@ -162,7 +162,8 @@ class SimStats:
 
 
 def resolve_start(world: World, config: SimServiceConfig) -> Start:
-    """The start of the episode: the explicit --start, else generate_starts(seed)[0]."""
+    """The start of the episode: the explicit --start; a world built around one start (paper-paris:
+    its home), as `dovesei up` flies it; else generate_starts(seed)[0]."""
     if config.start_xy_alt_m is not None:
         x_m, y_m, alt_m = config.start_xy_alt_m
         if not world.contains(x_m, y_m):
@@ -171,6 +172,8 @@ def resolve_start(world: World, config: SimServiceConfig) -> Start:
         if alt_m <= 0:
             raise ConfigError(f"--start altitude must be > 0 m, got {alt_m:g}")
         return Start(x_m, y_m, alt_m)
+    if world.home_xy_m is not None:
+        return Start(float(world.home_xy_m[0]), float(world.home_xy_m[1]), float(config.start_alt_m))
     return generate_starts(world, 1, config.start_seed, alt_m=config.start_alt_m, cam=config.sim.camera)[0]
 
 

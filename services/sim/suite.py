@@ -1,7 +1,7 @@
 """The world suite: the worlds a benchmark flies when asked for `--suite default`.
 
 `DEFAULT_SUITE` holds world specs as `load_world` takes them: the CC0 Dubai tile shipped with the
-package and one synthetic world of each style (`synth_styles`; `crowded`, the plazas and parks with
+package and one synthetic world of each style (`synthetic.styles`; `crowded`, the plazas and parks with
 crowds, last), each 1.6 km square at 0.25 m/px and seeded so the suite is the same on every machine. The synthetic worlds are generated once and
 then read from the disk cache (`synthetic.load_or_generate`).
 """

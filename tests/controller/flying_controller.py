@@ -29,7 +29,7 @@ class Forward10:
     name = "forward10"
 
     def step(self, obs: Observation) -> Decision:
-        return Decision((10.0, 0.0, 0.0), 0.0, "RESTARTING", None, 10.0, 0.5, {})
+        return Decision((10.0, 0.0, 0.0), 0.0, "RESTARTING", None, 10.0, 0.5)
 
     def reset(self) -> None:
         pass

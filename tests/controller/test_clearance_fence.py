@@ -23,7 +23,7 @@ FENCE_M = CFG.fence_m
 def test_bench_starts_keep_the_whole_fenced_search_area_on_every_suite_world() -> None:
     # A bench that flies `clearance` draws its starts so that the fence plus a drift allowance
     # lies on the map, around every start, on every world of the suite.
-    from dovesei.bench import default_start_margin_m  # lazy: the CLI layer, only for this check
+    from dovesei.flight_defaults import default_start_margin_m  # lazy: the CLI layer, only for this check
     from dovesei.sim.starts import generate_starts
     from dovesei.sim.suite import DEFAULT_SUITE
     from dovesei.sim.world import load_world
@@ -65,7 +65,7 @@ class _Recording(ClearancePolicy):
     def step(self, obs: Observation) -> Decision:
         d = super().step(obs)
         self.estimates.append((self.motion.north_m, self.motion.east_m))
-        self.decision_fenced.append(bool(d.info.get("fenced", 0.0)))
+        self.decision_fenced.append(d.report is not None and d.report.fenced)
         return d
 
 
@@ -116,7 +116,7 @@ def test_no_spot_holds_its_point_by_vision_against_wind_and_a_biased_estimate() 
     drift = max(math.hypot(n - n0, e - e0) for n, e in held)
     assert drift < 15.0, drift
     assert flight.max_range_m < CFG.search_radius_m
-    assert flight.decision.info["hold_error_m"] < 10.0
+    assert flight.decision.report.hold_error_m < 10.0
 
 
 def test_the_fence_shrinks_while_the_estimate_is_uncertain() -> None:

@@ -16,7 +16,8 @@ import cv2
 import numpy as np
 import pytest
 
-from dovesei.controller.policies.base import LookResult, Observation, make_policy
+from dovesei.controller.policies.base import LookResult, Observation
+from dovesei.controller.policies.registry import make_policy
 from dovesei.controller.policies.clearance.policy import ClearancePolicy
 from dovesei.controller.policies.clearance.config import ClearanceConfig
 from dovesei.controller.policies.clearance.ground_map import logit
@@ -254,20 +255,20 @@ def test_noisy_biased_odometry_and_wind_still_land_on_the_chosen_spot() -> None:
     assert flight.alt_m <= 20.0
     assert world.disk_safe(flight.north_m, flight.east_m, 2.0)
     assert math.hypot(flight.north_m - 35.0, flight.east_m + 50.0) < 4.0
-    info = flight.decision.info
+    info = flight.decision.report
     # Registration kept the estimate on the truth (the start is (0, 0) in both frames) ...
-    assert math.hypot(info["est_north_m"] - flight.north_m, info["est_east_m"] - flight.east_m) < 3.0
+    assert math.hypot(info.est_north_m - flight.north_m, info.est_east_m - flight.east_m) < 3.0
     # ... and learnt the velocity error: truth - estimate = wind - bias = (-0.5, +1.1) m/s.
-    assert info["bias_north_m_s"] < -0.1 and info["bias_east_m_s"] > 0.5
+    assert info.bias_north_m_s < -0.1 and info.bias_east_m_s > 0.5
 
 
 def test_without_registration_the_estimate_drifts() -> None:
     """The same flight with registration off (no heatmap ever counts as textured): the position
     estimate drifts metres off, so the test above passes because of the registration."""
     _, flight = _odometry_flight(ClearanceConfig(reg_min_std=1.0))
-    info = flight.decision.info
-    assert math.hypot(info["est_north_m"] - flight.north_m, info["est_east_m"] - flight.east_m) > 4.0
-    assert info["bias_north_m_s"] == 0.0 and info["bias_east_m_s"] == 0.0
+    info = flight.decision.report
+    assert math.hypot(info.est_north_m - flight.north_m, info.est_east_m - flight.east_m) > 4.0
+    assert info.bias_north_m_s == 0.0 and info.bias_east_m_s == 0.0
 
 
 def test_the_observation_has_no_position_field() -> None:

@@ -43,7 +43,7 @@ def test_status_carries_the_transition_reason_and_the_chosen_spot() -> None:
     assert approach.policy_reason == core.decision.reason
     assert approach.spot_valid and approach.spot_clearance_m >= core.policy.config.required_clearance_m
     assert 0.0 < approach.spot_confidence <= 1.0
-    assert approach.spot_north_m == pytest.approx(core.decision.info["spot_north_m"])
+    assert approach.spot_north_m == pytest.approx(core.decision.spot.north_m)
     assert approach.reason  # the watchdog's own reason is still there, separately
     back = decode(encode(approach), ControllerStatus)
     assert back.policy_reason == approach.policy_reason and back.spot_clearance_m == approach.spot_clearance_m

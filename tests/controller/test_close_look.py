@@ -16,7 +16,8 @@ import pytest
 
 from dovesei.controller.core import ControllerConfig, ControllerCore
 from dovesei.controller.looker import SyncLooker
-from dovesei.controller.policies.base import LookResult, Observation, make_policy
+from dovesei.controller.policies.base import LookResult, Observation
+from dovesei.controller.policies.registry import make_policy
 from dovesei.controller.policies.clearance.closelook import CloseLookConfig, CloseLookPolicy, verdict
 from dovesei.episode import EpisodeSpec, run_episode
 from dovesei.shared.messages import ControllerStatus, CropFrame, CropHeatmap, VehicleState

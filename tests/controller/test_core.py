@@ -27,7 +27,7 @@ class RecordingPolicy:
 
     def step(self, obs: Observation) -> Decision:
         self.observations.append(obs)
-        return Decision(VEL_FRD, 0.1, "AIMING", (10.0, 20.0), 123.0, 0.42, {}, landing=self.landing)
+        return Decision(VEL_FRD, 0.1, "AIMING", (10.0, 20.0), 123.0, 0.42, landing=self.landing)
 
     def reset(self) -> None:
         self.resets += 1
@@ -279,7 +279,7 @@ def test_landed_above_the_handover_altitude_is_refused(terminal: str) -> None:
     class Lands(RecordingPolicy):
         def step(self, obs: Observation) -> Decision:
             self.observations.append(obs)
-            return Decision((0.0, 0.0, 0.0), 0.0, terminal, None, 0.0, None, {})
+            return Decision((0.0, 0.0, 0.0), 0.0, terminal, None, 0.0, None)
 
     core = ControllerCore(ControllerConfig(lockstep=True, handover_alt_m=20.0), policy=Lands())
     core.on_heatmap(heatmap(0, 0.0), 0.0)

@@ -45,7 +45,7 @@ class ForwardAndDown:
 
     def step(self, obs: Observation) -> Decision:
         self.steps += 1
-        return Decision((3.0, 0.0, 1.5), 0.0, "LANDING", self.target_px, 10.0, 0.5, {}, landing=True)
+        return Decision((3.0, 0.0, 1.5), 0.0, "LANDING", self.target_px, 10.0, 0.5, landing=True)
 
     def reset(self) -> None:
         pass
@@ -284,7 +284,7 @@ class Runaway:
 
     def step(self, obs: Observation) -> Decision:
         self.steps += 1
-        return Decision((12.0, 0.0, 0.0), 0.0, "RESTARTING", None, 10.0, 0.5, {})
+        return Decision((12.0, 0.0, 0.0), 0.0, "RESTARTING", None, 10.0, 0.5)
 
     def reset(self) -> None:
         pass
@@ -322,7 +322,7 @@ class Sideways:
 
     def step(self, obs: Observation) -> Decision:
         self.steps += 1
-        return Decision((0.0, 4.0, 0.5), 0.0, "AIMING", None, 10.0, 0.5, {})
+        return Decision((0.0, 4.0, 0.5), 0.0, "AIMING", None, 10.0, 0.5)
 
     def reset(self) -> None:
         pass

@@ -22,7 +22,7 @@ class Runaway:
     name = "runaway"
 
     def step(self, obs: Observation) -> Decision:
-        return Decision((10.0, 10.0, 0.0), 0.0, "RESTARTING", None, 10.0, 0.5, {})
+        return Decision((10.0, 10.0, 0.0), 0.0, "RESTARTING", None, 10.0, 0.5)
 
     def reset(self) -> None:
         pass

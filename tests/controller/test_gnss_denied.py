@@ -197,7 +197,7 @@ class Descend:
     name = "descend"
 
     def step(self, obs: Observation) -> Decision:
-        return Decision((1.0, 0.0, 1.0), 0.0, "LANDING", None, 10.0, 0.5, {}, landing=True)
+        return Decision((1.0, 0.0, 1.0), 0.0, "LANDING", None, 10.0, 0.5, landing=True)
 
     def reset(self) -> None:
         pass

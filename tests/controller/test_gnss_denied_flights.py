@@ -63,7 +63,7 @@ class ForwardAndDown:
 
     def step(self, obs: Observation) -> Decision:
         self.steps += 1
-        return Decision((1.0, 0.0, 1.5), 0.0, "LANDING", (32.0, 32.0), 10.0, 0.5, {}, landing=True)
+        return Decision((1.0, 0.0, 1.5), 0.0, "LANDING", (32.0, 32.0), 10.0, 0.5, landing=True)
 
     def reset(self) -> None:
         pass

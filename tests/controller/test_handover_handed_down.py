@@ -10,7 +10,7 @@ from __future__ import annotations
 import pytest
 
 from dovesei.controller.core import ControllerConfig, ControllerCore
-from dovesei.controller.policies.base import make_policy
+from dovesei.controller.policies.registry import make_policy
 from dovesei.episode import EpisodeSpec, run_episode
 from dovesei.shared.messages import ControllerStatus
 from dovesei.shared.mission import HANDOVER_ALT_M

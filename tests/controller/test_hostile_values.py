@@ -111,7 +111,7 @@ class Landing:
     name = "double"
 
     def step(self, obs):
-        return Decision((0.0, 0.0, 1.0), 0.0, "LANDING", None, 10.0, 0.5, {}, landing=True)
+        return Decision((0.0, 0.0, 1.0), 0.0, "LANDING", None, 10.0, 0.5, landing=True)
 
     def reset(self) -> None:
         pass

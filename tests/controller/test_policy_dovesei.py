@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from dovesei.benchmarks import policy as bench
-from dovesei.controller.policies.base import Observation, PolicyInputError, make_policy, policy_names
+from dovesei.controller.policies.base import Observation, PolicyInputError
+from dovesei.controller.policies.registry import make_policy, policy_names
 from dovesei.controller.policies.dovesei.config import DoveseiConfig, real_timing
 from dovesei.controller.policies.dovesei.policy import (
     DoveseiPolicy,
@@ -321,7 +322,7 @@ def test_policy_targets_a_disk_and_reports_heatmap_pixels() -> None:
     assert d.threshold == 0.85
     row, col = d.target_px
     assert abs(row - 120) <= 1 and abs(col - 260) <= 1
-    assert d.info["err_m"] == pytest.approx(math.hypot(56 / 352, 83.5 / 353) * PROJ_100, rel=0.02)
+    assert d.report.machine.err_m == pytest.approx(math.hypot(56 / 352, 83.5 / 353) * PROJ_100, rel=0.02)
 
 
 def test_policy_failure_path_commands_a_saturated_searching_move() -> None:
@@ -352,12 +353,12 @@ def test_ticks_without_a_heatmap_hold_the_last_decision() -> None:
     first = policy.step(Observation(0.0, 100.0, None))
     assert first.state == "SENSOR_ERROR" and first.vel_body_frd_m_s == (0.0, 0.0, 0.0)
     d = policy.step(Observation(0.05, 100.0, _centre_disk_map()))
-    assert d.info["dt_s"] == CFG.decision_period_s  # no previous cycle: the nominal period
+    assert d.report.machine.dt_s == CFG.decision_period_s  # no previous cycle: the nominal period
     for i in range(10):
         assert policy.step(Observation(0.1 + 0.05 * i, 100.0, None)) is d
     d2 = policy.step(Observation(1.3, 100.0, _centre_disk_map()))
-    assert d2.info["dt_s"] == pytest.approx(1.25)  # measured between cycles, on the data clock
-    assert d2.info["cycles"] == 2.0
+    assert d2.report.machine.dt_s == pytest.approx(1.25)  # measured between cycles, on the data clock
+    assert d2.report.machine.cycles == 2
     assert policy.step(Observation(1.3, 100.0, _centre_disk_map())) is d2  # dt == 0: skipped
 
 

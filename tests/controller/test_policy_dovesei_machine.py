@@ -174,7 +174,7 @@ def test_one_reference_timing_for_sim_and_policy() -> None:
     drv = Driver(ref)
     drv.warm_up()
     out = drv.cycle(100.0, (0.0, 0.0))
-    assert out.info["est_m"] == pytest.approx(3.0 / 1.3)
+    assert out.report.est_m == pytest.approx(3.0 / 1.3)
 
 
 def test_give_up_below_safe_altitude_climbs_then_restarts_above_it(drv: Driver) -> None:

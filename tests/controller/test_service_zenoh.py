@@ -186,6 +186,11 @@ def test_real_time_loop_runs_on_its_own_and_flags_a_stale_state(zenoh_pair) -> N
 class FakeMavlink:
     """Records what the loop asks of a flight controller (stands in for MavlinkVehicle)."""
 
+    wakeup = None
+    is_link_owner = False  # this double publishes no states of its own
+    commands_during_handover = False
+    rejected = 0
+
     def __init__(self, states: list[VehicleState]) -> None:
         self.states, self.sent, self.calls = list(states), [], []
         self.lock = threading.Lock()
@@ -198,11 +203,22 @@ class FakeMavlink:
         with self.lock:
             self.sent.append(cmd)
 
-    def hold(self) -> None:
-        self.calls.append("hold")
+    def connect(self, timeout_s: float) -> None:
+        self.calls.append("connect")
 
-    def handover(self) -> None:
+    def hold(self) -> bool:
+        self.calls.append("hold")
+        return True
+
+    def handover(self) -> bool:
         self.calls.append("handover")
+        return True
+
+    def set_landing_target(self, angle_x_rad: float, angle_y_rad: float, distance_m: float) -> None:
+        self.calls.append("landing_target")
+
+    def counters(self) -> dict:
+        return {}
 
     def close(self) -> None:
         self.calls.append("close")
@@ -218,7 +234,7 @@ class Descend:
     name = "descend"
 
     def step(self, obs: Observation) -> Decision:
-        return Decision((0.0, 0.0, 1.0), 0.0, "LANDING", None, 10.0, 0.5, {}, landing=True)
+        return Decision((0.0, 0.0, 1.0), 0.0, "LANDING", None, 10.0, 0.5, landing=True)
 
     def reset(self) -> None:
         pass

@@ -23,7 +23,7 @@ class DescendingPolicy:
     name = "descend"
 
     def step(self, obs: Observation) -> Decision:
-        return Decision((0.0, 0.0, DESCENT_M_S), 0.0, "LANDING", None, 50.0, 0.5, {}, landing=True)
+        return Decision((0.0, 0.0, DESCENT_M_S), 0.0, "LANDING", None, 50.0, 0.5, landing=True)
 
     def reset(self) -> None:
         pass

@@ -204,7 +204,7 @@ def test_results_json_round_trips(tmp_path: Path) -> None:
 
 
 def test_the_start_margin_shrinks_to_what_a_small_world_leaves_room_for() -> None:
-    from dovesei.bench.run import fitting_margin_m  # lazy: this test only
+    from dovesei.flight_defaults import fitting_margin_m  # lazy: this test only
     from dovesei.sim.world import load_world
 
     small = load_world("synthetic:size_m=400,seed=1")

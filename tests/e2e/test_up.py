@@ -632,7 +632,7 @@ def test_up_external_nav_keeps_the_ekf_flying_on_the_camera_until_the_autopilot_
     after the last body odometry, then its failsafe follows: it never comes)."""
     import socket
 
-    from dovesei.controller import mavlink_proto as mv
+    from dovesei.controller.mavlink import proto as mv
     from dovesei.shared.lifecycle import wait_until
     from dovesei.shared.zconfig import free_port
     from dovesei.testing.fake_autopilot import FakeAutopilot

@@ -49,7 +49,7 @@ def test_the_policy_step_is_capped_at_two_nominal_periods_of_the_preset() -> Non
 
             def step(self, obs: Observation) -> Decision:
                 seen.append(obs.t_s)
-                return Decision((0.0, 0.0, 1.0), 0.0, "AIMING", None, 0.0, None, {})
+                return Decision((0.0, 0.0, 1.0), 0.0, "AIMING", None, 0.0, None)
 
             def reset(self) -> None:
                 pass
@@ -73,7 +73,7 @@ class LandsOnce:
         self.steps += 1
         landed = self.steps == 2
         return Decision((0.0, 0.0, 0.0 if landed else 1.0), 0.0, "LANDED" if landed else "LANDING", None, 0.0,
-                        None, {})
+                        None)
 
     def reset(self) -> None:
         self.resets += 1
@@ -120,7 +120,7 @@ class WindsUp:
     name = "double"
 
     def step(self, obs: Observation) -> Decision:
-        return Decision((18497.8, 0.0, 1.0), 0.0, "RESTARTING", None, 0.0, None, {})
+        return Decision((18497.8, 0.0, 1.0), 0.0, "RESTARTING", None, 0.0, None)
 
     def reset(self) -> None:
         pass

@@ -18,6 +18,9 @@ import pytest
 
 from dovesei.sim import paris
 from dovesei.sim.paris import IGN_ORTHO_WMTS, N_STARTS, parse_spec, start_latlon
+from dovesei.sim.service import SimServiceConfig
+from dovesei.sim.service import resolve_start as sim_resolve_start
+from dovesei.sim.starts import Start
 from dovesei.sim.tiles import TileError
 from dovesei.sim.world import load_world, unjudged_reason
 from tests.sim.test_tiles import TileServer, server  # noqa: F401  (the local tile server fixture)
@@ -77,6 +80,8 @@ def test_flies_from_the_centre_of_a_window_of_ign_tiles(server: TileServer, tmp_
     r, c = world.pixel_index(*world.home_xy_m)
     pixel = world.image_rgb[r, c].astype(int)
     assert abs(pixel[0] - col % 256) <= 3 and abs(pixel[1] - row % 256) <= 3  # JPEG: within a few levels
+    # The sim started on its own starts there too, as `dovesei up` does (one answer for paper-paris).
+    assert sim_resolve_start(world, SimServiceConfig(world=spec, start_alt_m=80.0)) == Start(*world.home_xy_m, 80.0)
     again = load_world(spec)  # from the disk cache: not one request more
     assert len(server.wmts_queries) == len(queries)
     np.testing.assert_array_equal(again.image_rgb, world.image_rgb)

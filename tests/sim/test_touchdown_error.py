@@ -95,7 +95,7 @@ class _Confirming:
         pass
 
     def step(self, obs: Observation) -> Decision:
-        return Decision((0.0, 0.0, 1.0), 0.0, "DESCEND", None, 1.0, None, {}, "descending",
+        return Decision((0.0, 0.0, 1.0), 0.0, "DESCEND", None, 1.0, None, "descending",
                         confirmed=Confirmation(obs.frame_seq, self.row_px, 5.0))
 
 

@@ -1,6 +1,6 @@
 """MAVLink vocabulary for the adapter: enum values, mode numbers, sample checks, limits, signing keys.
 
-Everything here is pure (no thread, no socket): `mavlink.py` owns the link and calls these to turn
+Everything here is pure (no thread, no socket): `vehicle.py` owns the link and calls these to turn
 what the autopilot says into validated numbers and what the controller wants into bounded
 setpoints. Values follow the MAVLink common and ardupilotmega dialects (the tests compare them
 with pymavlink's) and the two autopilots' documented conventions:

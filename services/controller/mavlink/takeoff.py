@@ -19,7 +19,8 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
-from typing import TYPE_CHECKING
+from contextlib import AbstractContextManager
+from typing import Protocol
 
 from dovesei.controller.mavlink.proto import (
     MAV_CMD_COMPONENT_ARM_DISARM,
@@ -29,11 +30,9 @@ from dovesei.controller.mavlink.proto import (
     MSG_ID_HOME_POSITION,
     NotSteerableError,
 )
+from dovesei.controller.mavlink.readiness import ArmReadiness
 from dovesei.shared import validate
 from dovesei.shared.messages import Stamp, VelocityCommand
-
-if TYPE_CHECKING:  # only for annotations: mavlink.py imports this module (no cycle at run time)
-    from dovesei.controller.mavlink.vehicle import MavlinkVehicle
 
 log = logging.getLogger(__name__)
 
@@ -42,25 +41,60 @@ _WAIT_LOG_PERIOD_S = 5.0
 _TOP_FRACTION = 0.95  # the climb counts as done at 95 % of the target altitude
 
 
-def _altitude_m(v: MavlinkVehicle) -> float | None:
-    with v._lock:
-        return v._state.alt_agl_m if v._state is not None else None
+class TakeoffLink(Protocol):
+    """What the takeoff sequence uses of the adapter (`MavlinkVehicle`): public members only."""
+
+    vehicle_id: str
+    read_only: bool
+    readiness: ArmReadiness
+
+    @property
+    def armed(self) -> bool: ...
+
+    @property
+    def mode(self) -> str: ...
+
+    @property
+    def lost_reason(self) -> str | None: ...
+
+    @property
+    def closed(self) -> bool: ...
+
+    def altitude_m(self) -> float | None: ...
+
+    def pause(self, seconds: float) -> bool: ...
+
+    def connected_autopilot(self) -> str: ...
+
+    def command_long(self, command: int, *params: float) -> None: ...
+
+    def command_long_wait(self, command: int, *params: float, timeout_s: float) -> int | None: ...
+
+    def wait_armed(self, timeout_s: float) -> bool: ...
+
+    def set_mode(self, name: str, timeout_s: float = 3.0) -> bool: ...
+
+    def send(self, cmd: VelocityCommand) -> None: ...
+
+    def zero_command(self) -> VelocityCommand: ...
+
+    def prestreaming(self) -> AbstractContextManager[None]: ...
 
 
-def _check_alive(v: MavlinkVehicle) -> None:
-    if v._stop.is_set():
+def _check_alive(v: TakeoffLink) -> None:
+    if v.closed:
         raise NotSteerableError("takeoff aborted: the MAVLink adapter was closed")
     lost = v.lost_reason
     if lost is not None:
         raise NotSteerableError(f"takeoff aborted: {lost}")
 
 
-def _said(v: MavlinkVehicle) -> str:
+def _said(v: TakeoffLink) -> str:
     reasons = v.readiness.reasons()
     return "; ".join(f"'{r}'" for r in reasons) if reasons else "nothing"
 
 
-def wait_until_ready(v: MavlinkVehicle, deadline_s: float, ready_timeout_s: float) -> None:
+def wait_until_ready(v: TakeoffLink, deadline_s: float, ready_timeout_s: float) -> None:
     """Block until nothing in ArmReadiness blocks arming, or raise at the deadline."""
     next_log_s = next_home_s = 0.0
     while True:
@@ -75,23 +109,23 @@ def wait_until_ready(v: MavlinkVehicle, deadline_s: float, ready_timeout_s: floa
                                     f"{'; '.join(blockers)}; its last pre-arm messages: {_said(v)}")
         if not v.readiness.has_home and now >= next_home_s:
             # ArduPilot sends HOME_POSITION on request (and when home changes), not on a stream.
-            v._send_command_long(MAV_CMD_REQUEST_MESSAGE, float(MSG_ID_HOME_POSITION))
+            v.command_long(MAV_CMD_REQUEST_MESSAGE, float(MSG_ID_HOME_POSITION))
             next_home_s = now + 2.0
         if now >= next_log_s:
             log.info("waiting before arming: %s (autopilot says %s)", "; ".join(blockers), _said(v))
             next_log_s = now + _WAIT_LOG_PERIOD_S
-        v._stop.wait(0.1)
+        v.pause(0.1)
 
 
-def arm_with_backoff(v: MavlinkVehicle, deadline_s: float) -> None:
+def arm_with_backoff(v: TakeoffLink, deadline_s: float) -> None:
     """ARM, retried after 1, 2, 4, 8, 8... s while the deadline allows; raise naming the reasons."""
     delay_s, attempt = _BACKOFF_FIRST_S, 0
     while True:
         _check_alive(v)
         attempt += 1
         log.info("arming (requested explicitly), attempt %d", attempt)
-        result = v._command_long_wait(MAV_CMD_COMPONENT_ARM_DISARM, 1.0, timeout_s=3.0)
-        if result == MAV_RESULT_ACCEPTED and v._wait(lambda: v._armed, 3.0):
+        result = v.command_long_wait(MAV_CMD_COMPONENT_ARM_DISARM, 1.0, timeout_s=3.0)
+        if result == MAV_RESULT_ACCEPTED and v.wait_armed(3.0):
             log.info("armed")
             return
         if time.monotonic() + delay_s > deadline_s:
@@ -99,12 +133,12 @@ def arm_with_backoff(v: MavlinkVehicle, deadline_s: float) -> None:
                                     f"its last pre-arm messages: {_said(v)}")
         log.warning("arming refused (MAV_RESULT %s; autopilot says %s): retrying in %.0f s", result, _said(v),
                     delay_s)
-        if v._stop.wait(delay_s):
+        if v.pause(delay_s):
             raise NotSteerableError("takeoff aborted: the MAVLink adapter was closed")
         delay_s = min(2.0 * delay_s, _BACKOFF_MAX_S)
 
 
-def arm_and_takeoff(v: MavlinkVehicle, alt_m: float, *, climb_timeout_s: float | None, ready_timeout_s: float,
+def arm_and_takeoff(v: TakeoffLink, alt_m: float, *, climb_timeout_s: float | None, ready_timeout_s: float,
                     climb_rate_m_s: float) -> None:
     """See `MavlinkVehicle.arm_and_takeoff`."""
     if v.read_only:
@@ -115,26 +149,26 @@ def arm_and_takeoff(v: MavlinkVehicle, alt_m: float, *, climb_timeout_s: float |
     if climb_timeout_s is None:
         climb_timeout_s = 30.0 + 2.0 * alt_m / climb_rate_m_s
     climb_timeout_s = validate.positive("takeoff climb timeout (s)", climb_timeout_s)
-    target = v._require_target()
-    current = _altitude_m(v)
+    autopilot = v.connected_autopilot()
+    current = v.altitude_m()
     if v.armed and current is not None and current >= _TOP_FRACTION * alt_m:
         log.info("takeoff skipped: already armed at %.1f m (asked for %.1f m)", current, alt_m)
         return
     deadline_s = time.monotonic() + ready_timeout_s
     wait_until_ready(v, deadline_s, ready_timeout_s)
-    if target.autopilot == "ardupilot":
+    if autopilot == "ardupilot":
         _ardupilot(v, alt_m, deadline_s, climb_timeout_s)
     else:
         _px4(v, alt_m, deadline_s, climb_timeout_s, climb_rate_m_s)
-    log.info("takeoff complete at %.1f m", _altitude_m(v) or float("nan"))
+    log.info("takeoff complete at %.1f m", v.altitude_m() or float("nan"))
 
 
-def _wait_climb(v: MavlinkVehicle, alt_m: float, climb_timeout_s: float,
+def _wait_climb(v: TakeoffLink, alt_m: float, climb_timeout_s: float,
                 step: Callable[[float | None], None] | None = None) -> None:
     deadline_s = time.monotonic() + climb_timeout_s
     while True:
         _check_alive(v)
-        current = _altitude_m(v)
+        current = v.altitude_m()
         if current is not None and current >= _TOP_FRACTION * alt_m:
             return
         if time.monotonic() >= deadline_s:
@@ -143,25 +177,23 @@ def _wait_climb(v: MavlinkVehicle, alt_m: float, climb_timeout_s: float,
                                     f"(at {shown}; mode {v.mode}, {'armed' if v.armed else 'disarmed'})")
         if step is not None:
             step(current)
-        v._stop.wait(0.1)
+        v.pause(0.1)
 
 
-def _ardupilot(v: MavlinkVehicle, alt_m: float, deadline_s: float, climb_timeout_s: float) -> None:
+def _ardupilot(v: TakeoffLink, alt_m: float, deadline_s: float, climb_timeout_s: float) -> None:
     if not v.set_mode("GUIDED"):
         raise NotSteerableError(f"the autopilot did not enter GUIDED for takeoff (mode {v.mode})")
     arm_with_backoff(v, deadline_s)
-    result = v._command_long_wait(MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, float(alt_m), timeout_s=3.0)
+    result = v.command_long_wait(MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, float(alt_m), timeout_s=3.0)
     if result != MAV_RESULT_ACCEPTED:
         raise NotSteerableError(f"the autopilot refused NAV_TAKEOFF to {alt_m:g} m (MAV_RESULT {result}); "
                                 f"it says {_said(v)}")
     _wait_climb(v, alt_m, climb_timeout_s)
 
 
-def _px4(v: MavlinkVehicle, alt_m: float, deadline_s: float, climb_timeout_s: float, climb_rate_m_s: float) -> None:
-    with v._lock:
-        v._prestream = True  # PX4 enters OFFBOARD only while setpoints already stream
-    try:
-        v._stop.wait(0.3)
+def _px4(v: TakeoffLink, alt_m: float, deadline_s: float, climb_timeout_s: float, climb_rate_m_s: float) -> None:
+    with v.prestreaming():  # PX4 enters OFFBOARD only while setpoints already stream
+        v.pause(0.3)
         if not v.set_mode("OFFBOARD"):
             raise NotSteerableError(f"the autopilot did not enter OFFBOARD for takeoff (mode {v.mode}); "
                                     f"it says {_said(v)}")
@@ -175,7 +207,4 @@ def _px4(v: MavlinkVehicle, alt_m: float, deadline_s: float, climb_timeout_s: fl
                                    vel_body_frd_m_s=(0.0, 0.0, -up_m_s)))
 
         _wait_climb(v, alt_m, climb_timeout_s, climb)
-        v.send(v._zero())
-    finally:
-        with v._lock:
-            v._prestream = False
+        v.send(v.zero_command())

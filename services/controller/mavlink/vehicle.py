@@ -32,15 +32,15 @@ Without GNSS (`gnss_denied`, the judgement and the attitude loop in `gnss_denied
         the barometric height above home), horizontal velocity from the good visual velocity or zero
 
 Size: one class, one lock domain (the I/O thread and the caller share every field below under
-`_lock`); the pure parts live beside it (`mavlink_proto` numbers and checks, `mavlink_readiness`,
-`mavlink_takeoff`, `mavlink_signing`), and splitting the rest would scatter the locking.
+`_lock`); the pure parts live beside it (`proto` numbers and checks, `readiness`,
+`takeoff`, `signing`), and splitting the rest would scatter the locking.
 
 Why one thread and no callbacks into the caller: pymavlink's parser is not thread-safe, and the
 controller's loop must never block on the radio. Sends from the caller's thread share a transmit
 lock with the I/O thread (pymavlink's sequence counter and socket writes are not thread-safe).
 
 Conventions (ArduPilot "Copter Commands in Guided Mode", PX4 offboard docs; numbers in
-`mavlink_proto`): body-frame velocities in MAV_FRAME_BODY_OFFSET_NED (ArduPilot) or
+`proto`): body-frame velocities in MAV_FRAME_BODY_OFFSET_NED (ArduPilot) or
 MAV_FRAME_BODY_NED (PX4), both heading-level frames; type mask 0x05C7 (velocity + yaw rate).
 Heading: with `yaw_control="rate"` the yaw rate sent is the policy's plus a proportional
 correction towards the heading held since steering began (read from ATTITUDE), so the camera does
@@ -71,7 +71,8 @@ import math
 import threading
 import time
 from collections import Counter
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -198,6 +199,9 @@ class MavlinkVehicle:
 
     # The controller owns this link alone and republishes its states on the state key.
     is_link_owner = True
+    # The adapter's own hand-over action flies the vehicle from there: no more setpoints.
+    commands_during_handover = False
+    wakeup = None  # the controller polls a real vehicle at its own rate
 
     def __init__(self, url: str, *, vehicle_id: str = "uav1", alt_source: str = "local",
                  handover: str = "hold", allow_mode_switch: bool = False, heartbeat_timeout_s: float = 3.0,
@@ -409,6 +413,11 @@ class MavlinkVehicle:
     def signing_rejected(self) -> Counter[str]:
         """Frames refused by signing, by kind: unsigned, wrong key, replayed (empty without a key)."""
         return self._signing.rejected if self._signing is not None else Counter()
+
+    @property
+    def rejected(self) -> int:
+        """No Zenoh state payloads here: bad MAVLink samples are counted in counters()["samples_rejected"]."""
+        return 0
 
     def counters(self) -> dict[str, Any]:
         """What the link did, for the run's stats and the operator."""
@@ -750,6 +759,53 @@ class MavlinkVehicle:
     def _zero(self, seq: int = -1) -> VelocityCommand:
         return VelocityCommand(vehicle_id=self.vehicle_id, seq=seq, stamp=Stamp(0.0, "vehicle"),
                                vel_body_frd_m_s=(0.0, 0.0, 0.0))
+
+    # ----------------------------------------------------------------- for the takeoff sequence (takeoff.py)
+
+    def altitude_m(self) -> float | None:
+        """The newest altitude above ground, or None before the first state."""
+        with self._lock:
+            return self._state.alt_agl_m if self._state is not None else None
+
+    @property
+    def closed(self) -> bool:
+        """close() was called: every wait ends and nothing more is sent."""
+        return self._stop.is_set()
+
+    def pause(self, seconds: float) -> bool:
+        """Wait up to `seconds`; True when the adapter was closed meanwhile (the caller stops)."""
+        return self._stop.wait(seconds)
+
+    def connected_autopilot(self) -> str:
+        """'ardupilot' or 'px4'; NotSteerableError before connect()."""
+        return self._require_target().autopilot
+
+    def command_long(self, command: int, *params: float) -> None:
+        """Send COMMAND_LONG to the autopilot without waiting for its answer."""
+        self._send_command_long(command, *params)
+
+    def command_long_wait(self, command: int, *params: float, timeout_s: float) -> int | None:
+        """Send COMMAND_LONG and wait for its COMMAND_ACK result (None: no answer in time)."""
+        return self._command_long_wait(command, *params, timeout_s=timeout_s)
+
+    def wait_armed(self, timeout_s: float) -> bool:
+        """True once the autopilot's heartbeat says armed, within `timeout_s`."""
+        return self._wait(lambda: self._armed, timeout_s)
+
+    def zero_command(self) -> VelocityCommand:
+        """A zero-velocity command of this vehicle (hold where you are)."""
+        return self._zero()
+
+    @contextmanager
+    def prestreaming(self) -> Iterator[None]:
+        """Stream zero setpoints while no command is given (PX4 enters OFFBOARD only while they stream)."""
+        with self._lock:
+            self._prestream = True
+        try:
+            yield
+        finally:
+            with self._lock:
+                self._prestream = False
 
     # ----------------------------------------------------------------- internals: I/O thread
 

@@ -1,5 +1,6 @@
-"""Landing policies: pure objects, heatmap and altitude in, command and status out."""
+"""Landing policies: pure objects, heatmap and altitude in, command and status out.
 
-from dovesei.controller.policies.base import Decision, Observation, Policy, make_policy, policy_names
-
-__all__ = ["Decision", "Observation", "Policy", "make_policy", "policy_names"]
+`base` is the contract every policy takes and returns (`Observation`, `Decision`, `Policy`);
+`registry` builds a policy by name (`make_policy`, `policy_names`); `config_file` reads a
+policy's constants from a user's TOML file; one package per policy (`clearance`, `dovesei`).
+"""

@@ -1,4 +1,4 @@
-"""What every landing policy takes and returns, and the factory that builds one by name.
+"""What every landing policy takes and returns (the contract; `registry` builds one by name).
 
 Data flow: the controller loop turns the newest heatmap and vehicle state into an `Observation`,
 calls `Policy.step` once per loop tick and sends the `Decision`'s body-frame FRD velocity. A
@@ -9,8 +9,8 @@ policy is pure: no Zenoh, MAVLink or wall clock inside, every time comes from `O
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any, Protocol
 
 import numpy as np
@@ -95,6 +95,20 @@ class Confirmation:
 
 
 @dataclass(frozen=True)
+class SpotReport:
+    """The spot a policy with a ground map has chosen, where it lies and how good it is."""
+
+    north_m: float  # local north/east of the policy's own position estimate's frame
+    east_m: float
+    clearance_m: float  # metres of checked safe ground around it (now, on the map)
+    confidence: float  # [0, 1]
+    p_safe: float  # fused P(safe) at the spot
+    distance_m: float  # from the estimated position
+    est_north_m: float = 0.0  # the position estimate the spot is seen from (same frame)
+    est_east_m: float = 0.0
+
+
+@dataclass(frozen=True)
 class Decision:
     """What to do until the next decision, and why (for logs and the status key)."""
 
@@ -104,13 +118,16 @@ class Decision:
     target_px: tuple[float, float] | None  # (row, col) in the observation's heatmap pixels
     focus_radius_px: float
     threshold: float | None  # dynamic segmentation threshold used (None when it failed)
-    info: Mapping[str, float] = field(default_factory=dict)
     reason: str = ""  # why the policy is in `state` (the last transition's reason)
     # The policy is committed to landing where it is (descending onto a checked spot, or done):
     # only then may the controller hand over at the hand-over altitude. A descent the policy has
     # aborted that sinks through that altitude (inertia, a baro step) is not a landing.
     landing: bool = False
     confirmed: Confirmation | None = None  # policies with a checked spot: the look that confirmed it last
+    spot: SpotReport | None = None  # policies with a ground map: the chosen spot (the status carries it)
+    # The policy's own typed report of this decision, for logs, tests and overlays: a
+    # `ClearanceReport` or a `DoveseiReport` (None before the first one).
+    report: Any = None
     # A close look to take now (the controller asks the camera and the segmenter; the answer comes
     # back in a later `Observation.look`), and the last close look's verdict for status and video.
     look_request: LookRequest | None = None
@@ -152,87 +169,3 @@ class Policy(Protocol):
     def step(self, obs: Observation) -> Decision: ...
 
     def reset(self) -> None: ...
-
-
-# (horizontal, up, down) m/s: the largest velocities the vehicle flies (the MAVLink adapter's limits).
-SpeedLimitsMS = tuple[float, float, float]
-
-
-def _build_dovesei(config: Any, speed_limits_m_s: SpeedLimitsMS | None = None,
-                   handover_alt_m: float | None = None) -> Policy:
-    # The paper's policy stays faithful: it asks what the reference asks, the adapter clamps it.
-    # It has no hand-over altitude of its own (it descends towards LANDED at 5 m): the controller's
-    # watchdog stops it at the hand-over altitude, so `handover_alt_m` changes nothing inside it.
-    from dovesei.controller.policies.dovesei.policy import DoveseiPolicy  # lazy: the policy modules import this one (cycle)
-
-    return DoveseiPolicy(config, name="dovesei")
-
-
-def _build_dovesei_nofocus(config: Any, speed_limits_m_s: SpeedLimitsMS | None = None,
-                           handover_alt_m: float | None = None) -> Policy:
-    from dovesei.controller.policies.dovesei.policy import DoveseiPolicy  # lazy: the policy modules import this one (cycle)
-
-    return DoveseiPolicy(config, name="dovesei-nofocus", dynamic_focus=False)
-
-
-def _build_clearance(config: Any, speed_limits_m_s: SpeedLimitsMS | None = None,
-                     handover_alt_m: float | None = None) -> Policy:
-    from dovesei.controller.policies.clearance.policy import ClearancePolicy  # lazy: the policy modules import this one (cycle)
-
-    policy = ClearancePolicy(config)
-    cfg = policy.config
-    if handover_alt_m is not None and handover_alt_m != cfg.handover_alt_m:
-        # The controller's hand-over altitude is the policy's: one declaring HANDOVER above the
-        # controller's would be refused as a fault, one below it would never be asked to hand over.
-        cfg = cfg.replace(handover_alt_m=float(handover_alt_m))
-    if speed_limits_m_s is not None:
-        # Ours asks only what the vehicle flies: a clamped command is a different command (a
-        # descent asked at 4 m/s and flown at 1.5 m/s left its timers and odometry prior wrong).
-        cfg = cfg.limited_to(*speed_limits_m_s)
-    if cfg is not policy.config:
-        policy.config = cfg
-        policy.reset()
-    return policy
-
-
-# Name -> factory. Imports stay inside the factories so importing this module stays cheap.
-_FACTORIES: dict[str, Callable[[Any, SpeedLimitsMS | None, float | None], Policy]] = {
-    "clearance": _build_clearance,
-    "dovesei": _build_dovesei,
-    "dovesei-nofocus": _build_dovesei_nofocus,
-}
-
-
-def policy_names() -> list[str]:
-    """Every name `make_policy` accepts."""
-    return sorted(_FACTORIES)
-
-
-# The policies whose descent a close look gates (the paper's stays as published).
-CLOSE_LOOK_POLICIES = ("clearance",)
-
-
-def make_policy(name: str, config: Any = None, speed_limits_m_s: SpeedLimitsMS | None = None, *,
-                handover_alt_m: float | None = None, close_look: bool = False) -> Policy:
-    """Build the policy called `name`.
-
-    `config` is policy-specific: for `dovesei*` a `DoveseiConfig`, a timing preset name
-    ("reference" or "real") or None (the `real` preset); for `clearance` a `ClearanceConfig`, a
-    timing preset name (it runs on true data-clock seconds under both) or None.
-    `speed_limits_m_s` (horizontal, up, down), the vehicle's: `clearance` never asks for more;
-    the `dovesei` policies stay faithful to the reference and are clamped by the adapter.
-    `handover_alt_m`, the controller's (None: the config's own, dovesei.shared.mission's default):
-    a policy with a hand-over altitude of its own (`clearance`) takes it; the paper's has none.
-    `close_look`: `clearance` looks at its spot at full resolution before committing
-    (`policies/closelook.py`); the controller must then carry out its look requests.
-    """
-    try:
-        factory = _FACTORIES[name]
-    except KeyError:
-        raise ValueError(f"unknown policy {name!r}; known: {', '.join(policy_names())}") from None
-    policy = factory(config, speed_limits_m_s, handover_alt_m)
-    if close_look and name in CLOSE_LOOK_POLICIES:
-        from dovesei.controller.policies.clearance.closelook import CloseLookPolicy, close_look_config  # lazy: cycle
-
-        policy = CloseLookPolicy(policy, close_look_config(policy.config.handover_alt_m))
-    return policy

@@ -20,16 +20,9 @@ import typing
 from pathlib import Path
 from typing import Any
 
-from dovesei.controller.policies.clearance.config import ClearanceConfig, clearance_preset
-from dovesei.controller.policies.dovesei.config import DoveseiConfig, timing_preset
+from dovesei.controller.policies.registry import POLICIES
 from dovesei.shared.errors import ConfigError
 
-# Policy name -> (config type, preset builder by timing name).
-_CONFIGS: dict[str, tuple[type, typing.Callable[[str], Any]]] = {
-    "clearance": (ClearanceConfig, clearance_preset),
-    "dovesei": (DoveseiConfig, timing_preset),
-    "dovesei-nofocus": (DoveseiConfig, timing_preset),
-}
 # Fields a file may not set, and the flag that owns each.
 _OWNED_ELSEWHERE = {"timing_name": "--timing", "timer_scale": "--timing", "decision_period_s": "--timing",
                     "handover_alt_m": "--handover-alt-m"}
@@ -37,9 +30,10 @@ _OWNED_ELSEWHERE = {"timing_name": "--timing", "timer_scale": "--timing", "decis
 
 def _config_kind(policy: str) -> tuple[type, typing.Callable[[str], Any]]:
     try:
-        return _CONFIGS[policy]
+        found = POLICIES[policy]
     except KeyError:
-        raise ConfigError(f"policy {policy!r} has no configuration file; choose one of {', '.join(_CONFIGS)}") from None
+        raise ConfigError(f"policy {policy!r} has no configuration file; choose one of {', '.join(POLICIES)}") from None
+    return found.config_type, found.preset
 
 
 def settable_fields(policy: str) -> dict[str, Any]:

@@ -1,7 +1,7 @@
 """The drawing surface of the synthetic worlds and its geometry helpers.
 
 `Canvas` writes image, labels and heights with the same polygon, so the label map is exactly what
-was drawn; shadow casters are queued and rasterised at the end by `synth_render`. `FastRng` serves
+was drawn; shadow casters are queued and rasterised at the end by `render`. `FastRng` serves
 the ~10^5 scalar draws of a world from pre-drawn blocks; the small colour helpers (`uni`, `jit`,
 `pick`, ...) are shared by every drawing module.
 """

@@ -2,7 +2,7 @@
 
 The ids are fixed (other tools and stored results refer to them). The palettes are flat base colours;
 the texture tables say how strongly each class is modulated by grain, mid-scale and coarse noise and
-how its tint drifts across a patch field (applied by `synth_render`).
+how its tint drifts across a patch field (applied by `render`).
 """
 
 from __future__ import annotations

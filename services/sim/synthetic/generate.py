@@ -6,12 +6,12 @@ distance, style), so the same params always give the same bytes, and `load_or_ge
 the result on disk. This module is the front door: the spec, the cache and the pipeline; the
 work is done by concern in
 
-    synth_classes  class ids, which are safe, palettes and texture tables
-    synth_canvas   the drawing surface (image, labels, heights with one polygon) and geometry
-    synth_layout   road grid, blocks, river (`CityStyle` sets the mix of block kinds)
-    synth_objects, synth_blocks, synth_parks, synth_streets   what is drawn
-    synth_styles   the suite's styles: other block mixes, the coast's sea, the open desert
-    synth_render   shadows, textures, colour grading, blur
+    classes        class ids, which are safe, palettes and texture tables
+    canvas         the drawing surface (image, labels, heights with one polygon) and geometry
+    layout         road grid, blocks, river (`CityStyle` sets the mix of block kinds)
+    objects, blocks, parks, streets   what is drawn
+    styles         the suite's styles: other block mixes, the coast's sea, the open desert
+    render         shadows, textures, colour grading, blur
 
 Data flow of `generate_city` (the city styles):
 
@@ -348,7 +348,7 @@ def load_or_generate_world(params: SyntheticParams, cache_dir: Path | None = Non
 
 
 def main(argv: list[str] | None = None) -> int:
-    """`python -m dovesei.sim.synthetic [SPEC]`: time the generation of a world (pictures: `dovesei preview`)."""
+    """`python -m dovesei.sim.synthetic.generate [SPEC]`: time the generation of a world (pictures: `dovesei preview`)."""
     ap = argparse.ArgumentParser(description=main.__doc__)
     ap.add_argument("spec", nargs="?", default="synthetic",
                     help="synthetic[:seed=N,size_m=X,gsd_m=Y,style=S]")

@@ -20,7 +20,7 @@ set, `dovesei.shared.crop`, docs/CROP.md) and gates its descent on the verdict:
 The wrapper is pure like every policy: the answer to a request comes back in a later
 `Observation.look`; nothing here talks to a camera. Only `clearance`'s DESCEND is gated (the
 paper's policy stays faithful to the reference). The spot and the vehicle are read from the inner
-decision's info (its own north/east frame), never from a true position.
+decision's `spot` (its own north/east frame), never from a true position.
 """
 
 from __future__ import annotations
@@ -140,7 +140,9 @@ class _Look:
 
 
 class CloseLookPolicy:
-    """`clearance` (or any policy reporting a spot in its info) with its descent gated on close looks."""
+    """`clearance` (or any policy reporting a `Decision.spot`) with its descent gated on close looks.
+
+    Its counters (`looks`, `failures`, `findings`) are attributes, read by the status and tests."""
 
     def __init__(self, inner, config: CloseLookConfig = CloseLookConfig()) -> None:
         self.inner, self.look_config = inner, config
@@ -217,13 +219,13 @@ class CloseLookPolicy:
 
     def _gate(self, obs: Observation, d: Decision) -> Decision:
         cfg, t, alt = self.look_config, obs.t_s, obs.alt_agl_m
-        info = d.info
-        if d.state != "DESCEND" or "spot_north_m" not in info or alt > cfg.look_alt_m + cfg.brake_m:
+        chosen = d.spot
+        if d.state != "DESCEND" or chosen is None or alt > cfg.look_alt_m + cfg.brake_m:
             if d.state not in ("DESCEND", "HANDOVER"):
                 self._never_since_s = None
             return dataclasses.replace(d, look_verdict=self._verdict)
-        spot = (info["spot_north_m"], info["spot_east_m"])
-        here = (info.get("est_north_m", 0.0), info.get("est_east_m", 0.0))
+        spot = (chosen.north_m, chosen.east_m)
+        here = (chosen.est_north_m, chosen.est_east_m)
         cleared = (self._covers(self._clear, spot) and self._never_since_s is None
                    and self._streak >= cfg.clear_looks)
         if cleared:
@@ -254,6 +256,4 @@ class CloseLookPolicy:
         # Hold the altitude (a descent is positive down); never climb here, the inner policy's abort does.
         return dataclasses.replace(d, vel_body_frd_m_s=(vf, vr, min(vz, 0.0)), landing=False,
                                    reason=f"{why} ({self._verdict or 'no look yet'})", look_request=request,
-                                   look_verdict=self._verdict,
-                                   info={**info, "look_hold": 1.0, "looks": float(self.looks),
-                                         "look_failures": float(self.failures)})
+                                   look_verdict=self._verdict)

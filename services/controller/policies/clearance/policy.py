@@ -17,8 +17,9 @@ Per heatmap, data flows one way:
                      confirmed spot, the current target re-checked, the most promising area
                      worth a probe                                             (ground_map)
       -> machine     one pure step: phase, target, reasons, velocity          (machine)
-      -> Decision    body FRD velocity, state, target pixel, reason, info (spot, clearance,
-                     confidence, position estimate, bias, registration, probes)
+      -> Decision    body FRD velocity, state, target pixel, reason, spot (SpotReport: where,
+                     clearance, confidence) and report (ClearanceReport: position estimate,
+                     bias, scene levels, registration, probes; report.py)
 
 Compared with `dovesei`: memory lives on the ground, not in the image (the drone's own motion is
 compensated); a spot's real size is checked in metres and confirmed by looks from another scale;
@@ -36,8 +37,8 @@ import math
 
 import numpy as np
 
-from dovesei.controller.policies.base import (Confirmation, Decision, Observation, PolicyInputError, checked_prob_safe,
-                                              resolve_config)
+from dovesei.controller.policies.base import (Confirmation, Decision, Observation, PolicyInputError, SpotReport,
+                                              checked_prob_safe, resolve_config)
 from dovesei.controller.policies.clearance.config import Altitudes, ClearanceConfig, clearance_preset
 from dovesei.controller.policies.clearance.machine import (
     TERMINAL, Inputs, Memory, Phase, reject_target, search_route, step, toward,
@@ -48,6 +49,8 @@ from dovesei.controller.policies.clearance.scene import SceneLevels, fine_noise,
 from dovesei.controller.frames import to_body, to_ne
 from dovesei.controller.geofence import cap_outward
 from dovesei.controller.policies.clearance.motion import EgoMotion, MotionStep, tilt_offset_ne
+from dovesei.controller.policies.clearance.report import (ClearanceReport, ProbeReport, RegistrationReport,
+                                                          SceneReport)
 
 log = logging.getLogger(__name__)
 
@@ -105,7 +108,7 @@ class ClearancePolicy:
         self._levels_stale = False  # the high map got new looks since
         self._map_noise = 0.0  # the working map's per-cell scatter (log-odds), read with the levels
         self._scene_seen = False  # the top pass has shown the search area (spots and probes allowed)
-        self._decision = Decision((0.0, 0.0, 0.0), 0.0, Phase.WARMUP.value, None, 0.0, None, {}, "starting")
+        self._decision = Decision((0.0, 0.0, 0.0), 0.0, Phase.WARMUP.value, None, 0.0, None, "starting")
 
     def fence_m(self) -> float:
         """The fence for the estimate now: the search radius less the larger of the fence margin
@@ -304,10 +307,12 @@ class ClearancePolicy:
         f, r = toward(dn, de, cfg.hold_gain_per_s, cfg.hold_speed_max_m_s, obs.yaw_rad)
         vel, fenced = fence((f, r, 0.0), pn, pe, obs.yaw_rad, cfg, self.fence_m())
         self._cmd = vel
-        info = {**self._decision.info, "est_north_m": pn, "est_east_m": pe, "hold_error_m": math.hypot(dn, de),
-                "fenced": float(fenced)}
+        report = self._decision.report
+        if report is not None:
+            report = dataclasses.replace(report, est_north_m=pn, est_east_m=pe, hold_error_m=math.hypot(dn, de),
+                                         fenced=bool(fenced))
         self._decision = dataclasses.replace(self._decision, vel_body_frd_m_s=tuple(float(v) for v in vel),
-                                             info={k: float(v) for k, v in info.items()})
+                                             report=report)
         return self._decision
 
     def _decide(self, obs: Observation, *, fresh: bool, gap: bool, best, check, clearance,
@@ -336,34 +341,37 @@ class ClearancePolicy:
         if mem.phase is not prev.phase or mem.reason != prev.reason:
             log.info("clearance: %s -> %s at t=%.2f s, alt %.1f m: %s", prev.phase.value, mem.phase.value, obs.t_s,
                      obs.alt_agl_m, mem.reason)
-        info: dict[str, float] = {
-            "alt_agl_m": float(obs.alt_agl_m), "est_north_m": pn, "est_east_m": pe,
-            "bias_north_m_s": self.motion.bias_n_m_s, "bias_east_m_s": self.motion.bias_e_m_s,
-            "cell_m": self.map.cell_m, "aborts": float(mem.aborts), "blacklisted": float(len(mem.blacklist)),
-            "required_clearance_m": cfg.required_clearance_m, "waypoint": float(mem.waypoint),
-            "fenced": float(fenced), "fence_m": fence_m, "uncertainty_m": self.motion.uncertainty_m,
-            "anchors": float(self.motion.anchors), "probes": float(len(mem.probed)),
-        }
-        lv = self._levels
-        if lv is not None:
-            # The scene's levels (log-odds); a threshold nothing meets (nothing safe) reports as 99.
-            info.update(scene_spot_logit=min(self._spot_t, 99.0), scene_gate_logit=min(lv.gate_logit, 99.0),
-                        scene_best_logit=max(lv.best_logit, -99.0), scene_typical_logit=lv.typical_logit)
-        if mem.probe is not None:
-            info.update(probe_north_m=mem.probe.north_m, probe_east_m=mem.probe.east_m, probe_p_safe=mem.probe.p_safe)
         m = self._last_motion
-        if m is not None:
-            info.update(registered=float(m.registered), reg_response=m.response, reg_innovation_m=m.innovation_m,
-                        anchored=float(m.anchored), spot_fixed=float(m.spot_fixed), spot_response=m.spot_response,
-                        spot_since_s=min(self.motion.spot_since_s, 1e6))
+        lv = self._levels
+        report = ClearanceReport(
+            alt_agl_m=float(obs.alt_agl_m), est_north_m=pn, est_east_m=pe,
+            bias_north_m_s=self.motion.bias_n_m_s, bias_east_m_s=self.motion.bias_e_m_s,
+            cell_m=self.map.cell_m, aborts=int(mem.aborts), blacklisted=len(mem.blacklist),
+            required_clearance_m=cfg.required_clearance_m, waypoint=int(mem.waypoint),
+            fenced=bool(fenced), fence_m=float(fence_m), uncertainty_m=self.motion.uncertainty_m,
+            anchors=int(self.motion.anchors), probes=len(mem.probed),
+            # The scene's levels (log-odds); a threshold nothing meets (nothing safe) reports as 99.
+            scene=None if lv is None else SceneReport(
+                spot_logit=float(min(self._spot_t, 99.0)), gate_logit=float(min(lv.gate_logit, 99.0)),
+                best_logit=float(max(lv.best_logit, -99.0)), typical_logit=float(lv.typical_logit)),
+            probe=None if mem.probe is None else ProbeReport(mem.probe.north_m, mem.probe.east_m, mem.probe.p_safe),
+            registration=None if m is None else RegistrationReport(
+                registered=bool(m.registered), response=float(m.response), innovation_m=float(m.innovation_m),
+                anchored=bool(m.anchored), spot_fixed=bool(m.spot_fixed), spot_response=float(m.spot_response),
+                spot_since_s=min(self.motion.spot_since_s, 1e6)),
+        )
         target_px = None
+        spot_report = None
         spot = mem.target
         if spot is not None:
-            info.update(spot_north_m=spot.north_m, spot_east_m=spot.east_m, spot_confidence=spot.confidence,
-                        spot_p_safe=spot.p_safe, spot_distance_m=math.hypot(spot.north_m - pn, spot.east_m - pe))
             # The clearance the map gives the spot now (the target's own figure is from its last check).
-            info["spot_clearance_m"] = (clearance_at(self.map, clearance, spot.north_m, spot.east_m)
-                                        if clearance is not None else spot.clearance_m)
+            spot_report = SpotReport(
+                north_m=float(spot.north_m), east_m=float(spot.east_m),
+                clearance_m=float(clearance_at(self.map, clearance, spot.north_m, spot.east_m)
+                                  if clearance is not None else spot.clearance_m),
+                confidence=float(spot.confidence), p_safe=float(spot.p_safe),
+                distance_m=float(math.hypot(spot.north_m - pn, spot.east_m - pe)),
+                est_north_m=float(pn), est_east_m=float(pe))
             if obs.prob_safe is not None:
                 h, w = obs.prob_safe.shape
                 gsd = footprint_width_m(obs.alt_agl_m, obs.hfov_rad) / w
@@ -383,7 +391,7 @@ class ClearancePolicy:
             state=mem.phase.value, target_px=None if target_px is None else (float(target_px[0]), float(target_px[1])),
             focus_radius_px=self._required_px(obs),
             threshold=sigmoid(self._spot_t),
-            info={k: float(v) for k, v in info.items()}, reason=mem.reason, confirmed=self._confirmed,
+            reason=mem.reason, confirmed=self._confirmed, spot=spot_report, report=report,
             landing=mem.phase in (Phase.DESCEND, Phase.HANDOVER),
         )
         return self._decision

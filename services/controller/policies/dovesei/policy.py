@@ -46,6 +46,7 @@ import numpy as np
 
 from dovesei.controller.policies.base import Decision, Observation, PolicyInputError, checked_prob_safe, resolve_config
 from dovesei.controller.policies.dovesei.config import DoveseiConfig, timing_preset
+from dovesei.controller.policies.dovesei.report import DoveseiReport, MachineReport
 from dovesei.shared import footprint
 
 log = logging.getLogger(__name__)
@@ -244,7 +245,7 @@ class MachineOutput:
     vel_forward_m_s: float
     vel_right_m_s: float
     vel_up_m_s: float
-    info: dict[str, float]
+    report: MachineReport
 
 
 def conservative_gain(elapsed_data_s: float, config: DoveseiConfig) -> float:
@@ -379,14 +380,12 @@ class StateMachine:
                 "dovesei: %s -> %s (alt %.2f m, err %.2f m, est %.2f m, cg %.3f)",
                 prev.value, self.state.value, alt_agl_m, err_m, est_m, cg,
             )
-        info = {
-            "cg": cg, "err_m": err_m, "x_err_m": x_err_m, "y_err_m": y_err_m, "est_m": est_m,
-            "dt_s": dt_s, "xy_ok": float(xy_ok), "is_landing": float(is_landing),
-            "is_aiming": float(is_aiming), "descend_while_aiming": float(descend_while_aiming),
-            "gain": self.gain, "int_x": self.int_x, "int_y": self.int_y, "s_m_s": self.s_m_s,
-            "cycles": float(self.cycles),
-        }
-        return MachineOutput(self.state, vel_forward, vel_right, z_up, info)
+        report = MachineReport(
+            cg=cg, err_m=err_m, x_err_m=x_err_m, y_err_m=y_err_m, est_m=est_m, dt_s=dt_s, xy_ok=bool(xy_ok),
+            is_landing=bool(is_landing), is_aiming=bool(is_aiming), descend_while_aiming=bool(descend_while_aiming),
+            gain=self.gain, int_x=self.int_x, int_y=self.int_y, s_m_s=self.s_m_s, cycles=int(self.cycles),
+        )
+        return MachineOutput(self.state, vel_forward, vel_right, z_up, report)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -425,7 +424,6 @@ class DoveseiPolicy:
             target_px=None,
             focus_radius_px=self._image.radius_px,
             threshold=None,
-            info={"cycles": 0.0},
         )
 
     # Read-only views for tests, logs and overlays.
@@ -494,17 +492,18 @@ class DoveseiPolicy:
         h_px, w_px = prob.shape
         scale_rows, scale_cols = h_px / cfg.grid_rows_px, w_px / cfg.grid_cols_px
         target_px = None
-        info = dict(out.info)
-        info.update(alt_agl_m=obs.alt_agl_m, proj_m=proj_m, seg_ok=float(seg.mask_u8 is not None),
-                    safe_fraction=seg.safe_fraction, focus_radius_grid_px=self._image.radius_px)
+        extra: dict[str, float | int] = {}
         if candidates is not None:
-            info.update(score=float(candidates.scores[0]), n_candidates=float(len(candidates.scores)))
+            extra.update(score=float(candidates.scores[0]), n_candidates=len(candidates.scores))
             best = candidates.pixels_rc[0]
             if best is not None:
                 # Grid pixel centres mapped back onto the observation's heatmap pixels.
                 target_px = ((best[0] + 0.5) * scale_rows - 0.5, (best[1] + 0.5) * scale_cols - 0.5)
-                info.update(target_row_grid_px=float(best[0]), target_col_grid_px=float(best[1]))
-        log.debug("dovesei cycle t=%.3f state=%s info=%s", obs.t_s, out.state.value, info)
+                extra.update(target_row_grid_px=float(best[0]), target_col_grid_px=float(best[1]))
+        report = DoveseiReport(machine=out.report, alt_agl_m=float(obs.alt_agl_m), proj_m=float(proj_m),
+                               seg_ok=seg.mask_u8 is not None, safe_fraction=float(seg.safe_fraction),
+                               focus_radius_grid_px=float(self._image.radius_px), **extra)
+        log.debug("dovesei cycle t=%.3f state=%s report=%s", obs.t_s, out.state.value, report)
         self._decision = Decision(
             vel_body_frd_m_s=(float(out.vel_forward_m_s), float(out.vel_right_m_s), float(-out.vel_up_m_s)),
             yaw_rate_rad_s=0.0,  # the reference has no yaw control
@@ -512,7 +511,7 @@ class DoveseiPolicy:
             target_px=target_px,
             focus_radius_px=self._image.radius_px * scale_rows,
             threshold=seg.threshold,
-            info=info,
+            report=report,
             # The paper's success is reaching 20 m while LANDING; any other state there is not a landing.
             landing=out.state in (DoveseiState.LANDING, DoveseiState.LANDED),
         )
