@@ -53,6 +53,10 @@ def person(x_m: float, y_m: float, *, heading_rad: float = 0.0, speed_m_s: float
     return (PERSON, x_m, y_m, heading_rad, speed_m_s, path_m, phase_m, 0.5, 0.5, (200, 40, 40), False)
 
 
+# A 100 m world: the scene is the first views, not a top pass that would fly off it.
+SMALL_WORLD = (("scene_after_top_pass", False),)
+
+
 def fly(world: World, *, close_look: bool = True, time_limit_s: float = 400.0) -> tuple[list, object]:
     statuses: list[ControllerStatus] = []
     looks: list = []
@@ -64,7 +68,8 @@ def fly(world: World, *, close_look: bool = True, time_limit_s: float = 400.0) -
             looks.append(msg)
 
     spec = EpisodeSpec(policy="clearance", start=Start(*CENTRE, 100.0), timing="real", perception="realistic",
-                       vehicle_profile="ideal", time_limit_s=time_limit_s, close_look=close_look)
+                       vehicle_profile="ideal", time_limit_s=time_limit_s, close_look=close_look,
+                       policy_config=SMALL_WORLD)
     rec = run_episode(world, spec, record=record)
     return statuses, looks, rec
 
@@ -134,7 +139,7 @@ def test_no_answer_means_no_descent_below_the_look_altitude() -> None:
 
     world = lawn_world([])
     spec = EpisodeSpec(policy="clearance", start=Start(*CENTRE, 100.0), timing="real", perception="realistic",
-                       vehicle_profile="ideal", time_limit_s=200.0)
+                       vehicle_profile="ideal", time_limit_s=200.0, policy_config=SMALL_WORLD)
     sim, seg, ctrl = build_cores(world, spec)
 
     def refuse(req):
