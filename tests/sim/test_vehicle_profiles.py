@@ -37,17 +37,21 @@ WORLD = "synthetic:size_m=400,seed=1"
 # perception weighs a person or car by the tokens it covers. Before: dovesei 47.0 s, 87.956 m,
 # landing at (290.224, 66.297); clearance 45.25 s, 80.455 m, at (290.721, 346.391). The same
 # landings within 0.8 m. With the moving objects left out and the old constant salience the
-# records were the old ones to the last digit (checked when re-recording).
+# records were the old ones to the last digit (checked when re-recording). Re-recorded again for
+# issue 25 and the close look: the realistic perception now draws a calibration and per-patch looks
+# per episode (so `dovesei` read this seed's scene differently and took another safe spot, 52 m
+# from the last one), and `clearance` holds at ~40 m for two clear close looks before descending
+# (44.4 s -> 71.9 s, the same lawn within 4 m). Both profiles (none, ideal) must still agree.
 REFERENCE = [
     ({"policy": "dovesei", "index": 1, "seed": 12, "timing": "reference", "time_limit_s": 60.0,
       "start": {"x_m": 266.718, "y_m": 133.498, "alt_m": 100.0}},
-     {"outcome": "safe", "sim_time_s": 47.25, "path_length_m": 99.509, "max_range_m": 79.7,
-      "final": {"x_m": 290.119, "y_m": 67.006, "alt_m": 19.797}}),
+     {"outcome": "safe", "sim_time_s": 55.35, "path_length_m": 172.229, "max_range_m": 128.2,
+      "final": {"x_m": 341.559, "y_m": 56.675, "alt_m": 19.783}}),
     ({"policy": "clearance", "index": 0, "seed": 11, "timing": "real", "time_limit_s": 150.0,
       "policy_config": {"scene_after_top_pass": False},  # a 400 m world: its scene is the first views
       "start": {"x_m": 230.274, "y_m": 296.129, "alt_m": 100.0}},
-     {"outcome": "safe", "sim_time_s": 44.4, "path_length_m": 80.351, "max_range_m": 78.5,
-      "final": {"x_m": 290.075, "y_m": 346.298, "alt_m": 19.808}}),
+     {"outcome": "safe", "sim_time_s": 71.9, "path_length_m": 87.544, "max_range_m": 82.7,
+      "final": {"x_m": 291.873, "y_m": 350.048, "alt_m": 19.796}}),
 ]
 
 
@@ -154,10 +158,11 @@ def test_realistic_frames_are_rendered_tilted_with_the_body() -> None:
     assert tilted is not None
     frame, pose = tilted
     from dovesei.sim.camera import render
+    # people and cars where they were when the frame was taken
     nadir, _, _ = render(world, pose.x_m, pose.y_m, pose.alt_agl_m, pose.yaw_rad, core.config.camera,
-                         with_labels=False)
+                         with_labels=False, t_s=pose.t_s)
     tilted_img, _, _ = render(world, pose.x_m, pose.y_m, pose.alt_agl_m, pose.yaw_rad, core.config.camera,
-                              roll_rad=pose.roll_rad, pitch_rad=pose.pitch_rad, with_labels=False)
+                              roll_rad=pose.roll_rad, pitch_rad=pose.pitch_rad, with_labels=False, t_s=pose.t_s)
     assert np.array_equal(frame.image_rgb, tilted_img) and not np.array_equal(frame.image_rgb, nadir)
 
 
