@@ -120,12 +120,14 @@ def test_suite_default_flies_every_world_of_the_suite(tmp_path: Path, capsys) ->
 
 
 def test_real_timing_with_clean_perception_lands_a_pinned_share(tmp_path: Path) -> None:
-    # Fixed seeds, true seconds, 2 Hz perception, a 300 s limit: measured 2/3 safe, 1 out of the
-    # (small) world, none unsafe. The range allows one start to change either way; clean perception
-    # must never put the vehicle down on unsafe ground.
+    # Fixed seeds, true seconds, 2 Hz perception, a 300 s limit, the paper's drone (ideal vehicle:
+    # it knew its state): measured 1/3 safe, 2 out of the (small) world, none unsafe (with people
+    # and cars in the world; 2/3 before). The range allows one start to change either way; clean
+    # perception must never put the vehicle down on unsafe ground. (The realistic vehicle, the
+    # default with real timing, measured 0/3 here: a 300 s timeout and 2 out of the world.)
     doc = run_bench(world_spec="synthetic:size_m=600,seed=1", episodes=3, seed=0, policies=["dovesei"], noise=None,
                     timing="real", time_limit_s=300.0, start_alt_m=100.0, jobs=1, out=tmp_path, perception="clean",
-                    progress=False)
+                    progress=False, vehicle_profile="ideal")
     s = doc["summary"]["dovesei"]
     assert 1 <= s["safe"] <= 3 and s["unsafe"] == 0 and s["error"] == 0, s
     assert all(e["sim_time_s"] <= 300.0 for e in doc["episodes"])
