@@ -104,7 +104,12 @@ def test_the_real_autopilot_flags_reach_the_controller_through_its_own_flags(tmp
                           (100.0, 100.0, 60.0)).controller
     assert (plain.handover_action, plain.mavlink_yaw_control, plain.mavlink_signing_key_file,
             plain.mavlink_system_id, plain.gnss_denied) == ("hold", "rate", None, None, "off")
-    assert CONTROLLER.to_argv(plain) == ["--vehicle-url", "udpout:127.0.0.1:14550"]
+    # The close look is on in `up` (its sim answers the crops) and off in a bare controller (nothing
+    # may answer them), so it is the one flag `up` always passes.
+    assert CONTROLLER.to_argv(plain) == ["--vehicle-url", "udpout:127.0.0.1:14550", "--close-look"]
+    no_look = child_configs(options_from_args(build_parser().parse_args(
+        ["--vehicle-url", "udpout:127.0.0.1:14550", "--no-close-look"])), (100.0, 100.0, 60.0)).controller
+    assert CONTROLLER.to_argv(no_look) == ["--vehicle-url", "udpout:127.0.0.1:14550"]
     assert child_configs(options_from_args(build_parser().parse_args(["--vehicle-url", "udpout:127.0.0.1:14550"])),
                          (100.0, 100.0, 60.0)).sim.sim.odometry_rate_hz == 0.0
 
