@@ -25,7 +25,8 @@ from dovesei.shared.messages import CameraFrame, ControllerStatus, EpisodeResult
 from dovesei.shared.zconfig import free_port
 from dovesei.up import EXIT_FAILED, EXIT_OK, EXIT_UNSAFE, UpOptions, build_report, exit_code
 from dovesei.up.monitor import Recorder, Sample
-from dovesei.up.watch import CpuHistory, Watcher, busy_through, process_cpu_s, stalled_service, stream_owners
+from dovesei.up.watch import (CpuHistory, Watcher, busy_through, process_cpu_s, result_is_consistent, stalled_service,
+                               stream_owners)
 
 REPO = Path(__file__).resolve().parents[2]
 WORLD = "synthetic:size_m=400,seed=1"
@@ -277,6 +278,16 @@ def test_the_sims_result_is_taken_once_it_has_ended_its_run(tmp_path: Path) -> N
     # Its only result did not match the flight: no result, and the sim's exit is the failure.
     assert rec2.result is None and rec2.results_refused == 1 and end.failure is not None
     assert end.failure.child == "sim"
+
+
+def test_a_result_judged_at_the_sitl_truth_may_lie_where_the_estimate_drifted_from() -> None:
+    # SITL external-nav: the judge had SIMSTATE's true pose 16.8 m from the EKF's last state.
+    rec = Recorder((1.0, 2.0, 100.0), video=False)
+    rec.handle(Sample("state", time.time(), encode(_state(0, 0.0))))
+    drifted, forged = _result("safe", x_m=1.0 + 16.8), _result("safe", x_m=300.0)
+    assert "16.8 m from the vehicle's last recorded state" in result_is_consistent(rec, drifted)
+    assert result_is_consistent(rec, drifted, judged_at_truth=True) == ""
+    assert "more than 100 m" in result_is_consistent(rec, forged, judged_at_truth=True)
 
 
 def test_the_service_whose_stream_went_quiet_first_is_named() -> None:
