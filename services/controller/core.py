@@ -84,6 +84,11 @@ MAX_POLICY_SPEED = 100.0  # m/s and rad/s: a policy asking for more is faulty (m
 DT_CAP_PERIODS = 2.0  # a perception gap advances the policy's clock by at most this many nominal periods
 # The vehicle clock runs on true seconds; 5 % margin for crystal drift and latency jitter.
 _DATA_RATE_MARGIN = 1.05
+# Real time: a state behind the newest accepted one moves the clock back only when this many
+# consecutive states agree on the earlier timeline (advancing with the wall clock); a lone past
+# stamp is refused. One forged past state used to re-anchor the clock, and every genuine state
+# after it was refused as "from the future" for good (dovesei faults, clock-skew).
+JUMP_CONFIRM_STATES = 3
 # A heatmap's capture altitude must be one a camera can see the ground from: below 1 m a nadir
 # camera sees a blur and the paper's policy declared LANDED at alt 0 (and -999).
 MIN_HEATMAP_ALT_M, MAX_HEATMAP_ALT_M = 1.0, 1000.0
@@ -352,6 +357,7 @@ class ControllerCore:
         self._mode: Mode | None = None
         self._last_state_seq: int | None = None
         self._state_anchor: tuple[float, float] | None = None  # (state t_s, own mono s): on-time state
+        self._jump_states: list[tuple[float, float]] = []  # (t_s, own mono s): consecutive states behind
         # The on-time state that put the vehicle's clock furthest ahead of our own monotonic clock:
         # no honest state can lead its projection, whatever gaps, backlogs or re-syncs came since.
         self._best_anchor: tuple[float, float] | None = None
@@ -399,6 +405,24 @@ class ControllerCore:
         if self.config.lockstep or anchor is None:
             return None
         return anchor[0] + _DATA_RATE_MARGIN * max(0.0, self._mono() - anchor[1])
+
+    def _unconfirmed_jump(self, state: VehicleState) -> str | None:
+        """Real time: is the state behind the newest accepted one, on a timeline not yet confirmed by
+        JUMP_CONFIRM_STATES consecutive states (stamps advancing as our own clock does)?"""
+        last = self._last_state_t_s
+        if self.config.lockstep or last is None or state.stamp.t_s >= last:
+            self._jump_states.clear()
+            return None
+        seen, now = self._jump_states, self._mono()
+        if seen and not (state.stamp.t_s > seen[-1][0] and abs((state.stamp.t_s - seen[0][0]) - (now - seen[0][1]))
+                         <= self.config.future_tolerance_s):
+            seen.clear()
+        seen.append((state.stamp.t_s, now))
+        if len(seen) >= JUMP_CONFIRM_STATES:
+            seen.clear()
+            return None
+        return (f"state {state.seq} stamped {state.stamp.t_s:.3f} s is behind the newest accepted one ({last:.3f} s): "
+                f"the clock goes back only after {JUMP_CONFIRM_STATES} consecutive states agree")
 
     def _state_from_future(self, state: VehicleState, wall_s: float | None) -> str | None:
         """Real time: does the state lead the controller's own clock? Learns it from on-time states."""
@@ -505,6 +529,10 @@ class ControllerCore:
         if state.vehicle_id != cfg.vehicle_id:
             self.rejected["other vehicle"] += 1
             raise ControllerInputError(f"state for vehicle {state.vehicle_id!r} sent to controller {cfg.vehicle_id!r}")
+        past = self._unconfirmed_jump(state)
+        if past is not None:
+            self._refuse("state from the past", "%s: refused", past)
+            raise ControllerInputError(past)
         future = self._state_from_future(state, wall_s)
         if future is not None:
             self._refuse("state from the future", "%s: refused", future)

@@ -16,6 +16,7 @@ from __future__ import annotations
 import math
 import time
 
+from dovesei.controller.policies.clearance.closelook import CloseLookPolicy
 from dovesei.episode import EpisodeSpec, build_cores
 from dovesei.sim.starts import Start
 from dovesei.sim.world import load_world
@@ -31,7 +32,9 @@ def _estimate_errors(t_limit_s: float) -> tuple[list[tuple[float, float, float]]
     spec = EpisodeSpec(policy="clearance", start=start, timing="real", seed=1, perception="realistic",
                        vehicle_profile="realistic", time_limit_s=t_limit_s)
     sim, seg, ctrl = build_cores(world, spec)
-    policy = ctrl.policy
+    # The episode's `clearance` looks closely before committing: its estimate is the wrapped policy's.
+    assert isinstance(ctrl.policy, CloseLookPolicy)
+    policy = ctrl.policy.inner
     truth_at_capture: dict[int, tuple[float, float, float]] = {}
     pending = {}
     errors = []

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from dovesei.controller.core import ControllerConfig, ControllerCore, ControllerInputError, Mode
+from dovesei.controller.core import ControllerConfig, ControllerCore, ControllerInputError, JUMP_CONFIRM_STATES, Mode
 from dovesei.controller.policies.base import Decision, Observation, PolicyInputError
 from dovesei.shared.errors import ConfigError
 from dovesei.shared.messages import SafetyHeatmap, Stamp, VehicleState
@@ -317,14 +317,24 @@ def test_a_state_clock_jump_never_resets_the_policy_mid_flight(jump_s: float) ->
     policy = core.policy
     steps = len(policy.observations)
     clock.t_s += 0.5
+    t_s = 102.55 + jump_s
+    if jump_s < 0:
+        # Backwards: a lone past stamp is refused; the clock follows once 3 states agree.
+        for _ in range(JUMP_CONFIRM_STATES - 1):
+            with pytest.raises(ControllerInputError, match="behind the newest accepted"):
+                core.tick(state(5, t_s), wall_s=clock.t_s)
+            t_s, clock.t_s = t_s + 0.05, clock.t_s + 0.05
+        assert core.rejected["state from the past"] == JUMP_CONFIRM_STATES - 1 and core.rejected["clock jump"] == 0
     try:
-        cmd, status = core.tick(state(5, 102.55 + jump_s), wall_s=clock.t_s)
+        cmd, status = core.tick(state(5, t_s), wall_s=clock.t_s)
     except ControllerInputError as exc:  # a forward jump beyond the tolerance is refused
         assert jump_s > 0 and "leads the controller's clock" in str(exc)
         assert core.rejected["state from the future"] == 1
     else:
-        # Backwards: the policy is kept, the old timeline's decision dropped: hold until a new heatmap.
-        assert jump_s < 0 and core.mode is Mode.NO_HEATMAP and cmd.vel_body_frd_m_s == (0.0, 0.0, 0.0)
+        # Confirmed backwards: the policy is kept, the old timeline's decision dropped: hold until a new heatmap.
+        # (Stale too here: these states come 0.5 s apart and the confirmation took two of them.)
+        assert jump_s < 0 and core.mode in (Mode.NO_HEATMAP, Mode.STATE_STALE)
+        assert cmd.vel_body_frd_m_s == (0.0, 0.0, 0.0)
         assert core.rejected["clock jump"] == 1
         clock.t_s += 0.5
         core.on_heatmap(heatmap(6, 103.0 + jump_s), 0.0)
@@ -332,6 +342,23 @@ def test_a_state_clock_jump_never_resets_the_policy_mid_flight(jump_s: float) ->
         assert cmd.frame_seq == 6 and status.watchdog == "ok"
         assert policy.observations[-1].t_s > policy.observations[-2].t_s  # its clock never ran back
     assert policy.resets == 0 and len(policy.observations) >= steps
+
+
+def test_past_states_among_genuine_ones_never_move_the_clock() -> None:
+    # dovesei faults, clock-skew: a forger's state stamped 0 s, sent between genuine ones, once
+    # re-anchored the clock there, and every genuine state after it was refused for good.
+    clock = Clock()
+    core = ControllerCore(ControllerConfig(lockstep=False, future_tolerance_s=1.0), policy=RecordingPolicy(),
+                          mono=clock)
+    for k in range(40):
+        clock.t_s += 0.05
+        core.on_heatmap(heatmap(k, 5.0 + 0.05 * k), 0.0)
+        core.tick(state(k, 5.05 + 0.05 * k), wall_s=clock.t_s)
+        if k % 2:
+            with pytest.raises(ControllerInputError, match="behind the newest accepted"):
+                core.tick(state(1000 + k, 0.0), wall_s=clock.t_s)
+    assert core.rejected["state from the past"] == 20 and core.rejected["state from the future"] == 0
+    assert core.rejected["clock jump"] == 0 and core.mode is Mode.OK
 
 
 def test_a_heatmap_from_the_future_is_refused_and_honest_ones_still_adopted() -> None:

@@ -220,9 +220,12 @@ def test_records_carry_the_separation_figures_and_the_summary_counts_them(tmp_pa
     # From 25 m `clearance` reaches the 20 m hand-over within the limit on most starts (measured: 2
     # of these 3); the judge measures the nearest person and vehicle there, and the summary and page
     # count what broke the separation (a 50 m vehicle rule, which any city touchdown breaks).
+    # From 25 m the scene is the first views: a top pass over this 400 m world would fly off it.
+    settings = tmp_path / "clearance.toml"
+    settings.write_text("scene_after_top_pass = false\n", encoding="utf-8")
     doc = run_bench(world_spec=WORLD, episodes=3, seed=0, policies=["clearance"], noise=None, timing="real",
-                    time_limit_s=120.0, start_alt_m=25.0, handover_alt_m=20.0, jobs=1, out=tmp_path, progress=False,
-                    perception="clean", separation_m=(3.0, 50.0))
+                    time_limit_s=120.0, start_alt_m=25.0, handover_alt_m=20.0, jobs=1, out=tmp_path / "bench",
+                    progress=False, perception="clean", separation_m=(3.0, 50.0), policy_config=settings)
     judged = [e for e in doc["episodes"] if e["separation_violated"] is not None]
     assert judged, [e["outcome"] for e in doc["episodes"]]
     for e in doc["episodes"]:
@@ -235,7 +238,7 @@ def test_records_carry_the_separation_figures_and_the_summary_counts_them(tmp_pa
     assert s["separation_judged"] == len(judged)
     assert s["separation_violations"] == sum(e["separation_violated"] for e in judged)
     assert doc["config"]["separation_m"] == [3.0, 50.0]
-    md = (tmp_path / "summary.md").read_text()
+    md = (tmp_path / "bench" / "summary.md").read_text()
     assert "separation violations" in md and "no vehicle within 50 m of the touchdown" in md
     assert f"| {s['separation_violations']}/{len(judged)} |" in md
-    assert "nearest person median / min" in (tmp_path / "report.html").read_text()
+    assert "nearest person median / min" in (tmp_path / "bench" / "report.html").read_text()

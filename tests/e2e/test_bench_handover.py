@@ -10,12 +10,17 @@ from pathlib import Path
 from dovesei.bench import run_bench
 
 WORLD = "synthetic:size_m=400,seed=1"
+# A 400 m world: clearance takes its scene from the first views, as the other small-world tests do
+# (the default top pass over a 300 m search radius flies off it).
+SMALL_WORLD = "scene_after_top_pass = false\n"
 
 
 def test_a_bench_hands_over_where_it_is_told_and_records_it(tmp_path: Path) -> None:
+    path = tmp_path / "small.toml"
+    path.write_text(SMALL_WORLD)
     doc = run_bench(world_spec=WORLD, episodes=1, seed=0, policies=["clearance"], noise=0.0, timing="real",
                     time_limit_s=600.0, start_alt_m=100.0, jobs=1, out=tmp_path / "b", progress=False,
-                    handover_alt_m=35.0)
+                    handover_alt_m=35.0, policy_config=path)
     (ep,) = doc["episodes"]
     print(f"bench --handover-alt-m 35: {ep['outcome']} at {ep['final']['alt_m']} m after {ep['sim_time_s']} s")
     assert ep["handover_alt_m"] == 35.0 and doc["config"]["handover_alt_m"] == 35.0
@@ -44,11 +49,11 @@ def test_a_handover_above_the_start_is_one_line_before_any_work(tmp_path: Path) 
 
 def test_a_policy_file_is_flown_and_recorded_and_refused_with_two_policies(tmp_path: Path) -> None:
     path = tmp_path / "mine.toml"
-    path.write_text("scene_floor_p = 0.9\nmargin_m = 1.5\n")  # margin_m is the default: not a change
+    path.write_text(SMALL_WORLD + "scene_floor_p = 0.9\nmargin_m = 1.5\n")  # margin_m is the default: not a change
     doc = run_bench(world_spec=WORLD, episodes=1, seed=0, policies=["clearance"], noise=0.0, timing="real",
                     time_limit_s=600.0, start_alt_m=100.0, jobs=1, out=tmp_path / "b", progress=False,
                     policy_config=path)
-    assert doc["config"]["policy_config"] == {"scene_floor_p": 0.9}
+    assert doc["config"]["policy_config"] == {"scene_after_top_pass": False, "scene_floor_p": 0.9}
     assert doc["episodes"][0]["outcome"] in ("safe", "unsafe", "timeout")
     r = subprocess.run([sys.executable, "-m", "dovesei.cli", "bench", "--world", WORLD, "--policy", "dovesei,clearance",
                         "--policy-config", str(path), "--out", str(tmp_path / "o"), "--no-progress"], cwd=tmp_path,

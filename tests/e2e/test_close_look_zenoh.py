@@ -18,18 +18,21 @@ from dovesei.shared.lifecycle import wait_until
 from dovesei.shared.zconfig import free_port, loopback_config
 from dovesei.sim import service as sim_service
 from dovesei.sim.core import SimConfig
-from tests.controller.test_close_look import CENTRE, LAWN_M, fly, lawn_world, person
+from tests.controller.test_close_look import CENTRE, LAWN_M, SMALL_WORLD, fly, lawn_world, person
 
 LIMIT_S = 150.0
 
 
-def test_three_services_on_zenoh_fly_the_close_looks_as_the_in_process_episode() -> None:
+def test_three_services_on_zenoh_fly_the_close_looks_as_the_in_process_episode(tmp_path) -> None:
     lo = CENTRE[0] - LAWN_M / 2 + 2.5
     grid = np.arange(lo, CENTRE[0] + LAWN_M / 2 - 2.5 + 0.01, 5.0)
     world = lawn_world([person(x + 0.3, y - 0.2) for x in grid for y in grid])
     statuses, _looks, expected = fly(world, time_limit_s=LIMIT_S)
     assert any("close look: never set" in s.policy_reason for s in statuses)  # the in-process flight rejects
 
+    # The controller service reads the in-process flight's small-world setting from its file.
+    settings = tmp_path / "clearance.toml"
+    settings.write_text("".join(f"{k} = {str(v).lower()}\n" for k, v in SMALL_WORLD), encoding="utf-8")
     port = free_port()
     sessions = [zenoh.open(loopback_config(listen_port=port))]
     sessions += [zenoh.open(loopback_config(connect_ports=[port])) for _ in range(2)]
@@ -50,7 +53,8 @@ def test_three_services_on_zenoh_fly_the_close_looks_as_the_in_process_episode()
         out["segmenter"] = seg_service.run(sessions[1], config=config, stop=stop)
 
     def ctrl() -> None:
-        config = ControllerConfig(policy="clearance", timing="real", lockstep=True, close_look=True)
+        config = ControllerConfig(policy="clearance", timing="real", lockstep=True, close_look=True,
+                                  policy_config_file=str(settings))
         out["controller"] = ctrl_service.run(sessions[2], config=config, stop=stop)
 
     threads = [threading.Thread(target=f, daemon=True) for f in (seg, ctrl, sim)]

@@ -21,6 +21,7 @@ from dovesei.shared.mission import HANDOVER_ALT_M
 from dovesei.up import SERVICES, UpOptions, child_commands
 from dovesei.up.launch import MODULES, child_configs
 from dovesei.up.options import build_parser, options_from_args
+from tests.e2e.test_bench_handover import SMALL_WORLD
 from tests.e2e.test_up import LIMIT_S, WORLD, _Up
 
 REPO = Path(__file__).resolve().parents[2]
@@ -79,7 +80,12 @@ def test_the_cli_refuses_it_before_anything_starts(tmp_path: Path) -> None:
 @pytest.mark.slow
 @pytest.mark.parametrize("handover_alt_m", [35.0, 10.0])
 def test_up_hands_over_and_is_judged_at_the_altitude_it_was_given(tmp_path: Path, handover_alt_m: float) -> None:
-    up = _Up(tmp_path / "run", "--policy", "clearance", "--handover-alt-m", f"{handover_alt_m:g}", "--no-video")
+    # The 400 m test world: clearance takes its scene from the first views (the default top pass over
+    # a 300 m search radius outlasted the time limit at 100 m).
+    small = tmp_path / "small.toml"
+    small.write_text(SMALL_WORLD)
+    up = _Up(tmp_path / "run", "--policy", "clearance", "--handover-alt-m", f"{handover_alt_m:g}", "--no-video",
+             "--policy-config", str(small))
     try:
         # Generous: three processes on a loaded two-core host; in process the flight takes ~15 s.
         code, stdout, stderr = up.finish(timeout_s=900)

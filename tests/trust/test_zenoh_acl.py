@@ -250,7 +250,15 @@ def test_acl_is_deny_by_default_with_one_subject_per_role() -> None:
     assert acl["enabled"] is True and acl["default_permission"] == "deny"
     assert [s["cert_common_names"] for s in acl["subjects"]] == [[r] for r in ROLES]
     puts = {rule["id"].removesuffix("-put"): rule["key_exprs"] for rule in acl["rules"] if rule["id"].endswith("-put")}
-    assert puts["controller"] == ["dovesei/*/cmd", "dovesei/*/status", "dovesei/*/state"]
+    # The controller also publishes each close look (the crop and its heatmap) for the operator.
+    assert puts["controller"] == ["dovesei/*/cmd", "dovesei/*/status", "dovesei/*/state", "dovesei/*/look"]
+    assert [r for r, ks in puts.items() if "dovesei/*/look" in ks] == ["controller"]
+    # Crops are asked for by the controller alone and answered by whatever holds the camera.
+    asks = {rule["id"].removesuffix("-ask"): rule["key_exprs"] for rule in acl["rules"] if rule["id"].endswith("-ask")}
+    answers = {rule["id"].removesuffix("-queryable"): rule["key_exprs"] for rule in acl["rules"]
+               if rule["id"].endswith("-queryable")}
+    assert [r for r, ks in asks.items() if "dovesei/*/crop" in ks] == ["controller"]
+    assert sorted(r for r, ks in answers.items() if "dovesei/*/crop" in ks) == ["camera", "sim"]
     assert puts["segmenter"] == ["dovesei/*/heatmap"]
     assert "dovesei/*/cmd" not in [k for r, ks in puts.items() if r != "controller" for k in ks]
     assert [r for r, ks in puts.items() if "dovesei/*/episode" in ks] == ["sim"]
