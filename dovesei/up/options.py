@@ -324,7 +324,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--after-failure-s", type=float, default=5.0,
                    help="after a service dies or hangs, keep recording this long before stopping the others")
     p.add_argument("--stall-s", type=float, default=8.0,
-                   help="report a service as hung when its stream is silent this many wall seconds")
+                   help="report a service as hung when its stream is silent this many wall seconds "
+                        "(one still using CPU through the silence, slow on a loaded host, gets 6 times this)")
     p.add_argument("--log-level", default="INFO", choices=LOG_LEVELS)
     return p
 

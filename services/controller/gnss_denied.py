@@ -132,12 +132,20 @@ class OdometryLimits:
 
 
 class OdometryGate:
-    """The newest visual velocity and whether it may be flown on now (not thread-safe: one owner)."""
+    """The newest visual velocity and whether the source may be flown on now (not thread-safe: one owner).
+
+    The source is trusted while a good sample (fresh, valid, confident) came within `max_age_s`:
+    one noisy frame pair is not a lost source. Judging the newest sample alone stopped a SITL
+    descent at 75-82 m for ten minutes: a pair over `max_var_m2_s2` every few frames flipped the
+    trust off again and again, though the EKF only ever received the good ones.
+    """
 
     def __init__(self, limits: OdometryLimits | None = None) -> None:
         self.limits = limits if limits is not None else OdometryLimits()
         self._newest: VisualOdometry | None = None
         self._recv_s = 0.0
+        self._good: VisualOdometry | None = None  # the newest good sample and when it came
+        self._good_recv_s = 0.0
 
     def add(self, odom: VisualOdometry, recv_s: float) -> bool:
         """Keep `odom` if it is newer than the one held; True when kept."""
@@ -145,32 +153,45 @@ class OdometryGate:
                 self._newest.stamp.t_s:
             return False  # a duplicate or a reordered older sample
         self._newest, self._recv_s = odom, float(recv_s)
+        if not self._fault(odom):
+            self._good, self._good_recv_s = odom, float(recv_s)
         return True
 
     @property
     def newest(self) -> VisualOdometry | None:
         return self._newest
 
+    def _fault(self, odom: VisualOdometry) -> str:
+        """Why this sample may not be flown on ('' when it may)."""
+        lim = self.limits
+        if not odom.valid:
+            return f"visual velocity invalid (quality {odom.quality:.2f})"
+        if odom.quality < lim.min_quality:
+            return f"visual velocity quality {odom.quality:.2f} below {lim.min_quality:g}"
+        if odom.vel_var_m2_s2 > lim.max_var_m2_s2:
+            return f"visual velocity variance {odom.vel_var_m2_s2:.2f} m2/s2 above {lim.max_var_m2_s2:g}"
+        return ""
+
+    def sample_good(self, odom: VisualOdometry) -> bool:
+        """May this one sample be sent on (valid, confident)? Freshness is the receiver's to judge."""
+        return not self._fault(odom)
+
     def judge(self, now_s: float) -> tuple[bool, str]:
-        """(good, why not) for the newest sample at `now_s` on the receiver's clock."""
+        """(good, why not) at `now_s` on the receiver's clock: a good sample within `max_age_s`."""
         odom, lim = self._newest, self.limits
         if odom is None:
             return False, "no visual velocity received"
+        if self._good is not None and now_s - self._good_recv_s <= lim.max_age_s:
+            return True, ""
         age_s = now_s - self._recv_s
         if age_s > lim.max_age_s:
             return False, f"visual velocity {age_s:.1f} s old (limit {lim.max_age_s:g} s)"
-        if not odom.valid:
-            return False, f"visual velocity invalid (quality {odom.quality:.2f})"
-        if odom.quality < lim.min_quality:
-            return False, f"visual velocity quality {odom.quality:.2f} below {lim.min_quality:g}"
-        if odom.vel_var_m2_s2 > lim.max_var_m2_s2:
-            return False, f"visual velocity variance {odom.vel_var_m2_s2:.2f} m2/s2 above {lim.max_var_m2_s2:g}"
-        return True, ""
+        return False, f"{self._fault(odom)} (no good sample for {lim.max_age_s:g} s)"
 
     def velocity(self, now_s: float) -> tuple[float, float, float] | None:
-        """The newest body FRD velocity when it is good at `now_s`, else None."""
+        """The newest good sample's body FRD velocity while the source is trusted at `now_s`, else None."""
         good, _ = self.judge(now_s)
-        return self._newest.vel_body_frd_m_s if good and self._newest is not None else None
+        return self._good.vel_body_frd_m_s if good and self._good is not None else None
 
 
 class NavJudge:

@@ -88,11 +88,26 @@ def test_odometry_gate_refuses_stale_invalid_poor_and_noisy_samples() -> None:
     assert not good and "old" in why and gate.velocity(10.6) is None
     assert not gate.add(odom(1), 11.0), "a duplicate is not newer"
     assert gate.add(odom(2, valid=False), 11.0)
-    assert gate.judge(11.0) == (False, "visual velocity invalid (quality 0.00)")
+    assert gate.judge(11.0) == (False, "visual velocity invalid (quality 0.00) (no good sample for 0.5 s)")
     assert gate.add(odom(3, quality=0.3), 11.1)
     assert "quality 0.30 below 0.5" in gate.judge(11.1)[1]
     assert gate.add(odom(4, var=2.0), 11.2)
     assert "variance" in gate.judge(11.2)[1]
+    assert not gate.sample_good(odom(5, var=2.0)) and gate.sample_good(odom(5))
+
+
+def test_one_noisy_pair_among_good_ones_keeps_the_source_trusted() -> None:
+    # SITL, GPS cut at 80 m: a pair over the variance limit every few frames flipped the trust off
+    # (no descent) again and again for ten minutes, though the EKF only received the good ones.
+    gate = OdometryGate(OdometryLimits(max_age_s=0.5, min_quality=0.5, max_var_m2_s2=1.0))
+    for k in range(30):
+        gate.add(odom(k, var=2.9 if k % 3 == 2 else 0.3), 10.0 + 0.1 * k)
+        assert gate.judge(10.0 + 0.1 * k + 0.05) == (True, ""), k
+        assert gate.velocity(10.0 + 0.1 * k + 0.05) == (1.0, 0.0, 0.0)
+    for k in range(30, 36):  # then only noisy ones: trusted for 0.5 s after the last good one, no longer
+        gate.add(odom(k, var=2.9), 10.0 + 0.1 * k)
+    good, why = gate.judge(13.55)
+    assert not good and "variance 2.90" in why and gate.velocity(13.55) is None
 
 
 def test_judge_per_mode_after_a_gnss_loss() -> None:

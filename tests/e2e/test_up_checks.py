@@ -25,7 +25,8 @@ from dovesei.shared.messages import CameraFrame, ControllerStatus, EpisodeResult
 from dovesei.shared.zconfig import free_port
 from dovesei.up import EXIT_FAILED, EXIT_OK, EXIT_UNSAFE, UpOptions, build_report, exit_code
 from dovesei.up.monitor import Recorder, Sample
-from dovesei.up.watch import Watcher, stalled_service, stream_owners
+from dovesei.up.watch import (CpuHistory, Watcher, busy_through, process_cpu_s, result_is_consistent, stalled_service,
+                               stream_owners)
 
 REPO = Path(__file__).resolve().parents[2]
 WORLD = "synthetic:size_m=400,seed=1"
@@ -279,6 +280,16 @@ def test_the_sims_result_is_taken_once_it_has_ended_its_run(tmp_path: Path) -> N
     assert end.failure.child == "sim"
 
 
+def test_a_result_judged_at_the_sitl_truth_may_lie_where_the_estimate_drifted_from() -> None:
+    # SITL external-nav: the judge had SIMSTATE's true pose 16.8 m from the EKF's last state.
+    rec = Recorder((1.0, 2.0, 100.0), video=False)
+    rec.handle(Sample("state", time.time(), encode(_state(0, 0.0))))
+    drifted, forged = _result("safe", x_m=1.0 + 16.8), _result("safe", x_m=300.0)
+    assert "16.8 m from the vehicle's last recorded state" in result_is_consistent(rec, drifted)
+    assert result_is_consistent(rec, drifted, judged_at_truth=True) == ""
+    assert "more than 100 m" in result_is_consistent(rec, forged, judged_at_truth=True)
+
+
 def test_the_service_whose_stream_went_quiet_first_is_named() -> None:
     rec = Recorder((1.0, 2.0, 100.0), video=False)
     owners = stream_owners(UpOptions(world=WORLD))
@@ -333,12 +344,51 @@ def test_the_watcher_ends_the_run_naming_a_silent_service(tmp_path: Path) -> Non
             return 0
 
     t0 = time.monotonic()
+    idle = lambda pid: 1.0  # noqa: E731 - no CPU used: stuck, not slow
     end = Watcher(UpOptions(world=WORLD, out=tmp_path, stall_s=1.0, after_failure_s=0.5), rec, _Fresh(),
-                  _Children(tmp_path, sim_running=True), threading.Event(), t0).run()
+                  _Children(tmp_path, sim_running=True), threading.Event(), t0, cpu_s=idle).run()
     assert end.failure is not None and end.failure.child == "segmenter" and end.failure.returncode is None
     assert "segmenter (pid 12) hung: no heatmap message for" in end.failure.message
-    assert "still visible" in end.failure.message
+    assert "still visible" in end.failure.message and "limit --stall-s 1)" in end.failure.message
     assert 0.5 <= time.monotonic() - t0 < 5.0  # found at once (the heatmap was already 2 s old) + 0.5 s after
+
+
+def test_a_silent_service_still_computing_is_slow_not_hung_until_six_stalls(tmp_path: Path) -> None:
+    # On an overloaded host one heatmap took 23 s of wall time: `up` called a working segmenter hung.
+    rec = Recorder((1.0, 2.0, 100.0), video=False)
+    rec.first_state_wall_s = time.time() - 60.0
+    for topic in ("state", "status", "heatmap", "camera"):
+        rec.last_recv_wall_s[topic] = time.time()
+    t0 = time.monotonic()
+    busy = lambda pid: time.monotonic() - t0 if pid == 12 else 1.0  # noqa: E731 - a whole core
+
+    class _Fresh(_Monitor):
+        def drain(self) -> int:  # everything but the segmenter goes on
+            for topic in ("state", "status", "camera"):
+                rec.last_recv_wall_s[topic] = time.time()
+            return 0
+
+    end = Watcher(UpOptions(world=WORLD, out=tmp_path, stall_s=0.5, after_failure_s=0.0), rec, _Fresh(),
+                  _Children(tmp_path, sim_running=True), threading.Event(), t0, cpu_s=busy).run()
+    waited = time.monotonic() - t0
+    assert end.failure is not None and end.failure.child == "segmenter"
+    assert "6 x --stall-s 0.5, still computing" in end.failure.message
+    assert 6 * 0.5 <= waited < 10.0  # not after 0.5 s: after six times that
+
+
+def test_cpu_history_tells_the_cpu_used_over_a_silence() -> None:
+    cpu = {1: 0.0}
+    history = CpuHistory(lambda pid: cpu.get(pid))
+    for t in range(5):
+        cpu[1] = 0.2 * t
+        history.sample({"segmenter": 1, "gone": 2}, 100.0 + t)
+    cpu[1] = 1.0
+    assert history.used_since("segmenter", 1, 101.5, 105.0) == pytest.approx((0.8, 4.0))  # from the sample at 101
+    assert history.used_since("segmenter", 1, 90.0, 105.0) == pytest.approx((1.0, 5.0))  # from the oldest
+    assert history.used_since("gone", 2, 103.0, 105.0) is None
+    assert busy_through((0.6, 3.0)) and not busy_through((0.1, 3.0)) and not busy_through(None)
+    assert not busy_through((0.4, 20.0))  # 2 % of a core over 20 s: idle polling, not work
+    assert process_cpu_s(os.getpid()) is not None and process_cpu_s(2 ** 22 + 7) is None
 
 
 def test_a_run_that_fails_before_writing_leaves_no_folder(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

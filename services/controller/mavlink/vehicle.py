@@ -449,7 +449,8 @@ class MavlinkVehicle:
         with self._lock:
             if not self._odometry.add(odom, now):
                 return
-            good, _ = self._odometry.judge(now)
+            # Only a good sample goes to the EKF (one over the variance limit is dropped, not sent).
+            good = self._odometry.sample_good(odom)
             attitude = self._attitude_rad if self._attitude_s is not None else None
             ground = self._ground_vision_locked()
         if self.gnss_denied != "external-nav" or not good or self.read_only or self._target is None:
