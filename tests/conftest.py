@@ -13,6 +13,10 @@ import pytest
 # Nothing in the tests may reach for the network (a failed hub lookup hangs ~30 s).
 os.environ.setdefault("HF_HUB_OFFLINE", "1")
 os.environ.setdefault("TRANSFORMERS_OFFLINE", "1")
+# One intra-op thread for torch (and the services the tests start, which inherit it): the README's
+# `-n 2` already puts a test on each core, and two OpenMP threads per process on a loaded 2-core
+# machine spin at their barriers: the tiny CLIPSeg took 1.33 s a frame with two, 0.12 s with one.
+os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 
 from dovesei.shared.zconfig import free_port  # noqa: E402  (re-exported for the test tiers)

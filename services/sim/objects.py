@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, fields
+from functools import cached_property
 
 import cv2
 import numpy as np
@@ -186,9 +187,11 @@ class ObjectLayer:
 
     def draw(self, image: np.ndarray | None, labels: np.ndarray | None, world_m_to_px: np.ndarray, t_s: float,
              label_ids: tuple[int, int], *, shadow_per_m: tuple[float, float] = (0.0, 0.0),
-             valid: np.ndarray | None = None, skip_baked: bool = False, baked_labels: bool = True) -> int:
+             valid: np.ndarray | None = None, skip_baked: bool = False, baked_labels: bool = True,
+             cull: bool = True) -> int:
         """Paint the objects visible in a view into its image (RGB uint8, anti-aliased, in place) and
-        labels (class ids, in place; `label_ids` = (person id, vehicle id)); returns how many were drawn.
+        labels (class ids, in place; `label_ids` = (person id, vehicle id)); returns how many were
+        placed in or near the view.
 
         `world_m_to_px` maps world metres to the view's pixels (module docstring). Detail follows
         the view's own scale: at centimetres a person has shoulders, head and shadow, a car its
@@ -198,11 +201,30 @@ class ObjectLayer:
         `skip_baked`: leave out the objects the world's texture already holds (a view no finer
         than the texture). `baked_labels` False: paint those into the image only, their labels
         being the world's label map's own (which the judge and the camera's labels read).
+        `cull` False: place every object of the world before choosing the visible ones (the same
+        pixels, slower; for tests of the culling).
         """
         h_px, w_px = (image.shape[:2] if image is not None else labels.shape if labels is not None else (0, 0))
         if not len(self) or not h_px:
             return 0
         m = np.asarray(world_m_to_px, np.float64)
+        # Only the objects whose paths come near the view are placed and tested (a world holds
+        # thousands, a view a few dozen); the test below then picks the same ones as over all.
+        near = self._near_view(m, w_px, h_px, skip_baked) if cull else None
+        if near is None:
+            return self._draw_rows(image, labels, m, t_s, label_ids, shadow_per_m, valid, skip_baked, baked_labels,
+                                   np.arange(len(self)))
+        if not near.size:
+            return 0
+        return self._rows(near)._draw_rows(image, labels, m, t_s, label_ids, shadow_per_m, valid, skip_baked,
+                                           baked_labels, near)
+
+    def _draw_rows(self, image: np.ndarray | None, labels: np.ndarray | None, m: np.ndarray, t_s: float,
+                   label_ids: tuple[int, int], shadow_per_m: tuple[float, float], valid: np.ndarray | None,
+                   skip_baked: bool, baked_labels: bool, origin: np.ndarray) -> int:
+        """`draw` over this layer's every object; `origin`: each one's index in the world's layer
+        (its looks, such as the colour of its hair, follow that index)."""
+        h_px, w_px = (image.shape[:2] if image is not None else labels.shape)
         st = self.at(t_s)
         pc = _project(m, np.stack([st.x_m, st.y_m], 1))
         # Pixels per metre at each object (from the map's local Jacobian: exact for an affine view).
@@ -213,6 +235,10 @@ class ObjectLayer:
         if skip_baked:
             show &= ~self.baked
         idx = np.flatnonzero(show)
+        # Nothing on or behind the camera's plane is in its view, but such an object projects
+        # through infinity to a huge reach and a polygon OpenCV fills as a band across the whole
+        # view (a full column of "person" labels in a third of a tilted flight's frames, measured).
+        idx = idx[self._in_front(idx, st, m)]
         if not idx.size:
             return 0
         keep_img = image[~valid].copy() if (image is not None and valid is not None and not valid.all()) else None
@@ -225,7 +251,7 @@ class ObjectLayer:
             bodies = self._outlines(sel, st, local)  # (n, V, 2) world metres
             body_px = _fixed(_project(m, bodies.reshape(-1, 2))).reshape(len(sel), -1, 1, 2)
             if image is not None:
-                self._paint(image, m, st, sel, kind, bodies, body_px, ppm[sel], (sx, sy))
+                self._paint(image, m, st, sel, kind, bodies, body_px, ppm[sel], (sx, sy), origin)
             if labels is not None and not baked_labels:
                 sel, bodies, body_px = sel[~self.baked[sel]], bodies[~self.baked[sel]], body_px[~self.baked[sel]]
             if labels is not None and sel.size:
@@ -243,8 +269,82 @@ class ObjectLayer:
             labels[~valid] = keep_lab
         return int(idx.size)
 
+    # --- culling ------------------------------------------------------------------------
+
+    @cached_property
+    def _path_box_m(self) -> np.ndarray:
+        """(4, N) world box (west, east, south, north) of every place each object can be: its path
+        from the start to the far end, 1 m wider all round (the positions are computed in floating point)."""
+        far_x = self.x_m + self.path_m * np.sin(self.heading_rad)
+        far_y = self.y_m + self.path_m * np.cos(self.heading_rad)
+        return np.stack([np.minimum(self.x_m, far_x) - 1.0, np.maximum(self.x_m, far_x) + 1.0,
+                         np.minimum(self.y_m, far_y) - 1.0, np.maximum(self.y_m, far_y) + 1.0])
+
+    @cached_property
+    def _reach_m(self) -> float:
+        """The largest half-diagonal of an object (m): how far its outline reaches from its centre."""
+        return float(0.5 * np.hypot(self.length_m, self.width_m).max())
+
+    def _near_view(self, m: np.ndarray, w_px: int, h_px: int, skip_baked: bool) -> np.ndarray | None:
+        """Indices (ascending) of the objects whose paths meet the world box of what `_draw_rows`
+        could show in a w x h view: every object it draws that is in front of the camera and
+        reaches into the view. None: the margin such a box needs reaches the horizon; draw over all.
+
+        `_draw_rows` paints an object's outline and shadow, (half-diagonal + 3 m) about its centre
+        (its `reach`). Let M be a margin (pixels) and S a bound on the pixels per metre, in any
+        direction, over the view widened by M: when (largest half-diagonal + 3 m) x S + 2 <= M, an
+        object whose centre lies beyond the widened view would have to cross a band M pixels wide,
+        at least M / S metres, to paint a pixel of the view, and none reaches that far. The widened
+        view is a convex quadrilateral on the ground while it stays below the horizon, so its
+        world box holds every centre that can paint. Pixel p = (A x + t) / w moves by
+        |A e - p m_e| / w per metre along e (east or north; m_e the map's perspective entry): the
+        numerator is convex in p and 1 / w affine, so both are largest at the quadrilateral's
+        corners and S comes from the four corners alone (exact for an affine view).
+        """
+        inv = np.linalg.inv(m)
+        margin_px = 2.0
+        for _ in range(6):
+            corners = np.array([(-margin_px, -margin_px), (w_px + margin_px, -margin_px),
+                                (-margin_px, h_px + margin_px), (w_px + margin_px, h_px + margin_px)])
+            z = corners @ inv[2, :2] + inv[2, 2]  # 1 / w at each corner
+            if (z <= 0.0).any():
+                return None  # past the horizon: points behind the camera project into the margin
+            # |dp/de| = |A e - p m_e| / w: each factor largest at a corner (module docstring of the
+            # method); the two directions' bounds give one for any direction (Frobenius norm).
+            per_m = math.hypot(*(np.hypot(m[0, e] - corners[:, 0] * m[2, e], m[1, e] - corners[:, 1] * m[2, e]).max()
+                                 for e in (0, 1))) * float(z.max())
+            need_px = (self._reach_m + 3.0) * per_m + 2.0
+            if need_px <= margin_px:
+                break
+            margin_px = 1.2 * need_px
+        else:
+            return None
+        ground = corners @ inv[:2, :2].T + inv[:2, 2]
+        ground /= z[:, None]
+        west, east, south, north = ground[:, 0].min(), ground[:, 0].max(), ground[:, 1].min(), ground[:, 1].max()
+        box = self._path_box_m
+        near = (box[0] <= east) & (box[1] >= west) & (box[2] <= north) & (box[3] >= south)
+        if skip_baked:
+            near &= ~self.baked
+        return np.flatnonzero(near)
+
+    def _rows(self, idx: np.ndarray) -> "ObjectLayer":
+        """The objects at `idx`, unchecked (a view of a checked layer for drawing; `subset` checks)."""
+        rows = object.__new__(ObjectLayer)
+        for f in fields(self):
+            object.__setattr__(rows, f.name, getattr(self, f.name)[idx])
+        return rows
+
+    def _in_front(self, idx: np.ndarray, st: ObjectStates, m: np.ndarray) -> np.ndarray:
+        """Whether each object at `idx`, its shadow's 3 m included, lies wholly in front of the
+        camera's plane (w > 0 over the box of its reach: w is affine in world metres)."""
+        r = 0.5 * np.hypot(self.length_m[idx], self.width_m[idx]) + 3.0
+        w = st.x_m[idx] * m[2, 0] + st.y_m[idx] * m[2, 1] + m[2, 2]
+        return w - r * (abs(m[2, 0]) + abs(m[2, 1])) > 0.0
+
     def _paint(self, image: np.ndarray, m: np.ndarray, st: ObjectStates, sel: np.ndarray, kind: int,
-               bodies: np.ndarray, body_px: np.ndarray, ppm: np.ndarray, shadow: tuple[float, float]) -> None:
+               bodies: np.ndarray, body_px: np.ndarray, ppm: np.ndarray, shadow: tuple[float, float],
+               origin: np.ndarray) -> None:
         """Shadows, bodies and, where an object spans ~6 px or more, its parts (head, windows)."""
         sx, sy = shadow
         height = PERSON_HEIGHT_M if kind == PERSON else VEHICLE_HEIGHT_M
@@ -258,7 +358,7 @@ class ObjectLayer:
             if kind == PERSON and across_px >= 6.0:
                 # Seen from above: shoulders deeper than wide, a head of hair, a glimpse of face.
                 one = np.array([i])
-                for local, colour in ((_DISC * (0.55, 1.0), rgb), (_DISC * 0.36, _HAIR[i % len(_HAIR)]),
+                for local, colour in ((_DISC * (0.55, 1.0), rgb), (_DISC * 0.36, _HAIR[origin[i] % len(_HAIR)]),
                                       (_DISC * 0.2 + (0.12, 0.0), _SKIN)):
                     part = self._outlines(one, st, local)[0]
                     cv2.fillPoly(image, [_fixed(_project(m, part))], colour, cv2.LINE_AA, _SHIFT)
@@ -314,8 +414,12 @@ def empty_layer() -> ObjectLayer:
 
 
 def _project(m: np.ndarray, pts_m: np.ndarray) -> np.ndarray:
-    """(n, 2) world metres -> (n, 2) output pixels (col, row) through a 3x3 map."""
-    h = pts_m @ m[:, :2].T + m[:, 2]
+    """(n, 2) world metres -> (n, 2) output pixels (col, row) through a 3x3 map.
+
+    Element by element, not a matrix product: BLAS rounds a product's rows differently with the
+    number of rows, and a culled view must place each object exactly as the whole layer would."""
+    x, y = pts_m[:, 0:1], pts_m[:, 1:2]
+    h = x * m[:, 0] + y * m[:, 1] + m[:, 2]
     return h[:, :2] / h[:, 2:3]
 
 
@@ -348,10 +452,11 @@ class Population:
     shadow_per_m: tuple[float, float] = (0.0, 0.0)  # ground offset (east, north) per metre of height
 
     def draw(self, image: np.ndarray | None, labels: np.ndarray | None, world_m_to_px: np.ndarray, t_s: float,
-             valid: np.ndarray | None = None, skip_baked: bool = False, baked_labels: bool = True) -> int:
+             valid: np.ndarray | None = None, skip_baked: bool = False, baked_labels: bool = True,
+             cull: bool = True) -> int:
         """`ObjectLayer.draw` with this world's label ids and sun."""
         return self.layer.draw(image, labels, world_m_to_px, t_s, self.label_ids, shadow_per_m=self.shadow_per_m,
-                               valid=valid, skip_baked=skip_baked, baked_labels=baked_labels)
+                               valid=valid, skip_baked=skip_baked, baked_labels=baked_labels, cull=cull)
 
     def nearest_m(self, x_m: float, y_m: float, t_s: float) -> tuple[float | None, float | None]:
         """(nearest person, nearest vehicle) footprint distances from a ground point at t_s (None: none)."""

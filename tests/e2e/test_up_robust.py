@@ -76,7 +76,7 @@ def test_up_flies_when_its_ports_are_taken_before_they_are_bound(tmp_path: Path,
 
     monkeypatch.setattr(up, "free_port", racy_free_port)
     options = options_from_args(build_parser().parse_args([
-        "--world", WORLD, "--segmenter", "sim", "--start", "200,200,35", "--time-limit-s", "20", "--no-video",
+        "--world", WORLD, "--segmenter", "sim", "--start", "200,200,35", "--time-limit-s", "10", "--no-video",
         "--no-record", "--out", str(tmp_path / "run")]))
     caplog.set_level(logging.INFO, logger="dovesei.up")
     try:

@@ -25,7 +25,7 @@ WORLD = "synthetic:size_m=400,seed=1"
 def test_up_records_and_the_recording_replays_to_the_same_decisions(tmp_path: Path) -> None:
     out = tmp_path / "run"
     argv = [sys.executable, "-m", "dovesei.cli", "up", "--world", WORLD, "--segmenter", "sim", "--start", "200,200,35",
-            "--time-limit-s", "20", "--no-video", "--rrd", str(tmp_path / "live.rrd"), "--out", str(out)]
+            "--time-limit-s", "12", "--no-video", "--rrd", str(tmp_path / "live.rrd"), "--out", str(out)]
     proc = subprocess.run(argv, cwd=REPO, capture_output=True, text=True, timeout=240,
                           env={**os.environ, "HF_HUB_OFFLINE": "1"})
     assert proc.returncode in (0, 3), proc.stderr[-3000:]

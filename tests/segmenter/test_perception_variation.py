@@ -149,9 +149,14 @@ def test_the_corner_table_gives_the_per_point_hash_values() -> None:
     z = np.full_like(x, 2.3)
     keys = np.arange(5, dtype=np.int64).reshape(-1, 1, 1) * 977
     ix, iy, iz = (np.floor(a).astype(np.int64) for a in (x, y, z))
-    corner = sim_backend._corner_table(ix, iy, iz, keys)
-    for d in ((0, 0, 0), (1, 0, 1), (1, 1, 1)):
-        assert np.array_equal(corner(*d), sim_backend._hash_unit(ix + d[0], iy + d[1], iz + d[2], keys))
+    corners = sim_backend._corner_table(ix, iy, iz, keys)
+    assert corners.shape == (8, 5, 16, 16)
+    for k, d in enumerate(sim_backend._CORNERS):
+        assert np.array_equal(corners[k], sim_backend._hash_unit(ix + d[0], iy + d[1], iz + d[2], keys))
+    # Points spread over a box too large to tabulate are hashed per point, to the same values.
+    far = sim_backend._corner_table(ix * 50, iy, iz, keys)
+    for k, d in enumerate(sim_backend._CORNERS):
+        assert np.array_equal(far[k], sim_backend._hash_unit(ix * 50 + d[0], iy + d[1], iz + d[2], keys))
 
 
 # --- inside the real statistics -----------------------------------------------------------------

@@ -167,3 +167,100 @@ def test_a_labelled_world_folder_gets_people_and_cars_by_the_same_rules() -> Non
 def test_an_empty_layer_draws_nothing() -> None:
     img = np.zeros((10, 10, 3), np.uint8)
     assert empty_layer().draw(img, None, np.eye(3), 0.0, (1, 2)) == 0 and not img.any()
+
+
+def _edge_layer(world: World) -> ObjectLayer:
+    """The strip world's population plus people and cars placed across the edges of the test views."""
+    extra = []
+    for i, (x, y) in enumerate([(100.0 + dx, 100.0 + dy) for dx in (-30.0, -18.3, 0.0, 17.9, 29.6)
+                                for dy in (-29.8, -17.6, 18.1, 30.2)]):
+        kind = VEHICLE if i % 3 == 0 else PERSON
+        size = (4.5, 1.8) if kind == VEHICLE else (0.55, 0.55)
+        extra.append((kind, x, y, 0.3 * i, 1.3 if i % 2 else 0.0, 6.0 if i % 2 else 0.0, 0.7 * i, *size,
+                      (30 + 7 * i, 200 - 5 * i, 90), False))
+    return world.population.layer.concat(ObjectLayer.build(extra))
+
+
+@pytest.mark.parametrize("pose", [
+    # (x_m, y_m, alt_m, yaw_rad, roll_rad, pitch_rad, t_s): nadir high and low, tilted both ways.
+    (100.0, 100.0, 100.0, 0.0, 0.0, 0.0, 0.0),
+    (100.0, 100.0, 40.0, 0.7, 0.0, 0.0, 12.5),
+    (96.0, 104.0, 20.0, -2.1, 0.0, 0.0, 33.0),
+    (100.0, 100.0, 45.0, 0.4, 0.3, -0.25, 7.0),
+    (103.0, 98.0, 25.0, 2.9, -0.35, 0.2, 51.0),
+    (100.0, 100.0, 60.0, -1.0, 0.5, 0.4, 90.0),
+    (12.0, 190.0, 30.0, 1.2, 0.2, 0.1, 3.0),  # over the world's corner: part of the view is beyond it
+])
+def test_the_culled_drawing_is_pixel_equal_to_placing_every_object(pose) -> None:
+    from dovesei.sim.camera import pixel_to_world_affine, pixel_to_world_homography, world_m_to_output_px
+
+    world = _strip_world()
+    pop = Population(_edge_layer(world), (PERSON_ID, CAR), shadow_per_m=(0.4, -0.3))
+    x, y, alt, yaw, roll, pitch, t = pose
+    cam = CameraModel()
+    m0 = pixel_to_world_affine(world, x, y, alt, yaw, cam) if roll == pitch == 0.0 else \
+        pixel_to_world_homography(world, x, y, alt, yaw, roll, pitch, cam)
+    m = world_m_to_output_px(world, m0)
+    base_img = np.random.default_rng(1).integers(0, 255, (cam.height_px, cam.width_px, 3), dtype=np.uint8)
+    base_lab = np.full((cam.height_px, cam.width_px), GRASS, np.uint8)
+    out = {}
+    for cull in (True, False):
+        for baked_labels in (True, False):
+            img, lab = base_img.copy(), base_lab.copy()
+            n = pop.draw(img, lab, m, t, skip_baked=False, baked_labels=baked_labels, cull=cull)
+            out[cull, baked_labels] = (n, img, lab)
+    for baked_labels in (True, False):
+        (n_c, img_c, lab_c), (n_a, img_a, lab_a) = out[True, baked_labels], out[False, baked_labels]
+        # Placing every object also counts ones just in front of the camera's plane, far behind
+        # the view, whose huge scale there stretches their reach over it: they paint nothing.
+        assert 0 < n_c <= n_a
+        assert np.array_equal(img_c, img_a) and np.array_equal(lab_c, lab_a)
+    # Objects straddling the view's edge are drawn (some pixels, not all of them, inside the view).
+    assert (out[True, True][2] == PERSON_ID).any() or (out[True, True][2] == CAR).any()
+    # And the cull left part of the world out (the 100 m view sees nearly all of this 200 m world);
+    # a view tilted 37 deg needs a margin up to the horizon and is drawn over every object.
+    near = pop.layer._near_view(np.asarray(m, np.float64), cam.width_px, cam.height_px, False)
+    if math.hypot(roll, pitch) < 0.6:
+        assert near is not None and (alt >= 100.0 or near.size < 0.8 * len(pop.layer))
+
+
+def test_a_crop_draws_the_same_culled_or_not() -> None:
+    from dovesei.sim.camera import pixel_to_world_affine, world_m_to_output_px
+
+    world = _strip_world()
+    pop = Population(_edge_layer(world), (PERSON_ID, CAR), shadow_per_m=(0.4, -0.3))
+    for cx, cy, yaw, t in ((100.0, 100.0, 0.3, 4.0), (117.9, 82.4, -1.4, 20.0), (70.0, 129.8, 2.0, 0.0)):
+        side_m, px = 10.0, 356  # a close look: 2.8 cm per pixel
+        cam = CameraModel(px, px, 73.0)
+        m = world_m_to_output_px(world, pixel_to_world_affine(world, cx, cy, side_m / (2 * math.tan(math.radians(36.5))),
+                                                              yaw, cam))
+        imgs = []
+        for cull in (True, False):
+            img = np.full((px, px, 3), 120, np.uint8)
+            lab = np.full((px, px), GRASS, np.uint8)
+            imgs.append((pop.draw(img, lab, m, t, cull=cull), img, lab))
+        assert imgs[0][0] == imgs[1][0]
+        assert np.array_equal(imgs[0][1], imgs[1][1]) and np.array_equal(imgs[0][2], imgs[1][2])
+
+
+def test_people_on_the_cameras_plane_paint_no_band_across_a_tilted_view() -> None:
+    """A person where the tilted camera's plane meets the ground projects through infinity; drawn,
+    OpenCV fills that outline as a band across the whole view. Nothing there is in the view."""
+    from dovesei.sim.camera import pixel_to_world_homography, world_m_to_output_px
+
+    world = _strip_world()
+    cam = CameraModel()
+    m = world_m_to_output_px(world, pixel_to_world_homography(world, 100.0, 100.0, 30.0, 0.4, 0.2, 0.1, cam))
+    # Points on w = 0 along the line m[2] . (x, y, 1) = 0, across the world.
+    a, b, c = m[2]
+    rows = []
+    for x in np.linspace(-100.0, 300.0, 81):
+        y = -(a * x + c) / b
+        rows.append((PERSON, float(x), float(y), 0.3, 0.0, 0.0, 0.0, 0.55, 0.55, (200, 40, 40), False))
+    pop = Population(ObjectLayer.build(rows), (PERSON_ID, CAR))
+    for cull in (True, False):
+        lab = np.full((cam.height_px, cam.width_px), GRASS, np.uint8)
+        img = np.zeros((cam.height_px, cam.width_px, 3), np.uint8)
+        with np.errstate(divide="ignore", invalid="ignore"):  # the centres project to infinity
+            pop.draw(img, lab, m, 0.0, cull=cull)
+        assert (lab == GRASS).all() and not img.any()

@@ -112,10 +112,11 @@ def test_up_flies_it_with_clipseg_and_does_not_judge(server: TileServer, tmp_pat
     spec = f"paper-paris:start=1,extent_m=300,url={local_url(server)}"
     env = {**os.environ, "PYTHONUNBUFFERED": "1", "HF_HUB_OFFLINE": "1", "DOVESEI_CACHE": str(tmp_path / "cache")}
     argv = [sys.executable, "-m", "dovesei.cli", "up", "--world", spec, "--segmenter", "clipseg", "--model",
-            str(model), "--time-limit-s", "3", "--no-video", "--no-record", "--out", str(out)]
+            str(model), "--time-limit-s", "1", "--no-video", "--no-record", "--out", str(out)]
     proc = subprocess.run(argv, cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
     report = json.loads((out / "report.json").read_text())
-    # Exit 3: the run ended (a 3 s limit from 100 m: a timeout), and nothing on it was judged safe.
+    # Exit 3: the run ended (a 1 s limit from 100 m, 20 CLIPSeg frames: a timeout), and nothing on it
+    # was judged safe.
     assert proc.returncode == 3, proc.stderr[-3000:]
     assert report["outcome"] in ("timeout", "not_judged") and report["backend"] != "simulated"
     st = report["start"]
