@@ -89,6 +89,7 @@ _DATA_RATE_MARGIN = 1.05
 # stamp is refused. One forged past state used to re-anchor the clock, and every genuine state
 # after it was refused as "from the future" for good (dovesei faults, clock-skew).
 JUMP_CONFIRM_STATES = 3
+STAMP_EPS_S = 1e-6  # stamps closer than this are the same instant (0.05 * 19 is not 0.95 in floats)
 # A heatmap's capture altitude must be one a camera can see the ground from: below 1 m a nadir
 # camera sees a blur and the paper's policy declared LANDED at alt 0 (and -999).
 MIN_HEATMAP_ALT_M, MAX_HEATMAP_ALT_M = 1.0, 1000.0
@@ -378,7 +379,7 @@ class ControllerCore:
     def _maybe_new_episode(self, state: VehicleState) -> None:
         """Time running backwards is a new sim episode only in lockstep with a restarted state
         sequence; anywhere else it is a clock jump, and the policy goes on (never reset mid-flight)."""
-        if self._last_state_t_s is None or state.stamp.t_s >= self._last_state_t_s:
+        if self._last_state_t_s is None or state.stamp.t_s >= self._last_state_t_s - STAMP_EPS_S:
             return
         restarted = self._last_state_seq is not None and state.seq <= self._last_state_seq
         if self.config.lockstep and restarted:
@@ -410,7 +411,7 @@ class ControllerCore:
         """Real time: is the state behind the newest accepted one, on a timeline not yet confirmed by
         JUMP_CONFIRM_STATES consecutive states (stamps advancing as our own clock does)?"""
         last = self._last_state_t_s
-        if self.config.lockstep or last is None or state.stamp.t_s >= last:
+        if self.config.lockstep or last is None or state.stamp.t_s >= last - STAMP_EPS_S:
             self._jump_states.clear()
             return None
         seen, now = self._jump_states, self._mono()
