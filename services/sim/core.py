@@ -339,25 +339,10 @@ class SimCore:
         view (rendered from the world at that frame's TRUE pose; tagged, like the frame, with what
         the autopilot reported). CropRefused (one line) for a request a camera would refuse; the
         rate limit runs on sim time, so a lockstep episode stays deterministic."""
-        cfg, newest = self.config, self._newest
-        frame, (x_m, y_m, alt_m, yaw_rad, roll, pitch) = newest if newest is not None else (None, (0.0,) * 6)
-        width = cfg.crop_source_px
-        height = round(width * cfg.camera.height_px / cfg.camera.width_px)
-        plan = plan_crop(req, cfg.crop_limits, self._crop_rate, self.t_s if self.vehicle is not None else 0.0, vehicle_id=cfg.vehicle_id,
-                         newest_seq=None if frame is None else frame.seq, alt_agl_m=alt_m, roll_rad=roll,
-                         pitch_rad=pitch, width_px=width, height_px=height, hfov_rad=cfg.camera.hfov_rad)
-        fwd, right = req.centre_frd_m
-        c, s = math.cos(yaw_rad), math.sin(yaw_rad)
-        cx, cy = x_m + c * right + s * fwd, y_m + c * fwd - s * right  # as the renderer turns body into world
-        image, labels, _valid = render_ground_square(self.world, cx, cy, yaw_rad, req.side_m, req.out_px,
-                                                     with_image=cfg.render_image, with_labels=cfg.attach_truth,
-                                                     t_s=frame.stamp.t_s)  # people where they were at the capture
-        if image is None:
-            image = np.zeros((req.out_px, req.out_px, 3), np.uint8)
-        truth = GroundTruth(labels, self._classes, (cx, cy), self.world.name) if labels is not None else None
-        return CropFrame(cfg.vehicle_id, req.request_seq, frame.seq, frame.stamp, image, req.centre_frd_m, req.side_m,
-                         frame.alt_agl_m, plan.source_m_per_px, roll_rad=frame.roll_rad, pitch_rad=frame.pitch_rad,
-                         yaw_rad=frame.yaw_rad, sent_wall_s=wall_time_s(), truth=truth)
+        newest = self._newest
+        view = None if newest is None else (newest[0], newest[1], newest[0].stamp.t_s)
+        return crop_view(self.world, self.config, self._classes, self._crop_rate,
+                         self.t_s if self.vehicle is not None else 0.0, req, view)
 
     def _blank_image(self):
         if getattr(self, "_blank", None) is None:
@@ -368,6 +353,31 @@ class SimCore:
 
     def _episode_result(self, outcome: str, detail: str = "") -> EpisodeResult:
         return judge_result(self.config.vehicle_id, self.judge, outcome, detail, clock="sim")
+
+
+def crop_view(world: World, cfg: SimConfig, classes: tuple, rate: RateLimit, now_s: float, req: CropRequest,
+              view: tuple[CameraFrame, tuple[float, ...], float] | None) -> CropFrame:
+    """The crop `req` asks for from `view`: (the newest frame, the TRUE pose it was rendered at as
+    (x, y, alt, yaw, roll, pitch), the episode time its people stood at), None before any frame.
+    CropRefused (one line) for a request a camera would refuse; `rate` is checked at `now_s`."""
+    frame, (x_m, y_m, alt_m, yaw_rad, roll, pitch), people_t_s = view if view is not None else (None, (0.0,) * 6, 0.0)
+    width = cfg.crop_source_px
+    height = round(width * cfg.camera.height_px / cfg.camera.width_px)
+    plan = plan_crop(req, cfg.crop_limits, rate, now_s, vehicle_id=cfg.vehicle_id,
+                     newest_seq=None if frame is None else frame.seq, alt_agl_m=alt_m, roll_rad=roll,
+                     pitch_rad=pitch, width_px=width, height_px=height, hfov_rad=cfg.camera.hfov_rad)
+    fwd, right = req.centre_frd_m
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    cx, cy = x_m + c * right + s * fwd, y_m + c * fwd - s * right  # as the renderer turns body into world
+    image, labels, _valid = render_ground_square(world, cx, cy, yaw_rad, req.side_m, req.out_px,
+                                                 with_image=cfg.render_image, with_labels=cfg.attach_truth,
+                                                 t_s=people_t_s)  # people where they were at the capture
+    if image is None:
+        image = np.zeros((req.out_px, req.out_px, 3), np.uint8)
+    truth = GroundTruth(labels, classes, (cx, cy), world.name) if labels is not None else None
+    return CropFrame(cfg.vehicle_id, req.request_seq, frame.seq, frame.stamp, image, req.centre_frd_m, req.side_m,
+                     frame.alt_agl_m, plan.source_m_per_px, roll_rad=frame.roll_rad, pitch_rad=frame.pitch_rad,
+                     yaw_rad=frame.yaw_rad, sent_wall_s=wall_time_s(), truth=truth)
 
 
 def unstarted_result(world: World, start: Start, config: SimConfig, detail: str, clock: str = "sim") -> EpisodeResult:

@@ -48,9 +48,11 @@ from typing import Any, Protocol
 from dovesei.shared import keys
 from dovesei.shared.clock import WallClock, wall_time_s
 from dovesei.shared.lifecycle import Inbox
-from dovesei.shared.messages import CameraFrame, ClassEntry, ControllerStatus, EpisodeResult, GroundTruth, VehicleState, VisualOdometry
+from dovesei.shared.crop import RateLimit
+from dovesei.shared.messages import (CameraFrame, ClassEntry, ControllerStatus, CropFrame, CropRequest, EpisodeResult,
+                                     GroundTruth, VehicleState, VisualOdometry)
 from dovesei.sim.camera import CameraError, optical_axis_ground_m, prebuild_pyramid, render
-from dovesei.sim.core import SimConfig, judge_result, unstarted_result
+from dovesei.sim.core import SimConfig, crop_view, judge_result, unstarted_result
 from dovesei.sim.dynamics import Pose
 from dovesei.sim.judge import EpisodeJudge
 from dovesei.sim.odometry import SimOdometry
@@ -81,6 +83,9 @@ class PoseCamera:
         self.classes = tuple(ClassEntry(int(i), c.name, bool(c.safe)) for i, c in sorted(world.classes.items()))
         self.seq = -1
         self._t0_s: float | None = None
+        # The newest frame with the true pose it was rendered at, for the close looks (`crop`).
+        self._newest: tuple[CameraFrame, tuple[float, ...], float] | None = None
+        self._crop_rate = RateLimit(sim.crop_limits.rate_hz, sim.crop_limits.burst)
 
     def frame(self, pose: Pose, state: VehicleState, attitude_rad: tuple[float, float] | None = None) -> CameraFrame:
         """The view at `pose` tilted by `attitude_rad` (roll, pitch; default the state's), labelled
@@ -102,9 +107,16 @@ class PoseCamera:
         truth = GroundTruth(labels, self.classes, centre, self.world.name) \
             if self.sim.attach_truth and labels is not None else None
         self.seq += 1
-        return CameraFrame(self.sim.vehicle_id, self.seq, state.stamp, image, cam.hfov_rad, max(state.alt_agl_m, 0.0),
-                           roll_rad=state.roll_rad, pitch_rad=state.pitch_rad, yaw_rad=state.yaw_rad,
-                           sent_wall_s=wall_time_s(), truth=truth)
+        frame = CameraFrame(self.sim.vehicle_id, self.seq, state.stamp, image, cam.hfov_rad, max(state.alt_agl_m, 0.0),
+                            roll_rad=state.roll_rad, pitch_rad=state.pitch_rad, yaw_rad=state.yaw_rad,
+                            sent_wall_s=wall_time_s(), truth=truth)
+        self._newest = (frame, (pose.x_m, pose.y_m, alt_m, pose.yaw_rad, roll_rad, pitch_rad), pose.t_s - self._t0_s)
+        return frame
+
+    def crop(self, req: CropRequest) -> CropFrame:
+        """A close look cut from the newest frame's view at its true pose (as `SimCore.crop`); the
+        rate limit runs on the wall clock, as a real camera's. Thread-safe against `frame`."""
+        return crop_view(self.world, self.sim, self.classes, self._crop_rate, time.monotonic(), req, self._newest)
 
 
 class TruthSource(Protocol):
@@ -160,7 +172,8 @@ def run_external_pose(states: Inbox[VehicleState], publish_frame: Callable[[Came
                       publish_odometry: Callable[[VisualOdometry], None] | None = None,
                       truth: TruthSource | None = None,
                       statuses: Inbox[ControllerStatus] | None = None, odometry_after_s: float = 0.0,
-                      on_result: Callable[[EpisodeResult], None] | None = None) -> EpisodeResult | None:
+                      on_result: Callable[[EpisodeResult], None] | None = None,
+                      camera: PoseCamera | None = None) -> EpisodeResult | None:
     """Render at the states received until the judge ends the episode; None when `stop` ends it first.
 
     With `truth`, frames, odometry views and the judge follow its newest pose and attitude instead
@@ -178,7 +191,7 @@ def run_external_pose(states: Inbox[VehicleState], publish_frame: Callable[[Came
                          safety_radius_m=sim.safety_radius_m,
                          person_separation_m=sim.person_separation_m, vehicle_separation_m=sim.vehicle_separation_m)
     key = keys.state(sim.vehicle_id)
-    camera = PoseCamera(world, sim)
+    camera = camera if camera is not None else PoseCamera(world, sim)
     build_s = prebuild_pyramid(world, sim.camera, PREBUILD_ALT_FACTOR * start.alt_m)
     log.info("camera pyramid ready for views up to %.0f m (%.1f s)", PREBUILD_ALT_FACTOR * start.alt_m, build_s)
     clock = WallClock()

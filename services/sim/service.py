@@ -59,7 +59,7 @@ from dovesei.shared.timing import TIMING_NAMES
 from dovesei.shared.zconfig import open_session
 from dovesei.sim.core import SimConfig, SimCore, StepOut, unstarted_result
 from dovesei.sim.estimator import VEHICLE_PROFILE_NAMES
-from dovesei.sim.external import run_external_pose
+from dovesei.sim.external import PoseCamera, run_external_pose
 from dovesei.sim.sitl_truth import SitlTruth, parse_truth_url
 from dovesei.sim.starts import Start, generate_starts
 from dovesei.sim.world import World, WorldError, load_world
@@ -182,6 +182,7 @@ class _Wire:
 
     def __init__(self, session: zenoh.Session, config: SimServiceConfig) -> None:
         vid = config.sim.vehicle_id
+        self.session = session
         self.jpeg_quality = config.jpeg_quality
         self._closers: list = []
         try:
@@ -314,13 +315,22 @@ def run(session: zenoh.Session, *, config: SimServiceConfig, stop: threading.Eve
 
 def _run_external(wire: _Wire, world: World, start: Start, config: SimServiceConfig, stop: threading.Event,
                   stats: SimStats) -> EpisodeResult | None:
-    """Camera mode: render at the controller's states, or at SITL's truth when configured."""
+    """Camera mode: render at the controller's states, or at SITL's truth when configured; the
+    close looks (crop key) are cut from the newest frame's view, as in the sim's own flights."""
+    camera = PoseCamera(world, config.sim)
+
     def fly(truth: SitlTruth | None) -> EpisodeResult | None:
-        return run_external_pose(wire.states, lambda frame: wire.publish_frame(frame, stats), world, start,
-                                 config.sim, publish_odometry=lambda odo: wire.publish_odometry(odo, stats),
-                                 wait_timeout_s=config.wait_timeout_s, state_timeout_s=config.cmd_timeout_s,
-                                 stop=stop, stats=stats, truth=truth, statuses=wire.statuses,
-                                 odometry_after_s=config.odometry_after_result_s, on_result=wire.end_episode)
+        crops = CropServer(wire.session, config.sim.vehicle_id, camera.crop)
+        try:
+            return run_external_pose(wire.states, lambda frame: wire.publish_frame(frame, stats), world, start,
+                                     config.sim, publish_odometry=lambda odo: wire.publish_odometry(odo, stats),
+                                     wait_timeout_s=config.wait_timeout_s, state_timeout_s=config.cmd_timeout_s,
+                                     stop=stop, stats=stats, truth=truth, statuses=wire.statuses,
+                                     odometry_after_s=config.odometry_after_result_s, on_result=wire.end_episode,
+                                     camera=camera)
+        finally:
+            crops.close()
+            stats.crops_answered, stats.crops_refused = crops.answered, sum(crops.refused.values())
 
     if config.sitl_truth is None:
         return fly(None)

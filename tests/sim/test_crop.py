@@ -132,3 +132,25 @@ def test_a_crop_for_another_vehicle_is_refused(world: World) -> None:
     core.reset()
     with pytest.raises(CropRefused, match="request for vehicle 'uav9'"):
         core.crop(CropRequest("uav9", 1, Stamp(0.0, "sim"), (0.0, 0.0), 4.0, 128))
+
+
+def test_the_camera_mode_sim_answers_the_same_close_look_from_its_newest_frame(world: World) -> None:
+    # A sim rendering at an autopilot's states (`up --vehicle-url`, SITL) served no crop key, and a
+    # SITL flight's clearance held at 42 m for 126 unanswered close looks until it aborted.
+    from dovesei.shared.messages import VehicleState
+    from dovesei.sim.dynamics import Pose
+    from dovesei.sim.external import PoseCamera
+
+    camera = PoseCamera(world, SimConfig(vehicle_profile="ideal"))
+    with pytest.raises(CropRefused):
+        camera.crop(_request())  # no frame yet
+    state = VehicleState("uav1", 5, Stamp(12.0, "vehicle"), START.alt_m, (0.0, 0.0, 0.0), yaw_rad=START.yaw_rad)
+    frame = camera.frame(Pose(START.x_m, START.y_m, START.alt_m, yaw_rad=START.yaw_rad, t_s=12.0), state)
+    crop = camera.crop(_request())
+    core = SimCore(world, START, SimConfig(vehicle_profile="ideal"))
+    core.reset()
+    same = core.crop(_request())
+    assert crop.frame_seq == frame.seq and crop.stamp == state.stamp and crop.alt_agl_m == pytest.approx(START.alt_m)
+    assert crop.truth is not None and crop.truth.labels[64, 64] == MARKER_ID
+    assert crop.truth.centre_world_m == pytest.approx(same.truth.centre_world_m)
+    assert np.array_equal(crop.image_rgb, same.image_rgb) and crop.source_m_per_px == pytest.approx(same.source_m_per_px)
