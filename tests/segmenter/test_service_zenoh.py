@@ -109,7 +109,8 @@ def test_frame_in_heatmap_out_and_liveliness(zenoh_pair) -> None:
             assert (hm.seq, hm.stamp, hm.vehicle_id) == (42, frame.stamp, "uav1")
             assert hm.prob_safe.shape == (64, 64) and hm.backend == "simulated" and hm.simulated
             assert hm.frame_to_segmenter_s >= 0.0 and hm.sent_wall_s >= frame.sent_wall_s
-            assert service.heatmaps_published >= 1
+            # Counted by the service's thread just after its put: the heatmap can arrive first.
+            assert wait_until(lambda: service.heatmaps_published >= 1, 5.0)
         # The token goes with the service.
         assert wait_until(lambda: not is_alive(client, "uav1", "segmenter", 0.3), 5.0)
 
