@@ -179,26 +179,30 @@ def stalled_service(rec: Recorder, owners: dict[str, str], now_wall_s: float, st
     return owners[topic], topic
 
 
+def _proc_stat(pid: int) -> list[str] | None:
+    """The fields of /proc/<pid>/stat after "(comm)" (comm may hold spaces and parentheses), the
+    state first; None wherever that cannot be read (not Linux, the process gone)."""
+    try:
+        with open(f"/proc/{pid}/stat", encoding="ascii", errors="replace") as f:
+            return f.read().rsplit(")", 1)[1].split()
+    except (OSError, IndexError):
+        return None
+
+
 def process_stopped(pid: int) -> bool:
     """True when the kernel says the process is stopped (SIGSTOP, a debugger): Linux /proc only;
     False wherever that cannot be read."""
-    try:
-        with open(f"/proc/{pid}/stat", encoding="ascii", errors="replace") as f:
-            stat = f.read()
-    except OSError:
-        return False
-    # "pid (comm) state ...": comm may hold spaces and parentheses, the state follows the last ')'.
-    return stat[stat.rfind(")") + 2:stat.rfind(")") + 3] in ("T", "t")
+    fields = _proc_stat(pid)
+    return bool(fields) and fields[0] in ("T", "t")
 
 
 def process_cpu_s(pid: int) -> float | None:
     """CPU seconds (user + system, all threads) the process has used: Linux /proc only; None
     wherever that cannot be read."""
+    fields = _proc_stat(pid)
     try:
-        with open(f"/proc/{pid}/stat", encoding="ascii", errors="replace") as f:
-            fields = f.read().rsplit(")", 1)[1].split()
-        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-    except (OSError, IndexError, ValueError):
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK") if fields else None
+    except (IndexError, ValueError):
         return None
 
 
@@ -222,13 +226,13 @@ class CpuHistory:
 
     def used_since(self, name: str, pid: int, since_wall_s: float, now_wall_s: float) -> tuple[float, float] | None:
         """(CPU seconds, wall seconds) from the newest sample at or before `since_wall_s` (else the
-        oldest one) to a reading now; None without a sample or a reading."""
+        oldest one) to a reading now (only asked while a stream is silent); None without a sample
+        or a reading."""
         samples = self._samples.get(name)
         now_cpu = self._read(pid)
         if not samples or now_cpu is None:
             return None
-        before = [s for s in samples if s[0] <= since_wall_s]
-        start = before[-1] if before else samples[0]
+        start = next((s for s in reversed(samples) if s[0] <= since_wall_s), samples[0])
         return now_cpu - start[1], now_wall_s - start[0]
 
 

@@ -305,11 +305,16 @@ def test_the_policy_dt_is_capped_across_a_perception_gap() -> None:
     assert [o.t_s for o in policy.observations] == pytest.approx([0.0, 0.5, 1.5, 2.0])
 
 
+def realtime_core(clock: Clock) -> ControllerCore:
+    """A real-time core on the test's clock, with a 1 s tolerance for stamps ahead of it."""
+    return ControllerCore(ControllerConfig(lockstep=False, future_tolerance_s=1.0), policy=RecordingPolicy(),
+                          mono=clock)
+
+
 @pytest.mark.parametrize("jump_s", [-30.0, 30.0])
 def test_a_state_clock_jump_never_resets_the_policy_mid_flight(jump_s: float) -> None:
     clock = Clock()
-    core = ControllerCore(ControllerConfig(lockstep=False, future_tolerance_s=1.0), policy=RecordingPolicy(),
-                          mono=clock)
+    core = realtime_core(clock)
     for k in range(5):
         clock.t_s += 0.5
         core.on_heatmap(heatmap(k, 100.0 + 0.5 * k), 0.0)
@@ -348,8 +353,7 @@ def test_past_states_among_genuine_ones_never_move_the_clock() -> None:
     # dovesei faults, clock-skew: a forger's state stamped 0 s, sent between genuine ones, once
     # re-anchored the clock there, and every genuine state after it was refused for good.
     clock = Clock()
-    core = ControllerCore(ControllerConfig(lockstep=False, future_tolerance_s=1.0), policy=RecordingPolicy(),
-                          mono=clock)
+    core = realtime_core(clock)
     for k in range(40):
         clock.t_s += 0.05
         core.on_heatmap(heatmap(k, 5.0 + 0.05 * k), 0.0)
@@ -363,8 +367,7 @@ def test_past_states_among_genuine_ones_never_move_the_clock() -> None:
 
 def test_a_heatmap_from_the_future_is_refused_and_honest_ones_still_adopted() -> None:
     clock = Clock()
-    core = ControllerCore(ControllerConfig(lockstep=False, future_tolerance_s=1.0), policy=RecordingPolicy(),
-                          mono=clock)
+    core = realtime_core(clock)
     core.tick(state(0, 10.0), wall_s=clock.t_s)
     assert not core.on_heatmap(heatmap(0, 40.0), 0.0)  # stamped 30 s ahead
     assert core.rejected["heatmap from the future"] == 1
