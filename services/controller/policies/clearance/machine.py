@@ -12,9 +12,12 @@
     PROBE   --nothing after probe_frames, probe_timeout_s or the search's time--> SEARCH (the area
             remembered as probed; at most probe_max probes)
     SEARCH  --the whole route flown or no_spot_after_s--> NO_SPOT (hold: "no safe spot found")
-    APPROACH --within the lock radius--> DESCEND --measured alt <= hand-over alt--> HANDOVER
+    APPROACH --within the lock radius--> DESCEND --measured alt <= hand-over alt, centred--> HANDOVER
     APPROACH --target fails fail_frames re-checks / approach_timeout_s--> SEARCH (blacklisted)
     DESCEND  --target fails fail_frames re-checks / descend_timeout_s--> ABORT (blacklisted)
+    DESCEND  --below the hand-over alt but off the spot or the spot not fixed--> DESCEND holding
+             its altitude, steering onto the spot (the SITL flight that handed over 2.4 m off a
+             spot whose clearance was 4.4 m, onto a path 0.6 m away)
     DESCEND  --lock lost (error > 3 x lock-out)--> APPROACH
     DESCEND  --the spot not fixed by vision for spot_trust_s--> DESCEND holding its altitude; after
              recheck_frames fresh looks the footprint below is re-checked and becomes the spot
@@ -337,7 +340,11 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
             return mem, (vf, vr, _hold_alt(inp.alt_agl_m, max(inp.alt_agl_m, cfg.handover_alt_m + 5.0), cfg))
 
     # DESCEND
-    if inp.alt_agl_m <= cfg.handover_alt_m:
+    # The hand-over needs the measured altitude, the spot fixed by vision, and the vehicle
+    # centred on it (within lock_in): the checked clearance holds the 2 m disk only around the
+    # spot. Below the hand-over altitude otherwise (an altitude hold sagging while the spot is
+    # re-checked, say) the vehicle holds its altitude and steers onto the spot first.
+    if inp.alt_agl_m <= cfg.handover_alt_m and inp.spot_known and err <= lock_in:
         return _go(mem, Phase.HANDOVER, t, f"at the hand-over altitude over the spot (error {err:.1f} m, "
                                            f"clearance {target.clearance_m:.1f} m)"), (0.0, 0.0, 0.0)
     if t - mem.since_s > cfg.descend_timeout_s:
