@@ -121,6 +121,7 @@ class MavlinkWatch:
         self._sock.settimeout(0.2)
         self._stop = threading.Event()
         self.texts: list[str] = []
+        self.texts_in_mode: list[tuple[int | None, str]] = []  # (custom mode when it came, text)
         self.modes: list[tuple[int, bool]] = []  # (custom mode number, armed) on each change
         self.rel_alt_m: float | None = None
         self.armed = False
@@ -156,6 +157,7 @@ class MavlinkWatch:
                     self._maybe_cut_gps(target, addr)
                 elif kind == "STATUSTEXT":
                     self.texts.append(msg.text)
+                    self.texts_in_mode.append((self.custom_mode, msg.text))
                 elif kind == "GLOBAL_POSITION_INT":
                     self.rel_alt_m = msg.relative_alt / 1000.0
                 elif kind == "GPS_RAW_INT":
