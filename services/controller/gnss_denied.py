@@ -61,6 +61,16 @@ GNSS_DENIED_MODES = ("off", "external-nav", "attitude")
 #   both   the two (the default): the camera's velocity counts twice in the EKF, so its noise floors
 #          (VISO_VEL_M_NSE and the confidence) should not be set tighter than the camera's variance.
 EXTERNAL_NAV_MESSAGES = ("both", "delta", "speed")
+# How ArduPilot 4.6 weighs each message (read in its source), and so what dovesei sends in it:
+#   delta  NavEKF3_core::writeBodyFrameOdom: velErr = EK3_VIS_VERR_MIN + (EK3_VIS_VERR_MAX -
+#          EK3_VIS_VERR_MIN) x (1 - confidence / 100), defaults 0.1 and 0.9 m/s (AP_NavEKF3.cpp): the
+#          confidence sent makes velErr the camera's own standard deviation (clamped to that range);
+#   speed  GCS_MAVLINK::handle_vision_speed_estimate ignores the covariance, and AP_VisualOdom_MAV
+#          fuses every sample at VISO_VEL_M_NSE: only samples at least that good go in it (the
+#          recommended VISO_VEL_M_NSE is this limit). In SITL, samples up to 1 m/s sent at the 0.1 m/s
+#          default were followed by "EKF variance" and the EKF failsafe's LAND at 88 m (docs/sitl.md).
+EK3_VIS_VERR_MIN_M_S, EK3_VIS_VERR_MAX_M_S = 0.1, 0.9
+SPEED_MESSAGE_MAX_SD_M_S = 0.5
 THRUST_MODES = ("climb-rate", "thrust")
 GRAVITY_M_S2 = 9.80665
 
@@ -275,6 +285,18 @@ class NavJudge:
                              f"{lost}; the EKF is not fusing the visual velocity yet: no descent")
         return NavStatus(gnss_lost, False, True, SOURCE_EXTERNAL_NAV,
                          f"{lost}; the EKF flies on the visual velocity (external nav)")
+
+
+def body_odom_confidence(var_m2_s2: float) -> float:
+    """VISION_POSITION_DELTA's confidence (0-100) for which EKF3's velErr is the camera's standard deviation."""
+    sd = math.sqrt(validate.in_range("visual velocity variance", var_m2_s2, 0.0, 1e6))
+    frac = (EK3_VIS_VERR_MAX_M_S - sd) / (EK3_VIS_VERR_MAX_M_S - EK3_VIS_VERR_MIN_M_S)
+    return float(round(100.0 * min(max(frac, 0.0), 1.0)))
+
+
+def speed_message_takes(var_m2_s2: float) -> bool:
+    """Is the sample good enough for VISION_SPEED_ESTIMATE, which ArduPilot fuses at VISO_VEL_M_NSE?"""
+    return var_m2_s2 <= SPEED_MESSAGE_MAX_SD_M_S ** 2
 
 
 def vision_speed_covariance(var_m2_s2: float) -> list[float]:

@@ -17,8 +17,9 @@ from dovesei.testing.fake_autopilot import FakeAutopilot
 from dovesei.testing.fake_ekf import FakeEkf
 
 
-def odom(seq: int, vel: tuple[float, float, float], vehicle: str = "uav1", quality: float = 0.9) -> VisualOdometry:
-    return VisualOdometry(vehicle, seq, seq - 1, Stamp(12.5 + 0.1 * seq, "vehicle"), vel, 0.09, quality, True, 0.1,
+def odom(seq: int, vel: tuple[float, float, float], vehicle: str = "uav1", quality: float = 0.9,
+         var: float = 0.09) -> VisualOdometry:
+    return VisualOdometry(vehicle, seq, seq - 1, Stamp(12.5 + 0.1 * seq, "vehicle"), vel, var, quality, True, 0.1,
                           40.0)
 
 
@@ -60,10 +61,30 @@ def test_ardupilot_gets_vision_speed_in_ned_with_the_variance_and_the_capture_ti
     assert first.covariance == pytest.approx((0.09, 0, 0, 0, 0.09, 0, 0, 0, 0.09))
     assert wait_until(lambda: vehicle.vision_sent == 2 and len(fake.vision_speeds) == 4, 5.0)
     assert vehicle.samples_rejected["other vehicle's odometry"] == 1
-    # With each, the body displacement over the frame pair (dt 0.1 s) and the quality as confidence.
+    # With each, the body displacement over the frame pair (dt 0.1 s) and a confidence for which
+    # EKF3's velErr (0.1 + 0.8 x (1 - c/100) m/s with its defaults) is the camera's 0.3 m/s.
     delta = [v for v in fake.vision_speeds if v.kind == "VISION_POSITION_DELTA"][0]
     assert delta.usec == first.usec and delta.vel_m_s == pytest.approx((2.0, 0.5, 0.0), abs=1e-4)
-    assert delta.covariance == (90.0,)
+    assert delta.covariance == (75.0,)
+    # A sample at 0.8 m/s (good enough to fly on) is too noisy for VISION_SPEED_ESTIMATE, which
+    # ArduPilot fuses at VISO_VEL_M_NSE whatever the covariance: only the delta carries it, weighted.
+    vehicle.on_visual_odometry(odom(5, (1.0, 0.0, 0.0), var=0.64))
+    assert wait_until(lambda: vehicle.vision_sent == 3 and len(fake.vision_speeds) == 5, 5.0)
+    newest = fake.vision_speeds[-1]
+    assert newest.kind == "VISION_POSITION_DELTA" and newest.covariance == (12.0,)
+    assert [v.kind for v in fake.vision_speeds].count("VISION_SPEED_ESTIMATE") == 2
+
+
+def test_the_confidence_sent_makes_ekf3s_error_the_cameras() -> None:
+    from dovesei.controller.gnss_denied import body_odom_confidence, speed_message_takes  # noqa: PLC0415
+
+    for sd in (0.1, 0.3, 0.5, 0.9):
+        c = body_odom_confidence(sd * sd)
+        assert 0.1 + 0.8 * (1.0 - c / 100.0) == pytest.approx(sd, abs=0.005)
+    assert body_odom_confidence(0.0) == 100.0 and body_odom_confidence(4.0) == 0.0
+    assert speed_message_takes(0.25) and not speed_message_takes(0.26)
+    with pytest.raises(ValueError):
+        body_odom_confidence(float("nan"))
 
 
 def test_px4_gets_odometry_with_only_a_body_velocity(link) -> None:

@@ -42,7 +42,7 @@ HANDOVER_ALT_M = 20.0
 # docs/GNSS-DENIED.md, external-nav: source set 1 GPS (the defaults), set 2 the camera's velocity with
 # the barometer's height and the compass's heading; VISO_TYPE 1 (MAVLink) for both vision messages.
 EXTERNAL_NAV_PARAMS = {"VISO_TYPE": 1, "EK3_SRC2_POSXY": 0, "EK3_SRC2_VELXY": 6, "EK3_SRC2_POSZ": 1,
-                       "EK3_SRC2_VELZ": 0, "EK3_SRC2_YAW": 1, "EK3_SRC_OPTIONS": 0}
+                       "EK3_SRC2_VELZ": 0, "EK3_SRC2_YAW": 1, "EK3_SRC_OPTIONS": 0, "VISO_VEL_M_NSE": 0.5}
 
 
 def _ports() -> dict[str, int]:

@@ -147,6 +147,8 @@ from dovesei.controller.gnss_denied import (
     SOURCE_AUTOPILOT,
     SOURCE_NONE,
     SOURCE_VISUAL,
+    body_odom_confidence,
+    speed_message_takes,
     vision_speed_covariance,
 )
 from dovesei.controller.mavlink.readiness import ArmReadiness
@@ -505,8 +507,9 @@ class MavlinkVehicle:
                 usec, MAV_FRAME_LOCAL_FRD, MAV_FRAME_BODY_FRD, nan, nan, nan, [nan, nan, nan, nan], fwd, right,
                 down, nan, nan, nan, [nan] + [0.0] * 20, velocity_cov, 0, MAV_ESTIMATOR_TYPE_VISION,
                 int(round(quality * 100))))
-        ok = True
-        if self.external_nav_message in ("both", "speed"):
+        # Nothing written (a "speed"-only link and a sample too noisy for it) is not a sample sent.
+        ok = self.external_nav_message != "speed" or speed_message_takes(var)
+        if self.external_nav_message in ("both", "speed") and speed_message_takes(var):
             vn, ve, vd = frd_to_ned(vel_body_frd_m_s, *attitude)
             cov = vision_speed_covariance(var)
             ok = self._tx(lambda mav: mav.vision_speed_estimate_send(usec, vn, ve, vd, cov, 0))
@@ -516,8 +519,9 @@ class MavlinkVehicle:
             # uses it only for the lever arm.
             delta = [v * dt_s for v in vel_body_frd_m_s]
             dt_us = int(dt_s * 1e6)
+            confidence = body_odom_confidence(var)
             ok = self._tx(lambda mav: mav.vision_position_delta_send(
-                usec, dt_us, [0.0, 0.0, 0.0], delta, float(round(quality * 100.0)))) and ok
+                usec, dt_us, [0.0, 0.0, 0.0], delta, confidence)) and ok
         return ok
 
     def _nav_tick(self, now: float) -> None:
