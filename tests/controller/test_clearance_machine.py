@@ -8,7 +8,7 @@ import math
 import pytest
 
 from dovesei.controller.policies.clearance.config import ClearanceConfig
-from dovesei.controller.policies.clearance.machine import Inputs, Memory, Phase, search_pattern, search_route, step
+from dovesei.controller.policies.clearance.machine import Inputs, Memory, Phase, committed, search_pattern, search_route, step
 from dovesei.controller.policies.clearance.ground_map import Spot
 
 CFG = ClearanceConfig()
@@ -270,11 +270,14 @@ def test_handover_only_at_the_measured_handover_altitude() -> None:
     lock_in = CFG.lock_in_m + CFG.lock_alt_frac * CFG.handover_alt_m
     off = 20.0 - (lock_in + 0.5)
     low = CFG.handover_alt_m - 0.2
-    mem, vel = step(at(Phase.DESCEND, target=target), inp(1.0, alt=low, n=off, check=target), CFG)
-    assert mem.phase is Phase.DESCEND and vel[2] == 0.0 and vel[0] > 0.0
+    # Nor may the controller hand over for it: holding is no landing (Decision.landing).
+    mem, vel = step(at(Phase.DESCEND, target=target, descending=True), inp(1.0, alt=low, n=off, check=target), CFG)
+    assert mem.phase is Phase.DESCEND and vel[2] == 0.0 and vel[0] > 0.0 and not committed(mem)
     unfixed = dataclasses.replace(inp(1.0, alt=low, n=20.0, check=target), spot_known=False)
-    mem, vel = step(at(Phase.DESCEND, target=target), unfixed, CFG)
-    assert mem.phase is Phase.DESCEND and vel[2] == 0.0
+    mem, vel = step(at(Phase.DESCEND, target=target, descending=True), unfixed, CFG)
+    assert mem.phase is Phase.DESCEND and vel[2] == 0.0 and not committed(mem)
+    descending, _ = step(at(Phase.DESCEND, target=target), inp(1.0, alt=30.0, n=20.0, check=target), CFG)
+    assert descending.phase is Phase.DESCEND and committed(descending)
     mem, vel = step(mem, inp(2.0, alt=low, n=20.0 - (lock_in - 0.3), check=target), CFG)  # centred, fixed
     assert mem.phase is Phase.HANDOVER and "error" in mem.reason
     # Never from a phase without a locked target, whatever the altitude.

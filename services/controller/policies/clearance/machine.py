@@ -155,6 +155,14 @@ def _top_pass(waypoint: int, inp: Inputs) -> bool:
     return waypoint < (len(inp.route) if inp.top_pass_end is None else inp.top_pass_end)
 
 
+def committed(mem: Memory) -> bool:
+    """Is the policy landing where it is (the controller may hand over at the hand-over altitude)?
+    Only in HANDOVER, or in DESCEND while it descends: centred on a spot fixed by vision. A
+    DESCEND holding its altitude (off the spot, or re-checking it) is not a landing, so a hold
+    sagging through the hand-over altitude hands nothing over."""
+    return mem.phase is Phase.HANDOVER or (mem.phase is Phase.DESCEND and mem.descending)
+
+
 def _go(mem: Memory, phase: Phase, t_s: float, reason: str, **changes: object) -> Memory:
     return dataclasses.replace(mem, phase=phase, since_s=t_s, frames=0, fails=0, descending=False, reason=reason,
                                **changes)

@@ -41,7 +41,7 @@ from dovesei.controller.policies.base import (Confirmation, Decision, Observatio
                                               checked_prob_safe, resolve_config)
 from dovesei.controller.policies.clearance.config import Altitudes, ClearanceConfig, clearance_preset
 from dovesei.controller.policies.clearance.machine import (
-    TERMINAL, Inputs, Memory, Phase, reject_target, search_route, step, toward,
+    TERMINAL, Inputs, Memory, Phase, committed, reject_target, search_route, step, toward,
 )
 from dovesei.controller.policies.clearance.ground_map import (GroundMap, clearance_at, emphasise_dips, find_candidate,
                                                       find_spot, footprint_width_m, logit, look_weight, promise)
@@ -392,7 +392,7 @@ class ClearancePolicy:
             focus_radius_px=self._required_px(obs),
             threshold=sigmoid(self._spot_t),
             reason=mem.reason, confirmed=self._confirmed, spot=spot_report, report=report,
-            landing=mem.phase in (Phase.DESCEND, Phase.HANDOVER),
+            landing=committed(mem),
         )
         return self._decision
 
