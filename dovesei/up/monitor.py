@@ -366,12 +366,23 @@ class Monitor:
 
         return on_sample
 
-    def drain(self, max_items: int = 10_000) -> int:
+    def drain(self, max_items: int = 10_000, max_s: float = math.inf) -> int:
+        """Hand queued messages to the recorder, oldest first: all of them, or `max_items`, or as
+        many as `max_s` of work allows (a watch loop's slice: its stop and failure checks run
+        between slices; a lockstep backlog under load once kept a Ctrl-C waiting 24 s)."""
         n = 0
+        deadline = time.monotonic() + max_s
         while self._queue and n < max_items:
             self.recorder.handle(self._queue.popleft())
             n += 1
+            if n % 32 == 0 and time.monotonic() > deadline:
+                break
         return n
+
+    @property
+    def backlog(self) -> int:
+        """Messages received but not yet handed to the recorder."""
+        return len(self._queue)
 
     def close(self) -> None:
         for sub in self._subs:

@@ -47,6 +47,7 @@ RESULT_CONFIRM_S = 10.0  # a result is the sim's only if the sim ends its run wi
 FIRST_MESSAGE_GRACE_S = 30.0
 RESULT_POSITION_TOLERANCE_M = 10.0  # result's final position vs the last recorded state
 RESULT_TRUTH_TOLERANCE_M = 100.0  # the same when the judge has the true pose and the states an estimate
+DRAIN_SLICE_S = 0.05  # the watch loops hand the recorder at most this much work between their checks
 # Waiting for an autopilot's landing after the hand-over: the hand-over altitude at this slowest
 # descent (ArduCopter's LAND_SPEED is 0.5 m/s below LAND_ALT_LOW; a precision landing also moves
 # over the spot first), plus a margin.
@@ -105,7 +106,7 @@ def wait_for_landing(rec: Recorder, monitor: Monitor, children: Children, stop: 
 
     log.info("hand-over done: waiting up to %.0f s for the autopilot to land (Ctrl-C ends the wait)", timeout_s)
     while True:
-        monitor.drain()
+        monitor.drain(max_s=DRAIN_SLICE_S)
         now = time.monotonic()
         if len(rec.states) > count:
             count, last_state_wall_s = len(rec.states), time.time()
@@ -284,7 +285,7 @@ def wait_for_takeoff(rec: Recorder, monitor: Monitor, children: Children, stop: 
     """
     deadline = time.monotonic() + timeout_s
     while rec.status_count == 0:
-        monitor.drain()
+        monitor.drain(max_s=DRAIN_SLICE_S)
         if stop.is_set():
             return WatchEnd(None, True)
         dead = children.exited()
@@ -324,7 +325,7 @@ class Watcher:
     def run(self) -> WatchEnd:
         """Record until an accepted result, a failure (plus --after-failure-s) or a stop."""
         while True:
-            self.monitor.drain()
+            self.monitor.drain(max_s=DRAIN_SLICE_S)
             if self._check_result():
                 return WatchEnd(self.failure, False)
             if self.stop.is_set():
@@ -333,6 +334,8 @@ class Watcher:
             if self.failure is None:
                 # While a result waits for the sim to finish, its streams have ended on purpose.
                 pending = bool(self.rec.result_candidates) and now < self._confirm_by
+                # Nor is a stream silent while its messages still wait in our own queue.
+                pending = pending or self.monitor.backlog > 0
                 self.failure = (self._check_exits() or (None if pending else self._check_stalls())
                                 or self._check_startup(now))
                 if self.failure is not None:
@@ -397,7 +400,7 @@ class Watcher:
             # 'error' ending, such as a silent controller): let the result arrive.
             deadline = time.monotonic() + RESULT_AFTER_EXIT_S
             while time.monotonic() < deadline:
-                self.monitor.drain()
+                self.monitor.drain(max_s=DRAIN_SLICE_S)
                 if self.rec.result_candidates:
                     return None  # _check_result takes it from here
                 self.stop.wait(0.01)

@@ -207,7 +207,7 @@ def test_trajectory_after_a_takeoff_starts_where_the_mission_starts() -> None:
                           pos_local_ned_m=(0.5 * (k + 1), 0.0, -26.0)) for k in range(3)]
 
     class Feed:  # the monitor: the climb's states, then the controller's first status
-        def drain(self) -> None:
+        def drain(self, max_s: float = float("inf")) -> None:
             for st in climb:
                 rec.handle(Sample("state", 1000.0 + st.stamp.t_s, encode(st)))
             rec.handle(Sample("status", 1006.5, encode(status)))
@@ -232,7 +232,7 @@ class _StateFeed:
     def __init__(self, rec: Recorder, states: list[tuple[str, bool, float]]) -> None:
         self.rec, self.states, self.k = rec, states, 0
 
-    def drain(self) -> None:
+    def drain(self, max_s: float = float("inf")) -> None:
         if self.k < len(self.states):
             mode, armed, alt = self.states[self.k]
             st = VehicleState("uav1", self.k, Stamp(0.1 * self.k, "vehicle"), alt, (0.0, 0.0, 0.5), armed=armed,

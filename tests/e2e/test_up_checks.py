@@ -24,7 +24,7 @@ from dovesei.shared.codec import encode
 from dovesei.shared.messages import CameraFrame, ControllerStatus, EpisodeResult, SafetyHeatmap, Stamp, VehicleState
 from dovesei.shared.zconfig import free_port
 from dovesei.up import EXIT_FAILED, EXIT_OK, EXIT_UNSAFE, UpOptions, build_report, exit_code
-from dovesei.up.monitor import Recorder, Sample
+from dovesei.up.monitor import Monitor, Recorder, Sample
 from dovesei.up.watch import (CpuHistory, Watcher, busy_through, process_cpu_s, result_is_consistent, stalled_service,
                                stream_owners)
 
@@ -233,8 +233,47 @@ class _Children:
 
 
 class _Monitor:
-    def drain(self) -> int:
+    backlog = 0
+
+    def drain(self, max_s: float = float("inf")) -> int:
         return 0
+
+
+def test_a_backlog_is_drained_in_slices_so_a_ctrl_c_is_seen_at_once(tmp_path: Path) -> None:
+    # Under load a lockstep flight queued messages faster than the recorder took them: one drain
+    # of up to 10,000 kept `up` from its stop check for 24 s, and a Ctrl-C was lost until the end.
+    from collections import deque  # noqa: PLC0415
+
+    class SlowRecorder:
+        def __init__(self) -> None:
+            self.n = 0
+
+        def handle(self, _sample: object) -> None:
+            time.sleep(0.001)
+            self.n += 1
+
+    mon = Monitor.__new__(Monitor)  # the queue and the recorder, without a Zenoh session
+    mon._queue, mon.recorder = deque(range(3000)), SlowRecorder()
+    t0 = time.monotonic()
+    n = mon.drain(max_s=0.05)
+    assert 0 < n < 3000 and mon.backlog == 3000 - n and time.monotonic() - t0 < 1.0
+    assert mon.drain() == 3000 - n and mon.backlog == 0  # the final drain takes everything
+
+    class Backlogged(_Monitor):
+        backlog = 5000  # never caught up: no stream may be called silent, and the stop still counts
+
+        def drain(self, max_s: float = float("inf")) -> int:
+            time.sleep(min(max_s, 0.05))
+            return 50
+
+    stop = threading.Event()
+    threading.Timer(0.3, stop.set).start()
+    rec = Recorder((1.0, 2.0, 100.0), video=False)
+    rec.first_state_wall_s = time.time() - 600.0  # every stream long silent, were the backlog not there
+    t0 = time.monotonic()
+    end = Watcher(UpOptions(world=WORLD, out=tmp_path, stall_s=1.0), rec, Backlogged(),
+                  _Children(tmp_path, sim_running=True), stop, t0, cpu_s=lambda pid: 1.0).run()
+    assert end.interrupted and end.failure is None and time.monotonic() - t0 < 2.0
 
 
 def test_a_result_while_the_sim_keeps_flying_is_not_the_sims(tmp_path: Path) -> None:
@@ -339,7 +378,7 @@ def test_the_watcher_ends_the_run_naming_a_silent_service(tmp_path: Path) -> Non
     rec.handle(Sample("alive", now, b"segmenter", True))
 
     class _Fresh(_Monitor):
-        def drain(self) -> int:  # the sim and the controller go on
+        def drain(self, max_s: float = float("inf")) -> int:  # the sim and the controller go on
             rec.last_recv_wall_s["state"] = rec.last_recv_wall_s["status"] = time.time()
             return 0
 
@@ -363,7 +402,7 @@ def test_a_silent_service_still_computing_is_slow_not_hung_until_six_stalls(tmp_
     busy = lambda pid: time.monotonic() - t0 if pid == 12 else 1.0  # noqa: E731 - a whole core
 
     class _Fresh(_Monitor):
-        def drain(self) -> int:  # everything but the segmenter goes on
+        def drain(self, max_s: float = float("inf")) -> int:  # everything but the segmenter goes on
             for topic in ("state", "status", "camera"):
                 rec.last_recv_wall_s[topic] = time.time()
             return 0

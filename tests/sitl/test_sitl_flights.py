@@ -14,6 +14,8 @@ ArduPilot build outside this repository (docs/sitl.md).
 - The same cut with `--gnss-denied external-nav` (VISO_TYPE 1, EK3 source set 2 with VELXY
   ExternalNav): armed through VisOdom's pre-arm check, GUIDED kept on the camera's velocity, a LAND
   hand-over at 20 m and the camera's velocity streamed until ArduCopter disarmed: no EKF failsafe.
+- The same cut with `--gnss-denied off` and FS_EKF_ACTION 2: dovesei reports the loss and commands no
+  descent after it; ArduCopter's EKF failsafe takes AltHold instead of a blind LAND.
 """
 
 from __future__ import annotations
@@ -37,7 +39,7 @@ from tests.sitl.arducopter import ArduCopterSitl, MavlinkWatch, sitl_tree
 pytestmark = pytest.mark.sitl
 
 REPO = Path(__file__).resolve().parents[2]
-GUIDED, LAND, GUIDED_NOGPS = 4, 9, 20  # ArduCopter custom mode numbers
+ALT_HOLD, GUIDED, LAND, GUIDED_NOGPS = 2, 4, 9, 20  # ArduCopter custom mode numbers
 HANDOVER_ALT_M = 20.0
 # docs/GNSS-DENIED.md, external-nav: source set 1 GPS (the defaults), set 2 the camera's velocity with
 # the barometer's height and the compass's heading; VISO_TYPE 1 (MAVLink) for both vision messages.
@@ -178,3 +180,21 @@ def test_gps_cut_external_nav_keeps_guided_and_lands_on_the_camera_without_ekf_f
     # velocity lost its quality below ~12 m (0.26, then 0), so the EKF may complain in LAND.
     guided = [t for mode, t in watch.texts_in_mode if mode == GUIDED]
     assert not [t for t in guided if "EKF variance" in t or "failsafe" in t.lower()], watch.texts_in_mode
+
+
+@pytest.mark.timeout(1500)
+def test_gps_cut_off_reports_the_loss_and_commands_no_descent(tmp_path: Path) -> None:
+    # docs/GNSS-DENIED.md, `off`: report and hold; FS_EKF_ACTION 2 so the autopilot's own EKF
+    # failsafe holds the altitude (AltHold) instead of landing blind. No hand-over: the episode
+    # ends at its time limit.
+    code, tail, report, watch, after = _fly_up(tmp_path, "--gnss-denied", "off", "--time-limit-s", "560",
+                                               params={"FS_EKF_ACTION": 2}, cut_gps_below_m=80.0)
+    assert watch.gps_cut_alt_m is not None and watch.gps_cut_alt_m > 60.0, watch.gps_cut_alt_m
+    nav = report["navigation"]
+    assert nav["gnss_lost"] and nav["sources"][-1] == "none", nav
+    assert report["outcome"] == "timeout" and code == 3, tail
+    traj = report["trajectory"]
+    after_loss = [(t, down) for t, down in zip(traj["t_s"], traj["cmd_down_m_s"]) if t > nav["gnss_lost_t_s"] + 0.5]
+    assert after_loss and max(down for _, down in after_loss) <= 0.0, max(after_loss, key=lambda x: x[1])
+    assert "HANDOVER" not in traj["state"], traj["state"][-20:]
+    assert LAND not in [m for m, _ in watch.modes], watch.modes
