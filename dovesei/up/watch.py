@@ -331,11 +331,11 @@ class Watcher:
             if self.stop.is_set():
                 return WatchEnd(self.failure, True)
             now = time.monotonic()
-            if self.failure is None:
+            # Exits and silences are judged on what the children sent before: only once our own
+            # queue has caught up (a sim exits right after its result, which may still wait there).
+            if self.failure is None and self.monitor.backlog == 0:
                 # While a result waits for the sim to finish, its streams have ended on purpose.
                 pending = bool(self.rec.result_candidates) and now < self._confirm_by
-                # Nor is a stream silent while its messages still wait in our own queue.
-                pending = pending or self.monitor.backlog > 0
                 self.failure = (self._check_exits() or (None if pending else self._check_stalls())
                                 or self._check_startup(now))
                 if self.failure is not None:

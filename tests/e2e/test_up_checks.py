@@ -260,7 +260,7 @@ def test_a_backlog_is_drained_in_slices_so_a_ctrl_c_is_seen_at_once(tmp_path: Pa
     assert mon.drain() == 3000 - n and mon.backlog == 0  # the final drain takes everything
 
     class Backlogged(_Monitor):
-        backlog = 5000  # never caught up: no stream may be called silent, and the stop still counts
+        backlog = 5000  # never caught up: no exit or silence is judged yet, and the stop still counts
 
         def drain(self, max_s: float = float("inf")) -> int:
             time.sleep(min(max_s, 0.05))
@@ -272,7 +272,7 @@ def test_a_backlog_is_drained_in_slices_so_a_ctrl_c_is_seen_at_once(tmp_path: Pa
     rec.first_state_wall_s = time.time() - 600.0  # every stream long silent, were the backlog not there
     t0 = time.monotonic()
     end = Watcher(UpOptions(world=WORLD, out=tmp_path, stall_s=1.0), rec, Backlogged(),
-                  _Children(tmp_path, sim_running=True), stop, t0, cpu_s=lambda pid: 1.0).run()
+                  _Children(tmp_path, sim_running=False), stop, t0, cpu_s=lambda pid: 1.0).run()
     assert end.interrupted and end.failure is None and time.monotonic() - t0 < 2.0
 
 
