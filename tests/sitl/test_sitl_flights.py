@@ -15,7 +15,8 @@ ArduPilot build outside this repository (docs/sitl.md).
   ExternalNav): armed through VisOdom's pre-arm check, GUIDED kept on the camera's velocity, a LAND
   hand-over at 20 m and the camera's velocity streamed until ArduCopter disarmed: no EKF failsafe.
 - The same cut with `--gnss-denied off` and FS_EKF_ACTION 2: dovesei reports the loss and commands no
-  descent after it; ArduCopter's EKF failsafe takes AltHold instead of a blind LAND.
+  descent after it; ArduCopter's EKF failsafe takes AltHold instead of LAND (which, with SITL's
+  throttle stick at its minimum, still sinks: docs/sitl.md).
 """
 
 from __future__ import annotations
@@ -185,16 +186,18 @@ def test_gps_cut_external_nav_keeps_guided_and_lands_on_the_camera_without_ekf_f
 @pytest.mark.timeout(1500)
 def test_gps_cut_off_reports_the_loss_and_commands_no_descent(tmp_path: Path) -> None:
     # docs/GNSS-DENIED.md, `off`: report and hold; FS_EKF_ACTION 2 so the autopilot's own EKF
-    # failsafe holds the altitude (AltHold) instead of landing blind. No hand-over: the episode
-    # ends at its time limit.
+    # failsafe takes AltHold instead of a blind LAND. AltHold follows the throttle stick, and
+    # SITL's sits at its minimum: flown on 3 Dec 2026 the copter sank from 77 m at ~2.4 m/s with
+    # nobody commanding it (docs/sitl.md). What dovesei owns is checked: the loss reported, no
+    # descent commanded after it, no LAND.
     code, tail, report, watch, after = _fly_up(tmp_path, "--gnss-denied", "off", "--time-limit-s", "560",
                                                params={"FS_EKF_ACTION": 2}, cut_gps_below_m=80.0)
     assert watch.gps_cut_alt_m is not None and watch.gps_cut_alt_m > 60.0, watch.gps_cut_alt_m
     nav = report["navigation"]
-    assert nav["gnss_lost"] and nav["sources"][-1] == "none", nav
-    assert report["outcome"] == "timeout" and code == 3, tail
+    assert nav["gnss_lost"] and nav["sources"][-1] == "none" and "off" in nav["first_reason"], nav
+    assert report["failure"] is None, tail
     traj = report["trajectory"]
     after_loss = [(t, down) for t, down in zip(traj["t_s"], traj["cmd_down_m_s"]) if t > nav["gnss_lost_t_s"] + 0.5]
     assert after_loss and max(down for _, down in after_loss) <= 0.0, max(after_loss, key=lambda x: x[1])
-    assert "HANDOVER" not in traj["state"], traj["state"][-20:]
-    assert LAND not in [m for m, _ in watch.modes], watch.modes
+    modes = [m for m, _ in watch.modes]
+    assert ALT_HOLD in modes and LAND not in modes, watch.modes
