@@ -120,7 +120,6 @@ class MavlinkWatch:
         self._sock.bind(("127.0.0.1", port))
         self._sock.settimeout(0.2)
         self._stop = threading.Event()
-        self.texts: list[str] = []
         self.texts_in_mode: list[tuple[int | None, str]] = []  # (custom mode when it came, text)
         self.modes: list[tuple[int, bool]] = []  # (custom mode number, armed) on each change
         self.rel_alt_m: float | None = None
@@ -156,7 +155,6 @@ class MavlinkWatch:
                         asked = time.monotonic()
                     self._maybe_cut_gps(target, addr)
                 elif kind == "STATUSTEXT":
-                    self.texts.append(msg.text)
                     self.texts_in_mode.append((self.custom_mode, msg.text))
                 elif kind == "GLOBAL_POSITION_INT":
                     self.rel_alt_m = msg.relative_alt / 1000.0
@@ -164,6 +162,11 @@ class MavlinkWatch:
                     self.gps_fix_type = msg.fix_type
                 elif kind == "EKF_STATUS_REPORT":
                     self.ekf_flags = msg.flags
+
+    @property
+    def texts(self) -> list[str]:
+        """Every STATUSTEXT so far, in order."""
+        return [text for _, text in self.texts_in_mode]
 
     @property
     def ekf_has_absolute_position(self) -> bool:

@@ -507,13 +507,16 @@ class MavlinkVehicle:
                 usec, MAV_FRAME_LOCAL_FRD, MAV_FRAME_BODY_FRD, nan, nan, nan, [nan, nan, nan, nan], fwd, right,
                 down, nan, nan, nan, [nan] + [0.0] * 20, velocity_cov, 0, MAV_ESTIMATOR_TYPE_VISION,
                 int(round(quality * 100))))
-        # Nothing written (a "speed"-only link and a sample too noisy for it) is not a sample sent.
-        ok = self.external_nav_message != "speed" or speed_message_takes(var)
-        if self.external_nav_message in ("both", "speed") and speed_message_takes(var):
+        speed = self.external_nav_message in ("both", "speed") and speed_message_takes(var)
+        delta = self.external_nav_message in ("both", "delta")
+        if not (speed or delta):
+            return False  # a "speed"-only link and a sample too noisy for it: nothing written
+        ok = True
+        if speed:
             vn, ve, vd = frd_to_ned(vel_body_frd_m_s, *attitude)
             cov = vision_speed_covariance(var)
             ok = self._tx(lambda mav: mav.vision_speed_estimate_send(usec, vn, ve, vd, cov, 0))
-        if self.external_nav_message in ("both", "delta"):
+        if delta:
             # The displacement between the two frames, body FRD at the newer one; the rotation between
             # them is left at zero: with the camera at the centre of gravity (VISO_POS_X/Y/Z 0) EKF3
             # uses it only for the lever arm.
