@@ -78,6 +78,13 @@ class LandingWait:
     waited_s: float
 
 
+def exits_seen(monitor: Monitor, children: Children) -> list[tuple[str, int]]:
+    """The children that have exited, once the monitor has caught up with what they sent before
+    (a sim exits right after its result, a controller after its last status: while those still
+    wait in our queue, no exit is judged)."""
+    return children.exited() if monitor.backlog == 0 else []
+
+
 def wait_for_landing(rec: Recorder, monitor: Monitor, children: Children, stop: threading.Event,
                      timeout_s: float, stall_s: float, *, external_nav: bool = False) -> LandingWait:
     """After a 'land' or 'precland' hand-over: keep the controller running until the autopilot has landed.
@@ -125,7 +132,7 @@ def wait_for_landing(rec: Recorder, monitor: Monitor, children: Children, stop: 
         if stop.is_set():
             return end(False, "the operator ended the wait: the autopilot lands on its own, without our target")
         needed = ("controller", "sim") if external_nav else ("controller",)
-        dead = [name for name, _ in children.exited() if name in needed]
+        dead = [name for name, _ in exits_seen(monitor, children) if name in needed]
         if dead:
             what = "the camera's odometry (the sim)" if dead[0] == "sim" else "the controller"
             return end(False, f"{what} exited before the autopilot landed")
@@ -288,7 +295,7 @@ def wait_for_takeoff(rec: Recorder, monitor: Monitor, children: Children, stop: 
         monitor.drain(max_s=DRAIN_SLICE_S)
         if stop.is_set():
             return WatchEnd(None, True)
-        dead = children.exited()
+        dead = exits_seen(monitor, children)
         if dead:
             name, code = dead[0]
             line = last_error_line(children.log_path(name))

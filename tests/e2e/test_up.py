@@ -207,6 +207,8 @@ def test_trajectory_after_a_takeoff_starts_where_the_mission_starts() -> None:
                           pos_local_ned_m=(0.5 * (k + 1), 0.0, -26.0)) for k in range(3)]
 
     class Feed:  # the monitor: the climb's states, then the controller's first status
+        backlog = 0
+
         def drain(self, max_s: float = float("inf")) -> None:
             for st in climb:
                 rec.handle(Sample("state", 1000.0 + st.stamp.t_s, encode(st)))
@@ -228,6 +230,8 @@ def test_trajectory_after_a_takeoff_starts_where_the_mission_starts() -> None:
 
 class _StateFeed:
     """The monitor during a landing: one autopilot state per drain (mode, armed, altitude)."""
+
+    backlog = 0
 
     def __init__(self, rec: Recorder, states: list[tuple[str, bool, float]]) -> None:
         self.rec, self.states, self.k = rec, states, 0
@@ -317,6 +321,21 @@ def test_the_landing_wait_ends_on_a_takeover_a_dead_controller_or_the_operator()
     rec = Recorder((0.0, 0.0, 100.0), video=False)
     late = wait_for_landing(rec, _StateFeed(rec, [("LAND", True, 19.0)] * 1000), _Alive(), threading.Event(), 0.3, 8.0)
     assert not late.landed and "not landed within" in late.reason
+
+
+def test_the_landing_wait_judges_an_exit_only_once_the_queue_has_caught_up() -> None:
+    # The controller exits right after the autopilot disarmed; that state still waits in the queue.
+    from dovesei.up.watch import wait_for_landing
+
+    class Behind(_StateFeed):
+        @property
+        def backlog(self) -> int:
+            return len(self.states) - self.k
+
+    rec = Recorder((0.0, 0.0, 100.0), video=False)
+    wait = wait_for_landing(rec, Behind(rec, [("LAND", True, 5.0), ("LAND", True, 1.0), ("LAND", False, 0.0)]),
+                            _Alive([("controller", 0)]), threading.Event(), 30.0, 8.0)
+    assert wait.landed and "disarmed" in wait.reason, wait.reason
 
 
 @pytest.mark.parametrize("realtime", [False, True])
