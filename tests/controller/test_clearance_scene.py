@@ -1,6 +1,7 @@
 """The scene's thresholds (scene): read off the map's own log-odds, they move with any
-recalibration logit P' = a logit P + b, a scene of one class is judged by the floor alone, and a
-scene whose best reads below even odds has nothing safe in it."""
+recalibration logit P' = a logit P + b, a scene of one class is judged by the floor alone, one
+material in patches that read a little apart passes all of them, and a scene whose best reads
+below even odds has nothing safe in it."""
 
 from __future__ import annotations
 
@@ -55,6 +56,25 @@ def test_a_scene_of_one_class_is_judged_by_the_floor_alone() -> None:
     # The same scene read pessimistically (below even odds): nothing here is safe.
     roofs = levels_from(desert - 1.8, known, CFG, CELL_M)
     assert roofs.nothing_safe and math.isinf(roofs.spot_for(0.2, CFG)) and math.isinf(roofs.probe_logit)
+
+
+def test_a_scene_of_one_material_in_patches_that_read_apart_passes_its_better_patches() -> None:
+    """Sand with a patch of gravel reading 0.3 log-odds lower: the contrast is the patches', and a
+    threshold a fifth of it below the best disk would fail half the sand (the best disk is the
+    top of the sand's own spread). The threshold admits the sand; the gravel sits at its edge."""
+    rng = np.random.default_rng(5)
+    sand = rng.normal(2.1, 0.03, (200, 200)).astype(np.float32)
+    sand[50:, :] = rng.normal(1.8, 0.03, (150, 200))  # the gravel: three quarters, the median
+    known = np.ones(sand.shape, bool)
+    lv = levels_from(sand, known, CFG, CELL_M)
+    assert lv.contrast_logit > 0.2  # two "classes" by contrast against the per-cell noise
+    spot = lv.spot_for(0.03, CFG)
+    assert spot == pytest.approx(lv.best_logit * (1.0 - CFG.level_slack_frac), abs=1e-6)
+    assert float((sand[:50] >= spot).mean()) > 0.999
+    assert lv.gate_logit <= spot
+    # A city keeps its contrast's threshold: the sidewalk stays out (see the recalibration test).
+    city = levels_from(_city(np.random.default_rng(6)), known, CFG, CELL_M)
+    assert city.spot_for(0.15, CFG) > 1.1 + 3 * 0.15
 
 
 def test_a_scene_whose_best_reads_below_even_odds_has_nothing_safe() -> None:

@@ -72,6 +72,18 @@ class ClearanceConfig:
     # A clearance disk holds ~600 cells (3.5 m at 0.25 m): at 4 sigma a Gaussian class loses 3e-5
     # of its cells, so 2 % of its disks lose one to noise (at 3 sigma, 55 %).
     spot_z: float = 4.0
+    # However small the contrast, a cell within this share of the best disk's margin over even odds
+    # counts as reading like the best: its odds of safe are at least the best's to the power 0.85
+    # (best P 0.90 -> 0.87, 0.95 -> 0.92). Why a share and not the contrast: one material reads
+    # a few tenths of log-odds apart from patch to patch (wet and dry sand, gravel on sand), and a
+    # scene made of it has a "contrast" of that size; spot_frac of it put the threshold inside the
+    # better patches' own spread, so every spot failed its re-checks lower down. Why 0.15 (0.3
+    # log-odds at P 0.9): the authors' logs of the reference pipeline put the threshold that passes
+    # a frame's best tenth at P 0.51 +- 0.1 over their frames, +-0.4 log-odds: CLIPSeg's reading of
+    # the best ground moves by more than this share between frames, so a difference this small is
+    # no evidence of a different class. Judgement on their statistic, not a fit. Measured from the
+    # floor, so an offset b of the perception moves it (see scene.py).
+    level_slack_frac: float = 0.15
     # From high up the tokens smear a patch into its surroundings, so a disk's promise (its mean)
     # is a mix: the gate admits disks that read within gate_frac of the contrast below the best
     # (at least 70 % of the reading from ground like the best); during the top pass a probe
@@ -267,7 +279,7 @@ class ClearanceConfig:
             validate.non_negative(f"ClearanceConfig.{name}", getattr(self, name))
         for name in ("spot_min_response", "probe_descend_frac", "anchor_min_response", "anchor_gate_frac", "reg_min_response", "reg_full_response", "reg_min_std", "reg_min_eigen_ratio", "reg_pos_gain", "cmd_weight",
                      "key_shift_frac", "recheck_hysteresis", "dip_kernel_frac", "gate_frac", "probe_now_frac",
-                     "dip_floor_frac", "spot_frac"):
+                     "dip_floor_frac", "spot_frac", "level_slack_frac"):
             validate.in_range(f"ClearanceConfig.{name}", getattr(self, name), 0.0, 1.0)
         for name in ("p_clip", "scene_floor_p"):
             validate.in_range(f"ClearanceConfig.{name}", getattr(self, name), 1e-6, 1.0 - 1e-6)

@@ -14,8 +14,10 @@ decayed), through three numbers:
 
     contrast = best - typical
     spot     a cell of the working map counts as safe at or above
-             best - max(spot_frac x contrast, spot_z x that map's own per-cell noise)
-    gate     a disk's promise from high up must reach best - max(gate_frac x contrast, spot_z x noise)
+             best - max(spot_frac x contrast, spot_z x that map's own per-cell noise,
+                        level_slack_frac x (best - floor))
+    gate     a disk's promise from high up must reach
+             best - max(gate_frac x contrast, spot_z x noise, level_slack_frac x (best - floor))
     probes   the gate's level; during the top pass probe_now_frac instead of gate_frac
 
 Below spot_z x noise of contrast the scene is one class (the best of 10^4 disks of one Gaussian
@@ -24,11 +26,17 @@ median is its level, and every threshold is the floor (the class is safe when it
 even odds; people and cars on it are still the dips the policy deepens).
     dips     deepened beyond dip_floor_frac x contrast
 
+The last term keeps a scene of one material whose patches read a little apart (wet and dry sand,
+gravel in the sand: a contrast of a few tenths) from being taken for two classes with a threshold
+in the middle of the better one: a cell whose margin over even odds is within level_slack_frac of
+the best disk's reads as confidently safe as the best does, whatever the contrast.
+
 Each is a maximum, a median or a robust spread of the map, so a recalibration logit P' = a logit P
-+ b (a > 0) moves every threshold with the map and the decisions stay the same (up to the clip of
-P at the wire's resolution). The one absolute level is the floor, log-odds 0 (P = 0.5): when even
-the scene's level reads below it, the segmenter itself finds nothing in the scene more likely safe
-than not, and nothing here is safe; no threshold is ever below it.
+(a > 0) moves every threshold with the map and the decisions stay the same (up to the clip of
+P at the wire's resolution); an offset b moves them too, except where a threshold is measured from
+the floor (the floor itself, and the level_slack_frac term). The floor is log-odds 0 (P = 0.5):
+when even the scene's level reads below it, the segmenter itself finds nothing in the scene more
+likely safe than not, and nothing here is safe; no threshold is ever below it.
 """
 
 from __future__ import annotations
@@ -71,7 +79,8 @@ class SceneLevels:
             return NOTHING_SAFE
         if self.contrast_logit <= 0.0:  # one class
             return self.floor_logit
-        slack = max(cfg.spot_frac * self.contrast_logit, cfg.spot_z * noise_logit)
+        slack = max(cfg.spot_frac * self.contrast_logit, cfg.spot_z * noise_logit,
+                    cfg.level_slack_frac * (self.level_logit - self.floor_logit))
         return max(self.floor_logit, self.level_logit - slack)
 
 
@@ -108,7 +117,7 @@ def levels_from(mean: np.ndarray, known: np.ndarray, cfg: ClearanceConfig, cell_
         return _nothing(cells, floor, best, typical, noise)
 
     def level(frac: float) -> float:
-        return max(floor, top - max(frac * contrast, spread))
+        return max(floor, top - max(frac * contrast, spread, cfg.level_slack_frac * (top - floor)))
 
     gate = level(cfg.gate_frac)
     # A probe goes only where a spot could pass the gate: the probe threshold is the gate's.
