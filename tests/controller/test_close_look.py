@@ -173,3 +173,23 @@ def test_the_verdict_measures_from_the_square_centre() -> None:
     never[row - 3:row + 3, 173:179] = 0.9
     v = verdict(never, cfg.side_m, cfg)
     assert not v.clear and v.nearest_m == pytest.approx(2.0, abs=0.15) and v.p_max == pytest.approx(0.9)
+
+
+def test_a_person_read_half_as_lawn_rises_out_of_the_square_and_is_found() -> None:
+    """A person the segmenter half-confuses with the lawn: P(never) 0.15 over a lawn reading 0.04,
+    under never_p_min, but 1.4 log-odds above the square's median. A lawn whose own ripple rises
+    0.5 is clear, and so is ground reading 0.2 everywhere (nothing stands out, under never_p_min)."""
+    cfg = CloseLookConfig()
+    rng = np.random.default_rng(3)
+    lawn = (1.0 / (1.0 + np.exp(-rng.normal(-3.2, 0.1, (352, 352))))).astype(np.float32)
+    assert verdict(lawn, cfg.side_m, cfg).clear
+    rippled = lawn.copy()
+    rippled[100:140, 100:140] = 1.0 / (1.0 + np.exp(3.2 - 0.5))
+    assert verdict(rippled, cfg.side_m, cfg).clear
+    assert verdict(np.full((352, 352), 0.2, np.float32), cfg.side_m, cfg).clear
+    m_per_px = cfg.side_m / 352
+    row = int(round(175.5 + 2.5 / m_per_px))  # 2.5 m behind the spot
+    person = lawn.copy()
+    person[row - 10:row + 10, 166:186] = 0.15
+    v = verdict(person, cfg.side_m, cfg)
+    assert not v.clear and v.nearest_m == pytest.approx(2.5 - 10 * m_per_px, abs=0.1) and v.p_max < cfg.never_p_min
