@@ -41,7 +41,11 @@ WORLD = "synthetic:size_m=400,seed=1"
 # issue 25 and the close look: the realistic perception now draws a calibration and per-patch looks
 # per episode (so `dovesei` read this seed's scene differently and took another safe spot, 52 m
 # from the last one), and `clearance` holds at ~40 m for two clear close looks before descending
-# (44.4 s -> 71.9 s, the same lawn within 4 m). Both profiles (none, ideal) must still agree.
+# (44.4 s -> 71.9 s, the same lawn within 4 m). Re-recorded for the scene thresholds' floor on the
+# slack (level_slack_frac, c97402f): the re-checks of the footprint below pass more often, so the
+# first descent went on to 39 m, where a close look saw the never set 3.9 m from the spot (P 0.40)
+# and aborted it; the second spot, 8.3 m from the old landing, landed safe (71.9 s -> 126.35 s,
+# nearest person 11.6 m). Both profiles (none, ideal) must still agree.
 REFERENCE = [
     ({"policy": "dovesei", "index": 1, "seed": 12, "timing": "reference", "time_limit_s": 60.0,
       "start": {"x_m": 266.718, "y_m": 133.498, "alt_m": 100.0}},
@@ -50,8 +54,8 @@ REFERENCE = [
     ({"policy": "clearance", "index": 0, "seed": 11, "timing": "real", "time_limit_s": 150.0,
       "policy_config": {"scene_after_top_pass": False},  # a 400 m world: its scene is the first views
       "start": {"x_m": 230.274, "y_m": 296.129, "alt_m": 100.0}},
-     {"outcome": "safe", "sim_time_s": 71.9, "path_length_m": 87.544, "max_range_m": 82.7,
-      "final": {"x_m": 291.873, "y_m": 350.048, "alt_m": 19.796}}),
+     {"outcome": "safe", "sim_time_s": 126.35, "path_length_m": 98.441, "max_range_m": 90.4,
+      "final": {"x_m": 295.547, "y_m": 357.534, "alt_m": 19.843}}),
 ]
 
 
