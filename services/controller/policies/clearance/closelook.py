@@ -34,6 +34,7 @@ import numpy as np
 
 from dovesei.controller.frames import to_body
 from dovesei.controller.policies.base import Decision, LookRequest, LookResult, Observation
+from dovesei.controller.policies.clearance.ground_map import logit
 from dovesei.shared import validate
 from dovesei.shared.mission import HANDOVER_ALT_M, PERSON_SEPARATION_M
 
@@ -130,10 +131,9 @@ def verdict(prob_never: np.ndarray, side_m: float, cfg: CloseLookConfig) -> Verd
     n = prob_never.shape[0]
     m_per_px = side_m / n
     c = (n - 1) / 2.0
-    p = np.clip(prob_never.astype(np.float32), np.float32(1e-4), np.float32(1.0 - 1e-4))
-    logit = np.log(p / (np.float32(1.0) - p))
-    rise_from = float(np.median(logit)) + cfg.never_rise_logit
-    rows, cols = np.nonzero((prob_never >= cfg.never_p_min) | (logit >= rise_from))
+    odds = logit(prob_never, 1e-4)
+    rise_from = float(np.median(odds)) + cfg.never_rise_logit
+    rows, cols = np.nonzero((prob_never >= cfg.never_p_min) | (odds >= rise_from))
     dist_m = np.hypot(rows - c, cols - c) * m_per_px
     yy, xx = np.mgrid[0:n, 0:n]
     inside = np.hypot(yy - c, xx - c) * m_per_px <= cfg.margin_m

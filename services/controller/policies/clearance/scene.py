@@ -79,9 +79,14 @@ class SceneLevels:
             return NOTHING_SAFE
         if self.contrast_logit <= 0.0:  # one class
             return self.floor_logit
-        slack = max(cfg.spot_frac * self.contrast_logit, cfg.spot_z * noise_logit,
-                    cfg.level_slack_frac * (self.level_logit - self.floor_logit))
-        return max(self.floor_logit, self.level_logit - slack)
+        return below(self.level_logit, self.floor_logit, cfg.spot_frac * self.contrast_logit,
+                     cfg.spot_z * noise_logit, cfg)
+
+
+def below(top: float, floor: float, contrast_slack: float, noise_slack: float, cfg: ClearanceConfig) -> float:
+    """A threshold under the level `top`: the widest of the contrast's and the noise's slack and
+    level_slack_frac of the level's margin over the floor, never below the floor."""
+    return max(floor, top - max(contrast_slack, noise_slack, cfg.level_slack_frac * (top - floor)))
 
 
 def _nothing(cells: int, floor: float, best: float = -math.inf, typical: float = 0.0, noise: float = 0.0) -> SceneLevels:
@@ -117,7 +122,7 @@ def levels_from(mean: np.ndarray, known: np.ndarray, cfg: ClearanceConfig, cell_
         return _nothing(cells, floor, best, typical, noise)
 
     def level(frac: float) -> float:
-        return max(floor, top - max(frac * contrast, spread, cfg.level_slack_frac * (top - floor)))
+        return below(top, floor, frac * contrast, spread, cfg)
 
     gate = level(cfg.gate_frac)
     # A probe goes only where a spot could pass the gate: the probe threshold is the gate's.
