@@ -68,6 +68,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--perception", default=None, help="simulated perception profile (default: realistic)")
     p.add_argument("--noise", type=float, default=None, help="simulated perception noise scale (default: the profile's)")
     p.add_argument("--perception-shift", default=None, metavar="A_LO,A_HI,B", help=shift.HELP)
+    p.add_argument("--shift-only", action="store_true",
+                   help="with --perception-shift: fly only the shifted runs (their plain twins are the same bench "
+                        "without --perception-shift, the same seed and starts)")
     p.add_argument("--timing", default=None, help=f"timing preset: reference or real (default: real with `clearance` "
                                                    f"flown, else {shared_timing.DEFAULT_TIMING}; as `dovesei up`)")
     p.add_argument("--time-limit-s", type=float, default=None,
@@ -163,12 +166,16 @@ def make_grid(*, world_spec: str | None = None, worlds: tuple[str, ...] | None =
               world_label: str = "", seed_note: str = "", vehicle_profile: str | None = None,
               handover_alt_m: float = HANDOVER_ALT_M, policy_config: Path | None = None,
               separation_m: tuple[float, float] = (PERSON_SEPARATION_M, VEHICLE_SEPARATION_M),
-              perception_shift: str | tuple | None = None, close_look: bool = True) -> Grid:
+              perception_shift: str | tuple | None = None, shift_only: bool = False,
+              close_look: bool = True) -> Grid:
     """The bench's grid, every setting checked (one line naming the flag otherwise).
 
-    With `perception_shift` ("A_LO,A_HI,B") every start is flown plainly and shifted (dovesei.bench.shift).
+    With `perception_shift` ("A_LO,A_HI,B") every start is flown plainly and shifted (dovesei.bench.shift);
+    with `shift_only` too, only shifted.
     """
     shifted = None if perception_shift is None else parse_shift(perception_shift)
+    if shift_only and shifted is None:
+        raise ConfigError("--shift-only needs --perception-shift A_LO,A_HI,B (there is nothing to shift)")
     _at_least_one("--episodes", episodes)
     if seed < 0:
         raise ConfigError(f"--seed must be >= 0, got {seed}")
@@ -192,7 +199,11 @@ def make_grid(*, world_spec: str | None = None, worlds: tuple[str, ...] | None =
     shared_timing.timing(timing)
     specs = tuple(worlds) if worlds else (world_spec or "synthetic",)
     plain = Variant(perception=check_perception(perception))
-    variants = (plain,) if shifted is None else (plain, Variant(perception=plain.perception, shift=shifted))
+    if shifted is None:
+        variants: tuple[Variant, ...] = (plain,)
+    else:
+        moved = Variant(perception=plain.perception, shift=shifted)
+        variants = (moved,) if shift_only else (plain, moved)
     return Grid(worlds=specs, episodes=episodes, seed=seed, policies=tuple(policies),
                 variants=variants, noise=noise, timing=timing,
                 time_limit_s=float(time_limit_s), start_alt_m=float(start_alt_m), segmenter=segmenter,
@@ -213,7 +224,7 @@ def settings_from_args(args: argparse.Namespace) -> dict:
                 segmenter=args.segmenter, perception=args.perception, vehicle_profile=args.vehicle_profile,
                 handover_alt_m=args.handover_alt_m, policy_config=args.policy_config,
                 separation_m=(args.person_separation_m, args.vehicle_separation_m),
-                perception_shift=args.perception_shift, close_look=args.close_look, world_label=f"suite:{args.suite.strip()}" if args.suite is not None else "")
+                perception_shift=args.perception_shift, shift_only=args.shift_only, close_look=args.close_look, world_label=f"suite:{args.suite.strip()}" if args.suite is not None else "")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -260,8 +260,9 @@ def _run(grid: Grid, jobs: list[dict], todo: list[dict], done: dict, worlds: dic
     results.sort(key=lambda e: order.get(_record_key(e), len(order)))
     episodes_out = [{k: v for k, v in e.items() if k != "config_key"} for e in results]
     limits = stats.limits_for(grid.timing, grid.time_limit_s)
-    # With a perception shift the headline figures stay the plain runs'; the shift sits beside them.
-    plain = [e for e in episodes_out if e.get("shift") in (None, shift.PLAIN_LABEL)]
+    # With a perception shift the headline figures stay the plain runs'; the shift sits beside them
+    # (a bench of shifted runs only has its shifted runs as headline).
+    plain = [e for e in episodes_out if e.get("shift") in (None, shift.PLAIN_LABEL)] or episodes_out
     doc = {"episodes": episodes_out, "summary": stats.summarise(plain, grid.policies, limits=limits),
            "config": config}
     if len(grid.worlds) > 1:
@@ -307,8 +308,10 @@ def summary_markdown(doc: dict, *, title: str = "dovesei bench") -> str:
         lines += ["## Plain and with the perception shift", "",
                   "The same starts, every heatmap P turned into sigmoid(a logit(P) + b) with a and b drawn per "
                   f"start from `{'`, `'.join(s for s in config['perception_shift'] if s != shift.PLAIN_LABEL)}` "
-                  "(A_LO,A_HI,B); `none` = the plain runs (the table above). Each episode's a and b are in "
-                  "results.json.", "",
+                  "(A_LO,A_HI,B); " + ("`none` = the plain runs (the table above). " if shift.PLAIN_LABEL in
+                                       config["perception_shift"] else "shifted runs only (`--shift-only`): the "
+                                       "table above is theirs, their plain twins another bench's. ")
+                  + "Each episode's a and b are in results.json.", "",
                   *stats.rows_table(doc["per_shift"], ("policy", "shift")), ""]
     if doc.get("per_world"):
         keys = ("world", "policy", "shift") if "shift" in doc["per_world"][0] else ("world", "policy")

@@ -108,6 +108,26 @@ def test_the_bench_flies_plain_and_shifted_beside_each_other_and_records_a_and_b
     assert (tmp_path / "episodes.jsonl").read_text() == journal
 
 
+def test_shift_only_flies_the_same_shifted_runs_and_nothing_plain(tmp_path: Path) -> None:
+    kw = dict(world_spec=WORLD, seed=3, policies=["dovesei"], noise=None, timing="reference", time_limit_s=8.0,
+              start_alt_m=100.0, jobs=1, progress=False, perception_shift="0.6,1.6,0.8")
+    both = run_bench(episodes=1, out=tmp_path / "both", **kw)
+    only = run_bench(episodes=2, out=tmp_path / "only", shift_only=True, **kw)
+    assert [(e["shift"], e["index"]) for e in only["episodes"]] == [("0.6,1.6,0.8", 0), ("0.6,1.6,0.8", 1)]
+    assert only["summary"]["dovesei"]["episodes"] == 2  # no plain runs: the headline is the shifted ones'
+    assert only["config"]["perception_shift"] == ["0.6,1.6,0.8"]
+    twin = next(e for e in both["episodes"] if e["shift"] != "none")
+    mine = only["episodes"][0]
+    # The same start, the same draw, the same flight as beside the plain runs.
+    assert mine["perception_shift"] == twin["perception_shift"] and mine["outcome"] == twin["outcome"]
+    assert np.array_equal(np.load(next((tmp_path / "only" / "tracks").rglob("*00*.npy"))),
+                          np.load(next((tmp_path / "both" / "tracks").glob("shift-*/*00*.npy"))))
+    assert "shifted runs only" in (tmp_path / "only" / "summary.md").read_text()
+    with pytest.raises(ConfigError, match="--shift-only needs --perception-shift"):
+        run_bench(episodes=1, out=tmp_path / "none", shift_only=True, **{**kw, "perception_shift": None})
+    assert not (tmp_path / "none").exists()
+
+
 def test_the_command_line_refuses_a_bad_shift_in_one_line_and_writes_nothing(tmp_path: Path) -> None:
     out = tmp_path / "out"
     r = subprocess.run([sys.executable, "-m", "dovesei.cli", "bench", "--world", WORLD, "--perception-shift", "2,1,0.5",
