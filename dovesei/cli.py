@@ -25,6 +25,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "bench-segmenter": ("dovesei.benchmarks.segmenter", "CLIPSeg reference vs fast path, and the simulated backend"),
     "bench-policy": ("dovesei.benchmarks.policy", "policy compute time per heatmap at 352x352"),
     "bench-closelook": ("dovesei.benchmarks.closelook", "close look: sim crop render ms, crop -> CLIPSeg -> verdict s"),
+    "closelook-stats": ("dovesei.benchmarks.closelook_stats", "the close look's rule on simulated crops: people missed, clear ground fired on"),
     "bench-loop": ("dovesei.benchmarks.loop", "controller loop jitter at 20 Hz with a 2 Hz segmenter"),
     "perception-stats": ("dovesei.perception_stats", "simulated perception vs real CLIPSeg statistics (threshold, precision)"),
     "preview": ("dovesei.preview", "PNG pictures of a world, the camera's view and the simulated perception"),
