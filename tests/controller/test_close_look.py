@@ -17,11 +17,11 @@ import pytest
 
 from dovesei.controller.core import ControllerConfig, ControllerCore
 from dovesei.controller.looker import SyncLooker
-from dovesei.controller.policies.base import LookResult, Observation
+from dovesei.controller.policies.base import Decision, LookResult, Observation, SpotReport
 from dovesei.controller.policies.registry import make_policy
 from dovesei.controller.policies.clearance.closelook import CloseLookConfig, CloseLookPolicy, verdict
 from dovesei.episode import EpisodeSpec, run_episode
-from dovesei.shared.messages import ControllerStatus, CropFrame, CropHeatmap, VehicleState
+from dovesei.shared.messages import ControllerStatus, CropFrame, CropHeatmap, Stamp, VehicleState
 from dovesei.sim.camera import CameraModel
 from dovesei.sim.objects import PERSON, ObjectLayer, Population
 from dovesei.sim.starts import Start
@@ -213,3 +213,61 @@ def test_a_faint_person_stands_out_as_a_blob_and_broad_swells_are_not_findings()
     car[(np.abs(yy) <= 2.0) & (xx >= 3.0) & (xx <= 5.0)] = math.log(0.6 / 0.4)
     v = verdict(prob(car), cfg.side_m, cfg)
     assert not v.clear and v.nearest_m == pytest.approx(3.0, abs=0.3)
+
+
+class _Descending:
+    """An inner policy descending onto one spot at 41 m; it records the spots the gate rejects."""
+
+    name = "stub"
+    config = None
+
+    def __init__(self) -> None:
+        self.rejected: list[str] = []
+
+    def reset(self) -> None:
+        self.rejected = []
+
+    def map_view(self) -> dict:
+        return {}
+
+    def step(self, obs: Observation) -> Decision:
+        spot = SpotReport(10.0, 5.0, 6.0, 1.0, 0.9, 0.0, est_north_m=10.0, est_east_m=5.0)
+        return Decision((0.0, 0.0, 1.0), 0.0, "DESCEND", None, 0.0, None, spot=spot, landing=True)
+
+    def reject_target(self, t_s: float, alt_m: float, why: str) -> None:
+        self.rejected.append(why)
+
+
+def _answer(seq: int, found: bool) -> LookResult:
+    never = np.full((352, 352), 0.03, np.float32)
+    if found:
+        never[100:120, 170:190] = 0.8  # something 1.7 m ahead of the spot
+    heat = CropHeatmap("uav1", seq, seq, Stamp(float(seq), "sim"), never, never, (0.0, 0.0), 8.0, 41.0, "simulated",
+                       True, "p", "n", 0.01)
+    return LookResult(seq, heat)
+
+
+@pytest.mark.parametrize("pattern, rejected_at", [
+    ("FCC", None),  # one finding holds the descent; it is not a verdict on the spot
+    ("FCF", 2),  # found again within three looks: rejected
+    ("FF", 1),
+    ("CFCCFC", None),  # never twice within three looks
+    ("CCF", None),  # past the gate (two clear looks): the last descent waits
+])
+def test_a_spot_is_rejected_when_found_again_not_on_one_look(pattern: str, rejected_at: int | None) -> None:
+    inner = _Descending()
+    gate = CloseLookPolicy(inner)
+    obs = Observation(t_s=0.0, alt_agl_m=41.0, prob_safe=None)
+    d = gate.step(obs)
+    assert d.look_request is not None and d.vel_body_frd_m_s[2] <= 0.0  # holds and asks before any look
+    for i, ch in enumerate(pattern):
+        d = gate.step(Observation(t_s=1.0 + i, alt_agl_m=41.0, prob_safe=None, look=_answer(i + 1, ch == "F")))
+        if rejected_at is not None and i >= rejected_at:
+            break
+        assert not inner.rejected, (pattern, i)
+        if ch == "F":
+            assert d.vel_body_frd_m_s[2] <= 0.0 and "never set" in d.look_verdict  # a finding holds
+    if rejected_at is None:
+        assert not inner.rejected
+    else:
+        assert len(inner.rejected) == 1 and "found in 2 of the last" in inner.rejected[0]
