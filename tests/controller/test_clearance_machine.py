@@ -286,6 +286,22 @@ def test_handover_only_at_the_measured_handover_altitude() -> None:
         assert m.phase is not Phase.HANDOVER
 
 
+def test_a_withheld_handover_holds_at_the_handover_altitude_until_released() -> None:
+    """The close look's gate withholds the hand-over (something inside the margin at the last look):
+    centred, fixed by vision and below the altitude, the descent still does not hand over; it climbs
+    back to the hand-over altitude and hands over once released."""
+    target = spot()
+    low = CFG.handover_alt_m - 0.8
+    held = dataclasses.replace(inp(1.0, alt=low, n=20.0, check=target), handover_withheld="close look: waiting")
+    mem, vel = step(at(Phase.DESCEND, target=target, descending=True), held, CFG)
+    assert mem.phase is Phase.DESCEND and vel[2] < 0.0  # back up, never lower
+    level = dataclasses.replace(held, alt_agl_m=CFG.handover_alt_m)
+    mem, vel = step(mem, level, CFG)
+    assert mem.phase is Phase.DESCEND and vel[2] == 0.0
+    mem, vel = step(mem, dataclasses.replace(level, t_s=2.0, handover_withheld=""), CFG)
+    assert mem.phase is Phase.HANDOVER
+
+
 def test_gap_holds_from_any_live_state_recovers_after_fresh_frames_or_climbs() -> None:
     target = spot()
     for phase in (Phase.SEARCH, Phase.APPROACH, Phase.DESCEND, Phase.ABORT):

@@ -271,3 +271,27 @@ def test_a_spot_is_rejected_when_found_again_not_on_one_look(pattern: str, rejec
         assert not inner.rejected
     else:
         assert len(inner.rejected) == 1 and "found in 2 of the last" in inner.rejected[0]
+
+
+def test_the_gate_withholds_the_inner_policys_handover_until_a_fresh_clear_look() -> None:
+    """An altitude hold sags through the hand-over altitude while the gate waits on a finding (a
+    shifted crowded flight handed over 1.5 m from a person this way): the inner policy is told the
+    hand-over is withheld whenever the spot has no fresh clear look, and released by one."""
+    inner = _Descending()
+    inner.handover_withheld = ""
+    gate = CloseLookPolicy(inner)
+    gate.step(Observation(t_s=0.0, alt_agl_m=41.0, prob_safe=None))
+    assert inner.handover_withheld == "close look: no clear look of the spot"
+    gate.step(Observation(t_s=1.0, alt_agl_m=40.0, prob_safe=None, look=_answer(1, False)))
+    gate.step(Observation(t_s=2.0, alt_agl_m=39.0, prob_safe=None, look=_answer(2, False)))
+    gate.step(Observation(t_s=3.0, alt_agl_m=38.0, prob_safe=None, look=_answer(3, False)))
+    assert inner.handover_withheld == ""  # two clear looks in a row, the last one fresh
+    gate.step(Observation(t_s=4.0, alt_agl_m=20.5, prob_safe=None, look=_answer(4, True)))
+    gate.step(Observation(t_s=4.5, alt_agl_m=20.1, prob_safe=None))
+    assert "waiting" in inner.handover_withheld  # the last descent found something: no hand-over
+    for i in range(5, 9):
+        gate.step(Observation(t_s=float(i), alt_agl_m=20.0, prob_safe=None, look=_answer(i, False)))
+    gate.step(Observation(t_s=9.0, alt_agl_m=20.0, prob_safe=None))
+    assert inner.handover_withheld == ""  # resume_looks clear looks: released
+    gate.step(Observation(t_s=9.0 + CloseLookConfig().fresh_s + 1.5, alt_agl_m=20.0, prob_safe=None))
+    assert inner.handover_withheld == "close look: no fresh clear look"

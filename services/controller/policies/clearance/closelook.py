@@ -212,6 +212,7 @@ class CloseLookPolicy:
         self._never_since_s: float | None = None  # the last descent: something inside the margin since
         self._verdict = ""
         self._recent: deque[tuple[float, float, bool]] = deque(maxlen=self.look_config.reject_window)
+        self._spot: tuple[float, float] | None = None  # the spot of the last gated decision
         self.looks = self.failures = self.findings = 0
 
     # ---- the step ------------------------------------------------------------------------
@@ -219,7 +220,22 @@ class CloseLookPolicy:
     def step(self, obs: Observation) -> Decision:
         if obs.look is not None:
             self._take(obs.look, obs)
+        if hasattr(self.inner, "handover_withheld"):
+            # The inner policy hands over on its own once low enough: it may only with a fresh clear
+            # look of its spot (an altitude hold sags through the hand-over altitude while waiting).
+            self.inner.handover_withheld = self._handover_withheld(obs.t_s)
         return self._gate(obs, self.inner.step(obs))
+
+    def _handover_withheld(self, t_s: float) -> str:
+        """Why the hand-over must wait ("" when a fresh clear look covers the spot and nothing is pending)."""
+        cfg = self.look_config
+        if self._never_since_s is not None:
+            return "close look: waiting for the never set to clear the margin"
+        if self._spot is None or not self._covers(self._clear, self._spot) or self._streak < cfg.clear_looks:
+            return "close look: no clear look of the spot"
+        if t_s - self._clear.t_s > cfg.fresh_s:
+            return "close look: no fresh clear look"
+        return ""
 
     def _take(self, look: LookResult, obs: Observation) -> None:
         cfg, asked = self.look_config, self._asked
@@ -273,9 +289,9 @@ class CloseLookPolicy:
         chosen = d.spot
         if d.state != "DESCEND" or chosen is None or alt > cfg.look_alt_m + cfg.brake_m:
             if d.state not in ("DESCEND", "HANDOVER"):
-                self._never_since_s = None
+                self._never_since_s, self._spot = None, None
             return dataclasses.replace(d, look_verdict=self._verdict)
-        spot = (chosen.north_m, chosen.east_m)
+        spot = self._spot = (chosen.north_m, chosen.east_m)
         here = (chosen.est_north_m, chosen.est_east_m)
         cleared = (self._covers(self._clear, spot) and self._never_since_s is None
                    and self._streak >= cfg.clear_looks)

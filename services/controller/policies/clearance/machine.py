@@ -112,6 +112,10 @@ class Inputs:
     spot_known: bool = True  # the target was fixed by vision (or re-checked) within spot_trust_s
     recheck: Spot | None = None  # the footprint below, re-checked (None: it does not qualify)
     candidate_likely: bool = False  # the candidate reads likely enough to probe during the top pass
+    # Something outside the map withholds the hand-over (the close look: no fresh clear look of the
+    # spot, or something of the never set inside its margin): below the hand-over altitude the
+    # descent holds, steering onto the spot, until it is released or the descent times out.
+    handover_withheld: str = ""
 
 
 def search_pattern(spacing_m: float, radius_m: float) -> tuple[tuple[float, float], ...]:
@@ -352,7 +356,7 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
     # centred on it (within lock_in): the checked clearance holds the 2 m disk only around the
     # spot. Below the hand-over altitude otherwise (an altitude hold sagging while the spot is
     # re-checked, say) the vehicle holds its altitude and steers onto the spot first.
-    if inp.alt_agl_m <= cfg.handover_alt_m and inp.spot_known and err <= lock_in:
+    if inp.alt_agl_m <= cfg.handover_alt_m and inp.spot_known and err <= lock_in and not inp.handover_withheld:
         return _go(mem, Phase.HANDOVER, t, f"at the hand-over altitude over the spot (error {err:.1f} m, "
                                            f"clearance {target.clearance_m:.1f} m)"), (0.0, 0.0, 0.0)
     if t - mem.since_s > cfg.descend_timeout_s:
@@ -378,7 +382,9 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
         mem = dataclasses.replace(mem, descending=descending, frames=0)
     vf, vr = toward(err_n, err_e, cfg.approach_gain_per_s, cfg.max_speed_m_s, inp.yaw_rad)
     vz = 0.0
-    if descending:
+    if inp.handover_withheld and inp.alt_agl_m <= cfg.handover_alt_m:
+        vz = _hold_alt(inp.alt_agl_m, cfg.handover_alt_m, cfg)  # sagged below it: back up to it, no lower
+    elif descending:
         vz = min(max(cfg.descent_gain_per_s * (inp.alt_agl_m - cfg.handover_alt_m) + cfg.descent_min_m_s,
                      cfg.descent_min_m_s), cfg.descent_max_m_s)
     return mem, (vf, vr, vz)

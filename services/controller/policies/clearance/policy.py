@@ -93,6 +93,8 @@ class ClearancePolicy:
         self.motion = EgoMotion(self.config)
         self.memory: Memory | None = None
         self._last_t_s: float | None = None  # last heatmap
+        # Set from outside before a step (the close look's gate): why the hand-over must wait ("": it need not).
+        self.handover_withheld = ""
         self._search_alt_m: float | None = None
         self._alts: Altitudes | None = None  # this flight's altitudes, from the start altitude
         self._route: tuple[tuple[float, float, float], ...] = ()
@@ -325,7 +327,8 @@ class ClearancePolicy:
                      passes=self._passes, fence_m=fence_m,
                      best=best, check=check, hfov_rad=obs.hfov_rad, candidate=candidate,
                      top_pass_end=self._top_pass_end, probe_alt_m=self._alts.probe_m,
-                     spot_known=self._spot_known(), recheck=recheck, candidate_likely=likely)
+                     spot_known=self._spot_known(), recheck=recheck, candidate_likely=likely,
+                     handover_withheld=self.handover_withheld)
         prev = self.memory
         mem, vel = step(prev, inp, cfg)
         fenced = False
