@@ -487,7 +487,10 @@ def test_sitl_truth_renders_and_judges_at_the_true_pose_while_frames_carry_the_e
         assert sim.join() == result
     assert result.outcome == "safe" and (result.final_x_m, result.final_y_m) == pytest.approx((true_x_m, true_y_m),
                                                                                                abs=0.05)
-    assert result.final_alt_m == pytest.approx(15.0, abs=0.01)
+    # The truth is interpolated at each state's autopilot time: the first state judged below the
+    # hand-over altitude may fall between the last 60 m sample and the first 15 m one (a loaded
+    # machine spaces them out: 15.68 m once), never above the hand-over altitude nor below 15 m.
+    assert 15.0 - 0.01 <= result.final_alt_m <= 20.0
     assert sim.stats.truth_samples > 0 and sim.stats.truth_rejected == 0 and sim.stats.states_sent == 0
 
 
