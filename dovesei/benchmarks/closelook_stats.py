@@ -63,7 +63,7 @@ def _square(world: World, rng: np.random.Generator, person: bool, side_m: float)
         if labels.shape != (2 * half_px + 1,) * 2 or not np.isin(labels, safe).all():
             continue  # a spot the map could have chosen: safe ground all over the square
         d = layer.distances_m(cx, cy, 0.0)
-        nearest = float(d[layer.kind == PERSON].min(initial=math.inf))
+        nearest = float(d[people].min(initial=math.inf))
         if person and nearest <= PERSON_WITHIN_M:
             return cx, cy, nearest
         if not person and float(d.min(initial=math.inf)) >= CLEAR_BEYOND_M:

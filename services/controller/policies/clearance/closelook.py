@@ -228,14 +228,22 @@ class CloseLookPolicy:
 
     def _handover_withheld(self, t_s: float) -> str:
         """Why the hand-over must wait ("" when a fresh clear look covers the spot and nothing is pending)."""
-        cfg = self.look_config
         if self._never_since_s is not None:
             return "close look: waiting for the never set to clear the margin"
-        if self._spot is None or not self._covers(self._clear, self._spot) or self._streak < cfg.clear_looks:
+        if self._spot is None or not self._cleared(self._spot):
             return "close look: no clear look of the spot"
-        if t_s - self._clear.t_s > cfg.fresh_s:
+        if not self._fresh(t_s):
             return "close look: no fresh clear look"
         return ""
+
+    def _cleared(self, spot: tuple[float, float]) -> bool:
+        """clear_looks clear looks in a row cover `spot`, and nothing is pending since."""
+        return (self._covers(self._clear, spot) and self._never_since_s is None
+                and self._streak >= self.look_config.clear_looks)
+
+    def _fresh(self, t_s: float) -> bool:
+        """The newest clear look is at most fresh_s old (call only when it exists)."""
+        return t_s - self._clear.t_s <= self.look_config.fresh_s
 
     def _take(self, look: LookResult, obs: Observation) -> None:
         cfg, asked = self.look_config, self._asked
@@ -293,11 +301,10 @@ class CloseLookPolicy:
             return dataclasses.replace(d, look_verdict=self._verdict)
         spot = self._spot = (chosen.north_m, chosen.east_m)
         here = (chosen.est_north_m, chosen.est_east_m)
-        cleared = (self._covers(self._clear, spot) and self._never_since_s is None
-                   and self._streak >= cfg.clear_looks)
+        cleared = self._cleared(spot)
         if cleared:
             self._committed = self._clear  # the gate is open for this spot: findings now mean waiting
-        fresh = cleared and t - self._clear.t_s <= cfg.fresh_s
+        fresh = cleared and self._fresh(t)
         final = alt <= cfg.handover_alt_m + cfg.final_gate_m
         hold, why = False, ""
         if not cleared:
