@@ -41,13 +41,33 @@ class QueryFailed(DoveseiError, RuntimeError):
 
 def query_one(session: zenoh.Session, key: str, payload: bytes, timeout_s: float) -> bytes:
     """The first reply's payload to a query on `key`; QueryFailed with the answerer's error text, or
-    saying nobody answered within `timeout_s`."""
+    saying nobody answered within `timeout_s`, or that nobody serves `key` at all (Zenoh ends a query
+    at once when no queryable it knows of matches: one just declared may still be propagating)."""
+    t0 = time.monotonic()
     replies = session.get(key, payload=payload, timeout=timeout_s)
     for reply in replies:
         if reply.ok is not None:
             return reply.ok.payload.to_bytes()
         raise QueryFailed(f"{key}: {reply.err.payload.to_string()}")
+    waited_s = time.monotonic() - t0
+    if waited_s < 0.5 * timeout_s:
+        raise QueryFailed(f"{key}: nobody serves it (no answer, ended after {waited_s:.2f} s of {timeout_s:g} s)")
     raise QueryFailed(f"{key}: no answer within {timeout_s:g} s (is the camera / sim serving it?)")
+
+
+def wait_served(session: zenoh.Session, key: str, timeout_s: float) -> bool:
+    """Whether a queryable on `key` became known to `session` within `timeout_s` (a query sent before
+    that gets no answer at all)."""
+    querier = session.declare_querier(key)
+    try:
+        deadline = time.monotonic() + timeout_s
+        while not querier.matching_status.matching:
+            if time.monotonic() > deadline:
+                return False
+            time.sleep(_POLL_S)
+        return True
+    finally:
+        querier.undeclare()
 
 
 def ask_crop(session: zenoh.Session, req: CropRequest, timeout_s: float) -> CropFrame:

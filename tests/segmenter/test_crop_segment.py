@@ -14,7 +14,7 @@ from dovesei.segmenter.prompts import NEVER_PROMPTS, REFERENCE_PROMPTS, crop_pro
 from dovesei.segmenter.service import ServiceConfig, SegmenterService
 from dovesei.shared import keys
 from dovesei.shared.codec import decode, encode
-from dovesei.shared.crop_server import QueryFailed, query_one
+from dovesei.shared.crop_server import QueryFailed, query_one, wait_served
 from dovesei.shared.errors import ConfigError
 from dovesei.shared.messages import CropFrame, CropHeatmap, CropRequest, Stamp, replace
 from dovesei.sim.core import SimConfig, SimCore
@@ -99,6 +99,7 @@ def test_the_segment_queryable_answers_crops_and_refuses_foreign_schemas(zenoh_p
         thread = threading.Thread(target=service.run, args=(stop,), daemon=True)
         thread.start()
         try:
+            assert wait_served(ctrl_session, keys.segment("uav1"), 10.0), "the segment queryable never propagated"
             hm = decode(query_one(ctrl_session, keys.segment("uav1"), encode(person_crop, jpeg_quality=90), 20.0),
                         CropHeatmap)
             assert hm.request_seq == 4 and hm.prob_never.shape == (352, 352)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -115,3 +116,20 @@ def test_liveliness_token_appears_and_disappears(zenoh_pair) -> None:
 def test_stamp_clock_is_part_of_the_contract() -> None:
     with pytest.raises(ValueError):
         Stamp(0.0, "gps")
+
+
+def test_a_query_nobody_serves_says_so_at_once_and_wait_served_sees_a_queryable_arrive(zenoh_pair) -> None:
+    from dovesei.shared.crop_server import QueryFailed, query_one, wait_served
+
+    a, b = zenoh_pair
+    key = keys.segment("uav9")
+    t0 = time.monotonic()
+    with pytest.raises(QueryFailed, match="nobody serves it"):
+        query_one(b, key, b"", 20.0)
+    assert time.monotonic() - t0 < 10.0  # Zenoh ended it: not a 20 s wait
+    assert not wait_served(b, key, 0.2)
+    queryable = a.declare_queryable(key)
+    try:
+        assert wait_served(b, key, 10.0)
+    finally:
+        queryable.undeclare()

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from dovesei.shared import keys
-from dovesei.shared.crop_server import QueryFailed, ask_crop, query_one
+from dovesei.shared.crop_server import QueryFailed, ask_crop, query_one, wait_served
 from dovesei.shared.messages import CropRequest, Stamp
 from dovesei.sim.world import World
 from tests.sim.test_sim_service_zenoh import DESCEND, VID, Recorder, SimThread, lockstep_config, pair  # noqa: F401
@@ -30,6 +30,7 @@ def test_the_sim_answers_crops_refuses_bad_ones_and_flies_on(pair, world: World)
         topic, state = rec.next()
         while topic != "state":  # the first frame, then state 0: the sim waits for our answer
             topic, state = rec.next()
+        assert wait_served(rec.session, keys.crop(VID), 10.0)
         crop = ask_crop(rec.session, _req(1), timeout_s=10.0)
         assert crop.request_seq == 1 and crop.frame_seq == 0 and crop.image_rgb.shape == (96, 96, 3)
         assert crop.truth is not None and crop.truth.labels.shape == (96, 96) and crop.side_m == 6.0
