@@ -48,6 +48,7 @@ from __future__ import annotations
 
 import logging
 import math
+import statistics
 import time
 from collections import Counter, deque
 from collections.abc import Callable
@@ -165,7 +166,18 @@ class ControllerConfig:
     max_vertical_speed_m_s: float = MAX_VERTICAL_SPEED_M_S
     altitude_noise_m: float = ALTITUDE_NOISE_M
     altitude_step_confirm_states: int = STEP_CONFIRM_SAMPLES  # a step held this long is real
-    handover_confirm_states: int = 3  # states at/below the hand-over altitude before handing over
+    # The hand-over needs this many of the last 2n-1 distinct states at/below the hand-over altitude
+    # (a majority: one forged or glitched low state is no altitude, and a noisy baro reading 20.4 m
+    # once among 19.x m states does not restart the count). A policy that declares its terminal
+    # state while the recent states' median is at most handover_release_m above the altitude (it
+    # measured the altitude with its heatmap; the next state read above it by the baro's noise)
+    # is confirmed, not refused: the vehicle
+    # sinks at handover_sink_m_s, never below handover_alt_m - handover_release_m measured, until
+    # the states confirm it. Under `harsh` (baro noise 1 m per state) the single-state rule refused
+    # a policy's HANDOVER at 19.5 m because the next state read 22.2 m, and the restarted policy
+    # timed out at 20 m (villas start 0, seed 0).
+    handover_confirm_states: int = 3
+    handover_sink_m_s: float = 0.3
     record_path: str | None = None  # write an MCAP flight recording here (states, heatmaps, commands, status)
     # Largest dead-reckoned distance from the start; None: off with the sim, DEFAULT_VEHICLE_GEOFENCE_M
     # with a real vehicle; 0: off.
@@ -237,6 +249,7 @@ class ControllerConfig:
         if self.geofence_radius_m is not None:
             validate.in_range("ControllerConfig.geofence_radius_m", self.geofence_radius_m, 0.0, 100_000.0)
         validate.positive("ControllerConfig.geofence_gain_per_s", self.geofence_gain_per_s)
+        validate.in_range("ControllerConfig.handover_sink_m_s", self.handover_sink_m_s, 0.0, 2.0)
         for name in ("mavlink_max_horizontal_m_s", "mavlink_max_up_m_s", "mavlink_max_down_m_s"):
             validate.in_range(f"ControllerConfig.{name}", getattr(self, name), 0.01, 50.0)
         if self.mavlink_system_id is not None:
@@ -349,8 +362,10 @@ class ControllerCore:
         self._first_alt_m: float | None = None
         self._in_handover = False
         self._below_uncommitted = False  # below the hand-over altitude without the policy landing
-        self._low_states = 0  # consecutive accepted states at/below the hand-over altitude
-        self._low_t_s: float | None = None  # the newest of them
+        # The altitudes of the last 2n-1 distinct accepted states (n = handover_confirm_states).
+        self._recent_alts: deque[float] = deque(maxlen=2 * self.config.handover_confirm_states - 1)
+        self._recent_t_s: float | None = None  # the newest of them
+        self._confirming = False  # a terminal decision near the altitude, waiting for the states
         self._alt_track: deque[tuple[float, float]] = deque(maxlen=_ALT_TRACK_LEN)  # (t_s, alt) accepted
         cfg = self.config
         self._altitude = AltitudeContinuity(cfg.max_vertical_speed_m_s, cfg.altitude_noise_m,
@@ -545,11 +560,10 @@ class ControllerCore:
             self._refuse("altitude jump", "%s: refused, holding", reason)
             return self._refused_state_answer(state, f"{reason}: refused, holding position", nav)
         self._alt_track.append((state.stamp.t_s, state.alt_agl_m))
-        if state.alt_agl_m > cfg.handover_alt_m:
-            self._low_states, self._low_t_s = 0, None
-        elif self._low_t_s is None or state.stamp.t_s > self._low_t_s:
+        if self._recent_t_s is None or state.stamp.t_s > self._recent_t_s:
             # Distinct states only: the real-time loop re-ticks the newest one while none arrives.
-            self._low_states, self._low_t_s = self._low_states + 1, state.stamp.t_s
+            self._recent_alts.append(state.alt_agl_m)
+            self._recent_t_s = state.stamp.t_s
         now_s = state.stamp.t_s
         if self._last_state_t_s is None or now_s > self._last_state_t_s or self._state_advanced_wall_s is None:
             self._state_advanced_wall_s = wall_s
@@ -775,6 +789,7 @@ class ControllerCore:
 
     def _judge(self, state: VehicleState, wall_s: float | None, nav: NavStatus | None = None) -> tuple[Mode, str]:
         cfg = self.config
+        self._confirming = False
         if wall_s is not None and self._state_advanced_wall_s is not None:
             frozen_s = wall_s - self._state_advanced_wall_s
             if frozen_s > cfg.state_stale_after_s:
@@ -789,9 +804,9 @@ class ControllerCore:
             decision = self._decision
             committed = (decision is not None and (decision.landing or decision.state in TERMINAL_STATES)
                          and self._policy_fault is None)
-            # One low sample is no altitude: it must hold for a few states (a forged 19 m state
-            # handed over for a tick).
-            self._in_handover = committed and self._low_states >= cfg.handover_confirm_states
+            # One low sample is no altitude: a majority of the recent states must be at or below it
+            # (a forged 19 m state handed over for a tick).
+            self._in_handover = committed and self._states_within(0.0) >= cfg.handover_confirm_states
             if state.alt_agl_m <= cfg.handover_alt_m and not committed and not self._below_uncommitted:
                 log.warning("controller %s: at %.1f m, below the hand-over altitude %g m, but the policy is not "
                             "landing (%s): no hand-over, following the policy", cfg.vehicle_id, state.alt_agl_m,
@@ -807,10 +822,15 @@ class ControllerCore:
         if self._policy_fault is not None:
             return Mode.POLICY_FAULT, f"{self._policy_fault}: holding position"
         decision = self._decision
-        if decision is not None and decision.state in TERMINAL_STATES and state.alt_agl_m <= cfg.handover_alt_m:
-            # Declared at the altitude: the hand-over follows once the altitude has held.
+        self._confirming = (decision is not None and decision.state in TERMINAL_STATES
+                            and (state.alt_agl_m <= cfg.handover_alt_m
+                                 or statistics.median(self._recent_alts) <= cfg.handover_alt_m + cfg.handover_release_m))
+        if self._confirming:
+            # Declared at the altitude (within the baro's noise of it): the hand-over follows once
+            # the states confirm it, the vehicle sinking slowly meanwhile (`_velocity`).
             return Mode.HOLD, (f"policy declared {decision.state} at {state.alt_agl_m:.1f} m: confirming the "
-                               f"altitude ({self._low_states} of {cfg.handover_confirm_states} states)")
+                               f"altitude ({self._states_within(0.0)} of the last {len(self._recent_alts)} "
+                               f"states at or below {cfg.handover_alt_m:g} m, {cfg.handover_confirm_states} needed)")
         if decision is not None and decision.state in TERMINAL_STATES:
             if decision is not self._refused_decision:  # counted once per decision, not per tick
                 self._refused_decision = decision
@@ -847,7 +867,17 @@ class ControllerCore:
             return self.config.search_alt_m
         return self._first_alt_m if self._first_alt_m is not None else 0.0
 
+    def _states_within(self, above_m: float) -> int:
+        """How many of the recent distinct states read at most `above_m` over the hand-over altitude."""
+        limit_m = self.config.handover_alt_m + above_m
+        return sum(1 for alt_m in self._recent_alts if alt_m <= limit_m)
+
     def _velocity(self, mode: Mode, state: VehicleState) -> tuple[tuple[float, float, float], float]:
+        if mode is Mode.HOLD and self._confirming:
+            # Confirming a declared hand-over: sink slowly onto the altitude, never far below it.
+            cfg = self.config
+            sinking = state.alt_agl_m > cfg.handover_alt_m - cfg.handover_release_m
+            return (0.0, 0.0, cfg.handover_sink_m_s if sinking else 0.0), 0.0
         if mode is Mode.OK and self._decision is not None:
             return self._as_meant(self._decision.vel_body_frd_m_s, state), self._decision.yaw_rate_rad_s
         if mode is Mode.CLIMB:

@@ -297,6 +297,57 @@ def test_landed_above_the_handover_altitude_is_refused(terminal: str) -> None:
     assert core.rejected["terminal above hand-over"] == 1 and core.rejected["policy restarted"] == 0
 
 
+def test_a_handover_declared_under_baro_noise_is_confirmed_by_a_majority_while_sinking_not_refused() -> None:
+    # Under `harsh` (baro noise 1 m a state) a policy handed over at 19.5 m, the next state read
+    # 22.2 m: the single-state rule refused it, restarted the policy at 21 m, and it timed out.
+    class HandsOver(RecordingPolicy):
+        def step(self, obs: Observation) -> Decision:
+            self.observations.append(obs)
+            return Decision((0.0, 0.0, 0.0), 0.0, "HANDOVER", None, 0.0, None, landing=True)
+
+    policy = HandsOver()
+    core = ControllerCore(ControllerConfig(lockstep=True, handover_alt_m=20.0, handover_release_m=2.0,
+                                           handover_sink_m_s=0.3), policy=policy)
+    core.on_heatmap(heatmap(0, 0.0, alt_m=19.5), 0.0)
+    t_s, seen = 0.05, []
+    for seq, alt_m in enumerate((19.5, 21.8, 19.4, 21.2, 20.6, 19.8, 19.1)):
+        cmd, status = core.tick(state(seq, t_s, alt_m=alt_m, await_seq=0 if seq == 0 else -1))
+        seen.append((core.mode, cmd.vel_body_frd_m_s[2], cmd.handover))
+        t_s += 0.05
+    modes = [m for m, _, _ in seen]
+    assert Mode.POLICY_FAULT not in modes and core.rejected["terminal above hand-over"] == 0
+    assert policy.resets == 0 and core.rejected["policy restarted"] == 0
+    # Confirming: sinking at 0.3 m/s and no hand-over until 3 of the last 5 states read <= 20 m.
+    assert seen[:6] == [(Mode.HOLD, 0.3, False)] * 6  # 19.8 m: 19.4 and 19.8 of the last 5, not yet
+    assert seen[6][0] is Mode.HANDOVER and seen[6][2] and seen[6][1] == 0.0  # 19.1 m: 19.4, 19.8, 19.1
+    assert "hand-over" in status.reason and status.handover
+
+
+def test_a_confirming_hold_never_sinks_far_below_the_altitude_and_a_lone_low_state_confirms_nothing() -> None:
+    class HandsOver(RecordingPolicy):
+        def step(self, obs: Observation) -> Decision:
+            self.observations.append(obs)
+            return Decision((0.0, 0.0, 0.0), 0.0, "HANDOVER", None, 0.0, None, landing=True)
+
+    core = ControllerCore(ControllerConfig(lockstep=True, handover_alt_m=20.0, handover_release_m=2.0),
+                          policy=HandsOver())
+    core.on_heatmap(heatmap(0, 0.0, alt_m=30.0), 0.0)
+    core.tick(state(0, 0.05, alt_m=30.0, await_seq=0))
+    assert core.mode is Mode.POLICY_FAULT  # 10 m above: refused as ever
+    for seq, alt_m in enumerate((30.0, 19.0, 30.0, 30.0), start=1):  # one low state (a glitch, a forgery)
+        core.tick(state(seq, 0.05 + 0.05 * seq, alt_m=alt_m))
+        assert core.mode is not Mode.HANDOVER
+    core2 = ControllerCore(ControllerConfig(lockstep=True, handover_alt_m=20.0, handover_release_m=2.0,
+                                            handover_confirm_states=3), policy=HandsOver())
+    core2.on_heatmap(heatmap(0, 0.0, alt_m=21.0), 0.0)
+    # The baro drifted: the states read 21-22 m where the policy measured 19.9 m. The vehicle sinks
+    # until they read 18 m at most, then holds: no hand-over on states above the altitude.
+    cmds = [core2.tick(state(seq, 0.05 * (seq + 1), alt_m=alt_m, await_seq=0 if seq == 0 else -1))[0]
+            for seq, alt_m in enumerate((21.0, 21.5, 20.5, 17.9, 21.9, 21.0))]
+    assert [c.vel_body_frd_m_s[2] for c in cmds] == [0.3, 0.3, 0.3, 0.0, 0.3, 0.3]
+    assert not any(c.handover for c in cmds) and core2.mode is Mode.HOLD
+
+
 def test_the_policy_dt_is_capped_across_a_perception_gap() -> None:
     core, policy = make_core(lockstep=True, timing="real", policy_dt_max_s=1.0)  # 0.5 s periods: the 1 s cap rules
     for seq, t_s in enumerate((0.0, 0.5, 14.5, 15.0)):  # a 14 s gap between the 2nd and 3rd heatmap
