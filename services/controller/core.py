@@ -171,9 +171,8 @@ class ControllerConfig:
     # once among 19.x m states does not restart the count). A policy that declares its terminal
     # state while the recent states' median is at most handover_release_m above the altitude (it
     # measured the altitude with its heatmap; the next state read above it by the baro's noise)
-    # is confirmed, not refused: the vehicle
-    # sinks at handover_sink_m_s, never below handover_alt_m - handover_release_m measured, until
-    # the states confirm it. Under `harsh` (baro noise 1 m per state) the single-state rule refused
+    # is confirmed, not refused: the vehicle sinks at handover_sink_m_s, never below
+    # handover_alt_m - handover_release_m measured, until the states confirm it. Under `harsh` (baro noise 1 m per state) the single-state rule refused
     # a policy's HANDOVER at 19.5 m because the next state read 22.2 m, and the restarted policy
     # timed out at 20 m (villas start 0, seed 0).
     handover_confirm_states: int = 3

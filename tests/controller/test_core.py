@@ -34,6 +34,14 @@ class RecordingPolicy:
         self.observations.clear()
 
 
+class HandsOver(RecordingPolicy):
+    """Declares its hand-over at every step, whatever the altitude."""
+
+    def step(self, obs: Observation) -> Decision:
+        self.observations.append(obs)
+        return Decision((0.0, 0.0, 0.0), 0.0, "HANDOVER", None, 0.0, None, landing=True)
+
+
 def heatmap(seq: int, t_s: float, *, alt_m: float = 80.0, vehicle: str = "uav1", clock: str = "sim",
             sent_wall_s: float = 0.0) -> SafetyHeatmap:
     prob = np.full((16, 16), 51, np.uint8)  # 51 / 255 = 0.2
@@ -300,11 +308,6 @@ def test_landed_above_the_handover_altitude_is_refused(terminal: str) -> None:
 def test_a_handover_declared_under_baro_noise_is_confirmed_by_a_majority_while_sinking_not_refused() -> None:
     # Under `harsh` (baro noise 1 m a state) a policy handed over at 19.5 m, the next state read
     # 22.2 m: the single-state rule refused it, restarted the policy at 21 m, and it timed out.
-    class HandsOver(RecordingPolicy):
-        def step(self, obs: Observation) -> Decision:
-            self.observations.append(obs)
-            return Decision((0.0, 0.0, 0.0), 0.0, "HANDOVER", None, 0.0, None, landing=True)
-
     policy = HandsOver()
     core = ControllerCore(ControllerConfig(lockstep=True, handover_alt_m=20.0, handover_release_m=2.0,
                                            handover_sink_m_s=0.3), policy=policy)
@@ -324,11 +327,6 @@ def test_a_handover_declared_under_baro_noise_is_confirmed_by_a_majority_while_s
 
 
 def test_a_confirming_hold_never_sinks_far_below_the_altitude_and_a_lone_low_state_confirms_nothing() -> None:
-    class HandsOver(RecordingPolicy):
-        def step(self, obs: Observation) -> Decision:
-            self.observations.append(obs)
-            return Decision((0.0, 0.0, 0.0), 0.0, "HANDOVER", None, 0.0, None, landing=True)
-
     core = ControllerCore(ControllerConfig(lockstep=True, handover_alt_m=20.0, handover_release_m=2.0),
                           policy=HandsOver())
     core.on_heatmap(heatmap(0, 0.0, alt_m=30.0), 0.0)
