@@ -312,9 +312,8 @@ def find_spot(gmap: GroundMap, clearance: np.ndarray, cfg: ClearanceConfig, *, n
     """The best spot: clearance >= safety radius + margin, inside the fence around the
     start (0, 0), away from blacklisted spots; ranked by clearance, confidence and distance.
 
-    `near` + `within_m` restrict the search to a disk (re-checking a target: it stays where it
-    is while its own cell has the full required clearance, else it moves to the best cell of the
-    disk), `need_m` replaces the required clearance (a locked target's hysteresis), `fence_m` the
+    `near` + `within_m` restrict the search to a disk (re-checking a target: it moves as little as
+    it must, `_moved_least`), `need_m` replaces the required clearance (a locked target's hysteresis), `fence_m` the
     config's fence (the policy shrinks it while its estimate is uncertain), and `gate` (uint8 on
     the map's grid) admits only the cells where it is 1. Distances count from the vehicle, so
     scores compare across calls.
@@ -357,17 +356,42 @@ def find_spot(gmap: GroundMap, clearance: np.ndarray, cfg: ClearanceConfig, *, n
     score = np.minimum(clear / need, 2.0) + conf - dist / 50.0
     best = int(np.argmax(score))
     if near is not None and within_m is not None:
-        # A re-checked target whose own cell still has the full clearance stays put. Sliding to
-        # the best score every frame made it follow the vehicle across a wide lawn (every cell's
-        # clearance saturates there and the nearest wins): the landing point became wherever the
-        # estimate's noise took the vehicle during the descent.
-        rn, cn = (int(round(v)) for v in gmap.cell_of(*near))
-        here = np.flatnonzero((rows == rn) & (cols == cn) & (clear >= need))
-        if here.size:
-            best = int(here[0])
+        best = _moved_least(rows, cols, north, east, clear, score, need, near, within_m, gmap)
     p_safe, _ = gmap.at(float(north[best]), float(east[best]))
     return Spot(north_m=float(north[best]), east_m=float(east[best]), clearance_m=float(clear[best]),
                 confidence=float(conf[best]), p_safe=p_safe, distance_m=float(dist[best]), score=float(score[best]))
+
+
+def _moved_least(rows: np.ndarray, cols: np.ndarray, north: np.ndarray, east: np.ndarray, clear: np.ndarray,
+                 score: np.ndarray, need: float, near: tuple[float, float], within_m: float, gmap: GroundMap) -> int:
+    """Which of the qualifying cells a re-checked target at `near` goes to: it moves only for clearance.
+
+    Its own cell when that has the full clearance `need`. Else the cell with the full clearance
+    that scores best once each metre of the move costs 1 / `within_m` (the whole refine disk
+    costs one required clearance, a little less than the clearance a metre inwards gains at a
+    lawn's edge): off the edge of a lawn it moves in, to the middle, and stays; where clearance
+    is plentiful all round it moves to the nearest cell that has it. Else (no cell of the disk has
+    the full clearance) its own cell when that passes the re-check's hysteresis, else the best score.
+
+    Sliding to the best score every frame made a target follow the vehicle across a wide lawn
+    (every cell's clearance saturates there and the nearest wins). Under a noisy segmenter a
+    target whose own cell dipped under the full need jumped 1-4 m every second (`harsh`, desert
+    start 2): the close looks, which must cover the spot within a metre, never cleared it twice
+    in a row, and the descent held for a minute until it aborted.
+    """
+    rn, cn = (int(round(v)) for v in gmap.cell_of(*near))
+    own = (rows == rn) & (cols == cn)
+    full = clear >= need
+    here = np.flatnonzero(own & full)
+    if here.size:
+        return int(here[0])
+    moved_m = np.hypot(north - near[0], east - near[1])
+    worth = score - moved_m / within_m
+    enough = np.flatnonzero(full)
+    if enough.size:
+        return int(enough[np.argmax(worth[enough])])
+    here = np.flatnonzero(own)
+    return int(here[0]) if here.size else int(np.argmax(worth))
 
 
 @dataclass(frozen=True)
