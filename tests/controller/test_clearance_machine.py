@@ -8,7 +8,8 @@ import math
 import pytest
 
 from dovesei.controller.policies.clearance.config import ClearanceConfig
-from dovesei.controller.policies.clearance.machine import Inputs, Memory, Phase, committed, search_pattern, search_route, step
+from dovesei.controller.policies.clearance.machine import (Inputs, Memory, Phase, committed, reject_target, search_pattern,
+                                                           search_route, step)
 from dovesei.controller.policies.clearance.ground_map import Spot
 
 CFG = ClearanceConfig()
@@ -229,6 +230,23 @@ def test_failed_rechecks_reject_in_approach_and_abort_in_descent() -> None:
     for i in range(10):
         mem, _ = step(mem, inp(float(i) * 0.1, alt=50.0, n=20.0, fresh=False, check=None), CFG)
     assert mem.phase is Phase.DESCEND
+
+
+def test_a_close_look_rejection_searches_on_from_where_the_vehicle_is() -> None:
+    """Somebody on the spot is no fault of the map: a descent's target rejected by a close look is
+    blacklisted and the next confirmed spot taken from 30 m, with no climb and no abort counted."""
+    mem = reject_target(at(Phase.DESCEND, target=spot()), 5.0, 30.0, "close look: never set 2.0 m from the spot")
+    assert mem.phase is Phase.SEARCH and mem.target is None and mem.aborts == 0
+    assert mem.blacklist == ((20.0, 0.0, 30.0),) and "close look" in mem.reason and "searching on" in mem.reason
+    other = spot(30.0, 12.0)
+    mem, vel = step(mem, inp(5.5, alt=30.0, n=20.0, best=other), CFG)
+    assert mem.phase is Phase.APPROACH and mem.target == other and vel[2] >= 0.0  # no climb on the way
+    # Without another spot in view the route goes on: back up to its level, not a whole new pass.
+    mem = reject_target(at(Phase.DESCEND, target=spot(), waypoint=3), 5.0, 30.0, "close look")
+    mem, vel = step(mem, inp(5.5, alt=30.0, n=20.0), CFG)
+    assert mem.phase is Phase.SEARCH and mem.waypoint == 3 and vel[2] < 0.0
+    # The ends stay ends.
+    assert reject_target(at(Phase.HANDOVER, target=spot()), 5.0, 20.0, "close look").phase is Phase.HANDOVER
 
 
 def test_abort_climbs_back_to_the_search_altitude_then_searches_or_gives_up() -> None:

@@ -10,7 +10,7 @@ set, `dovesei.shared.crop`, docs/CROP.md) and gates its descent on the verdict:
         clear_looks clear looks in a row (nothing of the never set within margin_m) --> descend on
         anything inside the margin --> hold, keep looking; found in reject_findings of the last
             reject_window looks of that ground, or not clear after wait_s --> reject the spot
-            (blacklisted, abort: the inner policy climbs back and searches)
+            (blacklisted: the inner policy searches on from where it is)
         no answer / refused / failed --> keep holding, ask again every retry_s (never commits blind)
     the last descent (past the gate) --> a new look every look_period_s while descending
         anything inside the margin --> wait (hold the altitude, keep looking: people walk through)

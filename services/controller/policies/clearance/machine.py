@@ -14,6 +14,8 @@
     SEARCH  --the whole route flown or no_spot_after_s--> NO_SPOT (hold: "no safe spot found")
     APPROACH --within the lock radius--> DESCEND --measured alt <= hand-over alt, centred--> HANDOVER
     APPROACH --target fails fail_frames re-checks / approach_timeout_s--> SEARCH (blacklisted)
+    APPROACH, DESCEND --a close look finds the never set near the spot--> SEARCH from where it is
+             (blacklisted; `reject_target`)
     DESCEND  --target fails fail_frames re-checks / descend_timeout_s--> ABORT (blacklisted)
     DESCEND  --below the hand-over alt but off the spot or the spot not fixed--> DESCEND holding
              its altitude, steering onto the spot (the SITL flight that handed over 2.4 m off a
@@ -177,14 +179,18 @@ def _blacklisted(mem: Memory, spot: Spot, alt_m: float) -> tuple[tuple[float, fl
 
 
 def reject_target(mem: Memory, t_s: float, alt_m: float, reason: str) -> Memory:
-    """The target rejected from outside the map (a close look saw what must never be near it): blacklisted;
-    a descent aborts (climbs back to the search altitude), an approach searches on."""
+    """The target rejected from outside the map (a close look saw what must never be near it):
+    blacklisted, and the search goes on from where the vehicle is, a descent's too.
+
+    The map was not wrong: the spot was clear ground with somebody on it, and the other spots it
+    confirmed are as good as they were. So nothing climbs back: another confirmed spot is taken
+    at once (its own close look follows), else the search's probes and route go on (the route
+    climbs back to its level). Climbing to the search altitude after each finding cost ~200 s a
+    time (`harsh` parkland start 8: four findings, 1200 s, no landing), and on a crowded beach it
+    left a handful of tries where there is time for dozens."""
     if mem.target is None or mem.phase in TERMINAL:
         return mem
-    if mem.phase is Phase.DESCEND:
-        return _go(mem, Phase.ABORT, t_s, reason + ": abort, climbing back", target=None, aborts=mem.aborts + 1,
-                   blacklist=_blacklisted(mem, mem.target, alt_m))
-    return _go(mem, Phase.SEARCH, t_s, reason + ": rejected", target=None,
+    return _go(mem, Phase.SEARCH, t_s, reason + ": rejected, searching on", target=None,
                blacklist=_blacklisted(mem, mem.target, alt_m))
 
 

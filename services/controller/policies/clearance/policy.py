@@ -280,7 +280,8 @@ class ClearancePolicy:
 
     def reject_target(self, t_s: float, alt_m: float, reason: str) -> None:
         """Reject the current target for a reason the map cannot see (a close look found a person
-        inside its margin): blacklisted, and a descent aborts. Takes effect from the next step."""
+        inside its margin): blacklisted, and the search goes on from where the vehicle is. Takes
+        effect from the next step."""
         if self.memory is not None:
             mem = reject_target(self.memory, t_s, alt_m, reason)
             if mem is not self.memory:
