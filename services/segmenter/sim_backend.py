@@ -61,9 +61,10 @@ seed, frame_seq); every random draw comes from a hash or a fresh generator keyed
 world's name through crc32, never Python's salted str hash).
 
 Speed: the per-frame path reads each label pixel through lookup tables built once per world
-(`_Classes`: codes ordered so that "casts at least this tall" and "lower, in the world" are code
-ranges), counts (cell, code, shadowed) in one histogram and hashes each value-noise lattice corner
-once per view; tests/segmenter/test_perception_variation.py holds it equal to the plain formulas.
+(`_Classes`: a code per distinct appearance mix, a caster rank per distinct height), casts all
+shadows as one running maximum of caster ranks, counts (cell, code, shadowed) in one histogram and
+hashes each value-noise lattice corner once per view; tests/segmenter/test_perception_variation.py
+holds it equal to the plain formulas.
 """
 
 from __future__ import annotations
@@ -430,13 +431,14 @@ class _Classes:
     Label ids with the same appearance mix are interchangeable for the perception, so each is
     given the code of its distinct mix row: the frame's labels become codes with one lookup
     (`code_lut`), and the appearance fractions come from one histogram of (cell, code, shadowed).
+    Shadows work on caster ranks (the distinct caster heights, ascending), one lookup as well.
     """
 
     mix: np.ndarray  # (256, A) appearance weights per label id (255 = off_world)
     height_m: np.ndarray  # (256,) caster height per label id
     code_lut: np.ndarray  # (256,) uint8 (uint16 past 128 codes): label id -> code of its distinct mix row
     code_mix: np.ndarray  # (K, A) the mix of each code
-    rank_first_code: np.ndarray  # (R + 2,) first code of each caster rank (rank 0 casts nothing; [R+1] = K)
+    rank_lut: np.ndarray  # (256,) uint8 caster rank per label id (0 casts nothing)
     rank_height_m: np.ndarray  # (R + 1,) height of each rank, [0] = 0
 
 
@@ -479,16 +481,10 @@ def _build_classes(names: Mapping[int, str]) -> _Classes:
     # Heights under half a metre cast nothing (a lawn's mix may carry a little tree).
     rank_height_m = np.concatenate([[0.0], np.unique(height_m[height_m > 0.5])])
     rank = np.searchsorted(rank_height_m, np.where(height_m > 0.5, height_m, 0.0))
-    # Codes ordered by (off-world first, caster rank, mix row): "at least rank r" and "lower than
-    # rank r, in the world" are then code ranges, compared on the code image directly.
-    rows = np.concatenate([(np.arange(256) != OFF_WORLD_LABEL)[:, None], rank[:, None], mix], axis=1)
-    uniq, code = np.unique(rows, axis=0, return_inverse=True)
-    code = code.reshape(-1)
-    rank_first = np.searchsorted(uniq[:, 1], np.arange(rank_height_m.size + 1), side="left")
-    rank_first[0] = 1  # code 0 is off-world, never lit nor shaded
-    k = uniq.shape[0]
-    return _Classes(mix=mix, height_m=height_m, code_lut=code.astype(np.uint8 if 2 * k <= 256 else np.uint16),
-                    code_mix=uniq[:, 2:], rank_first_code=rank_first.astype(np.int64), rank_height_m=rank_height_m)
+    code_mix, code = np.unique(mix, axis=0, return_inverse=True)
+    code = code.reshape(-1).astype(np.uint8 if 2 * code_mix.shape[0] <= 256 else np.uint16)
+    return _Classes(mix=mix, height_m=height_m, code_lut=code,
+                    code_mix=code_mix, rank_lut=rank.astype(np.uint8), rank_height_m=rank_height_m)
 
 
 class SimPerception:
@@ -559,7 +555,7 @@ class SimPerception:
         # Each pixel's code (its class's mix row, + k when shadowed), then one histogram per cell.
         code = cv2.LUT(lab, tables.code_lut) if tables.code_lut.dtype == np.uint8 else tables.code_lut[lab]
         if self._strength["shadow"] > 0:
-            shadow = self._shadow_mask(code, tables, view, labels.shape)
+            shadow = self._shadow_mask(lab, tables, view, labels.shape)
             code += shadow.view(np.uint8) * code.dtype.type(k)
         n_cells = self.grid * self.grid
         shadow_mix = (1.0 - self._strength["shadow"]) * tables.code_mix
@@ -729,16 +725,20 @@ class SimPerception:
         z = np.ascontiguousarray(z.astype(np.float32).transpose(1, 2, 0))
         return cv2.resize(z, (self.grid, self.grid), interpolation=cv2.INTER_LINEAR).reshape(self.grid, self.grid, -1)
 
-    def _shadow_mask(self, code: np.ndarray, tables: _Classes, view: View,
+    def _shadow_mask(self, lab: np.ndarray, tables: _Classes, view: View,
                      frame_shape: tuple[int, int]) -> np.ndarray:
-        """Input pixels in the shadow of something taller, sun fixed in the world.
+        """Input pixels (bool) in the shadow of something taller, sun fixed in the world.
 
-        Each caster height in view (a rank: a range of codes) throws every pixel at least that
-        tall half and all of its shadow length away from the sun, onto in-world ground lower than it.
+        Each caster height in view (a rank) throws every pixel at least that tall half and all of
+        its shadow length away from the sun, onto in-world ground lower than it: a pixel is shaded
+        where the tallest rank whose shadow reaches it is above its own.
         """
-        first = tables.rank_first_code
-        top = int(code.max())
-        shadow = np.zeros(code.shape, dtype=bool)
+        rank = cv2.LUT(lab, tables.rank_lut)
+        top = int(cv2.minMaxLoc(rank)[1])
+        # Pixels at least each rank tall, as that rank's value (0 elsewhere), and how many.
+        casters = [cv2.threshold(rank, r - 1.0, float(r), cv2.THRESH_BINARY)[1] for r in range(1, top + 1)]
+        at_least = [cv2.countNonZero(c) for c in casters] + [0]
+        reach = np.zeros_like(rank)  # the tallest rank whose shadow reaches each pixel
         frame_h, frame_w = frame_shape
         m_per_px_x = footprint.metres_per_px(view.alt_agl_m, view.hfov_rad, INPUT_PX)
         m_per_px_y = m_per_px_x * frame_h / frame_w
@@ -749,21 +749,16 @@ class SimPerception:
         c, s = math.cos(view.yaw_rad), math.sin(view.yaw_rad)
         right, forward = c * east - s * north, s * east + c * north
         per_m = 1.0 / math.tan(math.radians(draw.sun_elevation_deg))
-        ground = code >= 1
-        for r in range(1, first.size - 1):
-            if first[r] > top:
-                break
+        for r in range(1, top + 1):
             # Only heights in view cast: a rank with no pixel of its own adds no shadow length.
-            if not cv2.countNonZero(cv2.inRange(code, int(first[r]), int(first[r + 1]) - 1)):
+            if at_least[r - 1] == at_least[r]:
                 continue
-            caster = code >= first[r]
-            lower = (code < first[r]) & ground
             length_m = tables.rank_height_m[r] * per_m
             for frac in (0.5, 1.0):
                 dx = int(round(right * length_m * frac / m_per_px_x))
                 dy = int(round(-forward * length_m * frac / m_per_px_y))
-                _or_shifted(shadow, caster, lower, dx, dy)
-        return shadow
+                _max_shifted(reach, casters[r - 1], dx, dy)
+        return (reach > rank) & (lab != OFF_WORLD_LABEL)
 
 
 def _moved(g: np.ndarray, pairs: list[tuple[int, int, float]], excess: np.ndarray,
@@ -782,14 +777,14 @@ def _moved(g: np.ndarray, pairs: list[tuple[int, int, float]], excess: np.ndarra
     return g + (g[..., src] * share) @ move
 
 
-def _or_shifted(out: np.ndarray, mask: np.ndarray, where: np.ndarray, dx: int, dy: int) -> None:
-    """out |= (mask moved by dx right, dy down) & where, in place; nothing moves in at the edges."""
-    h, w = mask.shape
+def _max_shifted(out: np.ndarray, img: np.ndarray, dx: int, dy: int) -> None:
+    """out = max(out, img moved by dx right, dy down), in place; nothing moves in at the edges."""
+    h, w = img.shape
     if abs(dx) >= w or abs(dy) >= h:
         return
     dst = (slice(max(dy, 0), h + min(dy, 0)), slice(max(dx, 0), w + min(dx, 0)))
     src = (slice(max(-dy, 0), h - max(dy, 0)), slice(max(-dx, 0), w - max(dx, 0)))
-    out[dst] |= mask[src] & where[dst]
+    cv2.max(out[dst], img[src], dst=out[dst])
 
 
 def _input_labels(labels: object) -> np.ndarray:
