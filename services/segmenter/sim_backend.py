@@ -63,8 +63,9 @@ world's name through crc32, never Python's salted str hash).
 Speed: the per-frame path reads each label pixel through lookup tables built once per world
 (`_Classes`: a code per distinct appearance mix, a caster rank per distinct height), casts all
 shadows as one running maximum of caster ranks, counts (cell, code, shadowed) in one histogram and
-hashes each value-noise lattice corner once per view; tests/segmenter/test_perception_variation.py
-holds it equal to the plain formulas.
+keeps the hashed value-noise lattice around the view from frame to frame (`_lattice`: a pure
+function of lattice point and key); tests/segmenter/test_perception_variation.py holds it equal to
+the plain formulas.
 """
 
 from __future__ import annotations
@@ -302,47 +303,64 @@ def _hash_unit(ix: np.ndarray, iy: np.ndarray, iz: np.ndarray, key: np.ndarray) 
     return (h >> np.uint64(11)).astype(np.float64) * (2.0 / 2.0**53) - 1.0
 
 
-def _value_noise(x: np.ndarray, y: np.ndarray, z: np.ndarray, key: np.ndarray) -> np.ndarray:
-    """Smooth noise on a unit lattice (trilinear with smoothstep weights); about uniform in [-1, 1]."""
-    fx, fy, fz = np.floor(x), np.floor(y), np.floor(z)
-    tx, ty, tz = x - fx, y - fy, z - fz
-    tx, ty, tz = (t * t * (3.0 - 2.0 * t) for t in (tx, ty, tz))
-    ix, iy, iz = fx.astype(np.int64), fy.astype(np.int64), fz.astype(np.int64)
-    out = np.zeros(np.broadcast_shapes(x.shape, key.shape))
-    corners = _corner_table(ix, iy, iz, key)  # (8, ...) in the order summed below
-    k = 0
-    for dx in (0, 1):
-        wx = tx if dx else 1.0 - tx
-        for dy in (0, 1):
-            wxy = wx * (ty if dy else 1.0 - ty)
-            for dz in (0, 1):
-                out += wxy * (tz if dz else 1.0 - tz) * corners[k]
-                k += 1
-    return out
+def _smoothstep(t: np.ndarray | float) -> np.ndarray | float:
+    return t * t * (3.0 - 2.0 * t)
 
 
-_CORNERS = [(dx, dy, dz) for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)]
+def _value_noise(x: np.ndarray, y: np.ndarray, z: float, keys: np.ndarray) -> np.ndarray:
+    """Smooth noise on a unit lattice (trilinear with smoothstep weights) at points (x, y) of one
+    height z, one field per key: (len(keys),) + x.shape, about uniform in [-1, 1]."""
+    fx, fy, iz = np.floor(x), np.floor(y), math.floor(z)
+    tx, ty, tz = _smoothstep((x - fx).reshape(-1)), _smoothstep((y - fy).reshape(-1)), _smoothstep(z - iz)
+    ix, iy = fx.astype(np.int64).reshape(-1), fy.astype(np.int64).reshape(-1)
+    x0, y0 = int(ix.min()), int(iy.min())
+    nx, ny = int(ix.max()) - x0 + 2, int(iy.max()) - y0 + 2
+    if nx * ny <= 8 * ix.size:
+        # Neighbouring points share corners (a view's 16 x 16 points cover about 10 x 10 lattice
+        # cells): blend the two heights on the lattice around the points, then gather.
+        layers = _lattice(keys, x0, y0, nx, ny, iz)
+        plane = ((1.0 - tz) * layers[:, 0] + tz * layers[:, 1]).reshape(keys.size, -1)
+        i00 = (iy - y0) * nx + (ix - x0)
+        corners = plane[:, np.stack([i00, i00 + 1, i00 + nx, i00 + nx + 1])]
+    else:
+        # Points spread thinly over a large box: hash each point's own corners.
+        key = keys[:, None]
+        corners = np.stack([(1.0 - tz) * _hash_unit(ix + dx, iy + dy, np.int64(iz), key)
+                            + tz * _hash_unit(ix + dx, iy + dy, np.int64(iz + 1), key)
+                            for dx, dy in ((0, 0), (1, 0), (0, 1), (1, 1))], axis=1)
+    # corners: (keys, 4, points), (dx, dy) = (0, 0), (1, 0), (0, 1), (1, 1).
+    weights = np.stack([(1.0 - tx) * (1.0 - ty), tx * (1.0 - ty), (1.0 - tx) * ty, tx * ty])
+    return np.einsum("kcp,cp->kp", corners, weights).reshape((keys.size,) + x.shape)
 
 
-def _corner_table(ix: np.ndarray, iy: np.ndarray, iz: np.ndarray, key: np.ndarray) -> np.ndarray:
-    """(8,) + broadcast(points, key) shape: the hash at every point's lattice corners
-    (ix + dx, iy + dy, iz + dz), corners in `_CORNERS` order.
+# The hashed lattice is a pure function of (point, key), so it is kept across frames: each set of
+# keys at each height keeps the region it last needed, widened by a margin and snapped to whole
+# blocks of lattice cells, so the next views of a flight (which move a little) read it again.
+_LATTICE_BLOCK = 8
+_LATTICE_MARGIN = 4
+_LATTICE_CACHE_BYTES = 16 << 20
+_lattice_cache: dict[tuple[bytes, int], tuple[int, int, np.ndarray]] = {}
 
-    Neighbouring points share corners (a view's 16 x 16 points cover about 10 x 10 lattice cells),
-    so each corner of the points' bounding box is hashed once and all eight are gathered at once;
-    the values are the same as hashing per point. Points spread thinly over a large box are
-    hashed per point.
-    """
-    lo = [int(a.min()) for a in (ix, iy, iz)]
-    n = [int(a.max()) - l + 2 for a, l in zip((ix, iy, iz), lo)]
-    if key.size * n[0] * n[1] * n[2] > 8 * key.size * ix.size or key.shape[1:] != (1,) * (key.ndim - 1):
-        return np.stack([_hash_unit(ix + dx, iy + dy, iz + dz, key) for dx, dy, dz in _CORNERS])
-    gx, gy, gz = (np.arange(l, l + m, dtype=np.int64) for l, m in zip(lo, n))
-    table = _hash_unit(gx[None, None, :], gy[None, :, None], gz[:, None, None], key.reshape(-1, 1, 1, 1))
-    base = ((iz - lo[2]) * n[1] + (iy - lo[1])) * n[0] + (ix - lo[0])
-    offsets = np.array([(dz * n[1] + dy) * n[0] + dx for dx, dy, dz in _CORNERS], np.int64)
-    gathered = table.reshape(table.shape[0], -1)[:, base.reshape(-1)[None, :] + offsets[:, None]]  # (keys, 8, points)
-    return np.moveaxis(gathered, 1, 0).reshape((8,) + np.broadcast_shapes(ix.shape, key.shape))
+
+def _lattice(keys: np.ndarray, x0: int, y0: int, nx: int, ny: int, iz: int) -> np.ndarray:
+    """(len(keys), 2, ny, nx) hash values at lattice points (x0 + i, y0 + j, iz + dz), dz in (0, 1)."""
+    entry = (keys.tobytes(), iz)
+    cached = _lattice_cache.get(entry)
+    if cached is not None:
+        rx, ry, table = cached
+        if rx <= x0 and ry <= y0 and x0 + nx <= rx + table.shape[3] and y0 + ny <= ry + table.shape[2]:
+            return table[:, :, y0 - ry:y0 - ry + ny, x0 - rx:x0 - rx + nx]
+    b, m = _LATTICE_BLOCK, _LATTICE_MARGIN
+    rx, ry = (x0 - m) // b * b, (y0 - m) // b * b
+    gx = np.arange(rx, -(-(x0 + nx + m) // b) * b, dtype=np.int64)
+    gy = np.arange(ry, -(-(y0 + ny + m) // b) * b, dtype=np.int64)
+    gz = np.array([iz, iz + 1], dtype=np.int64)
+    table = _hash_unit(gx[None, None, None, :], gy[None, None, :, None], gz[None, :, None, None],
+                       keys.reshape(-1, 1, 1, 1))
+    if len(_lattice_cache) >= 16 or sum(t.nbytes for _, _, t in _lattice_cache.values()) > _LATTICE_CACHE_BYTES:
+        _lattice_cache.clear()
+    _lattice_cache[entry] = (rx, ry, table)
+    return table[:, :, y0 - ry:y0 - ry + ny, x0 - rx:x0 - rx + nx]
 
 
 # Two octaves of trilinear value noise have a std of about 0.33 (measured over 10^6 points);
@@ -363,9 +381,9 @@ def ground_field(east_m: np.ndarray, north_m: np.ndarray, keys: np.ndarray, leng
 
 
 def _field(east_m: np.ndarray, north_m: np.ndarray, z: float, keys: np.ndarray, length: float) -> np.ndarray:
-    keys = np.asarray(keys, dtype=np.int64).reshape((-1,) + (1,) * east_m.ndim)
-    coarse = _value_noise(east_m / length, north_m / length, np.full_like(east_m, z), keys)
-    fine = _value_noise(east_m / (0.4 * length), north_m / (0.4 * length), np.full_like(east_m, z + 17.3), keys + 7)
+    keys = np.asarray(keys, dtype=np.int64).reshape(-1)
+    coarse = _value_noise(east_m / length, north_m / length, z, keys)
+    fine = _value_noise(east_m / (0.4 * length), north_m / (0.4 * length), z + 17.3, keys + 7)
     return (0.75 * coarse + 0.45 * fine) / _FIELD_STD
 
 
