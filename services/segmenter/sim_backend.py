@@ -61,8 +61,8 @@ seed, frame_seq); every random draw comes from a hash or a fresh generator keyed
 world's name through crc32, never Python's salted str hash).
 
 Speed: the per-frame path reads each label pixel through lookup tables built once per world
-(`_Classes`: a code per distinct appearance mix, a caster rank per distinct height), casts all
-shadows as one running maximum of caster ranks, counts (cell, code, shadowed) in one histogram and
+(`_Classes`: codes ordered so that "casts at least this tall" is a code range), casts all
+shadows as one running maximum of caster codes, counts (cell, code, shadowed) in one histogram and
 keeps the hashed value-noise lattice around the view from frame to frame (`_lattice`: a pure
 function of lattice point and key); tests/segmenter/test_perception_variation.py holds it equal to
 the plain formulas.
@@ -449,14 +449,16 @@ class _Classes:
     Label ids with the same appearance mix are interchangeable for the perception, so each is
     given the code of its distinct mix row: the frame's labels become codes with one lookup
     (`code_lut`), and the appearance fractions come from one histogram of (cell, code, shadowed).
-    Shadows work on caster ranks (the distinct caster heights, ascending), one lookup as well.
+    Codes are ordered by (off-world first, caster rank, mix row), so "at least rank r tall" is
+    "code >= the rank's first code", read on the code image directly.
     """
 
     mix: np.ndarray  # (256, A) appearance weights per label id (255 = off_world)
     height_m: np.ndarray  # (256,) caster height per label id
     code_lut: np.ndarray  # (256,) uint8 (uint16 past 128 codes): label id -> code of its distinct mix row
     code_mix: np.ndarray  # (K, A) the mix of each code
-    rank_lut: np.ndarray  # (256,) uint8 caster rank per label id (0 casts nothing)
+    rank_first_code: np.ndarray  # (R + 2,) first code of each caster rank (rank 0 casts nothing; [R+1] = K)
+    object_lut: np.ndarray  # (256,) uint8 per label id: bit i set when it is mostly OBJECT_APPEARANCES[i]
     rank_height_m: np.ndarray  # (R + 1,) height of each rank, [0] = 0
 
 
@@ -499,10 +501,17 @@ def _build_classes(names: Mapping[int, str]) -> _Classes:
     # Heights under half a metre cast nothing (a lawn's mix may carry a little tree).
     rank_height_m = np.concatenate([[0.0], np.unique(height_m[height_m > 0.5])])
     rank = np.searchsorted(rank_height_m, np.where(height_m > 0.5, height_m, 0.0))
-    code_mix, code = np.unique(mix, axis=0, return_inverse=True)
-    code = code.reshape(-1).astype(np.uint8 if 2 * code_mix.shape[0] <= 256 else np.uint16)
-    return _Classes(mix=mix, height_m=height_m, code_lut=code,
-                    code_mix=code_mix, rank_lut=rank.astype(np.uint8), rank_height_m=rank_height_m)
+    # Codes ordered by (off-world first, caster rank, mix row): "at least rank r" is a code range.
+    rows = np.concatenate([(np.arange(256) != OFF_WORLD_LABEL)[:, None], rank[:, None], mix], axis=1)
+    uniq, code = np.unique(rows, axis=0, return_inverse=True)
+    rank_first = np.searchsorted(uniq[:, 1], np.arange(rank_height_m.size + 1), side="left")
+    rank_first[0] = 1  # code 0 is off-world, never lit nor shaded
+    objects = np.zeros(256, np.uint8)
+    for i, app in enumerate(OBJECT_APPEARANCES):
+        objects |= (mix[:, INDEX[app]] >= 0.5).astype(np.uint8) << i
+    code = code.reshape(-1).astype(np.uint8 if 2 * uniq.shape[0] <= 256 else np.uint16)
+    return _Classes(mix=mix, height_m=height_m, code_lut=code, code_mix=uniq[:, 2:],
+                    rank_first_code=rank_first.astype(np.int64), rank_height_m=rank_height_m, object_lut=objects)
 
 
 class SimPerception:
@@ -567,13 +576,15 @@ class SimPerception:
     def fractions(self, labels: np.ndarray, classes: Mapping[int, object] | Iterable[object],
                   view: View) -> np.ndarray:
         """(grid, grid, A) appearance fractions per cell, shadows included, before any error."""
-        lab = _input_labels(labels)
-        tables = self._tables(classes)
+        return self._fractions(_input_labels(labels), self._tables(classes), view, labels.shape)
+
+    def _fractions(self, lab: np.ndarray, tables: _Classes, view: View, frame_shape: tuple[int, int]) -> np.ndarray:
+        """`fractions` of input labels (352 x 352 uint8) with their class tables."""
         k = tables.code_mix.shape[0]
         # Each pixel's code (its class's mix row, + k when shadowed), then one histogram per cell.
         code = cv2.LUT(lab, tables.code_lut) if tables.code_lut.dtype == np.uint8 else tables.code_lut[lab]
         if self._strength["shadow"] > 0:
-            shadow = self._shadow_mask(lab, tables, view, labels.shape)
+            shadow = self._shadow_mask(code, tables, view, frame_shape)
             code += shadow.view(np.uint8) * code.dtype.type(k)
         n_cells = self.grid * self.grid
         shadow_mix = (1.0 - self._strength["shadow"]) * tables.code_mix
@@ -612,9 +623,10 @@ class SimPerception:
         """`logits` with the prompt axis last (grid, grid, P), as OpenCV resizes it."""
         frame_seq = _check_seq(frame_seq)
         draw = self.draw(view.world)
-        frac = self.fractions(labels, classes, view)
-        in_world = 1.0 - frac[..., INDEX["off_world"]]
-        g = frac * self._object_gain(labels, classes)
+        lab, tables = _input_labels(labels), self._tables(classes)
+        g = self._fractions(lab, tables, view, labels.shape)
+        in_world = 1.0 - g[..., INDEX["off_world"]]
+        self._weigh_objects(g, lab, tables)
         g /= np.maximum(cv2.reduce(g.reshape(-1, A), 1, cv2.REDUCE_SUM).reshape(self.grid, self.grid, 1), 1e-12)
         s = self._strength
         if s["instance_variation"] > 0:
@@ -667,19 +679,20 @@ class SimPerception:
             prob = cv2.resize(prob, (int(width_px), int(height_px)), interpolation=cv2.INTER_LINEAR)
         return np.clip(prob, 0.0, 1.0, out=prob)
 
-    def _object_gain(self, labels: np.ndarray, classes: Mapping[int, object] | Iterable[object]) -> np.ndarray:
-        """(grid, grid, A) weights: 1, except for person and vehicle appearances, whose weight in a
-        cell is the mean `object_gain` of the object pixels there (each connected object by its own
-        size in tokens of the 352 px input)."""
-        lab = _input_labels(labels)
-        tables = self._tables(classes)
-        out = np.ones((self.grid * self.grid, A))
+    def _weigh_objects(self, frac: np.ndarray, lab: np.ndarray, tables: _Classes) -> None:
+        """Weighs person and vehicle appearances in ``frac`` (grid, grid, A), in place: in a cell
+        with object pixels by the mean `object_gain` of those pixels (each connected object by its
+        own size in tokens of the 352 px input), elsewhere by 1."""
+        if not tables.object_lut.any():
+            return
+        objects = cv2.LUT(lab, tables.object_lut)
+        # Components only within the box of the object pixels (often a small part of the view);
+        # the pixels keep their raster order, so the sums below are the same.
+        bx, by, bw, bh = cv2.boundingRect(objects)
         n_cells = self.grid * self.grid
-        for app in OBJECT_APPEARANCES:
-            j = INDEX[app]
-            mask = cv2.LUT(lab, (tables.mix[:, j] >= 0.5).astype(np.uint8))
-            # Components only within the box of the object pixels (often a small part of the
-            # view); the pixels keep their raster order, so the sums below are the same.
+        cell_of_px = self._cell_of_px.reshape(INPUT_PX, INPUT_PX)
+        for i, app in enumerate(OBJECT_APPEARANCES):
+            mask = cv2.bitwise_and(objects[by:by + bh, bx:bx + bw], 1 << i)
             x0, y0, w, h = cv2.boundingRect(mask)
             if not w:
                 continue
@@ -688,11 +701,10 @@ class SimPerception:
             comp_on = comp.ravel()[on]
             # Each component's area from its pixels (OpenCV's stats cost 4x the labelling).
             gain = object_gain(np.bincount(comp_on, minlength=n) / float(TOKEN_PX * TOKEN_PX))
-            cells = self._cell_of_px.reshape(INPUT_PX, INPUT_PX)[y0:y0 + h, x0:x0 + w].ravel()[on]
+            cells = cell_of_px[by + y0:by + y0 + h, bx + x0:bx + x0 + w].ravel()[on]
             total = np.bincount(cells, weights=gain[comp_on], minlength=n_cells)
             count = np.bincount(cells, minlength=n_cells)
-            out[:, j] = np.where(count > 0, total / np.maximum(count, 1), 1.0)
-        return out.reshape(self.grid, self.grid, A)
+            frac.reshape(n_cells, A)[:, INDEX[app]] *= np.where(count > 0, total / np.maximum(count, 1), 1.0)
 
     # --- errors ------------------------------------------------------------------------
 
@@ -744,20 +756,22 @@ class SimPerception:
         z = np.ascontiguousarray(z.astype(np.float32).transpose(1, 2, 0))
         return cv2.resize(z, (self.grid, self.grid), interpolation=cv2.INTER_LINEAR).reshape(self.grid, self.grid, -1)
 
-    def _shadow_mask(self, lab: np.ndarray, tables: _Classes, view: View,
+    def _shadow_mask(self, code: np.ndarray, tables: _Classes, view: View,
                      frame_shape: tuple[int, int]) -> np.ndarray:
         """Input pixels (bool) in the shadow of something taller, sun fixed in the world.
 
-        Each caster height in view (a rank) throws every pixel at least that tall half and all of
-        its shadow length away from the sun, onto in-world ground lower than it: a pixel is shaded
-        where the tallest rank whose shadow reaches it is above its own.
+        Each caster height in view (a rank: a range of codes) throws every pixel at least that tall
+        half and all of its shadow length away from the sun, onto in-world ground lower than it: a
+        pixel is shaded where the tallest rank whose shadow reaches it is above its own, that is
+        where that rank's first code is above the pixel's code.
         """
-        rank = cv2.LUT(lab, tables.rank_lut)
-        top = int(cv2.minMaxLoc(rank)[1])
-        # Pixels at least each rank tall, as that rank's value (0 elsewhere), and how many.
-        casters = [cv2.threshold(rank, r - 1.0, float(r), cv2.THRESH_BINARY)[1] for r in range(1, top + 1)]
+        first = tables.rank_first_code
+        top = int(cv2.minMaxLoc(code)[1])
+        ranks = range(1, int(np.searchsorted(first, top, side="right")))  # those with a code <= top
+        # Pixels at least each rank tall, as the rank's first code (0 elsewhere), and how many.
+        casters = [cv2.threshold(code, first[r] - 1.0, float(first[r]), cv2.THRESH_BINARY)[1] for r in ranks]
         at_least = [cv2.countNonZero(c) for c in casters] + [0]
-        reach = np.zeros_like(rank)  # the tallest rank whose shadow reaches each pixel
+        reach = np.zeros_like(code)  # the first code of the tallest rank whose shadow reaches each pixel
         frame_h, frame_w = frame_shape
         m_per_px_x = footprint.metres_per_px(view.alt_agl_m, view.hfov_rad, INPUT_PX)
         m_per_px_y = m_per_px_x * frame_h / frame_w
@@ -768,7 +782,7 @@ class SimPerception:
         c, s = math.cos(view.yaw_rad), math.sin(view.yaw_rad)
         right, forward = c * east - s * north, s * east + c * north
         per_m = 1.0 / math.tan(math.radians(draw.sun_elevation_deg))
-        for r in range(1, top + 1):
+        for r in ranks:
             # Only heights in view cast: a rank with no pixel of its own adds no shadow length.
             if at_least[r - 1] == at_least[r]:
                 continue
@@ -777,7 +791,7 @@ class SimPerception:
                 dx = int(round(right * length_m * frac / m_per_px_x))
                 dy = int(round(-forward * length_m * frac / m_per_px_y))
                 _max_shifted(reach, casters[r - 1], dx, dy)
-        return (reach > rank) & (lab != OFF_WORLD_LABEL)
+        return (reach > code) & (code != 0)
 
 
 def _moved(g: np.ndarray, pairs: list[tuple[int, int, float]], excess: np.ndarray,
