@@ -70,6 +70,7 @@ the plain formulas.
 
 from __future__ import annotations
 
+import bisect
 import dataclasses
 import logging
 import math
@@ -320,8 +321,7 @@ def _value_noise(x: np.ndarray, y: np.ndarray, z: float, keys: np.ndarray) -> np
         # cells): blend the two heights on the lattice around the points, then gather.
         layers = _lattice(keys, x0, y0, nx, ny, iz)
         plane = ((1.0 - tz) * layers[:, 0] + tz * layers[:, 1]).reshape(keys.size, -1)
-        i00 = (iy - y0) * nx + (ix - x0)
-        corners = plane[:, np.stack([i00, i00 + 1, i00 + nx, i00 + nx + 1])]
+        corners = plane[:, ((iy - y0) * nx + (ix - x0))[None, :] + np.array([[0], [1], [nx], [nx + 1]])]
     else:
         # Points spread thinly over a large box: hash each point's own corners.
         key = keys[:, None]
@@ -329,7 +329,7 @@ def _value_noise(x: np.ndarray, y: np.ndarray, z: float, keys: np.ndarray) -> np
                             + tz * _hash_unit(ix + dx, iy + dy, np.int64(iz + 1), key)
                             for dx, dy in ((0, 0), (1, 0), (0, 1), (1, 1))], axis=1)
     # corners: (keys, 4, points), (dx, dy) = (0, 0), (1, 0), (0, 1), (1, 1).
-    weights = np.stack([(1.0 - tx) * (1.0 - ty), tx * (1.0 - ty), (1.0 - tx) * ty, tx * ty])
+    weights = (np.stack([1.0 - ty, ty])[:, None, :] * np.stack([1.0 - tx, tx])[None, :, :]).reshape(4, -1)
     return np.einsum("kcp,cp->kp", corners, weights).reshape((keys.size,) + x.shape)
 
 
@@ -629,13 +629,15 @@ class SimPerception:
         self._weigh_objects(g, lab, tables)
         g /= np.maximum(cv2.reduce(g.reshape(-1, A), 1, cv2.REDUCE_SUM).reshape(self.grid, self.grid, 1), 1e-12)
         s = self._strength
+        if s["instance_variation"] > 0 or s["confusion"] > 0:
+            points = self.cell_world_m(view, FIELD_GRID, labels.shape)  # where the world fields are read
         if s["instance_variation"] > 0:
-            g = self._instance_looks(g, view, labels.shape)
+            g = self._instance_looks(g, view, points)
         if self.params.token_sigma_px > 0:
             sigma = self.params.token_sigma_px / self.params.cell_px
             g = cv2.GaussianBlur(g.astype(np.float32), (0, 0), sigma)  # float32 from here on
         if s["confusion"] > 0:
-            g = self._confuse(g, view, labels.shape, draw)
+            g = self._confuse(g, view, points, draw)
         if s["context_local"] > 0 or s["context_global"] > 0:
             near = cv2.GaussianBlur(g.astype(np.float32, copy=False), (0, 0),
                                     self.params.context_sigma_px / self.params.cell_px)
@@ -720,36 +722,37 @@ class SimPerception:
         cx, cy = view.centre_world_m if view.centre_world_m is not None else (0.0, 0.0)
         return cx + c * right + s * forward, cy + c * forward - s * right
 
-    def _confuse(self, g: np.ndarray, view: View, frame_shape: tuple[int, int], draw: EpisodeDraw) -> np.ndarray:
+    def _confuse(self, g: np.ndarray, view: View, points: tuple[np.ndarray, np.ndarray],
+                 draw: EpisodeDraw) -> np.ndarray:
+        """Each appearance read partly as its partners where the world's seeded field is high;
+        ``points``: the (east, north) of the FIELD_GRID points (`cell_world_m`)."""
         top = _over_cells(g, cv2.REDUCE_MAX)
         # Only appearances in view need their fields (not in view: nothing to misread).
         pairs = [(a, b, w) for a, b, w in draw.confusion if top[a] >= 0.02]
         if not pairs:
             return g.copy()
-        east, north = self.cell_world_m(view, FIELD_GRID, frame_shape)
         keys = _field_keys(self.seed, view.world, (a * 97 + b for a, b, _ in pairs))
-        z = world_field(east, north, view.alt_agl_m, keys, self.params)
+        z = world_field(*points, view.alt_agl_m, keys, self.params)
         weights = self._strength["confusion"] * np.array([w for _, _, w in pairs], np.float32)
         return _moved(g, pairs, self._on_grid(z) - np.float32(self.params.confusion_onset), weights)
 
-    def _instance_looks(self, g: np.ndarray, view: View, frame_shape: tuple[int, int]) -> np.ndarray:
-        """Atypical patches read partly as their class's other looks (INSTANCE_LOOKS), fixed on the ground."""
+    def _instance_looks(self, g: np.ndarray, view: View, points: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+        """Atypical patches read partly as their class's other looks (INSTANCE_LOOKS), fixed on the ground;
+        ``points`` as in `_confuse`."""
         top = _over_cells(g, cv2.REDUCE_MAX)
         sources = [a for a in INSTANCE_LOOKS if top[INDEX[a]] >= 0.02]
         if not sources:
             return g
-        east, north = self.cell_world_m(view, FIELD_GRID, frame_shape)
         # One field per class (how atypical each patch of it is); its looks share the moved part.
-        z = ground_field(east, north, _field_keys(self.seed, view.world, (INDEX[a] for a in sources), tag=1),
+        z = ground_field(*points, _field_keys(self.seed, view.world, (INDEX[a] for a in sources), tag=1),
                          self.params.instance_length_m)
-        field = self._on_grid(z)
         pairs, columns = [], []
         for i, a in enumerate(sources):
             for b, w in INSTANCE_LOOKS[a].items():
                 pairs.append((INDEX[a], INDEX[b], w))
                 columns.append(i)
         weights = self._strength["instance_variation"] * np.array([w for _, _, w in pairs], np.float32)
-        return _moved(g, pairs, field[..., columns], weights)
+        return _moved(g, pairs, self._on_grid(z[columns]), weights)
 
     def _on_grid(self, z: np.ndarray) -> np.ndarray:
         """(n, F, F) fields at FIELD_GRID points -> (grid, grid, n) float32 on the cells."""
@@ -765,11 +768,11 @@ class SimPerception:
         pixel is shaded where the tallest rank whose shadow reaches it is above its own, that is
         where that rank's first code is above the pixel's code.
         """
-        first = tables.rank_first_code
-        top = int(cv2.minMaxLoc(code)[1])
-        ranks = range(1, int(np.searchsorted(first, top, side="right")))  # those with a code <= top
+        first = tables.rank_first_code.tolist()
+        top = cv2.minMaxLoc(code)[1]
+        ranks = range(1, bisect.bisect_right(first, top))  # those with a code <= top
         # Pixels at least each rank tall, as the rank's first code (0 elsewhere), and how many.
-        casters = [cv2.threshold(code, first[r] - 1.0, float(first[r]), cv2.THRESH_BINARY)[1] for r in ranks]
+        casters = [cv2.threshold(code, first[r] - 1.0, first[r], cv2.THRESH_BINARY)[1] for r in ranks]
         at_least = [cv2.countNonZero(c) for c in casters] + [0]
         reach = np.zeros_like(code)  # the first code of the tallest rank whose shadow reaches each pixel
         frame_h, frame_w = frame_shape
@@ -786,7 +789,7 @@ class SimPerception:
             # Only heights in view cast: a rank with no pixel of its own adds no shadow length.
             if at_least[r - 1] == at_least[r]:
                 continue
-            length_m = tables.rank_height_m[r] * per_m
+            length_m = float(tables.rank_height_m[r]) * per_m
             for frac in (0.5, 1.0):
                 dx = int(round(right * length_m * frac / m_per_px_x))
                 dy = int(round(-forward * length_m * frac / m_per_px_y))
@@ -799,15 +802,19 @@ def _moved(g: np.ndarray, pairs: list[tuple[int, int, float]], excess: np.ndarra
     """g with each pair's share of its source appearance handed to its partner, in g's dtype.
 
     The share is clip(excess, 0, 1) x weight per cell; every pair reads the same g, so the moves
-    are one product with a (pairs, A) table of -1 at the source and +1 at the partner.
+    are one product with a (pairs, A) table of -1 at the source and +1 at the partner. Each pair's
+    source column is picked by a product too (a 0/1 table: exact, and faster than indexing the
+    short last axis).
     """
     share = (np.clip(excess, 0.0, 1.0) * weights).astype(g.dtype, copy=False)
-    move = np.zeros((len(pairs), A), g.dtype)
     rows = np.arange(len(pairs))
     src = np.array([a for a, _, _ in pairs])
+    pick = np.zeros((A, len(pairs)), g.dtype)
+    pick[src, rows] = 1.0
+    move = np.zeros((len(pairs), A), g.dtype)
     move[rows, src] -= 1.0
     move[rows, [b for _, b, _ in pairs]] += 1.0
-    return g + (g[..., src] * share) @ move
+    return g + ((g @ pick) * share) @ move
 
 
 def _over_cells(g: np.ndarray, op: int) -> np.ndarray:
