@@ -72,6 +72,7 @@ from __future__ import annotations
 
 import bisect
 import dataclasses
+import functools
 import logging
 import math
 import zlib
@@ -802,19 +803,28 @@ def _moved(g: np.ndarray, pairs: list[tuple[int, int, float]], excess: np.ndarra
     """g with each pair's share of its source appearance handed to its partner, in g's dtype.
 
     The share is clip(excess, 0, 1) x weight per cell; every pair reads the same g, so the moves
-    are one product with a (pairs, A) table of -1 at the source and +1 at the partner. Each pair's
-    source column is picked by a product too (a 0/1 table: exact, and faster than indexing the
-    short last axis).
+    are one float32 product with a (pairs, A) table of -1 at the source and +1 at the partner
+    (`_pair_tables`), added to g.
     """
-    share = (np.clip(excess, 0.0, 1.0) * weights).astype(g.dtype, copy=False)
-    rows = np.arange(len(pairs))
-    src = np.array([a for a, _, _ in pairs])
-    pick = np.zeros((A, len(pairs)), g.dtype)
+    share = np.clip(excess, 0.0, 1.0) * weights
+    pick, move = _pair_tables(tuple((a, b) for a, b, _ in pairs))
+    return g + ((g.astype(np.float32, copy=False) @ pick) * share) @ move
+
+
+@functools.lru_cache(maxsize=64)
+def _pair_tables(ends: tuple[tuple[int, int], ...]) -> tuple[np.ndarray, np.ndarray]:
+    """Read-only float32 tables of (source, partner) pairs: (A, pairs) with 1 at each pair's source
+    (a product with it picks the source columns: exact, and faster than indexing the short last
+    axis) and (pairs, A) with -1 at the source and +1 at the partner."""
+    rows = np.arange(len(ends))
+    src, dst = [a for a, _ in ends], [b for _, b in ends]
+    pick = np.zeros((A, len(ends)), np.float32)
     pick[src, rows] = 1.0
-    move = np.zeros((len(pairs), A), g.dtype)
+    move = np.zeros((len(ends), A), np.float32)
     move[rows, src] -= 1.0
-    move[rows, [b for _, b, _ in pairs]] += 1.0
-    return g + ((g @ pick) * share) @ move
+    move[rows, dst] += 1.0
+    pick.flags.writeable = move.flags.writeable = False
+    return pick, move
 
 
 def _over_cells(g: np.ndarray, op: int) -> np.ndarray:
