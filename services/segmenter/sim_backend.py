@@ -306,17 +306,22 @@ def _hash_unit(ix: np.ndarray, iy: np.ndarray, iz: np.ndarray, key: np.ndarray) 
 
 
 def _smoothstep(t: np.ndarray | float) -> np.ndarray | float:
+    """3t^2 - 2t^3: the lattice weights' easing, flat at 0 and 1."""
     return t * t * (3.0 - 2.0 * t)
 
 
 def _value_noise(x: np.ndarray, y: np.ndarray, z: float, keys: np.ndarray) -> np.ndarray:
     """Smooth noise on a unit lattice (trilinear with smoothstep weights) at points (x, y) of one
     height z, one field per key: (len(keys),) + x.shape, about uniform in [-1, 1]."""
-    fx, fy, iz = np.floor(x), np.floor(y), math.floor(z)
-    tx, ty, tz = _smoothstep((x - fx).reshape(-1)), _smoothstep((y - fy).reshape(-1)), _smoothstep(z - iz)
-    ix, iy = fx.astype(np.int64).reshape(-1), fy.astype(np.int64).reshape(-1)
-    x0, y0 = int(ix.min()), int(iy.min())
-    nx, ny = int(ix.max()) - x0 + 2, int(iy.max()) - y0 + 2
+    # x and y as the rows of one array: each step below is one numpy call for both.
+    xy = np.stack([x.reshape(-1), y.reshape(-1)])
+    fxy = np.floor(xy)
+    txy, ixy = _smoothstep(xy - fxy), fxy.astype(np.int64)
+    ix, iy = ixy
+    iz = math.floor(z)
+    tz = _smoothstep(z - iz)
+    (x0, y0), (x1, y1) = ixy.min(axis=1).tolist(), ixy.max(axis=1).tolist()
+    nx, ny = x1 - x0 + 2, y1 - y0 + 2
     if nx * ny <= 8 * ix.size:
         # Neighbouring points share corners (a view's 16 x 16 points cover about 10 x 10 lattice
         # cells): blend the two heights on the lattice around the points, then gather.
@@ -330,7 +335,8 @@ def _value_noise(x: np.ndarray, y: np.ndarray, z: float, keys: np.ndarray) -> np
                             + tz * _hash_unit(ix + dx, iy + dy, np.int64(iz + 1), key)
                             for dx, dy in ((0, 0), (1, 0), (0, 1), (1, 1))], axis=1)
     # corners: (keys, 4, points), (dx, dy) = (0, 0), (1, 0), (0, 1), (1, 1).
-    weights = (np.stack([1.0 - ty, ty])[:, None, :] * np.stack([1.0 - tx, tx])[None, :, :]).reshape(4, -1)
+    w = np.stack([1.0 - txy, txy])  # (d, axis, points): the weight of the corner at +d along x, y
+    weights = (w[:, None, 1] * w[None, :, 0]).reshape(4, -1)
     return np.einsum("kcp,cp->kp", corners, weights).reshape((keys.size,) + x.shape)
 
 
@@ -358,7 +364,8 @@ def _lattice(keys: np.ndarray, x0: int, y0: int, nx: int, ny: int, iz: int) -> n
     gz = np.array([iz, iz + 1], dtype=np.int64)
     table = _hash_unit(gx[None, None, None, :], gy[None, None, :, None], gz[None, :, None, None],
                        keys.reshape(-1, 1, 1, 1))
-    if len(_lattice_cache) >= 16 or sum(t.nbytes for _, _, t in _lattice_cache.values()) > _LATTICE_CACHE_BYTES:
+    kept = list(_lattice_cache.values())  # a copy: another thread may add to the cache meanwhile
+    if len(kept) >= 16 or sum(t.nbytes for _, _, t in kept) > _LATTICE_CACHE_BYTES:
         _lattice_cache.clear()
     _lattice_cache[entry] = (rx, ry, table)
     return table[:, :, y0 - ry:y0 - ry + ny, x0 - rx:x0 - rx + nx]
