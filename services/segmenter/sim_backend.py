@@ -849,10 +849,10 @@ def _rows_product(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """a @ b in b's dtype, for a 2-D ``a`` of many rows, taken a block of rows at a time: OpenBLAS
     spreads a product of more rows over threads, which costs several times the CPU time it saves
     (the perception is budgeted one core; the clean profile's 176 x 176 cells)."""
-    if a.shape[0] <= _PRODUCT_ROWS:
-        return a.astype(b.dtype, copy=False) @ b
-    return np.concatenate([a[i:i + _PRODUCT_ROWS].astype(b.dtype, copy=False) @ b
-                           for i in range(0, a.shape[0], _PRODUCT_ROWS)])
+    out = np.empty((a.shape[0], b.shape[1]), b.dtype)
+    for i in range(0, a.shape[0], _PRODUCT_ROWS):
+        np.matmul(a[i:i + _PRODUCT_ROWS].astype(b.dtype, copy=False), b, out=out[i:i + _PRODUCT_ROWS])
+    return out
 
 
 def _over_cells(g: np.ndarray, op: int) -> np.ndarray:
