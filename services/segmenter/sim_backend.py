@@ -61,14 +61,18 @@ seed, frame_seq); every random draw comes from a hash or a fresh generator keyed
 world's name through crc32, never Python's salted str hash).
 
 Speed: the per-frame path reads each label pixel through lookup tables built once per world
-(`_Classes`: codes ordered so that "casts at least this tall" and "lower, in the world" are code
-ranges), counts (cell, code, shadowed) in one histogram and hashes each value-noise lattice corner
-once per view; tests/segmenter/test_perception_variation.py holds it equal to the plain formulas.
+(`_Classes`: codes ordered so that "casts at least this tall" is a code range), casts all
+shadows as one running maximum of caster codes, counts (cell, code, shadowed) in one histogram and
+keeps the hashed value-noise lattice around the view from frame to frame (`_lattice`: a pure
+function of lattice point and key); tests/segmenter/test_perception_variation.py holds it equal to
+the plain formulas.
 """
 
 from __future__ import annotations
 
+import bisect
 import dataclasses
+import functools
 import logging
 import math
 import zlib
@@ -301,47 +305,70 @@ def _hash_unit(ix: np.ndarray, iy: np.ndarray, iz: np.ndarray, key: np.ndarray) 
     return (h >> np.uint64(11)).astype(np.float64) * (2.0 / 2.0**53) - 1.0
 
 
-def _value_noise(x: np.ndarray, y: np.ndarray, z: np.ndarray, key: np.ndarray) -> np.ndarray:
-    """Smooth noise on a unit lattice (trilinear with smoothstep weights); about uniform in [-1, 1]."""
-    fx, fy, fz = np.floor(x), np.floor(y), np.floor(z)
-    tx, ty, tz = x - fx, y - fy, z - fz
-    tx, ty, tz = (t * t * (3.0 - 2.0 * t) for t in (tx, ty, tz))
-    ix, iy, iz = fx.astype(np.int64), fy.astype(np.int64), fz.astype(np.int64)
-    out = np.zeros(np.broadcast_shapes(x.shape, key.shape))
-    corners = _corner_table(ix, iy, iz, key)  # (8, ...) in the order summed below
-    k = 0
-    for dx in (0, 1):
-        wx = tx if dx else 1.0 - tx
-        for dy in (0, 1):
-            wxy = wx * (ty if dy else 1.0 - ty)
-            for dz in (0, 1):
-                out += wxy * (tz if dz else 1.0 - tz) * corners[k]
-                k += 1
-    return out
+def _smoothstep(t: np.ndarray | float) -> np.ndarray | float:
+    """3t^2 - 2t^3: the lattice weights' easing, flat at 0 and 1."""
+    return t * t * (3.0 - 2.0 * t)
 
 
-_CORNERS = [(dx, dy, dz) for dx in (0, 1) for dy in (0, 1) for dz in (0, 1)]
+def _value_noise(x: np.ndarray, y: np.ndarray, z: float, keys: np.ndarray) -> np.ndarray:
+    """Smooth noise on a unit lattice (trilinear with smoothstep weights) at points (x, y) of one
+    height z, one field per key: (len(keys),) + x.shape, about uniform in [-1, 1]."""
+    # x and y as the rows of one array: each step below is one numpy call for both.
+    xy = np.stack([x.reshape(-1), y.reshape(-1)])
+    fxy = np.floor(xy)
+    txy, ixy = _smoothstep(xy - fxy), fxy.astype(np.int64)
+    ix, iy = ixy
+    iz = math.floor(z)
+    tz = _smoothstep(z - iz)
+    (x0, y0), (x1, y1) = ixy.min(axis=1).tolist(), ixy.max(axis=1).tolist()
+    nx, ny = x1 - x0 + 2, y1 - y0 + 2
+    if nx * ny <= 8 * ix.size:
+        # Neighbouring points share corners (a view's 16 x 16 points cover about 10 x 10 lattice
+        # cells): blend the two heights on the lattice around the points, then gather.
+        layers = _lattice(keys, x0, y0, nx, ny, iz)
+        plane = ((1.0 - tz) * layers[:, 0] + tz * layers[:, 1]).reshape(keys.size, -1)
+        corners = plane[:, ((iy - y0) * nx + (ix - x0))[None, :] + np.array([[0], [1], [nx], [nx + 1]])]
+    else:
+        # Points spread thinly over a large box: hash each point's own corners.
+        key = keys[:, None]
+        corners = np.stack([(1.0 - tz) * _hash_unit(ix + dx, iy + dy, np.int64(iz), key)
+                            + tz * _hash_unit(ix + dx, iy + dy, np.int64(iz + 1), key)
+                            for dx, dy in ((0, 0), (1, 0), (0, 1), (1, 1))], axis=1)
+    # corners: (keys, 4, points), (dx, dy) = (0, 0), (1, 0), (0, 1), (1, 1).
+    w = np.stack([1.0 - txy, txy])  # (d, axis, points): the weight of the corner at +d along x, y
+    weights = (w[:, None, 1] * w[None, :, 0]).reshape(4, -1)
+    return np.einsum("kcp,cp->kp", corners, weights).reshape((keys.size,) + x.shape)
 
 
-def _corner_table(ix: np.ndarray, iy: np.ndarray, iz: np.ndarray, key: np.ndarray) -> np.ndarray:
-    """(8,) + broadcast(points, key) shape: the hash at every point's lattice corners
-    (ix + dx, iy + dy, iz + dz), corners in `_CORNERS` order.
+# The hashed lattice is a pure function of (point, key), so it is kept across frames: each set of
+# keys at each height keeps the region it last needed, widened by a margin and snapped to whole
+# blocks of lattice cells, so the next views of a flight (which move a little) read it again.
+_LATTICE_BLOCK = 8
+_LATTICE_MARGIN = 4
+_LATTICE_CACHE_BYTES = 16 << 20
+_lattice_cache: dict[tuple[bytes, int], tuple[int, int, np.ndarray]] = {}
 
-    Neighbouring points share corners (a view's 16 x 16 points cover about 10 x 10 lattice cells),
-    so each corner of the points' bounding box is hashed once and all eight are gathered at once;
-    the values are the same as hashing per point. Points spread thinly over a large box are
-    hashed per point.
-    """
-    lo = [int(a.min()) for a in (ix, iy, iz)]
-    n = [int(a.max()) - l + 2 for a, l in zip((ix, iy, iz), lo)]
-    if key.size * n[0] * n[1] * n[2] > 8 * key.size * ix.size or key.shape[1:] != (1,) * (key.ndim - 1):
-        return np.stack([_hash_unit(ix + dx, iy + dy, iz + dz, key) for dx, dy, dz in _CORNERS])
-    gx, gy, gz = (np.arange(l, l + m, dtype=np.int64) for l, m in zip(lo, n))
-    table = _hash_unit(gx[None, None, :], gy[None, :, None], gz[:, None, None], key.reshape(-1, 1, 1, 1))
-    base = ((iz - lo[2]) * n[1] + (iy - lo[1])) * n[0] + (ix - lo[0])
-    offsets = np.array([(dz * n[1] + dy) * n[0] + dx for dx, dy, dz in _CORNERS], np.int64)
-    gathered = table.reshape(table.shape[0], -1)[:, base.reshape(-1)[None, :] + offsets[:, None]]  # (keys, 8, points)
-    return np.moveaxis(gathered, 1, 0).reshape((8,) + np.broadcast_shapes(ix.shape, key.shape))
+
+def _lattice(keys: np.ndarray, x0: int, y0: int, nx: int, ny: int, iz: int) -> np.ndarray:
+    """(len(keys), 2, ny, nx) hash values at lattice points (x0 + i, y0 + j, iz + dz), dz in (0, 1)."""
+    entry = (keys.tobytes(), iz)
+    cached = _lattice_cache.get(entry)
+    if cached is not None:
+        rx, ry, table = cached
+        if rx <= x0 and ry <= y0 and x0 + nx <= rx + table.shape[3] and y0 + ny <= ry + table.shape[2]:
+            return table[:, :, y0 - ry:y0 - ry + ny, x0 - rx:x0 - rx + nx]
+    b, m = _LATTICE_BLOCK, _LATTICE_MARGIN
+    rx, ry = (x0 - m) // b * b, (y0 - m) // b * b
+    gx = np.arange(rx, -(-(x0 + nx + m) // b) * b, dtype=np.int64)
+    gy = np.arange(ry, -(-(y0 + ny + m) // b) * b, dtype=np.int64)
+    gz = np.array([iz, iz + 1], dtype=np.int64)
+    table = _hash_unit(gx[None, None, None, :], gy[None, None, :, None], gz[None, :, None, None],
+                       keys.reshape(-1, 1, 1, 1))
+    kept = list(_lattice_cache.values())  # a copy: another thread may add to the cache meanwhile
+    if len(kept) >= 16 or sum(t.nbytes for _, _, t in kept) > _LATTICE_CACHE_BYTES:
+        _lattice_cache.clear()
+    _lattice_cache[entry] = (rx, ry, table)
+    return table[:, :, y0 - ry:y0 - ry + ny, x0 - rx:x0 - rx + nx]
 
 
 # Two octaves of trilinear value noise have a std of about 0.33 (measured over 10^6 points);
@@ -362,9 +389,9 @@ def ground_field(east_m: np.ndarray, north_m: np.ndarray, keys: np.ndarray, leng
 
 
 def _field(east_m: np.ndarray, north_m: np.ndarray, z: float, keys: np.ndarray, length: float) -> np.ndarray:
-    keys = np.asarray(keys, dtype=np.int64).reshape((-1,) + (1,) * east_m.ndim)
-    coarse = _value_noise(east_m / length, north_m / length, np.full_like(east_m, z), keys)
-    fine = _value_noise(east_m / (0.4 * length), north_m / (0.4 * length), np.full_like(east_m, z + 17.3), keys + 7)
+    keys = np.asarray(keys, dtype=np.int64).reshape(-1)
+    coarse = _value_noise(east_m / length, north_m / length, z, keys)
+    fine = _value_noise(east_m / (0.4 * length), north_m / (0.4 * length), z + 17.3, keys + 7)
     return (0.75 * coarse + 0.45 * fine) / _FIELD_STD
 
 
@@ -430,6 +457,8 @@ class _Classes:
     Label ids with the same appearance mix are interchangeable for the perception, so each is
     given the code of its distinct mix row: the frame's labels become codes with one lookup
     (`code_lut`), and the appearance fractions come from one histogram of (cell, code, shadowed).
+    Codes are ordered by (off-world first, caster rank, mix row), so "at least rank r tall" is
+    "code >= the rank's first code", read on the code image directly.
     """
 
     mix: np.ndarray  # (256, A) appearance weights per label id (255 = off_world)
@@ -437,6 +466,7 @@ class _Classes:
     code_lut: np.ndarray  # (256,) uint8 (uint16 past 128 codes): label id -> code of its distinct mix row
     code_mix: np.ndarray  # (K, A) the mix of each code
     rank_first_code: np.ndarray  # (R + 2,) first code of each caster rank (rank 0 casts nothing; [R+1] = K)
+    object_lut: np.ndarray  # (256,) uint8 per label id: bit i set when it is mostly OBJECT_APPEARANCES[i]
     rank_height_m: np.ndarray  # (R + 1,) height of each rank, [0] = 0
 
 
@@ -479,16 +509,17 @@ def _build_classes(names: Mapping[int, str]) -> _Classes:
     # Heights under half a metre cast nothing (a lawn's mix may carry a little tree).
     rank_height_m = np.concatenate([[0.0], np.unique(height_m[height_m > 0.5])])
     rank = np.searchsorted(rank_height_m, np.where(height_m > 0.5, height_m, 0.0))
-    # Codes ordered by (off-world first, caster rank, mix row): "at least rank r" and "lower than
-    # rank r, in the world" are then code ranges, compared on the code image directly.
+    # Codes ordered by (off-world first, caster rank, mix row): "at least rank r" is a code range.
     rows = np.concatenate([(np.arange(256) != OFF_WORLD_LABEL)[:, None], rank[:, None], mix], axis=1)
     uniq, code = np.unique(rows, axis=0, return_inverse=True)
-    code = code.reshape(-1)
     rank_first = np.searchsorted(uniq[:, 1], np.arange(rank_height_m.size + 1), side="left")
     rank_first[0] = 1  # code 0 is off-world, never lit nor shaded
-    k = uniq.shape[0]
-    return _Classes(mix=mix, height_m=height_m, code_lut=code.astype(np.uint8 if 2 * k <= 256 else np.uint16),
-                    code_mix=uniq[:, 2:], rank_first_code=rank_first.astype(np.int64), rank_height_m=rank_height_m)
+    objects = np.zeros(256, np.uint8)
+    for i, app in enumerate(OBJECT_APPEARANCES):
+        objects |= (mix[:, INDEX[app]] >= 0.5).astype(np.uint8) << i
+    code = code.reshape(-1).astype(np.uint8 if 2 * uniq.shape[0] <= 256 else np.uint16)
+    return _Classes(mix=mix, height_m=height_m, code_lut=code, code_mix=uniq[:, 2:],
+                    rank_first_code=rank_first.astype(np.int64), rank_height_m=rank_height_m, object_lut=objects)
 
 
 class SimPerception:
@@ -553,13 +584,15 @@ class SimPerception:
     def fractions(self, labels: np.ndarray, classes: Mapping[int, object] | Iterable[object],
                   view: View) -> np.ndarray:
         """(grid, grid, A) appearance fractions per cell, shadows included, before any error."""
-        lab = _input_labels(labels)
-        tables = self._tables(classes)
+        return self._fractions(_input_labels(labels), self._tables(classes), view, labels.shape)
+
+    def _fractions(self, lab: np.ndarray, tables: _Classes, view: View, frame_shape: tuple[int, int]) -> np.ndarray:
+        """`fractions` of input labels (352 x 352 uint8) with their class tables."""
         k = tables.code_mix.shape[0]
         # Each pixel's code (its class's mix row, + k when shadowed), then one histogram per cell.
         code = cv2.LUT(lab, tables.code_lut) if tables.code_lut.dtype == np.uint8 else tables.code_lut[lab]
         if self._strength["shadow"] > 0:
-            shadow = self._shadow_mask(code, tables, view, labels.shape)
+            shadow = self._shadow_mask(code, tables, view, frame_shape)
             code += shadow.view(np.uint8) * code.dtype.type(k)
         n_cells = self.grid * self.grid
         shadow_mix = (1.0 - self._strength["shadow"]) * tables.code_mix
@@ -568,14 +601,21 @@ class SimPerception:
         if n_cells * 2 * k > 1 << 18:
             # Fine cells (the clean profile's 2 px): count only the codes in view, not a mostly
             # empty (cells x every code) table.
-            present = np.flatnonzero(np.bincount(code.reshape(-1), minlength=2 * k))
-            remap = np.zeros(2 * k, code.dtype)
-            remap[present] = np.arange(present.size)
-            code, mix = remap[code], mix[present]
+            if code.dtype == np.uint8:  # OpenCV's histogram and lookup: several times numpy's speed
+                present = np.flatnonzero(cv2.calcHist([code], [0], None, [2 * k], [0, 2 * k]).reshape(-1))
+                remap = np.zeros(256, np.uint8)
+                remap[present] = np.arange(present.size)
+                code = cv2.LUT(code, remap)
+            else:
+                present = np.flatnonzero(np.bincount(code.reshape(-1), minlength=2 * k))
+                remap = np.zeros(2 * k, code.dtype)
+                remap[present] = np.arange(present.size)
+                code = remap[code]
+            mix = mix[present]
         m = mix.shape[0]
         key = np.add(self._cell_base(m), code.reshape(-1), out=self._key)
-        counts = np.bincount(key, minlength=n_cells * m).reshape(n_cells, m).astype(np.float64)
-        frac = (counts @ mix) / float(self.params.cell_px ** 2)
+        counts = np.bincount(key, minlength=n_cells * m).reshape(n_cells, m)
+        frac = _rows_product(counts, mix) / float(self.params.cell_px ** 2)
         return frac.reshape(self.grid, self.grid, A)
 
     def _cell_base(self, stride: int) -> np.ndarray:
@@ -598,24 +638,29 @@ class SimPerception:
         """`logits` with the prompt axis last (grid, grid, P), as OpenCV resizes it."""
         frame_seq = _check_seq(frame_seq)
         draw = self.draw(view.world)
-        frac = self.fractions(labels, classes, view)
-        in_world = 1.0 - frac[..., INDEX["off_world"]]
-        g = frac * self._object_gain(labels, classes)
-        g /= np.maximum(g.sum(axis=2, keepdims=True), 1e-12)
+        lab, tables = _input_labels(labels), self._tables(classes)
+        g = self._fractions(lab, tables, view, labels.shape)
+        in_world = 1.0 - g[..., INDEX["off_world"]]
+        self._weigh_objects(g, lab, tables)
+        g /= np.maximum(cv2.reduce(g.reshape(-1, A), 1, cv2.REDUCE_SUM).reshape(self.grid, self.grid, 1), 1e-12)
         s = self._strength
+        if s["instance_variation"] > 0 or s["confusion"] > 0:
+            points = self.cell_world_m(view, FIELD_GRID, labels.shape)  # where the world fields are read
         if s["instance_variation"] > 0:
-            g = self._instance_looks(g, view, labels.shape)
+            g = self._instance_looks(g, view, points)
         if self.params.token_sigma_px > 0:
             sigma = self.params.token_sigma_px / self.params.cell_px
-            g = cv2.GaussianBlur(g.astype(np.float32), (0, 0), sigma).astype(np.float64)
+            g = cv2.GaussianBlur(g.astype(np.float32), (0, 0), sigma)  # float32 from here on
         if s["confusion"] > 0:
-            g = self._confuse(g, view, labels.shape, draw)
+            g = self._confuse(g, view, points, draw)
         if s["context_local"] > 0 or s["context_global"] > 0:
-            near = cv2.GaussianBlur(g.astype(np.float32), (0, 0), self.params.context_sigma_px / self.params.cell_px)
+            near = cv2.GaussianBlur(g.astype(np.float32, copy=False), (0, 0),
+                                    self.params.context_sigma_px / self.params.cell_px)
             g = (1.0 - s["context_local"] - s["context_global"]) * g + s["context_local"] * near \
-                + s["context_global"] * g.mean(axis=(0, 1))
+                + s["context_global"] * _over_cells(g, cv2.REDUCE_AVG)
         grid = self.grid
-        out = (g @ self.responses(prompts)).astype(np.float32)  # (grid, grid, P)
+        out = _rows_product(g.reshape(-1, A), self.responses(prompts).astype(g.dtype))
+        out = out.astype(np.float32, copy=False).reshape(grid, grid, -1)  # (grid, grid, P)
         # The episode's calibration: all logits scaled alike, the positives moved against the rest.
         if draw.logit_scale_factor != 1.0:
             out *= np.float32(draw.logit_scale_factor)
@@ -652,19 +697,20 @@ class SimPerception:
             prob = cv2.resize(prob, (int(width_px), int(height_px)), interpolation=cv2.INTER_LINEAR)
         return np.clip(prob, 0.0, 1.0, out=prob)
 
-    def _object_gain(self, labels: np.ndarray, classes: Mapping[int, object] | Iterable[object]) -> np.ndarray:
-        """(grid, grid, A) weights: 1, except for person and vehicle appearances, whose weight in a
-        cell is the mean `object_gain` of the object pixels there (each connected object by its own
-        size in tokens of the 352 px input)."""
-        lab = _input_labels(labels)
-        tables = self._tables(classes)
-        out = np.ones((self.grid * self.grid, A))
+    def _weigh_objects(self, frac: np.ndarray, lab: np.ndarray, tables: _Classes) -> None:
+        """Weighs person and vehicle appearances in ``frac`` (grid, grid, A), in place: in a cell
+        with object pixels by the mean `object_gain` of those pixels (each connected object by its
+        own size in tokens of the 352 px input), elsewhere by 1."""
+        if not tables.object_lut.any():
+            return
+        objects = cv2.LUT(lab, tables.object_lut)
+        # Components only within the box of the object pixels (often a small part of the view);
+        # the pixels keep their raster order, so the sums below are the same.
+        bx, by, bw, bh = cv2.boundingRect(objects)
         n_cells = self.grid * self.grid
-        for app in OBJECT_APPEARANCES:
-            j = INDEX[app]
-            mask = cv2.LUT(lab, (tables.mix[:, j] >= 0.5).astype(np.uint8))
-            # Components only within the box of the object pixels (often a small part of the
-            # view); the pixels keep their raster order, so the sums below are the same.
+        cell_of_px = self._cell_of_px.reshape(INPUT_PX, INPUT_PX)
+        for i, app in enumerate(OBJECT_APPEARANCES):
+            mask = cv2.bitwise_and(objects[by:by + bh, bx:bx + bw], 1 << i)
             x0, y0, w, h = cv2.boundingRect(mask)
             if not w:
                 continue
@@ -673,11 +719,10 @@ class SimPerception:
             comp_on = comp.ravel()[on]
             # Each component's area from its pixels (OpenCV's stats cost 4x the labelling).
             gain = object_gain(np.bincount(comp_on, minlength=n) / float(TOKEN_PX * TOKEN_PX))
-            cells = self._cell_of_px.reshape(INPUT_PX, INPUT_PX)[y0:y0 + h, x0:x0 + w].ravel()[on]
+            cells = cell_of_px[by + y0:by + y0 + h, bx + x0:bx + x0 + w].ravel()[on]
             total = np.bincount(cells, weights=gain[comp_on], minlength=n_cells)
             count = np.bincount(cells, minlength=n_cells)
-            out[:, j] = np.where(count > 0, total / np.maximum(count, 1), 1.0)
-        return out.reshape(self.grid, self.grid, A)
+            frac.reshape(n_cells, A)[:, INDEX[app]] *= np.where(count > 0, total / np.maximum(count, 1), 1.0)
 
     # --- errors ------------------------------------------------------------------------
 
@@ -693,36 +738,37 @@ class SimPerception:
         cx, cy = view.centre_world_m if view.centre_world_m is not None else (0.0, 0.0)
         return cx + c * right + s * forward, cy + c * forward - s * right
 
-    def _confuse(self, g: np.ndarray, view: View, frame_shape: tuple[int, int], draw: EpisodeDraw) -> np.ndarray:
-        top = g.max(axis=(0, 1))
+    def _confuse(self, g: np.ndarray, view: View, points: tuple[np.ndarray, np.ndarray],
+                 draw: EpisodeDraw) -> np.ndarray:
+        """Each appearance read partly as its partners where the world's seeded field is high;
+        ``points``: the (east, north) of the FIELD_GRID points (`cell_world_m`)."""
+        top = _over_cells(g, cv2.REDUCE_MAX)
         # Only appearances in view need their fields (not in view: nothing to misread).
         pairs = [(a, b, w) for a, b, w in draw.confusion if top[a] >= 0.02]
         if not pairs:
             return g.copy()
-        east, north = self.cell_world_m(view, FIELD_GRID, frame_shape)
         keys = _field_keys(self.seed, view.world, (a * 97 + b for a, b, _ in pairs))
-        z = world_field(east, north, view.alt_agl_m, keys, self.params)
+        z = world_field(*points, view.alt_agl_m, keys, self.params)
         weights = self._strength["confusion"] * np.array([w for _, _, w in pairs], np.float32)
         return _moved(g, pairs, self._on_grid(z) - np.float32(self.params.confusion_onset), weights)
 
-    def _instance_looks(self, g: np.ndarray, view: View, frame_shape: tuple[int, int]) -> np.ndarray:
-        """Atypical patches read partly as their class's other looks (INSTANCE_LOOKS), fixed on the ground."""
-        top = g.max(axis=(0, 1))
+    def _instance_looks(self, g: np.ndarray, view: View, points: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+        """Atypical patches read partly as their class's other looks (INSTANCE_LOOKS), fixed on the ground;
+        ``points`` as in `_confuse`."""
+        top = _over_cells(g, cv2.REDUCE_MAX)
         sources = [a for a in INSTANCE_LOOKS if top[INDEX[a]] >= 0.02]
         if not sources:
             return g
-        east, north = self.cell_world_m(view, FIELD_GRID, frame_shape)
         # One field per class (how atypical each patch of it is); its looks share the moved part.
-        z = ground_field(east, north, _field_keys(self.seed, view.world, (INDEX[a] for a in sources), tag=1),
+        z = ground_field(*points, _field_keys(self.seed, view.world, (INDEX[a] for a in sources), tag=1),
                          self.params.instance_length_m)
-        field = self._on_grid(z)
         pairs, columns = [], []
         for i, a in enumerate(sources):
             for b, w in INSTANCE_LOOKS[a].items():
                 pairs.append((INDEX[a], INDEX[b], w))
                 columns.append(i)
         weights = self._strength["instance_variation"] * np.array([w for _, _, w in pairs], np.float32)
-        return _moved(g, pairs, field[..., columns], weights)
+        return _moved(g, pairs, self._on_grid(z[columns]), weights)
 
     def _on_grid(self, z: np.ndarray) -> np.ndarray:
         """(n, F, F) fields at FIELD_GRID points -> (grid, grid, n) float32 on the cells."""
@@ -731,14 +777,20 @@ class SimPerception:
 
     def _shadow_mask(self, code: np.ndarray, tables: _Classes, view: View,
                      frame_shape: tuple[int, int]) -> np.ndarray:
-        """Input pixels in the shadow of something taller, sun fixed in the world.
+        """Input pixels (bool) in the shadow of something taller, sun fixed in the world.
 
-        Each caster height in view (a rank: a range of codes) throws every pixel at least that
-        tall half and all of its shadow length away from the sun, onto in-world ground lower than it.
+        Each caster height in view (a rank: a range of codes) throws every pixel at least that tall
+        half and all of its shadow length away from the sun, onto in-world ground lower than it: a
+        pixel is shaded where the tallest rank whose shadow reaches it is above its own, that is
+        where that rank's first code is above the pixel's code.
         """
-        first = tables.rank_first_code
-        top = int(code.max())
-        shadow = np.zeros(code.shape, dtype=bool)
+        first = tables.rank_first_code.tolist()
+        top = cv2.minMaxLoc(code)[1]
+        ranks = range(1, bisect.bisect_right(first, top))  # those with a code <= top
+        # Pixels at least each rank tall, as the rank's first code (0 elsewhere), and how many.
+        casters = [cv2.threshold(code, first[r] - 1.0, first[r], cv2.THRESH_BINARY)[1] for r in ranks]
+        at_least = [cv2.countNonZero(c) for c in casters] + [0]
+        reach = np.zeros_like(code)  # the first code of the tallest rank whose shadow reaches each pixel
         frame_h, frame_w = frame_shape
         m_per_px_x = footprint.metres_per_px(view.alt_agl_m, view.hfov_rad, INPUT_PX)
         m_per_px_y = m_per_px_x * frame_h / frame_w
@@ -749,47 +801,74 @@ class SimPerception:
         c, s = math.cos(view.yaw_rad), math.sin(view.yaw_rad)
         right, forward = c * east - s * north, s * east + c * north
         per_m = 1.0 / math.tan(math.radians(draw.sun_elevation_deg))
-        ground = code >= 1
-        for r in range(1, first.size - 1):
-            if first[r] > top:
-                break
+        for r in ranks:
             # Only heights in view cast: a rank with no pixel of its own adds no shadow length.
-            if not cv2.countNonZero(cv2.inRange(code, int(first[r]), int(first[r + 1]) - 1)):
+            if at_least[r - 1] == at_least[r]:
                 continue
-            caster = code >= first[r]
-            lower = (code < first[r]) & ground
-            length_m = tables.rank_height_m[r] * per_m
+            length_m = float(tables.rank_height_m[r]) * per_m
             for frac in (0.5, 1.0):
                 dx = int(round(right * length_m * frac / m_per_px_x))
                 dy = int(round(-forward * length_m * frac / m_per_px_y))
-                _or_shifted(shadow, caster, lower, dx, dy)
-        return shadow
+                _max_shifted(reach, casters[r - 1], dx, dy)
+        return (reach > code) & (code != 0)
 
 
 def _moved(g: np.ndarray, pairs: list[tuple[int, int, float]], excess: np.ndarray,
            weights: np.ndarray) -> np.ndarray:
-    """g with each pair's share of its source appearance handed to its partner.
+    """g with each pair's share of its source appearance handed to its partner, in g's dtype.
 
     The share is clip(excess, 0, 1) x weight per cell; every pair reads the same g, so the moves
-    are one product with a (pairs, A) table of -1 at the source and +1 at the partner.
+    are one float32 product with a (pairs, A) table of -1 at the source and +1 at the partner
+    (`_pair_tables`), added to g.
     """
     share = np.clip(excess, 0.0, 1.0) * weights
-    move = np.zeros((len(pairs), A))
-    rows = np.arange(len(pairs))
-    src = np.array([a for a, _, _ in pairs])
+    pick, move = _pair_tables(tuple((a, b) for a, b, _ in pairs))
+    return g + ((g.astype(np.float32, copy=False) @ pick) * share) @ move
+
+
+@functools.lru_cache(maxsize=64)
+def _pair_tables(ends: tuple[tuple[int, int], ...]) -> tuple[np.ndarray, np.ndarray]:
+    """Read-only float32 tables of (source, partner) pairs: (A, pairs) with 1 at each pair's source
+    (a product with it picks the source columns: exact, and faster than indexing the short last
+    axis) and (pairs, A) with -1 at the source and +1 at the partner."""
+    rows = np.arange(len(ends))
+    src, dst = [a for a, _ in ends], [b for _, b in ends]
+    pick = np.zeros((A, len(ends)), np.float32)
+    pick[src, rows] = 1.0
+    move = np.zeros((len(ends), A), np.float32)
     move[rows, src] -= 1.0
-    move[rows, [b for _, b, _ in pairs]] += 1.0
-    return g + (g[..., src] * share) @ move
+    move[rows, dst] += 1.0
+    pick.flags.writeable = move.flags.writeable = False
+    return pick, move
 
 
-def _or_shifted(out: np.ndarray, mask: np.ndarray, where: np.ndarray, dx: int, dy: int) -> None:
-    """out |= (mask moved by dx right, dy down) & where, in place; nothing moves in at the edges."""
-    h, w = mask.shape
+_PRODUCT_ROWS = 2048
+
+
+def _rows_product(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a @ b in b's dtype, for a 2-D ``a`` of many rows, taken a block of rows at a time: OpenBLAS
+    spreads a product of more rows over threads, which costs several times the CPU time it saves
+    (the perception is budgeted one core; the clean profile's 176 x 176 cells)."""
+    out = np.empty((a.shape[0], b.shape[1]), b.dtype)
+    for i in range(0, a.shape[0], _PRODUCT_ROWS):
+        np.matmul(a[i:i + _PRODUCT_ROWS].astype(b.dtype, copy=False), b, out=out[i:i + _PRODUCT_ROWS])
+    return out
+
+
+def _over_cells(g: np.ndarray, op: int) -> np.ndarray:
+    """(A,) the max or mean (``op``: cv2.REDUCE_MAX, REDUCE_AVG) of a (grid, grid, A) map over its
+    cells; OpenCV's reduce, as numpy's is several times slower over a short last axis."""
+    return cv2.reduce(g.reshape(-1, g.shape[2]), 0, op).reshape(-1)
+
+
+def _max_shifted(out: np.ndarray, img: np.ndarray, dx: int, dy: int) -> None:
+    """out = max(out, img moved by dx right, dy down), in place; nothing moves in at the edges."""
+    h, w = img.shape
     if abs(dx) >= w or abs(dy) >= h:
         return
     dst = (slice(max(dy, 0), h + min(dy, 0)), slice(max(dx, 0), w + min(dx, 0)))
     src = (slice(max(-dy, 0), h - max(dy, 0)), slice(max(-dx, 0), w - max(dx, 0)))
-    out[dst] |= mask[src] & where[dst]
+    cv2.max(out[dst], img[src], dst=out[dst])
 
 
 def _input_labels(labels: object) -> np.ndarray:

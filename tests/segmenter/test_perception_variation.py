@@ -6,7 +6,6 @@ from __future__ import annotations
 import dataclasses
 import math
 
-import cv2
 import numpy as np
 import pytest
 
@@ -135,28 +134,44 @@ def test_fast_fractions_and_shadows_equal_the_plain_formulas() -> None:
     quiet = SimPerception(dataclasses.replace(profile_params("realistic"), shadow=0.0), seed=3)
     for labels, names, view in _world_views():
         tables = perception._tables(names)
-        code = cv2.LUT(labels, tables.code_lut)
-        assert np.array_equal(perception._shadow_mask(code, tables, view, labels.shape),
+        assert np.array_equal(perception._shadow_mask(tables.code_lut[labels], tables, view, labels.shape),
                               _plain_shadow(perception, labels, names, view))
         # Without shadows: each cell's fractions are the mean of its pixels' class mixes.
         plain = tables.mix[labels].reshape(44, 8, 44, 8, -1).mean(axis=(1, 3))
         assert np.abs(quiet.fractions(labels, names, view) - plain).max() < 1e-12
 
 
-def test_the_corner_table_gives_the_per_point_hash_values() -> None:
+def _plain_value_noise(x: np.ndarray, y: np.ndarray, z: float, keys: np.ndarray) -> np.ndarray:
+    """Trilinear value noise with smoothstep weights, each point's eight corners hashed on their own."""
+    fx, fy, fz = np.floor(x), np.floor(y), math.floor(z)
+    tx, ty, tz = ((t * t * (3.0 - 2.0 * t)) for t in (x - fx, y - fy, z - fz))
+    ix, iy = fx.astype(np.int64), fy.astype(np.int64)
+    out = np.zeros((keys.size,) + x.shape)
+    for dx in (0, 1):
+        for dy in (0, 1):
+            for dz in (0, 1):
+                w = (tx if dx else 1.0 - tx) * (ty if dy else 1.0 - ty) * (tz if dz else 1.0 - tz)
+                out += w * sim_backend._hash_unit(ix + dx, iy + dy, np.full_like(ix, fz + dz), keys.reshape(-1, 1, 1))
+    return out
+
+
+def test_the_cached_lattice_gives_the_plain_value_noise() -> None:
     rng = np.random.default_rng(1)
-    x, y = rng.uniform(-40.0, 40.0, (16, 16)), rng.uniform(100.0, 180.0, (16, 16))
-    z = np.full_like(x, 2.3)
-    keys = np.arange(5, dtype=np.int64).reshape(-1, 1, 1) * 977
-    ix, iy, iz = (np.floor(a).astype(np.int64) for a in (x, y, z))
-    corners = sim_backend._corner_table(ix, iy, iz, keys)
-    assert corners.shape == (8, 5, 16, 16)
-    for k, d in enumerate(sim_backend._CORNERS):
-        assert np.array_equal(corners[k], sim_backend._hash_unit(ix + d[0], iy + d[1], iz + d[2], keys))
+    x, y = rng.uniform(-8.0, 8.0, (16, 16)), rng.uniform(100.0, 116.0, (16, 16))
+    keys = np.arange(5, dtype=np.int64) * 977
+    for z in (2.3, -0.7, 0.0):
+        # A new view, the same again (read from the cache), a little moved (still inside the kept
+        # region), far moved (a new region).
+        for shift in (0.0, 0.0, 2.5, 40.0):
+            fast = sim_backend._value_noise(x + shift, y, z, keys)
+            assert np.abs(fast - _plain_value_noise(x + shift, y, z, keys)).max() < 1e-12
     # Points spread over a box too large to tabulate are hashed per point, to the same values.
-    far = sim_backend._corner_table(ix * 50, iy, iz, keys)
-    for k, d in enumerate(sim_backend._CORNERS):
-        assert np.array_equal(far[k], sim_backend._hash_unit(ix * 50 + d[0], iy + d[1], iz + d[2], keys))
+    far = sim_backend._value_noise(x * 50, y, 2.3, keys)
+    assert np.abs(far - _plain_value_noise(x * 50, y, 2.3, keys)).max() < 1e-12
+    # The cache stays bounded however many fields pass through it.
+    for k in range(40):
+        sim_backend._value_noise(x + 100.0 * k, y, 1.5, keys + k)
+    assert len(sim_backend._lattice_cache) <= 16
 
 
 # --- inside the real statistics -----------------------------------------------------------------
