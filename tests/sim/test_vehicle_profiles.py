@@ -48,7 +48,10 @@ WORLD = "synthetic:size_m=400,seed=1"
 # nearest person 11.6 m). Re-recorded for the close look's blob rule and its 2-of-3 rejection: the
 # first look at 42 m is clear, the next finds the never set 3.8 m away (P 0.40) and holds, the third
 # again (P 0.51) and rejects the spot; the second spot lands safe 1.9 m from the last landing
-# (126.35 s -> 126.7 s). Both profiles (none, ideal) must still agree.
+# (126.35 s -> 126.7 s). Re-recorded when a close-look rejection stopped climbing back to the
+# search altitude: the rejected first spot is followed at once by the next confirmed one from 42 m,
+# which lands safe 9.0 m from the last landing (126.7 s -> 67.3 s). Both profiles (none, ideal)
+# must still agree.
 REFERENCE = [
     ({"policy": "dovesei", "index": 1, "seed": 12, "timing": "reference", "time_limit_s": 60.0,
       "start": {"x_m": 266.718, "y_m": 133.498, "alt_m": 100.0}},
@@ -57,8 +60,8 @@ REFERENCE = [
     ({"policy": "clearance", "index": 0, "seed": 11, "timing": "real", "time_limit_s": 150.0,
       "policy_config": {"scene_after_top_pass": False},  # a 400 m world: its scene is the first views
       "start": {"x_m": 230.274, "y_m": 296.129, "alt_m": 100.0}},
-     {"outcome": "safe", "sim_time_s": 126.7, "path_length_m": 97.285, "max_range_m": 88.8,
-      "final": {"x_m": 293.661, "y_m": 357.38, "alt_m": 19.803}}),
+     {"outcome": "safe", "sim_time_s": 67.3, "path_length_m": 93.813, "max_range_m": 87.2,
+      "final": {"x_m": 298.56, "y_m": 349.836, "alt_m": 19.82}}),
 ]
 
 
