@@ -236,7 +236,7 @@ class ClearanceConfig:
     # over 3.1 m from it (tuning seed 1, Dubai, realistic vehicle: touchdown error 3.3 m).
     final_band_m: float = 5.0
     switch_gain: float = 0.3  # a new spot must score this much better to replace the target
-    refine_radius_m: float = 4.0  # a target that fails its re-check moves, as little as it must, within this
+    refine_radius_m: float = 4.0  # a target that fails its re-check moves within this, only for clearance
     descent_gain_per_s: float = 0.08  # descent speed = gain x height above hand-over + min
     descent_min_m_s: float = 1.0
     descent_max_m_s: float = 4.0
