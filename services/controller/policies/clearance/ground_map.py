@@ -313,10 +313,10 @@ def find_spot(gmap: GroundMap, clearance: np.ndarray, cfg: ClearanceConfig, *, n
     start (0, 0), away from blacklisted spots; ranked by clearance, confidence and distance.
 
     `near` + `within_m` restrict the search to a disk (re-checking a target: it moves only for
-    clearance, `_moved_least`), `need_m` replaces the required clearance (a locked target's
-    hysteresis), `fence_m` the config's fence (the policy shrinks it while its estimate is uncertain), and `gate` (uint8 on
-    the map's grid) admits only the cells where it is 1. Distances count from the vehicle, so
-    scores compare across calls.
+    clearance, `_rechecked_cell`), `need_m` replaces the required clearance (a locked target's
+    hysteresis), `fence_m` the config's fence (the policy shrinks it while its estimate is
+    uncertain), and `gate` (uint8 on the map's grid) admits only the cells where it is 1.
+    Distances count from the vehicle, so scores compare across calls.
     """
     need = cfg.required_clearance_m
     r0 = c0 = 0
@@ -354,16 +354,17 @@ def find_spot(gmap: GroundMap, clearance: np.ndarray, cfg: ClearanceConfig, *, n
     dist = np.hypot(north - north_m, east - east_m)
     # Clearance beyond twice the need buys little; 50 m of extra flight costs as much as it.
     score = np.minimum(clear / need, 2.0) + conf - dist / 50.0
-    best = int(np.argmax(score))
     if near is not None and within_m is not None:
-        best = _moved_least(rows, cols, north, east, clear, score, need, near, gmap)
+        best = _rechecked_cell(rows, cols, north, east, clear, score, need, near, gmap)
+    else:
+        best = int(np.argmax(score))
     p_safe, _ = gmap.at(float(north[best]), float(east[best]))
     return Spot(north_m=float(north[best]), east_m=float(east[best]), clearance_m=float(clear[best]),
                 confidence=float(conf[best]), p_safe=p_safe, distance_m=float(dist[best]), score=float(score[best]))
 
 
-def _moved_least(rows: np.ndarray, cols: np.ndarray, north: np.ndarray, east: np.ndarray, clear: np.ndarray,
-                 score: np.ndarray, need: float, near: tuple[float, float], gmap: GroundMap) -> int:
+def _rechecked_cell(rows: np.ndarray, cols: np.ndarray, north: np.ndarray, east: np.ndarray, clear: np.ndarray,
+                    score: np.ndarray, need: float, near: tuple[float, float], gmap: GroundMap) -> int:
     """Which of the qualifying cells a re-checked target at `near` goes to: it moves only for clearance.
 
     Its own cell when that has the full clearance `need`. Else the cell with the full clearance
