@@ -320,6 +320,27 @@ def test_a_withheld_handover_holds_at_the_handover_altitude_until_released() -> 
     assert mem.phase is Phase.HANDOVER
 
 
+def test_the_handover_point_needs_its_own_disk_cleared_by_the_map() -> None:
+    """Centred within the lock over a spot cleared to just the need, the vehicle's own disk may
+    reach past the cleared ground (realistic downtown start 14: 11 % of the disk on a sidewalk):
+    the hand-over waits, holding the altitude and steering on, until the map clears the ground
+    below the vehicle by the safety radius plus handover_margin_m."""
+    target = spot()  # cleared to 6 m
+    low = CFG.handover_alt_m - 0.2
+    enough = CFG.safety_radius_m + CFG.handover_margin_m
+    below = dataclasses.replace(inp(1.0, alt=low, n=19.0, check=target), below_clearance_m=enough - 0.1)
+    mem, vel = step(at(Phase.DESCEND, target=target, descending=True), below, CFG)
+    assert mem.phase is Phase.DESCEND and vel[2] <= 0.0 and vel[0] > 0.0  # no lower; steering onto the spot
+    mem, vel = step(mem, dataclasses.replace(below, t_s=2.0, below_clearance_m=enough + 0.1), CFG)
+    assert mem.phase is Phase.HANDOVER and f"{enough + 0.1:.1f} m below" in mem.reason
+    # Without the map's figure, the target's clearance less the distance to it stands in.
+    tight = dataclasses.replace(target, clearance_m=enough + 0.5)
+    mem, _ = step(at(Phase.DESCEND, target=tight, descending=True), inp(1.0, alt=low, n=19.0, check=tight), CFG)
+    assert mem.phase is Phase.DESCEND
+    mem, _ = step(mem, inp(2.0, alt=low, n=19.7, check=tight), CFG)
+    assert mem.phase is Phase.HANDOVER
+
+
 def test_gap_holds_from_any_live_state_recovers_after_fresh_frames_or_climbs() -> None:
     target = spot()
     for phase in (Phase.SEARCH, Phase.APPROACH, Phase.DESCEND, Phase.ABORT):

@@ -235,6 +235,13 @@ class ClearanceConfig:
     # hysteresis down to the hand-over, a re-check at 21 m that moved the target 2.4 m handed
     # over 3.1 m from it (tuning seed 1, Dubai, realistic vehicle: touchdown error 3.3 m).
     final_band_m: float = 5.0
+    # The hand-over point's own disk must lie inside ground the map clears, with this to spare:
+    # the map's clearance where the vehicle is (not only at the spot) >= safety radius + this.
+    # Centred within lock_in (1.9 m at 20 m) over a spot cleared to just the required 3.5 m, the
+    # vehicle's disk reached 0.4 m past the cleared ground (realistic downtown start 14 of 34,
+    # seed 0: 11 % of the disk on a sidewalk, touchdown error 2.4 m). Half of margin_m: the rest
+    # of the margin covers the map's blur, which the map's own clearance already holds.
+    handover_margin_m: float = 0.75
     switch_gain: float = 0.3  # a new spot must score this much better to replace the target
     refine_radius_m: float = 4.0  # a target that fails its re-check moves within this, only for clearance
     descent_gain_per_s: float = 0.08  # descent speed = gain x height above hand-over + min
@@ -275,7 +282,7 @@ class ClearanceConfig:
         )
         for name in positive:
             validate.positive(f"ClearanceConfig.{name}", getattr(self, name))
-        for name in ("final_band_m", "drift_frac", "drift_m_s", "anchor_gain_m", "margin_m", "dip_gain", "fence_margin_m", "reg_gate_frac", "reg_gate_m_s", "bias_max_m_s", "switch_gain"):
+        for name in ("final_band_m", "handover_margin_m", "drift_frac", "drift_m_s", "anchor_gain_m", "margin_m", "dip_gain", "fence_margin_m", "reg_gate_frac", "reg_gate_m_s", "bias_max_m_s", "switch_gain"):
             validate.non_negative(f"ClearanceConfig.{name}", getattr(self, name))
         for name in ("spot_min_response", "probe_descend_frac", "anchor_min_response", "anchor_gate_frac", "reg_min_response", "reg_full_response", "reg_min_std", "reg_min_eigen_ratio", "reg_pos_gain", "cmd_weight",
                      "key_shift_frac", "recheck_hysteresis", "dip_kernel_frac", "gate_frac", "probe_now_frac",

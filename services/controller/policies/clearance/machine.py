@@ -12,7 +12,8 @@
     PROBE   --nothing after probe_frames, probe_timeout_s or the search's time--> SEARCH (the area
             remembered as probed; at most probe_max probes)
     SEARCH  --the whole route flown or no_spot_after_s--> NO_SPOT (hold: "no safe spot found")
-    APPROACH --within the lock radius--> DESCEND --measured alt <= hand-over alt, centred--> HANDOVER
+    APPROACH --within the lock radius--> DESCEND --measured alt <= hand-over alt, centred, the disk
+             below cleared with handover_margin_m to spare--> HANDOVER
     APPROACH --target fails fail_frames re-checks / approach_timeout_s--> SEARCH (blacklisted)
     APPROACH, DESCEND --a close look finds the never set near the spot--> SEARCH from where it is
              (blacklisted; `reject_target`)
@@ -118,6 +119,9 @@ class Inputs:
     # spot, or something of the never set inside its margin): below the hand-over altitude the
     # descent holds, steering onto the spot, until it is released or the descent times out.
     handover_withheld: str = ""
+    # The map's clearance where the vehicle is (None: not measured; the target's clearance less
+    # the distance to it stands in, which the triangle inequality makes a lower bound).
+    below_clearance_m: float | None = None
 
 
 def search_pattern(spacing_m: float, radius_m: float) -> tuple[tuple[float, float], ...]:
@@ -362,9 +366,12 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
     # centred on it (within lock_in): the checked clearance holds the 2 m disk only around the
     # spot. Below the hand-over altitude otherwise (an altitude hold sagging while the spot is
     # re-checked, say) the vehicle holds its altitude and steers onto the spot first.
-    if inp.alt_agl_m <= cfg.handover_alt_m and inp.spot_known and err <= lock_in and not inp.handover_withheld:
+    room = target.clearance_m - err if inp.below_clearance_m is None else inp.below_clearance_m
+    roomy = room >= cfg.safety_radius_m + cfg.handover_margin_m  # the hand-over point's own disk is cleared
+    if (inp.alt_agl_m <= cfg.handover_alt_m and inp.spot_known and err <= lock_in and roomy
+            and not inp.handover_withheld):
         return _go(mem, Phase.HANDOVER, t, f"at the hand-over altitude over the spot (error {err:.1f} m, "
-                                           f"clearance {target.clearance_m:.1f} m)"), (0.0, 0.0, 0.0)
+                                           f"clearance {target.clearance_m:.1f} m, {room:.1f} m below)"), (0.0, 0.0, 0.0)
     if t - mem.since_s > cfg.descend_timeout_s:
         return _go(mem, Phase.ABORT, t, f"descent took over {cfg.descend_timeout_s:g} s: abort", target=None,
                    aborts=mem.aborts + 1, blacklist=_blacklisted(mem, target, inp.alt_agl_m)), (0.0, 0.0, -cfg.climb_speed_m_s)
@@ -388,7 +395,7 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
         mem = dataclasses.replace(mem, descending=descending, frames=0)
     vf, vr = toward(err_n, err_e, cfg.approach_gain_per_s, cfg.max_speed_m_s, inp.yaw_rad)
     vz = 0.0
-    if inp.handover_withheld and inp.alt_agl_m <= cfg.handover_alt_m:
+    if (inp.handover_withheld or not roomy) and inp.alt_agl_m <= cfg.handover_alt_m:
         vz = _hold_alt(inp.alt_agl_m, cfg.handover_alt_m, cfg)  # sagged below it: back up to it, no lower
     elif descending:
         vz = min(max(cfg.descent_gain_per_s * (inp.alt_agl_m - cfg.handover_alt_m) + cfg.descent_min_m_s,

@@ -329,7 +329,8 @@ class ClearancePolicy:
                      best=best, check=check, hfov_rad=obs.hfov_rad, candidate=candidate,
                      top_pass_end=self._top_pass_end, probe_alt_m=self._alts.probe_m,
                      spot_known=self._spot_known(), recheck=recheck, candidate_likely=likely,
-                     handover_withheld=self.handover_withheld)
+                     handover_withheld=self.handover_withheld,
+                     below_clearance_m=None if clearance is None else clearance_at(self.map, clearance, pn, pe))
         prev = self.memory
         mem, vel = step(prev, inp, cfg)
         fenced = False
