@@ -273,6 +273,50 @@ def test_a_spot_is_rejected_when_found_again_not_on_one_look(pattern: str, rejec
         assert len(inner.rejected) == 1 and "found in 2 of the last" in inner.rejected[0]
 
 
+def test_a_wait_that_does_not_end_rejects_the_spot_even_between_findings() -> None:
+    """After a finding in the last descent the gate waits for resume_looks clear looks in a row; a
+    wait past wait_s rejects the spot though no new finding came (clear looks of a spot that kept
+    moving never made a streak: a harsh crowded flight waited 600 s so)."""
+    cfg = CloseLookConfig()
+    inner = _Descending()
+    gate = CloseLookPolicy(inner)
+    gate.step(Observation(t_s=0.0, alt_agl_m=41.0, prob_safe=None))
+    for i in (1, 2):
+        gate.step(Observation(t_s=float(i), alt_agl_m=40.0, prob_safe=None, look=_answer(i, False)))
+    gate.step(Observation(t_s=3.0, alt_agl_m=30.0, prob_safe=None, look=_answer(3, True)))  # past the gate: waits
+    t = 3.0
+    while t < 3.0 + cfg.wait_s - 0.5:
+        t += 0.5
+        d = gate.step(Observation(t_s=t, alt_agl_m=30.0, prob_safe=None))  # no answers: no streak
+        assert not inner.rejected and d.vel_body_frd_m_s[2] <= 0.0
+    gate.step(Observation(t_s=3.0 + cfg.wait_s + 0.5, alt_agl_m=30.0, prob_safe=None))
+    assert len(inner.rejected) == 1 and f"within {cfg.wait_s:g} s of a finding" in inner.rejected[0]
+
+
+def test_findings_that_keep_coming_back_reject_the_spot() -> None:
+    """Past the gate a finding waits and resume_looks clear looks end the wait; a finding on the same
+    ground again more than wait_s after the first one rejects the spot (a crowd walking past, or a
+    false finding flickering: each wait restarting held a harsh crowded flight for 600 s)."""
+    cfg = CloseLookConfig()
+    inner = _Descending()
+    gate = CloseLookPolicy(inner)
+    gate.step(Observation(t_s=0.0, alt_agl_m=41.0, prob_safe=None))
+    for i in (1, 2):
+        gate.step(Observation(t_s=float(i), alt_agl_m=40.0, prob_safe=None, look=_answer(i, False)))
+    seq, t = 3, 2.0
+    first_finding_s = None
+    while not inner.rejected and t < 3.0 * cfg.wait_s:
+        for found in (True,) + (False,) * cfg.resume_looks:  # each wait ends, then it is found again
+            t += 1.5
+            gate.step(Observation(t_s=t, alt_agl_m=30.0, prob_safe=None, look=_answer(seq, found)))
+            seq += 1
+            first_finding_s = t if found and first_finding_s is None else first_finding_s
+            if inner.rejected:
+                break
+    assert len(inner.rejected) == 1 and "after the first finding there" in inner.rejected[0]
+    assert cfg.wait_s < t - first_finding_s <= cfg.wait_s + 1.5 * (cfg.resume_looks + 1)
+
+
 def test_the_gate_withholds_the_inner_policys_handover_until_a_fresh_clear_look() -> None:
     """An altitude hold sags through the hand-over altitude while the gate waits on a finding (a
     shifted crowded flight handed over 1.5 m from a person this way): the inner policy is told the

@@ -14,7 +14,8 @@ set, `dovesei.shared.crop`, docs/CROP.md) and gates its descent on the verdict:
         no answer / refused / failed --> keep holding, ask again every retry_s (never commits blind)
     the last descent (past the gate) --> a new look every look_period_s while descending
         anything inside the margin --> wait (hold the altitude, keep looking: people walk through)
-            resume_looks clear looks in a row --> descend on;  not so after wait_s --> reject (abort)
+            resume_looks clear looks in a row --> descend on;  not so within wait_s, or found again
+            wait_s after the first finding on that ground --> reject (searches on from there)
     within final_gate_m of the hand-over --> hold unless a clear look is fresher than fresh_s
         (the hand-over needs a recent close look, not one from 40 m)
 
@@ -96,7 +97,12 @@ class CloseLookConfig:
     reject_window: int = 3
     retry_s: float = 1.0  # a failed or refused look is asked again after this
     answer_timeout_s: float = 5.0  # a look with no answer after this is asked again
-    wait_s: float = 30.0  # something inside the margin during the last descent: wait this long, then abort
+    # Something inside the margin during the last descent: wait this long, then abort. It counts
+    # from the first finding on that ground (within margin_m), not from the last: findings that
+    # keep coming back between short clear streaks (a crowd walking past, or a flickering false
+    # finding) reject the spot too, where each wait restarting had held harsh crowded start 5 of 6
+    # between 30 and 45 m for 600 s.
+    wait_s: float = 30.0
     fresh_s: float = 3.0  # the hand-over needs a clear look at most this old
     spot_slack_m: float = 1.0  # a look covers the spot it was asked for, moved at most this far
 
@@ -210,6 +216,7 @@ class CloseLookPolicy:
         self._streak = 0  # clear looks in a row of the spot `_clear` looked at
         self._committed: _Look | None = None  # the spot the gate let the descent past (the last descent's)
         self._never_since_s: float | None = None  # the last descent: something inside the margin since
+        self._trouble: tuple[float, float, float] | None = None  # the last descent's first finding: t, north, east
         self._verdict = ""
         self._recent: deque[tuple[float, float, bool]] = deque(maxlen=self.look_config.reject_window)
         self._spot: tuple[float, float] | None = None  # the spot of the last gated decision
@@ -272,7 +279,10 @@ class CloseLookPolicy:
         self._clear, self._streak = None, 0
         first = self._never_since_s is None
         self._never_since_s = obs.t_s if first else self._never_since_s
-        waited_s = obs.t_s - self._never_since_s
+        if self._trouble is None or math.hypot(self._trouble[1] - asked.north_m,
+                                               self._trouble[2] - asked.east_m) > cfg.margin_m:
+            self._trouble = (obs.t_s, asked.north_m, asked.east_m)
+        waited_s = obs.t_s - self._trouble[0]
         repeated = sum(found for north, east, found in self._recent
                        if math.hypot(north - asked.north_m, east - asked.east_m) <= cfg.margin_m)
         before_gate = not self._covers(self._committed, (asked.north_m, asked.east_m))
@@ -281,9 +291,9 @@ class CloseLookPolicy:
             # or a wait that did not end: reject the spot.
             why = (f"close look: {self._verdict}" + (f", found in {repeated} of the last {len(self._recent)} looks"
                                                      if before_gate else "")
-                   + (f", still there after {waited_s:.0f} s" if waited_s else ""))
+                   + (f", found again {waited_s:.0f} s after the first finding there" if waited_s else ""))
             self.inner.reject_target(obs.t_s, obs.alt_agl_m, why)
-            self._never_since_s, self._committed = None, None
+            self._never_since_s, self._committed, self._trouble = None, None, None
         elif first:
             log.info("close look %d at %.1f m: %s: waiting", look.request_seq, asked.alt_m, self._verdict)
 
@@ -297,10 +307,17 @@ class CloseLookPolicy:
         chosen = d.spot
         if d.state != "DESCEND" or chosen is None or alt > cfg.look_alt_m + cfg.brake_m:
             if d.state not in ("DESCEND", "HANDOVER"):
-                self._never_since_s, self._spot = None, None
+                self._never_since_s, self._spot, self._trouble = None, None, None
             return dataclasses.replace(d, look_verdict=self._verdict)
         spot = self._spot = (chosen.north_m, chosen.east_m)
         here = (chosen.est_north_m, chosen.est_east_m)
+        if self._never_since_s is not None and t - self._never_since_s > cfg.wait_s:
+            # A wait that did not end: the deadline holds whatever the looks since were (clear ones
+            # of a spot the map kept moving never make a streak).
+            waited_s = t - self._never_since_s
+            self.inner.reject_target(t, alt, f"close look: not clear {cfg.resume_looks} looks in a row within "
+                                             f"{cfg.wait_s:g} s of a finding ({self._verdict}; {waited_s:.0f} s)")
+            self._never_since_s, self._committed, self._trouble = None, None, None
         cleared = self._cleared(spot)
         if cleared:
             self._committed = self._clear  # the gate is open for this spot: findings now mean waiting
