@@ -17,7 +17,12 @@ that the `realistic` profile is calibrated against (never against landing succes
   under the threshold loop's 10 % floor. On such a frame any map that does not fail the loop puts
   target pixels on unsafe ground, however right it is about each class;
 - `frame_agreement`: mean IoU of the target masks of consecutive frames (the camera drifting
-  0.2 m per frame at 100 m), i.e. how much of the map's choice survives one frame.
+  0.2 m per frame at 100 m), i.e. how much of the map's choice survives one frame;
+- `separability` (judge side): median over frames of the area under the ROC curve of P between
+  the view's disk-safe ground and the rest (0.5: P says nothing about it; 1: some threshold
+  separates them exactly), on frames where each side covers at least `SEPARABILITY_MIN_SHARE` of
+  the view. No threshold, blur or policy enters it: it bounds what any policy can read from one
+  map, whatever it does with the levels.
 
 Why even `clean` stays under the judge's flags (measured on the default suite, seed 0): the
 reference's 15-px box blur (6.3 m at 100 m) and its 10 % floor cap the oracle itself at 0.88
@@ -66,6 +71,8 @@ log = logging.getLogger(__name__)
 
 ALT_M = 100.0
 DRIFT_M_PER_FRAME = 0.2
+SEPARABILITY_MIN_SHARE = 0.02  # a frame's AUC needs this share of the view on each side
+SEPARABILITY_STRIDE = 4  # every 4th pixel each way: P's detail is a 16 px token, this keeps 5 a token
 
 
 @dataclass(frozen=True)
@@ -80,6 +87,21 @@ class WorldStats:
     oracle_precision: float
     below_floor_fraction: float
     frame_agreement: float
+    separability: float = float("nan")
+
+
+def roc_auc(positive: np.ndarray, negative: np.ndarray) -> float:
+    """P(a random positive scores above a random negative), ties counting half (Mann-Whitney U)."""
+    if positive.size == 0 or negative.size == 0:
+        raise ValueError("roc_auc needs at least one positive and one negative score")
+    scores = np.concatenate([positive.ravel(), negative.ravel()]).astype(np.float64)
+    values, inverse, counts = np.unique(scores, return_inverse=True, return_counts=True)
+    # Average rank of each distinct value (1-based): ties share the mean of their ranks.
+    ends = np.cumsum(counts)
+    ranks = (ends - (counts - 1) / 2.0)[inverse]
+    n_pos = positive.size
+    u = ranks[:n_pos].sum() - n_pos * (n_pos + 1) / 2.0
+    return float(u / (n_pos * negative.size))
 
 
 def default_worlds() -> list[str]:
@@ -102,7 +124,7 @@ def world_stats(world: World, params: PerceptionParams, n_starts: int, frames_pe
     policy_cfg = DoveseiConfig()
     safe_map = disk_safe_map(world)
     rng = np.random.default_rng([seed, 5])
-    thresholds, agreements = [], []
+    thresholds, agreements, aucs = [], [], []
     lowered = failed = 0
     target_px = target_safe = 0
     cores = cores_safe = 0
@@ -119,6 +141,10 @@ def world_stats(world: World, params: PerceptionParams, n_starts: int, frames_pe
             view = View((x_m, y_m), ALT_M, cam.hfov_rad, 0.0, world.name)
             prob = perception.safe_probability(labels, names, view, i * 1000 + k, REFERENCE_PROMPTS, fusion)
             truth = _view_disk_safe(world, safe_map, x_m, y_m, cam)
+            step = SEPARABILITY_STRIDE
+            p_s, t_s = prob[::step, ::step], truth[::step, ::step]
+            if SEPARABILITY_MIN_SHARE <= t_s.mean() <= 1.0 - SEPARABILITY_MIN_SHARE:
+                aucs.append(roc_auc(p_s[t_s], p_s[~t_s]))
             below_floor += float(np.count_nonzero(truth)) / truth.size < policy_cfg.seg_min_safe_fraction
             # The ceiling: the judge's own class flags as P (1 safe, 0 unsafe), the same box blur
             # and threshold. What no perception can beat at 100 m with this pipeline.
@@ -154,7 +180,8 @@ def world_stats(world: World, params: PerceptionParams, n_starts: int, frames_pe
         core_precision=cores_safe / cores if cores else float("nan"),
         oracle_precision=oracle_safe / oracle_px if oracle_px else float("nan"),
         below_floor_fraction=below_floor / frames,
-        frame_agreement=float(np.mean(agreements)) if agreements else float("nan"))
+        frame_agreement=float(np.mean(agreements)) if agreements else float("nan"),
+        separability=float(np.median(aucs)) if aucs else float("nan"))
 
 
 def suite_stats(worlds: list[str], profile: str = DEFAULT_PROFILE, noise: float = 1.0, n_starts: int = 40,
@@ -180,7 +207,7 @@ def suite_stats(worlds: list[str], profile: str = DEFAULT_PROFILE, noise: float 
             "failed_fraction": mean("failed_fraction"), "target_precision": mean("target_precision"),
             "core_precision": mean("core_precision"), "oracle_precision": mean("oracle_precision"),
             "below_floor_fraction": mean("below_floor_fraction"),
-            "frame_agreement": mean("frame_agreement"), "worlds": [asdict(s) for s in per_world]}
+            "frame_agreement": mean("frame_agreement"), "separability": mean("separability"), "worlds": [asdict(s) for s in per_world]}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -219,10 +246,12 @@ def main(argv: list[str] | None = None) -> int:
         for w in out["worlds"]:
             print(f"{w['world']:<40} median thr {w['median_threshold']:.3f}  lowered {w['lowered_fraction']:.3f}  "
                   f"precision {w['target_precision']:.3f}  core {w['core_precision']:.3f}  oracle {w['oracle_precision']:.3f}  "
-                  f"below floor {w['below_floor_fraction']:.3f}  agreement {w['frame_agreement']:.3f}")
+                  f"below floor {w['below_floor_fraction']:.3f}  agreement {w['frame_agreement']:.3f}  "
+                  f"separability {w['separability']:.3f}")
         print(f"{'ALL':<40} median thr {out['median_threshold']:.3f}  lowered {out['lowered_fraction']:.3f}  "
               f"precision {out['target_precision']:.3f}  core {out['core_precision']:.3f}  oracle {out['oracle_precision']:.3f}  "
-              f"below floor {out['below_floor_fraction']:.3f}  agreement {out['frame_agreement']:.3f}")
+              f"below floor {out['below_floor_fraction']:.3f}  agreement {out['frame_agreement']:.3f}  "
+              f"separability {out['separability']:.3f}")
     return 0
 
 
@@ -230,4 +259,4 @@ if __name__ == "__main__":
     sys.exit(main())
 
 
-__all__ = ["WorldStats", "default_worlds", "suite_stats", "world_stats"]
+__all__ = ["WorldStats", "default_worlds", "roc_auc", "suite_stats", "world_stats"]

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from dovesei import perception_stats
-from dovesei.perception_stats import world_stats
+from dovesei.perception_stats import roc_auc, world_stats
 from dovesei.segmenter.sim_backend import profile_params
 from dovesei.sim.world import ClassInfo, World
 from tests.sim.test_judge import blocks_world
@@ -27,6 +27,20 @@ def test_statistics_are_in_range_and_the_judge_side_alone_reads_the_flags() -> N
     assert (flipped.median_threshold, flipped.lowered_fraction, flipped.frame_agreement) == (
         stats.median_threshold, stats.lowered_fraction, stats.frame_agreement)
     assert stats.target_precision > 0.6 and flipped.target_precision < 0.4
+    # Separability is about the truth too: flipped flags turn it around (AUC -> 1 - AUC).
+    assert stats.separability > 0.8 and flipped.separability == pytest.approx(1.0 - stats.separability, abs=0.05)
+
+
+def test_roc_auc_counts_ties_half_and_refuses_an_empty_side() -> None:
+    assert roc_auc(np.array([2.0, 3.0]), np.array([0.0, 1.0])) == 1.0
+    assert roc_auc(np.array([0.0, 1.0]), np.array([2.0, 3.0])) == 0.0
+    assert roc_auc(np.array([1.0, 1.0]), np.array([1.0])) == 0.5
+    # 5 beats both negatives; 1 ties one and beats the other: (2 + 1.5) / 4.
+    assert roc_auc(np.array([5.0, 1.0]), np.array([1.0, 0.0])) == pytest.approx(3.5 / 4.0)
+    rng = np.random.default_rng(0)
+    assert abs(roc_auc(rng.normal(size=4000), rng.normal(size=4000)) - 0.5) < 0.02
+    with pytest.raises(ValueError, match="at least one positive"):
+        roc_auc(np.array([]), np.array([1.0]))
 
 
 def test_clean_perception_targets_the_lawns_and_nears_the_oracle() -> None:
@@ -40,7 +54,7 @@ def test_command_line_json_and_bad_flags(tmp_path, capsys, monkeypatch) -> None:
     monkeypatch.setattr(perception_stats, "load_world", lambda spec: blocks_world())
     assert perception_stats.main(["--world", "blocks", "--starts", "2", "--frames", "2", "--json"]) == 0
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
-    for key in ("median_threshold", "lowered_fraction", "target_precision", "frame_agreement"):
+    for key in ("median_threshold", "lowered_fraction", "target_precision", "frame_agreement", "separability"):
         assert math.isfinite(out[key])
     assert out["perception"] == "realistic" and out["fusion"] == "dovesei" and out["alt_m"] == 100.0
     assert perception_stats.main(["--world", "blocks", "--frames", "1"]) == 2
