@@ -273,16 +273,21 @@ def test_a_spot_is_rejected_when_found_again_not_on_one_look(pattern: str, rejec
         assert len(inner.rejected) == 1 and "found in 2 of the last" in inner.rejected[0]
 
 
-def test_a_wait_that_does_not_end_rejects_the_spot_even_between_findings() -> None:
-    """After a finding in the last descent the gate waits for resume_looks clear looks in a row; a
-    wait past wait_s rejects the spot though no new finding came (clear looks of a spot that kept
-    moving never made a streak: a harsh crowded flight waited 600 s so)."""
-    cfg = CloseLookConfig()
+def _past_the_gate() -> tuple[_Descending, CloseLookPolicy]:
+    """A gate over the stub's spot, opened by two clear looks at 40 m (t = 1 and 2 s)."""
     inner = _Descending()
     gate = CloseLookPolicy(inner)
     gate.step(Observation(t_s=0.0, alt_agl_m=41.0, prob_safe=None))
     for i in (1, 2):
         gate.step(Observation(t_s=float(i), alt_agl_m=40.0, prob_safe=None, look=_answer(i, False)))
+    return inner, gate
+
+
+def test_a_wait_that_does_not_end_rejects_the_spot_even_between_findings() -> None:
+    """After a finding in the last descent the gate waits for resume_looks clear looks in a row; a
+    wait past wait_s rejects the spot though no new finding came (clear looks of a spot that kept
+    moving never made a streak: a harsh crowded flight waited 600 s so)."""
+    cfg, inner, gate = CloseLookConfig(), *_past_the_gate()
     gate.step(Observation(t_s=3.0, alt_agl_m=30.0, prob_safe=None, look=_answer(3, True)))  # past the gate: waits
     t = 3.0
     while t < 3.0 + cfg.wait_s - 0.5:
@@ -297,12 +302,7 @@ def test_findings_that_keep_coming_back_reject_the_spot() -> None:
     """Past the gate a finding waits and resume_looks clear looks end the wait; a finding on the same
     ground again more than wait_s after the first one rejects the spot (a crowd walking past, or a
     false finding flickering: each wait restarting held a harsh crowded flight for 600 s)."""
-    cfg = CloseLookConfig()
-    inner = _Descending()
-    gate = CloseLookPolicy(inner)
-    gate.step(Observation(t_s=0.0, alt_agl_m=41.0, prob_safe=None))
-    for i in (1, 2):
-        gate.step(Observation(t_s=float(i), alt_agl_m=40.0, prob_safe=None, look=_answer(i, False)))
+    cfg, inner, gate = CloseLookConfig(), *_past_the_gate()
     seq, t = 3, 2.0
     first_finding_s = None
     while not inner.rejected and t < 3.0 * cfg.wait_s:
