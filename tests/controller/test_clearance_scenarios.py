@@ -254,12 +254,28 @@ def test_noisy_biased_odometry_and_wind_still_land_on_the_chosen_spot() -> None:
     world, flight = _odometry_flight(ClearanceConfig())
     assert flight.alt_m <= 20.0
     assert world.disk_safe(flight.north_m, flight.east_m, 2.0)
-    assert math.hypot(flight.north_m - 35.0, flight.east_m + 50.0) < 4.0
+    # On the lawn (14 m square at (35, -50)), its 2 m disk inside it: the spot is wherever on the
+    # lawn the map put it (3.5 m from the middle with the learnt bias taken off the commands).
+    assert max(abs(flight.north_m - 35.0), abs(flight.east_m + 50.0)) <= 14.0 / 2.0 - 2.0
     info = flight.decision.report
     # Registration kept the estimate on the truth (the start is (0, 0) in both frames) ...
     assert math.hypot(info.est_north_m - flight.north_m, info.est_east_m - flight.east_m) < 3.0
     # ... and learnt the velocity error: truth - estimate = wind - bias = (-0.5, +1.1) m/s.
     assert info.bias_north_m_s < -0.1 and info.bias_east_m_s > 0.5
+
+
+def test_commands_take_off_the_learnt_velocity_bias() -> None:
+    """The autopilot flies its own estimate onto the command, and truth = estimate + bias: the
+    command is the wanted velocity less the bias (in the body frame), capped at the policy's
+    fastest speed; without it the position loop sat bias / gain from its target."""
+    policy = ClearancePolicy(ClearanceConfig())
+    policy.motion.bias_n_m_s, policy.motion.bias_e_m_s = 1.0, -0.5
+    assert policy._through_bias((2.0, 0.0, 0.5), 0.0) == pytest.approx((1.0, 0.5, 0.5))
+    # Facing east (yaw 90 deg), forward is east and right is south.
+    assert policy._through_bias((0.0, 0.0, 0.0), math.pi / 2.0) == pytest.approx((0.5, 1.0, 0.0), abs=1e-9)
+    cap = max(policy.config.search_speed_m_s, policy.config.max_speed_m_s)
+    f, r, _ = policy._through_bias((-cap, 0.0, 0.0), 0.0)
+    assert math.hypot(f, r) == pytest.approx(cap) and f < -0.9 * cap
 
 
 def test_without_registration_the_estimate_drifts() -> None:
