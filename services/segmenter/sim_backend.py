@@ -704,22 +704,23 @@ class SimPerception:
         if not tables.object_lut.any():
             return
         objects = cv2.LUT(lab, tables.object_lut)
-        # Components only within the box of the object pixels (often a small part of the view);
-        # the pixels keep their raster order, so the sums below are the same.
+        # Components only within the box of the object pixels (often a small part of the view).
         bx, by, bw, bh = cv2.boundingRect(objects)
-        n_cells = self.grid * self.grid
-        cell_of_px = self._cell_of_px.reshape(INPUT_PX, INPUT_PX)
+        n_cells, cell_px = self.grid * self.grid, self.params.cell_px
         for i, app in enumerate(OBJECT_APPEARANCES):
             mask = cv2.bitwise_and(objects[by:by + bh, bx:bx + bw], 1 << i)
             x0, y0, w, h = cv2.boundingRect(mask)
             if not w:
                 continue
-            n, comp = cv2.connectedComponents(mask[y0:y0 + h, x0:x0 + w], connectivity=8)
-            on = comp.ravel() > 0
-            comp_on = comp.ravel()[on]
+            mask = mask[y0:y0 + h, x0:x0 + w]
+            n, comp = cv2.connectedComponents(mask, connectivity=8)
+            # Only the object pixels (a few % of the box) are read from here on, in the raster
+            # order findNonZero lists them in, so the sums add in the same order as over the box.
+            xs, ys = cv2.findNonZero(mask).reshape(-1, 2).T
+            comp_on = comp[ys, xs]
             # Each component's area from its pixels (OpenCV's stats cost 4x the labelling).
             gain = object_gain(np.bincount(comp_on, minlength=n) / float(TOKEN_PX * TOKEN_PX))
-            cells = cell_of_px[by + y0:by + y0 + h, bx + x0:bx + x0 + w].ravel()[on]
+            cells = (ys + (by + y0)) // cell_px * self.grid + (xs + (bx + x0)) // cell_px
             total = np.bincount(cells, weights=gain[comp_on], minlength=n_cells)
             count = np.bincount(cells, minlength=n_cells)
             frac.reshape(n_cells, A)[:, INDEX[app]] *= np.where(count > 0, total / np.maximum(count, 1), 1.0)
