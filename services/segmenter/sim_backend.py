@@ -682,7 +682,8 @@ class SimPerception:
         grid = max(self.params.fusion_grid_px, self.grid)
         if grid != self.grid:
             logits = cv2.resize(logits, (grid, grid), interpolation=cv2.INTER_LINEAR).reshape(grid, grid, -1)
-        up = np.ascontiguousarray(logits.transpose(2, 0, 1))  # the fusion reads prompt planes
+        # The fusion reads prompt planes: OpenCV's transpose of (pixels, P) is ~4x numpy's copy.
+        up = cv2.transpose(logits.reshape(grid * grid, -1)).reshape(-1, grid, grid)
         if grid == INPUT_PX:
             prob = fuse(up, prompts.n_positive, fusion.mode, fusion.temperature, fusion.blur_px)
         else:
