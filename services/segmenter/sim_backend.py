@@ -76,7 +76,7 @@ import functools
 import logging
 import math
 import zlib
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -310,34 +310,42 @@ def _smoothstep(t: np.ndarray | float) -> np.ndarray | float:
     return t * t * (3.0 - 2.0 * t)
 
 
-def _value_noise(x: np.ndarray, y: np.ndarray, z: float, keys: np.ndarray) -> np.ndarray:
-    """Smooth noise on a unit lattice (trilinear with smoothstep weights) at points (x, y) of one
-    height z, one field per key: (len(keys),) + x.shape, about uniform in [-1, 1]."""
-    # x and y as the rows of one array: each step below is one numpy call for both.
-    xy = np.stack([x.reshape(-1), y.reshape(-1)])
+def _noise_octaves(x: np.ndarray, y: np.ndarray,
+                   octaves: Sequence[tuple[float, float, np.ndarray, float]]) -> np.ndarray:
+    """A sum of octaves of smooth noise on a unit lattice (trilinear with smoothstep weights) at
+    points (x, y), one field per key: octave (length, z, keys, amplitude) reads the lattice at
+    (x / length, y / length, z) with its own keys (as many as every other octave's) and adds
+    amplitude x it. (len(keys),) + x.shape; one octave of amplitude 1 is about uniform in [-1, 1]."""
+    n_octaves, n_keys, n = len(octaves), len(octaves[0][2]), x.size
+    # Every octave's x and y as the rows of one array: each step below is one numpy call for all.
+    lengths = np.array([length for length, _, _, _ in octaves])
+    xy = np.stack([x.reshape(-1), y.reshape(-1)])[None] / lengths[:, None, None]  # (octave, axis, points)
     fxy = np.floor(xy)
     txy, ixy = _smoothstep(xy - fxy), fxy.astype(np.int64)
-    ix, iy = ixy
-    iz = math.floor(z)
-    tz = _smoothstep(z - iz)
-    (x0, y0), (x1, y1) = ixy.min(axis=1).tolist(), ixy.max(axis=1).tolist()
-    nx, ny = x1 - x0 + 2, y1 - y0 + 2
-    if nx * ny <= 8 * ix.size:
-        # Neighbouring points share corners (a view's 16 x 16 points cover about 10 x 10 lattice
-        # cells): blend the two heights on the lattice around the points, then gather.
-        layers = _lattice(keys, x0, y0, nx, ny, iz)
-        plane = ((1.0 - tz) * layers[:, 0] + tz * layers[:, 1]).reshape(keys.size, -1)
-        corners = plane[:, ((iy - y0) * nx + (ix - x0))[None, :] + np.array([[0], [1], [nx], [nx + 1]])]
-    else:
-        # Points spread thinly over a large box: hash each point's own corners.
-        key = keys[:, None]
-        corners = np.stack([(1.0 - tz) * _hash_unit(ix + dx, iy + dy, np.int64(iz), key)
-                            + tz * _hash_unit(ix + dx, iy + dy, np.int64(iz + 1), key)
-                            for dx, dy in ((0, 0), (1, 0), (0, 1), (1, 1))], axis=1)
-    # corners: (keys, 4, points), (dx, dy) = (0, 0), (1, 0), (0, 1), (1, 1).
-    w = np.stack([1.0 - txy, txy])  # (d, axis, points): the weight of the corner at +d along x, y
-    weights = (w[:, None, 1] * w[None, :, 0]).reshape(4, -1)
-    return np.einsum("kcp,cp->kp", corners, weights).reshape((keys.size,) + x.shape)
+    lows, highs = ixy.min(axis=2).tolist(), ixy.max(axis=2).tolist()
+    # corners: (octave, keys, 4, points), (dx, dy) = (0, 0), (1, 0), (0, 1), (1, 1).
+    corners = np.empty((n_octaves, n_keys, 4, n))
+    for o, ((_, z, keys, _), (ix, iy), (x0, y0), (x1, y1)) in enumerate(zip(octaves, ixy, lows, highs)):
+        iz = math.floor(z)
+        tz = _smoothstep(z - iz)
+        nx, ny = x1 - x0 + 2, y1 - y0 + 2
+        if nx * ny <= 8 * n:
+            # Neighbouring points share corners (a view's 16 x 16 points cover about 10 x 10 lattice
+            # cells): blend the two heights on the lattice around the points, then gather.
+            layers = _lattice(keys, x0, y0, nx, ny, iz)
+            plane = ((1.0 - tz) * layers[:, 0] + tz * layers[:, 1]).reshape(n_keys, -1)
+            np.take(plane, ((iy - y0) * nx + (ix - x0))[None, :] + np.array([[0], [1], [nx], [nx + 1]]), axis=1,
+                    out=corners[o], mode="clip")  # in range: "clip" only spares take a buffered copy
+        else:
+            # Points spread thinly over a large box: hash each point's own corners.
+            key = keys[:, None]
+            for c, (dx, dy) in enumerate(((0, 0), (1, 0), (0, 1), (1, 1))):
+                corners[o, :, c] = ((1.0 - tz) * _hash_unit(ix + dx, iy + dy, np.int64(iz), key)
+                                    + tz * _hash_unit(ix + dx, iy + dy, np.int64(iz + 1), key))
+    w = np.stack([1.0 - txy, txy])  # (d, octave, axis, points): the weight of the corner at +d along x, y
+    weights = (w[:, None, :, 1] * w[None, :, :, 0]).reshape(4, n_octaves, n)
+    weights *= np.array([amplitude for _, _, _, amplitude in octaves])[:, None]
+    return np.einsum("okcp,cop->kp", corners, weights).reshape((n_keys,) + x.shape)
 
 
 # The hashed lattice is a pure function of (point, key), so it is kept across frames: each set of
@@ -390,9 +398,8 @@ def ground_field(east_m: np.ndarray, north_m: np.ndarray, keys: np.ndarray, leng
 
 def _field(east_m: np.ndarray, north_m: np.ndarray, z: float, keys: np.ndarray, length: float) -> np.ndarray:
     keys = np.asarray(keys, dtype=np.int64).reshape(-1)
-    coarse = _value_noise(east_m / length, north_m / length, z, keys)
-    fine = _value_noise(east_m / (0.4 * length), north_m / (0.4 * length), z + 17.3, keys + 7)
-    return (0.75 * coarse + 0.45 * fine) / _FIELD_STD
+    return _noise_octaves(east_m, north_m, ((length, z, keys, 0.75 / _FIELD_STD),
+                                            (0.4 * length, z + 17.3, keys + 7, 0.45 / _FIELD_STD)))
 
 
 # --- one episode over one world ---------------------------------------------------------------
