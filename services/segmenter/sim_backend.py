@@ -848,16 +848,21 @@ def _pair_tables(ends: tuple[tuple[int, int], ...]) -> tuple[np.ndarray, np.ndar
     return pick, move
 
 
-_PRODUCT_ROWS = 2048
+# OpenBLAS spreads a product of 2^19 multiply-adds (rows x inner x columns) or more over threads,
+# which costs several times the CPU time it saves (the perception is budgeted one core): measured
+# over 44 x 44 cells, (cells x 38 codes) @ (38 codes x 15 appearances) took 0.7-4 ms of CPU on a
+# loaded machine in one block, 77 us in blocks under 2^19 (a world with many classes has that many
+# codes; the clean profile has 176 x 176 cells).
+_PRODUCT_MACS = 1 << 19
 
 
 def _rows_product(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """a @ b in b's dtype, for a 2-D ``a`` of many rows, taken a block of rows at a time: OpenBLAS
-    spreads a product of more rows over threads, which costs several times the CPU time it saves
-    (the perception is budgeted one core; the clean profile's 176 x 176 cells)."""
+    """a @ b in b's dtype, for a 2-D ``a`` of many rows, taken a block of rows at a time, each block
+    small enough to stay on one thread (`_PRODUCT_MACS`)."""
     out = np.empty((a.shape[0], b.shape[1]), b.dtype)
-    for i in range(0, a.shape[0], _PRODUCT_ROWS):
-        np.matmul(a[i:i + _PRODUCT_ROWS].astype(b.dtype, copy=False), b, out=out[i:i + _PRODUCT_ROWS])
+    rows = max(1, (_PRODUCT_MACS - 1) // (a.shape[1] * b.shape[1]))
+    for i in range(0, a.shape[0], rows):
+        np.matmul(a[i:i + rows].astype(b.dtype, copy=False), b, out=out[i:i + rows])
     return out
 
 
