@@ -351,8 +351,11 @@ def _noise_octaves(x: np.ndarray, y: np.ndarray,
 # The hashed lattice is a pure function of (point, key), so it is kept across frames: each set of
 # keys at each height keeps the region it last needed, widened by a margin and snapped to whole
 # blocks of lattice cells, so the next views of a flight (which move a little) read it again.
+# The least recently used entry goes first (the dict's order is the order of use): a flight reads
+# the same few (its ground fields' at every altitude) while others come and go.
 _LATTICE_BLOCK = 8
 _LATTICE_MARGIN = 4
+_LATTICE_CACHE_ENTRIES = 16
 _LATTICE_CACHE_BYTES = 16 << 20
 _lattice_cache: dict[tuple[bytes, int], tuple[int, int, np.ndarray]] = {}
 
@@ -364,6 +367,7 @@ def _lattice(keys: np.ndarray, x0: int, y0: int, nx: int, ny: int, iz: int) -> n
     if cached is not None:
         rx, ry, table = cached
         if rx <= x0 and ry <= y0 and x0 + nx <= rx + table.shape[3] and y0 + ny <= ry + table.shape[2]:
+            _lattice_cache[entry] = _lattice_cache.pop(entry, cached)  # now the most recently used
             return table[:, :, y0 - ry:y0 - ry + ny, x0 - rx:x0 - rx + nx]
     b, m = _LATTICE_BLOCK, _LATTICE_MARGIN
     rx, ry = (x0 - m) // b * b, (y0 - m) // b * b
@@ -372,9 +376,11 @@ def _lattice(keys: np.ndarray, x0: int, y0: int, nx: int, ny: int, iz: int) -> n
     gz = np.array([iz, iz + 1], dtype=np.int64)
     table = _hash_unit(gx[None, None, None, :], gy[None, None, :, None], gz[None, :, None, None],
                        keys.reshape(-1, 1, 1, 1))
-    kept = list(_lattice_cache.values())  # a copy: another thread may add to the cache meanwhile
-    if len(kept) >= 16 or sum(t.nbytes for _, _, t in kept) > _LATTICE_CACHE_BYTES:
-        _lattice_cache.clear()
+    _lattice_cache.pop(entry, None)  # a region that no longer holds the view
+    # Copies of the cache's contents: another thread may change it meanwhile.
+    while (kept := list(_lattice_cache.values())) and (
+            len(kept) >= _LATTICE_CACHE_ENTRIES or sum(t.nbytes for _, _, t in kept) > _LATTICE_CACHE_BYTES):
+        _lattice_cache.pop(next(iter(_lattice_cache), None), None)
     _lattice_cache[entry] = (rx, ry, table)
     return table[:, :, y0 - ry:y0 - ry + ny, x0 - rx:x0 - rx + nx]
 

@@ -175,7 +175,7 @@ def test_the_cached_lattice_gives_the_plain_value_noise() -> None:
     # The cache stays bounded however many fields pass through it.
     for k in range(40):
         sim_backend._noise_octaves(x + 100.0 * k, y, ((1.0, 1.5, keys + k, 1.0),))
-    assert len(sim_backend._lattice_cache) <= 16
+    assert len(sim_backend._lattice_cache) <= sim_backend._LATTICE_CACHE_ENTRIES
 
 
 # --- inside the real statistics -----------------------------------------------------------------
