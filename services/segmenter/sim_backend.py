@@ -649,7 +649,8 @@ class SimPerception:
         frame_seq = _check_seq(frame_seq)
         draw = self.draw(view.world)
         lab, tables = _input_labels(labels), self._tables(classes)
-        g = self._fractions(lab, tables, view, labels.shape)
+        # float32 from the counts on: float64 would only carry digits the float32 logits drop.
+        g = self._fractions(lab, tables, view, labels.shape).astype(np.float32)
         in_world = 1.0 - g[..., INDEX["off_world"]]
         self._weigh_objects(g, lab, tables)
         g /= np.maximum(cv2.reduce(g.reshape(-1, A), 1, cv2.REDUCE_SUM).reshape(self.grid, self.grid, 1), 1e-12)
@@ -660,17 +661,18 @@ class SimPerception:
             g = self._instance_looks(g, view, points)
         if self.params.token_sigma_px > 0:
             sigma = self.params.token_sigma_px / self.params.cell_px
-            g = cv2.GaussianBlur(g.astype(np.float32), (0, 0), sigma)  # float32 from here on
+            g = cv2.GaussianBlur(g, (0, 0), sigma)
         if s["confusion"] > 0:
             g = self._confuse(g, view, points, draw)
         if s["context_local"] > 0 or s["context_global"] > 0:
-            near = cv2.GaussianBlur(g.astype(np.float32, copy=False), (0, 0),
-                                    self.params.context_sigma_px / self.params.cell_px)
-            g = (1.0 - s["context_local"] - s["context_global"]) * g + s["context_local"] * near \
-                + s["context_global"] * _over_cells(g, cv2.REDUCE_AVG)
+            near = cv2.GaussianBlur(g, (0, 0), self.params.context_sigma_px / self.params.cell_px)
+            # In place: g is this frame's own array by now.
+            near *= np.float32(s["context_local"])
+            near += np.float32(s["context_global"]) * _over_cells(g, cv2.REDUCE_AVG)
+            g *= np.float32(1.0 - s["context_local"] - s["context_global"])
+            g += near
         grid = self.grid
-        out = _rows_product(g.reshape(-1, A), self.responses(prompts).astype(g.dtype))
-        out = out.astype(np.float32, copy=False).reshape(grid, grid, -1)  # (grid, grid, P)
+        out = _rows_product(g.reshape(-1, A), self.responses(prompts).astype(np.float32)).reshape(grid, grid, -1)
         # The episode's calibration: all logits scaled alike, the positives moved against the rest.
         if draw.logit_scale_factor != 1.0:
             out *= np.float32(draw.logit_scale_factor)
@@ -682,7 +684,7 @@ class SimPerception:
             field = rng.standard_normal((6, 6, n_p)).astype(np.float32) * s["flicker_logit"]
             out += cv2.resize(field, (grid, grid), interpolation=cv2.INTER_CUBIC).reshape(grid, grid, n_p)
             out += (rng.standard_normal(n_p) * s["flicker_offset"]).astype(np.float32)
-        return out, in_world.astype(np.float32)
+        return out, in_world
 
     def safe_probability(self, labels: np.ndarray, classes: Mapping[int, object] | Iterable[object], view: View,
                          frame_seq: int, prompts: PromptSet, fusion: FusionConfig = FusionConfig(),

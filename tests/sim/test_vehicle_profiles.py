@@ -50,7 +50,10 @@ WORLD = "synthetic:size_m=400,seed=1"
 # again (P 0.51) and rejects the spot; the second spot lands safe 1.9 m from the last landing
 # (126.35 s -> 126.7 s). Re-recorded when a close-look rejection stopped climbing back to the
 # search altitude: the rejected first spot is followed at once by the next confirmed one from 42 m,
-# which lands safe 9.0 m from the last landing (126.7 s -> 67.3 s). Both profiles (none, ideal)
+# which lands safe 9.0 m from the last landing (126.7 s -> 67.3 s). Re-recorded for float-rounding
+# changes in the simulated perception's per-frame path (float32 after its cell counts and the like;
+# P within ~2e-7 of before), which steer the descent a little: the same safe spot at the same time,
+# the landing within 0.9 m of (298.56, 349.836) and 9 mm higher. Both profiles (none, ideal)
 # must still agree.
 REFERENCE = [
     ({"policy": "dovesei", "index": 1, "seed": 12, "timing": "reference", "time_limit_s": 60.0,
@@ -60,8 +63,8 @@ REFERENCE = [
     ({"policy": "clearance", "index": 0, "seed": 11, "timing": "real", "time_limit_s": 150.0,
       "policy_config": {"scene_after_top_pass": False},  # a 400 m world: its scene is the first views
       "start": {"x_m": 230.274, "y_m": 296.129, "alt_m": 100.0}},
-     {"outcome": "safe", "sim_time_s": 67.3, "path_length_m": 93.813, "max_range_m": 87.2,
-      "final": {"x_m": 298.56, "y_m": 349.836, "alt_m": 19.82}}),
+     {"outcome": "safe", "sim_time_s": 67.3, "path_length_m": 93.689, "max_range_m": 87.3,
+      "final": {"x_m": 298.472, "y_m": 350.236, "alt_m": 19.829}}),
 ]
 
 
