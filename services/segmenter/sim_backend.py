@@ -62,10 +62,15 @@ world's name through crc32, never Python's salted str hash).
 
 Speed: the per-frame path reads each label pixel through lookup tables built once per world
 (`_Classes`: codes ordered so that "casts at least this tall" is a code range), casts all
-shadows as one running maximum of caster codes, counts (cell, code, shadowed) in one histogram and
-keeps the hashed value-noise lattice around the view from frame to frame (`_lattice`: a pure
-function of lattice point and key); tests/segmenter/test_perception_variation.py holds it equal to
-the plain formulas.
+shadows as one running maximum of caster codes, counts (cell row, cell column, code) in one
+OpenCV histogram of 8-bit images, weighs objects from their own pixels alone (not their box),
+evaluates both octaves of a world field in one pass over the 16 x 16 field points and keeps the
+hashed value-noise lattice around the view from frame to frame (`_lattice`: a pure function of
+lattice point and key, least recently used out). It is float32 from the cell counts on, keeps
+every matrix product under OpenBLAS's one-thread size (`_rows_product`: threads cost a loaded
+machine's CPU several times what they save) and hands the fusion its prompt planes through
+OpenCV's transpose; tests/segmenter/test_perception_variation.py holds it equal to the plain
+formulas.
 """
 
 from __future__ import annotations
