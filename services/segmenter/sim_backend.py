@@ -741,7 +741,8 @@ class SimPerception:
             cells = (ys + (by + y0)) // cell_px * self.grid + (xs + (bx + x0)) // cell_px
             total = np.bincount(cells, weights=gain[comp_on], minlength=n_cells)
             count = np.bincount(cells, minlength=n_cells)
-            frac.reshape(n_cells, A)[:, INDEX[app]] *= np.where(count > 0, total / np.maximum(count, 1), 1.0)
+            hit = np.flatnonzero(count)  # the cells with object pixels; the others keep their weight
+            frac.reshape(n_cells, A)[hit, INDEX[app]] *= total[hit] / count[hit]
 
     # --- errors ------------------------------------------------------------------------
 
@@ -751,8 +752,7 @@ class SimPerception:
         half_w_m = footprint.half_width_m(view.alt_agl_m, view.hfov_rad)
         half_h_m = half_w_m * height_px / width_px
         u = (np.arange(n) + 0.5) / n * 2.0 - 1.0  # -1 left/top .. +1 right/bottom
-        right = (u * half_w_m)[None, :].repeat(n, 0)
-        forward = (-u * half_h_m)[:, None].repeat(n, 1)
+        right, forward = (u * half_w_m)[None, :], (-u * half_h_m)[:, None]  # broadcast to n x n below
         c, s = math.cos(view.yaw_rad), math.sin(view.yaw_rad)
         cx, cy = view.centre_world_m if view.centre_world_m is not None else (0.0, 0.0)
         return cx + c * right + s * forward, cy + c * forward - s * right
@@ -791,7 +791,8 @@ class SimPerception:
 
     def _on_grid(self, z: np.ndarray) -> np.ndarray:
         """(n, F, F) fields at FIELD_GRID points -> (grid, grid, n) float32 on the cells."""
-        z = np.ascontiguousarray(z.astype(np.float32).transpose(1, 2, 0))
+        n, f = z.shape[0], z.shape[1]
+        z = cv2.transpose(z.reshape(n, -1).astype(np.float32)).reshape(f, f, n)  # OpenCV's: ~4x numpy's copy
         return cv2.resize(z, (self.grid, self.grid), interpolation=cv2.INTER_LINEAR).reshape(self.grid, self.grid, -1)
 
     def _shadow_mask(self, code: np.ndarray, tables: _Classes, view: View,
