@@ -604,14 +604,14 @@ class SimPerception:
         """(grid, grid, A) appearance fractions per cell, shadows included, before any error."""
         return self._fractions(_input_labels(labels), self._tables(classes), view, labels.shape)
 
-    def _fractions(self, lab: np.ndarray, tables: _Classes, view: View, frame_shape: tuple[int, int]) -> np.ndarray:
-        """`fractions` of input labels (352 x 352 uint8) with their class tables."""
+    def _fractions(self, lab: np.ndarray, tables: _Classes, view: View, frame_shape: tuple[int, int],
+                   dtype: type = np.float64) -> np.ndarray:
+        """`fractions` of input labels (352 x 352 uint8) with their class tables, in ``dtype``."""
         k = tables.code_mix.shape[0]
         # Each pixel's code (its class's mix row, + k when shadowed), then one histogram per cell.
         code = cv2.LUT(lab, tables.code_lut) if tables.code_lut.dtype == np.uint8 else tables.code_lut[lab]
         if self._strength["shadow"] > 0:
-            shadow = self._shadow_mask(code, tables, view, frame_shape)
-            code += shadow.view(np.uint8) * code.dtype.type(k)
+            cv2.add(code, k, dst=code, mask=self._shadow_mask(code, tables, view, frame_shape))
         n_cells = self.grid * self.grid
         shadow_mix = (1.0 - self._strength["shadow"]) * tables.code_mix
         shadow_mix[:, INDEX["shadow"]] += self._strength["shadow"]
@@ -639,7 +639,8 @@ class SimPerception:
         else:  # more than 256 codes in view
             cell = self._cell_row.astype(np.intp) * grid + self._cell_col
             counts = np.bincount((cell * m + code).reshape(-1), minlength=n_cells * m)
-        frac = _rows_product(counts.reshape(n_cells, m), mix) / float(self.params.cell_px ** 2)
+        frac = _rows_product(counts.reshape(n_cells, m), mix.astype(dtype, copy=False))
+        frac /= dtype(self.params.cell_px ** 2)
         return frac.reshape(grid, grid, A)
 
     def logits(self, labels: np.ndarray, classes: Mapping[int, object] | Iterable[object], view: View,
@@ -655,7 +656,7 @@ class SimPerception:
         draw = self.draw(view.world)
         lab, tables = _input_labels(labels), self._tables(classes)
         # float32 from the counts on: float64 would only carry digits the float32 logits drop.
-        g = self._fractions(lab, tables, view, labels.shape).astype(np.float32)
+        g = self._fractions(lab, tables, view, labels.shape, np.float32)
         in_world = 1.0 - g[..., INDEX["off_world"]]
         self._weigh_objects(g, lab, tables)
         g /= np.maximum(cv2.reduce(g.reshape(-1, A), 1, cv2.REDUCE_SUM).reshape(self.grid, self.grid, 1), 1e-12)
@@ -797,7 +798,7 @@ class SimPerception:
 
     def _shadow_mask(self, code: np.ndarray, tables: _Classes, view: View,
                      frame_shape: tuple[int, int]) -> np.ndarray:
-        """Input pixels (bool) in the shadow of something taller, sun fixed in the world.
+        """Input pixels in the shadow of something taller (uint8 255, else 0), sun fixed in the world.
 
         Each caster height in view (a rank: a range of codes) throws every pixel at least that tall
         half and all of its shadow length away from the sun, onto in-world ground lower than it: a
@@ -830,7 +831,8 @@ class SimPerception:
                 dx = int(round(right * length_m * frac / m_per_px_x))
                 dy = int(round(-forward * length_m * frac / m_per_px_y))
                 _max_shifted(reach, casters[r - 1], dx, dy)
-        return (reach > code) & (code != 0)
+        # 255 where shaded (OpenCV's mask): reached by a taller rank, and in the world (code 0 is off it).
+        return cv2.bitwise_and(cv2.compare(reach, code, cv2.CMP_GT), cv2.compare(code, 0, cv2.CMP_NE))
 
 
 def _moved(g: np.ndarray, pairs: list[tuple[int, int, float]], excess: np.ndarray,

@@ -134,7 +134,7 @@ def test_fast_fractions_and_shadows_equal_the_plain_formulas() -> None:
     quiet = SimPerception(dataclasses.replace(profile_params("realistic"), shadow=0.0), seed=3)
     for labels, names, view in _world_views():
         tables = perception._tables(names)
-        assert np.array_equal(perception._shadow_mask(tables.code_lut[labels], tables, view, labels.shape),
+        assert np.array_equal(perception._shadow_mask(tables.code_lut[labels], tables, view, labels.shape) > 0,
                               _plain_shadow(perception, labels, names, view))
         # Without shadows: each cell's fractions are the mean of its pixels' class mixes.
         plain = tables.mix[labels].reshape(44, 8, 44, 8, -1).mean(axis=(1, 3))
