@@ -773,8 +773,9 @@ class SimPerception:
             return g.copy()
         keys = _field_keys(self.seed, view.world, (a * 97 + b for a, b, _ in pairs))
         z = world_field(*points, view.alt_agl_m, keys, self.params)
-        weights = self._strength["confusion"] * np.array([w for _, _, w in pairs], np.float32)
-        return _moved(g, pairs, self._on_grid(z - self.params.confusion_onset), weights)
+        pick, move = _move_tables(tuple((i, a, b, w) for i, (a, b, w) in enumerate(pairs)), len(pairs))
+        return _moved(g, self._on_grid(z - self.params.confusion_onset), pick,
+                      np.float32(self._strength["confusion"]) * move)
 
     def _instance_looks(self, g: np.ndarray, view: View, points: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
         """Atypical patches read partly as their class's other looks (INSTANCE_LOOKS), fixed on the ground;
@@ -786,13 +787,9 @@ class SimPerception:
         # One field per class (how atypical each patch of it is); its looks share the moved part.
         z = ground_field(*points, _field_keys(self.seed, view.world, (INDEX[a] for a in sources), tag=1),
                          self.params.instance_length_m)
-        pairs, columns = [], []
-        for i, a in enumerate(sources):
-            for b, w in INSTANCE_LOOKS[a].items():
-                pairs.append((INDEX[a], INDEX[b], w))
-                columns.append(i)
-        weights = self._strength["instance_variation"] * np.array([w for _, _, w in pairs], np.float32)
-        return _moved(g, pairs, self._on_grid(z[columns]), weights)
+        pick, move = _move_tables(tuple((i, INDEX[a], INDEX[b], w) for i, a in enumerate(sources)
+                                        for b, w in INSTANCE_LOOKS[a].items()), len(sources))
+        return _moved(g, self._on_grid(z), pick, np.float32(self._strength["instance_variation"]) * move)
 
     def _on_grid(self, z: np.ndarray) -> np.ndarray:
         """(n, F, F) fields at FIELD_GRID points -> (grid, grid, n) float32 on the cells."""
@@ -839,34 +836,32 @@ class SimPerception:
         return cv2.bitwise_and(cv2.compare(reach, code, cv2.CMP_GT), cv2.compare(code, 0, cv2.CMP_NE))
 
 
-def _moved(g: np.ndarray, pairs: list[tuple[int, int, float]], excess: np.ndarray,
-           weights: np.ndarray) -> np.ndarray:
-    """g (float32) with each pair's share of its source appearance handed to its partner.
+def _moved(g: np.ndarray, excess: np.ndarray, pick: np.ndarray, move: np.ndarray) -> np.ndarray:
+    """g (float32) with part of each field's source appearance handed to its partners.
 
-    The share is clip(excess, 0, 1) x weight per cell; every pair reads the same g, so the moves
-    are one float32 product with a (pairs, A) table of -1 at the source and +1 at the partner
-    (`_pair_tables`), each row scaled by its pair's weight, added to g.
+    Per field (a channel of ``excess``) and cell, clip(excess, 0, 1) of the source's fraction
+    moves as the field's row of ``move`` says; every field reads the same g, so that is two float32
+    products: with ``pick`` (the source columns) and with ``move`` (`_move_tables`), added to g.
     """
     # clip(excess, 0, 1) with OpenCV's thresholds (exact), a few times faster than np.clip here.
     share = cv2.threshold(excess.reshape(excess.shape[0], -1), 1.0, 1.0, cv2.THRESH_TRUNC)[1]
     share = cv2.threshold(share, 0.0, 0.0, cv2.THRESH_TOZERO, dst=share)[1].reshape(excess.shape)
-    pick, move = _pair_tables(tuple((a, b) for a, b, _ in pairs))
     share *= g @ pick
-    return g + share @ (weights[:, None] * move)
+    return g + share @ move
 
 
 @functools.lru_cache(maxsize=64)
-def _pair_tables(ends: tuple[tuple[int, int], ...]) -> tuple[np.ndarray, np.ndarray]:
-    """Read-only float32 tables of (source, partner) pairs: (A, pairs) with 1 at each pair's source
-    (a product with it picks the source columns: exact, and faster than indexing the short last
-    axis) and (pairs, A) with -1 at the source and +1 at the partner."""
-    rows = np.arange(len(ends))
-    src, dst = [a for a, _ in ends], [b for _, b in ends]
-    pick = np.zeros((A, len(ends)), np.float32)
-    pick[src, rows] = 1.0
-    move = np.zeros((len(ends), A), np.float32)
-    move[rows, src] -= 1.0
-    move[rows, dst] += 1.0
+def _move_tables(moves: tuple[tuple[int, int, int, float], ...], n_fields: int) -> tuple[np.ndarray, np.ndarray]:
+    """Read-only float32 tables of moves (field, source, partner, weight), all of a field's moves
+    from one source: (A, fields) with 1 at each field's source (a product with it picks the source
+    columns: exact, and faster than indexing the short last axis) and (fields, A) with each move's
+    weight at its partner and taken from its source."""
+    pick = np.zeros((A, n_fields), np.float32)
+    move = np.zeros((n_fields, A), np.float32)
+    for field, source, partner, weight in moves:
+        pick[source, field] = 1.0
+        move[field, source] -= weight
+        move[field, partner] += weight
     pick.flags.writeable = move.flags.writeable = False
     return pick, move
 

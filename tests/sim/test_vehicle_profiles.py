@@ -63,8 +63,8 @@ REFERENCE = [
     ({"policy": "clearance", "index": 0, "seed": 11, "timing": "real", "time_limit_s": 150.0,
       "policy_config": {"scene_after_top_pass": False},  # a 400 m world: its scene is the first views
       "start": {"x_m": 230.274, "y_m": 296.129, "alt_m": 100.0}},
-     {"outcome": "safe", "sim_time_s": 67.3, "path_length_m": 93.958, "max_range_m": 87.2,
-      "final": {"x_m": 298.49, "y_m": 349.847, "alt_m": 19.829}}),
+     {"outcome": "safe", "sim_time_s": 67.3, "path_length_m": 93.717, "max_range_m": 87.1,
+      "final": {"x_m": 298.24, "y_m": 350.031, "alt_m": 19.829}}),
 ]
 
 
