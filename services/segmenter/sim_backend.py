@@ -322,9 +322,12 @@ def _noise_octaves(x: np.ndarray, y: np.ndarray,
     (x / length, y / length, z) with its own keys (as many as every other octave's) and adds
     amplitude x it. (len(keys),) + x.shape; one octave of amplitude 1 is about uniform in [-1, 1]."""
     n_octaves, n_keys, n = len(octaves), len(octaves[0][2]), x.size
-    # Every octave's x and y as the rows of one array: each step below is one numpy call for all.
-    lengths = np.array([length for length, _, _, _ in octaves])
-    xy = np.stack([x.reshape(-1), y.reshape(-1)])[None] / lengths[:, None, None]  # (octave, axis, points)
+    # Every octave's x and y as the rows of one array: each step below is one numpy call for all
+    # (written into arrays made for them: np.stack costs as much as a few such steps).
+    lengths = np.array([length for length, _, _, _ in octaves])[:, None]
+    xy = np.empty((n_octaves, 2, n))  # (octave, axis, points)
+    np.divide(x.reshape(-1), lengths, out=xy[:, 0])
+    np.divide(y.reshape(-1), lengths, out=xy[:, 1])
     fxy = np.floor(xy)
     txy, ixy = _smoothstep(xy - fxy), fxy.astype(np.int64)
     lows, highs = ixy.min(axis=2).tolist(), ixy.max(axis=2).tolist()
@@ -347,9 +350,11 @@ def _noise_octaves(x: np.ndarray, y: np.ndarray,
             for c, (dx, dy) in enumerate(((0, 0), (1, 0), (0, 1), (1, 1))):
                 corners[o, :, c] = ((1.0 - tz) * _hash_unit(ix + dx, iy + dy, np.int64(iz), key)
                                     + tz * _hash_unit(ix + dx, iy + dy, np.int64(iz + 1), key))
-    w = np.stack([1.0 - txy, txy])  # (d, octave, axis, points): the weight of the corner at +d along x, y
+    w = np.empty((2,) + txy.shape)  # (d, octave, axis, points): the weight of the corner at +d along x, y
+    np.subtract(1.0, txy, out=w[0])
+    w[1] = txy
+    w[:, :, 1] *= np.array([amplitude for _, _, _, amplitude in octaves])[:, None]
     weights = (w[:, None, :, 1] * w[None, :, :, 0]).reshape(4, n_octaves, n)
-    weights *= np.array([amplitude for _, _, _, amplitude in octaves])[:, None]
     return np.einsum("okcp,cop->kp", corners, weights).reshape((n_keys,) + x.shape)
 
 
