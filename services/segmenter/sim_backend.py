@@ -62,10 +62,15 @@ world's name through crc32, never Python's salted str hash).
 
 Speed: the per-frame path reads each label pixel through lookup tables built once per world
 (`_Classes`: codes ordered so that "casts at least this tall" is a code range), casts all
-shadows as one running maximum of caster codes, counts (cell, code, shadowed) in one histogram and
-keeps the hashed value-noise lattice around the view from frame to frame (`_lattice`: a pure
-function of lattice point and key); tests/segmenter/test_perception_variation.py holds it equal to
-the plain formulas.
+shadows as one running maximum of caster codes, counts (cell row, cell column, code) in one
+OpenCV histogram of 8-bit images, weighs objects from their own pixels alone (not their box),
+evaluates both octaves of a world field in one pass over the 16 x 16 field points and keeps the
+hashed value-noise lattice around the view from frame to frame (`_lattice`: a pure function of
+lattice point and key, least recently used out). It is float32 from the cell counts on, keeps
+every matrix product under OpenBLAS's one-thread size (`_rows_product`: threads cost a loaded
+machine's CPU several times what they save) and hands the fusion its prompt planes through
+OpenCV's transpose; tests/segmenter/test_perception_variation.py holds it equal to the plain
+formulas.
 """
 
 from __future__ import annotations
@@ -76,7 +81,7 @@ import functools
 import logging
 import math
 import zlib
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -310,41 +315,57 @@ def _smoothstep(t: np.ndarray | float) -> np.ndarray | float:
     return t * t * (3.0 - 2.0 * t)
 
 
-def _value_noise(x: np.ndarray, y: np.ndarray, z: float, keys: np.ndarray) -> np.ndarray:
-    """Smooth noise on a unit lattice (trilinear with smoothstep weights) at points (x, y) of one
-    height z, one field per key: (len(keys),) + x.shape, about uniform in [-1, 1]."""
-    # x and y as the rows of one array: each step below is one numpy call for both.
-    xy = np.stack([x.reshape(-1), y.reshape(-1)])
+def _noise_octaves(x: np.ndarray, y: np.ndarray,
+                   octaves: Sequence[tuple[float, float, np.ndarray, float]]) -> np.ndarray:
+    """A sum of octaves of smooth noise on a unit lattice (trilinear with smoothstep weights) at
+    points (x, y), one field per key: octave (length, z, keys, amplitude) reads the lattice at
+    (x / length, y / length, z) with its own keys (as many as every other octave's) and adds
+    amplitude x it. (len(keys),) + x.shape; one octave of amplitude 1 is about uniform in [-1, 1]."""
+    n_octaves, n_keys, n = len(octaves), len(octaves[0][2]), x.size
+    # Every octave's x and y as the rows of one array: each step below is one numpy call for all
+    # (written into arrays made for them: np.stack costs as much as a few such steps).
+    lengths = np.array([length for length, _, _, _ in octaves])[:, None]
+    xy = np.empty((n_octaves, 2, n))  # (octave, axis, points)
+    np.divide(x.reshape(-1), lengths, out=xy[:, 0])
+    np.divide(y.reshape(-1), lengths, out=xy[:, 1])
     fxy = np.floor(xy)
     txy, ixy = _smoothstep(xy - fxy), fxy.astype(np.int64)
-    ix, iy = ixy
-    iz = math.floor(z)
-    tz = _smoothstep(z - iz)
-    (x0, y0), (x1, y1) = ixy.min(axis=1).tolist(), ixy.max(axis=1).tolist()
-    nx, ny = x1 - x0 + 2, y1 - y0 + 2
-    if nx * ny <= 8 * ix.size:
-        # Neighbouring points share corners (a view's 16 x 16 points cover about 10 x 10 lattice
-        # cells): blend the two heights on the lattice around the points, then gather.
-        layers = _lattice(keys, x0, y0, nx, ny, iz)
-        plane = ((1.0 - tz) * layers[:, 0] + tz * layers[:, 1]).reshape(keys.size, -1)
-        corners = plane[:, ((iy - y0) * nx + (ix - x0))[None, :] + np.array([[0], [1], [nx], [nx + 1]])]
-    else:
-        # Points spread thinly over a large box: hash each point's own corners.
-        key = keys[:, None]
-        corners = np.stack([(1.0 - tz) * _hash_unit(ix + dx, iy + dy, np.int64(iz), key)
-                            + tz * _hash_unit(ix + dx, iy + dy, np.int64(iz + 1), key)
-                            for dx, dy in ((0, 0), (1, 0), (0, 1), (1, 1))], axis=1)
-    # corners: (keys, 4, points), (dx, dy) = (0, 0), (1, 0), (0, 1), (1, 1).
-    w = np.stack([1.0 - txy, txy])  # (d, axis, points): the weight of the corner at +d along x, y
-    weights = (w[:, None, 1] * w[None, :, 0]).reshape(4, -1)
-    return np.einsum("kcp,cp->kp", corners, weights).reshape((keys.size,) + x.shape)
+    lows, highs = ixy.min(axis=2).tolist(), ixy.max(axis=2).tolist()
+    # corners: (octave, keys, 4, points), (dx, dy) = (0, 0), (1, 0), (0, 1), (1, 1).
+    corners = np.empty((n_octaves, n_keys, 4, n))
+    for o, ((_, z, keys, _), (ix, iy), (x0, y0), (x1, y1)) in enumerate(zip(octaves, ixy, lows, highs)):
+        iz = math.floor(z)
+        tz = _smoothstep(z - iz)
+        nx, ny = x1 - x0 + 2, y1 - y0 + 2
+        if nx * ny <= 8 * n:
+            # Neighbouring points share corners (a view's 16 x 16 points cover about 10 x 10 lattice
+            # cells): blend the two heights on the lattice around the points, then gather.
+            layers = _lattice(keys, x0, y0, nx, ny, iz)
+            plane = ((1.0 - tz) * layers[:, 0] + tz * layers[:, 1]).reshape(n_keys, -1)
+            np.take(plane, ((iy - y0) * nx + (ix - x0))[None, :] + np.array([[0], [1], [nx], [nx + 1]]), axis=1,
+                    out=corners[o], mode="clip")  # in range: "clip" only spares take a buffered copy
+        else:
+            # Points spread thinly over a large box: hash each point's own corners.
+            key = keys[:, None]
+            for c, (dx, dy) in enumerate(((0, 0), (1, 0), (0, 1), (1, 1))):
+                corners[o, :, c] = ((1.0 - tz) * _hash_unit(ix + dx, iy + dy, np.int64(iz), key)
+                                    + tz * _hash_unit(ix + dx, iy + dy, np.int64(iz + 1), key))
+    w = np.empty((2,) + txy.shape)  # (d, octave, axis, points): the weight of the corner at +d along x, y
+    np.subtract(1.0, txy, out=w[0])
+    w[1] = txy
+    w[:, :, 1] *= np.array([amplitude for _, _, _, amplitude in octaves])[:, None]
+    weights = (w[:, None, :, 1] * w[None, :, :, 0]).reshape(4, n_octaves, n)
+    return np.einsum("okcp,cop->kp", corners, weights).reshape((n_keys,) + x.shape)
 
 
 # The hashed lattice is a pure function of (point, key), so it is kept across frames: each set of
 # keys at each height keeps the region it last needed, widened by a margin and snapped to whole
 # blocks of lattice cells, so the next views of a flight (which move a little) read it again.
+# The least recently used entry goes first (the dict's order is the order of use): a flight reads
+# the same few (its ground fields' at every altitude) while others come and go.
 _LATTICE_BLOCK = 8
 _LATTICE_MARGIN = 4
+_LATTICE_CACHE_ENTRIES = 16
 _LATTICE_CACHE_BYTES = 16 << 20
 _lattice_cache: dict[tuple[bytes, int], tuple[int, int, np.ndarray]] = {}
 
@@ -356,6 +377,7 @@ def _lattice(keys: np.ndarray, x0: int, y0: int, nx: int, ny: int, iz: int) -> n
     if cached is not None:
         rx, ry, table = cached
         if rx <= x0 and ry <= y0 and x0 + nx <= rx + table.shape[3] and y0 + ny <= ry + table.shape[2]:
+            _lattice_cache[entry] = _lattice_cache.pop(entry, cached)  # now the most recently used
             return table[:, :, y0 - ry:y0 - ry + ny, x0 - rx:x0 - rx + nx]
     b, m = _LATTICE_BLOCK, _LATTICE_MARGIN
     rx, ry = (x0 - m) // b * b, (y0 - m) // b * b
@@ -364,9 +386,11 @@ def _lattice(keys: np.ndarray, x0: int, y0: int, nx: int, ny: int, iz: int) -> n
     gz = np.array([iz, iz + 1], dtype=np.int64)
     table = _hash_unit(gx[None, None, None, :], gy[None, None, :, None], gz[None, :, None, None],
                        keys.reshape(-1, 1, 1, 1))
-    kept = list(_lattice_cache.values())  # a copy: another thread may add to the cache meanwhile
-    if len(kept) >= 16 or sum(t.nbytes for _, _, t in kept) > _LATTICE_CACHE_BYTES:
-        _lattice_cache.clear()
+    _lattice_cache.pop(entry, None)  # a region that no longer holds the view
+    # Copies of the cache's contents: another thread may change it meanwhile.
+    while (kept := list(_lattice_cache.values())) and (
+            len(kept) >= _LATTICE_CACHE_ENTRIES or sum(t.nbytes for _, _, t in kept) > _LATTICE_CACHE_BYTES):
+        _lattice_cache.pop(next(iter(_lattice_cache), None), None)
     _lattice_cache[entry] = (rx, ry, table)
     return table[:, :, y0 - ry:y0 - ry + ny, x0 - rx:x0 - rx + nx]
 
@@ -390,9 +414,8 @@ def ground_field(east_m: np.ndarray, north_m: np.ndarray, keys: np.ndarray, leng
 
 def _field(east_m: np.ndarray, north_m: np.ndarray, z: float, keys: np.ndarray, length: float) -> np.ndarray:
     keys = np.asarray(keys, dtype=np.int64).reshape(-1)
-    coarse = _value_noise(east_m / length, north_m / length, z, keys)
-    fine = _value_noise(east_m / (0.4 * length), north_m / (0.4 * length), z + 17.3, keys + 7)
-    return (0.75 * coarse + 0.45 * fine) / _FIELD_STD
+    return _noise_octaves(east_m, north_m, ((length, z, keys, 0.75 / _FIELD_STD),
+                                            (0.4 * length, z + 17.3, keys + 7, 0.45 / _FIELD_STD)))
 
 
 # --- one episode over one world ---------------------------------------------------------------
@@ -536,10 +559,10 @@ class SimPerception:
         self._responses: dict[str, np.ndarray] = {}
         self._draws: dict[str, EpisodeDraw] = {}
         self.grid = INPUT_PX // params.cell_px
-        iy, ix = np.divmod(np.arange(INPUT_PX * INPUT_PX), INPUT_PX)
-        self._cell_of_px = ((iy // params.cell_px) * self.grid + ix // params.cell_px).astype(np.intp)
-        self._cell_bases: dict[int, np.ndarray] = {}
-        self._key = np.empty(INPUT_PX * INPUT_PX, np.intp)  # the per-frame histogram key, reused
+        # Each input pixel's cell row and column (8-bit images, as OpenCV's histogram counts them).
+        cell_of = (np.arange(INPUT_PX) // params.cell_px).astype(np.uint8)
+        self._cell_row = np.ascontiguousarray(np.broadcast_to(cell_of[:, None], (INPUT_PX, INPUT_PX)))
+        self._cell_col = np.ascontiguousarray(np.broadcast_to(cell_of[None, :], (INPUT_PX, INPUT_PX)))
 
     def describe(self) -> str:
         return f"SIMULATED perception profile={self.params.name} noise={self.params.noise:g} seed={self.seed}"
@@ -586,14 +609,14 @@ class SimPerception:
         """(grid, grid, A) appearance fractions per cell, shadows included, before any error."""
         return self._fractions(_input_labels(labels), self._tables(classes), view, labels.shape)
 
-    def _fractions(self, lab: np.ndarray, tables: _Classes, view: View, frame_shape: tuple[int, int]) -> np.ndarray:
-        """`fractions` of input labels (352 x 352 uint8) with their class tables."""
+    def _fractions(self, lab: np.ndarray, tables: _Classes, view: View, frame_shape: tuple[int, int],
+                   dtype: type = np.float64) -> np.ndarray:
+        """`fractions` of input labels (352 x 352 uint8) with their class tables, in ``dtype``."""
         k = tables.code_mix.shape[0]
         # Each pixel's code (its class's mix row, + k when shadowed), then one histogram per cell.
         code = cv2.LUT(lab, tables.code_lut) if tables.code_lut.dtype == np.uint8 else tables.code_lut[lab]
         if self._strength["shadow"] > 0:
-            shadow = self._shadow_mask(code, tables, view, frame_shape)
-            code += shadow.view(np.uint8) * code.dtype.type(k)
+            cv2.add(code, k, dst=code, mask=self._shadow_mask(code, tables, view, frame_shape))
         n_cells = self.grid * self.grid
         shadow_mix = (1.0 - self._strength["shadow"]) * tables.code_mix
         shadow_mix[:, INDEX["shadow"]] += self._strength["shadow"]
@@ -608,24 +631,22 @@ class SimPerception:
                 code = cv2.LUT(code, remap)
             else:
                 present = np.flatnonzero(np.bincount(code.reshape(-1), minlength=2 * k))
-                remap = np.zeros(2 * k, code.dtype)
+                remap = np.zeros(2 * k, np.uint8 if present.size <= 256 else code.dtype)
                 remap[present] = np.arange(present.size)
                 code = remap[code]
             mix = mix[present]
-        m = mix.shape[0]
-        key = np.add(self._cell_base(m), code.reshape(-1), out=self._key)
-        counts = np.bincount(key, minlength=n_cells * m).reshape(n_cells, m)
-        frac = _rows_product(counts, mix) / float(self.params.cell_px ** 2)
-        return frac.reshape(self.grid, self.grid, A)
-
-    def _cell_base(self, stride: int) -> np.ndarray:
-        """Each input pixel's cell index times ``stride`` (cached: one array per code count)."""
-        base = self._cell_bases.get(stride)
-        if base is None:
-            if len(self._cell_bases) >= 8:
-                self._cell_bases.clear()
-            base = self._cell_bases[stride] = self._cell_of_px * stride
-        return base
+        m, grid = mix.shape[0], self.grid
+        if code.dtype == np.uint8:
+            # OpenCV counts 8-bit images through lookup tables: ~1.4x numpy's bincount of a
+            # (cell, code) key, and exact (float32 counts of at most 352 x 352).
+            counts = cv2.calcHist([self._cell_row, self._cell_col, code], [0, 1, 2], None, [grid, grid, m],
+                                  [0, grid, 0, grid, 0, m])
+        else:  # more than 256 codes in view
+            cell = self._cell_row.astype(np.intp) * grid + self._cell_col
+            counts = np.bincount((cell * m + code).reshape(-1), minlength=n_cells * m)
+        frac = _rows_product(counts.reshape(n_cells, m), mix.astype(dtype, copy=False))
+        frac /= dtype(self.params.cell_px ** 2)
+        return frac.reshape(grid, grid, A)
 
     def logits(self, labels: np.ndarray, classes: Mapping[int, object] | Iterable[object], view: View,
                frame_seq: int, prompts: PromptSet) -> tuple[np.ndarray, np.ndarray]:
@@ -639,7 +660,8 @@ class SimPerception:
         frame_seq = _check_seq(frame_seq)
         draw = self.draw(view.world)
         lab, tables = _input_labels(labels), self._tables(classes)
-        g = self._fractions(lab, tables, view, labels.shape)
+        # float32 from the counts on: float64 would only carry digits the float32 logits drop.
+        g = self._fractions(lab, tables, view, labels.shape, np.float32)
         in_world = 1.0 - g[..., INDEX["off_world"]]
         self._weigh_objects(g, lab, tables)
         g /= np.maximum(cv2.reduce(g.reshape(-1, A), 1, cv2.REDUCE_SUM).reshape(self.grid, self.grid, 1), 1e-12)
@@ -650,29 +672,32 @@ class SimPerception:
             g = self._instance_looks(g, view, points)
         if self.params.token_sigma_px > 0:
             sigma = self.params.token_sigma_px / self.params.cell_px
-            g = cv2.GaussianBlur(g.astype(np.float32), (0, 0), sigma)  # float32 from here on
+            g = cv2.GaussianBlur(g, (0, 0), sigma)
         if s["confusion"] > 0:
             g = self._confuse(g, view, points, draw)
         if s["context_local"] > 0 or s["context_global"] > 0:
-            near = cv2.GaussianBlur(g.astype(np.float32, copy=False), (0, 0),
-                                    self.params.context_sigma_px / self.params.cell_px)
-            g = (1.0 - s["context_local"] - s["context_global"]) * g + s["context_local"] * near \
-                + s["context_global"] * _over_cells(g, cv2.REDUCE_AVG)
+            near = cv2.GaussianBlur(g, (0, 0), self.params.context_sigma_px / self.params.cell_px)
+            # In place: g is this frame's own array by now.
+            near *= np.float32(s["context_local"])
+            near += np.float32(s["context_global"]) * _over_cells(g, cv2.REDUCE_AVG)
+            g *= np.float32(1.0 - s["context_local"] - s["context_global"])
+            g += near
         grid = self.grid
-        out = _rows_product(g.reshape(-1, A), self.responses(prompts).astype(g.dtype))
-        out = out.astype(np.float32, copy=False).reshape(grid, grid, -1)  # (grid, grid, P)
-        # The episode's calibration: all logits scaled alike, the positives moved against the rest.
-        if draw.logit_scale_factor != 1.0:
-            out *= np.float32(draw.logit_scale_factor)
-        if draw.positive_offset_logit != 0.0:
-            out[..., :prompts.n_positive] += np.float32(draw.positive_offset_logit)
+        # The episode's calibration: all logits scaled alike (in the response table), the positives
+        # moved against the rest (with the flicker's per-prompt offsets, one pass over the logits).
+        responses = self.responses(prompts) * draw.logit_scale_factor
+        out = _rows_product(g.reshape(-1, A), responses.astype(np.float32)).reshape(grid, grid, -1)
+        offset = np.zeros(out.shape[2])
+        offset[:prompts.n_positive] = draw.positive_offset_logit
         if s["flicker_logit"] > 0 or s["flicker_offset"] > 0:
             rng = np.random.default_rng([self.seed, 11, frame_seq])
             n_p = out.shape[2]
             field = rng.standard_normal((6, 6, n_p)).astype(np.float32) * s["flicker_logit"]
             out += cv2.resize(field, (grid, grid), interpolation=cv2.INTER_CUBIC).reshape(grid, grid, n_p)
-            out += (rng.standard_normal(n_p) * s["flicker_offset"]).astype(np.float32)
-        return out, in_world.astype(np.float32)
+            offset += rng.standard_normal(n_p) * s["flicker_offset"]
+        if offset.any():
+            out += offset.astype(np.float32)
+        return out, in_world
 
     def safe_probability(self, labels: np.ndarray, classes: Mapping[int, object] | Iterable[object], view: View,
                          frame_seq: int, prompts: PromptSet, fusion: FusionConfig = FusionConfig(),
@@ -682,7 +707,8 @@ class SimPerception:
         grid = max(self.params.fusion_grid_px, self.grid)
         if grid != self.grid:
             logits = cv2.resize(logits, (grid, grid), interpolation=cv2.INTER_LINEAR).reshape(grid, grid, -1)
-        up = np.ascontiguousarray(logits.transpose(2, 0, 1))  # the fusion reads prompt planes
+        # The fusion reads prompt planes: OpenCV's transpose of (pixels, P) is ~4x numpy's copy.
+        up = cv2.transpose(logits.reshape(grid * grid, -1)).reshape(-1, grid, grid)
         if grid == INPUT_PX:
             prob = fuse(up, prompts.n_positive, fusion.mode, fusion.temperature, fusion.blur_px)
         else:
@@ -695,7 +721,9 @@ class SimPerception:
         height_px, width_px = labels.shape if out_size is None else out_size
         if (height_px, width_px) != prob.shape:
             prob = cv2.resize(prob, (int(width_px), int(height_px)), interpolation=cv2.INTER_LINEAR)
-        return np.clip(prob, 0.0, 1.0, out=prob)
+        # clip(prob, 0, 1) with OpenCV's thresholds (exact), faster than np.clip at 352 x 352.
+        cv2.threshold(prob, 1.0, 1.0, cv2.THRESH_TRUNC, dst=prob)
+        return cv2.threshold(prob, 0.0, 0.0, cv2.THRESH_TOZERO, dst=prob)[1]
 
     def _weigh_objects(self, frac: np.ndarray, lab: np.ndarray, tables: _Classes) -> None:
         """Weighs person and vehicle appearances in ``frac`` (grid, grid, A), in place: in a cell
@@ -704,25 +732,27 @@ class SimPerception:
         if not tables.object_lut.any():
             return
         objects = cv2.LUT(lab, tables.object_lut)
-        # Components only within the box of the object pixels (often a small part of the view);
-        # the pixels keep their raster order, so the sums below are the same.
+        # Components only within the box of the object pixels (often a small part of the view).
         bx, by, bw, bh = cv2.boundingRect(objects)
-        n_cells = self.grid * self.grid
-        cell_of_px = self._cell_of_px.reshape(INPUT_PX, INPUT_PX)
+        n_cells, cell_px = self.grid * self.grid, self.params.cell_px
         for i, app in enumerate(OBJECT_APPEARANCES):
             mask = cv2.bitwise_and(objects[by:by + bh, bx:bx + bw], 1 << i)
             x0, y0, w, h = cv2.boundingRect(mask)
             if not w:
                 continue
-            n, comp = cv2.connectedComponents(mask[y0:y0 + h, x0:x0 + w], connectivity=8)
-            on = comp.ravel() > 0
-            comp_on = comp.ravel()[on]
+            mask = mask[y0:y0 + h, x0:x0 + w]
+            n, comp = cv2.connectedComponents(mask, connectivity=8)
+            # Only the object pixels (a few % of the box) are read from here on, in the raster
+            # order findNonZero lists them in, so the sums add in the same order as over the box.
+            xs, ys = cv2.findNonZero(mask).reshape(-1, 2).T
+            comp_on = comp[ys, xs]
             # Each component's area from its pixels (OpenCV's stats cost 4x the labelling).
             gain = object_gain(np.bincount(comp_on, minlength=n) / float(TOKEN_PX * TOKEN_PX))
-            cells = cell_of_px[by + y0:by + y0 + h, bx + x0:bx + x0 + w].ravel()[on]
+            cells = (ys + (by + y0)) // cell_px * self.grid + (xs + (bx + x0)) // cell_px
             total = np.bincount(cells, weights=gain[comp_on], minlength=n_cells)
             count = np.bincount(cells, minlength=n_cells)
-            frac.reshape(n_cells, A)[:, INDEX[app]] *= np.where(count > 0, total / np.maximum(count, 1), 1.0)
+            hit = np.flatnonzero(count)  # the cells with object pixels; the others keep their weight
+            frac.reshape(n_cells, A)[hit, INDEX[app]] *= total[hit] / count[hit]
 
     # --- errors ------------------------------------------------------------------------
 
@@ -732,8 +762,7 @@ class SimPerception:
         half_w_m = footprint.half_width_m(view.alt_agl_m, view.hfov_rad)
         half_h_m = half_w_m * height_px / width_px
         u = (np.arange(n) + 0.5) / n * 2.0 - 1.0  # -1 left/top .. +1 right/bottom
-        right = (u * half_w_m)[None, :].repeat(n, 0)
-        forward = (-u * half_h_m)[:, None].repeat(n, 1)
+        right, forward = (u * half_w_m)[None, :], (-u * half_h_m)[:, None]  # broadcast to n x n below
         c, s = math.cos(view.yaw_rad), math.sin(view.yaw_rad)
         cx, cy = view.centre_world_m if view.centre_world_m is not None else (0.0, 0.0)
         return cx + c * right + s * forward, cy + c * forward - s * right
@@ -749,8 +778,9 @@ class SimPerception:
             return g.copy()
         keys = _field_keys(self.seed, view.world, (a * 97 + b for a, b, _ in pairs))
         z = world_field(*points, view.alt_agl_m, keys, self.params)
-        weights = self._strength["confusion"] * np.array([w for _, _, w in pairs], np.float32)
-        return _moved(g, pairs, self._on_grid(z) - np.float32(self.params.confusion_onset), weights)
+        pick, move = _move_tables(tuple((i, a, b, w) for i, (a, b, w) in enumerate(pairs)), len(pairs))
+        return _moved(g, self._on_grid(z - self.params.confusion_onset), pick,
+                      np.float32(self._strength["confusion"]) * move)
 
     def _instance_looks(self, g: np.ndarray, view: View, points: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
         """Atypical patches read partly as their class's other looks (INSTANCE_LOOKS), fixed on the ground;
@@ -762,22 +792,19 @@ class SimPerception:
         # One field per class (how atypical each patch of it is); its looks share the moved part.
         z = ground_field(*points, _field_keys(self.seed, view.world, (INDEX[a] for a in sources), tag=1),
                          self.params.instance_length_m)
-        pairs, columns = [], []
-        for i, a in enumerate(sources):
-            for b, w in INSTANCE_LOOKS[a].items():
-                pairs.append((INDEX[a], INDEX[b], w))
-                columns.append(i)
-        weights = self._strength["instance_variation"] * np.array([w for _, _, w in pairs], np.float32)
-        return _moved(g, pairs, self._on_grid(z[columns]), weights)
+        pick, move = _move_tables(tuple((i, INDEX[a], INDEX[b], w) for i, a in enumerate(sources)
+                                        for b, w in INSTANCE_LOOKS[a].items()), len(sources))
+        return _moved(g, self._on_grid(z), pick, np.float32(self._strength["instance_variation"]) * move)
 
     def _on_grid(self, z: np.ndarray) -> np.ndarray:
         """(n, F, F) fields at FIELD_GRID points -> (grid, grid, n) float32 on the cells."""
-        z = np.ascontiguousarray(z.astype(np.float32).transpose(1, 2, 0))
+        n, f = z.shape[0], z.shape[1]
+        z = cv2.transpose(z.reshape(n, -1).astype(np.float32)).reshape(f, f, n)  # OpenCV's: ~4x numpy's copy
         return cv2.resize(z, (self.grid, self.grid), interpolation=cv2.INTER_LINEAR).reshape(self.grid, self.grid, -1)
 
     def _shadow_mask(self, code: np.ndarray, tables: _Classes, view: View,
                      frame_shape: tuple[int, int]) -> np.ndarray:
-        """Input pixels (bool) in the shadow of something taller, sun fixed in the world.
+        """Input pixels in the shadow of something taller (uint8 255, else 0), sun fixed in the world.
 
         Each caster height in view (a rank: a range of codes) throws every pixel at least that tall
         half and all of its shadow length away from the sun, onto in-world ground lower than it: a
@@ -810,48 +837,55 @@ class SimPerception:
                 dx = int(round(right * length_m * frac / m_per_px_x))
                 dy = int(round(-forward * length_m * frac / m_per_px_y))
                 _max_shifted(reach, casters[r - 1], dx, dy)
-        return (reach > code) & (code != 0)
+        # 255 where shaded (OpenCV's mask): reached by a taller rank, and in the world (code 0 is off it).
+        return cv2.bitwise_and(cv2.compare(reach, code, cv2.CMP_GT), cv2.compare(code, 0, cv2.CMP_NE))
 
 
-def _moved(g: np.ndarray, pairs: list[tuple[int, int, float]], excess: np.ndarray,
-           weights: np.ndarray) -> np.ndarray:
-    """g with each pair's share of its source appearance handed to its partner, in g's dtype.
+def _moved(g: np.ndarray, excess: np.ndarray, pick: np.ndarray, move: np.ndarray) -> np.ndarray:
+    """g (float32) with part of each field's source appearance handed to its partners.
 
-    The share is clip(excess, 0, 1) x weight per cell; every pair reads the same g, so the moves
-    are one float32 product with a (pairs, A) table of -1 at the source and +1 at the partner
-    (`_pair_tables`), added to g.
+    Per field (a channel of ``excess``) and cell, clip(excess, 0, 1) of the source's fraction
+    moves as the field's row of ``move`` says; every field reads the same g, so that is two float32
+    products: with ``pick`` (the source columns) and with ``move`` (`_move_tables`), added to g.
     """
-    share = np.clip(excess, 0.0, 1.0) * weights
-    pick, move = _pair_tables(tuple((a, b) for a, b, _ in pairs))
-    return g + ((g.astype(np.float32, copy=False) @ pick) * share) @ move
+    # clip(excess, 0, 1) with OpenCV's thresholds (exact), a few times faster than np.clip here.
+    share = cv2.threshold(excess.reshape(excess.shape[0], -1), 1.0, 1.0, cv2.THRESH_TRUNC)[1]
+    share = cv2.threshold(share, 0.0, 0.0, cv2.THRESH_TOZERO, dst=share)[1].reshape(excess.shape)
+    share *= g @ pick
+    return g + share @ move
 
 
 @functools.lru_cache(maxsize=64)
-def _pair_tables(ends: tuple[tuple[int, int], ...]) -> tuple[np.ndarray, np.ndarray]:
-    """Read-only float32 tables of (source, partner) pairs: (A, pairs) with 1 at each pair's source
-    (a product with it picks the source columns: exact, and faster than indexing the short last
-    axis) and (pairs, A) with -1 at the source and +1 at the partner."""
-    rows = np.arange(len(ends))
-    src, dst = [a for a, _ in ends], [b for _, b in ends]
-    pick = np.zeros((A, len(ends)), np.float32)
-    pick[src, rows] = 1.0
-    move = np.zeros((len(ends), A), np.float32)
-    move[rows, src] -= 1.0
-    move[rows, dst] += 1.0
+def _move_tables(moves: tuple[tuple[int, int, int, float], ...], n_fields: int) -> tuple[np.ndarray, np.ndarray]:
+    """Read-only float32 tables of moves (field, source, partner, weight), all of a field's moves
+    from one source: (A, fields) with 1 at each field's source (a product with it picks the source
+    columns: exact, and faster than indexing the short last axis) and (fields, A) with each move's
+    weight at its partner and taken from its source."""
+    pick = np.zeros((A, n_fields), np.float32)
+    move = np.zeros((n_fields, A), np.float32)
+    for field, source, partner, weight in moves:
+        pick[source, field] = 1.0
+        move[field, source] -= weight
+        move[field, partner] += weight
     pick.flags.writeable = move.flags.writeable = False
     return pick, move
 
 
-_PRODUCT_ROWS = 2048
+# OpenBLAS spreads a product of 2^19 multiply-adds (rows x inner x columns) or more over threads,
+# which costs several times the CPU time it saves (the perception is budgeted one core): measured
+# over 44 x 44 cells, (cells x 38 codes) @ (38 codes x 15 appearances) took 0.7-4 ms of CPU on a
+# loaded machine in one block, 77 us in blocks under 2^19 (a world with many classes has that many
+# codes; the clean profile has 176 x 176 cells).
+_PRODUCT_MACS = 1 << 19
 
 
 def _rows_product(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """a @ b in b's dtype, for a 2-D ``a`` of many rows, taken a block of rows at a time: OpenBLAS
-    spreads a product of more rows over threads, which costs several times the CPU time it saves
-    (the perception is budgeted one core; the clean profile's 176 x 176 cells)."""
+    """a @ b in b's dtype, for a 2-D ``a`` of many rows, taken a block of rows at a time, each block
+    small enough to stay on one thread (`_PRODUCT_MACS`)."""
     out = np.empty((a.shape[0], b.shape[1]), b.dtype)
-    for i in range(0, a.shape[0], _PRODUCT_ROWS):
-        np.matmul(a[i:i + _PRODUCT_ROWS].astype(b.dtype, copy=False), b, out=out[i:i + _PRODUCT_ROWS])
+    rows = max(1, (_PRODUCT_MACS - 1) // (a.shape[1] * b.shape[1]))
+    for i in range(0, a.shape[0], rows):
+        np.matmul(a[i:i + rows].astype(b.dtype, copy=False), b, out=out[i:i + rows])
     return out
 
 

@@ -134,7 +134,7 @@ def test_fast_fractions_and_shadows_equal_the_plain_formulas() -> None:
     quiet = SimPerception(dataclasses.replace(profile_params("realistic"), shadow=0.0), seed=3)
     for labels, names, view in _world_views():
         tables = perception._tables(names)
-        assert np.array_equal(perception._shadow_mask(tables.code_lut[labels], tables, view, labels.shape),
+        assert np.array_equal(perception._shadow_mask(tables.code_lut[labels], tables, view, labels.shape) > 0,
                               _plain_shadow(perception, labels, names, view))
         # Without shadows: each cell's fractions are the mean of its pixels' class mixes.
         plain = tables.mix[labels].reshape(44, 8, 44, 8, -1).mean(axis=(1, 3))
@@ -163,15 +163,19 @@ def test_the_cached_lattice_gives_the_plain_value_noise() -> None:
         # A new view, the same again (read from the cache), a little moved (still inside the kept
         # region), far moved (a new region).
         for shift in (0.0, 0.0, 2.5, 40.0):
-            fast = sim_backend._value_noise(x + shift, y, z, keys)
+            fast = sim_backend._noise_octaves(x + shift, y, ((1.0, z, keys, 1.0),))
             assert np.abs(fast - _plain_value_noise(x + shift, y, z, keys)).max() < 1e-12
     # Points spread over a box too large to tabulate are hashed per point, to the same values.
-    far = sim_backend._value_noise(x * 50, y, 2.3, keys)
+    far = sim_backend._noise_octaves(x * 50, y, ((1.0, 2.3, keys, 1.0),))
     assert np.abs(far - _plain_value_noise(x * 50, y, 2.3, keys)).max() < 1e-12
+    # Octaves add up, each at its own scale, height and keys (here one tabulated, one hashed per point).
+    both = sim_backend._noise_octaves(x, y, ((1.0, 2.3, keys, 0.75), (0.02, 19.6, keys + 7, 0.45)))
+    plain = 0.75 * _plain_value_noise(x, y, 2.3, keys) + 0.45 * _plain_value_noise(x / 0.02, y / 0.02, 19.6, keys + 7)
+    assert np.abs(both - plain).max() < 1e-12
     # The cache stays bounded however many fields pass through it.
     for k in range(40):
-        sim_backend._value_noise(x + 100.0 * k, y, 1.5, keys + k)
-    assert len(sim_backend._lattice_cache) <= 16
+        sim_backend._noise_octaves(x + 100.0 * k, y, ((1.0, 1.5, keys + k, 1.0),))
+    assert len(sim_backend._lattice_cache) <= sim_backend._LATTICE_CACHE_ENTRIES
 
 
 # --- inside the real statistics -----------------------------------------------------------------
