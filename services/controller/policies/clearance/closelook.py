@@ -292,10 +292,15 @@ class CloseLookPolicy:
             why = (f"close look: {self._verdict}" + (f", found in {repeated} of the last {len(self._recent)} looks"
                                                      if before_gate else "")
                    + (f", found again {waited_s:.0f} s after the first finding there" if waited_s else ""))
-            self.inner.reject_target(obs.t_s, obs.alt_agl_m, why)
-            self._never_since_s, self._committed, self._trouble = None, None, None
+            self._reject(obs.t_s, obs.alt_agl_m, why)
         elif first:
             log.info("close look %d at %.1f m: %s: waiting", look.request_seq, asked.alt_m, self._verdict)
+
+    def _reject(self, t_s: float, alt_m: float, why: str) -> None:
+        """The spot is rejected (the inner policy blacklists it and searches on); its waits and
+        findings end with it."""
+        self.inner.reject_target(t_s, alt_m, why)
+        self._never_since_s, self._committed, self._trouble = None, None, None
 
     def _covers(self, look: _Look | None, spot: tuple[float, float]) -> bool:
         """Did `look` look at this spot (moved at most spot_slack_m since)?"""
@@ -314,10 +319,8 @@ class CloseLookPolicy:
         if self._never_since_s is not None and t - self._never_since_s > cfg.wait_s:
             # A wait that did not end: the deadline holds whatever the looks since were (clear ones
             # of a spot the map kept moving never make a streak).
-            waited_s = t - self._never_since_s
-            self.inner.reject_target(t, alt, f"close look: not clear {cfg.resume_looks} looks in a row within "
-                                             f"{cfg.wait_s:g} s of a finding ({self._verdict}; {waited_s:.0f} s)")
-            self._never_since_s, self._committed, self._trouble = None, None, None
+            self._reject(t, alt, f"close look: not clear {cfg.resume_looks} looks in a row within {cfg.wait_s:g} s "
+                                 f"of a finding ({self._verdict}; {t - self._never_since_s:.0f} s)")
         cleared = self._cleared(spot)
         if cleared:
             self._committed = self._clear  # the gate is open for this spot: findings now mean waiting

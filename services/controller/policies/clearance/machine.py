@@ -362,9 +362,9 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
             return mem, (vf, vr, _hold_alt(inp.alt_agl_m, max(inp.alt_agl_m, cfg.handover_alt_m + 5.0), cfg))
 
     # DESCEND
-    # The hand-over needs the measured altitude, the spot fixed by vision, and the vehicle
-    # centred on it (within lock_in): the checked clearance holds the 2 m disk only around the
-    # spot. Below the hand-over altitude otherwise (an altitude hold sagging while the spot is
+    # The hand-over needs the measured altitude, the spot fixed by vision, the vehicle centred on
+    # it (within lock_in) and the map clearing the vehicle's own disk: the checked clearance holds
+    # the 2 m disk only around the spot. Below the hand-over altitude otherwise (an altitude hold sagging while the spot is
     # re-checked, say) the vehicle holds its altitude and steers onto the spot first.
     room = target.clearance_m - err if inp.below_clearance_m is None else inp.below_clearance_m
     roomy = room >= cfg.safety_radius_m + cfg.handover_margin_m  # the hand-over point's own disk is cleared
