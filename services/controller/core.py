@@ -873,10 +873,17 @@ class ControllerCore:
 
     def _velocity(self, mode: Mode, state: VehicleState) -> tuple[tuple[float, float, float], float]:
         if mode is Mode.HOLD and self._confirming:
-            # Confirming a declared hand-over: sink slowly onto the altitude, never far below it.
+            # Confirming a declared hand-over: sink slowly onto the altitude, never far below it,
+            # and fly the policy's horizontal command. Without GNSS a zero command is no hold: the
+            # autopilot holds its own biased velocity estimate at zero, and a policy that learnt
+            # the bias commands its opposite (harsh villas start 1 of 6 drifted 3.4 m at 1.5 m/s
+            # in the 2.4 s the baro's noise took to confirm, off the lawn onto a sidewalk).
             cfg = self.config
             sinking = state.alt_agl_m > cfg.handover_alt_m - cfg.handover_release_m
-            return (0.0, 0.0, cfg.handover_sink_m_s if sinking else 0.0), 0.0
+            fwd, right = 0.0, 0.0
+            if self._decision is not None:
+                fwd, right, _ = self._as_meant(self._decision.vel_body_frd_m_s, state)
+            return (fwd, right, cfg.handover_sink_m_s if sinking else 0.0), 0.0
         if mode is Mode.OK and self._decision is not None:
             return self._as_meant(self._decision.vel_body_frd_m_s, state), self._decision.yaw_rate_rad_s
         if mode is Mode.CLIMB:

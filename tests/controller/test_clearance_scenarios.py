@@ -94,7 +94,7 @@ def fly(world: World, policy: ClearancePolicy, *, t_max_s: float = 400.0, dt_s: 
         bias_m_s: tuple[float, float] = (0.0, 0.0), vel_noise_m_s: float = 0.0,
         wind_m_s: tuple[float, float] = (0.0, 0.0), gap_s: tuple[float, float] | None = None,
         seed: int = 0, start: tuple[float, float] = (0.0, 0.0), hold_s: float = 0.0,
-        start_alt_m: float = 100.0) -> Flight:
+        start_alt_m: float = 100.0, after_handover_s: float = 0.0) -> Flight:
     rng = np.random.default_rng(seed)
     n, e = start
     alt, t = start_alt_m, 0.0
@@ -104,6 +104,7 @@ def fly(world: World, policy: ClearancePolicy, *, t_max_s: float = 400.0, dt_s: 
     max_range = 0.0
     decision = None
     hold_until: float | None = None  # NO_SPOT reached: fly on this long to see the hold
+    handed_over_s: float | None = None  # HANDOVER declared: fly on after_handover_s to see its hold
     frame_poses: dict[int, tuple[float, float, float]] = {}
     while t < t_max_s:
         fresh = gap_s is None or not (gap_s[0] <= t < gap_s[1])
@@ -125,7 +126,11 @@ def fly(world: World, policy: ClearancePolicy, *, t_max_s: float = 400.0, dt_s: 
             alt -= v[2] * dt_s / 5
         max_range = max(max_range, math.hypot(n - start[0], e - start[1]))
         t += dt_s
-        if alt <= 20.0 or decision.state == "HANDOVER":
+        if decision.state == "HANDOVER":
+            handed_over_s = t if handed_over_s is None else handed_over_s
+            if t >= handed_over_s + after_handover_s:
+                break
+        elif alt <= 20.0 and (not after_handover_s or alt <= 15.0):  # waiting for its hand-over, not far below
             break
         if decision.state == "NO_SPOT":
             hold_until = t + hold_s if hold_until is None else hold_until
@@ -240,14 +245,14 @@ def test_perception_gap_without_heatmaps_at_all_holds_then_climbs() -> None:
     assert d.state == "ABORT" and d.vel_body_frd_m_s[2] < 0.0  # climbing (FRD: negative down)
 
 
-def _odometry_flight(config: ClearanceConfig) -> tuple[World, Flight]:
+def _odometry_flight(config: ClearanceConfig, after_handover_s: float = 0.0) -> tuple[World, Flight]:
     rng = np.random.default_rng(3)
     safe = _textured(rng)
     _lawn(safe, 35.0, -50.0, 14.0)
     world = World(safe)
     # The estimate is biased (1.0, -0.8) m/s and noisy, and a wind it cannot see blows (0.5, 0.3).
     return world, fly(world, ClearancePolicy(config), bias_m_s=(1.0, -0.8), vel_noise_m_s=0.5,
-                      wind_m_s=(0.5, 0.3), seed=3)
+                      wind_m_s=(0.5, 0.3), seed=3, after_handover_s=after_handover_s)
 
 
 def test_noisy_biased_odometry_and_wind_still_land_on_the_chosen_spot() -> None:
@@ -262,6 +267,19 @@ def test_noisy_biased_odometry_and_wind_still_land_on_the_chosen_spot() -> None:
     assert math.hypot(info.est_north_m - flight.north_m, info.est_east_m - flight.east_m) < 3.0
     # ... and learnt the velocity error: truth - estimate = wind - bias = (-0.5, +1.1) m/s.
     assert info.bias_north_m_s < -0.1 and info.bias_east_m_s > 0.5
+
+
+def test_after_the_handover_it_holds_over_the_ground_against_the_learnt_bias() -> None:
+    # Without GNSS a zero command is no hold: the estimate's bias and the wind would carry the
+    # vehicle off at (wind - bias) = (-0.5, 1.1) m/s, 7 m in 6 s, while the controller confirms
+    # the altitude. The hand-over holds over its spot by vision, against the learnt bias.
+    world, flight = _odometry_flight(ClearanceConfig(), after_handover_s=6.0)
+    declared = next(i for i, (*_, state, _) in enumerate(flight.track) if state == "HANDOVER")
+    n0, e0 = flight.track[declared][:2]
+    assert flight.decision.state == "HANDOVER" and flight.t_s - 0.5 * declared >= 6.0
+    assert flight.decision.vel_body_frd_m_s[2] == 0.0 and any(flight.decision.vel_body_frd_m_s[:2])
+    for n, e, *_ in flight.track[declared:]:
+        assert math.hypot(n - n0, e - e0) < 1.0 and world.disk_safe(n, e, 2.0)
 
 
 def test_commands_take_off_the_learnt_velocity_bias() -> None:

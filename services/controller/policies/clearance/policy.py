@@ -99,7 +99,7 @@ class ClearancePolicy:
         self._alts: Altitudes | None = None  # this flight's altitudes, from the start altitude
         self._route: tuple[tuple[float, float, float], ...] = ()
         self._top_pass_end = 0  # waypoints of the route's first (top) pass
-        self._hold_ne: tuple[float, float] | None = None  # NO_SPOT's hold point, in the local frame
+        self._hold_ne: tuple[float, float] | None = None  # NO_SPOT's or HANDOVER's hold point, in the local frame
         self._passes = 0
         self._cmd: tuple[float, float, float] = (0.0, 0.0, 0.0)
         self._last_motion: MotionStep | None = None
@@ -167,10 +167,8 @@ class ClearancePolicy:
             # then shifted it by a whole cell at ties).
             self.high = GroundMap(cfg, cells=2 * int(math.ceil(reach_m / cfg.cell_max_m)) + 2)
         phase = self.memory.phase
-        if phase is Phase.HANDOVER:
-            return self._decision  # the short-range sensors have it
         if prob is None:
-            if phase is Phase.NO_SPOT:
+            if phase in TERMINAL:
                 return self._decision
             # No new heatmap: nothing moves on the map; only a perception gap changes the decision.
             if (self._last_t_s is not None and obs.t_s - self._last_t_s > cfg.gap_s
@@ -197,9 +195,11 @@ class ClearancePolicy:
                                      obs.pitch_rad)
         self._last_motion = motion
         pn, pe = motion.north_m, motion.east_m
-        if phase is Phase.NO_SPOT:
+        if phase in TERMINAL:
             # The map decides nothing any more and is not worked on (a held vehicle would spend a
-            # core on it for as long as it hovers); the ego-motion still runs, for the hold.
+            # core on it for as long as it hovers); the ego-motion still runs, for the hold: over
+            # the point where the search gave up, or where the hand-over was declared until the
+            # short-range sensors have it.
             return self._hold(obs, pn, pe)
 
         # Map: frozen across a gap (no decay); after one, only registered frames are fused.
@@ -295,29 +295,41 @@ class ClearancePolicy:
         return self.motion.spot_since_s <= self.config.spot_trust_s
 
     def _hold(self, obs: Observation, pn: float, pe: float) -> Decision:
-        """NO_SPOT: stay over the point where the search gave up, by vision.
+        """NO_SPOT and HANDOVER: stay over a point by vision; a new decision with only the velocity
+        and the report's position changed."""
+        vel, fenced, error_m = self._hold_velocity(pn, pe, obs.yaw_rad)
+        self._cmd = vel
+        report = self._decision.report
+        if report is not None:
+            report = dataclasses.replace(report, est_north_m=pn, est_east_m=pe, hold_error_m=error_m,
+                                         fenced=bool(fenced))
+        self._decision = dataclasses.replace(self._decision, vel_body_frd_m_s=tuple(float(v) for v in vel),
+                                             report=report)
+        return self._decision
+
+    def _hold_velocity(self, pn: float, pe: float, yaw_rad: float) -> tuple[tuple[float, float, float], bool, float]:
+        """The command that holds the vehicle over `_hold_ne` (set on the first call to where it
+        is), its fence flag and the distance to the point.
 
         Without GNSS a zero-velocity command is no hold: the autopilot holds its own, biased,
         velocity estimate at zero, so wind and the estimate's bias carry the vehicle away for as
-        long as it waits (138 m in a 300 s hold in the wind test of test_clearance_fence). The
-        registered position says where it went; this steers back, slowly, inside the fence, at
-        a constant altitude.
+        long as it waits (138 m in a 300 s hold in the wind test of test_clearance_fence; 3.4 m in
+        the 2.4 s a harsh baro took to confirm a hand-over, villas start 1 of 6). The registered
+        position says where it went; this steers back inside the fence at a constant altitude.
+        NO_SPOT holds where the search gave up, slowly. HANDOVER holds over its spot with the
+        descent's own gain, so the command does not jump where the descent left it: the learnt
+        bias is never exact, and the descent held still with the rest as a standing error.
         """
         cfg = self.config
         if self._hold_ne is None:
             self._hold_ne = (pn, pe)
         dn, de = self._hold_ne[0] - pn, self._hold_ne[1] - pe
-        f, r = toward(dn, de, cfg.hold_gain_per_s, cfg.hold_speed_max_m_s, obs.yaw_rad)
-        vel, fenced = fence((f, r, 0.0), pn, pe, obs.yaw_rad, cfg, self.fence_m())
-        vel = self._through_bias(vel, obs.yaw_rad)
-        self._cmd = vel
-        report = self._decision.report
-        if report is not None:
-            report = dataclasses.replace(report, est_north_m=pn, est_east_m=pe, hold_error_m=math.hypot(dn, de),
-                                         fenced=bool(fenced))
-        self._decision = dataclasses.replace(self._decision, vel_body_frd_m_s=tuple(float(v) for v in vel),
-                                             report=report)
-        return self._decision
+        if self.state is Phase.HANDOVER:
+            f, r = toward(dn, de, cfg.approach_gain_per_s, cfg.max_speed_m_s, yaw_rad)
+        else:
+            f, r = toward(dn, de, cfg.hold_gain_per_s, cfg.hold_speed_max_m_s, yaw_rad)
+        vel, fenced = fence((f, r, 0.0), pn, pe, yaw_rad, cfg, self.fence_m())
+        return self._through_bias(vel, yaw_rad), fenced, math.hypot(dn, de)
 
     def _through_bias(self, vel: tuple[float, float, float], yaw_rad: float) -> tuple[float, float, float]:
         """The command that gets `vel` flown: the autopilot steers its own velocity estimate onto
@@ -350,15 +362,19 @@ class ClearancePolicy:
         prev = self.memory
         mem, vel = step(prev, inp, cfg)
         fenced = False
-        if mem.phase not in TERMINAL:  # a terminal state holds still: the operator takes over
+        self.memory = mem
+        if mem.phase in TERMINAL:
+            # An end holds still (the operator or the short-range sensors take over), in truth: by
+            # vision, over the spot of the hand-over or where the search gave up.
+            if self._hold_ne is None and mem.phase is Phase.HANDOVER and mem.target is not None:
+                self._hold_ne = (mem.target.north_m, mem.target.east_m)
+            vel, fenced, _ = self._hold_velocity(pn, pe, obs.yaw_rad)
+        else:
             vel, fenced = fence(vel, pn, pe, obs.yaw_rad, cfg, fence_m)
             vel = self._through_bias(vel, obs.yaw_rad)
-        self.memory = mem
         anchored = fresh and mem.target is not None and mem.anchor != prev.anchor and self.motion.set_spot()
         if mem.target is None:
             self.motion.clear_spot()
-        if mem.phase is Phase.NO_SPOT and self._hold_ne is None:
-            self._hold_ne = (pn, pe)  # where the search gave up: held there by vision from now on
         self._cmd = vel
         if mem.phase is not prev.phase or mem.reason != prev.reason:
             log.info("clearance: %s -> %s at t=%.2f s, alt %.1f m: %s", prev.phase.value, mem.phase.value, obs.t_s,
