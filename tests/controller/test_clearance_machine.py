@@ -110,7 +110,12 @@ def test_a_less_promising_area_waits_until_the_top_pass_is_flown() -> None:
 
 def test_probes_time_out_and_stop_after_their_maximum_or_the_search_time() -> None:
     area = dataclasses.replace(spot(60.0, 0.0), p_safe=0.85)
-    mem, _ = step(at(Phase.PROBE, probe=area, since_s=0.0), inp(CFG.probe_timeout_s + 1.0), CFG)
+    # A probe has its look's time and its flight's (distance at the search speed).
+    timeout_s = CFG.probe_timeout_s + area.distance_m / CFG.search_speed_m_s
+    assert area.distance_m > 0.0
+    mem, _ = step(at(Phase.PROBE, probe=area, since_s=0.0), inp(timeout_s - 1.0), CFG)
+    assert mem.phase is Phase.PROBE
+    mem, _ = step(at(Phase.PROBE, probe=area, since_s=0.0), inp(timeout_s + 1.0), CFG)
     assert mem.phase is Phase.SEARCH and mem.probed == ((60.0, 0.0),) and "took over" in mem.reason
     # One probe short of the maximum it still probes; at the maximum the route goes on.
     mem, _ = step(at(Phase.SEARCH, probed=((1.0, 1.0),) * (CFG.probe_max - 1)), inp(1.0, candidate=area), CFG)

@@ -520,3 +520,21 @@ def test_the_scene_is_the_search_area_no_spot_before_the_top_pass_has_shown_it()
     assert all(s in ("WARMUP", "SEARCH") for s in flight.states[:chosen])
     assert policy.memory.waypoint >= policy._top_pass_end  # chosen only after the top pass
     assert flight.alt_m <= 20.0 and world.disk_safe(flight.north_m, flight.east_m, 2.0)
+
+
+def test_promising_ground_beyond_the_probes_reach_is_flown_to_once_the_top_pass_is_flown() -> None:
+    """The lower passes stay near the start and a probe goes only so far from the vehicle: a lawn
+    150 m east that the top pass saw from 100 m, farther than the probe reach from anywhere the
+    lower passes fly, is still looked at closer and landed on (downtown start 28 of 34 held
+    NO_SPOT for 600 s with its only good ground 253 m from the start)."""
+    rng = np.random.default_rng(5)
+    safe = _textured(rng)
+    _lawn(safe, 0.0, 150.0, 14.0)
+    world = World(safe)
+    cfg = ClearanceConfig(search_radius_m=200.0, probe_reach_m=20.0)
+    flight = fly(world, ClearancePolicy(cfg), seed=5, t_max_s=900.0)
+    probe = flight.states.index("PROBE")
+    n, e, *_ = flight.track[probe]
+    assert math.hypot(n - 0.0, e - 150.0) > 5.0 * cfg.probe_reach_m  # a probe from far away
+    assert flight.alt_m <= 20.0 and world.disk_safe(flight.north_m, flight.east_m, 2.0)
+    assert math.hypot(flight.north_m, flight.east_m - 150.0) < 7.0

@@ -211,6 +211,8 @@ class ClearanceConfig:
     # a spot in anything less) is flown to and looked at from
     # probe_alt_m (scaled with the start, at least hand-over + 10 m) for probe_frames heatmaps; if no spot shows, it is
     # remembered as probed (nothing within probe_skip_m is probed again) and the search goes on.
+    # Once the top pass is flown, with nothing within probe_reach_m, promising ground anywhere in
+    # the search area is probed (the lower passes stay near the start).
     # During the first, top pass only likely areas (probe_now_frac) are probed; the rest wait
     # until that pass has shown the whole area (on Dubai the first 12 probes once went to
     # vegetation around the start while a 14 m patch of open land 174 m away was never looked at).
@@ -221,7 +223,7 @@ class ClearanceConfig:
     probe_reach_m: float = 120.0
     probe_skip_m: float = 20.0
     probe_dist_m: float = 400.0  # ranking: 0.1 of promise is worth 40 m of extra flight
-    probe_timeout_s: float = 60.0
+    probe_timeout_s: float = 60.0  # the look's own time; the flight there adds distance / search_speed_m_s
     probe_max: int = 16  # probes per search (each costs ~10-60 s)
 
     # --- approach / descent ---

@@ -7,9 +7,11 @@
             (each pass its own expanding square: spacing from its footprint, radius shrinking
             as sqrt(altitude), so every pass takes about as long as the first)
     SEARCH  --promising ground within reach (an area that reads well from high up but is not yet
-            a spot; during the top pass only the likely ones)--> PROBE
+            a spot; during the top pass only the likely ones; once it is flown and nothing is
+            within reach, anywhere in the search area)--> PROBE
     PROBE   --fly there, look from the probe altitude: a spot--> APPROACH
-    PROBE   --nothing after probe_frames, probe_timeout_s or the search's time--> SEARCH (the area
+    PROBE   --nothing after probe_frames, probe_timeout_s + the flight there at the search speed,
+            or the search's time--> SEARCH (the area
             remembered as probed; at most probe_max probes)
     SEARCH  --the whole route flown or no_spot_after_s--> NO_SPOT (hold: "no safe spot found")
     APPROACH --within the lock radius--> DESCEND --measured alt <= hand-over alt, centred, the disk
@@ -256,9 +258,11 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
             over = err < cfg.lock_out_m + cfg.lock_alt_frac * inp.alt_agl_m
             low = inp.alt_agl_m <= probe_alt + cfg.probe_alt_tol_m
             done = over and low and looked >= cfg.probe_frames
-            if done or elapsed > cfg.probe_timeout_s or t - mem.start_s > cfg.no_spot_after_s:
+            # The time a probe may take: the look's own, and the flight there at the search speed.
+            timeout_s = cfg.probe_timeout_s + probe.distance_m / cfg.search_speed_m_s
+            if done or elapsed > timeout_s or t - mem.start_s > cfg.no_spot_after_s:
                 why = (f"probed from {inp.alt_agl_m:.0f} m: no spot" if done
-                       else f"probe took over {cfg.probe_timeout_s:g} s" if elapsed > cfg.probe_timeout_s
+                       else f"probe took over {timeout_s:.0f} s" if elapsed > timeout_s
                        else f"the search's {cfg.no_spot_after_s:g} s are up")
                 return _go(mem, Phase.SEARCH, t, why + ": searching on", probe=None,
                            probed=mem.probed + ((probe.north_m, probe.east_m),)), (0.0, 0.0, 0.0)

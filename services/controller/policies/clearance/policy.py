@@ -263,6 +263,15 @@ class ClearancePolicy:
             skip = mem.probed + tuple((n, e) for n, e, _ in mem.blacklist)
             candidate = find_candidate(self.high, high, cfg, north_m=pn, east_m=pe, skip=skip, fence_m=fence_m,
                                        within_m=cfg.probe_reach_m, min_logit=levels.probe_logit)
+            if candidate is None and mem.waypoint >= self._top_pass_end:
+                # Nothing within reach, the top pass flown: promising ground anywhere in the search
+                # area is worth the flight. The lower passes stay near the start (their radius
+                # shrinks with the altitude), so without this the best ground the top pass saw, out
+                # near the fence, was never looked at (realistic downtown start 28 of 34: its only
+                # ground above the gate lay 253 m from the start, and the search held NO_SPOT).
+                whole = promise(self.high, cfg, 0.0, 0.0, self.high.n * self.high.cell_m / 2.0)
+                candidate = find_candidate(self.high, whole, cfg, north_m=pn, east_m=pe, skip=skip, fence_m=fence_m,
+                                           within_m=math.inf, min_logit=levels.probe_logit)
         check = recheck = None
         target = self.memory.target
         if target is not None:
