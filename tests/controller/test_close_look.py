@@ -22,6 +22,7 @@ from dovesei.controller.policies.registry import make_policy
 from dovesei.controller.policies.clearance.closelook import CloseLookConfig, CloseLookPolicy, verdict
 from dovesei.episode import EpisodeSpec, run_episode
 from dovesei.shared.messages import ControllerStatus, CropFrame, CropHeatmap, Stamp, VehicleState
+from dovesei.shared.mission import VEHICLE_SEPARATION_M
 from dovesei.sim.camera import CameraModel
 from dovesei.sim.objects import PERSON, ObjectLayer, Population
 from dovesei.sim.starts import Start
@@ -176,6 +177,30 @@ def test_the_verdict_measures_from_the_square_centre() -> None:
     # The blob detector's answer spreads about its scale around what it finds: the finding may sit
     # up to ~0.25 m nearer the spot than the object's edge, never further (the margin errs safe).
     assert not v.clear and 2.0 - 0.3 <= v.nearest_m <= 2.0 + 0.05 and v.p_max == pytest.approx(0.9)
+
+
+def test_something_broad_counts_out_to_the_vehicle_separation_a_blob_only_within_the_person_margin() -> None:
+    # A car (read at even odds or above) whose near corner is 4.5 m from the spot: past
+    # the person margin (4 m), inside the vehicles' 5 m. A person-sized faint blob as far out is not
+    # a finding (people need 3 m; the margin has 1 m for the landing's own error).
+    cfg = CloseLookConfig()
+    assert cfg.margin_m < 4.5 < VEHICLE_SEPARATION_M < cfg.broad_margin_m
+    n = 352
+    m_per_px = cfg.side_m / n
+    yy, xx = (np.mgrid[0:n, 0:n] - 175.5) * m_per_px  # metres from the spot
+    # The car's near corner on the diagonal; the square (4 m half side) shows the piece of it inside.
+    car = np.where((xx >= 4.5 * math.cos(math.pi / 4)) & (yy >= 4.5 * math.sin(math.pi / 4)), 0.7, 0.02)
+    v = verdict(car.astype(np.float32), cfg.side_m, cfg)
+    assert not v.clear and 4.3 <= v.nearest_m <= 4.6 and "something broad" in v.text(cfg.margin_m)
+    person = np.full((n, n), 0.04, np.float32)
+    blob = np.hypot(xx - 4.5 * math.cos(math.pi / 4), yy - 4.5 * math.sin(math.pi / 4)) <= 0.25
+    person[blob] = 0.15  # under never_p_min: found only as a blob
+    v = verdict(person, cfg.side_m, cfg)
+    assert v.clear and v.nearest_m is not None and v.nearest_m > cfg.margin_m
+    # The same blob inside the margin is found.
+    person = np.full((n, n), 0.04, np.float32)
+    person[np.hypot(xx - 2.0, yy) <= 0.25] = 0.15
+    assert not verdict(person, cfg.side_m, cfg).clear
 
 
 def test_a_faint_person_stands_out_as_a_blob_and_broad_swells_are_not_findings() -> None:
