@@ -71,7 +71,8 @@ comes into view hashes only its own row; least recently used out). It is float32
 counts on, keeps every matrix product under OpenBLAS's one-thread size (`_rows_product`: threads
 cost a loaded machine's CPU several times what they save) and hands the fusion its prompt planes
 through OpenCV's transpose; tests/segmenter/test_perception_variation.py holds it equal to the
-plain formulas.
+plain formulas. The process keeps the memory a frame frees for the next (`heap.keep_freed_memory`):
+glibc would hand much of it back and page-fault it in again, frame after frame.
 """
 
 from __future__ import annotations
@@ -88,7 +89,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from dovesei.shared import footprint, validate
+from dovesei.shared import footprint, heap, validate
 from dovesei.shared.errors import ConfigError
 
 from .appearance import APPEARANCES, INDEX, OFF_WORLD_LABEL, appearance_mix
@@ -594,6 +595,9 @@ class SimPerception:
         if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
             raise ConfigError(f"seed must be a non-negative int, got {seed!r}")
         self.params, self.seed = params, int(seed)
+        # Each frame allocates and frees a few MB of arrays: without this, glibc gives much of it
+        # back to the system and page-faults it in again the next frame (a quarter of the CPU or more).
+        heap.keep_freed_memory()
         self._strength = params.scaled()
         self._classes: dict[tuple, _Classes] = {}
         self._responses: dict[str, np.ndarray] = {}
