@@ -66,11 +66,13 @@ shadows as one running maximum of caster codes, counts (cell row, cell column, c
 OpenCV histogram of 8-bit images, weighs objects from their own pixels alone (not their box),
 evaluates both octaves of a world field in one pass over the 16 x 16 field points and keeps the
 hashed value-noise lattice around the view from frame to frame (`_lattice`: a pure function of
-lattice point and key, least recently used out). It is float32 from the cell counts on, keeps
-every matrix product under OpenBLAS's one-thread size (`_rows_product`: threads cost a loaded
-machine's CPU several times what they save) and hands the fusion its prompt planes through
-OpenCV's transpose; tests/segmenter/test_perception_variation.py holds it equal to the plain
-formulas.
+lattice point, height and key; a table per height and spacing with a row per key, so a field that
+comes into view hashes only its own row; least recently used out). It is float32 from the cell
+counts on, keeps every matrix product under OpenBLAS's one-thread size (`_rows_product`: threads
+cost a loaded machine's CPU several times what they save) and hands the fusion its prompt planes
+through OpenCV's transpose; tests/segmenter/test_perception_variation.py holds it equal to the
+plain formulas. The process keeps the memory a frame frees for the next (`heap.keep_freed_memory`):
+glibc would hand much of it back and page-fault it in again, frame after frame.
 """
 
 from __future__ import annotations
@@ -87,7 +89,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from dovesei.shared import footprint, validate
+from dovesei.shared import footprint, heap, validate
 from dovesei.shared.errors import ConfigError
 
 from .appearance import APPEARANCES, INDEX, OFF_WORLD_LABEL, appearance_mix
@@ -333,15 +335,20 @@ def _noise_octaves(x: np.ndarray, y: np.ndarray,
     lows, highs = ixy.min(axis=2).tolist(), ixy.max(axis=2).tolist()
     # corners: (octave, keys, 4, points), (dx, dy) = (0, 0), (1, 0), (0, 1), (1, 1).
     corners = np.empty((n_octaves, n_keys, 4, n))
-    for o, ((_, z, keys, _), (ix, iy), (x0, y0), (x1, y1)) in enumerate(zip(octaves, ixy, lows, highs)):
+    for o, ((length, z, keys, _), (ix, iy), (x0, y0), (x1, y1)) in enumerate(zip(octaves, ixy, lows, highs)):
         iz = math.floor(z)
         tz = _smoothstep(z - iz)
         nx, ny = x1 - x0 + 2, y1 - y0 + 2
         if nx * ny <= 8 * n:
             # Neighbouring points share corners (a view's 16 x 16 points cover about 10 x 10 lattice
-            # cells): blend the two heights on the lattice around the points, then gather.
-            layers = _lattice(keys, x0, y0, nx, ny, iz)
-            plane = ((1.0 - tz) * layers[:, 0] + tz * layers[:, 1]).reshape(n_keys, -1)
+            # cells): blend the two heights on the lattice around the points, then gather. At a whole
+            # height (a ground field's first octave) the upper layer weighs 0 and the blend is the
+            # lower layer itself, to the bit (hash values are never -0.0).
+            window = (length, x0, y0, nx, ny)
+            plane = _lattice(keys, iz, *window)
+            if tz != 0.0:
+                plane = (1.0 - tz) * plane + tz * _lattice(keys, iz + 1, *window)
+            plane = plane.reshape(n_keys, -1)
             np.take(plane, ((iy - y0) * nx + (ix - x0))[None, :] + np.array([[0], [1], [nx], [nx + 1]]), axis=1,
                     out=corners[o], mode="clip")  # in range: "clip" only spares take a buffered copy
         else:
@@ -358,41 +365,75 @@ def _noise_octaves(x: np.ndarray, y: np.ndarray,
     return np.einsum("okcp,cop->kp", corners, weights).reshape((n_keys,) + x.shape)
 
 
-# The hashed lattice is a pure function of (point, key), so it is kept across frames: each set of
-# keys at each height keeps the region it last needed, widened by a margin and snapped to whole
-# blocks of lattice cells, so the next views of a flight (which move a little) read it again.
-# The least recently used entry goes first (the dict's order is the order of use): a flight reads
-# the same few (its ground fields' at every altitude) while others come and go.
+# The hashed lattice is a pure function of (point, height, key), so it is kept across frames. Each
+# height of each lattice spacing (a layer) keeps the region the view last needed, widened by a
+# margin and snapped to whole blocks of lattice cells, with one row per key asked of it: the next
+# views of a flight (which move a little) read it again, and a field that comes into view (the
+# confusions in view change from frame to frame) hashes only its own row. A descent reads the same
+# layers again as the height passes a whole lattice unit (a layer is one height, not a pair).
+# The least recently used layer goes first (the dict's order is the order of use).
 _LATTICE_BLOCK = 8
 _LATTICE_MARGIN = 4
 _LATTICE_CACHE_ENTRIES = 16
 _LATTICE_CACHE_BYTES = 16 << 20
-_lattice_cache: dict[tuple[bytes, int], tuple[int, int, np.ndarray]] = {}
+_LATTICE_PICKS = 64  # key arrays a layer remembers the rows of
 
 
-def _lattice(keys: np.ndarray, x0: int, y0: int, nx: int, ny: int, iz: int) -> np.ndarray:
-    """(len(keys), 2, ny, nx) hash values at lattice points (x0 + i, y0 + j, iz + dz), dz in (0, 1)."""
-    entry = (keys.tobytes(), iz)
-    cached = _lattice_cache.get(entry)
-    if cached is not None:
-        rx, ry, table = cached
-        if rx <= x0 and ry <= y0 and x0 + nx <= rx + table.shape[3] and y0 + ny <= ry + table.shape[2]:
-            _lattice_cache[entry] = _lattice_cache.pop(entry, cached)  # now the most recently used
-            return table[:, :, y0 - ry:y0 - ry + ny, x0 - rx:x0 - rx + nx]
-    b, m = _LATTICE_BLOCK, _LATTICE_MARGIN
-    rx, ry = (x0 - m) // b * b, (y0 - m) // b * b
-    gx = np.arange(rx, -(-(x0 + nx + m) // b) * b, dtype=np.int64)
-    gy = np.arange(ry, -(-(y0 + ny + m) // b) * b, dtype=np.int64)
-    gz = np.array([iz, iz + 1], dtype=np.int64)
-    table = _hash_unit(gx[None, None, None, :], gy[None, None, :, None], gz[None, :, None, None],
-                       keys.reshape(-1, 1, 1, 1))
-    _lattice_cache.pop(entry, None)  # a region that no longer holds the view
-    # Copies of the cache's contents: another thread may change it meanwhile.
-    while (kept := list(_lattice_cache.values())) and (
-            len(kept) >= _LATTICE_CACHE_ENTRIES or sum(t.nbytes for _, _, t in kept) > _LATTICE_CACHE_BYTES):
-        _lattice_cache.pop(next(iter(_lattice_cache), None), None)
-    _lattice_cache[entry] = (rx, ry, table)
-    return table[:, :, y0 - ry:y0 - ry + ny, x0 - rx:x0 - rx + nx]
+@dataclass(frozen=True)
+class _LatticeLayer:
+    """One cached layer: hash values (keys, rows, columns) from lattice point (x0, y0). Replaced, not
+    changed, when a key comes in: another thread may be reading it."""
+
+    x0: int
+    y0: int
+    table: np.ndarray
+    row_of: dict[int, int]  # key -> its index along the table's first axis
+    # The indices of each key array asked for (by its bytes): a slice where they are consecutive
+    # (a layer's first keys, and the same keys again: a view, no copy), else an index array.
+    picks: dict[bytes, slice | np.ndarray] = dataclasses.field(default_factory=dict)
+
+
+_lattice_cache: dict[tuple[float, int], _LatticeLayer] = {}
+
+
+def _lattice(keys: np.ndarray, iz: int, spacing: float, x0: int, y0: int, nx: int, ny: int) -> np.ndarray:
+    """(len(keys), ny, nx) hash values at lattice points (x0 + i, y0 + j, iz), read-only (often a view
+    of the cache); ``spacing`` names the lattice (the fields of one spacing read about the same region)."""
+    entry = (spacing, iz)
+    layer = _lattice_cache.pop(entry, None)  # put back below as the most recently used
+    if layer is None or not (layer.x0 <= x0 and layer.y0 <= y0 and x0 + nx <= layer.x0 + layer.table.shape[2]
+                             and y0 + ny <= layer.y0 + layer.table.shape[1]):
+        b, m = _LATTICE_BLOCK, _LATTICE_MARGIN
+        rx, ry = (x0 - m) // b * b, (y0 - m) // b * b
+        width, height = -(-(x0 + nx + m) // b) * b - rx, -(-(y0 + ny + m) // b) * b - ry
+        layer = _LatticeLayer(rx, ry, np.empty((0, height, width)), {})
+    pick = layer.picks.get(keys.tobytes())
+    if pick is None:
+        wanted = keys.tolist()
+        new = [k for k in dict.fromkeys(wanted) if k not in layer.row_of]
+        if new:
+            _, height, width = layer.table.shape
+            gx = np.arange(layer.x0, layer.x0 + width, dtype=np.int64)
+            gy = np.arange(layer.y0, layer.y0 + height, dtype=np.int64)
+            added = _hash_unit(gx[None, None, :], gy[None, :, None], np.int64(iz),
+                               np.array(new, np.int64)[:, None, None])
+            row_of = dict(layer.row_of)
+            row_of.update((k, layer.table.shape[0] + i) for i, k in enumerate(new))
+            table = np.concatenate([layer.table, added])
+            table.flags.writeable = False
+            layer = _LatticeLayer(layer.x0, layer.y0, table, row_of)
+        rows = [layer.row_of[k] for k in wanted]
+        pick = (slice(rows[0], rows[-1] + 1) if rows and rows == list(range(rows[0], rows[0] + len(rows)))
+                else np.array(rows, np.intp))
+        if len(layer.picks) >= _LATTICE_PICKS:
+            layer.picks.clear()
+        layer.picks[keys.tobytes()] = pick
+        # Copies of the cache's contents: another thread may change it meanwhile.
+        while (kept := list(_lattice_cache.values())) and (
+                len(kept) >= _LATTICE_CACHE_ENTRIES or sum(t.table.nbytes for t in kept) > _LATTICE_CACHE_BYTES):
+            _lattice_cache.pop(next(iter(_lattice_cache), None), None)
+    _lattice_cache[entry] = layer
+    return layer.table[pick, y0 - layer.y0:y0 - layer.y0 + ny, x0 - layer.x0:x0 - layer.x0 + nx]
 
 
 # Two octaves of trilinear value noise have a std of about 0.33 (measured over 10^6 points);
@@ -554,6 +595,9 @@ class SimPerception:
         if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
             raise ConfigError(f"seed must be a non-negative int, got {seed!r}")
         self.params, self.seed = params, int(seed)
+        # Each frame allocates and frees a few MB of arrays: without this, glibc gives much of it
+        # back to the system and page-faults it in again the next frame (a quarter of the CPU or more).
+        heap.keep_freed_memory()
         self._strength = params.scaled()
         self._classes: dict[tuple, _Classes] = {}
         self._responses: dict[str, np.ndarray] = {}
