@@ -38,10 +38,8 @@ UP_TEST_TIMEOUT_S = 1200  # pytest-timeout for a test that waits for up more tha
 # The flights below start at 60 m: from there the paper's policy searches, aims, lands and hands over
 # in 25 s of sim time (from the default 100 m: 49 s, twice the ticks for the same chain of states).
 START_ALT = ("--start-alt-m", "60")
-# The descent has begun (the policy aiming or landing, 50-60 m from the 60 m start): early, so a test
-# process slow to react on a loaded machine still stops a service well above the hand-over (one CI
-# run, at load 4 on 2 cores, matched 53.6 m and its SIGSTOP took effect at 19.9 m, after the landing).
-MID_DESCENT = r"alt (5\d|60)\.\d m: controller (\S+ -> )?(AIMING|LANDING)"
+# Mid-descent: the first progress line at least 1 m below the 60 m start.
+MID_DESCENT = r"alt ([2-4]\d|5[0-8])\.\d m: controller"
 REPO = Path(__file__).resolve().parents[2]
 
 
