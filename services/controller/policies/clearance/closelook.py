@@ -113,8 +113,7 @@ class CloseLookConfig:
 
     def __post_init__(self) -> None:
         for name in ("handover_alt_m", "look_alt_m", "brake_m", "margin_m", "broad_margin_m", "look_period_s", "retry_s",
-                     "answer_timeout_s",
-                     "wait_s", "fresh_s", "spot_slack_m"):
+                     "answer_timeout_s", "wait_s", "fresh_s", "spot_slack_m"):
             validate.positive(f"close look {name}", getattr(self, name))
         validate.non_negative("close look final_gate_m", self.final_gate_m)
         validate.in_range("close look never_p_min", self.never_p_min, 0.0, 1.0)

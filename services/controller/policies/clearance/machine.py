@@ -368,8 +368,9 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
     # DESCEND
     # The hand-over needs the measured altitude, the spot fixed by vision, the vehicle centred on
     # it (within lock_in) and the map clearing the vehicle's own disk: the checked clearance holds
-    # the 2 m disk only around the spot. Below the hand-over altitude otherwise (an altitude hold sagging while the spot is
-    # re-checked, say) the vehicle holds its altitude and steers onto the spot first.
+    # the 2 m disk only around the spot. Below the hand-over altitude otherwise (an altitude hold
+    # sagging while the spot is re-checked, say) the vehicle holds its altitude and steers onto
+    # the spot first.
     room = target.clearance_m - err if inp.below_clearance_m is None else inp.below_clearance_m
     roomy = room >= cfg.safety_radius_m + cfg.handover_margin_m  # the hand-over point's own disk is cleared
     if (inp.alt_agl_m <= cfg.handover_alt_m and inp.spot_known and err <= lock_in and roomy

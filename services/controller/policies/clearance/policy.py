@@ -43,8 +43,9 @@ from dovesei.controller.policies.clearance.config import Altitudes, ClearanceCon
 from dovesei.controller.policies.clearance.machine import (
     TERMINAL, Inputs, Memory, Phase, committed, reject_target, search_route, step, toward,
 )
-from dovesei.controller.policies.clearance.ground_map import (GroundMap, clearance_at, emphasise_dips, find_candidate,
-                                                      find_spot, footprint_width_m, logit, look_weight, promise)
+from dovesei.controller.policies.clearance.ground_map import (GroundMap, Promise, clearance_at, emphasise_dips,
+                                                      find_candidate, find_spot, footprint_width_m, logit,
+                                                      look_weight, promise)
 from dovesei.controller.policies.clearance.scene import SceneLevels, fine_noise, known_mean, map_levels, sigmoid
 from dovesei.controller.frames import to_body, to_ne
 from dovesei.controller.geofence import cap_outward
@@ -108,6 +109,8 @@ class ClearancePolicy:
         self._spot_t = math.inf  # the spot threshold on the map now (log-odds; nothing safe at first)
         self._levels_t_s = -math.inf  # when the levels were last read
         self._levels_stale = False  # the high map got new looks since
+        self._high_looks = 0  # looks fused into the high map so far
+        self._whole: tuple[int, Promise] | None = None  # the whole high map's promise, at that many looks
         self._map_noise = 0.0  # the working map's per-cell scatter (log-odds), read with the levels
         self._scene_seen = False  # the top pass has shown the search area (spots and probes allowed)
         self._decision = Decision((0.0, 0.0, 0.0), 0.0, Phase.WARMUP.value, None, 0.0, None, "starting")
@@ -220,6 +223,7 @@ class ClearancePolicy:
             if obs.alt_agl_m >= self._alts.confirm_m:
                 self.high.fuse_logit(seen, obs.alt_agl_m, obs.hfov_rad, obs.yaw_rad, pn + tn, pe + te, weight=weight)
                 self._levels_stale = True  # new looks from high up: the scene's levels are read again
+                self._high_looks += 1
         # Read at most every levels_period_s: they move only as new ground comes into view (or the
         # working map changes resolution).
         if self._levels is None or obs.t_s - self._levels_t_s >= cfg.levels_period_s:
@@ -269,8 +273,8 @@ class ClearancePolicy:
                 # shrinks with the altitude), so without this the best ground the top pass saw, out
                 # near the fence, was never looked at (realistic downtown start 28 of 34: its only
                 # ground above the gate lay 253 m from the start, and the search held NO_SPOT).
-                whole = promise(self.high, cfg, 0.0, 0.0, self.high.n * self.high.cell_m / 2.0)
-                candidate = find_candidate(self.high, whole, cfg, north_m=pn, east_m=pe, skip=skip, fence_m=fence_m,
+                candidate = find_candidate(self.high, self._whole_promise(), cfg, north_m=pn, east_m=pe, skip=skip,
+                                           fence_m=fence_m,
                                            within_m=math.inf, min_logit=levels.probe_logit)
         check = recheck = None
         target = self.memory.target
@@ -302,6 +306,15 @@ class ClearancePolicy:
     def _spot_known(self) -> bool:
         """Was the target fixed by vision (or re-checked) recently enough to descend on?"""
         return self.motion.spot_since_s <= self.config.spot_trust_s
+
+    def _whole_promise(self) -> Promise:
+        """The promise of the whole high map, made again only once it has new looks (after the top
+        pass the lower passes add few, and a search with nothing in reach asks every step)."""
+        assert self.high is not None
+        if self._whole is None or self._whole[0] != self._high_looks:
+            self._whole = (self._high_looks, promise(self.high, self.config, 0.0, 0.0,
+                                                     self.high.n * self.high.cell_m / 2.0))
+        return self._whole[1]
 
     def _hold(self, obs: Observation, pn: float, pe: float) -> Decision:
         """NO_SPOT and HANDOVER: stay over a point by vision; a new decision with only the velocity
