@@ -22,6 +22,7 @@ from dovesei.controller.policies.registry import make_policy
 from dovesei.controller.policies.clearance.closelook import CloseLookConfig, CloseLookPolicy, verdict
 from dovesei.episode import EpisodeSpec, run_episode
 from dovesei.shared.messages import ControllerStatus, CropFrame, CropHeatmap, Stamp, VehicleState
+from dovesei.shared.errors import ConfigError
 from dovesei.shared.mission import VEHICLE_SEPARATION_M
 from dovesei.sim.camera import CameraModel
 from dovesei.sim.objects import PERSON, ObjectLayer, Population
@@ -201,6 +202,9 @@ def test_something_broad_counts_out_to_the_vehicle_separation_a_blob_only_within
     person = np.full((n, n), 0.04, np.float32)
     person[np.hypot(xx - 2.0, yy) <= 0.25] = 0.15
     assert not verdict(person, cfg.side_m, cfg).clear
+    # A broad margin narrower than the person margin is refused, in one line naming it.
+    with pytest.raises(ConfigError, match="broad_margin_m"):
+        CloseLookConfig(broad_margin_m=cfg.margin_m - 1.0)
 
 
 def test_a_faint_person_stands_out_as_a_blob_and_broad_swells_are_not_findings() -> None:

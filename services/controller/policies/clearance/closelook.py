@@ -117,6 +117,8 @@ class CloseLookConfig:
             validate.positive(f"close look {name}", getattr(self, name))
         validate.non_negative("close look final_gate_m", self.final_gate_m)
         validate.in_range("close look never_p_min", self.never_p_min, 0.0, 1.0)
+        # Something broad is at least as much of a finding as a person: never over less ground.
+        validate.in_range("close look broad_margin_m", self.broad_margin_m, self.margin_m, 1e4)
         validate.in_range("close look blob_sigma_m", self.blob_sigma_m, 0.01, 5.0)
         validate.positive("close look blob_min_logit", self.blob_min_logit)
         validate.in_range("close look out_px", self.out_px, 32, 1024)
