@@ -1,13 +1,15 @@
 """How the close look's finding rule does on simulated crops: people it misses, clear ground it fires on.
 
 Per world and perception profile, `--crops` squares (alternately one with a person within 3.5 m of
-its centre and one of clear safe ground, nothing within 6 m), each looked at `--looks` times as the
-policy does while it holds (a fresh request each, the vehicle within +-0.5 m, heading at random),
+its centre and one of clear safe ground, nothing within 6 m) and `--vehicle-crops` squares with a
+car within the judge's 5 m of their centre (the centre's own safety disk on safe ground, nobody
+within 6 m), each looked at `--looks` times as the policy does while it holds (a fresh request each, the vehicle within +-0.5 m, heading at random),
 at 22, 30 or 40 m. Every look is the real path: the sim cuts the crop with the people drawn at the
 crop's resolution, the simulated perception scores it, `verdict()` of the policy judges it.
 
 Figures per profile: looks at people that found nothing, people the gate would have let the
-descent past (two clear looks in a row), clear looks that fired, clear squares whose gate opened.
+descent past (two clear looks in a row), the same for cars, clear looks that fired, clear squares
+whose gate opened.
 Perception seeds start at `--seed-base` and go up by one per square: the reported benches use
 episode seeds 0-33, so this refuses a base below 100 (what is chosen here is checked elsewhere).
 """
@@ -30,7 +32,8 @@ from dovesei.shared.crop import CropRefused
 from dovesei.shared.errors import ConfigError
 from dovesei.shared.messages import CropRequest, Stamp
 from dovesei.sim.core import SimConfig, SimCore
-from dovesei.sim.objects import PERSON
+from dovesei.shared.mission import SAFETY_RADIUS_M, VEHICLE_SEPARATION_M
+from dovesei.sim.objects import PERSON, VEHICLE
 from dovesei.sim.starts import Start
 from dovesei.sim.world import World, load_world
 
@@ -71,14 +74,40 @@ def _square(world: World, rng: np.random.Generator, person: bool, side_m: float)
     return None
 
 
+def _vehicle_square(world: World, rng: np.random.Generator) -> tuple[float, float, float] | None:
+    """A square's centre (east, north) with a car within VEHICLE_SEPARATION_M of it, the centre's
+    safety disk on safe ground and no person within CLEAR_BEYOND_M, and the car's distance; or None."""
+    layer = world.population.layer
+    safe = np.array([k for k, c in world.classes.items() if c.safe])
+    cars = np.flatnonzero(layer.kind == VEHICLE)
+    if cars.size == 0:
+        return None
+    at = layer.at(0.0)
+    half_px = int(round(SAFETY_RADIUS_M / world.gsd_m))
+    for _ in range(3000):
+        j = int(rng.choice(cars))
+        r, a = rng.uniform(2.0, VEHICLE_SEPARATION_M), rng.uniform(0.0, 2.0 * math.pi)
+        cx, cy = float(at.x_m[j]) + r * math.cos(a), float(at.y_m[j]) + r * math.sin(a)
+        row, col = (int(v) for v in world.world_to_pixel(cx, cy))
+        labels = world.labels[row - half_px:row + half_px + 1, col - half_px:col + half_px + 1]
+        if labels.shape != (2 * half_px + 1,) * 2 or not np.isin(labels, safe).all():
+            continue
+        d = layer.distances_m(cx, cy, 0.0)
+        nearest_car = float(d[cars].min())
+        if nearest_car <= VEHICLE_SEPARATION_M and float(d[layer.kind == PERSON].min(initial=math.inf)) >= CLEAR_BEYOND_M:
+            return cx, cy, nearest_car
+    return None
+
+
 def looks_of(world: World, profile: str, squares: int, looks: int, seed_base: int,
-             cfg: CloseLookConfig = CloseLookConfig()) -> list[dict]:
-    """One record per square: person or clear, distance to the nearest person, one verdict per look."""
-    rng = np.random.default_rng([seed_base, 47])
+             cfg: CloseLookConfig = CloseLookConfig(), vehicles: bool = False) -> list[dict]:
+    """One record per square: person or clear (or, with `vehicles`, a car near it), distance to the
+    nearest person (car), one verdict per look."""
+    rng = np.random.default_rng([seed_base, 53 if vehicles else 47])
     out = []
     for i in range(squares):
-        person = i % 2 == 0
-        found = _square(world, rng, person, cfg.side_m)
+        person = not vehicles and i % 2 == 0
+        found = _vehicle_square(world, rng) if vehicles else _square(world, rng, person, cfg.side_m)
         if found is None:
             continue
         cx, cy, nearest = found
@@ -97,7 +126,8 @@ def looks_of(world: World, profile: str, squares: int, looks: int, seed_base: in
                 continue
             _, never = seg.process_crop(crop).probabilities()
             fired.append(not verdict(never, cfg.side_m, cfg).clear)
-        out.append({"person": person, "nearest_person_m": round(nearest, 2), "alt_m": alt, "fired": fired})
+        out.append({"person": person, "vehicle": vehicles, f"nearest_{'vehicle' if vehicles else 'person'}_m":
+                    round(nearest, 2), "alt_m": alt, "fired": fired})
     return out
 
 
@@ -107,13 +137,17 @@ def _gate_opens(fired: list[bool]) -> bool:
 
 def summarise(records: list[dict]) -> dict:
     people = [r for r in records if r["person"]]
-    clear = [r for r in records if not r["person"]]
+    cars = [r for r in records if r.get("vehicle")]
+    clear = [r for r in records if not r["person"] and not r.get("vehicle")]
     return {"person_squares": len(people), "person_looks": sum(len(r["fired"]) for r in people),
             "person_looks_missed": sum(f is False for r in people for f in r["fired"]),
             "person_gate_opened": sum(_gate_opens(r["fired"]) for r in people),
             "clear_squares": len(clear), "clear_looks": sum(len(r["fired"]) for r in clear),
             "clear_looks_fired": sum(f is True for r in clear for f in r["fired"]),
-            "clear_gate_opened": sum(_gate_opens(r["fired"]) for r in clear)}
+            "clear_gate_opened": sum(_gate_opens(r["fired"]) for r in clear),
+            "vehicle_squares": len(cars), "vehicle_looks": sum(len(r["fired"]) for r in cars),
+            "vehicle_looks_missed": sum(f is False for r in cars for f in r["fired"]),
+            "vehicle_gate_opened": sum(_gate_opens(r["fired"]) for r in cars)}
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -122,6 +156,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                    help=f"world spec, repeatable (default: {', '.join(DEFAULT_WORLDS)})")
     p.add_argument("--profile", default="realistic,harsh", help="simulated perception profiles, comma-separated")
     p.add_argument("--crops", type=int, default=30, help="squares per world and profile (half with a person)")
+    p.add_argument("--vehicle-crops", type=int, default=20,
+                   help="squares per world and profile with a car within 5 m of the centre (0: none)")
     p.add_argument("--looks", type=int, default=4, help="looks at each square")
     p.add_argument("--seed-base", type=int, default=200, help=f"first perception seed (>= {MIN_SEED_BASE})")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
@@ -135,25 +171,32 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.seed_base < MIN_SEED_BASE:
         raise ConfigError(f"--seed-base {args.seed_base}: use {MIN_SEED_BASE} or more (the reported benches use "
                           "episode seeds 0-33)")
-    for flag, value in (("--crops", args.crops), ("--looks", args.looks)):
-        if not 1 <= value <= 10_000:
-            raise ConfigError(f"{flag} {value}: expected 1..10000")
+    for flag, value, low in (("--crops", args.crops, 1), ("--looks", args.looks, 1),
+                             ("--vehicle-crops", args.vehicle_crops, 0)):
+        if not low <= value <= 10_000:
+            raise ConfigError(f"{flag} {value}: expected {low}..10000")
     worlds = {spec: load_world(spec) for spec in (args.world or DEFAULT_WORLDS)}
-    result = {"worlds": list(worlds), "crops": args.crops, "looks": args.looks, "seed_base": args.seed_base,
-              "profiles": {}}
+    result = {"worlds": list(worlds), "crops": args.crops, "vehicle_crops": args.vehicle_crops, "looks": args.looks,
+              "seed_base": args.seed_base, "profiles": {}}
     for name in profiles:
         records = [r for w in worlds.values() for r in looks_of(w, name, args.crops, args.looks, args.seed_base)]
+        if args.vehicle_crops:
+            records += [r for w in worlds.values()
+                        for r in looks_of(w, name, args.vehicle_crops, args.looks, args.seed_base, vehicles=True)]
         result["profiles"][name] = summarise(records)
     result["loadavg"] = [round(v, 2) for v in os.getloadavg()]
     if args.json:
         print(json.dumps(result))
         return 0
-    print(f"close-look rule on simulated crops: {len(worlds)} worlds, {args.crops} squares each, {args.looks} looks, "
+    print(f"close-look rule on simulated crops: {len(worlds)} worlds, {args.crops} squares each "
+          f"(+{args.vehicle_crops} with a car), {args.looks} looks, "
           f"seeds from {args.seed_base}")
     for name, s in result["profiles"].items():
         print(f"  {name:10s} people: {s['person_looks_missed']}/{s['person_looks']} looks missed, gate opened on "
               f"{s['person_gate_opened']}/{s['person_squares']} | clear: {s['clear_looks_fired']}/{s['clear_looks']} "
-              f"looks fired, gate opened on {s['clear_gate_opened']}/{s['clear_squares']}")
+              f"looks fired, gate opened on {s['clear_gate_opened']}/{s['clear_squares']} | cars: "
+              f"{s['vehicle_looks_missed']}/{s['vehicle_looks']} looks missed, gate opened on "
+              f"{s['vehicle_gate_opened']}/{s['vehicle_squares']}")
     return 0
 
 
