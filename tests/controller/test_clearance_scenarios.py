@@ -538,3 +538,23 @@ def test_promising_ground_beyond_the_probes_reach_is_flown_to_once_the_top_pass_
     assert math.hypot(n - 0.0, e - 150.0) > 5.0 * cfg.probe_reach_m  # a probe from far away
     assert flight.alt_m <= 20.0 and world.disk_safe(flight.north_m, flight.east_m, 2.0)
     assert math.hypot(flight.north_m, flight.east_m - 150.0) < 7.0
+
+
+def test_once_the_top_pass_is_flown_likely_ground_anywhere_is_probed_before_nearer_ground_that_reads_lower() -> None:
+    """A 30 m patch under the start reads 0.69 (between the gate and the likely level: a
+    second-rate class such as Dubai's lawn-and-tree "vegetation"); a 14 m lawn 150 m east reads
+    0.9. The first closer look goes to the lawn, not to the patch within reach (realistic Dubai
+    starts 16 and 24 of 34 probed such ground 100 m away first, and landed on it)."""
+    rng = np.random.default_rng(5)
+    safe = _textured(rng).astype(np.float32)
+    _lawn(safe, 0.0, 150.0, 14.0)
+    c, half = (SIDE - 1) // 2, int(round(15.0 / GSD_M))
+    # perceive(): 0.1 + 0.8 x 0.74 = 0.69, between the gate (log-odds 0.7-0.8 in this scene) and
+    # the likely level (0.9-1.1), as read by the levels when probing.
+    safe[c - half:c + half, c - half:c + half] = 0.74
+    world = World(safe)
+    policy = ClearancePolicy(ClearanceConfig(search_radius_m=200.0, probe_reach_m=20.0))
+    flight = fly(world, policy, seed=5, t_max_s=900.0)
+    n, e, *_ = next(row for row in flight.track if row[2] < 45.0)  # the first probe's descent
+    assert math.hypot(n, e - 150.0) < 10.0, (n, e)
+    assert flight.alt_m <= 20.0 and math.hypot(flight.north_m, flight.east_m - 150.0) < 7.0

@@ -211,8 +211,9 @@ class ClearanceConfig:
     # a spot in anything less) is flown to and looked at from
     # probe_alt_m (scaled with the start, at least hand-over + 10 m) for probe_frames heatmaps; if no spot shows, it is
     # remembered as probed (nothing within probe_skip_m is probed again) and the search goes on.
-    # Once the top pass is flown, with nothing within probe_reach_m, promising ground anywhere in
-    # the search area is probed (the lower passes stay near the start).
+    # Once the top pass is flown, likely ground (probe_now_frac) anywhere in the search area is
+    # probed first, then admissible ground within probe_reach_m, then anywhere (the lower passes
+    # stay near the start).
     # During the first, top pass only likely areas (probe_now_frac) are probed; the rest wait
     # until that pass has shown the whole area (on Dubai the first 12 probes once went to
     # vegetation around the start while a 14 m patch of open land 174 m away was never looked at).

@@ -7,8 +7,8 @@
             (each pass its own expanding square: spacing from its footprint, radius shrinking
             as sqrt(altitude), so every pass takes about as long as the first)
     SEARCH  --promising ground within reach (an area that reads well from high up but is not yet
-            a spot; during the top pass only the likely ones; once it is flown and nothing is
-            within reach, anywhere in the search area)--> PROBE
+            a spot; during the top pass only the likely ones; once it is flown, likely ground
+            anywhere first, then what is within reach, then anywhere in the search area)--> PROBE
     PROBE   --fly there, look from the probe altitude: a spot--> APPROACH
     PROBE   --nothing after probe_frames, probe_timeout_s + the flight there at the search speed,
             or the search's time--> SEARCH (the area
