@@ -244,34 +244,6 @@ def test_a_faint_person_stands_out_as_a_blob_and_broad_swells_are_not_findings()
     assert not v.clear and v.nearest_m == pytest.approx(3.0, abs=0.3)
 
 
-def test_a_level_near_even_odds_all_over_the_square_is_the_segmenters_a_car_standing_out_of_it_is_not() -> None:
-    """The broad rule needs a car to stand out of the square's own ground: a square whose reading
-    swells across never_p_min here and there (the segmenter's level of the moment) is clear; a car on
-    that same ground, or cars covering most of the square, are findings."""
-    cfg = CloseLookConfig()
-    n = 352
-    m_per_px = cfg.side_m / n
-    yy, xx = (np.mgrid[0:n, 0:n] - 175.5) * m_per_px
-    # Log-odds -0.75 +- 0.45 in swells 2 m across: P(never) 0.23-0.43.
-    ground = -0.75 + 0.45 * np.sin(2.0 * math.pi * xx / 4.0) * np.sin(2.0 * math.pi * yy / 4.0)
-
-    def prob(odds: np.ndarray) -> np.ndarray:
-        return (1.0 / (1.0 + np.exp(-odds))).astype(np.float32)
-
-    assert (prob(ground) >= cfg.never_p_min).mean() > 0.02  # the level alone would have fired
-    assert verdict(prob(ground), cfg.side_m, cfg).clear
-    car = ground.copy()
-    car[(np.abs(yy) <= 2.0) & (xx >= 3.0) & (xx <= 5.0)] = math.log(0.8 / 0.2)
-    v = verdict(prob(car), cfg.side_m, cfg)
-    assert not v.clear and v.nearest_m == pytest.approx(3.0, abs=0.3)
-    # A lot where cars cover 60 % of the square: the quartile is still the ground between them.
-    lot = ground.copy()
-    lot[(np.floor((yy + 4.0) / 2.0) != 0) & (np.abs(xx) >= 1.0)] = math.log(0.8 / 0.2)
-    assert 0.5 < (lot > 0.0).mean() < 0.7 and not verdict(prob(lot), cfg.side_m, cfg).clear
-    with pytest.raises(ConfigError, match="broad_contrast_logit"):
-        CloseLookConfig(broad_contrast_logit=-1.0)
-
-
 class _Descending:
     """An inner policy descending onto one spot at 41 m; it records the spots the gate rejects."""
 

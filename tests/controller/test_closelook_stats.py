@@ -27,7 +27,7 @@ def test_the_rule_finds_people_and_a_blind_rule_finds_none() -> None:
     seen = summarise(looks_of(world, "realistic", 4, 3, 300))
     assert seen["person_squares"] == 2 and seen["clear_squares"] == 2 and seen["person_looks"] == 6
     assert seen["person_looks_missed"] <= 1 and seen["person_gate_opened"] == 0
-    blind = dataclasses.replace(CloseLookConfig(), never_p_min=1.0, never_p_sure=1.0, blob_min_logit=1e6)
+    blind = dataclasses.replace(CloseLookConfig(), never_p_min=1.0, blob_min_logit=1e6)
     unseen = summarise(looks_of(world, "realistic", 4, 3, 300, blind))
     assert unseen["person_looks_missed"] == 6 and unseen["person_gate_opened"] == 2
     assert unseen["clear_looks_fired"] == 0
@@ -40,7 +40,7 @@ def test_cars_within_the_vehicle_separation_are_found_and_a_blind_rule_misses_th
     seen = summarise(cars)
     assert seen["vehicle_squares"] == 3 and seen["person_squares"] == seen["clear_squares"] == 0
     assert seen["vehicle_looks"] == 6 and seen["vehicle_looks_missed"] <= 1 and seen["vehicle_gate_opened"] == 0
-    blind = dataclasses.replace(CloseLookConfig(), never_p_min=1.0, never_p_sure=1.0, blob_min_logit=1e6)
+    blind = dataclasses.replace(CloseLookConfig(), never_p_min=1.0, blob_min_logit=1e6)
     unseen = summarise(looks_of(world, "realistic", 3, 2, 300, blind, vehicles=True))
     assert unseen["vehicle_looks_missed"] == 6 and unseen["vehicle_gate_opened"] == 3
 

@@ -80,22 +80,6 @@ class CloseLookConfig:
     # segmenter's calibration, not an object: at 0.3, in the `realistic` checks above, clear looks
     # fired 36 times instead of 14 and 2 looks at people missed instead of 6.
     never_p_min: float = 0.4
-    # ... where it also stands out of the square's own ground: logit P(never) at least
-    # broad_contrast_logit above the square's lower quartile (the ground, however much of the square
-    # a car or two cover). A car does (2.6-3.0 log-odds at the median of calibration crops); a swell
-    # that barely crosses never_p_min here and there does not: that is the segmenter's level of the
-    # moment (`harsh` draws an offset of +-0.6 log-odds per episode), the shift a real CLIPSeg's
-    # level makes from scene to scene. Without it, under `harsh` clear squares were rejected for
-    # swells: the level fired on 22 % of looks at clear ground, and on 30 % of the looks at people
-    # the blob rule missed, near that chance rate: it was not seeing them. Chosen on calibration
-    # crops (`dovesei closelook-stats --profile harsh --seed-base 100` over parkland, downtown,
-    # crowded and villas), level alone -> with the contrast and never_p_sure: clear looks fired 68
-    # -> 47 of 240 (gate opened on 46 -> 51 of 60 squares), looks at people missed 5 -> 8 of 240
-    # (gate 0 -> 1 of 60), cars 0 -> 0 of 316 (gate 0 of 80).
-    broad_contrast_logit: float = 1.2
-    # At or above even odds the segmenter itself reads the never set as likely as the landing
-    # prompts: a finding whatever the ground around reads (a lot full of cars reads "car" all over).
-    never_p_sure: float = 0.5
     # Something broad (the never_p_min rule: a car, a crowd) counts this far from the spot, as far
     # as the square reaches (its half side is margin_m): the judge keeps vehicles 5 m away, and
     # with the person margin alone harsh downtown start 3 of 6 handed over with a car 3.7 m from
@@ -133,12 +117,10 @@ class CloseLookConfig:
             validate.positive(f"close look {name}", getattr(self, name))
         validate.non_negative("close look final_gate_m", self.final_gate_m)
         validate.in_range("close look never_p_min", self.never_p_min, 0.0, 1.0)
-        validate.in_range("close look never_p_sure", self.never_p_sure, self.never_p_min, 1.0)
         # Something broad is at least as much of a finding as a person: never over less ground.
         validate.in_range("close look broad_margin_m", self.broad_margin_m, self.margin_m, 1e4)
         validate.in_range("close look blob_sigma_m", self.blob_sigma_m, 0.01, 5.0)
         validate.positive("close look blob_min_logit", self.blob_min_logit)
-        validate.in_range("close look broad_contrast_logit", self.broad_contrast_logit, 0.0, 20.0)
         validate.in_range("close look out_px", self.out_px, 32, 1024)
         validate.in_range("close look never_min_px", self.never_min_px, 1, 10_000)
         validate.in_range("close look clear_looks", self.clear_looks, 1, 100)
@@ -188,18 +170,14 @@ def blob_response(prob_never: np.ndarray, side_m: float, sigma_m: float) -> np.n
 
 def verdict(prob_never: np.ndarray, side_m: float, cfg: CloseLookConfig) -> Verdict:
     """Where the never map holds a person-sized blob (`blob_min_logit`) within margin_m of the
-    square's centre (the spot asked for), or within broad_margin_m reads `never_p_sure` or crosses
-    `never_p_min` standing broad_contrast_logit out of the square's ground; the nearest of either
-    counts as found."""
+    square's centre (the spot asked for), or crosses `never_p_min` within broad_margin_m; the
+    nearest of either counts as found."""
     n = prob_never.shape[0]
     m_per_px = side_m / n
     c = (n - 1) / 2.0
     yy, xx = np.mgrid[0:n, 0:n]
     dist_px_m = np.hypot(yy - c, xx - c) * np.float32(m_per_px)
-    never_logit = logit(prob_never, 1e-4)
-    ground = float(np.percentile(never_logit, 25.0))
-    broad = (prob_never >= cfg.never_p_sure) | ((prob_never >= cfg.never_p_min)
-                                                & (never_logit >= ground + cfg.broad_contrast_logit))
+    broad = prob_never >= cfg.never_p_min
     blob = blob_response(prob_never, side_m, cfg.blob_sigma_m) >= cfg.blob_min_logit
     counted = (broad & (dist_px_m <= cfg.broad_margin_m)) | (blob & (dist_px_m <= cfg.margin_m))
     inside = dist_px_m <= cfg.margin_m
