@@ -296,35 +296,6 @@ def test_commands_take_off_the_learnt_velocity_bias() -> None:
     assert math.hypot(f, r) == pytest.approx(cap) and f < -0.9 * cap
 
 
-def test_centring_integrates_away_the_standing_error_the_learnt_bias_leaves() -> None:
-    """Flown onto a point with a velocity error the learnt bias missed (under harsh it wanders), a
-    proportional command alone settles residual / gain from the point (1.2 m here); with the
-    centring's integral the error goes, and the integral holds what the bias missed."""
-    cfg = ClearanceConfig()
-    point, residual, dt = (10.0, 0.0), (0.5, -0.3), 0.5  # m, m/s north/east, s
-
-    def settle(integral: bool) -> float:
-        policy = ClearancePolicy(cfg)
-        pos = [0.0, 0.0]
-        for k in range(240):
-            dn, de = point[0] - pos[0], point[1] - pos[1]
-            f, r = cfg.approach_gain_per_s * dn, cfg.approach_gain_per_s * de  # yaw 0: forward north
-            if integral:
-                f, r = policy._centring((f, r), point, dn, de, 0.0, k * dt)
-            pos = [pos[0] + (f + residual[0]) * dt, pos[1] + (r + residual[1]) * dt]
-        return math.hypot(point[0] - pos[0], point[1] - pos[1])
-
-    assert settle(False) == pytest.approx(math.hypot(*residual) / cfg.approach_gain_per_s, rel=0.02)
-    assert settle(True) < 0.05
-    # A point that moves (a re-check, a new spot) starts a new integral.
-    policy = ClearancePolicy(cfg)
-    policy._centring((0.0, 0.0), point, 2.0, 0.0, 0.0, 0.0)
-    policy._centring((0.0, 0.0), point, 2.0, 0.0, 0.0, 5.0)
-    assert policy._centre[0] > 0.0
-    f, _ = policy._centring((0.0, 0.0), (20.0, 0.0), 0.0, 0.0, 0.0, 6.0)
-    assert f == 0.0
-
-
 def test_without_registration_the_estimate_drifts() -> None:
     """The same flight with registration off (no heatmap ever counts as textured): the position
     estimate drifts metres off, so the test above passes because of the registration."""

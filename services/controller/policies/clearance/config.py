@@ -245,13 +245,6 @@ class ClearanceConfig:
     # seed 0: 11 % of the disk on a sidewalk, touchdown error 2.4 m). Half of margin_m: the rest
     # of the margin covers the map's blur, which the map's own clearance already holds.
     handover_margin_m: float = 0.75
-    # Centring on the spot (DESCEND, HANDOVER) adds the integral of its error: gain
-    # approach_gain_per_s / centre_integral_s, at most bias_max_m_s. What the learnt bias has not
-    # caught (it wanders under `harsh`) otherwise stays as a standing error of residual / gain:
-    # harsh Dubai start 0 of 12 handed over 1.8 m from its spot by its own estimate (touchdown
-    # error 4.1 m; with the integral 2.0 m; villas 2 4.3 -> 1.6 m, downtown 7 3.6 -> 1.8 m).
-    # 10 s: five times the position loop's own time constant (1 / gain), so it does not ring.
-    centre_integral_s: float = 10.0
     switch_gain: float = 0.3  # a new spot must score this much better to replace the target
     refine_radius_m: float = 4.0  # a target that fails its re-check moves within this, only for clearance
     descent_gain_per_s: float = 0.08  # descent speed = gain x height above hand-over + min
@@ -283,7 +276,7 @@ class ClearanceConfig:
             "look_period_s", "decay_tau_s", "looks_min", "looks_full", "reg_gate_m", "static_tau_s", "bias_tau_s",
             "key_scale_ratio", "dt_cap_s", "search_radius_m", "search_spacing_frac", "search_spacing_radius_frac",
             "search_speed_m_s", "fence_gain_per_s", "anchor_scale_ratio", "anchor_reach_frac", "anchor_spacing_frac",
-            "approach_gain_per_s", "max_speed_m_s", "lock_in_m", "centre_integral_s", "lock_out_m", "probe_alt_m", "probe_reach_m", "confirm_alt_m",
+            "approach_gain_per_s", "max_speed_m_s", "lock_in_m", "lock_out_m", "probe_alt_m", "probe_reach_m", "confirm_alt_m",
             "ref_start_alt_m", "confirm_above_probe_m", "spot_drift_m_s", "spot_trust_s",
             "probe_skip_m", "probe_dist_m", "probe_timeout_s", "probe_alt_tol_m",
             "refine_radius_m", "descent_gain_per_s", "descent_min_m_s", "descent_max_m_s", "climb_speed_m_s",

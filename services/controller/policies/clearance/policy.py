@@ -101,9 +101,6 @@ class ClearancePolicy:
         self._route: tuple[tuple[float, float, float], ...] = ()
         self._top_pass_end = 0  # waypoints of the route's first (top) pass
         self._hold_ne: tuple[float, float] | None = None  # NO_SPOT's or HANDOVER's hold point, in the local frame
-        # The centring's integral (north, east, in m/s of command), the point it centres on, its clock.
-        self._centre: tuple[float, float, float, float, float] | None = None
-        self._t_s = 0.0
         self._passes = 0
         self._cmd: tuple[float, float, float] = (0.0, 0.0, 0.0)
         self._last_motion: MotionStep | None = None
@@ -155,7 +152,6 @@ class ClearancePolicy:
     def step(self, obs: Observation) -> Decision:
         prob = self._validate(obs)
         cfg = self.config
-        self._t_s = obs.t_s
         if self.memory is None:
             self.memory = Memory(since_s=obs.t_s, start_s=obs.t_s)
             self._alts = cfg.altitudes(float(obs.alt_agl_m))
@@ -364,30 +360,10 @@ class ClearancePolicy:
         dn, de = self._hold_ne[0] - pn, self._hold_ne[1] - pe
         if self.state is Phase.HANDOVER:
             f, r = toward(dn, de, cfg.approach_gain_per_s, cfg.max_speed_m_s, yaw_rad)
-            f, r = self._centring((f, r), self._hold_ne, dn, de, yaw_rad)
         else:
             f, r = toward(dn, de, cfg.hold_gain_per_s, cfg.hold_speed_max_m_s, yaw_rad)
         vel, fenced = fence((f, r, 0.0), pn, pe, yaw_rad, cfg, self.fence_m())
         return self._through_bias(vel, yaw_rad), fenced, math.hypot(dn, de)
-
-    def _centring(self, vel_fr: tuple[float, float], point: tuple[float, float], dn: float, de: float,
-                  yaw_rad: float, t_s: float | None = None) -> tuple[float, float]:
-        """`vel_fr` plus the integral of the error from `point` over the time it has centred on it
-        (reset when the point moves by more than a metre), at most bias_max_m_s."""
-        cfg = self.config
-        t = self._t_s if t_s is None else t_s
-        c = self._centre
-        if c is None or math.hypot(c[2] - point[0], c[3] - point[1]) > 1.0:
-            c = (0.0, 0.0, point[0], point[1], t)
-        dt = min(max(t - c[4], 0.0), cfg.dt_cap_s)
-        gain = cfg.approach_gain_per_s / cfg.centre_integral_s
-        i_n, i_e = c[0] + gain * dn * dt, c[1] + gain * de * dt
-        size = math.hypot(i_n, i_e)
-        if size > cfg.bias_max_m_s:
-            i_n, i_e = i_n * cfg.bias_max_m_s / size, i_e * cfg.bias_max_m_s / size
-        self._centre = (i_n, i_e, point[0], point[1], t)
-        bf, br = to_body(i_n, i_e, yaw_rad)
-        return vel_fr[0] + float(bf), vel_fr[1] + float(br)
 
     def _through_bias(self, vel: tuple[float, float, float], yaw_rad: float) -> tuple[float, float, float]:
         """The command that gets `vel` flown: the autopilot steers its own velocity estimate onto
@@ -428,12 +404,6 @@ class ClearancePolicy:
                 self._hold_ne = (mem.target.north_m, mem.target.east_m)
             vel, fenced, _ = self._hold_velocity(pn, pe, obs.yaw_rad)
         else:
-            if mem.phase is Phase.DESCEND and mem.target is not None:
-                point = (mem.target.north_m, mem.target.east_m)
-                f, r = self._centring(vel[:2], point, point[0] - pn, point[1] - pe, obs.yaw_rad, obs.t_s)
-                vel = (f, r, vel[2])
-            else:
-                self._centre = None
             vel, fenced = fence(vel, pn, pe, obs.yaw_rad, cfg, fence_m)
             vel = self._through_bias(vel, obs.yaw_rad)
         anchored = fresh and mem.target is not None and mem.anchor != prev.anchor and self.motion.set_spot()
