@@ -45,25 +45,38 @@ PERSON_WITHIN_M = 3.5
 CLEAR_BEYOND_M = 6.0
 
 
+def _safe_codes(world: World) -> np.ndarray:
+    return np.array([k for k, c in world.classes.items() if c.safe])
+
+
+def _on_safe_ground(world: World, safe: np.ndarray, x_m: float, y_m: float, half_m: float) -> bool:
+    """Is the square of half side `half_m` around the point all safe ground (and inside the world)?"""
+    half_px = int(round(half_m / world.gsd_m))
+    row, col = (int(v) for v in world.world_to_pixel(x_m, y_m))
+    labels = world.labels[row - half_px:row + half_px + 1, col - half_px:col + half_px + 1]
+    return labels.shape == (2 * half_px + 1,) * 2 and bool(np.isin(labels, safe).all())
+
+
+def _beside(at, j: int, rng: np.random.Generator, lo_m: float, hi_m: float) -> tuple[float, float]:
+    """A point lo_m-hi_m from object j's centre, in a random direction."""
+    r, a = rng.uniform(lo_m, hi_m), rng.uniform(0.0, 2.0 * math.pi)
+    return float(at.x_m[j]) + r * math.cos(a), float(at.y_m[j]) + r * math.sin(a)
+
+
 def _square(world: World, rng: np.random.Generator, person: bool, side_m: float) -> tuple[float, float, float] | None:
     """A square's centre (east, north) on safe ground and its nearest person's distance, or None."""
     layer = world.population.layer
-    safe = np.array([k for k, c in world.classes.items() if c.safe])
+    safe = _safe_codes(world)
     people = np.flatnonzero(layer.kind == PERSON)
     if person and people.size == 0:
         return None
     at = layer.at(0.0)
-    half_px = int(round(side_m / 2 / world.gsd_m))
     for _ in range(3000):
         if person:
-            j = int(rng.choice(people))
-            r, a = rng.uniform(0.5, PERSON_WITHIN_M), rng.uniform(0.0, 2.0 * math.pi)
-            cx, cy = float(at.x_m[j]) + r * math.cos(a), float(at.y_m[j]) + r * math.sin(a)
+            cx, cy = _beside(at, int(rng.choice(people)), rng, 0.5, PERSON_WITHIN_M)
         else:
             cx, cy = rng.uniform(50.0, world.width_m - 50.0), rng.uniform(50.0, world.height_m - 50.0)
-        row, col = (int(v) for v in world.world_to_pixel(cx, cy))
-        labels = world.labels[row - half_px:row + half_px + 1, col - half_px:col + half_px + 1]
-        if labels.shape != (2 * half_px + 1,) * 2 or not np.isin(labels, safe).all():
+        if not _on_safe_ground(world, safe, cx, cy, side_m / 2):
             continue  # a spot the map could have chosen: safe ground all over the square
         d = layer.distances_m(cx, cy, 0.0)
         nearest = float(d[people].min(initial=math.inf))
@@ -78,19 +91,14 @@ def _vehicle_square(world: World, rng: np.random.Generator) -> tuple[float, floa
     """A square's centre (east, north) with a car within VEHICLE_SEPARATION_M of it, the centre's
     safety disk on safe ground and no person within CLEAR_BEYOND_M, and the car's distance; or None."""
     layer = world.population.layer
-    safe = np.array([k for k, c in world.classes.items() if c.safe])
+    safe = _safe_codes(world)
     cars = np.flatnonzero(layer.kind == VEHICLE)
     if cars.size == 0:
         return None
     at = layer.at(0.0)
-    half_px = int(round(SAFETY_RADIUS_M / world.gsd_m))
     for _ in range(3000):
-        j = int(rng.choice(cars))
-        r, a = rng.uniform(2.0, VEHICLE_SEPARATION_M), rng.uniform(0.0, 2.0 * math.pi)
-        cx, cy = float(at.x_m[j]) + r * math.cos(a), float(at.y_m[j]) + r * math.sin(a)
-        row, col = (int(v) for v in world.world_to_pixel(cx, cy))
-        labels = world.labels[row - half_px:row + half_px + 1, col - half_px:col + half_px + 1]
-        if labels.shape != (2 * half_px + 1,) * 2 or not np.isin(labels, safe).all():
+        cx, cy = _beside(at, int(rng.choice(cars)), rng, 2.0, VEHICLE_SEPARATION_M)
+        if not _on_safe_ground(world, safe, cx, cy, SAFETY_RADIUS_M):
             continue
         d = layer.distances_m(cx, cy, 0.0)
         nearest_car = float(d[cars].min())
