@@ -92,7 +92,7 @@ def _vehicle_square(world: World, rng: np.random.Generator) -> tuple[float, floa
     safety disk on safe ground and no person within CLEAR_BEYOND_M, and the car's distance; or None."""
     layer = world.population.layer
     safe = _safe_codes(world)
-    cars = np.flatnonzero(layer.kind == VEHICLE)
+    cars, people = np.flatnonzero(layer.kind == VEHICLE), layer.kind == PERSON
     if cars.size == 0:
         return None
     at = layer.at(0.0)
@@ -102,7 +102,7 @@ def _vehicle_square(world: World, rng: np.random.Generator) -> tuple[float, floa
             continue
         d = layer.distances_m(cx, cy, 0.0)
         nearest_car = float(d[cars].min())
-        if nearest_car <= VEHICLE_SEPARATION_M and float(d[layer.kind == PERSON].min(initial=math.inf)) >= CLEAR_BEYOND_M:
+        if nearest_car <= VEHICLE_SEPARATION_M and float(d[people].min(initial=math.inf)) >= CLEAR_BEYOND_M:
             return cx, cy, nearest_car
     return None
 
@@ -145,8 +145,8 @@ def _gate_opens(fired: list[bool]) -> bool:
 
 def summarise(records: list[dict]) -> dict:
     people = [r for r in records if r["person"]]
-    cars = [r for r in records if r.get("vehicle")]
-    clear = [r for r in records if not r["person"] and not r.get("vehicle")]
+    cars = [r for r in records if r["vehicle"]]
+    clear = [r for r in records if not r["person"] and not r["vehicle"]]
     return {"person_squares": len(people), "person_looks": sum(len(r["fired"]) for r in people),
             "person_looks_missed": sum(f is False for r in people for f in r["fired"]),
             "person_gate_opened": sum(_gate_opens(r["fired"]) for r in people),

@@ -265,29 +265,27 @@ class ClearancePolicy:
         candidate = None
         if best is None and plan_probe and self._scene_seen:
             skip = mem.probed + tuple((n, e) for n, e, _ in mem.blacklist)
-            top_flown = mem.waypoint >= self._top_pass_end
-            if top_flown:
-                # The top pass flown, likely ground (probe_now_frac of the scene's contrast below its
-                # best) anywhere in the search area goes first: nearer ground that reads lower is
-                # likely a second-rate class. Looked for within probe_reach_m first, admissible
-                # (gate-level) areas won on distance: realistic Dubai starts 16 and 24 of 34 probed
-                # lawn-and-tree "vegetation" about 100 m away (start 16: 0.3 log-odds under the best
-                # disk) and landed on it, while the best disk, 270-280 m from the start, was open
-                # land; now both land there.
-                candidate = find_candidate(self.high, self._whole_promise(), cfg, north_m=pn, east_m=pe, skip=skip,
-                                           fence_m=fence_m, within_m=math.inf, min_logit=levels.probe_now_logit)
-            if candidate is None:
-                candidate = find_candidate(self.high, high, cfg, north_m=pn, east_m=pe, skip=skip, fence_m=fence_m,
-                                           within_m=cfg.probe_reach_m, min_logit=levels.probe_logit)
-            if candidate is None and top_flown:
-                # Nothing within reach, the top pass flown: promising ground anywhere in the search
-                # area is worth the flight. The lower passes stay near the start (their radius
-                # shrinks with the altitude), so without this the best ground the top pass saw, out
-                # near the fence, was never looked at (realistic downtown start 28 of 34: its only
-                # ground above the gate lay 253 m from the start, and the search held NO_SPOT).
-                candidate = find_candidate(self.high, self._whole_promise(), cfg, north_m=pn, east_m=pe, skip=skip,
-                                           fence_m=fence_m,
-                                           within_m=math.inf, min_logit=levels.probe_logit)
+            # Where to look for a candidate, in order (the first that finds one wins). Once the top
+            # pass is flown, likely ground (probe_now_frac of the scene's contrast below its best)
+            # anywhere in the search area goes first: nearer ground that reads lower is likely a
+            # second-rate class. Looked for within probe_reach_m first, admissible (gate-level)
+            # areas won on distance: realistic Dubai starts 16 and 24 of 34 probed lawn-and-tree
+            # "vegetation" about 100 m away (start 16: 0.3 log-odds under the best disk) and landed
+            # on it, while the best disk, 270-280 m from the start, was open land; now both land
+            # there. Last, with nothing within reach, promising ground anywhere is worth the flight:
+            # the lower passes stay near the start (their radius shrinks with the altitude), so the
+            # best ground the top pass saw, out near the fence, was never looked at (realistic
+            # downtown start 28 of 34: its only ground above the gate lay 253 m from the start, and
+            # the search held NO_SPOT).
+            within_reach = (lambda: high, cfg.probe_reach_m, levels.probe_logit)
+            tiers = ((within_reach,) if mem.waypoint < self._top_pass_end else
+                     ((self._whole_promise, math.inf, levels.probe_now_logit), within_reach,
+                      (self._whole_promise, math.inf, levels.probe_logit)))
+            for promise_of, within_m, min_logit in tiers:
+                candidate = find_candidate(self.high, promise_of(), cfg, north_m=pn, east_m=pe, skip=skip,
+                                           fence_m=fence_m, within_m=within_m, min_logit=min_logit)
+                if candidate is not None:
+                    break
         check = recheck = None
         target = self.memory.target
         if target is not None:
