@@ -244,6 +244,76 @@ def test_a_faint_person_stands_out_as_a_blob_and_broad_swells_are_not_findings()
     assert not v.clear and v.nearest_m == pytest.approx(3.0, abs=0.3)
 
 
+def test_the_broad_level_follows_the_flights_baseline_within_its_bounds() -> None:
+    """Something broad must stand baseline_k_logit above the flight's baseline (never above
+    never_p_max); a blob is found whatever the baseline."""
+    cfg = CloseLookConfig()
+    n = 352
+    m = cfg.side_m / n
+    yy, xx = (np.mgrid[0:n, 0:n] - (n - 1) / 2.0) * m
+
+    def prob(lg: np.ndarray) -> np.ndarray:
+        return (1.0 / (1.0 + np.exp(-lg))).astype(np.float32)
+
+    def swell_of(peak_p: float) -> np.ndarray:  # a swell 1.5 m wide at the spot, too broad for a blob
+        low = math.log(0.05 / 0.95)
+        return prob(low + (math.log(peak_p / (1 - peak_p)) - low) * np.exp(-(yy ** 2 + xx ** 2) / (2 * 1.5 ** 2)))
+
+    swell = swell_of(0.45)  # over never_p_min
+    assert not verdict(swell, cfg.side_m, cfg).clear
+    low = math.log(0.05 / 0.95)
+    assert not verdict(swell, cfg.side_m, cfg, baseline_logit=low).clear  # a low baseline: 0.4 stands
+    high = math.log(0.3 / 0.7)  # a flight whose looks read P(never) 0.3 everywhere
+    v = verdict(swell, cfg.side_m, cfg, baseline_logit=high)
+    assert v.clear and v.broad_p == pytest.approx(cfg.never_p_max)
+    assert not verdict(swell_of(0.65), cfg.side_m, cfg, baseline_logit=5.0).clear  # over never_p_max: found
+    person = prob(high + 1.0 * np.exp(-(yy ** 2 + (xx - 1.0) ** 2) / (2 * 0.2 ** 2)))  # a faint blob, 1 m aside
+    v = verdict(person, cfg.side_m, cfg, baseline_logit=high)
+    assert not v.clear and v.nearest_m == pytest.approx(1.0, abs=0.3)
+
+
+def _flat_answer(seq: int, p: float, centre_frd_m: tuple[float, float] = (0.0, 0.0)) -> LookResult:
+    never = np.full((352, 352), p, np.float32)
+    heat = CropHeatmap("uav1", seq, seq, Stamp(float(seq), "sim"), never, never, centre_frd_m, 8.0, 41.0, "simulated",
+                       True, "p", "n", 0.01)
+    return LookResult(seq, heat)
+
+
+def test_the_baseline_is_read_from_looks_at_other_ground_only() -> None:
+    """The spot's own looks never set its bar (what is there would raise it); looks at ground
+    farther than a square's side do, once baseline_looks of them were scored."""
+    cfg = CloseLookConfig()
+
+    class _Moving(_Descending):
+        spot = (10.0, 5.0)
+
+        def step(self, obs: Observation) -> Decision:
+            n, e = self.spot
+            s = SpotReport(n, e, 6.0, 1.0, 0.9, 0.0, est_north_m=n, est_east_m=e)
+            return Decision((0.0, 0.0, 1.0), 0.0, "DESCEND", None, 0.0, None, spot=s, landing=True)
+
+    inner = _Moving()
+    gate = CloseLookPolicy(inner)
+    t = 0.0
+
+    def look_once(seq: int, p: float) -> None:  # ask (a step), then the answer half a second later
+        nonlocal t
+        t += 1.0
+        assert gate.step(Observation(t_s=t, alt_agl_m=41.0, prob_safe=None)).look_request is not None
+        gate.step(Observation(t_s=t + 0.5, alt_agl_m=41.0, prob_safe=None, look=_flat_answer(seq, p)))
+
+    for seq in range(1, 6):  # five looks at the spot itself, P(never) 0.3 all over
+        look_once(seq, 0.3)
+    assert gate.looks == 5 and gate.baseline_logit(inner.spot) is None
+    for k in range(cfg.baseline_looks):  # looks at other spots, each a square's side and more away
+        inner.spot = (10.0 + 2.0 * cfg.side_m * (k + 1), 5.0)
+        look_once(10 + k, 0.1)
+    base = gate.baseline_logit((10.0, 5.0))
+    assert base == pytest.approx(math.log(0.1 / 0.9), abs=0.02)
+    # The last spot's own look is not in its own baseline: the first spot's five and the other two are.
+    assert gate.baseline_logit(inner.spot) == pytest.approx(math.log(0.3 / 0.7), abs=0.02)
+
+
 class _Descending:
     """An inner policy descending onto one spot at 41 m; it records the spots the gate rejects."""
 
