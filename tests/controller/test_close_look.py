@@ -266,6 +266,8 @@ def test_the_broad_level_follows_the_flights_baseline_within_its_bounds() -> Non
     high = math.log(0.3 / 0.7)  # a flight whose looks read P(never) 0.3 everywhere
     v = verdict(swell, cfg.side_m, cfg, baseline_logit=high)
     assert v.clear and v.broad_p == pytest.approx(cfg.never_p_max)
+    assert "broad from P 0.60 on this flight" in v.text(cfg.margin_m)  # the status says why it is clear
+    assert "on this flight" not in verdict(swell, cfg.side_m, cfg, baseline_logit=low).text(cfg.margin_m)
     assert not verdict(swell_of(0.65), cfg.side_m, cfg, baseline_logit=5.0).clear  # over never_p_max: found
     person = prob(high + 1.0 * np.exp(-(yy ** 2 + (xx - 1.0) ** 2) / (2 * 0.2 ** 2)))  # a faint blob, 1 m aside
     v = verdict(person, cfg.side_m, cfg, baseline_logit=high)

@@ -174,13 +174,16 @@ class Verdict:
     p_max: float  # the largest P(never) within the margin
     median_logit: float = 0.0  # the square's median log-odds P(never): the flight's baseline
     broad_p: float = 0.0  # the level the broad rule used
+    raised: bool = False  # the flight's baseline lifted that level above never_p_min
 
     def text(self, margin_m: float) -> str:
+        level = f", broad from P {self.broad_p:.2f} on this flight" if self.raised else ""
         if self.clear:
             seen = f"nearest at {self.nearest_m:.1f} m" if self.nearest_m is not None else "none seen"
-            return f"clear: nothing of the never set within {margin_m:.1f} m ({seen}, P max {self.p_max:.2f})"
+            return f"clear: nothing of the never set within {margin_m:.1f} m ({seen}, P max {self.p_max:.2f}{level})"
         broad = ", something broad" if self.nearest_m is not None and self.nearest_m > margin_m else ""
-        return f"never set {self.nearest_m:.1f} m from the spot (P max {self.p_max:.2f}, margin {margin_m:.1f} m{broad})"
+        return (f"never set {self.nearest_m:.1f} m from the spot (P max {self.p_max:.2f}, margin {margin_m:.1f} m"
+                f"{broad}{level})")
 
 
 def blob_response(prob_never: np.ndarray, side_m: float, sigma_m: float) -> np.ndarray:
@@ -216,7 +219,8 @@ def verdict(prob_never: np.ndarray, side_m: float, cfg: CloseLookConfig,
     # The nearest finding: of those that count when it is one, of any in the square (a report) when clear.
     dist_m = dist_px_m[(broad | blob) if clear else counted]
     median = float(np.median(logit(prob_never, 1e-4)))
-    return Verdict(clear, float(dist_m.min()) if dist_m.size else None, p_max, median, broad_p)
+    return Verdict(clear, float(dist_m.min()) if dist_m.size else None, p_max, median, broad_p,
+                   broad_p > cfg.never_p_min)
 
 
 @dataclass(frozen=True)
