@@ -162,7 +162,9 @@ def known_mean(gmap, cfg: ClearanceConfig, stride: int = 1) -> tuple[np.ndarray,
 
 
 def sigmoid(logit: float) -> float:
-    """P for a log-odds threshold (1 for NOTHING_SAFE)."""
+    """P for a log-odds threshold (1 for NOTHING_SAFE; 0 far below, where exp would overflow)."""
     if math.isinf(logit):
         return 1.0 if logit > 0 else 0.0
+    if logit < -700.0:
+        return 0.0
     return 1.0 / (1.0 + math.exp(-logit))
