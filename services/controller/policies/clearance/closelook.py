@@ -137,8 +137,7 @@ class CloseLookConfig:
             validate.positive(f"close look {name}", getattr(self, name))
         validate.non_negative("close look final_gate_m", self.final_gate_m)
         validate.in_range("close look never_p_min", self.never_p_min, 0.0, 1.0)
-        # The flight's baseline only ever raises the broad level: its cap is at least the level.
-        validate.in_range("close look never_p_max", self.never_p_max, self.never_p_min, 1.0)
+        validate.in_range("close look never_p_max", self.never_p_max, 0.0, 1.0)
         validate.non_negative("close look baseline_k_logit", self.baseline_k_logit)
         validate.in_range("close look baseline_looks", self.baseline_looks, 1, 1000)
         # Something broad is at least as much of a finding as a person: never over less ground.
