@@ -51,6 +51,7 @@ __all__ = ["DEFAULT_POLICIES", "SUMMARY_KEYS", "build_parser", "main", "paper_ti
 log = logging.getLogger(__name__)
 
 DEFAULT_POLICIES = "dovesei,dovesei-nofocus"
+BENCH_GNSS_DENIED = ("off", "external-nav")  # what a sim vehicle can fly (attitude needs a MAVLink autopilot)
 PAPER_TIME_LIMIT_S = shared_timing.PAPER_TIME_LIMIT_S
 
 
@@ -97,6 +98,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "optical-flow EKF without GNSS, a body-fixed camera, ArduCopter's limits) or harsh "
                         f"(default: {default_vehicle_profile('real')} with --timing real, "
                         f"{default_vehicle_profile('reference')} with --timing reference)")
+    p.add_argument("--gnss-denied", default="off", choices=BENCH_GNSS_DENIED,
+                   help="off: the vehicle flies on its profile's own estimate (default); external-nav: its "
+                        "autopilot also fuses the camera's visual velocity (10 Hz views rendered at the true pose, "
+                        "as `up --gnss-denied external-nav` feeds a real one); not with --vehicle-profile ideal")
     p.add_argument("--start-margin-m", type=float, default=None,
                    help="starts lie this far inside the area where the start footprint is on the map "
                         "(default: with `clearance` flown, its search radius + fence + a drift allowance, so its "
@@ -167,7 +172,7 @@ def make_grid(*, world_spec: str | None = None, worlds: tuple[str, ...] | None =
               handover_alt_m: float = HANDOVER_ALT_M, policy_config: Path | None = None,
               separation_m: tuple[float, float] = (PERSON_SEPARATION_M, VEHICLE_SEPARATION_M),
               perception_shift: str | tuple | None = None, shift_only: bool = False,
-              close_look: bool = True) -> Grid:
+              close_look: bool = True, gnss_denied: str = "off") -> Grid:
     """The bench's grid, every setting checked (one line naming the flag otherwise).
 
     With `perception_shift` ("A_LO,A_HI,B") every start is flown plainly and shifted (dovesei.bench.shift);
@@ -195,6 +200,10 @@ def make_grid(*, world_spec: str | None = None, worlds: tuple[str, ...] | None =
         changed = {k: v for k, v in flown.items() if v != policy_values(name, preset_config(name, timing))[k]}
     vehicle_profile = default_vehicle_profile(timing) if vehicle_profile is None else vehicle_profile
     validate_one_of("--vehicle-profile", vehicle_profile, VEHICLE_PROFILE_NAMES)
+    validate_one_of("--gnss-denied", gnss_denied, BENCH_GNSS_DENIED)
+    if gnss_denied != "off" and vehicle_profile == "ideal":
+        raise ConfigError("--gnss-denied external-nav needs a vehicle that estimates its velocity: "
+                          "--vehicle-profile realistic or harsh, not ideal")
     non_negative("--start-margin-m", start_margin_m)
     shared_timing.timing(timing)
     specs = tuple(worlds) if worlds else (world_spec or "synthetic",)
@@ -209,7 +218,8 @@ def make_grid(*, world_spec: str | None = None, worlds: tuple[str, ...] | None =
                 time_limit_s=float(time_limit_s), start_alt_m=float(start_alt_m), segmenter=segmenter,
                 start_margin_m=float(start_margin_m), world_label=world_label or specs[0], extra={"seed_note": seed_note} if seed_note else {},
                 vehicle_profile=vehicle_profile, handover_alt_m=float(handover_alt_m), policy_config=changed,
-                separation_m=(float(separation_m[0]), float(separation_m[1])), close_look=bool(close_look))
+                separation_m=(float(separation_m[0]), float(separation_m[1])), close_look=bool(close_look),
+                gnss_denied=gnss_denied)
 
 
 def settings_from_args(args: argparse.Namespace) -> dict:
@@ -224,7 +234,7 @@ def settings_from_args(args: argparse.Namespace) -> dict:
                 segmenter=args.segmenter, perception=args.perception, vehicle_profile=args.vehicle_profile,
                 handover_alt_m=args.handover_alt_m, policy_config=args.policy_config,
                 separation_m=(args.person_separation_m, args.vehicle_separation_m),
-                perception_shift=args.perception_shift, shift_only=args.shift_only, close_look=args.close_look, world_label=f"suite:{args.suite.strip()}" if args.suite is not None else "")
+                perception_shift=args.perception_shift, shift_only=args.shift_only, close_look=args.close_look, gnss_denied=args.gnss_denied, world_label=f"suite:{args.suite.strip()}" if args.suite is not None else "")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -136,6 +136,8 @@ def record_base(job: dict) -> dict:
     # before profiles existed.
     if job.get("vehicle_profile") not in (None, "ideal"):
         base["vehicle_profile"] = job["vehicle_profile"]
+    if job.get("gnss_denied") not in (None, "off"):
+        base["gnss_denied"] = job["gnss_denied"]
     # Likewise the hand-over altitude when it is not the mission's default.
     if job.get("handover_alt_m", HANDOVER_ALT_M) != HANDOVER_ALT_M:
         base["handover_alt_m"] = job["handover_alt_m"]

@@ -77,6 +77,7 @@ class Grid:
     # The judge's separations from people and vehicles (0: that rule off).
     separation_m: tuple[float, float] = (PERSON_SEPARATION_M, VEHICLE_SEPARATION_M)
     close_look: bool = True  # clearance looks at its spot at full resolution before committing (issue 24)
+    gnss_denied: str = "off"  # "external-nav": the autopilot fuses the camera's visual velocity (SimConfig.external_nav)
 
     @property
     def shifted(self) -> bool:
@@ -98,6 +99,8 @@ class Grid:
                 # clearance with and without close looks flies differently: such benches never resume
                 # one from the other (benches without the key predate the close look).
                 **({"close_look": self.close_look} if "clearance" in self.policies else {}),
+                # Only a vehicle on the camera's velocity enters the settings: benches before it resume.
+                **({"gnss_denied": self.gnss_denied} if self.gnss_denied != "off" else {}),
                 # Likewise a run without a perception shift hashes as before.
                 **({"perception_shift": [shift.label(v.shift) for v in self.variants]} if self.shifted else {}),
                 "perception": [v.perception for v in self.variants] if len(self.variants) > 1 else self.variants[0].perception,
@@ -181,6 +184,7 @@ def plan_jobs(grid: Grid, worlds: dict, out: Path) -> list[dict]:
                         "vehicle_profile": grid.vehicle_profile, "handover_alt_m": grid.handover_alt_m,
                         "policy_config": grid.policy_config or None, "separation_m": list(grid.separation_m),
                         "close_look": grid.close_look,
+                        **({"gnss_denied": grid.gnss_denied} if grid.gnss_denied != "off" else {}),
                         "perception_label": var.perception if var.labelled else None,
                         "prompts_label": var.prompts_name if var.labelled else None,
                         "shift_label": shift.label(var.shift) if grid.shifted else None,

@@ -12,7 +12,13 @@ Each step k (t = k * dt) produces, in this order:
    (`dovesei.sim.estimator`), `pos_valid` False: the truth stays here, with the judge;
 3. with `odometry_rate_hz` > 0, a `VisualOdometry` when one is due: the onboard camera's visual
    velocity from views rendered at the true pose, tagged with the state's altitude and attitude
-   (`dovesei.sim.odometry`; published before the state, so a controller has it when it decides);
+   (`dovesei.sim.odometry`; published before the state, so a controller has it when it decides).
+   With `external_nav` the vehicle's autopilot also fuses each valid sample of at least
+   `external_nav_min_quality` into its velocity estimate, as ArduCopter's EKF3 does with
+   VISION_SPEED_ESTIMATE on an ExternalNav VELXY source (what `--gnss-denied external-nav` sets
+   up on a real autopilot): the sample, turned into NED with the attitude it is tagged with (the
+   estimate's, heading error included), corrects what the wind, gusts, drift and scale error do
+   to the vehicle (`Vehicle.fuse_ground_velocity`, time constant `external_nav_tau_s`);
 4. the `EpisodeResult` once the judge ends the episode (the controller's hand-over, the time
    limit, the vehicle leaving the world or reaching the ground without a hand-over).
 
@@ -54,6 +60,7 @@ from dovesei.shared.messages import (
 from dovesei.sim.camera import (
     CameraError, CameraModel, ground_point_m, optical_axis_ground_m, render, render_ground_square,
 )
+from dovesei.controller.frames import body_frd_to_ned
 from dovesei.sim.dynamics import Pose, Vehicle, VehicleParams
 from dovesei.sim.estimator import SIM_DEFAULT_VEHICLE_PROFILE, Estimate, Estimator, vehicle_profile
 from dovesei.sim.judge import NO_HANDOVER_REASON, EpisodeJudge
@@ -98,6 +105,17 @@ class SimConfig:
     # simulated perception, which reads only the labels: skips the costliest warp per frame.
     render_image: bool = True
     odometry_rate_hz: float = 0.0  # visual odometry views per sim second (10 = the camera's); 0 = off
+    # Odometry views this wide (square pixels, the camera's field of view; None: the camera's
+    # width). The bench renders them at half width for speed: fewer, coarser corners, a noisier
+    # velocity than the camera's own (dovesei bench-odometry measures both).
+    odometry_width_px: int | None = None
+    # The autopilot fuses the odometry into its velocity estimate (see 3. above). A modelling
+    # choice, not a measured value: tau 1 s, about what EKF3 takes to pull its velocity onto a
+    # 10 Hz measurement whose variance is far below its own (EK3_VELNE_M_NSE 0.5 m/s); the
+    # quality floor is the controller's `odometry_min_quality`.
+    external_nav: bool = False
+    external_nav_tau_s: float = 1.0
+    external_nav_min_quality: float = 0.5
     # Close looks (`crop`): the simulated camera's full-resolution width (its frames are `camera`
     # shrunk from it; a 12 MP drone camera is 4000 px wide) and what it agrees to cut, on sim time.
     crop_source_px: int = 4000
@@ -112,6 +130,18 @@ class SimConfig:
         validate.non_negative("sim person_separation_m", self.person_separation_m)
         validate.non_negative("sim vehicle_separation_m", self.vehicle_separation_m)
         validate.in_range("sim odometry_rate_hz", self.odometry_rate_hz, 0.0, 100.0)
+        if self.odometry_width_px is not None:
+            validate.in_range("sim odometry_width_px", self.odometry_width_px, 32, self.camera.width_px)
+            if isinstance(self.odometry_width_px, bool) or not isinstance(self.odometry_width_px, int):
+                raise ConfigError(f"sim odometry_width_px must be an integer, got {self.odometry_width_px!r}")
+        if self.external_nav:
+            if not self.odometry_rate_hz > 0.0:
+                raise ConfigError("sim external_nav fuses the visual odometry: it needs odometry_rate_hz > 0")
+            if vehicle_profile(self.vehicle_profile).estimator is None:
+                raise ConfigError(f"sim external_nav needs a vehicle that estimates its velocity; vehicle profile "
+                                  f"{self.vehicle_profile!r} reports the truth")
+        validate.positive("sim external_nav_tau_s", self.external_nav_tau_s)
+        validate.in_range("sim external_nav_min_quality", self.external_nav_min_quality, 0.0, 1.0)
         validate.in_range("sim crop_source_px", self.crop_source_px, self.camera.width_px, 16384)
         for name in ("frame_period_s", "latency_s"):
             if getattr(self, name) is not None:
@@ -120,6 +150,14 @@ class SimConfig:
             raise ConfigError(f"frame period {self.period_s} s is shorter than the step {self.dt_s} s")
         if not 0.0 <= self.delay_s <= 10.0:
             raise ConfigError(f"perception latency {self.delay_s} s outside 0..10 s")
+
+    @property
+    def odometry_camera(self) -> CameraModel:
+        """The camera the odometry views are rendered with: the camera's, `odometry_width_px` wide."""
+        w = self.odometry_width_px
+        if w is None or w == self.camera.width_px:
+            return self.camera
+        return CameraModel(w, max(1, round(self.camera.height_px * w / self.camera.width_px)), self.camera.hfov_deg)
 
     @property
     def period_s(self) -> float:
@@ -159,8 +197,9 @@ class SimCore:
         self.judge = EpisodeJudge(self.world, handover_alt_m=cfg.handover_alt_m, time_limit_s=cfg.time_limit_s,
                                   safety_radius_m=cfg.safety_radius_m, person_separation_m=cfg.person_separation_m,
                                   vehicle_separation_m=cfg.vehicle_separation_m)
-        self._odometry = SimOdometry(self.world, cfg.camera, cfg.vehicle_id, cfg.odometry_rate_hz) \
+        self._odometry = SimOdometry(self.world, cfg.odometry_camera, cfg.vehicle_id, cfg.odometry_rate_hz) \
             if cfg.odometry_rate_hz > 0 else None
+        self.fused = 0  # odometry samples the autopilot fused (external_nav)
         self._k = 0
         self._frame_seq = -1
         self._in_flight: deque[tuple[int, float]] = deque()  # (frame seq, sim time its heatmap is due)
@@ -206,6 +245,15 @@ class SimCore:
                           c.stamp.t_s if c else None)
         self._k += 1
         return self._emit()
+
+    def _fuse(self, odom: VisualOdometry) -> None:
+        """The autopilot's EKF takes one odometry sample (external_nav): valid and good enough only."""
+        cfg = self.config
+        if not odom.valid or odom.quality < cfg.external_nav_min_quality or not odom.dt_s > 0.0:
+            return
+        n, e, _d = body_frd_to_ned(odom.vel_body_frd_m_s, odom.roll_rad, odom.pitch_rad, odom.yaw_rad)
+        self.vehicle.fuse_ground_velocity((n, e), odom.dt_s, cfg.external_nav_tau_s)
+        self.fused += 1
 
     def is_fresh(self, cmd: VelocityCommand) -> bool:
         """True when the command's stamp is on the sim clock, not ahead of it and not too old."""
@@ -296,6 +344,8 @@ class SimCore:
             odometry = self._odometry.observe(pose.x_m, pose.y_m, pose.alt_agl_m, pose.yaw_rad, state,
                                               roll_rad=roll, pitch_rad=pitch,
                                               tag_roll_pitch_rad=(0.0, 0.0) if self._gimbal else None)
+            if cfg.external_nav and odometry is not None:
+                self._fuse(odometry)
         if outcome is not None:
             self._result = self._episode_result(outcome)
         return StepOut(state, frame, self._result, odometry)

@@ -20,6 +20,14 @@ whose velocity estimate reads (1 + e) x the truth tracks its commands on that es
 flies its own velocity / (1 + e). The speed and acceleration limits bound the vehicle's own
 velocity; `Pose.vel_ned_m_s` is the ground velocity and includes the disturbances.
 
+An autopilot that fuses an external ground-velocity measurement (ArduCopter's EKF3 with a source
+set whose VELXY is ExternalNav, fed VISION_SPEED_ESTIMATE: the camera's visual velocity) learns
+what moves its frame: `fuse_ground_velocity(measured, dt, tau)` moves a correction toward the
+innovation (measured - own, the error of what it believes it flies), and the correction comes off
+the ground velocity: own / (1 + e) + disturbances - correction. With an exact measurement at a
+steady state it converges on the disturbances and the scale error, so the vehicle truly flies its
+commands; a measurement's own error (a heading error, noise, a wrong altitude) is what remains.
+
 With the defaults (no jerk limit, scale error 0, no wind) the arithmetic is exactly that of the
 model before these were added: the `ideal` vehicle profile relies on it.
 
@@ -135,6 +143,7 @@ class Vehicle:
         self._rng = np.random.default_rng(seed)
         self._gust_ned = np.zeros(3)
         self._drift_ned = np.zeros(3)
+        self._nav_correction_ned = np.zeros(3)  # what fused ground-velocity measurements took off (horizontal)
         wind = np.asarray(params.wind_ned_m_s, dtype=np.float64)
         # The state's velocity is over ground; what the autopilot itself flies is that minus wind
         # (so a vehicle hovering in the wind starts with vel_ned_m_s = wind_ned_m_s).
@@ -151,6 +160,27 @@ class Vehicle:
     def vel_own_ned_m_s(self) -> tuple[float, float, float]:
         """The velocity the autopilot controls (ground velocity minus wind, gusts and drift)."""
         return tuple(float(v) for v in self._vel_own_ned)
+
+    @property
+    def nav_correction_ned_m_s(self) -> tuple[float, float, float]:
+        """The correction the fused ground-velocity measurements have learnt (0 without any)."""
+        return tuple(float(v) for v in self._nav_correction_ned)
+
+    def fuse_ground_velocity(self, measured_ne_m_s: tuple[float, float], dt_s: float, tau_s: float,
+                             max_m_s: float = 10.0) -> None:
+        """Fuse one horizontal ground-velocity measurement (north, east; m/s) covering `dt_s`: the
+        correction moves toward the innovation by dt / tau (a first-order filter with time
+        constant `tau_s`, the EKF's convergence), its size held within `max_m_s`."""
+        if not (validate.is_number(dt_s) and dt_s > 0 and validate.is_number(tau_s) and tau_s > 0):
+            raise DynamicsError(f"fusion dt_s and tau_s must be finite and > 0, got {dt_s!r}, {tau_s!r}")
+        if len(measured_ne_m_s) != 2 or not all(validate.is_number(v) for v in measured_ne_m_s):
+            raise DynamicsError(f"a fused ground velocity must be 2 finite numbers, got {measured_ne_m_s!r}")
+        innovation = np.asarray(measured_ne_m_s, dtype=np.float64) - self._vel_own_ned[:2]
+        corr = self._nav_correction_ned[:2] + min(1.0, dt_s / tau_s) * innovation
+        size = math.hypot(corr[0], corr[1])
+        if size > max_m_s:
+            corr *= max_m_s / size
+        self._nav_correction_ned[:2] = corr
 
     def step(
         self,
@@ -214,6 +244,9 @@ class Vehicle:
         else:
             ground0 = v0 + wind + disturb0
             ground1 = v1 + wind + self._gust_ned + self._drift_ned
+        if self._nav_correction_ned.any():  # never touched without fused measurements: ideal stays exact
+            ground0 = ground0 - self._nav_correction_ned
+            ground1 = ground1 - self._nav_correction_ned
         move = 0.5 * (ground0 + ground1) * dt_s  # trapezoid: exact for the linear velocity ramp
 
         alt = st.alt_agl_m - move[2]
