@@ -63,7 +63,7 @@ from dovesei.controller.policies.registry import make_policy, policy_names
 from dovesei.controller.continuity import (
     ALTITUDE_NOISE_M, MAX_VERTICAL_SPEED_M_S, STEP_CONFIRM_SAMPLES, AltitudeContinuity,
 )
-from dovesei.controller.frames import body_frd_to_ned, ned_to_body_frd, to_ne
+from dovesei.shared.frames import body_frd_to_ned, ned_to_body_frd, to_ne
 from dovesei.controller.geofence import Geofence
 from dovesei.controller.odometry import VelocityTrack
 from dovesei.controller.policies.dovesei.config import TIMING_PRESETS

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import math
 
-from dovesei.controller.frames import to_body, to_ne
+from dovesei.shared.frames import to_body, to_ne
 
 
 def cap_outward(north_m: float, east_m: float, vel_ne_m_s: tuple[float, float], radius_m: float,

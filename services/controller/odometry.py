@@ -33,7 +33,7 @@ from __future__ import annotations
 import bisect
 import math
 
-from dovesei.controller.frames import to_ne
+from dovesei.shared.frames import to_ne
 
 
 class VelocityTrack:

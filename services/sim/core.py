@@ -60,7 +60,7 @@ from dovesei.shared.messages import (
 from dovesei.sim.camera import (
     CameraError, CameraModel, ground_point_m, optical_axis_ground_m, render, render_ground_square,
 )
-from dovesei.controller.frames import body_frd_to_ned
+from dovesei.shared.frames import body_frd_to_ned
 from dovesei.sim.dynamics import Pose, Vehicle, VehicleParams
 from dovesei.sim.estimator import SIM_DEFAULT_VEHICLE_PROFILE, Estimate, Estimator, vehicle_profile
 from dovesei.sim.judge import NO_HANDOVER_REASON, EpisodeJudge

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from dovesei.controller.frames import body_frd_to_ned, ned_to_body_frd
+from dovesei.shared.frames import body_frd_to_ned, ned_to_body_frd
 from dovesei.shared import validate
 from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.shared.mavurl import check_serial_device, parse_mavlink_url

@@ -134,7 +134,7 @@ from dovesei.controller.mavlink.proto import (
     open_link,
 )
 from dovesei.controller.mavlink import takeoff as mavlink_takeoff
-from dovesei.controller.frames import to_ne
+from dovesei.shared.frames import to_ne
 from dovesei.controller.gnss_denied import (
     EXTERNAL_NAV_MESSAGES,
     GNSS_DENIED_MODES,

@@ -36,7 +36,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from dovesei.controller.frames import to_body
+from dovesei.shared.frames import to_body
 from dovesei.controller.policies.base import Decision, LookRequest, LookResult, Observation
 from dovesei.controller.policies.clearance.ground_map import logit
 from dovesei.controller.policies.clearance.scene import sigmoid

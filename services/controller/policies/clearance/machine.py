@@ -51,7 +51,7 @@ import math
 from dataclasses import dataclass
 from enum import Enum
 
-from dovesei.controller.frames import to_body
+from dovesei.shared.frames import to_body
 from dovesei.controller.policies.clearance.config import ClearanceConfig
 from dovesei.controller.policies.clearance.ground_map import Spot, footprint_width_m
 

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from dovesei.controller.frames import to_body, to_ne
+from dovesei.shared.frames import to_body, to_ne
 from dovesei.controller.policies.clearance.config import ClearanceConfig
 from dovesei.controller.policies.clearance.ground_map import footprint_width_m
 

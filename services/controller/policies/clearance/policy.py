@@ -47,7 +47,7 @@ from dovesei.controller.policies.clearance.ground_map import (GroundMap, Promise
                                                       find_candidate, find_spot, footprint_width_m, logit,
                                                       look_weight, promise)
 from dovesei.controller.policies.clearance.scene import SceneLevels, fine_noise, known_mean, map_levels, sigmoid
-from dovesei.controller.frames import to_body, to_ne
+from dovesei.shared.frames import to_body, to_ne
 from dovesei.controller.geofence import cap_outward
 from dovesei.controller.policies.clearance.motion import EgoMotion, MotionStep, tilt_offset_ne
 from dovesei.controller.policies.clearance.report import (ClearanceReport, ProbeReport, RegistrationReport,
