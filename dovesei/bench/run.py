@@ -296,7 +296,8 @@ def summary_markdown(doc: dict, *, title: str = "dovesei bench") -> str:
         f"{', at least %g m inside the edge beyond the footprint' % config['start_margin_m'] if 'start_margin_m' in config else ''}"
         f"), limit {config['time_limit_s']:g} s of sim time, "
         f"timing preset `{config['timing']}`, simulated perception `{config['perception']}` ({noise}), "
-        f"vehicle profile `{config.get('vehicle_profile', 'ideal')}`. "
+        f"vehicle profile `{config.get('vehicle_profile', 'ideal')}`"
+        f"{' on the camera' + chr(39) + 's visual velocity (`--gnss-denied external-nav`)' if config.get('gnss_denied') == 'external-nav' else ''}. "
         f"Success = reaching the hand-over altitude ({config.get('handover_alt_m', HANDOVER_ALT_M):g} m) with the "
         f"{SAFETY_RADIUS_M:g} m footprint disk on safe classes, judged on "
         f"the label map, {stats.separation_text(config)}. Intervals are Wilson 95 %.", "",

@@ -11,7 +11,7 @@ import pytest
 
 from dovesei.bench import make_grid
 from dovesei.bench.engines import record_base
-from dovesei.bench.run import load_worlds, plan_jobs
+from dovesei.bench.run import load_worlds, plan_jobs, summary_markdown
 from dovesei.episode import BENCH_ODOMETRY_HZ, BENCH_ODOMETRY_WIDTH_PX, EpisodeSpec, build_cores
 from dovesei.shared.errors import ConfigError
 from dovesei.sim.core import SimConfig, SimCore
@@ -133,6 +133,8 @@ def test_the_bench_flies_and_records_a_vehicle_on_the_cameras_velocity(tmp_path)
     assert (sim.config.external_nav, sim.config.odometry_rate_hz, sim.config.odometry_width_px) == \
         (True, BENCH_ODOMETRY_HZ, BENCH_ODOMETRY_WIDTH_PX)
     assert sim.config.odometry_camera.width_px == BENCH_ODOMETRY_WIDTH_PX
+    assert "on the camera's visual velocity" in summary_markdown({"config": on.config(), "summary": {}})
+    assert "visual velocity" not in summary_markdown({"config": off.config(), "summary": {}})
     with pytest.raises(ConfigError, match="--gnss-denied external-nav needs a vehicle"):
         make_grid(**{**kw, "vehicle_profile": "ideal"}, gnss_denied="external-nav")
     with pytest.raises(ConfigError, match="--gnss-denied"):
