@@ -513,6 +513,11 @@ CLI = CommandLine(SimServiceConfig, {
     "sim.odometry_rate_hz": Flag("--odometry-rate-hz", "publish the camera's visual odometry (dovesei.shared."
                                  "visual_velocity on views rendered at the true pose) on the odometry key at this "
                                  "rate, e.g. 10 (0 = off)", check=lambda w, v: validate.in_range(w, v, 0.0, 100.0)),
+    "sim.odometry_width_px": Flag("--odometry-width-px", "render the odometry views this many pixels wide "
+                                  "(default: the camera's width)", check=lambda w, v: validate.in_range(w, v, 32, 8192)),
+    "sim.external_nav": Flag("--external-nav", "the simulated autopilot also fuses its camera's visual velocity "
+                             "into its velocity estimate (EKF3 on an ExternalNav source; needs --odometry-rate-hz "
+                             "and a vehicle profile other than ideal)"),
     "sim.frame_period_s": Flag("--frame-period-s", "override the preset's frame period", check=validate.positive),
     "sim.latency_s": Flag("--latency-s", "override the preset's perception latency", check=validate.non_negative),
     "jpeg_quality": Flag("--jpeg-quality", "send frames JPEG-compressed at quality Q (1-100; default raw)",

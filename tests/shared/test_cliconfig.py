@@ -38,6 +38,7 @@ NON_DEFAULT = {
         sim=SimConfig(vehicle_id="uav-7", timing="real", frame_period_s=1.25, latency_s=0.1 + 0.2,
                       handover_alt_m=12.5, time_limit_s=77.7, seed=-3, attach_truth=False,
                       vehicle=VehicleParams(cmd_timeout_s=0.8), odometry_rate_hz=12.5, vehicle_profile="harsh",
+                      odometry_width_px=176, external_nav=True,
                       person_separation_m=2.5, vehicle_separation_m=6.5),
         world="synthetic:seed=3,size_m=400", start_xy_alt_m=(120.0, 80.5, 61.0), lockstep=False, speed=4.5,
         jpeg_quality=80, external_pose=True, sitl_truth="udpin:127.0.0.1:14552", wait_for=("controller", "segmenter"),
