@@ -326,6 +326,32 @@ def test_a_handover_declared_under_baro_noise_is_confirmed_by_a_majority_while_s
     assert "hand-over" in status.reason and status.handover
 
 
+def test_a_handover_measured_on_a_low_heatmap_is_confirmed_under_a_drifted_baro_within_its_band() -> None:
+    # harsh coast start 23 (the vehicle on the camera's velocity): the policy declared HANDOVER on
+    # a heatmap captured at 19.1 m, the states around it read 21-23.8 m (a +2 m baro offset and 1 m
+    # of noise): median 22.2 m, over the 2 m release band, so it was refused and the restarted
+    # policy timed out at 20 m. Measured on its own heatmap at the altitude, it is confirmed.
+    def fly(states: tuple[float, ...]) -> tuple[ControllerCore, HandsOver, list]:
+        policy = HandsOver()
+        core = ControllerCore(ControllerConfig(lockstep=True, handover_alt_m=20.0, handover_release_m=2.0,
+                                               handover_declared_band_m=4.0, handover_sink_m_s=0.3), policy=policy)
+        core.on_heatmap(heatmap(0, 0.0, alt_m=19.1), 0.0)
+        seen = []
+        for seq, alt_m in enumerate(states):
+            cmd, _ = core.tick(state(seq, 0.05 * (seq + 1), alt_m=alt_m, await_seq=0 if seq == 0 else -1))
+            seen.append((core.mode, cmd.vel_body_frd_m_s[2], cmd.handover))
+        return core, policy, seen
+
+    core, policy, seen = fly((19.1, 21.9, 22.1, 23.8, 22.2, 22.4, 21.3, 19.6, 19.9, 19.4))
+    assert Mode.POLICY_FAULT not in [m for m, _, _ in seen] and core.rejected["terminal above hand-over"] == 0
+    assert seen[:9] == [(Mode.HOLD, 0.3, False)] * 9  # sinking while the states read above 20 m
+    assert seen[9][0] is Mode.HANDOVER and seen[9][2]  # 19.6, 19.9, 19.4: three of the last five
+    assert policy.resets == 0 and core.rejected["policy restarted"] == 0
+    # Beyond the band (states 5-6 m above what the heatmap read) it is refused as before.
+    core, _, seen = fly((25.5, 26.0, 25.8))
+    assert seen[-1][0] is Mode.POLICY_FAULT and core.rejected["terminal above hand-over"] == 1
+
+
 def test_a_confirming_hold_flies_the_policys_horizontal_hold_while_it_sinks() -> None:
     # Without GNSS a zero command drifts at the estimate's bias: a policy that learnt the bias
     # holds with its opposite, and the controller flies that while the baro confirms the altitude
