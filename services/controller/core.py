@@ -374,6 +374,10 @@ class ControllerCore:
         self._recent_alts: deque[float] = deque(maxlen=2 * self.config.handover_confirm_states - 1)
         self._recent_t_s: float | None = None  # the newest of them
         self._confirming = False  # a terminal decision near the altitude, waiting for the states
+        # The capture altitude of the heatmap on which the policy first declared its terminal
+        # state (None while it is not in one): later heatmaps of the same terminal state may read
+        # higher on a noisy baro, the declaration was made there.
+        self._declared_alt_m: float | None = None
         self._alt_track: deque[tuple[float, float]] = deque(maxlen=_ALT_TRACK_LEN)  # (t_s, alt) accepted
         cfg = self.config
         self._altitude = AltitudeContinuity(cfg.max_vertical_speed_m_s, cfg.altitude_noise_m,
@@ -715,6 +719,7 @@ class ControllerCore:
             self._last_capture_t_s = None
             self.rejected["policy restarted"] += 1
             self._decision = None
+            self._declared_alt_m = None
         # Altitude and camera model at capture come with the heatmap; attitude and the autopilot's
         # velocity estimate from the state of this tick (the heatmap carries none), and that
         # estimate integrated between the two capture stamps. Never a position.
@@ -747,6 +752,7 @@ class ControllerCore:
             if self.policy_errors == 1:
                 log.error("first policy error, with its traceback", exc_info=True)
             self._decision = None
+            self._declared_alt_m = None
             return
         # The policy has taken this heatmap (even if its decision is refused below): the next
         # displacement counts from it, or it would be dead-reckoned twice.
@@ -759,6 +765,7 @@ class ControllerCore:
             self._policy_fault = f"policy commanded {speeds} (limit {MAX_POLICY_SPEED:g}) on heatmap {hm.seq}"
             self._refuse("policy error", "%s (holding)", self._policy_fault, level=logging.ERROR)
             self._decision = None
+            self._declared_alt_m = None
             return
         self._policy_fault = None
         policy_s = time.perf_counter() - start
@@ -768,6 +775,10 @@ class ControllerCore:
                                heatmap_to_controller_s=to_controller_s, policy_s=policy_s)
         self._adopted = _Adopted(hm, latency, (obs.roll_rad, obs.pitch_rad, obs.yaw_rad))
         self._decision = decision
+        if decision.state not in TERMINAL_STATES:
+            self._declared_alt_m = None
+        elif self._declared_alt_m is None:
+            self._declared_alt_m = hm.alt_agl_m
         if decision.look_request is not None:
             self._request_look(decision.look_request, state)
         self.adopted_count += 1
@@ -831,7 +842,7 @@ class ControllerCore:
             return Mode.POLICY_FAULT, f"{self._policy_fault}: holding position"
         decision = self._decision
         band_m = cfg.handover_release_m
-        if self._adopted is not None and self._adopted.hm.alt_agl_m <= cfg.handover_alt_m:
+        if self._declared_alt_m is not None and self._declared_alt_m <= cfg.handover_alt_m:
             band_m = max(band_m, cfg.handover_declared_band_m)  # measured at the altitude on its own heatmap
         self._confirming = (decision is not None and decision.state in TERMINAL_STATES
                             and (state.alt_agl_m <= cfg.handover_alt_m
