@@ -184,7 +184,7 @@ def plan_jobs(grid: Grid, worlds: dict, out: Path) -> list[dict]:
                         "vehicle_profile": grid.vehicle_profile, "handover_alt_m": grid.handover_alt_m,
                         "policy_config": grid.policy_config or None, "separation_m": list(grid.separation_m),
                         "close_look": grid.close_look,
-                        **({"gnss_denied": grid.gnss_denied} if grid.gnss_denied != "off" else {}),
+                        "gnss_denied": grid.gnss_denied,
                         "perception_label": var.perception if var.labelled else None,
                         "prompts_label": var.prompts_name if var.labelled else None,
                         "shift_label": shift.label(var.shift) if grid.shifted else None,

@@ -374,9 +374,9 @@ class ControllerCore:
         self._recent_alts: deque[float] = deque(maxlen=2 * self.config.handover_confirm_states - 1)
         self._recent_t_s: float | None = None  # the newest of them
         self._confirming = False  # a terminal decision near the altitude, waiting for the states
-        # The capture altitude of the heatmap on which the policy first declared its terminal
-        # state (None while it is not in one): later heatmaps of the same terminal state may read
-        # higher on a noisy baro, the declaration was made there.
+        # The capture altitude of the heatmap on which the policy declared its current terminal
+        # state (read only while the decision is terminal): later heatmaps of the same terminal
+        # state may read higher on a noisy baro, the declaration was made there.
         self._declared_alt_m: float | None = None
         self._alt_track: deque[tuple[float, float]] = deque(maxlen=_ALT_TRACK_LEN)  # (t_s, alt) accepted
         cfg = self.config
@@ -719,7 +719,6 @@ class ControllerCore:
             self._last_capture_t_s = None
             self.rejected["policy restarted"] += 1
             self._decision = None
-            self._declared_alt_m = None
         # Altitude and camera model at capture come with the heatmap; attitude and the autopilot's
         # velocity estimate from the state of this tick (the heatmap carries none), and that
         # estimate integrated between the two capture stamps. Never a position.
@@ -752,7 +751,6 @@ class ControllerCore:
             if self.policy_errors == 1:
                 log.error("first policy error, with its traceback", exc_info=True)
             self._decision = None
-            self._declared_alt_m = None
             return
         # The policy has taken this heatmap (even if its decision is refused below): the next
         # displacement counts from it, or it would be dead-reckoned twice.
@@ -765,7 +763,6 @@ class ControllerCore:
             self._policy_fault = f"policy commanded {speeds} (limit {MAX_POLICY_SPEED:g}) on heatmap {hm.seq}"
             self._refuse("policy error", "%s (holding)", self._policy_fault, level=logging.ERROR)
             self._decision = None
-            self._declared_alt_m = None
             return
         self._policy_fault = None
         policy_s = time.perf_counter() - start
@@ -773,12 +770,11 @@ class ControllerCore:
         to_controller_s = recv_wall_s - hm.sent_wall_s if hm.sent_wall_s > 0.0 else 0.0
         latency = StageLatency(frame_to_segmenter_s=hm.frame_to_segmenter_s, inference_s=hm.inference_s,
                                heatmap_to_controller_s=to_controller_s, policy_s=policy_s)
+        was_terminal = self._decision is not None and self._decision.state in TERMINAL_STATES
+        if decision.state in TERMINAL_STATES and not was_terminal:  # declared now (a restart or fault clears it)
+            self._declared_alt_m = hm.alt_agl_m
         self._adopted = _Adopted(hm, latency, (obs.roll_rad, obs.pitch_rad, obs.yaw_rad))
         self._decision = decision
-        if decision.state not in TERMINAL_STATES:
-            self._declared_alt_m = None
-        elif self._declared_alt_m is None:
-            self._declared_alt_m = hm.alt_agl_m
         if decision.look_request is not None:
             self._request_look(decision.look_request, state)
         self.adopted_count += 1

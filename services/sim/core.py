@@ -123,7 +123,7 @@ class SimConfig:
 
     def __post_init__(self) -> None:
         timing(self.timing)  # a ConfigError naming the presets
-        vehicle_profile(self.vehicle_profile)  # a ConfigError naming the profiles
+        profile = vehicle_profile(self.vehicle_profile)  # a ConfigError naming the profiles
         for name in ("dt_s", "time_limit_s", "safety_radius_m"):
             validate.positive(f"sim {name}", getattr(self, name))
         validate.non_negative("sim handover_alt_m", self.handover_alt_m)
@@ -137,7 +137,7 @@ class SimConfig:
         if self.external_nav:
             if not self.odometry_rate_hz > 0.0:
                 raise ConfigError("sim external_nav fuses the visual odometry: it needs odometry_rate_hz > 0")
-            if vehicle_profile(self.vehicle_profile).estimator is None:
+            if profile.estimator is None:
                 raise ConfigError(f"sim external_nav needs a vehicle that estimates its velocity; vehicle profile "
                                   f"{self.vehicle_profile!r} reports the truth")
         validate.positive("sim external_nav_tau_s", self.external_nav_tau_s)
