@@ -24,14 +24,24 @@ from typing import Any
 import numpy as np
 
 from dovesei.controller.core import ControllerConfig, ControllerCore
+from dovesei.controller.gnss_denied import NavJudge, NavStatus, OdometryGate, OdometryLimits
 from dovesei.controller.looker import SyncLooker
+from dovesei.controller.mavlink.proto import EKF_FLAGS_NEEDED, EKF_POS_HORIZ_ABS, GPS_FIX_TYPE_3D
 from dovesei.controller.policies.registry import make_policy
 from dovesei.controller.policies.config_file import config_from_values
 from dovesei.segmenter.core import FrameRejected, SegmenterConfig, SegmenterCore, make_backend
 from dovesei.segmenter.prompts import REFERENCE_PROMPTS, PromptSet
 from dovesei.segmenter.simulated import DEFAULT_NOISE, DEFAULT_PROFILE, PROFILE_NAMES
 from dovesei.shared.errors import ConfigError, DoveseiError
-from dovesei.shared.messages import CropFrame, CropHeatmap, CropRequest, EpisodeResult, Message, SafetyHeatmap
+from dovesei.shared.messages import (
+    CropFrame,
+    CropHeatmap,
+    CropRequest,
+    EpisodeResult,
+    Message,
+    SafetyHeatmap,
+    VisualOdometry,
+)
 from dovesei.shared.mission import HANDOVER_ALT_M, PERSON_SEPARATION_M, VEHICLE_SEPARATION_M
 from dovesei.sim.core import SimConfig, SimCore
 from dovesei.sim.estimator import SIM_DEFAULT_VEHICLE_PROFILE
@@ -46,12 +56,13 @@ REFERENCE_FUSION_POLICIES = ("dovesei", "dovesei-nofocus")
 REFERENCE_FUSION = "dovesei"
 DEFAULT_PERCEPTION = DEFAULT_PROFILE
 # A bench vehicle on the camera's visual velocity (--gnss-denied external-nav): views at the camera
-# service's rate, rendered at half the frame width (352 -> 176 px) to keep a bench affordable:
-# each view costs ~2 ms instead of ~6 ms, and the velocity is coarser than the camera's own (on the
-# desert world at 100 m and 6 m/s, median error 0.24 m/s against 0.09 m/s at full width; session
-# measurement), so the bench errs on the side of a worse camera.
+# service's rate and at the width its estimator works at (VisualVelocityConfig.work_width_px: a
+# 640 px camera is area-averaged to 320 px). The controller judges those samples as on a real
+# autopilot (`VisualNav`), so a narrower view would fly a worse camera than the real one: at 176 px
+# the samples' own variance at 100 m was over the controller's limit in 2 of 48 pairs against 19
+# of 48 at 320 px (0.5 s baseline; session measurement, docs/RESULTS.md).
 BENCH_ODOMETRY_HZ = 10.0
-BENCH_ODOMETRY_WIDTH_PX = 176
+BENCH_ODOMETRY_WIDTH_PX = 320
 
 
 def perception_names() -> tuple[str, ...]:
@@ -176,6 +187,35 @@ def build_cores(world: World, spec: EpisodeSpec, *, render_images: bool = False,
     return sim, seg, ctrl
 
 
+class VisualNav:
+    """The controller's navigation judgement of a bench vehicle on the camera's velocity
+    (`--gnss-denied external-nav`), as its MAVLink adapter makes it on a real autopilot.
+
+    GNSS was lost before the episode (a 3D fix, then none) and the simulated EKF fuses the
+    camera's velocity (it reports attitude, velocity and a relative position, no absolute one), so
+    the velocity is trusted exactly while the controller's own `OdometryGate` holds a good sample
+    (valid, quality >= odometry_min_quality, variance within its limit) newer than
+    odometry_max_age_s. Without one the controller holds and does not descend
+    (`Mode.NO_VELOCITY`): a bench that descended anyway would fly what dovesei never flies.
+    """
+
+    def __init__(self, config: ControllerConfig) -> None:
+        self.gate = OdometryGate(OdometryLimits(max_age_s=config.odometry_max_age_s,
+                                                min_quality=config.odometry_min_quality))
+        self.judge = NavJudge("external-nav")
+        self.judge.on_gps_fix(GPS_FIX_TYPE_3D)
+        self.judge.on_ekf_flags(EKF_FLAGS_NEEDED | EKF_POS_HORIZ_ABS)
+        self.judge.on_gps_fix(0)
+        self.judge.on_ekf_flags(EKF_FLAGS_NEEDED)  # the absolute position gone with GNSS
+
+    def add(self, odom: VisualOdometry) -> None:
+        """A sample as the controller receives it: on the sim clock, at its own stamp."""
+        self.gate.add(odom, odom.stamp.t_s)
+
+    def status(self, now_s: float) -> NavStatus:
+        return self.judge.status(now_s, self.gate)
+
+
 def in_process_ask(sim: SimCore, seg: SegmenterCore, record: Callable[[Message], None] | None = None):
     """A close look answered in this process: the sim's crop, the segmenter's scores."""
     def ask(req: CropRequest) -> tuple[CropFrame, CropHeatmap]:
@@ -211,8 +251,13 @@ def run_episode(world: World, spec: EpisodeSpec, *, record_track: bool = True,
     pending: dict[int, SafetyHeatmap] = {}  # heatmaps computed but not yet due
     rows: list[tuple[float, float, float, float]] = []
     states: list[str] = []
+    nav = VisualNav(ctrl.config) if spec.external_nav else None
     out = sim.reset()
     while True:
+        if out.odometry is not None:
+            record(out.odometry)
+            if nav is not None:
+                nav.add(out.odometry)
         record(out.state)
         if out.frame is not None:
             record(out.frame)
@@ -230,7 +275,7 @@ def run_episode(world: World, spec: EpisodeSpec, *, record_track: bool = True,
             # Older heatmaps that were never due (none with frame_period >= dt) would leak here.
             for seq in [s for s in pending if s < due]:
                 del pending[seq]
-        cmd, status = ctrl.tick(out.state)
+        cmd, status = ctrl.tick(out.state, nav=nav.status(out.state.stamp.t_s) if nav is not None else None)
         sim.note_status(status)  # the judge learns the ground the policy last confirmed
         record(cmd)
         record(status)

@@ -112,10 +112,12 @@ class SimConfig:
     # The autopilot fuses the odometry into its velocity estimate (see 3. above). A modelling
     # choice, not a measured value: tau 1 s, about what EKF3 takes to pull its velocity onto a
     # 10 Hz measurement whose variance is far below its own (EK3_VELNE_M_NSE 0.5 m/s); the
-    # quality floor is the controller's `odometry_min_quality`.
+    # quality floor and variance ceiling are the controller's (`odometry_min_quality`,
+    # OdometryLimits.max_var_m2_s2): its MAVLink adapter sends the EKF those samples only.
     external_nav: bool = False
     external_nav_tau_s: float = 1.0
     external_nav_min_quality: float = 0.5
+    external_nav_max_var_m2_s2: float = 1.0
     # Close looks (`crop`): the simulated camera's full-resolution width (its frames are `camera`
     # shrunk from it; a 12 MP drone camera is 4000 px wide) and what it agrees to cut, on sim time.
     crop_source_px: int = 4000
@@ -142,6 +144,7 @@ class SimConfig:
                                   f"{self.vehicle_profile!r} reports the truth")
         validate.positive("sim external_nav_tau_s", self.external_nav_tau_s)
         validate.in_range("sim external_nav_min_quality", self.external_nav_min_quality, 0.0, 1.0)
+        validate.positive("sim external_nav_max_var_m2_s2", self.external_nav_max_var_m2_s2)
         validate.in_range("sim crop_source_px", self.crop_source_px, self.camera.width_px, 16384)
         for name in ("frame_period_s", "latency_s"):
             if getattr(self, name) is not None:
@@ -200,6 +203,7 @@ class SimCore:
         self._odometry = SimOdometry(self.world, cfg.odometry_camera, cfg.vehicle_id, cfg.odometry_rate_hz) \
             if cfg.odometry_rate_hz > 0 else None
         self.fused = 0  # odometry samples the autopilot fused (external_nav)
+        self._fused_t_s: float | None = None  # the stamp of the last one
         self._k = 0
         self._frame_seq = -1
         self._in_flight: deque[tuple[int, float]] = deque()  # (frame seq, sim time its heatmap is due)
@@ -249,10 +253,17 @@ class SimCore:
     def _fuse(self, odom: VisualOdometry) -> None:
         """The autopilot's EKF takes one odometry sample (external_nav): valid and good enough only."""
         cfg = self.config
-        if not odom.valid or odom.quality < cfg.external_nav_min_quality or not odom.dt_s > 0.0:
+        if (not odom.valid or odom.quality < cfg.external_nav_min_quality
+                or odom.vel_var_m2_s2 > cfg.external_nav_max_var_m2_s2 or not odom.dt_s > 0.0):
             return
         n, e, _d = body_frd_to_ned(odom.vel_body_frd_m_s, odom.roll_rad, odom.pitch_rad, odom.yaw_rad)
-        self.vehicle.fuse_ground_velocity((n, e), odom.dt_s, cfg.external_nav_tau_s)
+        # Each sample weighs the time since the last one fused, not the interval it spans: the
+        # camera compares frames up to 0.5 s apart at 10 Hz, and overlapping intervals would
+        # otherwise count the same motion five times over.
+        last = self._fused_t_s
+        weight_s = odom.dt_s if last is None or odom.stamp.t_s <= last else min(odom.stamp.t_s - last, odom.dt_s)
+        self._fused_t_s = odom.stamp.t_s
+        self.vehicle.fuse_ground_velocity((n, e), weight_s, cfg.external_nav_tau_s)
         self.fused += 1
 
     def is_fresh(self, cmd: VelocityCommand) -> bool:

@@ -328,9 +328,11 @@ def test_odometry_follows_the_grabbed_frames_and_blank_ones_are_invalid() -> Non
         assert loop.odometry_tick() == (k > 0)  # the first frame has nothing to compare with
         assert not loop.odometry_tick()  # the same frame is never compared twice
     msgs = [decode(b, VisualOdometry) for b in odo]
-    assert [(m.prev_frame_seq, m.frame_seq) for m in msgs] == [(1, 2), (2, 3), (3, 4)]
+    # At 42.5 m a frame is compared with the newest at least 0.21 s older (VisualVelocityConfig's
+    # baseline): the first frame until the fourth, whose interval then spans 0.3 s.
+    assert [(m.prev_frame_seq, m.frame_seq) for m in msgs] == [(1, 2), (1, 3), (1, 4)]
     for m in msgs:
-        assert m.valid and m.dt_s == pytest.approx(0.1) and m.stamp.clock == "vehicle"
+        assert m.valid and m.dt_s == pytest.approx(0.1 * (m.frame_seq - m.prev_frame_seq)) and m.stamp.clock == "vehicle"
         assert np.linalg.norm(np.array(m.vel_body_frd_m_s[:2]) - odo_truth()[:2]) < 0.05 * 8.0
         assert (m.alt_agl_m, m.yaw_rad) == (ODO_ALT_M, 1.5)
     assert sent == []  # odometry never publishes camera frames

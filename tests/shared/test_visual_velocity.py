@@ -204,17 +204,41 @@ def test_bad_images_and_configs_are_refused_in_one_line() -> None:
 # ---------------------------------------------------------------------------------------- stream and message
 
 
-def test_the_stream_compares_each_frame_with_the_one_before() -> None:
+def _stream(alt: float, frames: int, vel_ne=(2.0, 2.0)):
     vv = VisualVelocity()
-    vel_ned = (2.0, 2.0, 0.0)
     outs = []
-    for k in range(4):
-        image = view(vel_ned[0] * DT * k, vel_ned[1] * DT * k, 30.0, 0.0, gsd=30.0 / 400.0, rgb=False)
-        outs.append(vv.update(image, FrameMeta(k, DT * k, 30.0, HFOV)))
+    for k in range(frames):
+        image = view(vel_ne[0] * DT * k, vel_ne[1] * DT * k, alt, 0.0, gsd=alt / 400.0, rgb=False)
+        outs.append(vv.update(image, FrameMeta(k, DT * k, alt, HFOV)))
+    return vv, outs
+
+
+def test_the_stream_compares_each_frame_with_the_one_before_at_20_m() -> None:
+    vv, outs = _stream(20.0, 4)
+    assert vv.baseline_s(20.0) == pytest.approx(DT)
     assert outs[0] is None
     for k, est in enumerate(outs[1:], start=1):
         assert (est.prev_seq, est.seq) == (k - 1, k)
+        assert est.dt_s == pytest.approx(DT)
         assert_close(est, np.array([2.0, 2.0, 0.0]))
+
+
+def test_from_high_up_the_stream_compares_over_half_a_second() -> None:
+    # At 100 m each frame's attitude tag error is divided by 0.5 s instead of 0.1 s: the frame
+    # five back once there is one (the oldest kept before), the same velocity, dt_s saying so.
+    vv, outs = _stream(100.0, 9)
+    assert vv.baseline_s(100.0) == pytest.approx(0.5) and vv.baseline_s(1000.0) == pytest.approx(0.5)
+    assert outs[0] is None
+    pairs = [(est.prev_seq, est.seq) for est in outs[1:]]
+    assert pairs == [(0, 1), (0, 2), (0, 3), (0, 4), (0, 5), (1, 6), (2, 7), (3, 8)]
+    for est in outs[1:]:
+        assert est.dt_s == pytest.approx(DT * (est.seq - est.prev_seq))
+        assert_close(est, np.array([2.0, 2.0, 0.0]))
+    # Time running back starts the stream afresh (the estimate says why, nothing older is used).
+    back = vv.update(view(0.0, 0.0, 100.0, 0.0, gsd=0.25, rgb=False), FrameMeta(9, 0.3, 100.0, HFOV))
+    assert not back.valid and back.prev_seq == 8
+    after = vv.update(view(0.2, 0.2, 100.0, 0.0, gsd=0.25, rgb=False), FrameMeta(10, 0.4, 100.0, HFOV))
+    assert after.prev_seq == 9
 
 
 def test_messages_always_build_and_survive_the_codec() -> None:

@@ -12,8 +12,11 @@ import pytest
 from dovesei.bench import make_grid
 from dovesei.bench.engines import record_base
 from dovesei.bench.run import load_worlds, plan_jobs, summary_markdown
-from dovesei.episode import BENCH_ODOMETRY_HZ, BENCH_ODOMETRY_WIDTH_PX, EpisodeSpec, build_cores
+from dovesei import episode
+from dovesei.controller.policies.base import Decision, Observation
+from dovesei.episode import BENCH_ODOMETRY_HZ, BENCH_ODOMETRY_WIDTH_PX, EpisodeSpec, build_cores, run_episode
 from dovesei.shared.errors import ConfigError
+from dovesei.shared.messages import ControllerStatus, Stamp, VisualOdometry
 from dovesei.sim.core import SimConfig, SimCore
 from dovesei.sim.dynamics import DynamicsError, Pose, Vehicle, VehicleParams
 from dovesei.sim.starts import Start
@@ -111,6 +114,7 @@ def test_a_camera_that_sees_nothing_is_never_fused() -> None:
     (dict(odometry_rate_hz=10.0, odometry_width_px=4000), "odometry_width_px"),
     (dict(external_nav_tau_s=0.0), "external_nav_tau_s"),
     (dict(external_nav_min_quality=1.5), "external_nav_min_quality"),
+    (dict(external_nav_max_var_m2_s2=0.0), "external_nav_max_var_m2_s2"),
 ])
 def test_bad_external_nav_settings_are_named(changes: dict, needle: str) -> None:
     with pytest.raises(ConfigError, match=needle):
@@ -139,3 +143,69 @@ def test_the_bench_flies_and_records_a_vehicle_on_the_cameras_velocity(tmp_path)
         make_grid(**{**kw, "vehicle_profile": "ideal"}, gnss_denied="external-nav")
     with pytest.raises(ConfigError, match="--gnss-denied"):
         make_grid(**kw, gnss_denied="attitude")
+
+
+
+def test_overlapping_samples_weigh_the_time_between_them_and_noisy_ones_are_not_fused(world: World) -> None:
+    # From high up each sample spans 0.5 s but they come every 0.1 s: the autopilot weighs each by
+    # the time since the one before (else the same motion counted five times); a sample over the
+    # controller's variance limit is one its adapter never sends, so the EKF never sees it.
+    core = SimCore(world, Start(200.0, MID_Y_M, 100.0), SimConfig(vehicle_profile="realistic", seed=2,
+                                                                  odometry_rate_hz=10.0, external_nav=True))
+    core.reset()
+
+    def sample(k: int, var: float = 0.2) -> VisualOdometry:
+        return VisualOdometry("uav1", k + 5, k, Stamp(1.0 + 0.1 * k, "sim"), (2.0, 0.0, 0.0), var, 0.9, True, 0.5, 100.0)
+
+    core._fuse(sample(0))
+    first = core.vehicle.nav_correction_ned_m_s[0]
+    core._fuse(sample(1, var=1.5))  # too noisy: not fused
+    assert core.fused == 1 and core.vehicle.nav_correction_ned_m_s[0] == first
+    core._fuse(sample(2))
+    # Nothing moved in between, so the innovation is the same each time: the first sample pulls
+    # by its 0.5 s / tau, the second by the 0.2 s since the first (not by its own 0.5 s again).
+    second = core.vehicle.nav_correction_ned_m_s[0] - first
+    assert abs(first) > 0.1 and second / first == pytest.approx(0.2 / 0.5)
+    assert core.fused == 2
+
+
+class _Descend:
+    """Straight down, always landing: any hold comes from the controller, not the policy."""
+
+    name = "descend"
+
+    def step(self, obs: Observation) -> Decision:
+        return Decision((0.0, 0.0, 1.5), 0.0, "LANDING", None, 50.0, 0.5, landing=True)
+
+    def reset(self) -> None:
+        pass
+
+
+def test_the_bench_controller_descends_only_on_a_trusted_visual_velocity(monkeypatch) -> None:
+    # As on a real autopilot without GNSS (`VisualNav`): the controller may descend only while the
+    # camera's velocity is good. Over blank ground it never is: the vehicle holds at its altitude
+    # (a hold, its reason saying why) until the time runs out; over textured ground the same
+    # policy, perception and vehicle hand over at 20 m.
+    real_build = episode.build_cores
+
+    def build(world, spec, **kw):
+        sim, seg, ctrl = real_build(world, spec, **kw)
+        ctrl.policy = _Descend()
+        return sim, seg, ctrl
+
+    monkeypatch.setattr(episode, "build_cores", build)
+    textured = split_world()
+    blank = World(np.full_like(textured.image_rgb, 128), textured.labels, textured.gsd_m, textured.classes, "blank")
+    spec = EpisodeSpec(policy="clearance", start=Start(100.0, MID_Y_M, 40.0), timing="real", seed=1,
+                       time_limit_s=40.0, vehicle_profile="realistic", external_nav=True)
+    runs = {}
+    for name, world in (("blank", blank), ("textured", textured)):
+        statuses: list = []
+        rec = run_episode(world, spec, record=lambda m: statuses.append(m) if isinstance(m, ControllerStatus) else None)
+        held = [s for s in statuses if s.watchdog == "hold" and s.reason.startswith("no trusted velocity source")]
+        runs[name] = (rec.result.outcome, float(rec.track[:, 3].min()), len(held) / len(statuses), held)
+    outcome, lowest_m, held_frac, held = runs["blank"]
+    assert outcome == "timeout" and lowest_m > 38.0 and held_frac > 0.9
+    assert "visual velocity" in held[-1].reason
+    outcome, lowest_m, held_frac, _ = runs["textured"]
+    assert outcome == "safe" and lowest_m < 21.0 and held_frac < 0.1

@@ -9,6 +9,7 @@ import pytest
 
 from dovesei.shared.errors import ConfigError
 from dovesei.shared.messages import Stamp, VehicleState, VisualOdometry
+from dovesei.shared.visual_velocity import VisualVelocity
 from dovesei.sim.camera import CameraModel
 from dovesei.sim.core import SimConfig, SimCore
 from dovesei.sim.odometry import SimOdometry
@@ -38,7 +39,12 @@ def test_sim_core_publishes_odometry_at_its_rate_and_it_measures_the_velocity(wo
     assert len(odo) == pytest.approx(sim_s / 0.1 - 1, abs=2)
     msgs = [m for _, m in odo]
     assert [m.frame_seq for m in msgs] == list(range(1, len(msgs) + 1))
-    assert all(m.prev_frame_seq == m.frame_seq - 1 and m.dt_s == pytest.approx(0.1) for m in msgs)
+    # Each view against the newest at least the altitude's baseline older (0.2 s at 40 m, 0.1 s at
+    # 20 m: VisualVelocity), once the stream holds one that old.
+    baseline = VisualVelocity().baseline_s
+    assert all(m.prev_frame_seq < m.frame_seq and m.dt_s == pytest.approx(0.1 * (m.frame_seq - m.prev_frame_seq))
+               for m in msgs)
+    assert all(baseline(m.alt_agl_m) - 1e-6 <= m.dt_s < baseline(m.alt_agl_m) + 0.1 for m in msgs[3:])
     assert all(m.stamp == s.stamp and m.alt_agl_m == s.alt_agl_m for s, m in odo)
     valid = [(s, m) for s, m in odo if m.valid]
     assert len(valid) >= 0.9 * len(odo)
@@ -63,7 +69,7 @@ def test_a_gimballed_camera_is_tagged_level(world: World) -> None:
     # The body rolls 0.2 rad but the gimbal keeps the camera level: told the body's roll, the
     # estimator would remove a rotation the image never had (and read ~ alt x 0.2 / dt of motion).
     def states(roll: float):
-        return [VehicleState(VID, k, Stamp(0.1 * k, "sim"), 40.0, (0.0, 0.0, 0.0), roll_rad=roll * (k % 2))
+        return [VehicleState(VID, k, Stamp(0.1 * k, "sim"), 40.0, (0.0, 0.0, 0.0), roll_rad=roll * (k > 0))
                 for k in range(3)]
 
     def run(tag):
