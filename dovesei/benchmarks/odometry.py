@@ -99,7 +99,7 @@ def bench_speed(world: World, frames: int, seed: int) -> dict:
         alt = max(20.0, 100.0 - 0.2 * k)  # 2 m/s down, 4 m/s east, 3 m/s north, turning 0.2 rad/s
         yaw = 0.5 + 0.02 * k
         images.append(render(world, x0 + 0.4 * k, y0 + 0.3 * k, alt, yaw, cam, with_labels=False,
-                             interpolation="linear")[0])
+                             interpolation="linear", ground_detail=True)[0])
         metas.append(FrameMeta(k, k * DT_S, alt, cam.hfov_rad, 0.0, 0.0, yaw))
     threads = cv2.getNumThreads()
     cv2.setNumThreads(1)  # the target is per core
@@ -151,9 +151,9 @@ def _pair(world: World, cam: CameraModel, rng: np.random.Generator, alt_m: float
     x1, y1 = x0 + ve * dt_s, y0 + vn * dt_s
     try:
         a = render(world, x0, y0, alt_m, yaw0, cam, roll_rad=roll0, pitch_rad=pitch0, with_labels=False,
-                   interpolation="linear")[0]
+                   interpolation="linear", ground_detail=True)[0]
         b = render(world, x1, y1, alt1, yaw1, cam, roll_rad=roll1, pitch_rad=pitch1, with_labels=False,
-                   interpolation="linear")[0]
+                   interpolation="linear", ground_detail=True)[0]
     except CameraError:
         return None
     if noise is not None:

@@ -248,6 +248,22 @@ def _level_affine(m0: np.ndarray, geometry: tuple[float, float, float, float]) -
 
 NEAREST_MIN_SCALE = 2.0 ** -0.25  # below this residual scale the warp magnifies: bilinear is needed
 
+# Ground detail (`render(..., ground_detail=True)`, the sim's odometry views): a world's texture
+# holds nothing finer than its own pixel (Dubai's orthophoto 1 m, the synthetic worlds 0.25 m), so
+# a view that magnifies it (0.09 m per pixel at 20 m, 320 px) is a smooth blur in which the
+# camera's visual velocity finds no corners, where a real camera at 20 m sees sand ripples,
+# gravel, grass tufts and paving joints. A modelling choice, not a measured value: a faint
+# periodic texture fixed to the ground, sd DETAIL_SD_GREY grey levels at 0.2-0.8 m wavelengths,
+# faded in as the view magnifies the world (none at 1 world pixel per view pixel or coarser, full
+# at 4x magnification), and never on water (reflections and waves move: a camera must not find a
+# ground velocity there).
+DETAIL_GSD_M = 0.05
+DETAIL_SIDE_PX = 512  # the texture repeats every 25.6 m
+DETAIL_SD_GREY = 6.0
+DETAIL_WAVELENGTHS_PX = (4, 8, 16)
+WATER_WORDS = ("water", "sea", "ocean", "lake", "river", "pond", "pool", "canal", "harbour", "harbor")
+_DETAIL: list[np.ndarray] = []
+
 
 def render(
     world: World,
@@ -263,6 +279,7 @@ def render(
     with_image: bool = True,
     interpolation: str = "auto",
     t_s: float = 0.0,
+    ground_detail: bool = False,
 ) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray]:
     """The camera's view: (image_rgb HxWx3 uint8, labels HxW uint8 or None, valid_mask HxW bool).
 
@@ -276,6 +293,8 @@ def render(
     nearest lookup (the level already averaged the right area) and switches to bilinear where the
     view magnifies the world (low altitude); "linear" is bilinear at every scale: softer, and
     ~1.4x slower over an episode's mix of altitudes (measured with bench_render).
+    ground_detail: add the faint texture finer than the world's own pixel where the view magnifies
+    it (DETAIL_SD_GREY above; the image only, labels untouched).
     """
     if not (is_number(alt_agl_m) and alt_agl_m > 0.0):
         raise CameraError(f"alt_agl_m must be finite and > 0 to render, got {alt_agl_m!r}")
@@ -310,6 +329,11 @@ def render(
     if world.labels is not None and with_labels:
         labels = warp(world.labels, m0, size, flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
                       borderMode=cv2.BORDER_CONSTANT, borderValue=OUT_OF_WORLD_LABEL)
+    if ground_detail and image is not None and k < 1.0:
+        _add_ground_detail(image, world, m0, k, labels if labels is not None else
+                           warp(world.labels, m0, size, flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
+                                borderMode=cv2.BORDER_CONSTANT, borderValue=OUT_OF_WORLD_LABEL)
+                           if world.labels is not None else None)
     if world.population is not None and (image is not None or labels is not None):
         # People and cars at this view's own resolution; those the texture already holds (baked)
         # only when the view is finer than the texture (k < 1 world pixel per output pixel), and
@@ -326,6 +350,54 @@ def render(
         if labels is not None:
             labels[~valid] = OUT_OF_WORLD_LABEL
     return image, labels, valid
+
+
+def _detail_texture() -> np.ndarray:
+    """The periodic detail texture (DETAIL_SIDE_PX square, float32, mean 0, sd 1), built once."""
+    if not _DETAIL:
+        rng = np.random.default_rng(20261206)
+        side = DETAIL_SIDE_PX
+        out = np.zeros((side, side), np.float32)
+        for wavelength in DETAIL_WAVELENGTHS_PX:
+            n = side // wavelength
+            coarse = np.tile(rng.standard_normal((n, n)).astype(np.float32), (3, 3))
+            # Upsampled from three periods and cut from the middle: seamless where it repeats.
+            out += cv2.resize(coarse, (3 * side, 3 * side), interpolation=cv2.INTER_CUBIC)[side:2 * side, side:2 * side]
+        out -= out.mean()
+        out /= out.std()
+        _DETAIL.append(out)
+    return _DETAIL[0]
+
+
+def _add_ground_detail(image: np.ndarray, world: World, m0: np.ndarray, k: float, labels: np.ndarray | None) -> None:
+    """`render`'s ground detail, in place: the texture fixed to the world, faded in with the view's
+    magnification 1 / k, none on water classes."""
+    fade = min(1.0, math.log2(1.0 / k) / 2.0)
+    if fade <= 0.0:
+        return
+    h, w = image.shape[:2]
+    # Output pixel -> world pixel (m0) -> detail pixel, the translation brought within one period
+    # of the texture (it repeats) so the warp's fixed-point coordinates stay small.
+    scale = world.gsd_m / DETAIL_GSD_M
+    m = (np.vstack([m0, [0.0, 0.0, 1.0]]) if m0.shape[0] == 2 else m0.astype(np.float64)).copy()
+    m[:2] *= scale
+    centre = m @ np.array([w / 2.0, h / 2.0, 1.0])
+    for axis in (0, 1):
+        m[axis] -= math.floor(centre[axis] / centre[2] / DETAIL_SIDE_PX) * DETAIL_SIDE_PX * m[2]
+    flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+    if m0.shape[0] == 2:
+        detail = cv2.warpAffine(_detail_texture(), m[:2], (w, h), flags=flags, borderMode=cv2.BORDER_WRAP)
+    else:
+        detail = cv2.warpPerspective(_detail_texture(), m, (w, h), flags=flags, borderMode=cv2.BORDER_WRAP)
+    detail *= np.float32(fade * DETAIL_SD_GREY)
+    if labels is not None and world.classes:
+        water = [cid for cid, info in world.classes.items() if any(word in info.name.lower() for word in WATER_WORDS)]
+        if water:
+            detail[np.isin(labels, water)] = 0.0
+    out = image.astype(np.float32)
+    out += detail[..., None]
+    np.clip(out, 0.0, 255.0, out=out)
+    image[...] = out.astype(np.uint8)
 
 
 def world_m_to_output_px(world: World, m0: np.ndarray) -> np.ndarray:

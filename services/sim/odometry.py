@@ -63,7 +63,7 @@ class SimOdometry:
         try:
             image, _labels, _valid = render(self.world, x_m, y_m, max(alt_m, 0.1), yaw_rad, self.camera,
                                             roll_rad=roll_rad, pitch_rad=pitch_rad, with_labels=False,
-                                            interpolation="linear", t_s=t_s)
+                                            interpolation="linear", t_s=t_s, ground_detail=True)
         except CameraError as exc:
             self.skipped += 1
             self._estimator.reset()

@@ -172,3 +172,35 @@ def test_bench_render_runs(markers) -> None:
     world, _ = markers
     assert bench_render(world, 20) > 0
     assert bench_render(world, 20, poses="random", clock="cpu", interpolation="linear", with_labels=False) > 0
+
+
+def _flat_world(gsd_m: float = 1.0) -> World:
+    """1 km square of uniform grey: its west half sand, its east half sea."""
+    labels = np.ones((int(1000 / gsd_m), int(1000 / gsd_m)), np.uint8)
+    labels[:, labels.shape[1] // 2:] = 2
+    return World(np.full(labels.shape + (3,), 120, np.uint8), labels, gsd_m,
+                 {1: ClassInfo("land (unpaved)", True), 2: ClassInfo("sea", False)}, "flat")
+
+
+def test_ground_detail_textures_magnified_land_only_and_stays_on_the_ground() -> None:
+    world, cam = _flat_world(), CameraModel(320, 320, 73.0)
+    plain, _, _ = render(world, 250.0, 500.0, 20.0, 0.0, cam, interpolation="linear")
+    detailed, _, _ = render(world, 250.0, 500.0, 20.0, 0.0, cam, interpolation="linear", ground_detail=True)
+    assert plain.std() < 0.5  # a 1 m/px world magnified 11x: nothing to track
+    assert 3.0 < detailed.astype(float).std() < 8.0 and abs(detailed.mean() - 120.0) < 1.0
+    # Over the sea: none (its waves and glints move), even where land is textured in the same view.
+    sea, _, _ = render(world, 750.0, 500.0, 20.0, 0.0, cam, interpolation="linear", ground_detail=True)
+    assert sea.std() < 0.5
+    # Fixed to the ground: a view moved 30 pixels' worth east shows the same texture 30 px further west.
+    shift = 30
+    moved, _, _ = render(world, 250.0 + shift * cam.metres_per_px(20.0), 500.0, 20.0, 0.0, cam,
+                         interpolation="linear", ground_detail=True)
+    diff = moved[:, :-shift].astype(int) - detailed[:, shift:].astype(int)
+    assert np.abs(diff).mean() < 0.6
+    # Where the view does not magnify the world (1 world pixel per view pixel or coarser): none.
+    high, _, _ = render(world, 250.0, 500.0, 250.0, 0.0, cam, interpolation="linear", ground_detail=True)
+    assert cam.metres_per_px(250.0) > world.gsd_m and high.std() < 0.5
+    # Tilted views take it too, through their homography.
+    tilted, _, _ = render(world, 250.0, 500.0, 20.0, 0.0, cam, roll_rad=0.1, pitch_rad=-0.1, interpolation="linear",
+                          ground_detail=True)
+    assert tilted.astype(float).std() > 3.0

@@ -95,9 +95,10 @@ def test_a_harsh_vehicle_on_the_cameras_velocity_stays_where_it_believes_it_is(w
 
 
 def test_a_camera_that_sees_nothing_is_never_fused() -> None:
-    # A blank world: no corners, every odometry sample invalid; the flight is the one without fusion.
+    # Calm open water: no corners (and no ground detail: water never gets any), every odometry
+    # sample invalid; the flight is the one without fusion.
     blank = World(np.full((800, 800, 3), 128, np.uint8), np.ones((800, 800), np.uint8), 0.5,
-                  {1: ClassInfo("grass", True)}, "blank")
+                  {1: ClassInfo("sea", False)}, "blank")
     start = Start(200.0, 200.0, 40.0)
     cores = [SimCore(blank, start, SimConfig(vehicle_profile="realistic", seed=2, time_limit_s=20.0,
                                              odometry_rate_hz=10.0, external_nav=on)) for on in (False, True)]
@@ -183,7 +184,7 @@ class _Descend:
 
 def test_the_bench_controller_descends_only_on_a_trusted_visual_velocity(monkeypatch) -> None:
     # As on a real autopilot without GNSS (`VisualNav`): the controller may descend only while the
-    # camera's velocity is good. Over blank ground it never is: the vehicle holds at its altitude
+    # camera's velocity is good. Over calm water it never is: the vehicle holds at its altitude
     # (a hold, its reason saying why) until the time runs out; over textured ground the same
     # policy, perception and vehicle hand over at 20 m.
     real_build = episode.build_cores
@@ -195,7 +196,8 @@ def test_the_bench_controller_descends_only_on_a_trusted_visual_velocity(monkeyp
 
     monkeypatch.setattr(episode, "build_cores", build)
     textured = split_world()
-    blank = World(np.full_like(textured.image_rgb, 128), textured.labels, textured.gsd_m, textured.classes, "blank")
+    blank = World(np.full_like(textured.image_rgb, 128), np.ones_like(textured.labels), textured.gsd_m,
+                  {1: ClassInfo("water", False)}, "water")
     spec = EpisodeSpec(policy="clearance", start=Start(100.0, MID_Y_M, 40.0), timing="real", seed=1,
                        time_limit_s=40.0, vehicle_profile="realistic", external_nav=True)
     runs = {}
