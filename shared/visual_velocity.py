@@ -118,6 +118,12 @@ class VisualVelocityConfig:
         if self.min_alt_m >= self.max_alt_m:
             raise ConfigError(f"visual velocity min_alt_m {self.min_alt_m} must be below max_alt_m {self.max_alt_m}")
 
+    def baseline_s(self, alt_agl_m: float) -> float:
+        """The interval a frame at this altitude is compared over (0: the previous frame)."""
+        if not is_number(alt_agl_m):
+            return 0.0
+        return min(max(alt_agl_m, 0.0) * self.baseline_s_per_m, self.max_baseline_s)
+
 
 @dataclass(frozen=True)
 class FrameMeta:
@@ -408,34 +414,21 @@ class VisualVelocity:
         self.config = config
         self._frames: list[PreparedFrame] = []  # oldest first, within max_baseline_s of the newest
 
-    def baseline_s(self, alt_agl_m: float) -> float:
-        """The interval a frame at this altitude is compared over (0: the previous frame)."""
-        cfg = self.config
-        if not is_number(alt_agl_m):
-            return 0.0
-        return min(max(alt_agl_m, 0.0) * cfg.baseline_s_per_m, cfg.max_baseline_s)
-
-    def _reference(self, meta: FrameMeta) -> PreparedFrame | None:
-        frames = self._frames
-        if not frames:
-            return None
-        newest = frames[-1]
-        if not (is_number(meta.t_s) and is_number(newest.meta.t_s)) or meta.t_s <= newest.meta.t_s:
-            return newest  # time stood still or ran back: `estimate` says so
-        target_s = self.baseline_s(meta.alt_agl_m) - 1e-6  # frame stamps carry rounding
-        for frame in reversed(frames):
-            if meta.t_s - frame.meta.t_s >= target_s:
-                return frame
-        return frames[0]
-
     def update(self, image: np.ndarray, meta: FrameMeta) -> VelocityEstimate | None:
         new = prepare(image, meta, self.config)
-        ref = self._reference(meta)
-        if ref is not None and is_number(meta.t_s) and is_number(ref.meta.t_s) and meta.t_s > ref.meta.t_s:
+        frames = self._frames
+        newest = frames[-1] if frames else None
+        moving_on = (newest is not None and is_number(meta.t_s) and is_number(newest.meta.t_s)
+                     and meta.t_s > newest.meta.t_s)
+        if moving_on:
+            # The newest frame at least the baseline older (stamps carry rounding), else the oldest kept.
+            target_s = self.config.baseline_s(meta.alt_agl_m) - 1e-6
+            ref = next((f for f in reversed(frames) if meta.t_s - f.meta.t_s >= target_s), frames[0])
             keep_s = self.config.max_baseline_s + 1e-6
-            self._frames = [f for f in self._frames if meta.t_s - f.meta.t_s <= keep_s] + [new]
+            self._frames = [f for f in frames if meta.t_s - f.meta.t_s <= keep_s] + [new]
         else:
-            self._frames = [new]  # the first frame, or time stood still or ran back: start afresh
+            # The first frame, or time stood still or ran back (`estimate` says so): start afresh.
+            ref, self._frames = newest, [new]
         return None if ref is None else estimate(ref, new, self.config)
 
     def reset(self) -> None:

@@ -7,7 +7,7 @@ time, median and 95th percentile. Target: <= 10 ms per frame.
 
 Error: on every world of the suite, frame pairs as far apart as the camera's stream compares them
 (`pair_dt_s`: its 10 Hz frames, the newest at least the altitude's baseline back, 0.1 s at 20 m to
-0.5 s at 100 m; `VisualVelocity.baseline_s`) rendered with the
+0.5 s at 100 m; `VisualVelocityConfig.baseline_s`) rendered with the
 sim's camera (`dovesei.sim.camera.render`, bilinear, as the sim's odometry views) along straight
 segments with a known velocity: at each altitude and horizontal speed, `--pairs` pairs at seeded
 positions (inside the world, away from its edge), random heading and direction of travel, a yaw
@@ -50,14 +50,7 @@ import cv2
 import numpy as np
 
 from dovesei.shared.cliconfig import OneLineParser
-from dovesei.shared.visual_velocity import (
-    FrameMeta,
-    VisualVelocity,
-    VisualVelocityConfig,
-    estimate,
-    prepare,
-    rotation_body_to_level,
-)
+from dovesei.shared.visual_velocity import FrameMeta, VisualVelocityConfig, estimate, prepare, rotation_body_to_level
 from dovesei.shared.messages import VehicleState, VelocityCommand
 from dovesei.sim.camera import CameraError, CameraModel, prebuild_pyramid, render
 from dovesei.sim.core import SimConfig, SimCore
@@ -123,8 +116,8 @@ def bench_speed(world: World, frames: int, seed: int) -> dict:
 
 def pair_dt_s(alt_m: float, config: VisualVelocityConfig = VisualVelocityConfig()) -> float:
     """The interval the camera's stream compares frames over at this altitude: the newest frame at
-    least the baseline back among frames DT_S apart (`VisualVelocity`)."""
-    baseline_s = VisualVelocity(config).baseline_s(alt_m)
+    least the baseline back among frames DT_S apart (`VisualVelocity.update`)."""
+    baseline_s = config.baseline_s(alt_m)
     return DT_S * max(1, math.ceil(baseline_s / DT_S - 1e-6))
 
 

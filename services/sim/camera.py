@@ -26,6 +26,7 @@ a weak dictionary so it dies with the world.
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import threading
@@ -262,7 +263,6 @@ DETAIL_SIDE_PX = 512  # the texture repeats every 25.6 m
 DETAIL_SD_GREY = 6.0
 DETAIL_WAVELENGTHS_PX = (4, 8, 16)
 WATER_WORDS = ("water", "sea", "ocean", "lake", "river", "pond", "pool", "canal", "harbour", "harbor")
-_DETAIL: list[np.ndarray] = []
 
 
 def render(
@@ -330,10 +330,7 @@ def render(
         labels = warp(world.labels, m0, size, flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
                       borderMode=cv2.BORDER_CONSTANT, borderValue=OUT_OF_WORLD_LABEL)
     if ground_detail and image is not None and k < 1.0:
-        _add_ground_detail(image, world, m0, k, labels if labels is not None else
-                           warp(world.labels, m0, size, flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
-                                borderMode=cv2.BORDER_CONSTANT, borderValue=OUT_OF_WORLD_LABEL)
-                           if world.labels is not None else None)
+        _add_ground_detail(image, world, m0, k, labels)
     if world.population is not None and (image is not None or labels is not None):
         # People and cars at this view's own resolution; those the texture already holds (baked)
         # only when the view is finer than the texture (k < 1 world pixel per output pixel), and
@@ -352,48 +349,53 @@ def render(
     return image, labels, valid
 
 
+@functools.cache
 def _detail_texture() -> np.ndarray:
-    """The periodic detail texture (DETAIL_SIDE_PX square, float32, mean 0, sd 1), built once."""
-    if not _DETAIL:
-        rng = np.random.default_rng(20261206)
-        side = DETAIL_SIDE_PX
-        out = np.zeros((side, side), np.float32)
-        for wavelength in DETAIL_WAVELENGTHS_PX:
-            n = side // wavelength
-            coarse = np.tile(rng.standard_normal((n, n)).astype(np.float32), (3, 3))
-            # Upsampled from three periods and cut from the middle: seamless where it repeats.
-            out += cv2.resize(coarse, (3 * side, 3 * side), interpolation=cv2.INTER_CUBIC)[side:2 * side, side:2 * side]
-        out -= out.mean()
-        out /= out.std()
-        _DETAIL.append(out)
-    return _DETAIL[0]
+    """The periodic detail texture (DETAIL_SIDE_PX square, float32, mean 0, sd 1, read-only), built once."""
+    rng = np.random.default_rng(20261206)
+    side = DETAIL_SIDE_PX
+    out = np.zeros((side, side), np.float32)
+    for wavelength in DETAIL_WAVELENGTHS_PX:
+        n = side // wavelength
+        coarse = np.tile(rng.standard_normal((n, n)).astype(np.float32), (3, 3))
+        # Upsampled from three periods and cut from the middle: seamless where it repeats.
+        out += cv2.resize(coarse, (3 * side, 3 * side), interpolation=cv2.INTER_CUBIC)[side:2 * side, side:2 * side]
+    out -= out.mean()
+    out /= out.std()
+    out.flags.writeable = False
+    return out
+
+
+def _water_ids(world: World) -> list[int]:
+    """The world's water classes (by name: WATER_WORDS), which get no ground detail."""
+    return [cid for cid, info in world.classes.items() if any(word in info.name.lower() for word in WATER_WORDS)]
 
 
 def _add_ground_detail(image: np.ndarray, world: World, m0: np.ndarray, k: float, labels: np.ndarray | None) -> None:
     """`render`'s ground detail, in place: the texture fixed to the world, faded in with the view's
-    magnification 1 / k, none on water classes."""
+    magnification 1 / k, none on water classes (`labels`: the view's, when rendered)."""
     fade = min(1.0, math.log2(1.0 / k) / 2.0)
     if fade <= 0.0:
         return
     h, w = image.shape[:2]
+    affine = m0.shape[0] == 2
+    warp = cv2.warpAffine if affine else cv2.warpPerspective
     # Output pixel -> world pixel (m0) -> detail pixel, the translation brought within one period
     # of the texture (it repeats) so the warp's fixed-point coordinates stay small.
-    scale = world.gsd_m / DETAIL_GSD_M
-    m = (np.vstack([m0, [0.0, 0.0, 1.0]]) if m0.shape[0] == 2 else m0.astype(np.float64)).copy()
-    m[:2] *= scale
+    m = np.vstack([m0, [0.0, 0.0, 1.0]]) if affine else m0.astype(np.float64)
+    m[:2] *= world.gsd_m / DETAIL_GSD_M
     centre = m @ np.array([w / 2.0, h / 2.0, 1.0])
     for axis in (0, 1):
         m[axis] -= math.floor(centre[axis] / centre[2] / DETAIL_SIDE_PX) * DETAIL_SIDE_PX * m[2]
-    flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
-    if m0.shape[0] == 2:
-        detail = cv2.warpAffine(_detail_texture(), m[:2], (w, h), flags=flags, borderMode=cv2.BORDER_WRAP)
-    else:
-        detail = cv2.warpPerspective(_detail_texture(), m, (w, h), flags=flags, borderMode=cv2.BORDER_WRAP)
+    detail = warp(_detail_texture(), m[:2] if affine else m, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                  borderMode=cv2.BORDER_WRAP)
     detail *= np.float32(fade * DETAIL_SD_GREY)
-    if labels is not None and world.classes:
-        water = [cid for cid, info in world.classes.items() if any(word in info.name.lower() for word in WATER_WORDS)]
-        if water:
-            detail[np.isin(labels, water)] = 0.0
+    water = _water_ids(world) if world.labels is not None else []
+    if water:
+        if labels is None:  # the view's labels were not asked for: only the water needs them
+            labels = warp(world.labels, m0, (w, h), flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
+                          borderMode=cv2.BORDER_CONSTANT, borderValue=OUT_OF_WORLD_LABEL)
+        detail[np.isin(labels, water)] = 0.0
     out = image.astype(np.float32)
     out += detail[..., None]
     np.clip(out, 0.0, 255.0, out=out)

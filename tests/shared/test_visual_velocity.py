@@ -215,7 +215,7 @@ def _stream(alt: float, frames: int, vel_ne=(2.0, 2.0)):
 
 def test_the_stream_compares_each_frame_with_the_one_before_at_20_m() -> None:
     vv, outs = _stream(20.0, 4)
-    assert vv.baseline_s(20.0) == pytest.approx(DT)
+    assert vv.config.baseline_s(20.0) == pytest.approx(DT)
     assert outs[0] is None
     for k, est in enumerate(outs[1:], start=1):
         assert (est.prev_seq, est.seq) == (k - 1, k)
@@ -227,7 +227,7 @@ def test_from_high_up_the_stream_compares_over_half_a_second() -> None:
     # At 100 m each frame's attitude tag error is divided by 0.5 s instead of 0.1 s: the frame
     # five back once there is one (the oldest kept before), the same velocity, dt_s saying so.
     vv, outs = _stream(100.0, 9)
-    assert vv.baseline_s(100.0) == pytest.approx(0.5) and vv.baseline_s(1000.0) == pytest.approx(0.5)
+    assert vv.config.baseline_s(100.0) == pytest.approx(0.5) and vv.config.baseline_s(1000.0) == pytest.approx(0.5)
     assert outs[0] is None
     pairs = [(est.prev_seq, est.seq) for est in outs[1:]]
     assert pairs == [(0, 1), (0, 2), (0, 3), (0, 4), (0, 5), (1, 6), (2, 7), (3, 8)]

@@ -13,7 +13,6 @@ from dovesei.bench import make_grid
 from dovesei.bench.engines import record_base
 from dovesei.bench.run import load_worlds, plan_jobs, summary_markdown
 from dovesei import episode
-from dovesei.controller.policies.base import Decision, Observation
 from dovesei.episode import BENCH_ODOMETRY_HZ, BENCH_ODOMETRY_WIDTH_PX, EpisodeSpec, build_cores, run_episode
 from dovesei.shared.errors import ConfigError
 from dovesei.shared.messages import ControllerStatus, Stamp, VisualOdometry
@@ -21,6 +20,7 @@ from dovesei.sim.core import SimConfig, SimCore
 from dovesei.sim.dynamics import DynamicsError, Pose, Vehicle, VehicleParams
 from dovesei.sim.starts import Start
 from dovesei.sim.world import ClassInfo, World
+from tests.controller.test_watchdog import DescendingPolicy
 from tests.sim.test_sim_core import MID_Y_M, fly, split_world
 
 DT_S = 0.05
@@ -170,18 +170,6 @@ def test_overlapping_samples_weigh_the_time_between_them_and_noisy_ones_are_not_
     assert core.fused == 2
 
 
-class _Descend:
-    """Straight down, always landing: any hold comes from the controller, not the policy."""
-
-    name = "descend"
-
-    def step(self, obs: Observation) -> Decision:
-        return Decision((0.0, 0.0, 1.5), 0.0, "LANDING", None, 50.0, 0.5, landing=True)
-
-    def reset(self) -> None:
-        pass
-
-
 def test_the_bench_controller_descends_only_on_a_trusted_visual_velocity(monkeypatch) -> None:
     # As on a real autopilot without GNSS (`VisualNav`): the controller may descend only while the
     # camera's velocity is good. Over calm water it never is: the vehicle holds at its altitude
@@ -191,7 +179,7 @@ def test_the_bench_controller_descends_only_on_a_trusted_visual_velocity(monkeyp
 
     def build(world, spec, **kw):
         sim, seg, ctrl = real_build(world, spec, **kw)
-        ctrl.policy = _Descend()
+        ctrl.policy = DescendingPolicy()  # straight down, always landing: any hold is the controller's
         return sim, seg, ctrl
 
     monkeypatch.setattr(episode, "build_cores", build)

@@ -9,7 +9,7 @@ import pytest
 
 from dovesei.shared.errors import ConfigError
 from dovesei.shared.messages import Stamp, VehicleState, VisualOdometry
-from dovesei.shared.visual_velocity import VisualVelocity
+from dovesei.shared.visual_velocity import VisualVelocityConfig
 from dovesei.sim.camera import CameraModel
 from dovesei.sim.core import SimConfig, SimCore
 from dovesei.sim.odometry import SimOdometry
@@ -41,7 +41,7 @@ def test_sim_core_publishes_odometry_at_its_rate_and_it_measures_the_velocity(wo
     assert [m.frame_seq for m in msgs] == list(range(1, len(msgs) + 1))
     # Each view against the newest at least the altitude's baseline older (0.2 s at 40 m, 0.1 s at
     # 20 m: VisualVelocity), once the stream holds one that old.
-    baseline = VisualVelocity().baseline_s
+    baseline = VisualVelocityConfig().baseline_s
     assert all(m.prev_frame_seq < m.frame_seq and m.dt_s == pytest.approx(0.1 * (m.frame_seq - m.prev_frame_seq))
                for m in msgs)
     assert all(baseline(m.alt_agl_m) - 1e-6 <= m.dt_s < baseline(m.alt_agl_m) + 0.1 for m in msgs[3:])
