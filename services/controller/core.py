@@ -56,14 +56,14 @@ from dataclasses import dataclass
 from enum import Enum
 from typing import Any
 
-from dovesei.controller.gnss_denied import EXTERNAL_NAV_MESSAGES, GNSS_DENIED_MODES, NavStatus
+from dovesei.controller.gnss_denied import EXTERNAL_NAV_MESSAGES, GNSS_DENIED_MODES, NavRetreat, NavStatus
 from dovesei.controller.looker import Looker
 from dovesei.controller.policies.base import Decision, LookRequest, LookResult, Observation, Policy, PolicyInputError
 from dovesei.controller.policies.registry import make_policy, policy_names
 from dovesei.controller.continuity import (
     ALTITUDE_NOISE_M, MAX_VERTICAL_SPEED_M_S, STEP_CONFIRM_SAMPLES, AltitudeContinuity,
 )
-from dovesei.shared.frames import body_frd_to_ned, ned_to_body_frd, to_ne
+from dovesei.shared.frames import body_frd_to_ned, ned_to_body_frd, to_body, to_ne
 from dovesei.controller.geofence import Geofence
 from dovesei.controller.odometry import VelocityTrack
 from dovesei.controller.policies.dovesei.config import TIMING_PRESETS
@@ -198,6 +198,10 @@ class ControllerConfig:
     odometry_min_quality: float = 0.5  # visual velocity below this quality is not flown on
     odometry_max_age_s: float = 0.5  # nor one older than this at arrival (receiver's clock)
     attitude_max_tilt_deg: float = 15.0  # attitude mode: largest roll/pitch demanded
+    # A velocity lost in flight (over water): fly back the way the vehicle came at this speed, no
+    # descent, for at most nav_retreat_max_s (0: hold at once); gnss_denied.NavRetreat.
+    nav_retreat_speed_m_s: float = 4.0
+    nav_retreat_max_s: float = 30.0
 
     def __post_init__(self) -> None:
         keys.check_vehicle_id(self.vehicle_id)
@@ -238,6 +242,9 @@ class ControllerConfig:
         validate.in_range("ControllerConfig.odometry_min_quality", self.odometry_min_quality, 0.0, 1.0)
         validate.positive("ControllerConfig.odometry_max_age_s", self.odometry_max_age_s)
         validate.in_range("ControllerConfig.attitude_max_tilt_deg", self.attitude_max_tilt_deg, 1.0, 35.0)
+        validate.in_range("ControllerConfig.nav_retreat_speed_m_s", self.nav_retreat_speed_m_s, 0.1,
+                          self.mavlink_max_horizontal_m_s)
+        validate.in_range("ControllerConfig.nav_retreat_max_s", self.nav_retreat_max_s, 0.0, 600.0)
         if self.heatmap_buffer_len < 1:
             raise ConfigError(f"heatmap_buffer_len must be >= 1, got {self.heatmap_buffer_len}")
         validate.in_range("ControllerConfig.camera_hfov_deg", self.camera_hfov_deg, 1.0, 179.0)
@@ -394,6 +401,10 @@ class ControllerCore:
         self._policy_fault: str | None = None  # why the newest policy step cannot be followed
         self._refused_decision: Decision | None = None  # the terminal decision refused above hand-over
         self._track = VelocityTrack()  # the velocity estimate integrated, to read between capture stamps
+        # The way back over measured ground when the velocity is lost in flight (MAVLink only).
+        self._retreat = NavRetreat(self.config.nav_retreat_speed_m_s, self.config.nav_retreat_max_s)
+        self._nav_trusted = True  # the newest tick's verdict, for the policy's observation
+        self._retreat_ne: tuple[float, float] | None = None  # this tick's way back (north/east m/s), if any
         self._last_capture_t_s: float | None = None  # capture stamp of the heatmap the policy last took
         # Precision landing: the chosen spot relative to the vehicle (north, east, down metres) at
         # data-clock time t_s, fixed at the hand-over and carried by dead reckoning from then on.
@@ -581,6 +592,11 @@ class ControllerCore:
             self._state_advanced_wall_s = wall_s
         self._last_state_t_s, self._last_state_seq = now_s, state.seq
         self._track.add(now_s, state.vel_body_frd_m_s, state.yaw_rad, state.roll_rad, state.pitch_rad)
+        self._nav_trusted = nav is None or nav.velocity_trusted
+        self._retreat_ne = None
+        if nav is not None:
+            self._retreat_ne = self._retreat.update(
+                now_s, to_ne(state.vel_body_frd_m_s[0], state.vel_body_frd_m_s[1], state.yaw_rad), self._nav_trusted)
         if self.geofence is not None:
             self.geofence.add(now_s, state.vel_body_frd_m_s, state.yaw_rad)
         if self._first_alt_m is None:
@@ -734,7 +750,7 @@ class ControllerCore:
         obs = Observation(t_s=self._policy_time_s(hm), alt_agl_m=hm.alt_agl_m, prob_safe=hm.probability(), hfov_rad=hm.hfov_rad,
                           roll_rad=roll, pitch_rad=pitch, yaw_rad=yaw,
                           vel_est_body_frd_m_s=state.vel_body_frd_m_s, odom_delta_ne_m=odom, frame_seq=hm.seq,
-                          look=look)
+                          look=look, velocity_trusted=self._nav_trusted)
         start = time.perf_counter()
         try:
             decision = self.policy.step(obs)
@@ -832,8 +848,14 @@ class ControllerCore:
             return Mode.HANDOVER, (f"at/below the hand-over altitude {cfg.handover_alt_m:g} m: "
                                    "short-range sensors take over")
         if nav is not None and not nav.velocity_trusted:
-            # Descending blind drifts onto ground nobody checked: hold until a source is trusted.
-            return Mode.NO_VELOCITY, f"no trusted velocity source: {nav.reason}"
+            # Descending blind drifts onto ground nobody checked: no descent until a source is
+            # trusted; lost in flight, the way back over the ground that was measured first.
+            reason = f"no trusted velocity source: {nav.reason}"
+            if self._retreat_ne is not None:
+                reason += (f"; flying back over the ground the camera measured at "
+                           f"{self.config.nav_retreat_speed_m_s:g} m/s, no descent "
+                           f"({self._retreat.lost_for_s(state.stamp.t_s):.0f} of {self.config.nav_retreat_max_s:g} s)")
+            return Mode.NO_VELOCITY, reason
         if self._policy_fault is not None:
             return Mode.POLICY_FAULT, f"{self._policy_fault}: holding position"
         decision = self._decision
@@ -905,6 +927,9 @@ class ControllerCore:
             return (fwd, right, cfg.handover_sink_m_s if sinking else 0.0), 0.0
         if mode is Mode.OK and self._decision is not None:
             return self._as_meant(self._decision.vel_body_frd_m_s, state), self._decision.yaw_rate_rad_s
+        if mode is Mode.NO_VELOCITY and self._retreat_ne is not None:
+            fwd, right = to_body(self._retreat_ne[0], self._retreat_ne[1], state.yaw_rad)
+            return (fwd, right, 0.0), 0.0
         if mode is Mode.CLIMB:
             error_m = self.search_alt_m - state.alt_agl_m
             # FRD: negative down is up. Proportional near the target, never a descent.

@@ -21,7 +21,9 @@ The three `--gnss-denied` modes (what happens once GNSS is gone):
                   Trusted while the odometry is good.
     off           nothing is switched: the loss is reported and the controller holds.
 
-Whatever the mode, a velocity that is not trusted means no descent (`core.Mode.NO_VELOCITY`).
+Whatever the mode, a velocity that is not trusted means no descent (`core.Mode.NO_VELOCITY`); a
+vehicle that lost it in flight first flies back the way it came (`NavRetreat`), on the autopilot's
+inertial estimate, for a bounded time: in `attitude` mode the loop has no velocity to close and levels.
 
 Sources: EKF_STATUS_REPORT flag bits (MAVLink ardupilotmega EKF_STATUS_FLAGS) and PX4's
 ESTIMATOR_STATUS (ESTIMATOR_STATUS_FLAGS) share bits 1..512; ArduCopter's position_ok() needs
@@ -285,6 +287,80 @@ class NavJudge:
                              f"{lost}; the EKF is not fusing the visual velocity yet: no descent")
         return NavStatus(gnss_lost, False, True, SOURCE_EXTERNAL_NAV,
                          f"{lost}; the EKF flies on the visual velocity (external nav)")
+
+
+class NavRetreat:
+    """Back over ground the camera measured, when its velocity is lost in flight (pure; one owner).
+
+    Over calm water, or any ground without texture, the camera measures no velocity, and a hold
+    there is no hold: the autopilot holds its unaided estimate at zero and drifts with the wind
+    and the estimate's bias for as long as it waits (the coast's search flew out over the sea and
+    held there until the time ran out, 8 of 20 `realistic` starts). A vehicle that flew onto such
+    ground came from ground that was measured: it flies back there, on the autopilot's own
+    estimate, at `speed_m_s` with no vertical motion, until a velocity is trusted again or `max_s`
+    are spent; then it holds. `max_s` 0 turns it off.
+
+    Where to: towards the position (the velocity estimate integrated) `back_s` before the end of
+    the last trusted stretch that lasted `solid_s`, straight, and on past it if the velocity is
+    still not trusted there. A short trusted stretch at the water's edge (quality flickering over
+    the threshold) neither ends the loss nor moves that point: reversing its velocity (the way
+    back out of the sea), or aiming again at a point already passed, sent the vehicle out again
+    (coast start 2 of 8). From 100 m the loss comes with the land's edge near the frame's edge,
+    some 70 m out; 3 s back at the search's 8 m/s was still over the water, 10 s is not.
+    """
+
+    def __init__(self, speed_m_s: float, max_s: float, solid_s: float = 3.0, back_s: float = 10.0) -> None:
+        validate.positive("NavRetreat speed_m_s", speed_m_s)
+        validate.non_negative("NavRetreat max_s", max_s)
+        self.speed_m_s, self.max_s, self.solid_s, self.back_s = speed_m_s, max_s, solid_s, back_s
+        self.reset()
+
+    def reset(self) -> None:
+        self._t_s: float | None = None
+        self._pos = (0.0, 0.0)  # the velocity estimate integrated (north, east m), trusted or not
+        self._run_t_s: float | None = None  # when the current trusted stretch began
+        self._run: list[tuple[float, float, float]] = []  # its last back_s seconds: (t_s, north, east)
+        self._good: tuple[float, float] | None = None  # where to go back to
+        self._lost_t_s: float | None = None
+        self._way: tuple[float, float] | None = None  # the newest way back (north/east m/s)
+
+    def update(self, t_s: float, vel_ne_m_s: tuple[float, float], trusted: bool) -> tuple[float, float] | None:
+        """One tick (the autopilot's velocity estimate, north/east, and whether it is trusted): the
+        north/east velocity to fly back on, or None (trusted: follow the policy; else hold)."""
+        if self._t_s is not None and t_s < self._t_s:
+            self.reset()  # time went back: another timeline
+        if self._t_s is not None:
+            dt_s = min(t_s - self._t_s, 1.0)
+            self._pos = (self._pos[0] + vel_ne_m_s[0] * dt_s, self._pos[1] + vel_ne_m_s[1] * dt_s)
+        self._t_s = t_s
+        if trusted:
+            if self._run_t_s is None:
+                self._run_t_s, self._run = t_s, []
+            self._run.append((t_s, *self._pos))
+            while len(self._run) > 1 and self._run[1][0] <= t_s - self.back_s:
+                self._run.pop(0)
+            if t_s - self._run_t_s >= self.solid_s:
+                # A steady stretch: the loss before it is over, and this is the ground to go back to.
+                self._good = (self._run[0][1], self._run[0][2])
+                self._lost_t_s, self._way = None, None
+            return None
+        self._run_t_s = None
+        if self._lost_t_s is None:
+            # The way is set once per loss and flown straight, past the point too (it is no more
+            # than a guess of the ground's edge): towards the point from where the loss began.
+            self._lost_t_s, self._way = t_s, None
+            if self._good is not None:
+                dn, de = self._good[0] - self._pos[0], self._good[1] - self._pos[1]
+                dist = math.hypot(dn, de)
+                if dist > 1.0:
+                    self._way = (dn / dist * self.speed_m_s, de / dist * self.speed_m_s)
+        if t_s - self._lost_t_s >= self.max_s:
+            return None
+        return self._way
+
+    def lost_for_s(self, t_s: float) -> float:
+        """Seconds since the loss began (0 while trusted)."""
+        return 0.0 if self._lost_t_s is None else max(0.0, t_s - self._lost_t_s)
 
 
 def body_odom_confidence(var_m2_s2: float) -> float:

@@ -148,6 +148,26 @@ def test_search_route_flies_each_pass_at_its_altitude_in_order() -> None:
         assert legs[-1] == (0.0, 0.0) and all(math.hypot(n, e) <= radius for n, e in legs)
 
 
+def test_the_search_skips_waypoints_past_where_the_camera_lost_the_velocity() -> None:
+    # The first waypoint is north; the velocity was lost 30 m north heading north (calm water
+    # beyond): every waypoint past 30 - margin m north is skipped, the route flies on to the others.
+    mem = at(Phase.SEARCH, since_s=0.0, start_s=0.0)
+    blind = ((30.0, 0.0, 1.0, 0.0),)
+    mem2, vel = step(mem, dataclasses.replace(inp(1.0), blind=blind), CFG)
+    beyond = [i for i, (n, _e, _a) in enumerate(ROUTE) if n > 30.0 - CFG.blind_margin_m]
+    assert 0 in beyond and mem2.waypoint == next(i for i in range(len(ROUTE)) if i not in beyond)
+    assert "beyond ground where the camera measured no velocity" in mem2.reason
+    goal_n, goal_e, _ = ROUTE[mem2.waypoint]
+    assert goal_n <= 30.0 - CFG.blind_margin_m
+    # Heading for that waypoint, never further north.
+    assert vel[0] * goal_n + vel[1] * goal_e > 0.0
+    # Without a mark the route is flown as planned; a mark with everything beyond it ends the search.
+    assert step(mem, inp(1.0), CFG)[0].waypoint == 0
+    everything = ((-1000.0, 0.0, 1.0, 0.0),)
+    mem3, _ = step(mem, dataclasses.replace(inp(1.0), blind=everything), CFG)
+    assert mem3.phase is Phase.NO_SPOT
+
+
 def test_each_search_pass_flies_lower_and_an_abort_resumes_the_route() -> None:
     passes = ((100.0, SPACING_M, CFG.fence_m), (60.0, SPACING_M, CFG.fence_m), (40.0, SPACING_M, CFG.fence_m),
               (40.0, SPACING_M, CFG.fence_m))

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
 
 import cv2
 import numpy as np
@@ -94,7 +95,8 @@ def fly(world: World, policy: ClearancePolicy, *, t_max_s: float = 400.0, dt_s: 
         bias_m_s: tuple[float, float] = (0.0, 0.0), vel_noise_m_s: float = 0.0,
         wind_m_s: tuple[float, float] = (0.0, 0.0), gap_s: tuple[float, float] | None = None,
         seed: int = 0, start: tuple[float, float] = (0.0, 0.0), hold_s: float = 0.0,
-        start_alt_m: float = 100.0, after_handover_s: float = 0.0) -> Flight:
+        start_alt_m: float = 100.0, after_handover_s: float = 0.0,
+        trusted: Callable[[float, float], bool] | None = None) -> Flight:
     rng = np.random.default_rng(seed)
     n, e = start
     alt, t = start_alt_m, 0.0
@@ -115,7 +117,8 @@ def fly(world: World, policy: ClearancePolicy, *, t_max_s: float = 400.0, dt_s: 
         vel_est = (v[0] + bias_m_s[0] + rng.normal(0.0, vel_noise_m_s),
                    v[1] + bias_m_s[1] + rng.normal(0.0, vel_noise_m_s), v[2])
         decision = policy.step(Observation(t_s=t, alt_agl_m=alt, prob_safe=prob, hfov_rad=HFOV,
-                                           vel_est_body_frd_m_s=vel_est, frame_seq=seq))
+                                           vel_est_body_frd_m_s=vel_est, frame_seq=seq,
+                                           velocity_trusted=trusted is None or trusted(n, e)))
         cmd = np.asarray(decision.vel_body_frd_m_s)
         states.append(decision.state)
         track.append((n, e, alt, decision.state, float(cmd[2])))
@@ -308,7 +311,8 @@ def test_without_registration_the_estimate_drifts() -> None:
 def test_the_observation_has_no_position_field() -> None:
     fields = {f.name for f in dataclasses.fields(Observation)}
     assert fields == {"t_s", "alt_agl_m", "prob_safe", "hfov_rad", "roll_rad", "pitch_rad", "yaw_rad",
-                      "vel_est_body_frd_m_s", "cmd_vel_body_frd_m_s", "odom_delta_ne_m", "frame_seq", "look"}
+                      "vel_est_body_frd_m_s", "cmd_vel_body_frd_m_s", "odom_delta_ne_m", "frame_seq", "look",
+                      "velocity_trusted"}
     assert not any("pos" in f or f.endswith(("_x_m", "_y_m")) for f in fields)
     # A close look brings probabilities and the square's geometry, never the crop (a sim's truth).
     assert {f.name for f in dataclasses.fields(LookResult)} == {"request_seq", "heatmap", "refusal"}
@@ -393,6 +397,57 @@ def test_the_confirmation_map_remembers_the_whole_search_area() -> None:
     for e in (248.0, 0.0, -248.0):
         p_safe, looks = policy.high.at(0.0, e)
         assert looks > 0.0 and p_safe > 0.85, (e, p_safe, looks)
+
+
+def test_the_search_turns_away_from_ground_where_the_velocity_is_lost() -> None:
+    """Nothing to land on anywhere; north of 60 m the camera measures no velocity (calm water).
+    The policy marks where the loss began, the way it was going, once it lasted blind_after_s, and
+    skips the waypoints beyond: it flies the rest of its route south of there. A policy told
+    nothing flies its whole square, far out over the water."""
+    world = World(np.zeros((SIDE, SIDE), np.float32))
+    over_land = lambda n, e: n < 60.0  # noqa: E731
+    told = fly(world, ClearancePolicy(), t_max_s=600.0, trusted=over_land)
+    blind = ClearanceConfig().blind_after_s
+    untold = fly(world, ClearancePolicy(ClearanceConfig(blind_after_s=1e6)), t_max_s=600.0, trusted=over_land)
+    north = lambda f: max(n for n, *_ in f.track)  # noqa: E731
+    assert north(untold) > 150.0
+    # The first leg (north) overshoots by what it flies in blind_after_s and its braking, no more.
+    assert north(told) < 60.0 + 8.0 * (blind + 3.0)
+    # After the mark it never went back north of the loss line, and it flew its route south of it.
+    first_blind = next(i for i, (n, *_rest) in enumerate(told.track) if n >= 60.0)
+    back = next(i for i in range(first_blind, len(told.track)) if told.track[i][0] < 40.0)
+    assert max(n for n, *_ in told.track[back:]) < 60.0
+    assert min(n for n, *_ in told.track) < -100.0 and told.states[-1] == "NO_SPOT"
+
+
+def test_only_a_loss_that_ends_a_steady_stretch_marks_ground_blind() -> None:
+    """A loss after a flicker of trusted velocity (on the way back over the water's edge) marks
+    nothing; one that ends blind_steady_s of it, and lasts blind_after_s, marks once."""
+    cfg = ClearanceConfig()
+    policy = ClearancePolicy(cfg)
+    prob = np.full((64, 64), 0.2, np.float32)
+    t = 0.0
+
+    def run(seconds: float, trusted: bool) -> None:
+        nonlocal t
+        for _ in range(int(round(seconds / 0.5))):
+            policy.step(Observation(t_s=t, alt_agl_m=100.0, prob_safe=prob, hfov_rad=HFOV,
+                                    vel_est_body_frd_m_s=(0.0, 0.0, 0.0), velocity_trusted=trusted))
+            t += 0.5
+
+    run(2.0, True)  # warm-up: searching from here
+    assert policy.state.value == "SEARCH"
+    run(cfg.blind_steady_s - 2.5, True)
+    run(cfg.blind_after_s + 2.0, False)
+    assert policy._blind == []  # the stretch before it was too short
+    run(cfg.blind_steady_s + 1.0, True)
+    run(cfg.blind_after_s - 1.0, False)
+    assert policy._blind == []  # too short a loss
+    run(cfg.blind_steady_s + 1.0, True)
+    run(cfg.blind_after_s + 2.0, False)
+    assert len(policy._blind) == 1
+    bn, be, un, ue = policy._blind[0]
+    assert (un, ue) == pytest.approx((1.0, 0.0), abs=0.05)  # the first waypoint is north of the start
 
 
 def test_every_altitude_follows_the_start_altitude() -> None:

@@ -12,6 +12,7 @@ from dovesei.controller.gnss_denied import (
     AttitudeGains,
     AttitudeLoop,
     NavJudge,
+    NavRetreat,
     NavStatus,
     OdometryGate,
     OdometryLimits,
@@ -235,6 +236,119 @@ def test_core_stops_descending_without_a_trusted_velocity_and_says_why() -> None
     assert core.mode is Mode.NO_VELOCITY and cmd.vel_body_frd_m_s == (0.0, 0.0, 0.0)
     assert status.watchdog == "hold" and "no trusted velocity source" in status.reason and "0.8 s old" in status.reason
     assert status.nav_source == "none" and status.position_lost and status.nav_reason == blind.reason
+
+
+class Observed:
+    """Flies north at 4 m/s (never landing) and keeps every observation it was given."""
+
+    name = "observed"
+
+    def __init__(self) -> None:
+        self.seen: list[Observation] = []
+
+    def step(self, obs: Observation) -> Decision:
+        self.seen.append(obs)
+        return Decision((4.0, 0.0, 0.5), 0.0, "SEARCH", None, 10.0, 0.5)
+
+    def reset(self) -> None:
+        pass
+
+
+def test_a_velocity_lost_in_flight_flies_back_the_way_it_came_without_descending_then_holds() -> None:
+    # Over calm water the camera measures nothing, and a hold there drifts with the wind for as
+    # long as it waits: the vehicle that flew onto it flies back, level, for nav_retreat_max_s.
+    config = ControllerConfig(lockstep=False, timing="real", vehicle_url="udpout:127.0.0.1:14550",
+                              gnss_denied="external-nav", state_stale_after_s=100.0, nav_retreat_max_s=10.0)
+    policy = Observed()
+    now = [0.0]  # the controller's own clock, kept with the states'
+    core = ControllerCore(config, policy=policy, mono=lambda: now[0])
+    trusted = NavStatus(True, False, True, "external-nav", "GNSS lost; the EKF fuses the visual velocity")
+    blind = NavStatus(True, False, False, "none", "GNSS lost; visual velocity invalid (quality 0.00)")
+    yaw = math.radians(30.0)
+    # Flying north-east (heading 30 deg, 4 m/s forward) on a trusted velocity for 5 s ...
+    k = 0
+    for k in range(100):
+        t = now[0] = 0.05 * k
+        if k % 5 == 0:
+            core.on_heatmap(SafetyHeatmap("uav1", k, Stamp(t, "vehicle"), np.full((8, 8), 200, np.uint8), 50.0, 1.27,
+                                          "simulated", True, "p", "f", 0.01), t)
+        cmd, _ = core.tick(VehicleState("uav1", k, Stamp(t, "vehicle"), 50.0, (4.0, 0.0, 0.0), yaw_rad=yaw), t, trusted)
+    assert core.mode is Mode.OK and policy.seen[-1].velocity_trusted
+    # ... then the velocity is lost: back the way it came (south-west), level, at the retreat speed,
+    # whatever the policy commands; the policy is told.
+    modes = []
+    for j in range(1, 260):
+        t = now[0] = 0.05 * (k + j)
+        if j % 5 == 0:
+            core.on_heatmap(SafetyHeatmap("uav1", k + j, Stamp(t, "vehicle"), np.full((8, 8), 200, np.uint8), 50.0,
+                                          1.27, "simulated", True, "p", "f", 0.01), t)
+        cmd, status = core.tick(VehicleState("uav1", k + j, Stamp(t, "vehicle"), 50.0, (0.0, 0.0, 0.0), yaw_rad=yaw),
+                                t, blind)
+        modes.append((0.05 * j, cmd.vel_body_frd_m_s, status.reason))
+    assert not policy.seen[-1].velocity_trusted
+    early = [m for m in modes if m[0] < 9.9]
+    late = [m for m in modes if m[0] > 10.1]
+    for _, vel, reason in early:
+        # Body frame, heading kept: straight backwards.
+        assert vel == pytest.approx((-config.nav_retreat_speed_m_s, 0.0, 0.0), abs=1e-9)
+        assert "flying back over the ground the camera measured" in reason and "no trusted velocity source" in reason
+    for _, vel, reason in late:
+        assert vel == (0.0, 0.0, 0.0) and "flying back" not in reason
+    # Trusted again: the policy is followed (and told); lost again after that flicker of trust, it
+    # is the same loss, whose time is spent: a hold.
+    t = now[0] = 0.05 * (k + 260)
+    core.on_heatmap(SafetyHeatmap("uav1", k + 260, Stamp(t, "vehicle"), np.full((8, 8), 200, np.uint8), 50.0, 1.27,
+                                  "simulated", True, "p", "f", 0.01), t)
+    cmd, _ = core.tick(VehicleState("uav1", k + 260, Stamp(t, "vehicle"), 50.0, (0.0, 0.0, 0.0), yaw_rad=yaw), t,
+                       trusted)
+    assert core.mode is Mode.OK and cmd.vel_body_frd_m_s == (4.0, 0.0, 0.5) and policy.seen[-1].velocity_trusted
+    now[0] = t + 0.05
+    cmd, _ = core.tick(VehicleState("uav1", k + 261, Stamp(t + 0.05, "vehicle"), 50.0, (0.0, 0.0, 0.0), yaw_rad=yaw),
+                       t + 0.05, blind)
+    assert core.mode is Mode.NO_VELOCITY and cmd.vel_body_frd_m_s == (0.0, 0.0, 0.0)
+
+
+def test_the_retreat_goes_back_to_where_a_steady_stretch_was_trusted_and_past_it() -> None:
+    r = NavRetreat(speed_m_s=2.0, max_s=12.0, solid_s=3.0, back_s=3.0)
+    t = 0.0
+    for vel in [(0.0, 3.0)] * 60 + [(5.0, 0.0)] * 60:  # east at 3 m/s for 6 s, then north at 5 m/s for 6 s
+        assert r.update(t, vel, True) is None
+        t += 0.1
+    # Lost: back to where it was 3 s before, 15 m south, and on south once past it.
+    way = r.update(t, (5.0, 0.0), False)
+    assert way == pytest.approx((-2.0, 0.0), abs=0.05)
+    for _ in range(100):  # flying it: 10 s at 2 m/s, 5 m past the point
+        t += 0.1
+        way = r.update(t, (-2.0, 0.0), False)
+        assert way is not None and way == pytest.approx((-2.0, 0.0), abs=0.05)
+    assert r.lost_for_s(t) == pytest.approx(10.0, abs=0.01)
+    while r.lost_for_s(t) < 12.0 - 1e-9:
+        t += 0.1
+        r.update(t, (-2.0, 0.0), False)
+    assert r.update(t, (0.0, 0.0), False) is None  # max_s spent: hold
+    # A flicker of trust (1 s) neither ends that loss nor gives it more time; a steady stretch does.
+    for _ in range(10):
+        t += 0.1
+        r.update(t, (2.0, 0.0), True)
+    assert r.update(t + 0.1, (0.0, 0.0), False) is None and r.lost_for_s(t + 0.1) > 12.0
+    t += 0.1
+    for _ in range(40):  # 4 s west at 2 m/s, trusted: a new point to go back to
+        t += 0.1
+        r.update(t, (0.0, -2.0), True)
+    assert r.lost_for_s(t) == 0.0
+    assert r.update(t + 0.1, (0.0, -2.0), False) == pytest.approx((0.0, 2.0), abs=0.05)
+    hover = NavRetreat(speed_m_s=2.0, max_s=12.0)
+    for k in range(60):
+        hover.update(0.1 * k, (0.1, 0.0), True)
+    assert hover.update(6.0, (0.0, 0.0), False) is None  # lost where it hovered: nowhere to go back to
+    off = NavRetreat(speed_m_s=2.0, max_s=0.0)
+    for k in range(60):
+        off.update(0.1 * k, (5.0, 0.0), True)
+    assert off.update(6.0, (5.0, 0.0), False) is None
+    with pytest.raises(ConfigError, match="speed_m_s"):
+        NavRetreat(speed_m_s=0.0, max_s=5.0)
+    with pytest.raises(ConfigError, match="nav_retreat_max_s"):
+        ControllerConfig(nav_retreat_max_s=-1.0)
 
 
 def test_config_checks_the_gnss_denied_flags() -> None:

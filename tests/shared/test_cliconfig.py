@@ -64,7 +64,7 @@ NON_DEFAULT = {
         mavlink_signing_key_file="keys/uav3.key", mavlink_require_home=False, takeoff_alt_m=60.0,
         takeoff_ready_timeout_s=90.0, record_path="flights/uav3.mcap", geofence_radius_m=250.0,
         gnss_denied="attitude", ekf_source_set=3, external_nav_message="delta", odometry_min_quality=0.6, odometry_max_age_s=0.4,
-        attitude_max_tilt_deg=12.0, camera_hfov_deg=58.5,
+        attitude_max_tilt_deg=12.0, camera_hfov_deg=58.5, nav_retreat_speed_m_s=2.5, nav_retreat_max_s=45.0,
         policy_config_file=str(Path(__file__).parent / "data" / "nofocus-policy.toml")),
     "camera": CameraConfig(source="rtsp://10.0.0.2/cam", vehicle_id="uav2", width_px=320, height_px=240,
                            hfov_deg=90.0, rotate_deg=180, rate_hz=5.0, jpeg_quality=85, stall_timeout_s=3.0,

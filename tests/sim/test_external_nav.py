@@ -4,6 +4,7 @@ what the camera measured well."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -13,6 +14,7 @@ from dovesei.bench import make_grid
 from dovesei.bench.engines import record_base
 from dovesei.bench.run import load_worlds, plan_jobs, summary_markdown
 from dovesei import episode
+from dovesei.controller.core import ControllerCore
 from dovesei.episode import BENCH_ODOMETRY_HZ, BENCH_ODOMETRY_WIDTH_PX, EpisodeSpec, build_cores, run_episode
 from dovesei.shared.errors import ConfigError
 from dovesei.shared.messages import ControllerStatus, Stamp, VisualOdometry
@@ -199,3 +201,63 @@ def test_the_bench_controller_descends_only_on_a_trusted_visual_velocity(monkeyp
     assert "visual velocity" in held[-1].reason
     outcome, lowest_m, held_frac, _ = runs["textured"]
     assert outcome == "safe" and lowest_m < 21.0 and held_frac < 0.1
+
+
+class EastPolicy:
+    """Flies east at 4 m/s at its altitude for ever, never landing: any turn back is the controller's."""
+
+    name = "east"
+
+    def step(self, obs):
+        from dovesei.controller.policies.base import Decision
+        return Decision((0.0, 4.0, 0.0), 0.0, "SEARCH", None, 50.0, 0.5)
+
+    def reset(self) -> None:
+        pass
+
+
+def _shore_world() -> World:
+    """The split world's textured west half; calm water (flat, no detail) from x = 200 m east."""
+    land = split_world()
+    image, labels = land.image_rgb.copy(), land.labels.copy()
+    half = image.shape[1] // 2
+    image[:, half:] = 128
+    labels[:, half:] = 3
+    classes = {**land.classes, 3: ClassInfo("water", False)}
+    return World(image, labels, land.gsd_m, classes, "shore")
+
+
+def test_a_vehicle_that_flies_out_over_water_flies_back_to_where_the_camera_measures(monkeypatch) -> None:
+    # GNSS lost, the autopilot on the camera's velocity, a policy that flies east over the sea.
+    # Past the shore the camera measures nothing: the controller stops following the policy and
+    # flies back the way it came until the velocity is trusted again, then follows it again (out,
+    # back: it stays at the shore). With the retreat off it holds out at sea, where a hold drifts.
+    real_build = episode.build_cores
+    retreat_s: list[float] = []
+
+    def build(world, spec, **kw):
+        sim, seg, ctrl = real_build(world, spec, **kw)
+        config = dataclasses.replace(ctrl.config, nav_retreat_max_s=retreat_s[0])
+        return sim, seg, ControllerCore(config, policy=EastPolicy())
+
+    monkeypatch.setattr(episode, "build_cores", build)
+    world = _shore_world()
+    spec = EpisodeSpec(policy="clearance", start=Start(150.0, MID_Y_M, 40.0), timing="real", seed=1,
+                       time_limit_s=90.0, vehicle_profile="realistic", external_nav=True)
+    runs = {}
+    for max_s in (20.0, 0.0):
+        retreat_s[:] = [max_s]
+        statuses: list = []
+        rec = run_episode(world, spec, record=lambda m: statuses.append(m) if isinstance(m, ControllerStatus) else None)
+        blind = [s.reason.startswith("no trusted velocity source") for s in statuses]
+        flying = blind.index(False)  # the first samples come after the first state
+        lost = flying + blind[flying:].index(True)
+        late = [b for s, b in zip(statuses, blind) if s.stamp.t_s > 45.0]  # the second half of the flight
+        runs[max_s] = (float(rec.track[:, 1].max()), float(rec.track[-1, 1]), 1.0 - sum(late) / len(late),
+                       statuses[lost:], float(rec.track[:, 3].min()))
+    far_m, end_m, trusted_frac, after, lowest_m = runs[20.0]
+    assert any("flying back over the ground the camera measured" in s.reason for s in after)
+    assert trusted_frac > 0.2 and end_m < 200.0 + 40.0 and far_m < 200.0 + 50.0, runs[20.0][:3]
+    assert lowest_m > 39.0  # never a descent on the way back
+    far0_m, end0_m, trusted0_frac, _after, _ = runs[0.0]
+    assert trusted0_frac == 0.0 and end0_m > 200.0 + 20.0, runs[0.0][:3]

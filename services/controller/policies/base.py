@@ -78,6 +78,10 @@ class Observation:
     # The answer to the policy's last `Decision.look_request` (once, on the first observation after
     # it came back); None: nothing new.
     look: LookResult | None = None
+    # False while the controller trusts no horizontal velocity (GNSS lost and the camera's velocity
+    # lost too: over calm water, say): the policy's commands are not flown meanwhile, and the
+    # ground ahead gave the camera nothing to measure.
+    velocity_trusted: bool = True
 
 
 @dataclass(frozen=True)

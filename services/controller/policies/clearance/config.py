@@ -183,6 +183,12 @@ class ClearanceConfig:
     search_spacing_frac: float = 0.6
     search_spacing_radius_frac: float = 0.67
     search_speed_m_s: float = 8.0
+    # The controller trusting no velocity this long (the camera over calm water, GNSS lost) marks
+    # where it happened: search waypoints past that point, the way the vehicle was going, less
+    # blind_margin_m, are skipped (the loss is noticed some way out over the featureless ground).
+    blind_after_s: float = 2.0
+    blind_steady_s: float = 5.0  # ... when it ended a trusted stretch this long (not a flicker at the edge)
+    blind_margin_m: float = 20.0
     pattern_repeats: int = 2  # passes at the lowest search level
     # Later passes fly lower (fractions of the top search altitude, never below hand-over + 15 m):
     # at 100 m CLIPSeg's token grid smears anything under ~7 m, at 40 m under ~2.7 m. A pass
@@ -275,7 +281,7 @@ class ClearanceConfig:
             "decision_period_s", "safety_radius_m", "look_ref_alt_m", "look_weight_max", "handover_alt_m", "cell_per_alt", "cell_min_m", "cell_max_m",
             "look_period_s", "decay_tau_s", "looks_min", "looks_full", "reg_gate_m", "static_tau_s", "bias_tau_s",
             "key_scale_ratio", "dt_cap_s", "search_radius_m", "search_spacing_frac", "search_spacing_radius_frac",
-            "search_speed_m_s", "fence_gain_per_s", "anchor_scale_ratio", "anchor_reach_frac", "anchor_spacing_frac",
+            "search_speed_m_s", "blind_after_s", "blind_steady_s", "fence_gain_per_s", "anchor_scale_ratio", "anchor_reach_frac", "anchor_spacing_frac",
             "approach_gain_per_s", "max_speed_m_s", "lock_in_m", "lock_out_m", "probe_alt_m", "probe_reach_m", "confirm_alt_m",
             "ref_start_alt_m", "confirm_above_probe_m", "spot_drift_m_s", "spot_trust_s",
             "probe_skip_m", "probe_dist_m", "probe_timeout_s", "probe_alt_tol_m",
@@ -285,7 +291,7 @@ class ClearanceConfig:
         )
         for name in positive:
             validate.positive(f"ClearanceConfig.{name}", getattr(self, name))
-        for name in ("final_band_m", "handover_margin_m", "drift_frac", "drift_m_s", "anchor_gain_m", "margin_m", "dip_gain", "fence_margin_m", "reg_gate_frac", "reg_gate_m_s", "bias_max_m_s", "switch_gain"):
+        for name in ("blind_margin_m", "final_band_m", "handover_margin_m", "drift_frac", "drift_m_s", "anchor_gain_m", "margin_m", "dip_gain", "fence_margin_m", "reg_gate_frac", "reg_gate_m_s", "bias_max_m_s", "switch_gain"):
             validate.non_negative(f"ClearanceConfig.{name}", getattr(self, name))
         for name in ("spot_min_response", "probe_descend_frac", "anchor_min_response", "anchor_gate_frac", "reg_min_response", "reg_full_response", "reg_min_std", "reg_min_eigen_ratio", "reg_pos_gain", "cmd_weight",
                      "key_shift_frac", "recheck_hysteresis", "dip_kernel_frac", "gate_frac", "probe_now_frac",

@@ -121,6 +121,10 @@ class Inputs:
     # spot, or something of the never set inside its margin): below the hand-over altitude the
     # descent holds, steering onto the spot, until it is released or the descent times out.
     handover_withheld: str = ""
+    # Where the camera stopped measuring the vehicle's velocity, each (north, east, unit north,
+    # unit east): the vehicle's position and the way it was going. The ground beyond gave it
+    # nothing to measure (calm water): search waypoints past such a line are skipped.
+    blind: tuple[tuple[float, float, float, float], ...] = ()
     # The map's clearance where the vehicle is (None: not measured; the target's clearance less
     # the distance to it stands in, which the triangle inequality makes a lower bound).
     below_clearance_m: float | None = None
@@ -153,6 +157,12 @@ def search_route(passes: tuple[tuple[float, float, float], ...]) -> tuple[tuple[
     for alt, spacing, radius in passes:
         route.extend((n, e, alt) for n, e in search_pattern(spacing, radius))
     return tuple(route)
+
+
+def beyond_blind(north_m: float, east_m: float, blind: tuple[tuple[float, float, float, float], ...],
+                 margin_m: float) -> bool:
+    """Is the point past (or within `margin_m` short of) a line where the velocity was lost?"""
+    return any((north_m - bn) * un + (east_m - be) * ue > -margin_m for bn, be, un, ue in blind)
 
 
 def search_level_alt(waypoint: int, inp: Inputs) -> float:
@@ -289,6 +299,12 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
             return _go(mem, Phase.NO_SPOT, t, f"no safe spot found in {cfg.no_spot_after_s:g} s"), (0.0, 0.0, 0.0)
         else:
             wp = mem.waypoint
+            skipped = 0
+            while wp < len(inp.route) and beyond_blind(inp.route[wp][0], inp.route[wp][1], inp.blind, cfg.blind_margin_m):
+                wp, skipped = wp + 1, skipped + 1
+            if skipped:
+                mem = dataclasses.replace(mem, waypoint=wp, reason=f"{skipped} search waypoint(s) beyond ground where "
+                                                                   "the camera measured no velocity: skipped")
             if wp >= len(inp.route):
                 return _go(mem, Phase.NO_SPOT, t, f"no safe spot found within {cfg.search_radius_m:g} m "
                                                   f"({inp.passes} search passes)"), (0.0, 0.0, 0.0)

@@ -114,6 +114,12 @@ class ClearancePolicy:
         self._map_noise = 0.0  # the working map's per-cell scatter (log-odds), read with the levels
         self._scene_seen = False  # the top pass has shown the search area (spots and probes allowed)
         self._decision = Decision((0.0, 0.0, 0.0), 0.0, Phase.WARMUP.value, None, 0.0, None, "starting")
+        # Where the controller stopped trusting the vehicle's velocity (Inputs.blind): the marks, and
+        # the loss under way (when it began, where the vehicle was and where it was going).
+        self._blind: list[tuple[float, float, float, float]] = []
+        self._loss: tuple[float, float, float, tuple[float, float] | None] | None = None
+        self._loss_marked = False
+        self._trusted_since_s: float | None = None  # the current trusted stretch's start
 
     def fence_m(self) -> float:
         """The fence for the estimate now: the search radius less the larger of the fence margin
@@ -198,6 +204,7 @@ class ClearancePolicy:
                                      obs.pitch_rad)
         self._last_motion = motion
         pn, pe = motion.north_m, motion.east_m
+        self._note_velocity(obs, pn, pe)
         if phase in TERMINAL:
             # The map decides nothing any more and is not worked on (a held vehicle would spend a
             # core on it for as long as it hovers); the ego-motion still runs, for the hold: over
@@ -339,6 +346,47 @@ class ClearancePolicy:
                                              report=report)
         return self._decision
 
+    def _note_velocity(self, obs: Observation, pn: float, pe: float) -> None:
+        """Mark where the camera stopped measuring the vehicle's velocity for `blind_after_s`: the
+        ground beyond, the way the vehicle was going, gave it nothing to measure (calm water), and
+        the search skips its waypoints there (`Inputs.blind`). A short loss marks nothing, nor one
+        that did not end `blind_steady_s` of trusted velocity."""
+        if obs.velocity_trusted:
+            self._loss, self._loss_marked = None, False
+            if self._trusted_since_s is None:
+                self._trusted_since_s = obs.t_s
+            return
+        if self._loss is None:
+            # Only a loss that ends a steady stretch says where the ground turned blind: one
+            # after a flicker at the edge (on the way back, still over the water) marks nothing,
+            # or the way back to land would be marked blind too (coast start 2 of 8).
+            since = self._trusted_since_s
+            steady = since is not None and obs.t_s - since >= self.config.blind_steady_s
+            self._loss = (obs.t_s, pn, pe, self._heading_goal() if steady else None)
+        self._trusted_since_s = None
+        since_s, bn, be, goal = self._loss
+        if self._loss_marked or obs.t_s - since_s < self.config.blind_after_s or goal is None:
+            return
+        dn, de = goal[0] - bn, goal[1] - be
+        dist = math.hypot(dn, de)
+        self._loss_marked = True
+        if dist < 1.0:
+            return
+        self._blind.append((bn, be, dn / dist, de / dist))
+        log.info("clearance: no trusted velocity for %.1f s since (%.0f, %.0f) m, heading %.0f deg: search waypoints "
+                 "beyond skipped", obs.t_s - since_s, bn, be, math.degrees(math.atan2(de, dn)) % 360.0)
+
+    def _heading_goal(self) -> tuple[float, float] | None:
+        """Where the vehicle was flying to: its search waypoint or its probe (None otherwise)."""
+        mem = self.memory
+        if mem is None:
+            return None
+        if mem.phase is Phase.SEARCH and mem.waypoint < len(self._route):
+            return self._route[mem.waypoint][0], self._route[mem.waypoint][1]
+        if mem.phase is Phase.PROBE and mem.probe is not None:
+            return mem.probe.north_m, mem.probe.east_m
+        return None
+
     def _hold_velocity(self, pn: float, pe: float, yaw_rad: float) -> tuple[tuple[float, float, float], bool, float]:
         """The command that holds the vehicle over `_hold_ne` (set on the first call to where it
         is), its fence flag and the distance to the point.
@@ -389,7 +437,7 @@ class ClearancePolicy:
                      best=best, check=check, hfov_rad=obs.hfov_rad, candidate=candidate,
                      top_pass_end=self._top_pass_end, probe_alt_m=self._alts.probe_m,
                      spot_known=self._spot_known(), recheck=recheck, candidate_likely=likely,
-                     handover_withheld=self.handover_withheld,
+                     handover_withheld=self.handover_withheld, blind=tuple(self._blind),
                      below_clearance_m=None if clearance is None else clearance_at(self.map, clearance, pn, pe))
         prev = self.memory
         mem, vel = step(prev, inp, cfg)
