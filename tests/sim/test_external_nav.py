@@ -15,6 +15,7 @@ from dovesei.bench.engines import record_base
 from dovesei.bench.run import load_worlds, plan_jobs, summary_markdown
 from dovesei import episode
 from dovesei.controller.core import ControllerCore
+from dovesei.controller.policies.base import Decision, Observation
 from dovesei.episode import BENCH_ODOMETRY_HZ, BENCH_ODOMETRY_WIDTH_PX, EpisodeSpec, build_cores, run_episode
 from dovesei.shared.errors import ConfigError
 from dovesei.shared.messages import ControllerStatus, Stamp, VisualOdometry
@@ -208,8 +209,7 @@ class EastPolicy:
 
     name = "east"
 
-    def step(self, obs):
-        from dovesei.controller.policies.base import Decision
+    def step(self, obs: Observation) -> Decision:
         return Decision((0.0, 4.0, 0.0), 0.0, "SEARCH", None, 50.0, 0.5)
 
     def reset(self) -> None:
