@@ -198,8 +198,8 @@ class ControllerConfig:
     odometry_min_quality: float = 0.5  # visual velocity below this quality is not flown on
     odometry_max_age_s: float = 0.5  # nor one older than this at arrival (receiver's clock)
     attitude_max_tilt_deg: float = 15.0  # attitude mode: largest roll/pitch demanded
-    # A velocity lost in flight (over water): fly back the way the vehicle came at this speed, no
-    # descent, for at most nav_retreat_max_s (0: hold at once); gnss_denied.NavRetreat.
+    # A velocity lost in flight (over water): fly back over the ground the camera measured at this
+    # speed, no descent, for at most nav_retreat_max_s (0: hold at once); gnss_denied.NavRetreat.
     nav_retreat_speed_m_s: float = 4.0
     nav_retreat_max_s: float = 30.0
 

@@ -22,8 +22,8 @@ The three `--gnss-denied` modes (what happens once GNSS is gone):
     off           nothing is switched: the loss is reported and the controller holds.
 
 Whatever the mode, a velocity that is not trusted means no descent (`core.Mode.NO_VELOCITY`); a
-vehicle that lost it in flight first flies back the way it came (`NavRetreat`), on the autopilot's
-inertial estimate, for a bounded time: in `attitude` mode the loop has no velocity to close and levels.
+vehicle that lost it in flight first flies back over the ground the camera measured (`NavRetreat`),
+on the autopilot's inertial estimate, for a bounded time: in `attitude` mode the loop has no velocity to close and levels.
 
 Sources: EKF_STATUS_REPORT flag bits (MAVLink ardupilotmega EKF_STATUS_FLAGS) and PX4's
 ESTIMATOR_STATUS (ESTIMATOR_STATUS_FLAGS) share bits 1..512; ArduCopter's position_ok() needs
@@ -38,6 +38,7 @@ PX4 reads it as collective thrust, hovering at MPC_THR_HOVER (0.5 by default).
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass
 
 from dovesei.controller.mavlink.proto import (
@@ -319,7 +320,7 @@ class NavRetreat:
         self._t_s: float | None = None
         self._pos = (0.0, 0.0)  # the velocity estimate integrated (north, east m), trusted or not
         self._run_t_s: float | None = None  # when the current trusted stretch began
-        self._run: list[tuple[float, float, float]] = []  # its last back_s seconds: (t_s, north, east)
+        self._run: deque[tuple[float, float, float]] = deque()  # its last back_s seconds: (t_s, north, east)
         self._good: tuple[float, float] | None = None  # where to go back to
         self._lost_t_s: float | None = None
         self._way: tuple[float, float] | None = None  # the newest way back (north/east m/s)
@@ -335,10 +336,11 @@ class NavRetreat:
         self._t_s = t_s
         if trusted:
             if self._run_t_s is None:
-                self._run_t_s, self._run = t_s, []
+                self._run_t_s = t_s
+                self._run.clear()
             self._run.append((t_s, *self._pos))
             while len(self._run) > 1 and self._run[1][0] <= t_s - self.back_s:
-                self._run.pop(0)
+                self._run.popleft()
             if t_s - self._run_t_s >= self.solid_s:
                 # A steady stretch: the loss before it is over, and this is the ground to go back to.
                 self._good = (self._run[0][1], self._run[0][2])
