@@ -402,22 +402,22 @@ def test_the_confirmation_map_remembers_the_whole_search_area() -> None:
 def test_the_search_turns_away_from_ground_where_the_velocity_is_lost() -> None:
     """Nothing to land on anywhere; north of 60 m the camera measures no velocity (calm water).
     The policy marks where the loss began, the way it was going, once it lasted blind_after_s, and
-    skips the waypoints beyond: it flies the rest of its route south of there. A policy told
-    nothing flies its whole square, far out over the water."""
+    skips the waypoints beyond: it flies on south of there. A policy told nothing flies its square
+    on, far out over the water (past 100 m north within 2 minutes)."""
     world = World(np.zeros((SIDE, SIDE), np.float32))
     over_land = lambda n, e: n < 60.0  # noqa: E731
-    told = fly(world, ClearancePolicy(), t_max_s=600.0, trusted=over_land)
+    told = fly(world, ClearancePolicy(), t_max_s=150.0, trusted=over_land)
     blind = ClearanceConfig().blind_after_s
-    untold = fly(world, ClearancePolicy(ClearanceConfig(blind_after_s=1e6)), t_max_s=600.0, trusted=over_land)
+    untold = fly(world, ClearancePolicy(ClearanceConfig(blind_after_s=1e6)), t_max_s=120.0, trusted=over_land)
     north = lambda f: max(n for n, *_ in f.track)  # noqa: E731
-    assert north(untold) > 150.0
+    assert north(untold) > 100.0
     # The first leg (north) overshoots by what it flies in blind_after_s and its braking, no more.
     assert north(told) < 60.0 + 8.0 * (blind + 3.0)
     # After the mark it never went back north of the loss line, and it flew its route south of it.
     first_blind = next(i for i, (n, *_rest) in enumerate(told.track) if n >= 60.0)
     back = next(i for i in range(first_blind, len(told.track)) if told.track[i][0] < 40.0)
     assert max(n for n, *_ in told.track[back:]) < 60.0
-    assert min(n for n, *_ in told.track) < -100.0 and told.states[-1] == "NO_SPOT"
+    assert min(n for n, *_ in told.track) < -100.0
 
 
 def test_only_a_loss_that_ends_a_steady_stretch_marks_ground_blind() -> None:
