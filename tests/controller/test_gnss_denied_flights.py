@@ -291,6 +291,35 @@ def test_a_blind_camera_stops_the_descent_until_it_sees_again(fly) -> None:
     assert -flight.fake.position_ned_m[2] <= 20.5  # and then it went on to the hand-over
 
 
+def test_external_nav_flies_back_level_while_the_camera_is_blind(fly) -> None:
+    """External nav after the loss: the camera goes blind for 2 s (less than the EKF coasts before
+    its failsafe) while the vehicle flies forward: the setpoints sent meanwhile fly it back the
+    way it came, level, and once it sees again it descends on to the hand-over."""
+    marks: dict[str, float] = {}
+
+    def blind_then_handover(flight: Flight) -> bool:
+        if flight.loss_s is not None and "blind_s" not in marks and -flight.fake.position_ned_m[2] < 33.0:
+            flight.camera.blind.set()
+            marks["blind_s"], marks["blind_alt_m"] = time.monotonic(), -flight.fake.position_ned_m[2]
+        if "blind_s" in marks and "seeing_s" not in marks and time.monotonic() - marks["blind_s"] > 2.0:
+            marks["blind_end_alt_m"] = -flight.fake.position_ned_m[2]
+            flight.camera.blind.clear()
+            marks["seeing_s"] = time.monotonic()
+        return "seeing_s" in marks and handed_over(flight)
+
+    # The EKF coasts as long as SITL's did (~8 s): a loaded machine's late ticks stay inside it.
+    flight = fly("external-nav", blind_then_handover, ekf=FakeEkf(coast_s=8.0))
+    assert marks["blind_end_alt_m"] >= marks["blind_alt_m"] - 1.5
+    blind = [st for st in flight.statuses if "flying back over the ground the camera measured" in st.reason]
+    assert blind and all(st.watchdog == "hold" and st.vel_body_frd_m_s[2] <= 0.0 for st in blind)
+    assert all(st.vel_body_frd_m_s[0] < -1.0 for st in blind)  # forward was +1 m/s: back it goes
+    sent = [sp for sp in flight.fake.received()[0] if marks["blind_s"] + 0.7 <= sp.recv_s <= marks["seeing_s"]]
+    assert sent and all(sp.vel_m_s[2] <= 0.0 for sp in sent)
+    assert any(math.hypot(sp.vel_m_s[0], sp.vel_m_s[1]) > 3.0 for sp in sent)
+    assert flight.fake.mode == "GUIDED" and not flight.fake.ekf.failsafe_active
+    assert -flight.fake.position_ned_m[2] <= 20.5
+
+
 def test_the_controller_process_takes_gnss_denied_from_its_command_line() -> None:
     """Tier 3: `dovesei-controller --gnss-denied attitude` as a real process on a fake ArduCopter that
     loses GNSS once the controller flies it: it switches to GUIDED_NOGPS, flies attitude targets on the odometry the test
