@@ -450,6 +450,19 @@ def test_only_a_loss_that_ends_a_steady_stretch_marks_ground_blind() -> None:
     assert (un, ue) == pytest.approx((1.0, 0.0), abs=0.05)  # the first waypoint is north of the start
 
 
+def test_a_vehicle_carried_far_beyond_its_search_area_still_gets_decisions() -> None:
+    """Held blind over the sea, a harsh vehicle drifted 500 m, beyond the map of its search area:
+    the window of that map around it was empty and the policy raised on every heatmap (coast start
+    14, harsh). Carried 1 km away, it still decides."""
+    policy = ClearancePolicy()
+    prob = np.full((64, 64), 0.9, np.float32)
+    policy.step(Observation(t_s=0.0, alt_agl_m=100.0, prob_safe=prob, hfov_rad=HFOV))
+    for i in range(40):
+        d = policy.step(Observation(t_s=0.5 * (i + 1), alt_agl_m=100.0, prob_safe=prob, hfov_rad=HFOV,
+                                    vel_est_body_frd_m_s=(0.0, 0.0, 0.0), odom_delta_ne_m=(0.0, 25.0)))
+    assert policy.motion.east_m == pytest.approx(1000.0) and d.state in ("SEARCH", "NO_SPOT")
+
+
 def test_every_altitude_follows_the_start_altitude() -> None:
     """Search passes, confirmation looks and probes are the 100 m start's scaled by the start
     altitude the policy observes, each above its floor (hand-over + 15 m for a pass, + 10 m for a

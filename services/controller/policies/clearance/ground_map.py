@@ -266,7 +266,11 @@ class GroundMap:
     def mask_onto(self, mask: np.ndarray, other: GroundMap, r0: int = 0, c0: int = 0) -> np.ndarray:
         """A uint8 `mask` over this map's cells (its cell (0, 0) at this map's (r0, c0)) resampled
         onto `other`'s grid: each of other's cells takes the mask's cell its centre falls in (0 off
-        the mask)."""
+        the mask; all 0 for an empty mask, a window wholly off this map: a harsh coast vehicle held
+        blind drifted 500 m, beyond the map of its search area, and the policy raised on every
+        heatmap)."""
+        if mask.size == 0:
+            return np.zeros((other.n, other.n), np.uint8)
         s = other.cell_m / self.cell_m
         # other's (col, row) -> the mask's (col, row): a scale and an offset (both grids north-up).
         # OpenCV's nearest lookup rounds the mapped coordinate: the cell the centre falls in.
