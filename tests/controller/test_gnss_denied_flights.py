@@ -28,7 +28,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -266,23 +266,28 @@ def test_off_reports_the_loss_and_holds_without_descending(fly) -> None:
     assert any(st.position_lost for st in lost)
 
 
-def test_a_blind_camera_stops_the_descent_until_it_sees_again(fly) -> None:
-    """Attitude mode after the loss: the camera goes blind for a while; no descent then, the reason
-    says why; when it sees again the descent resumes to the hand-over."""
-    marks: dict[str, float] = {}
+def blind_then_handover(marks: dict[str, float], blind_s: float, ready) -> Callable[[Flight], bool]:
+    """`fly`'s end condition: once `ready(flight)` below 33 m, the camera is blind for `blind_s`
+    (the times and altitudes in `marks`); the flight ends at the hand-over after it sees again."""
 
-    def blind_then_handover(flight: Flight) -> bool:
-        nogps = flight.fake.mode == "GUIDED_NOGPS"
-        if nogps and "blind_s" not in marks and -flight.fake.position_ned_m[2] < 33.0:
+    def until(flight: Flight) -> bool:
+        if ready(flight) and "blind_s" not in marks and -flight.fake.position_ned_m[2] < 33.0:
             flight.camera.blind.set()
             marks["blind_s"], marks["blind_alt_m"] = time.monotonic(), -flight.fake.position_ned_m[2]
-        if "blind_s" in marks and "seeing_s" not in marks and time.monotonic() - marks["blind_s"] > 5.0:
+        if "blind_s" in marks and "seeing_s" not in marks and time.monotonic() - marks["blind_s"] > blind_s:
             marks["blind_end_alt_m"] = -flight.fake.position_ned_m[2]
             flight.camera.blind.clear()
             marks["seeing_s"] = time.monotonic()
         return "seeing_s" in marks and handed_over(flight)
 
-    flight = fly("attitude", blind_then_handover)
+    return until
+
+
+def test_a_blind_camera_stops_the_descent_until_it_sees_again(fly) -> None:
+    """Attitude mode after the loss: the camera goes blind for a while; no descent then, the reason
+    says why; when it sees again the descent resumes to the hand-over."""
+    marks: dict[str, float] = {}
+    flight = fly("attitude", blind_then_handover(marks, 5.0, lambda f: f.fake.mode == "GUIDED_NOGPS"))
     # Blind for 5 s: at most the ~0.5 s of odometry age plus a tick of descent, never the 7.5 m of 5 s.
     assert marks["blind_end_alt_m"] >= marks["blind_alt_m"] - 1.5
     blind = [st for st in flight.statuses if st.gnss_lost and not st.nav_source == "visual" and st.state != "HANDOVER"]
@@ -296,19 +301,9 @@ def test_external_nav_flies_back_level_while_the_camera_is_blind(fly) -> None:
     its failsafe) while the vehicle flies forward: the setpoints sent meanwhile fly it back the
     way it came, level, and once it sees again it descends on to the hand-over."""
     marks: dict[str, float] = {}
-
-    def blind_then_handover(flight: Flight) -> bool:
-        if flight.loss_s is not None and "blind_s" not in marks and -flight.fake.position_ned_m[2] < 33.0:
-            flight.camera.blind.set()
-            marks["blind_s"], marks["blind_alt_m"] = time.monotonic(), -flight.fake.position_ned_m[2]
-        if "blind_s" in marks and "seeing_s" not in marks and time.monotonic() - marks["blind_s"] > 2.0:
-            marks["blind_end_alt_m"] = -flight.fake.position_ned_m[2]
-            flight.camera.blind.clear()
-            marks["seeing_s"] = time.monotonic()
-        return "seeing_s" in marks and handed_over(flight)
-
     # The EKF coasts as long as SITL's did (~8 s): a loaded machine's late ticks stay inside it.
-    flight = fly("external-nav", blind_then_handover, ekf=FakeEkf(coast_s=8.0))
+    flight = fly("external-nav", blind_then_handover(marks, 2.0, lambda f: f.loss_s is not None),
+                 ekf=FakeEkf(coast_s=8.0))
     assert marks["blind_end_alt_m"] >= marks["blind_alt_m"] - 1.5
     blind = [st for st in flight.statuses if "flying back over the ground the camera measured" in st.reason]
     assert blind and all(st.watchdog == "hold" and st.vel_body_frd_m_s[2] <= 0.0 for st in blind)
