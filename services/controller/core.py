@@ -25,7 +25,8 @@ Watchdog modes, highest priority first (each change is logged once at INFO with 
                  commanding, short-range sensors take over; the command says so (`handover`)
     no_velocity  (MAVLink) no horizontal velocity source is trusted: GNSS lost with
                  `--gnss-denied off`, stale or poor visual velocity, an EKF that does not fuse
-                 it (gnss_denied.NavStatus says why)                             -> zero velocity
+                 it (gnss_denied.NavStatus says why)   -> no descent: lost in flight, level back
+                 over the ground the camera measured (gnss_denied.NavRetreat), then zero velocity
     policy_fault the policy raised, or declared LANDED/HANDOVER above the hand-over altitude
                  (measured)                                                      -> zero velocity
     no_heatmap   nothing adopted yet                                             -> zero velocity

@@ -643,7 +643,7 @@ CLI = CommandLine(ControllerConfig, {
     "attitude_max_tilt_deg": Flag("--max-tilt-deg", "attitude mode: largest roll/pitch demanded",
                                   check=lambda w, v: validate.in_range(w, v, 1.0, 35.0)),
     "nav_retreat_speed_m_s": Flag("--nav-retreat-speed-m-s", "a velocity lost in flight (over calm water): fly back "
-                                  "the way the vehicle came at this speed, no descent",
+                                  "over the ground the camera measured at this speed, no descent",
                                   check=lambda w, v: validate.in_range(w, v, 0.1, 20.0)),
     "nav_retreat_max_s": Flag("--nav-retreat-max-s", "... for at most this long, then hold (0: hold at once)",
                               check=lambda w, v: validate.in_range(w, v, 0.0, 600.0)),

@@ -117,8 +117,8 @@ class ClearancePolicy:
         # Where the controller stopped trusting the vehicle's velocity (Inputs.blind): the marks, and
         # the loss under way (when it began, where the vehicle was and where it was going).
         self._blind: list[tuple[float, float, float, float]] = []
+        # The loss's goal is None when it marks nothing (any more).
         self._loss: tuple[float, float, float, tuple[float, float] | None] | None = None
-        self._loss_marked = False
         self._trusted_since_s: float | None = None  # the current trusted stretch's start
 
     def fence_m(self) -> float:
@@ -352,7 +352,7 @@ class ClearancePolicy:
         the search skips its waypoints there (`Inputs.blind`). A short loss marks nothing, nor one
         that did not end `blind_steady_s` of trusted velocity."""
         if obs.velocity_trusted:
-            self._loss, self._loss_marked = None, False
+            self._loss = None
             if self._trusted_since_s is None:
                 self._trusted_since_s = obs.t_s
             return
@@ -365,11 +365,11 @@ class ClearancePolicy:
             self._loss = (obs.t_s, pn, pe, self._heading_goal() if steady else None)
         self._trusted_since_s = None
         since_s, bn, be, goal = self._loss
-        if self._loss_marked or obs.t_s - since_s < self.config.blind_after_s or goal is None:
+        if goal is None or obs.t_s - since_s < self.config.blind_after_s:
             return
+        self._loss = (since_s, bn, be, None)  # one mark per loss
         dn, de = goal[0] - bn, goal[1] - be
         dist = math.hypot(dn, de)
-        self._loss_marked = True
         if dist < 1.0:
             return
         self._blind.append((bn, be, dn / dist, de / dist))
