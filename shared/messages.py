@@ -117,10 +117,15 @@ def field_range(cls: type, name: str) -> tuple[float, float] | None:
     return own[name] if name in own else _FIELD_RANGES.get(name)
 
 
-def _ranged(check: Checker, bounds: tuple[float, float]) -> Checker:
+def _ranged(check: Checker, bounds: tuple[float, float], kind: type) -> Checker:
     lo, hi = bounds
+    # A plain float (int) within finite bounds (within int64) passes every check at once: the
+    # common case, as this runs for every field of every message.
+    fast = kind if math.isfinite(lo) and math.isfinite(hi) and -(2**63) <= lo and hi < 2**63 else None
 
     def check_range(name: str, value: Any) -> None:
+        if type(value) is fast and lo <= value <= hi:
+            return
         check(name, value)
         if not lo <= value <= hi:  # cheap test first: this runs for every field of every message
             try:
@@ -163,7 +168,7 @@ def _compile(hint: Any, owner: type, field_name: str) -> Checker:
     """A checker for one annotation, built once per record class (messages are built per tick)."""
     if hint in _SCALARS:
         bounds = field_range(owner, field_name) if hint in (int, float) else None
-        return _SCALARS[hint] if bounds is None else _ranged(_SCALARS[hint], bounds)
+        return _SCALARS[hint] if bounds is None else _ranged(_SCALARS[hint], bounds, hint)
     origin = typing.get_origin(hint)
     if origin in (typing.Union, types.UnionType):
         (inner,) = [a for a in typing.get_args(hint) if a is not type(None)]

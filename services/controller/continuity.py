@@ -14,7 +14,9 @@ MAVLink adapter checks every LOCAL_POSITION_NED before it becomes one.
 
 from __future__ import annotations
 
+import bisect
 import logging
+from collections import deque
 
 log = logging.getLogger(__name__)
 
@@ -55,3 +57,38 @@ class AltitudeContinuity:
             return None
         return (f"altitude {alt_m:.1f} m is {alt_m - last_alt_m:+.1f} m from {last_alt_m:.1f} m "
                 f"{abs(t_s - last_t_s):.2f} s earlier (a multirotor moves at most {self._reach_m(t_s, last_t_s):.1f} m)")
+
+
+class AltitudeTrack:
+    """The last `n` accepted (t_s, alt_m) states, and the one nearest a given time.
+
+    `nearest(t)` is `min(states, key=|t_s - t|)` (the first of equally near ones, in the order
+    they came): by bisection while the times in the window run in order (every flight; a
+    re-ticked state repeats its time), by a scan while one that came back in time is still in it.
+    The controller asks it for every heatmap, over 200 states.
+    """
+
+    def __init__(self, n: int) -> None:
+        self._states: deque[tuple[float, float]] = deque(maxlen=n)
+        self._times: deque[float] = deque(maxlen=n)
+        self._added = 0
+        self._unordered_until = 0  # while _added < this, a time that went back is in the window
+
+    def add(self, t_s: float, alt_m: float) -> None:
+        if self._times and t_s < self._times[-1]:
+            self._unordered_until = self._added + self._times.maxlen
+        self._states.append((t_s, alt_m))
+        self._times.append(t_s)
+        self._added += 1
+
+    def nearest(self, t_s: float) -> tuple[float, float] | None:
+        if self._added < self._unordered_until:
+            return min(self._states, key=lambda ta: abs(ta[0] - t_s), default=None)
+        times = self._times
+        i = bisect.bisect_left(times, t_s)  # times[:i] < t_s <= times[i:]
+        if i == 0:
+            return self._states[0] if times else None
+        before = bisect.bisect_left(times, times[i - 1])  # the first of the latest time before t_s
+        if i == len(times) or abs(times[before] - t_s) <= abs(times[i] - t_s):
+            return self._states[before]
+        return self._states[i]

@@ -62,7 +62,7 @@ from dovesei.controller.looker import Looker
 from dovesei.controller.policies.base import Decision, LookRequest, LookResult, Observation, Policy, PolicyInputError
 from dovesei.controller.policies.registry import make_policy, policy_names
 from dovesei.controller.continuity import (
-    ALTITUDE_NOISE_M, MAX_VERTICAL_SPEED_M_S, STEP_CONFIRM_SAMPLES, AltitudeContinuity,
+    ALTITUDE_NOISE_M, MAX_VERTICAL_SPEED_M_S, STEP_CONFIRM_SAMPLES, AltitudeContinuity, AltitudeTrack,
 )
 from dovesei.shared.frames import body_frd_to_ned, ned_to_body_frd, to_body, to_ne
 from dovesei.controller.geofence import Geofence
@@ -386,7 +386,7 @@ class ControllerCore:
         # state (read only while the decision is terminal): later heatmaps of the same terminal
         # state may read higher on a noisy baro, the declaration was made there.
         self._declared_alt_m: float | None = None
-        self._alt_track: deque[tuple[float, float]] = deque(maxlen=_ALT_TRACK_LEN)  # (t_s, alt) accepted
+        self._alt_track = AltitudeTrack(_ALT_TRACK_LEN)  # (t_s, alt) accepted
         cfg = self.config
         self._altitude = AltitudeContinuity(cfg.max_vertical_speed_m_s, cfg.altitude_noise_m,
                                             cfg.altitude_step_confirm_states, who=f"controller {cfg.vehicle_id}")
@@ -583,7 +583,7 @@ class ControllerCore:
             reason = f"state {state.seq}: {jump}"
             self._refuse("altitude jump", "%s: refused, holding", reason)
             return self._refused_state_answer(state, f"{reason}: refused, holding position", nav)
-        self._alt_track.append((state.stamp.t_s, state.alt_agl_m))
+        self._alt_track.add(state.stamp.t_s, state.alt_agl_m)
         if self._recent_t_s is None or state.stamp.t_s > self._recent_t_s:
             # Distinct states only: the real-time loop re-ticks the newest one while none arrives.
             self._recent_alts.append(state.alt_agl_m)
@@ -696,7 +696,7 @@ class ControllerCore:
         """Why the heatmap's capture altitude disagrees with the vehicle's own states around its
         capture stamp (None: it agrees, or no state is near enough to tell)."""
         cfg = self.config
-        near = min(self._alt_track, key=lambda ta: abs(ta[0] - hm.stamp.t_s), default=None)
+        near = self._alt_track.nearest(hm.stamp.t_s)
         if near is None:
             return None
         t_s, alt_m = near

@@ -208,22 +208,23 @@ class ObjectLayer:
         if not len(self) or not h_px:
             return 0
         m = np.asarray(world_m_to_px, np.float64)
+        inv = np.linalg.inv(m)  # view pixels -> world metres, shared by the culling and the labels
         # Only the objects whose paths come near the view are placed and tested (a world holds
         # thousands, a view a few dozen); the test below then picks the same ones as over all.
-        near = self._near_view(m, w_px, h_px, skip_baked) if cull else None
+        near = self._near_view(m, w_px, h_px, skip_baked, inv) if cull else None
         if near is None:
-            return self._draw_rows(image, labels, m, t_s, label_ids, shadow_per_m, valid, skip_baked, baked_labels,
-                                   np.arange(len(self)))
+            return self._draw_rows(image, labels, m, inv, t_s, label_ids, shadow_per_m, valid, skip_baked,
+                                   baked_labels, np.arange(len(self)))
         if not near.size:
             return 0
-        return self._rows(near)._draw_rows(image, labels, m, t_s, label_ids, shadow_per_m, valid, skip_baked,
+        return self._rows(near)._draw_rows(image, labels, m, inv, t_s, label_ids, shadow_per_m, valid, skip_baked,
                                            baked_labels, near)
 
-    def _draw_rows(self, image: np.ndarray | None, labels: np.ndarray | None, m: np.ndarray, t_s: float,
-                   label_ids: tuple[int, int], shadow_per_m: tuple[float, float], valid: np.ndarray | None,
-                   skip_baked: bool, baked_labels: bool, origin: np.ndarray) -> int:
-        """`draw` over this layer's every object; `origin`: each one's index in the world's layer
-        (its looks, such as the colour of its hair, follow that index)."""
+    def _draw_rows(self, image: np.ndarray | None, labels: np.ndarray | None, m: np.ndarray, inv: np.ndarray,
+                   t_s: float, label_ids: tuple[int, int], shadow_per_m: tuple[float, float],
+                   valid: np.ndarray | None, skip_baked: bool, baked_labels: bool, origin: np.ndarray) -> int:
+        """`draw` over this layer's every object; `inv` = inverse of `m`; `origin`: each one's index
+        in the world's layer (its looks, such as the colour of its hair, follow that index)."""
         h_px, w_px = (image.shape[:2] if image is not None else labels.shape)
         st = self.at(t_s)
         pc = _project(m, np.stack([st.x_m, st.y_m], 1))
@@ -248,21 +249,22 @@ class ObjectLayer:
             sel = idx[self.kind[idx] == kind]
             if not sel.size:
                 continue
-            bodies = self._outlines(sel, st, local)  # (n, V, 2) world metres
-            body_px = _fixed(_project(m, bodies.reshape(-1, 2))).reshape(len(sel), -1, 1, 2)
             if image is not None:
-                self._paint(image, m, st, sel, kind, bodies, body_px, ppm[sel], (sx, sy), origin)
+                bodies = self._outlines(sel, st, local)  # (n, V, 2) world metres
+                self._paint(image, m, st, sel, kind, bodies, self._outline_px(m, bodies), ppm[sel], (sx, sy), origin)
             if labels is not None and not baked_labels:
-                sel, bodies, body_px = sel[~self.baked[sel]], bodies[~self.baked[sel]], body_px[~self.baked[sel]]
+                sel = sel[~self.baked[sel]]
             if labels is not None and sel.size:
                 # A pixel takes the class id when its centre lies on the object, as the camera's
                 # nearest lookup labels the world. OpenCV's polygon fill also takes every pixel the
                 # outline touches: right for large objects, four times too many for one pixel's size.
                 small = ppm[sel] * np.maximum(self.length_m[sel], self.width_m[sel]) < 4.0
                 if (~small).any():
-                    cv2.fillPoly(labels, list(body_px[~small]), int(label_ids[kind]), cv2.LINE_8, _SHIFT)
+                    # Outlines element by element: those of a subset are those of the whole, to the bit.
+                    body_px = self._outline_px(m, self._outlines(sel[~small], st, local))
+                    cv2.fillPoly(labels, list(body_px), int(label_ids[kind]), cv2.LINE_8, _SHIFT)
                 if small.any():
-                    self._label_centres(labels, m, st, sel[small], pc[sel[small]], int(label_ids[kind]))
+                    self._label_centres(labels, inv, st, sel[small], pc[sel[small]], int(label_ids[kind]))
         if keep_img is not None:
             image[~valid] = keep_img
         if keep_lab is not None:
@@ -285,7 +287,8 @@ class ObjectLayer:
         """The largest half-diagonal of an object (m): how far its outline reaches from its centre."""
         return float(0.5 * np.hypot(self.length_m, self.width_m).max())
 
-    def _near_view(self, m: np.ndarray, w_px: int, h_px: int, skip_baked: bool) -> np.ndarray | None:
+    def _near_view(self, m: np.ndarray, w_px: int, h_px: int, skip_baked: bool,
+                   inv: np.ndarray | None = None) -> np.ndarray | None:
         """Indices (ascending) of the objects whose paths meet the world box of what `_draw_rows`
         could show in a w x h view: every object it draws that is in front of the camera and
         reaches into the view. None: the margin such a box needs reaches the horizon; draw over all.
@@ -301,7 +304,7 @@ class ObjectLayer:
         numerator is convex in p and 1 / w affine, so both are largest at the quadrilateral's
         corners and S comes from the four corners alone (exact for an affine view).
         """
-        inv = np.linalg.inv(m)
+        inv = np.linalg.inv(m) if inv is None else inv
         margin_px = 2.0
         for _ in range(6):
             corners = np.array([(-margin_px, -margin_px), (w_px + margin_px, -margin_px),
@@ -370,12 +373,11 @@ class ObjectLayer:
                     part = self._outlines(one, st, local)[0]
                     cv2.fillPoly(image, [_fixed(_project(m, part))], _GLASS, cv2.LINE_AA, _SHIFT)
 
-    def _label_centres(self, labels: np.ndarray, m: np.ndarray, st: ObjectStates, sel: np.ndarray, pc: np.ndarray,
-                       label_id: int) -> None:
-        """Label the pixels around each small object whose centres lie on its footprint."""
-        offs = np.stack(np.meshgrid(np.arange(-2, 3), np.arange(-2, 3)), -1).reshape(-1, 2)  # (25, 2) col, row
-        cells = np.round(pc)[:, None, :] + offs[None]  # (n, 25, 2) candidate pixel centres
-        inv = np.linalg.inv(m)
+    def _label_centres(self, labels: np.ndarray, inv: np.ndarray, st: ObjectStates, sel: np.ndarray,
+                       pc: np.ndarray, label_id: int) -> None:
+        """Label the pixels around each small object whose centres lie on its footprint (`inv`:
+        the view's pixels -> world metres)."""
+        cells = np.round(pc)[:, None, :] + _CENTRE_OFFSETS[None]  # (n, 25, 2) candidate pixel centres
         world = _project(inv, cells.reshape(-1, 2)).reshape(len(sel), -1, 2)
         dx, dy = world[..., 0] - st.x_m[sel][:, None], world[..., 1] - st.y_m[sel][:, None]
         sh, ch = np.sin(st.heading_rad[sel])[:, None], np.cos(st.heading_rad[sel])[:, None]
@@ -386,6 +388,11 @@ class ObjectLayer:
         col, row = cells[..., 0].astype(np.int64), cells[..., 1].astype(np.int64)
         inside &= (col >= 0) & (col < labels.shape[1]) & (row >= 0) & (row < labels.shape[0])
         labels[row[inside], col[inside]] = label_id
+
+    @staticmethod
+    def _outline_px(m: np.ndarray, bodies: np.ndarray) -> np.ndarray:
+        """(n, V, 1, 2) fixed-point pixels of (n, V, 2) outlines in world metres, as fillPoly takes them."""
+        return _fixed(_project(m, bodies.reshape(-1, 2))).reshape(len(bodies), -1, 1, 2)
 
     def _outlines(self, sel: np.ndarray, st: ObjectStates, local: np.ndarray) -> np.ndarray:
         """(n, V, 2) world metres of a unit outline (along, across) scaled to each selected object
@@ -411,6 +418,11 @@ def empty_layer() -> ObjectLayer:
     z = np.zeros(0)
     return ObjectLayer(np.zeros(0, np.uint8), z, z.copy(), z.copy(), z.copy(), z.copy(), z.copy(), z.copy(), z.copy(),
                        np.zeros((0, 3), np.uint8), np.zeros(0, bool))
+
+
+# The 5 x 5 pixels around an object's centre pixel, (col, row) offsets, rows first.
+_CENTRE_OFFSETS = np.stack(np.meshgrid(np.arange(-2, 3), np.arange(-2, 3)), -1).reshape(-1, 2)
+_CENTRE_OFFSETS.flags.writeable = False
 
 
 def _project(m: np.ndarray, pts_m: np.ndarray) -> np.ndarray:
