@@ -9,7 +9,7 @@ import pytest
 
 from dovesei.controller.policies.clearance.config import ClearanceConfig
 from dovesei.controller.policies.clearance.machine import (Inputs, Memory, Phase, committed, reject_target, search_pattern,
-                                                           search_route, step)
+                                                           search_route, step, withdraw_handover)
 from dovesei.controller.policies.clearance.ground_map import Spot
 
 CFG = ClearanceConfig()
@@ -272,6 +272,24 @@ def test_a_close_look_rejection_searches_on_from_where_the_vehicle_is() -> None:
     assert mem.phase is Phase.SEARCH and mem.waypoint == 3 and vel[2] < 0.0
     # The ends stay ends.
     assert reject_target(at(Phase.HANDOVER, target=spot()), 5.0, 20.0, "close look").phase is Phase.HANDOVER
+
+
+def test_a_withdrawn_handover_descends_over_the_same_spot_and_holds_until_released() -> None:
+    """A close look that finds someone while the controller confirms a hand-over takes it back:
+    DESCEND over the same spot, holding the hand-over altitude while withheld, HANDOVER again once
+    released. Only a declared hand-over can be withdrawn."""
+    target = spot(0.0, 0.0)
+    mem = withdraw_handover(at(Phase.HANDOVER, target=target), 9.0, "close look: waiting for the never set")
+    assert mem.phase is Phase.DESCEND and mem.target == target and mem.since_s == 9.0
+    assert "hand-over withdrawn" in mem.reason and not committed(mem)
+    held = dataclasses.replace(inp(9.5, alt=19.8, best=target, check=target), handover_withheld="close look: waiting")
+    mem2, vel = step(mem, held, CFG)
+    assert mem2.phase is Phase.DESCEND and vel[2] <= 0.0  # below the altitude and withheld: no descent
+    mem3, _ = step(mem2, dataclasses.replace(held, t_s=10.0, handover_withheld=""), CFG)
+    assert mem3.phase is Phase.HANDOVER and mem3.target == target
+    for phase in (Phase.DESCEND, Phase.SEARCH, Phase.NO_SPOT):
+        before = at(phase, target=target if phase is Phase.DESCEND else None)
+        assert withdraw_handover(before, 9.0, "close look") is before
 
 
 def test_abort_climbs_back_to_the_search_altitude_then_searches_or_gives_up() -> None:

@@ -9,6 +9,7 @@ person stands there, or walks through it; the policy never reads where they are.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import cv2
@@ -440,3 +441,74 @@ def test_the_gate_withholds_the_inner_policys_handover_until_a_fresh_clear_look(
     assert inner.handover_withheld == ""  # resume_looks clear looks: released
     gate.step(Observation(t_s=9.0 + CloseLookConfig().fresh_s + 1.5, alt_agl_m=20.0, prob_safe=None))
     assert inner.handover_withheld == "close look: no fresh clear look"
+
+
+class _Handing(_Descending):
+    """The stub descending onto its spot that declares HANDOVER at 20 m when the gate lets it, and
+    records what takes it back."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.handover_withheld = ""
+        self.state = "DESCEND"
+        self.withdrawn: list[str] = []
+
+    def step(self, obs: Observation) -> Decision:
+        if self.state == "DESCEND" and obs.alt_agl_m <= 20.0 and not self.handover_withheld:
+            self.state = "HANDOVER"
+        d = super().step(obs)
+        return dataclasses.replace(d, state=self.state, vel_body_frd_m_s=(0.0, 0.0, 0.0))
+
+    def withdraw_handover(self, t_s: float, alt_m: float, why: str) -> None:
+        if self.state == "HANDOVER":
+            self.state = "DESCEND"
+            self.withdrawn.append(why)
+
+
+def test_a_declared_handover_keeps_looking_and_is_taken_back_when_someone_walks_in() -> None:
+    """While the controller confirms a declared hand-over (seconds on a noisy baro) the looks go
+    on; one that finds the never set inside the margin takes the hand-over back, and it is declared
+    again only once resume_looks clear looks say the margin is clear (harsh Dubai start 8: a walker
+    came from 6.8 m to 1.8 m of the touchdown in the 4 s a hand-over took to confirm, unlooked at)."""
+    cfg = CloseLookConfig()
+    inner = _Handing()
+    gate = CloseLookPolicy(inner)
+    gate.step(Observation(t_s=0.0, alt_agl_m=41.0, prob_safe=None))
+    for i in (1, 2):
+        gate.step(Observation(t_s=float(i), alt_agl_m=40.0, prob_safe=None, look=_answer(i, False)))
+    d = gate.step(Observation(t_s=2.5, alt_agl_m=20.0, prob_safe=None))
+    assert d.state == "HANDOVER"
+    seq, t = 3, 2.5
+    asked = 0
+    for _ in range(3):  # the hand-over is being confirmed: clear looks keep it, new ones are asked
+        t += cfg.look_period_s
+        d = gate.step(Observation(t_s=t, alt_agl_m=20.0, prob_safe=None, look=_answer(seq, False)))
+        seq += 1
+        asked += d.look_request is not None
+        assert d.state == "HANDOVER"
+    assert asked >= 2
+    t += cfg.look_period_s
+    d = gate.step(Observation(t_s=t, alt_agl_m=20.0, prob_safe=None, look=_answer(seq, True)))
+    seq += 1
+    assert d.state == "DESCEND" and d.vel_body_frd_m_s[2] <= 0.0
+    assert inner.withdrawn == ["close look: waiting for the never set to clear the margin"]
+    for k in range(cfg.resume_looks):
+        t += cfg.look_period_s
+        d = gate.step(Observation(t_s=t, alt_agl_m=20.0, prob_safe=None, look=_answer(seq, False)))
+        seq += 1
+        assert d.state == ("HANDOVER" if k == cfg.resume_looks - 1 else "DESCEND"), k
+    assert not inner.rejected
+
+
+def test_a_declared_handover_without_a_fresh_look_is_taken_back() -> None:
+    """Looks that stop being answered during the confirmation leave no fresh clear look: the
+    hand-over is taken back rather than completed on a look fresh_s old."""
+    cfg = CloseLookConfig()
+    inner = _Handing()
+    gate = CloseLookPolicy(inner)
+    gate.step(Observation(t_s=0.0, alt_agl_m=41.0, prob_safe=None))
+    for i in (1, 2):
+        gate.step(Observation(t_s=float(i), alt_agl_m=40.0, prob_safe=None, look=_answer(i, False)))
+    assert gate.step(Observation(t_s=2.5, alt_agl_m=20.0, prob_safe=None)).state == "HANDOVER"
+    d = gate.step(Observation(t_s=2.0 + cfg.fresh_s + 0.1, alt_agl_m=20.0, prob_safe=None))
+    assert d.state == "DESCEND" and inner.withdrawn == ["close look: no fresh clear look"]

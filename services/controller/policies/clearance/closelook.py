@@ -18,6 +18,9 @@ set, `dovesei.shared.crop`, docs/CROP.md) and gates its descent on the verdict:
             wait_s after the first finding on that ground --> reject (searches on from there)
     within final_gate_m of the hand-over --> hold unless a clear look is fresher than fresh_s
         (the hand-over needs a recent close look, not one from 40 m)
+    HANDOVER declared, the controller confirming the altitude --> looks go on every look_period_s
+        anything inside the margin, or no fresh clear look --> the hand-over is taken back (DESCEND,
+            holding over the spot as above) until the looks clear it again
 
 The wrapper is pure like every policy: the answer to a request comes back in a later
 `Observation.look`; nothing here talks to a camera. Only `clearance`'s DESCEND is gated (the
@@ -278,7 +281,13 @@ class CloseLookPolicy:
         if hasattr(self.inner, "handover_withheld"):
             # The inner policy hands over on its own once low enough: it may only with a fresh clear
             # look of its spot (an altitude hold sags through the hand-over altitude while waiting).
-            self.inner.handover_withheld = self._handover_withheld(obs.t_s)
+            withheld = self.inner.handover_withheld = self._handover_withheld(obs.t_s)
+            if withheld and hasattr(self.inner, "withdraw_handover"):
+                # ... and a hand-over declared but not yet completed (the controller confirms the
+                # altitude over a few states, seconds on a noisy baro) is taken back: someone walked
+                # into the margin meanwhile (harsh Dubai start 8: a walker seen leaving it came back
+                # from 6.8 m to 1.8 m in the 4 s a hand-over took to confirm, unlooked at).
+                self.inner.withdraw_handover(obs.t_s, obs.alt_agl_m, withheld)
         return self._gate(obs, self.inner.step(obs))
 
     def _handover_withheld(self, t_s: float) -> str:
@@ -367,7 +376,8 @@ class CloseLookPolicy:
     def _gate(self, obs: Observation, d: Decision) -> Decision:
         cfg, t, alt = self.look_config, obs.t_s, obs.alt_agl_m
         chosen = d.spot
-        if d.state != "DESCEND" or chosen is None or alt > cfg.look_alt_m + cfg.brake_m:
+        handing = d.state == "HANDOVER"  # declared, the controller confirming it: looks go on
+        if d.state not in ("DESCEND", "HANDOVER") or chosen is None or alt > cfg.look_alt_m + cfg.brake_m:
             if d.state not in ("DESCEND", "HANDOVER"):
                 self._never_since_s, self._spot, self._trouble = None, None, None
             return dataclasses.replace(d, look_verdict=self._verdict)
@@ -384,7 +394,9 @@ class CloseLookPolicy:
         fresh = cleared and self._fresh(t)
         final = alt <= cfg.handover_alt_m + cfg.final_gate_m
         hold, why = False, ""
-        if not cleared:
+        if handing:
+            pass  # allowed at this step's start (`step` takes it back otherwise): only the looks go on
+        elif not cleared:
             hold = True
             why = ("close look: waiting for the never set to clear the margin" if self._never_since_s is not None
                    else "close look: holding until a look clears the spot")

@@ -210,6 +210,16 @@ def reject_target(mem: Memory, t_s: float, alt_m: float, reason: str) -> Memory:
                blacklist=_blacklisted(mem, mem.target, alt_m))
 
 
+def withdraw_handover(mem: Memory, t_s: float, reason: str) -> Memory:
+    """A declared hand-over taken back before the controller completed it (a close look saw the
+    never set come into the margin while the altitude was being confirmed: people walk in): DESCEND
+    over the same spot again, which holds its altitude while the hand-over is withheld and declares
+    it again once released. Anything else is left as it is."""
+    if mem.phase is not Phase.HANDOVER or mem.target is None:
+        return mem
+    return _go(mem, Phase.DESCEND, t_s, reason + ": hand-over withdrawn, holding over the spot")
+
+
 def toward(north_err: float, east_err: float, gain: float, vmax: float, yaw: float) -> tuple[float, float]:
     """Body forward/right velocity = gain x the north/east error, capped at vmax."""
     vn, ve = gain * north_err, gain * east_err

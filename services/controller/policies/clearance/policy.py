@@ -41,7 +41,7 @@ from dovesei.controller.policies.base import (Confirmation, Decision, Observatio
                                               checked_prob_safe, resolve_config)
 from dovesei.controller.policies.clearance.config import Altitudes, ClearanceConfig, clearance_preset
 from dovesei.controller.policies.clearance.machine import (
-    TERMINAL, Inputs, Memory, Phase, committed, reject_target, search_route, step, toward,
+    TERMINAL, Inputs, Memory, Phase, committed, reject_target, search_route, step, toward, withdraw_handover,
 )
 from dovesei.controller.policies.clearance.ground_map import (GroundMap, Promise, clearance_at, emphasise_dips,
                                                       find_candidate, find_spot, footprint_width_m, logit,
@@ -320,6 +320,24 @@ class ClearancePolicy:
                 self.memory = mem
                 self.motion.clear_spot()
 
+    def withdraw_handover(self, t_s: float, alt_m: float, reason: str) -> None:
+        """Take back a declared hand-over the controller has not completed yet (a close look found the
+        never set inside the margin, or has no fresh clear look): the descent holds over the spot
+        until released. Takes effect at once: the decision in hand stops being terminal."""
+        if self.memory is None:
+            return
+        mem = withdraw_handover(self.memory, t_s, reason)
+        if mem is self.memory:
+            return
+        log.info("clearance: %s -> %s at t=%.2f s, alt %.1f m: %s", self.memory.phase.value, mem.phase.value, t_s,
+                 alt_m, mem.reason)
+        self.memory, self._hold_ne = mem, None
+        if self._decision is not None:
+            # Until the next heatmap decides: hold, horizontally as the hand-over held.
+            vf, vr, _ = self._decision.vel_body_frd_m_s
+            self._decision = dataclasses.replace(self._decision, state=mem.phase.value, landing=False,
+                                                 reason=mem.reason, vel_body_frd_m_s=(vf, vr, 0.0))
+
     def _spot_known(self) -> bool:
         """Was the target fixed by vision (or re-checked) recently enough to descend on?"""
         return self.motion.spot_since_s <= self.config.spot_trust_s
@@ -342,8 +360,11 @@ class ClearancePolicy:
         if report is not None:
             report = dataclasses.replace(report, est_north_m=pn, est_east_m=pe, hold_error_m=error_m,
                                          fenced=bool(fenced))
+        spot = self._decision.spot
+        if spot is not None:  # seen from where the vehicle is now (a close look's crop is asked from here)
+            spot = dataclasses.replace(spot, est_north_m=pn, est_east_m=pe)
         self._decision = dataclasses.replace(self._decision, vel_body_frd_m_s=tuple(float(v) for v in vel),
-                                             report=report)
+                                             report=report, spot=spot)
         return self._decision
 
     def _note_velocity(self, obs: Observation, pn: float, pe: float) -> None:
