@@ -465,19 +465,24 @@ class _Handing(_Descending):
             self.withdrawn.append(why)
 
 
-def test_a_declared_handover_keeps_looking_and_is_taken_back_when_someone_walks_in() -> None:
-    """While the controller confirms a declared hand-over (seconds on a noisy baro) the looks go
-    on; one that finds the never set inside the margin takes the hand-over back, and it is declared
-    again only once resume_looks clear looks say the margin is clear (harsh Dubai start 8: a walker
-    came from 6.8 m to 1.8 m of the touchdown in the 4 s a hand-over took to confirm, unlooked at)."""
-    cfg = CloseLookConfig()
+def _handing_over() -> tuple[_Handing, CloseLookPolicy]:
+    """The gate opened by two clear looks at 40 m (t = 1 and 2 s), the stub declaring HANDOVER at
+    20 m (t = 2.5 s)."""
     inner = _Handing()
     gate = CloseLookPolicy(inner)
     gate.step(Observation(t_s=0.0, alt_agl_m=41.0, prob_safe=None))
     for i in (1, 2):
         gate.step(Observation(t_s=float(i), alt_agl_m=40.0, prob_safe=None, look=_answer(i, False)))
-    d = gate.step(Observation(t_s=2.5, alt_agl_m=20.0, prob_safe=None))
-    assert d.state == "HANDOVER"
+    assert gate.step(Observation(t_s=2.5, alt_agl_m=20.0, prob_safe=None)).state == "HANDOVER"
+    return inner, gate
+
+
+def test_a_declared_handover_keeps_looking_and_is_taken_back_when_someone_walks_in() -> None:
+    """While the controller confirms a declared hand-over (seconds on a noisy baro) the looks go
+    on; one that finds the never set inside the margin takes the hand-over back, and it is declared
+    again only once resume_looks clear looks say the margin is clear (harsh Dubai start 8: a walker
+    came from 6.8 m to 1.8 m of the touchdown in the 4 s a hand-over took to confirm, unlooked at)."""
+    cfg, (inner, gate) = CloseLookConfig(), _handing_over()
     seq, t = 3, 2.5
     asked = 0
     for _ in range(3):  # the hand-over is being confirmed: clear looks keep it, new ones are asked
@@ -503,12 +508,6 @@ def test_a_declared_handover_keeps_looking_and_is_taken_back_when_someone_walks_
 def test_a_declared_handover_without_a_fresh_look_is_taken_back() -> None:
     """Looks that stop being answered during the confirmation leave no fresh clear look: the
     hand-over is taken back rather than completed on a look fresh_s old."""
-    cfg = CloseLookConfig()
-    inner = _Handing()
-    gate = CloseLookPolicy(inner)
-    gate.step(Observation(t_s=0.0, alt_agl_m=41.0, prob_safe=None))
-    for i in (1, 2):
-        gate.step(Observation(t_s=float(i), alt_agl_m=40.0, prob_safe=None, look=_answer(i, False)))
-    assert gate.step(Observation(t_s=2.5, alt_agl_m=20.0, prob_safe=None)).state == "HANDOVER"
+    cfg, (inner, gate) = CloseLookConfig(), _handing_over()
     d = gate.step(Observation(t_s=2.0 + cfg.fresh_s + 0.1, alt_agl_m=20.0, prob_safe=None))
     assert d.state == "DESCEND" and inner.withdrawn == ["close look: no fresh clear look"]
