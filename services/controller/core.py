@@ -844,7 +844,13 @@ class ControllerCore:
                             "landing (%s): no hand-over, following the policy", cfg.vehicle_id, state.alt_agl_m,
                             cfg.handover_alt_m, self._decision.state if self._decision is not None else "no decision")
                 self.rejected["below hand-over, not landing"] += 1
-            self._below_uncommitted = state.alt_agl_m <= cfg.handover_alt_m and not committed
+            # Once per sink: a noisy baro crossing the altitude again and again while the policy
+            # holds below it (a close look waiting on someone) is the same sink until it climbs
+            # clear of the hand-over band.
+            if committed or state.alt_agl_m > cfg.handover_alt_m + cfg.handover_release_m:
+                self._below_uncommitted = False
+            elif state.alt_agl_m <= cfg.handover_alt_m:
+                self._below_uncommitted = True
         if self._in_handover:
             return Mode.HANDOVER, (f"at/below the hand-over altitude {cfg.handover_alt_m:g} m: "
                                    "short-range sensors take over")

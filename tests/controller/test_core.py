@@ -186,6 +186,22 @@ def test_sinking_below_the_handover_altitude_without_the_policy_landing_is_no_ha
     assert cmd.vel_body_frd_m_s == (0.0, 0.0, 0.0)
 
 
+def test_a_noisy_baro_around_the_handover_altitude_is_one_sink_until_it_climbs_clear() -> None:
+    """Back over 20 m and under it again is the same sink (harsh: 1 m of noise per state while a
+    close look held the vehicle at 20 m logged every crossing); clear of the hand-over band it is
+    a new one."""
+    policy = RecordingPolicy(landing=False)
+    core = ControllerCore(ControllerConfig(lockstep=True, handover_alt_m=20.0), policy=policy)
+    core.on_heatmap(heatmap(0, 0.0, alt_m=21.0), 0.0)
+    core.tick(state(0, 0.05, alt_m=21.0, await_seq=0))
+    for k, alt_m in enumerate((19.4, 20.6, 19.4, 21.5, 19.2), start=1):
+        core.tick(state(k, 0.05 + 0.05 * k, alt_m=alt_m))
+    assert core.rejected["below hand-over, not landing"] == 1
+    for k, alt_m in enumerate((22.5, 21.0, 19.0), start=6):  # 2.5 m over: clear of the 2 m band
+        core.tick(state(k, 0.05 + 0.05 * k, alt_m=alt_m))
+    assert core.rejected["below hand-over, not landing"] == 2
+
+
 def test_other_vehicles_and_other_clocks_are_refused() -> None:
     core, policy = make_core(lockstep=False)
     with pytest.raises(ControllerInputError, match="uav2"):
