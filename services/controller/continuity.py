@@ -70,25 +70,28 @@ class AltitudeTrack:
 
     def __init__(self, n: int) -> None:
         self._states: deque[tuple[float, float]] = deque(maxlen=n)
-        self._times: deque[float] = deque(maxlen=n)
         self._added = 0
         self._unordered_until = 0  # while _added < this, a time that went back is in the window
 
     def add(self, t_s: float, alt_m: float) -> None:
-        if self._times and t_s < self._times[-1]:
-            self._unordered_until = self._added + self._times.maxlen
+        if self._states and t_s < self._states[-1][0]:
+            self._unordered_until = self._added + self._states.maxlen
         self._states.append((t_s, alt_m))
-        self._times.append(t_s)
         self._added += 1
 
     def nearest(self, t_s: float) -> tuple[float, float] | None:
+        states = self._states
         if self._added < self._unordered_until:
-            return min(self._states, key=lambda ta: abs(ta[0] - t_s), default=None)
-        times = self._times
-        i = bisect.bisect_left(times, t_s)  # times[:i] < t_s <= times[i:]
+            return min(states, key=lambda ta: abs(ta[0] - t_s), default=None)
+        i = bisect.bisect_left(states, t_s, key=_time)  # times before i < t_s <= times from i
         if i == 0:
-            return self._states[0] if times else None
-        before = bisect.bisect_left(times, times[i - 1])  # the first of the latest time before t_s
-        if i == len(times) or abs(times[before] - t_s) <= abs(times[i] - t_s):
-            return self._states[before]
-        return self._states[i]
+            return states[0] if states else None
+        # The first of the latest time before t_s: min keeps the first of equally near states.
+        before = states[bisect.bisect_left(states, states[i - 1][0], key=_time)]
+        if i == len(states) or abs(before[0] - t_s) <= abs(states[i][0] - t_s):
+            return before
+        return states[i]
+
+
+def _time(state: tuple[float, float]) -> float:
+    return state[0]

@@ -395,7 +395,7 @@ class CloseLookPolicy:
         final = alt <= cfg.handover_alt_m + cfg.final_gate_m
         hold, why = False, ""
         if handing:
-            pass  # allowed at this step's start (`step` takes it back otherwise): only the looks go on
+            pass  # allowed at this step's start (`step` takes it back otherwise): the looks go on, no hold
         elif not cleared:
             hold = True
             why = ("close look: waiting for the never set to clear the margin" if self._never_since_s is not None

@@ -312,31 +312,31 @@ class ClearancePolicy:
         """Reject the current target for a reason the map cannot see (a close look found a person
         inside its margin): blacklisted, and the search goes on from where the vehicle is. Takes
         effect from the next step."""
-        if self.memory is not None:
-            mem = reject_target(self.memory, t_s, alt_m, reason)
-            if mem is not self.memory:
-                log.info("clearance: %s -> %s at t=%.2f s, alt %.1f m: %s", self.memory.phase.value, mem.phase.value,
-                         t_s, alt_m, mem.reason)
-                self.memory = mem
-                self.motion.clear_spot()
+        if self.memory is not None and self._moved_on(reject_target(self.memory, t_s, alt_m, reason), t_s, alt_m):
+            self.motion.clear_spot()
 
     def withdraw_handover(self, t_s: float, alt_m: float, reason: str) -> None:
         """Take back a declared hand-over the controller has not completed yet (a close look found the
         never set inside the margin, or has no fresh clear look): the descent holds over the spot
         until released. Takes effect at once: the decision in hand stops being terminal."""
-        if self.memory is None:
+        if self.memory is None or not self._moved_on(withdraw_handover(self.memory, t_s, reason), t_s, alt_m):
             return
-        mem = withdraw_handover(self.memory, t_s, reason)
-        if mem is self.memory:
-            return
-        log.info("clearance: %s -> %s at t=%.2f s, alt %.1f m: %s", self.memory.phase.value, mem.phase.value, t_s,
-                 alt_m, mem.reason)
-        self.memory, self._hold_ne = mem, None
+        self._hold_ne = None
         if self._decision is not None:
             # Until the next heatmap decides: hold, horizontally as the hand-over held.
             vf, vr, _ = self._decision.vel_body_frd_m_s
-            self._decision = dataclasses.replace(self._decision, state=mem.phase.value, landing=False,
-                                                 reason=mem.reason, vel_body_frd_m_s=(vf, vr, 0.0))
+            self._decision = dataclasses.replace(self._decision, state=self.memory.phase.value, landing=False,
+                                                 reason=self.memory.reason, vel_body_frd_m_s=(vf, vr, 0.0))
+
+    def _moved_on(self, mem: Memory, t_s: float, alt_m: float) -> bool:
+        """Take `mem` (a transition ordered from outside the map) as the memory, logged; False when
+        it is the memory already (nothing to do)."""
+        if mem is self.memory:
+            return False
+        log.info("clearance: %s -> %s at t=%.2f s, alt %.1f m: %s", self.memory.phase.value, mem.phase.value, t_s,
+                 alt_m, mem.reason)
+        self.memory = mem
+        return True
 
     def _spot_known(self) -> bool:
         """Was the target fixed by vision (or re-checked) recently enough to descend on?"""
