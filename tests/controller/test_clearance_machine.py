@@ -161,11 +161,25 @@ def test_the_search_skips_waypoints_past_where_the_camera_lost_the_velocity() ->
     assert goal_n <= 30.0 - CFG.blind_margin_m
     # Heading for that waypoint, never further north.
     assert vel[0] * goal_n + vel[1] * goal_e > 0.0
-    # Without a mark the route is flown as planned; a mark with everything beyond it ends the search.
+    # Without a mark the route is flown as planned.
     assert step(mem, inp(1.0), CFG)[0].waypoint == 0
+
+
+def test_marks_that_spend_the_route_leave_one_step_to_judge_what_the_search_saw() -> None:
+    # Everything lies beyond the mark: the route is spent at once, but the search holds for a step
+    # (the policy reads the scene once the route's end is reached) and only then ends, unless that
+    # step brings a spot or something to probe.
+    mem = at(Phase.SEARCH, since_s=0.0, start_s=0.0)
     everything = ((-1000.0, 0.0, 1.0, 0.0),)
-    mem3, _ = step(mem, dataclasses.replace(inp(1.0), blind=everything), CFG)
-    assert mem3.phase is Phase.NO_SPOT
+    held, vel = step(mem, dataclasses.replace(inp(1.0), blind=everything), CFG)
+    assert held.phase is Phase.SEARCH and held.waypoint == len(ROUTE)
+    assert "the route is spent" in held.reason and vel[:2] == (0.0, 0.0)
+    assert step(held, dataclasses.replace(inp(1.5), blind=everything), CFG)[0].phase is Phase.NO_SPOT
+    found = step(held, dataclasses.replace(inp(1.5, best=spot()), blind=everything), CFG)[0]
+    assert found.phase is Phase.APPROACH and found.target == spot()
+    far = spot(150.0, 40.0)
+    probing = step(held, dataclasses.replace(inp(1.5, candidate=far), blind=everything), CFG)[0]
+    assert probing.phase is Phase.PROBE and probing.probe == far
 
 
 def test_each_search_pass_flies_lower_and_an_abort_resumes_the_route() -> None:

@@ -13,7 +13,9 @@
     PROBE   --nothing after probe_frames, probe_timeout_s + the flight there at the search speed,
             or the search's time--> SEARCH (the area
             remembered as probed; at most probe_max probes)
-    SEARCH  --the whole route flown or no_spot_after_s--> NO_SPOT (hold: "no safe spot found")
+    SEARCH  --the whole route flown or no_spot_after_s--> NO_SPOT (hold: "no safe spot found");
+            a route spent by the velocity-loss marks first holds one step, so the scene is read and
+            its spots and probes are tried
     APPROACH --within the lock radius--> DESCEND --measured alt <= hand-over alt, centred, the disk
              below cleared with handover_margin_m to spare--> HANDOVER
     APPROACH --target fails fail_frames re-checks / approach_timeout_s--> SEARCH (blacklisted)
@@ -315,6 +317,13 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
             if skipped:
                 mem = dataclasses.replace(mem, waypoint=wp, reason=f"{skipped} search waypoint(s) beyond ground where "
                                                                    "the camera measured no velocity: skipped")
+                if wp >= len(inp.route):
+                    # The marks spent the route before the search had judged what it saw (the spots
+                    # and probes of the passes flown wait for the route's end): hold here one step
+                    # so the scene is read and its spots and probes are tried; NO_SPOT only then.
+                    # Two marks once ended harsh desert searches at 150-180 s over open soil.
+                    return dataclasses.replace(mem, reason=mem.reason + "; the route is spent: judging what it saw"), \
+                        (0.0, 0.0, _hold_alt(inp.alt_agl_m, inp.alt_agl_m, cfg))
             if wp >= len(inp.route):
                 return _go(mem, Phase.NO_SPOT, t, f"no safe spot found within {cfg.search_radius_m:g} m "
                                                   f"({inp.passes} search passes)"), (0.0, 0.0, 0.0)
