@@ -93,9 +93,34 @@ def test_a_probe_flies_over_promising_ground_looks_from_low_down_and_remembers_i
     mem, vel = step(mem, inp(t, n=120.0, alt=CFG.probe_alt_m), CFG)
     assert mem.phase is Phase.SEARCH and mem.probed == ((120.0, 0.0),) and mem.probe is None
     assert "no spot" in mem.reason and mem.waypoint == 3  # the route resumes where it was left
-    # A spot during the probe is taken at once.
+    # A spot during the probe is taken at once; the probe is kept while it is approached.
     mem, _ = step(at(Phase.PROBE, probe=area), inp(1.0, n=90.0, best=spot(122.0, 0.0)), CFG)
-    assert mem.phase is Phase.APPROACH and mem.target == spot(122.0, 0.0) and mem.probe is None
+    assert mem.phase is Phase.APPROACH and mem.target == spot(122.0, 0.0) and mem.probe == area
+
+
+def test_a_spot_seen_on_the_way_that_fails_its_re_checks_gives_the_closer_look_back() -> None:
+    # A spot glimpsed on the way to a probe (a few looks at the edge of the view) and then failing its
+    # re-checks no longer ends the probe: the vehicle flies on to the area it meant to look at, on
+    # the probe's own clock; the failed spot is blacklisted. Locking onto a spot ends the probe.
+    area = dataclasses.replace(spot(120.0, 0.0), p_safe=0.85, clearance_m=0.0)
+    glimpse = spot(60.0, 30.0)
+    mem, _ = step(at(Phase.PROBE, probe=area, probe_since_s=5.0, since_s=5.0), inp(10.0, n=40.0, best=glimpse), CFG)
+    assert mem.phase is Phase.APPROACH and mem.probe == area
+    t = 10.0
+    for _ in range(CFG.fail_frames):
+        t += 0.5
+        mem, _ = step(mem, inp(t, n=42.0), CFG)
+    assert mem.phase is Phase.PROBE and mem.probe == area and mem.probe_since_s == 5.0 and mem.target is None
+    assert "the closer look goes on" in mem.reason and mem.blacklist[-1][:2] == (60.0, 30.0)
+    mem, vel = step(mem, inp(t + 0.5, n=42.0), CFG)
+    assert mem.phase is Phase.PROBE and vel[0] > 0.0  # on towards the area, north
+    # The probe's time counts from its start, not from its resumption.
+    late = 5.0 + CFG.probe_timeout_s + area.distance_m / CFG.search_speed_m_s + 1.0
+    mem2, _ = step(mem, inp(late, n=42.0), CFG)
+    assert mem2.phase is Phase.SEARCH and "probe took over" in mem2.reason and mem2.probe is None
+    # A spot the vehicle locks onto ends the probe: nothing to go back to once it descends.
+    locked, _ = step(at(Phase.APPROACH, target=glimpse, probe=area), inp(12.0, n=60.0, e=30.0, check=glimpse), CFG)
+    assert locked.phase is Phase.DESCEND and locked.probe is None
 
 
 def test_a_less_promising_area_waits_until_the_top_pass_is_flown() -> None:
@@ -126,7 +151,7 @@ def test_probes_time_out_and_stop_after_their_maximum_or_the_search_time() -> No
     mem, _ = step(at(Phase.SEARCH), inp(CFG.no_spot_after_s + 1.0, candidate=area), CFG)
     assert mem.phase is Phase.NO_SPOT
     late = CFG.no_spot_after_s + 1.0
-    mem, _ = step(at(Phase.PROBE, probe=area, since_s=late - 5.0), inp(late), CFG)
+    mem, _ = step(at(Phase.PROBE, probe=area, since_s=late - 5.0, probe_since_s=late - 5.0), inp(late), CFG)
     assert mem.phase is Phase.SEARCH and "are up" in mem.reason and mem.probed == ((60.0, 0.0),)
 
 

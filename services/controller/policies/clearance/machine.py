@@ -9,7 +9,8 @@
     SEARCH  --promising ground within reach (an area that reads well from high up but is not yet
             a spot; during the top pass only the likely ones; once it is flown, likely ground
             anywhere first, then what is within reach, then anywhere in the search area)--> PROBE
-    PROBE   --fly there, look from the probe altitude: a spot--> APPROACH
+    PROBE   --fly there, look from the probe altitude: a spot--> APPROACH (a spot glimpsed on the
+            way that fails its re-checks before the descent gives the probe back, same clock)
     PROBE   --nothing after probe_frames, probe_timeout_s + the flight there at the search speed,
             or the search's time--> SEARCH (the area
             remembered as probed; at most probe_max probes)
@@ -86,7 +87,8 @@ class Memory:
     aborts: int = 0
     blacklist: tuple[tuple[float, float, float], ...] = ()  # rejected spots: north, east, altitude seen
     waypoint: int = 0  # index into the search pattern (counts repeats)
-    probe: Spot | None = None  # the area being probed
+    probe: Spot | None = None  # the area being probed (kept while a spot seen on the way is approached)
+    probe_since_s: float = 0.0  # when that probe began
     probed: tuple[tuple[float, float], ...] = ()  # areas looked at closely without a spot showing
     descending: bool = False  # inside the lock (hysteresis state)
     reason: str = "starting"
@@ -208,7 +210,7 @@ def reject_target(mem: Memory, t_s: float, alt_m: float, reason: str) -> Memory:
     left a handful of tries where there is time for dozens."""
     if mem.target is None or mem.phase in TERMINAL:
         return mem
-    return _go(mem, Phase.SEARCH, t_s, reason + ": rejected, searching on", target=None,
+    return _go(mem, Phase.SEARCH, t_s, reason + ": rejected, searching on", target=None, probe=None,
                blacklist=_blacklisted(mem, mem.target, alt_m))
 
 
@@ -282,6 +284,7 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
             done = over and low and looked >= cfg.probe_frames
             # The time a probe may take: the look's own, and the flight there at the search speed.
             timeout_s = cfg.probe_timeout_s + probe.distance_m / cfg.search_speed_m_s
+            elapsed = t - mem.probe_since_s
             if done or elapsed > timeout_s or t - mem.start_s > cfg.no_spot_after_s:
                 why = (f"probed from {inp.alt_agl_m:.0f} m: no spot" if done
                        else f"probe took over {timeout_s:.0f} s" if elapsed > timeout_s
@@ -298,7 +301,8 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
         if inp.best is not None:
             s = inp.best
             mem = _go(mem, Phase.APPROACH, t, f"spot {s.distance_m:.0f} m away: clearance {s.clearance_m:.1f} m, "
-                                              f"confidence {s.confidence:.2f}", target=s, probe=None,
+                                              f"confidence {s.confidence:.2f}", target=s,
+                      probe=mem.probe if mem.phase is Phase.PROBE else None,
                       anchor=mem.anchor + 1)
             p = Phase.APPROACH
         elif (inp.candidate is not None and len(mem.probed) < cfg.probe_max
@@ -306,7 +310,8 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
               and (inp.candidate_likely or not _top_pass(mem.waypoint, inp))):
             c = inp.candidate
             return _go(mem, Phase.PROBE, t, f"promising ground {c.distance_m:.0f} m away (P {c.p_safe:.2f} over the "
-                                            f"disk): a closer look from {probe_alt:.0f} m", probe=c), (0.0, 0.0, 0.0)
+                                            f"disk): a closer look from {probe_alt:.0f} m", probe=c,
+                       probe_since_s=t), (0.0, 0.0, 0.0)
         elif t - mem.start_s > cfg.no_spot_after_s:
             return _go(mem, Phase.NO_SPOT, t, f"no safe spot found in {cfg.no_spot_after_s:g} s"), (0.0, 0.0, 0.0)
         else:
@@ -369,8 +374,16 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
         if p is Phase.DESCEND:
             return _go(mem, Phase.ABORT, t, why + ": abort, climbing back", target=None, aborts=mem.aborts + 1,
                        blacklist=_blacklisted(mem, target, inp.alt_agl_m)), (0.0, 0.0, -cfg.climb_speed_m_s)
-        # Not yet descending (a spot a probe found fails at the probe altitude, say): rejected;
-        # the search takes the vehicle back to its route's altitude.
+        # Not yet descending: rejected. A spot glimpsed on the way to a probe (a few looks at the edge
+        # of the view from 100 m, the top of the map's noise) gives the probe back, on the probe's
+        # own clock: dropping it sent the search to another probe, and harsh desert starts 11 and
+        # 32 of 34 churned so (spot at confidence 0.4-0.5, failed within 1-8 s, new probe) for 900 s
+        # without a probe ever reaching its altitude. Otherwise the search takes the vehicle back
+        # to its route's altitude.
+        if p is Phase.APPROACH and mem.probe is not None:
+            return dataclasses.replace(_go(mem, Phase.PROBE, t, why + ": rejected, the closer look goes on", target=None,
+                                           blacklist=_blacklisted(mem, target, inp.alt_agl_m)),
+                                       probe_since_s=mem.probe_since_s), (0.0, 0.0, 0.0)
         return _go(mem, Phase.SEARCH, t, why + ": rejected", target=None,
                    blacklist=_blacklisted(mem, target, inp.alt_agl_m)), (0.0, 0.0, 0.0)
     err_n, err_e = target.north_m - inp.north_m, target.east_m - inp.east_m
@@ -381,7 +394,7 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
 
     if p is Phase.APPROACH:
         if t - mem.since_s > cfg.approach_timeout_s:
-            return _go(mem, Phase.SEARCH, t, f"approach took over {cfg.approach_timeout_s:g} s: rejected",
+            return _go(mem, Phase.SEARCH, t, f"approach took over {cfg.approach_timeout_s:g} s: rejected", probe=None,
                        target=None, blacklist=_blacklisted(mem, target, inp.alt_agl_m)), (0.0, 0.0, 0.0)
         best = inp.best
         if (best is not None and best.score > target.score + cfg.switch_gain
@@ -394,7 +407,7 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
             err = math.hypot(err_n, err_e)
         elif err < lock_in:
             mem = _go(mem, Phase.DESCEND, t, f"locked within {err:.1f} m: descending, re-checking the footprint",
-                      target=target)
+                      target=target, probe=None)
             p = Phase.DESCEND
         if p is Phase.APPROACH:
             vf, vr = toward(err_n, err_e, cfg.approach_gain_per_s, cfg.max_speed_m_s, inp.yaw_rad)
