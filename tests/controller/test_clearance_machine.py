@@ -151,7 +151,7 @@ def test_probes_time_out_and_stop_after_their_maximum_or_the_search_time() -> No
     mem, _ = step(at(Phase.SEARCH), inp(CFG.no_spot_after_s + 1.0, candidate=area), CFG)
     assert mem.phase is Phase.NO_SPOT
     late = CFG.no_spot_after_s + 1.0
-    mem, _ = step(at(Phase.PROBE, probe=area, since_s=late - 5.0, probe_since_s=late - 5.0), inp(late), CFG)
+    mem, _ = step(at(Phase.PROBE, probe=area, since_s=late - 5.0), inp(late), CFG)
     assert mem.phase is Phase.SEARCH and "are up" in mem.reason and mem.probed == ((60.0, 0.0),)
 
 

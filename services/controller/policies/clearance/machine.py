@@ -88,7 +88,7 @@ class Memory:
     blacklist: tuple[tuple[float, float, float], ...] = ()  # rejected spots: north, east, altitude seen
     waypoint: int = 0  # index into the search pattern (counts repeats)
     probe: Spot | None = None  # the area being probed (kept while a spot seen on the way is approached)
-    probe_since_s: float = 0.0  # when that probe began
+    probe_since_s: float = 0.0  # when that probe began (its clock, while a glimpsed spot is approached)
     probed: tuple[tuple[float, float], ...] = ()  # areas looked at closely without a spot showing
     descending: bool = False  # inside the lock (hysteresis state)
     reason: str = "starting"
@@ -189,7 +189,15 @@ def committed(mem: Memory) -> bool:
     return mem.phase is Phase.HANDOVER or (mem.phase is Phase.DESCEND and mem.descending)
 
 
+# The phases a probe lives through: its own, the approach of a spot glimpsed on its way (which gives
+# the probe back if it fails before the descent), and a perception gap in either. Any other phase
+# ends it.
+_PROBE_PHASES = (Phase.PROBE, Phase.APPROACH, Phase.GAP_HOLD)
+
+
 def _go(mem: Memory, phase: Phase, t_s: float, reason: str, **changes: object) -> Memory:
+    if phase not in _PROBE_PHASES:
+        changes.setdefault("probe", None)
     return dataclasses.replace(mem, phase=phase, since_s=t_s, frames=0, fails=0, descending=False, reason=reason,
                                **changes)
 
@@ -210,7 +218,7 @@ def reject_target(mem: Memory, t_s: float, alt_m: float, reason: str) -> Memory:
     left a handful of tries where there is time for dozens."""
     if mem.target is None or mem.phase in TERMINAL:
         return mem
-    return _go(mem, Phase.SEARCH, t_s, reason + ": rejected, searching on", target=None, probe=None,
+    return _go(mem, Phase.SEARCH, t_s, reason + ": rejected, searching on", target=None,
                blacklist=_blacklisted(mem, mem.target, alt_m))
 
 
@@ -258,7 +266,7 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
         if frames >= cfg.gap_recover_frames:
             if mem.target is not None:
                 return _go(mem, Phase.APPROACH, t, "perception back: re-locking on the target"), (0.0, 0.0, 0.0)
-            return _go(mem, Phase.SEARCH, t, "perception back: searching", probe=None), (0.0, 0.0, 0.0)
+            return _go(mem, Phase.SEARCH, t, "perception back: searching"), (0.0, 0.0, 0.0)
         return dataclasses.replace(mem, frames=frames), (0.0, 0.0, 0.0)
 
     if p is Phase.WARMUP:
@@ -284,12 +292,11 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
             done = over and low and looked >= cfg.probe_frames
             # The time a probe may take: the look's own, and the flight there at the search speed.
             timeout_s = cfg.probe_timeout_s + probe.distance_m / cfg.search_speed_m_s
-            elapsed = t - mem.probe_since_s
             if done or elapsed > timeout_s or t - mem.start_s > cfg.no_spot_after_s:
                 why = (f"probed from {inp.alt_agl_m:.0f} m: no spot" if done
                        else f"probe took over {timeout_s:.0f} s" if elapsed > timeout_s
                        else f"the search's {cfg.no_spot_after_s:g} s are up")
-                return _go(mem, Phase.SEARCH, t, why + ": searching on", probe=None,
+                return _go(mem, Phase.SEARCH, t, why + ": searching on",
                            probed=mem.probed + ((probe.north_m, probe.east_m),)), (0.0, 0.0, 0.0)
             mem = dataclasses.replace(mem, frames=looked if over and low else 0)
             vf, vr = toward(err_n, err_e, cfg.approach_gain_per_s, cfg.search_speed_m_s, inp.yaw_rad)
@@ -301,9 +308,7 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
         if inp.best is not None:
             s = inp.best
             mem = _go(mem, Phase.APPROACH, t, f"spot {s.distance_m:.0f} m away: clearance {s.clearance_m:.1f} m, "
-                                              f"confidence {s.confidence:.2f}", target=s,
-                      probe=mem.probe if mem.phase is Phase.PROBE else None,
-                      anchor=mem.anchor + 1)
+                                              f"confidence {s.confidence:.2f}", target=s, anchor=mem.anchor + 1)
             p = Phase.APPROACH
         elif (inp.candidate is not None and len(mem.probed) < cfg.probe_max
               and t - mem.start_s <= cfg.no_spot_after_s
@@ -322,14 +327,14 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
             if skipped:
                 mem = dataclasses.replace(mem, waypoint=wp, reason=f"{skipped} search waypoint(s) beyond ground where "
                                                                    "the camera measured no velocity: skipped")
-                if wp >= len(inp.route):
+            if wp >= len(inp.route):
+                if skipped:
                     # The marks spent the route before the search had judged what it saw (the spots
                     # and probes of the passes flown wait for the route's end): hold here one step
                     # so the scene is read and its spots and probes are tried; NO_SPOT only then.
                     # Two marks once ended harsh desert searches at 150-180 s over open soil.
                     return dataclasses.replace(mem, reason=mem.reason + "; the route is spent: judging what it saw"), \
-                        (0.0, 0.0, _hold_alt(inp.alt_agl_m, inp.alt_agl_m, cfg))
-            if wp >= len(inp.route):
+                        (0.0, 0.0, 0.0)
                 return _go(mem, Phase.NO_SPOT, t, f"no safe spot found within {cfg.search_radius_m:g} m "
                                                   f"({inp.passes} search passes)"), (0.0, 0.0, 0.0)
             goal_n, goal_e, level_alt = inp.route[wp]
@@ -383,7 +388,7 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
         if p is Phase.APPROACH and mem.probe is not None:
             return dataclasses.replace(_go(mem, Phase.PROBE, t, why + ": rejected, the closer look goes on", target=None,
                                            blacklist=_blacklisted(mem, target, inp.alt_agl_m)),
-                                       probe_since_s=mem.probe_since_s), (0.0, 0.0, 0.0)
+                                       since_s=mem.probe_since_s), (0.0, 0.0, 0.0)
         return _go(mem, Phase.SEARCH, t, why + ": rejected", target=None,
                    blacklist=_blacklisted(mem, target, inp.alt_agl_m)), (0.0, 0.0, 0.0)
     err_n, err_e = target.north_m - inp.north_m, target.east_m - inp.east_m
@@ -394,7 +399,7 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
 
     if p is Phase.APPROACH:
         if t - mem.since_s > cfg.approach_timeout_s:
-            return _go(mem, Phase.SEARCH, t, f"approach took over {cfg.approach_timeout_s:g} s: rejected", probe=None,
+            return _go(mem, Phase.SEARCH, t, f"approach took over {cfg.approach_timeout_s:g} s: rejected",
                        target=None, blacklist=_blacklisted(mem, target, inp.alt_agl_m)), (0.0, 0.0, 0.0)
         best = inp.best
         if (best is not None and best.score > target.score + cfg.switch_gain
@@ -407,7 +412,7 @@ def step(mem: Memory, inp: Inputs, cfg: ClearanceConfig) -> tuple[Memory, tuple[
             err = math.hypot(err_n, err_e)
         elif err < lock_in:
             mem = _go(mem, Phase.DESCEND, t, f"locked within {err:.1f} m: descending, re-checking the footprint",
-                      target=target, probe=None)
+                      target=target)
             p = Phase.DESCEND
         if p is Phase.APPROACH:
             vf, vr = toward(err_n, err_e, cfg.approach_gain_per_s, cfg.max_speed_m_s, inp.yaw_rad)
