@@ -40,10 +40,10 @@ def ned_to_body(vel_ned, roll: float, pitch: float, yaw: float) -> np.ndarray:
 
 
 def view(north: float, east: float, alt: float, yaw: float = 0.0, roll: float = 0.0, pitch: float = 0.0,
-         w: int = 640, h: int = 480, gsd: float | None = None, rgb: bool = True) -> np.ndarray:
+         w: int = 640, h: int = 480, gsd: float | None = None, rgb: bool = True, hfov: float = HFOV) -> np.ndarray:
     """What the camera sees of TEXTURE (centred on the origin) from that pose."""
     gsd = gsd if gsd is not None else alt / 400.0  # about 1.5 texels per image pixel at any altitude
-    f = (w / 2) / math.tan(HFOV / 2)
+    f = (w / 2) / math.tan(hfov / 2)
     u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
     body = np.stack([-(v - (h - 1) / 2) / f, (u - (w - 1) / 2) / f, np.ones_like(u)], axis=-1)
     cr, sr, cp, sp, cy, sy = (math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch),
