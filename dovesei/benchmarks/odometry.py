@@ -29,7 +29,8 @@ views are rendered at the true pose tilted with the body, the estimator is told 
 autopilot reports (its delayed, noisy attitude, heading error and baro altitude). Each odometry
 message is turned to north/east with the attitude it carries, as an EKF would, and compared with
 the true displacement over the interval it spans: median and 95th percentile error in % of the speed
-(pairs above 1 m/s), in m/s below, and the invalid fraction.
+(pairs above 1 m/s), in m/s below, the invalid fraction, and the share of samples the controller's
+gate (`OdometryGate`'s default limits: quality >= 0.5, variance <= 1 m^2/s^2) would refuse.
 
 The last line printed is one JSON object with every figure (`--json` prints only that line).
 """
@@ -49,6 +50,7 @@ from collections.abc import Sequence
 import cv2
 import numpy as np
 
+from dovesei.controller.gnss_denied import OdometryGate
 from dovesei.shared.cliconfig import OneLineParser
 from dovesei.shared.visual_velocity import FrameMeta, VisualVelocityConfig, estimate, prepare, rotation_body_to_level
 from dovesei.shared.messages import VehicleState, VelocityCommand
@@ -235,9 +237,10 @@ def _pilot(state: VehicleState, t_s: float) -> VelocityCommand:
 def bench_flights(worlds: dict[str, World], flight_s: float, profiles: Sequence[str], seed: int) -> dict:
     """Odometry against the truth along scripted flights, per profile and world."""
     out: dict = {"flight_s": flight_s, "per_profile": {}}
+    gate = OdometryGate()  # the controller's default limits: what it would fly on
     for profile in profiles:
         table: dict = {}
-        every: list[tuple[bool, float, float, float]] = []
+        every: list[tuple[bool, float, float, float, bool]] = []
         for spec, world in worlds.items():
             start = Start(world.width_m / 2, world.height_m / 2, 100.0, yaw_rad=0.3)
             core = SimCore(world, start, SimConfig(vehicle_id="bench", vehicle_profile=profile, odometry_rate_hz=10.0,
@@ -257,12 +260,12 @@ def bench_flights(worlds: dict[str, World], flight_s: float, profiles: Sequence[
                         vn, ve = (y1 - y0) / odo.dt_s, (x1 - x0) / odo.dt_s
                         speed = math.hypot(vn, ve)
                         if not odo.valid:
-                            rows.append((False, 0.0, speed, 0.0))
+                            rows.append((False, 0.0, speed, 0.0, False))
                         else:
                             ned = rotation_body_to_level(odo.roll_rad, odo.pitch_rad, odo.yaw_rad) @ \
                                 np.array(odo.vel_body_frd_m_s)
                             rows.append((True, math.hypot(ned[0] - vn, ned[1] - ve), speed,
-                                         math.sqrt(odo.vel_var_m2_s2)))
+                                         math.sqrt(odo.vel_var_m2_s2), gate.sample_good(odo)))
                 out_step = core.step(_pilot(out_step.state, out_step.state.stamp.t_s))
             every += rows
             table[spec] = _flight_summary(rows)
@@ -271,8 +274,8 @@ def bench_flights(worlds: dict[str, World], flight_s: float, profiles: Sequence[
     return out
 
 
-def _flight_summary(rows: list[tuple[bool, float, float, float]]) -> dict:
-    valid = [(err, v, sd) for ok, err, v, sd in rows if ok]
+def _flight_summary(rows: list[tuple[bool, float, float, float, bool]]) -> dict:
+    valid = [(err, v, sd) for ok, err, v, sd, _good in rows if ok]
     moving = [100.0 * err / v for err, v, _ in valid if v >= 1.0]
     slow = [err for err, v, _ in valid if v < 1.0]
     within = sum(err <= 2.45 * sd for err, _, sd in valid)  # as in _summary
@@ -280,7 +283,9 @@ def _flight_summary(rows: list[tuple[bool, float, float, float]]) -> dict:
             "err_pct_median": _r(_percentile(moving, 50)), "err_pct_p95": _r(_percentile(moving, 95)),
             "err_m_s_slow_median": _r(_percentile(slow, 50)), "err_m_s_slow_p95": _r(_percentile(slow, 95)),
             "within_own_95pct": round(within / len(valid), 3) if valid else None,
-            "sd_m_s_median": _r(_percentile([sd for _, _, sd in valid], 50))}
+            "sd_m_s_median": _r(_percentile([sd for _, _, sd in valid], 50)),
+            # the share of samples the controller's gate (default limits) would not fly on
+            "refused_fraction": round(1 - sum(r[4] for r in rows) / len(rows), 3) if rows else None}
 
 
 def _print_flights(flights: dict) -> None:
@@ -290,12 +295,12 @@ def _print_flights(flights: dict) -> None:
         print(f"\nflights, {profile} vehicle profile ({flights['flight_s']:g} s each, odometry at 10 Hz vs the true "
               "displacement; % of speed above 1 m/s, m/s below)")
         print(f"{'':34s} {'samples':>7s} {'invalid':>8s} {'med %':>7s} {'p95 %':>7s} {'slow med':>9s} {'slow p95':>9s} "
-              f"{'in 95%':>7s} {'sd med':>7s}")
+              f"{'in 95%':>7s} {'sd med':>7s} {'refused':>8s}")
         for spec, s in table.items():
             within = "-" if s["within_own_95pct"] is None else f"{100 * s['within_own_95pct']:.0f}%"
             print(f"{spec:34s} {s['samples']:7d} {100 * s['invalid_fraction']:7.1f}% {fmt(s['err_pct_median'])} "
                   f"{fmt(s['err_pct_p95'])} {fmt(s['err_m_s_slow_median'], 9)} {fmt(s['err_m_s_slow_p95'], 9)} "
-                  f"{within:>7s} {fmt(s['sd_m_s_median'])}")
+                  f"{within:>7s} {fmt(s['sd_m_s_median'])} {100 * (s['refused_fraction'] or 0.0):7.1f}%")
 
 
 def _print_tables(speed: dict, error: dict) -> None:

@@ -39,6 +39,9 @@ def test_bench_odometry_prints_speed_and_error_figures(capsys: pytest.CaptureFix
     assert set(flights) == {"ideal", "realistic", "harsh"}
     ideal = flights["ideal"]["all"]
     assert 30 <= ideal["samples"] <= 40 and ideal["invalid_fraction"] < 0.2 and ideal["err_pct_median"] < 5.0
+    # The gate's share: at least the invalid samples, never more than all of them.
+    for profile in flights.values():
+        assert profile["all"]["invalid_fraction"] <= profile["all"]["refused_fraction"] <= 1.0
 
 
 def test_the_error_figure_sees_a_wrong_altitude(monkeypatch: pytest.MonkeyPatch) -> None:
