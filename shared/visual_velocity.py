@@ -398,12 +398,12 @@ def estimate(prev: PreparedFrame, new: PreparedFrame, config: VisualVelocityConf
 class _Fit:
     rho: float
     disp_m: np.ndarray  # D (north, east of the heading frame), metres
-    tilt_rad: np.ndarray  # w: the rotation (about north, east) the newer frame's rays needed
+    tilt_rad: np.ndarray  # w: the rotation (about north, east) the newer frame's rays needed (D holds
+    # its correction only when it was significant and beyond the tags' error; see _robust_fit)
     disp_cov: np.ndarray  # 2 x 2, m^2
     tilt_cov: np.ndarray  # 2 x 2, rad^2
     inliers: np.ndarray
     resid_m: float  # residual sd per axis
-    tilt_corrected: bool  # w was significant and D is corrected for it (else the tags stand: w = 0 in D)
 
 
 def _robust_fit(g_prev: np.ndarray, g_new: np.ndarray, h_m: float, rho0: float, *, prior_m: float,
@@ -463,7 +463,7 @@ def _robust_fit(g_prev: np.ndarray, g_new: np.ndarray, h_m: float, rho0: float, 
     tilt, tilt_cov = sol[3:5].copy(), cov[3:5, 3:5].copy()
     if float(tilt @ np.linalg.solve(tilt_cov, tilt)) >= TILT_SIGNIFICANT_CHI2 \
             and math.hypot(*tilt) >= TILT_CORRECT_PRIORS * tilt_prior_rad:
-        return _Fit(float(sol[0]), sol[1:3].copy(), tilt, cov[1:3, 1:3].copy(), tilt_cov, inliers, sd, True)
+        return _Fit(float(sol[0]), sol[1:3].copy(), tilt, cov[1:3, 1:3].copy(), tilt_cov, inliers, sd)
     # No tilt the data can tell from their noise (a narrow or sparse view, tracking noise on a
     # fast turn), or none beyond the tags' own error: the tags stand, and the fit is the
     # three-unknown one on the same pairs.
@@ -471,7 +471,7 @@ def _robust_fit(g_prev: np.ndarray, g_new: np.ndarray, h_m: float, rho0: float, 
     normal3, rhs3 = normal[np.ix_(keep, keep)], rhs[keep]
     sol3 = np.linalg.solve(normal3, rhs3)
     cov3 = sd ** 2 * np.linalg.inv(normal3)
-    return _Fit(float(sol3[0]), sol3[1:3].copy(), tilt, cov3[1:3, 1:3].copy(), tilt_cov, inliers, sd, False)
+    return _Fit(float(sol3[0]), sol3[1:3].copy(), tilt, cov3[1:3, 1:3].copy(), tilt_cov, inliers, sd)
 
 
 class VisualVelocity:

@@ -285,7 +285,7 @@ def _flight_summary(rows: list[tuple[bool, float, float, float, bool]]) -> dict:
             "within_own_95pct": round(within / len(valid), 3) if valid else None,
             "sd_m_s_median": _r(_percentile([sd for _, _, sd in valid], 50)),
             # the share of samples the controller's gate (default limits) would not fly on
-            "refused_fraction": round(1 - sum(r[4] for r in rows) / len(rows), 3) if rows else None}
+            "refused_fraction": round(1 - sum(good for *_, good in rows) / len(rows), 3) if rows else None}
 
 
 def _print_flights(flights: dict) -> None:
@@ -298,9 +298,10 @@ def _print_flights(flights: dict) -> None:
               f"{'in 95%':>7s} {'sd med':>7s} {'refused':>8s}")
         for spec, s in table.items():
             within = "-" if s["within_own_95pct"] is None else f"{100 * s['within_own_95pct']:.0f}%"
+            refused = "-" if s["refused_fraction"] is None else f"{100 * s['refused_fraction']:.1f}%"
             print(f"{spec:34s} {s['samples']:7d} {100 * s['invalid_fraction']:7.1f}% {fmt(s['err_pct_median'])} "
                   f"{fmt(s['err_pct_p95'])} {fmt(s['err_m_s_slow_median'], 9)} {fmt(s['err_m_s_slow_p95'], 9)} "
-                  f"{within:>7s} {fmt(s['sd_m_s_median'])} {100 * (s['refused_fraction'] or 0.0):7.1f}%")
+                  f"{within:>7s} {fmt(s['sd_m_s_median'])} {refused:>8s}")
 
 
 def _print_tables(speed: dict, error: dict) -> None:
