@@ -10,6 +10,7 @@ malformed reaches an algorithm, a flood cannot evict a valid sample, and the ser
 
 from __future__ import annotations
 
+import faulthandler
 import json
 import logging
 import os
@@ -37,8 +38,13 @@ M = TypeVar("M", bound=Message)
 
 
 def install_stop_handlers(stop: threading.Event | None = None) -> threading.Event:
-    """SIGTERM and SIGINT set `stop` and do nothing else (main thread only)."""
+    """SIGTERM and SIGINT set `stop` and do nothing else (main thread only).
+
+    SIGUSR1 writes every thread's stack to stderr (the service's log under `up`) and the process
+    goes on: what a process that does not stop is waiting for, without a debugger.
+    """
     stop = stop or threading.Event()
+    faulthandler.register(signal.SIGUSR1, all_threads=True)
 
     def _handler(signum: int, _frame: object) -> None:
         log.info("received %s, stopping", signal.Signals(signum).name)

@@ -15,6 +15,7 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -409,11 +410,24 @@ class _Up:
         try:
             self.proc.wait(timeout=timeout_s)
         except subprocess.TimeoutExpired:
+            stacks = self.stacks()
             self.kill()
-            raise
+            raise AssertionError(f"up still running after {timeout_s:.0f} s; its last lines and every "
+                                 f"thread's stack:\n{stacks}") from None
         stdout = self.proc.stdout.read()  # one summary line: it fits the pipe, nothing blocks
         self._reader.join(timeout=5)
         return self.proc.returncode, stdout, "\n".join(self.lines)
+
+    def stacks(self, settle_s: float = 3.0) -> str:
+        """What a hung up is waiting for: its stderr tail after SIGUSR1 (stack dump), children's log tails."""
+        self.proc.send_signal(signal.SIGUSR1)
+        time.sleep(settle_s)
+        parts = ["\n".join(self.lines[-120:])]
+        for name in SERVICES:
+            log_path = self.out / "logs" / f"{name}.log"
+            if log_path.exists():
+                parts.append(f"--- {name}.log\n" + "\n".join(log_path.read_text(errors="replace").splitlines()[-15:]))
+        return "\n".join(parts)
 
     def kill(self) -> None:
         """After a failed test: stop up the way a user would, and never leave its children behind."""
