@@ -261,6 +261,47 @@ def test_from_high_up_the_stream_compares_over_half_a_second() -> None:
     assert after.prev_seq == 9
 
 
+def _tagged_stream(alt: float, frames: int, tag_sd_rad: float, seed: int = 3):
+    """A stream flying 2 m/s north-east over level views whose tags are each off by N(0, tag_sd) in
+    roll and pitch: (the stream, its estimates, the same pairs estimated one by one)."""
+    rng = np.random.default_rng(seed)
+    vv = VisualVelocity()
+    metas, prepared, outs = [], [], []
+    for k in range(frames):
+        image = view(0.2 * k, 0.2 * k, alt, 0.3, gsd=alt / 400.0, rgb=False)
+        roll, pitch = rng.normal(0.0, tag_sd_rad, 2) if tag_sd_rad > 0 else (0.0, 0.0)
+        meta = FrameMeta(k, DT * k, alt, HFOV, float(roll), float(pitch), 0.3)
+        metas.append(meta)
+        prepared.append(prepare(image, meta, vv.config))
+        outs.append(vv.update(image, meta))
+    alone = [None if est is None else estimate(prepared[est.prev_seq], prepared[est.seq], vv.config)
+             for est in outs]
+    return vv, outs, alone
+
+
+def test_the_stream_measures_tags_worse_than_stated_and_its_variance_counts_them() -> None:
+    # Tags off by 2 mrad per frame and axis where 0.5 is stated: two frames differ by 2.8 mrad,
+    # 40 m x 2.8 mrad / 0.2 s = 0.57 m/s per axis where the stated error would say 0.14.
+    alt, sd = 40.0, 0.002
+    vv, outs, alone = _tagged_stream(alt, 60, sd)
+    measured = vv.tags.var_rad2
+    assert 0.5 * 2 * sd ** 2 <= measured <= 2.0 * 2 * sd ** 2, math.sqrt(measured / 2)
+    late = [(est, one) for est, one in zip(outs[-20:], alone[-20:]) if est is not None and est.valid]
+    assert len(late) >= 15
+    for est, one in late:
+        # The velocity is the pair's own; only the variance learned the tags.
+        assert est.vel_body_frd_m_s == one.vel_body_frd_m_s
+        # (what the meter held when it was made: within the last 20 fits of the final figure)
+        assert est.vel_var_m2_s2 >= 0.6 * alt ** 2 * measured / est.dt_s ** 2 >= 4 * alt ** 2 * 2 * 0.0005 ** 2 / est.dt_s ** 2
+
+
+def test_exact_tags_leave_the_stated_error_in_place() -> None:
+    vv, outs, alone = _tagged_stream(40.0, 30, 0.0)
+    assert vv.tags.var_rad2 < 2 * 0.0005 ** 2
+    for est, one in zip(outs, alone):
+        assert (est is None and one is None) or est == one
+
+
 def test_messages_always_build_and_survive_the_codec() -> None:
     a, b, m0, m1 = pair(50.0, (3.0, 1.0, 0.0))
     good = run_pair(a, b, m0, m1)
