@@ -396,7 +396,8 @@ def estimate(prev: PreparedFrame, new: PreparedFrame, config: VisualVelocityConf
     # were off by, corrected or not: a tag off by 5 mrad at 100 m is 5 m/s over 0.1 s, never
     # passed as a confident 0.7 m/s), plus the altitude's relative error (it scales the whole
     # velocity).
-    tilt_ms = float(np.trace(fit.tilt_cov)) / 2.0 + float(fit.tilt_rad @ fit.tilt_rad) / 2.0
+    tilt_var = float(np.trace(fit.tilt_cov)) / 2.0  # per axis
+    tilt_ms = tilt_var + float(fit.tilt_rad @ fit.tilt_rad) / 2.0
     att_change_var = max(2.0 * config.attitude_sigma_rad ** 2, tag_change_var_rad2, tilt_ms)
     var = (float(np.trace(fit.disp_cov)) / 2.0 + h_new ** 2 * att_change_var) / dt_s ** 2 \
         + (config.alt_rel_sigma * speed) ** 2 + config.var_floor_m2_s2
@@ -404,7 +405,7 @@ def estimate(prev: PreparedFrame, new: PreparedFrame, config: VisualVelocityConf
     return VelocityEstimate(True, tuple(float(v) for v in vel_body), float(var), float(quality), float(dt_s), "",
                             prev.meta.seq, new.meta.seq, **counts,
                             tilt_rad=(float(fit.tilt_rad[0]), float(fit.tilt_rad[1])),
-                            tilt_var_rad2=float(np.trace(fit.tilt_cov)) / 2.0)
+                            tilt_var_rad2=tilt_var)
 
 
 @dataclass(frozen=True)

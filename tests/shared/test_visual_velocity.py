@@ -266,12 +266,11 @@ def _tagged_stream(alt: float, frames: int, tag_sd_rad: float, seed: int = 3):
     roll and pitch: (the stream, its estimates, the same pairs estimated one by one)."""
     rng = np.random.default_rng(seed)
     vv = VisualVelocity()
-    metas, prepared, outs = [], [], []
+    prepared, outs = [], []
     for k in range(frames):
         image = view(0.2 * k, 0.2 * k, alt, 0.3, gsd=alt / 400.0, rgb=False)
         roll, pitch = rng.normal(0.0, tag_sd_rad, 2) if tag_sd_rad > 0 else (0.0, 0.0)
         meta = FrameMeta(k, DT * k, alt, HFOV, float(roll), float(pitch), 0.3)
-        metas.append(meta)
         prepared.append(prepare(image, meta, vv.config))
         outs.append(vv.update(image, meta))
     alone = [None if est is None else estimate(prepared[est.prev_seq], prepared[est.seq], vv.config)
