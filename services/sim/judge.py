@@ -273,16 +273,23 @@ def disk_safe_map(world: World, radius_m: float = SAFETY_RADIUS_M, tolerance_fra
     yy, xx = np.mgrid[-n:n + 1, -n:n + 1]
     disk = ((xx * xx + yy * yy) <= r_px * r_px).astype(np.float32)
     disk /= disk.sum()
-    unsafe = (~world.safe_lut[world.labels]).astype(np.float32)
-    unsafe_frac = cv2.filter2D(unsafe, -1, disk, borderType=cv2.BORDER_CONSTANT)
-    # filter2D's constant border is 0 (safe); the world's edge is unsafe, so add the part of the
-    # disk that hangs outside.
-    outside = 1.0 - cv2.filter2D(np.ones_like(unsafe), -1, disk, borderType=cv2.BORDER_CONSTANT)
-    ok = (unsafe_frac + outside) <= tolerance_frac + 1e-6
+    # 1.0 per unsafe label (OpenCV's lookup: a few times numpy's indexing over a world's pixels),
+    # framed by n pixels of 1.0: beyond the world's edge is unsafe, so one filtering counts the
+    # part of the disk that hangs outside with the rest.
+    labels = np.ascontiguousarray(world.labels)  # OpenCV takes no reversed or strided view
+    unsafe = cv2.LUT(labels, (~world.safe_lut).astype(np.float32))
+    framed = cv2.copyMakeBorder(unsafe, n, n, n, n, cv2.BORDER_CONSTANT, value=1.0)
+    del unsafe
+    unsafe_frac = cv2.filter2D(framed, -1, disk, borderType=cv2.BORDER_CONSTANT)[n:-n, n:-n]
+    del framed
+    ok = unsafe_frac <= tolerance_frac + 1e-6
+    del unsafe_frac
     for ids, keep_m in ((_zero_tolerance_ids(world, zero_tolerance_names), max(radius_m, person_separation_m)),
                         (_vehicle_ids(world), vehicle_separation_m)):
         if ids and keep_m > 0:
-            near = np.isin(world.labels, sorted(ids)).astype(np.uint8)
+            lut = np.zeros(256, np.uint8)
+            lut[sorted(ids)] = 1
+            near = cv2.LUT(labels, lut)
             k = int(math.ceil(keep_m / world.gsd_m))
             yy, xx = np.mgrid[-k:k + 1, -k:k + 1]
             kernel = ((xx * xx + yy * yy) * world.gsd_m ** 2 <= keep_m * keep_m).astype(np.uint8)

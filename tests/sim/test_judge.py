@@ -215,3 +215,13 @@ def test_disk_safe_map_agrees_with_the_judge() -> None:
         row, col = world.pixel_index(x_m, y_m)
         disagree += bool(safe[row, col]) != (judge_landing(world, float(x_m), float(y_m)).outcome == "safe")
     assert disagree == 0
+
+
+def test_disk_safe_map_reads_a_reversed_view_of_the_labels_as_the_labels() -> None:
+    # A world built on a view (flipped, strided) of another array: the map is that of a copy.
+    labels = blocks_world().labels
+    flipped = World(np.zeros((600, 600, 3), np.uint8), labels[::-1], 1.0, blocks_world().classes, "view")
+    copied = World(np.zeros((600, 600, 3), np.uint8), labels[::-1].copy(), 1.0, blocks_world().classes, "copy")
+    safe = disk_safe_map(flipped)
+    assert safe.any() and not safe.all()
+    assert np.array_equal(safe, disk_safe_map(copied))
