@@ -233,6 +233,36 @@ def test_candidates_match_the_literal_reference(seed: int, radius_px: float) -> 
     assert list(cands.pixels_rc) == pixels
 
 
+def _edge_cases() -> dict[str, np.ndarray]:
+    """Grids whose safe pixels lie in a small box, touch the grid's edges, fill it, or are absent:
+    the distance map is worked out over the box of the safe pixels, which these move about."""
+    small = _grid((60, 290, 9), (75, 300, 5))  # one small corner of the grid
+    edges = _random_binary(7)
+    edges[:, :40] = 255  # touching the left, top and bottom edges
+    corner = np.zeros((ROWS, COLS), np.uint8)
+    corner[ROWS - 30:, COLS - 25:] = 255  # the bottom-right corner, edges included
+    single = np.zeros((ROWS, COLS), np.uint8)
+    single[200, 100] = 255
+    return {"small": small, "edges": edges, "corner": corner, "single": single,
+            "full": np.full((ROWS, COLS), 255, np.uint8), "empty": np.zeros((ROWS, COLS), np.uint8)}
+
+
+@pytest.mark.parametrize("case", sorted(_edge_cases()))
+@pytest.mark.parametrize("radius_px", [DIAG, 150.3])
+def test_candidates_over_a_box_of_the_grid_match_the_literal_reference(case: str, radius_px: float) -> None:
+    binary = _edge_cases()[case]
+    errs, scores, pixels = _literal_candidates(binary, radius_px)
+    cands = find_candidates(binary.copy(), radius_px, CFG)
+    # Which of them hold a candidate besides the dummy (the small blob and the corner lie outside
+    # the narrower circle; a grid with no obstacle at all, or a lone pixel, has no core).
+    found = {"small": radius_px == DIAG, "edges": True, "corner": radius_px == DIAG, "single": False,
+             "full": radius_px != DIAG, "empty": False}[case]
+    assert (len(scores) >= 2) == found
+    np.testing.assert_array_equal(cands.scores, scores)
+    np.testing.assert_array_equal(cands.err_norm, errs)
+    assert list(cands.pixels_rc) == pixels
+
+
 # --- focus radius -----------------------------------------------------------------------------
 
 
