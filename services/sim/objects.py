@@ -202,11 +202,16 @@ class ObjectLayer:
         than the texture). `baked_labels` False: paint those into the image only, their labels
         being the world's label map's own (which the judge and the camera's labels read).
         `cull` False: place every object of the world before choosing the visible ones (the same
-        pixels, slower; for tests of the culling).
+        pixels, slower; for tests of the culling). With no image and `baked_labels` False the
+        texture's objects paint nothing, so they are not placed (nor counted) at all: a camera that
+        renders labels alone (the simulated perception's) then tests a few hundred objects, not
+        the world's thousands.
         """
         h_px, w_px = (image.shape[:2] if image is not None else labels.shape if labels is not None else (0, 0))
         if not len(self) or not h_px:
             return 0
+        if image is None and not baked_labels:
+            skip_baked = True
         m = np.asarray(world_m_to_px, np.float64)
         inv = np.linalg.inv(m)  # view pixels -> world metres, shared by the culling and the labels
         # Only the objects whose paths come near the view are placed and tested (a world holds
@@ -325,11 +330,17 @@ class ObjectLayer:
         ground = corners @ inv[:2, :2].T + inv[:2, 2]
         ground /= z[:, None]
         west, east, south, north = ground[:, 0].min(), ground[:, 0].max(), ground[:, 1].min(), ground[:, 1].max()
-        box = self._path_box_m
+        # Without the texture's objects, only the others' boxes are tested (a world's objects are
+        # mostly baked: 654 of 14,607 are not in the default synthetic world).
+        idx, box = self._unbaked_boxes if skip_baked else (None, self._path_box_m)
         near = (box[0] <= east) & (box[1] >= west) & (box[2] <= north) & (box[3] >= south)
-        if skip_baked:
-            near &= ~self.baked
-        return np.flatnonzero(near)
+        return np.flatnonzero(near) if idx is None else idx[near]
+
+    @cached_property
+    def _unbaked_boxes(self) -> tuple[np.ndarray, np.ndarray]:
+        """(indices, path boxes) of the objects the texture does not hold, ascending."""
+        idx = np.flatnonzero(~self.baked)
+        return idx, self._path_box_m[:, idx]
 
     def _rows(self, idx: np.ndarray) -> "ObjectLayer":
         """The objects at `idx`, unchecked (a view of a checked layer for drawing; `subset` checks)."""

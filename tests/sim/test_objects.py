@@ -177,7 +177,7 @@ def _edge_layer(world: World) -> ObjectLayer:
         kind = VEHICLE if i % 3 == 0 else PERSON
         size = (4.5, 1.8) if kind == VEHICLE else (0.55, 0.55)
         extra.append((kind, x, y, 0.3 * i, 1.3 if i % 2 else 0.0, 6.0 if i % 2 else 0.0, 0.7 * i, *size,
-                      (30 + 7 * i, 200 - 5 * i, 90), False))
+                      (30 + 7 * i, 200 - 5 * i, 90), i % 4 == 0))  # some standing ones in the texture (baked)
     return world.population.layer.concat(ObjectLayer.build(extra))
 
 
@@ -215,6 +215,13 @@ def test_the_culled_drawing_is_pixel_equal_to_placing_every_object(pose) -> None
         # the view, whose huge scale there stretches their reach over it: they paint nothing.
         assert 0 < n_c <= n_a
         assert np.array_equal(img_c, img_a) and np.array_equal(lab_c, lab_a)
+    # Labels alone (the simulated perception's camera): the texture's own objects paint nothing
+    # there and are not even placed; the labels are those drawn beside an image.
+    assert pop.layer.baked.any() and (~pop.layer.baked).any()
+    for cull in (True, False):
+        lab = base_lab.copy()
+        n_lab = pop.draw(None, lab, m, t, skip_baked=False, baked_labels=False, cull=cull)
+        assert np.array_equal(lab, out[True, False][2]) and n_lab <= out[cull, False][0]
     # Objects straddling the view's edge are drawn (some pixels, not all of them, inside the view).
     assert (out[True, True][2] == PERSON_ID).any() or (out[True, True][2] == CAR).any()
     # And the cull left part of the world out (the 100 m view sees nearly all of this 200 m world);
