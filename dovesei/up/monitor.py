@@ -343,6 +343,9 @@ class Monitor:
     def __init__(self, session: Any, vehicle_id: str, recorder: Recorder, with_camera: bool) -> None:
         self.recorder = recorder
         self._queue: deque[Sample] = deque()  # deque.append/popleft are atomic: no lock needed
+        # Per topic, the newest arrival (wall s), queued or not: while the queue runs behind (an
+        # overloaded host, where recording is the slow part) a silence is judged on these.
+        self.arrived: dict[str, float] = {}
         self._subs = []
         for topic in self.TOPICS:
             if topic == "camera" and not with_camera:
@@ -358,11 +361,13 @@ class Monitor:
         self._queue.append(Sample(LIVELINESS, time.time(), service.encode(), sample.kind == zenoh.SampleKind.PUT))
 
     def _callback(self, topic: str):
-        queue = self._queue
+        queue, arrived = self._queue, self.arrived
 
         def on_sample(sample: Any) -> None:
             # Arrival stamped here, in Zenoh's thread: it is the transport measurement.
-            queue.append(Sample(topic, time.time(), sample.payload.to_bytes()))
+            now = time.time()
+            queue.append(Sample(topic, now, sample.payload.to_bytes()))
+            arrived[topic] = now
 
         return on_sample
 

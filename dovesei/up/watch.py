@@ -27,7 +27,7 @@ import os
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 from dovesei.shared.messages import EpisodeResult
@@ -156,19 +156,22 @@ def stream_owners(options: UpOptions) -> dict[str, str]:
 
 
 def stalled_service(rec: Recorder, owners: dict[str, str], now_wall_s: float, stall_s: float,
-                    lockstep: bool = False, stopped: frozenset[str] = frozenset()) -> tuple[str, str] | None:
+                    lockstep: bool = False, stopped: frozenset[str] = frozenset(),
+                    heard: Mapping[str, float] | None = None) -> tuple[str, str] | None:
     """(service, stream) whose stream went silent first, once any watched stream is over `stall_s` old.
 
     Watching begins with the episode (the first state): before it every service may still load.
     `stopped` names services the kernel reports stopped: in lockstep one stopped process silences
     the others waiting for it and which stream falls silent first is a race, so a stopped one is
-    named first (its oldest stream).
+    named first (its oldest stream). `heard`: when each stream was last heard (wall s; default the
+    recorder's valid messages).
     """
     if rec.first_state_wall_s is None:
         return None
+    heard = rec.last_recv_wall_s if heard is None else heard
     ages: dict[str, float] = {}
     for topic in owners:
-        last = rec.last_recv_wall_s.get(topic)
+        last = heard.get(topic)
         if last is None:
             # Never heard: counted from the episode's start, with a warm-up allowance.
             last = rec.first_state_wall_s + FIRST_MESSAGE_GRACE_S
@@ -345,13 +348,21 @@ class Watcher:
                 pending = bool(self.rec.result_candidates) and now < self._confirm_by
                 self.failure = (self._check_exits() or (None if pending else self._check_stalls())
                                 or self._check_startup(now))
-                if self.failure is not None:
-                    log.error("%s", self.failure.message)
-                    # The others keep running for a while so the report shows how they reacted.
-                    # Nothing to watch after a start that failed on a taken port: `up` retries it.
-                    after_s = (0.0 if self.failure.child in (None, "sim") or port_collision(self.failure, self.rec)
-                               else self.options.after_failure_s)
-                    self.failure_deadline = now + after_s
+            elif self.failure is None and "episode" not in self.monitor.arrived:
+                # Behind (a loaded host records slower than the streams come): a queue that never
+                # empties must not hide a hang, so silences are judged on when each stream was
+                # last heard, queued or not, as long as no result (ending the streams) came in.
+                recorded = self.rec.last_recv_wall_s
+                heard = {t: max(self.monitor.arrived.get(t, -math.inf), recorded.get(t, -math.inf))
+                         for t in self.owners if t in self.monitor.arrived or t in recorded}
+                self.failure = self._check_stalls(heard=heard)
+            if self.failure is not None and self.failure_deadline == math.inf:
+                log.error("%s", self.failure.message)
+                # The others keep running for a while so the report shows how they reacted.
+                # Nothing to watch after a start that failed on a taken port: `up` retries it.
+                after_s = (0.0 if self.failure.child in (None, "sim") or port_collision(self.failure, self.rec)
+                           else self.options.after_failure_s)
+                self.failure_deadline = now + after_s
             if now >= self.failure_deadline:
                 return WatchEnd(self.failure, False)
             self.stop.wait(0.005)
@@ -416,18 +427,20 @@ class Watcher:
                    f"last log line: {line or '(empty log)'}")
         return Failure(name, code, line, message)
 
-    def _check_stalls(self) -> Failure | None:
+    def _check_stalls(self, heard: Mapping[str, float] | None = None) -> Failure | None:
+        """A hung service's failure, judged on `heard` (`stalled_service`), else None."""
         now_wall = time.time()
         self.cpu.sample({n: p.pid for n, p in self.children.procs.items()}, now_wall)
         stopped = frozenset(n for n, proc in self.children.procs.items() if process_stopped(proc.pid))
         stall_s = self.options.stall_s
+        heard = self.rec.last_recv_wall_s if heard is None else heard
         stalled = stalled_service(self.rec, self.owners, now_wall, stall_s,
-                                  lockstep=self.options.lockstep, stopped=stopped)
+                                  lockstep=self.options.lockstep, stopped=stopped, heard=heard)
         if stalled is None:
             self._slow_warned.clear()
             return None
         name, topic = stalled
-        last = self.rec.last_recv_wall_s.get(topic)
+        last = heard.get(topic)
         silent_s = now_wall - (last if last is not None else self.rec.first_state_wall_s + FIRST_MESSAGE_GRACE_S)
         # In lockstep everyone waits for the slowest, so anyone computing keeps the run alive.
         # A stopped process is named at once: nothing it waits for is slow.

@@ -504,6 +504,19 @@ def test_up_flies_to_the_judge_and_matches_the_in_process_runner(tmp_path: Path)
     assert report["sim_time_s"] == pytest.approx(rec.result.sim_time_s, abs=1e-9)
 
 
+def _blind_escalation(watchdog: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(blind, held): the ticks after the last 'ok' and the first of them, which hold. Before its
+    first heatmap the controller also holds: the hold that counts follows the last 'ok'. It holds,
+    and once blind for heatmap_climb_after_s (10 s) climbs back to the search altitude, which a
+    loaded host's slower verdict can let it reach before the run ends."""
+    blind = np.arange(int(np.flatnonzero(watchdog == "ok").max()) + 1, len(watchdog))
+    climbing = np.flatnonzero(watchdog[blind] == "climb")
+    held = blind[:climbing[0]] if climbing.size else blind
+    assert held.size > 0 and np.all(watchdog[held] == "hold"), f"after losing heatmaps: {list(watchdog[blind])}"
+    assert np.all(watchdog[blind[held.size:]] == "climb"), f"after the climb began: {set(watchdog[blind[held.size:]])}"
+    return blind, held
+
+
 @pytest.mark.slow
 @pytest.mark.timeout(UP_TEST_TIMEOUT_S)
 def test_segmenter_killed_mid_descent_controller_holds_and_up_fails(tmp_path: Path) -> None:
@@ -525,15 +538,7 @@ def test_segmenter_killed_mid_descent_controller_holds_and_up_fails(tmp_path: Pa
 
     traj = report["trajectory"]
     t_s, alt_m = np.asarray(traj["t_s"]), np.asarray(traj["alt_m"])
-    watchdog = np.asarray(traj["watchdog"])
-    # Before its first heatmap the controller also holds: the hold we want follows the last 'ok'.
-    last_ok = int(np.flatnonzero(watchdog == "ok").max())
-    blind = np.arange(last_ok + 1, len(watchdog))
-    # It holds, and once blind for heatmap_climb_after_s (10 s) climbs back to the search altitude.
-    climbing = np.flatnonzero(watchdog[blind] == "climb")
-    held = blind[:climbing[0]] if climbing.size else blind
-    assert held.size > 0 and np.all(watchdog[held] == "hold"), f"after losing heatmaps: {list(watchdog[blind])}"
-    assert np.all(watchdog[blind[held.size:]] == "climb"), f"after the climb began: {set(watchdog[blind[held.size:]])}"
+    blind, held = _blind_escalation(np.asarray(traj["watchdog"]))
     t_hold_s = t_s[held[0]]
     assert alt_m[held[0]] < report["start"]["alt_m"] - 1.0, "killed before the descent began"
     # The controller commands no descent at all while it is blind...
@@ -589,11 +594,9 @@ def test_a_hung_service_is_named_and_up_fails(tmp_path: Path, service: str, stre
     report = json.loads((out / "report.json").read_text())
     assert report["failure"]["child"] == service and report["outcome"] == "error"
     if service == "segmenter":
-        # Blind: the controller held and commanded no descent from then on.
-        watchdog = np.asarray(report["trajectory"]["watchdog"])
-        held = np.arange(int(np.flatnonzero(watchdog == "ok").max()) + 1, len(watchdog))
-        assert held.size > 0 and np.all(watchdog[held] == "hold")
-        assert np.all(np.asarray(report["trajectory"]["cmd_down_m_s"])[held] <= 0.0), "descent commanded while blind"
+        # Blind: the controller held (then climbed) and commanded no descent from then on.
+        blind, _held = _blind_escalation(np.asarray(report["trajectory"]["watchdog"]))
+        assert np.all(np.asarray(report["trajectory"]["cmd_down_m_s"])[blind] <= 0.0), "descent commanded while blind"
 
 
 @pytest.mark.slow

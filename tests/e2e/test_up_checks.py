@@ -234,6 +234,7 @@ class _Children:
 
 class _Monitor:
     backlog = 0
+    arrived: dict[str, float] = {}  # noqa: RUF012 - never written: a fake with nothing queued
 
     def drain(self, max_s: float = float("inf")) -> int:
         return 0
@@ -260,10 +261,14 @@ def test_a_backlog_is_drained_in_slices_so_a_ctrl_c_is_seen_at_once(tmp_path: Pa
     assert mon.drain() == 3000 - n and mon.backlog == 0  # the final drain takes everything
 
     class Backlogged(_Monitor):
-        backlog = 5000  # never caught up: no exit or silence is judged yet, and the stop still counts
+        backlog = 5000  # never caught up: no exit is judged yet, and the stop still counts
+
+        def __init__(self) -> None:
+            self.arrived = {}
 
         def drain(self, max_s: float = float("inf")) -> int:
             time.sleep(min(max_s, 0.05))
+            self.arrived.update(dict.fromkeys(("state", "status", "heatmap"), time.time()))  # all still coming
             return 50
 
     stop = threading.Event()
@@ -274,6 +279,41 @@ def test_a_backlog_is_drained_in_slices_so_a_ctrl_c_is_seen_at_once(tmp_path: Pa
     end = Watcher(UpOptions(world=WORLD, out=tmp_path, stall_s=1.0), rec, Backlogged(),
                   _Children(tmp_path, sim_running=False), stop, t0, cpu_s=lambda pid: 1.0).run()
     assert end.interrupted and end.failure is None and time.monotonic() - t0 < 2.0
+
+
+def test_a_hang_is_named_while_the_recording_runs_behind(tmp_path: Path) -> None:
+    # A CI run beside two benches (load 6 on 2 cores): `up` recorded slower than the streams came,
+    # its queue never emptied, and a stopped controller went unnamed for 300 s. Behind, silences
+    # are judged on when each stream last arrived, queued or not.
+    class Behind(_Monitor):
+        backlog = 5000
+
+        def __init__(self) -> None:
+            now = time.time()
+            self.arrived = {"state": now, "heatmap": now, "status": now - 2.0}  # the controller went quiet
+
+        def drain(self, max_s: float = float("inf")) -> int:
+            time.sleep(min(max_s, 0.02))
+            self.arrived["state"] = self.arrived["heatmap"] = time.time()
+            return 50
+
+    rec = Recorder((1.0, 2.0, 100.0), video=False)
+    rec.first_state_wall_s = time.time() - 60.0
+    rec.last_recv_wall_s.update(dict.fromkeys(("state", "status", "heatmap"), time.time() - 30.0))  # recorded: long ago
+    t0 = time.monotonic()
+    end = Watcher(UpOptions(world=WORLD, out=tmp_path, stall_s=1.0, after_failure_s=0.2), rec, Behind(),
+                  _Children(tmp_path, sim_running=True), threading.Event(), t0, cpu_s=lambda pid: 1.0).run()
+    assert end.failure is not None and end.failure.child == "controller", end.failure
+    assert "controller (pid 13) hung: no status message for" in end.failure.message
+    assert time.monotonic() - t0 < 5.0
+    # A result among the arrivals ends the streams on purpose: no silence is judged while behind.
+    quiet = Behind()
+    quiet.arrived["episode"] = time.time()
+    stop = threading.Event()
+    threading.Timer(1.5, stop.set).start()
+    end = Watcher(UpOptions(world=WORLD, out=tmp_path, stall_s=1.0), rec, quiet,
+                  _Children(tmp_path, sim_running=True), stop, time.monotonic(), cpu_s=lambda pid: 1.0).run()
+    assert end.interrupted and end.failure is None
 
 
 def test_a_result_while_the_sim_keeps_flying_is_not_the_sims(tmp_path: Path) -> None:
