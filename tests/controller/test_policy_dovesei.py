@@ -263,6 +263,42 @@ def test_candidates_over_a_box_of_the_grid_match_the_literal_reference(case: str
     assert list(cands.pixels_rc) == pixels
 
 
+# The EMA grid of a paper-experiment flight (dovesei, start 4) that a distance map worked out over
+# the box's columns alone got wrong: rows 136-216, each safe from LEFT to RIGHT (exclusive).
+_FLIGHT_LEFT = (176, 168, 164, 161, 159, 157, 155, 154, 152, 151, 150, 149, 148, 147, 146, 145, 145, 145, 145,
+                145, 145, 144, 144, 144, 144, 144, 144, 144, 144, 144, 143, 143, 143, 143, 143, 143, 143, 143,
+                143, 143, 143, 142, 142, 142, 142, 142, 142, 142, 142, 142, 143, 143, 143, 143, 143, 143, 144,
+                144, 144, 144, 144, 144, 145, 145, 145, 145, 146, 147, 148, 149, 150, 151, 152, 154, 155, 157,
+                159, 161, 164, 168, 176)
+_FLIGHT_RIGHT = (177, 185, 189, 192, 194, 196, 198, 199, 201, 202, 203, 204, 205, 206, 207, 208, 209, 209, 210,
+                 211, 211, 211, 211, 211, 211, 211, 211, 211, 211, 212, 212, 212, 212, 212, 212, 212, 212, 212,
+                 212, 212, 212, 212, 211, 211, 211, 211, 211, 211, 211, 211, 211, 211, 211, 211, 211, 211, 210,
+                 210, 210, 210, 210, 210, 210, 209, 209, 208, 207, 206, 205, 204, 203, 202, 201, 199, 198, 196,
+                 194, 192, 189, 185, 177)
+
+
+def _flight_grid() -> np.ndarray:
+    grid = np.zeros((ROWS, COLS), np.uint8)
+    for row, (left, right) in enumerate(zip(_FLIGHT_LEFT, _FLIGHT_RIGHT), start=136):
+        grid[row, left:right] = 255
+    return grid
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_candidates_in_a_narrow_focus_match_the_literal_reference(seed: int) -> None:
+    # A narrow focus leaves the safe pixels in a small box of the grid, anywhere along its rows:
+    # OpenCV's distance map rounds some values 1 ulp apart at another column offset, which moved
+    # a candidate by 8 px (the flight's grid, seed 0) when only the box's columns were worked out.
+    rng = np.random.default_rng(100 + seed)
+    binary = _flight_grid() if seed == 0 else _random_binary(200 + seed)
+    for radius_px in (rng.uniform(25.0, 90.0, 6) if seed else np.arange(38.0, 62.0, 2.0)):
+        errs, scores, pixels = _literal_candidates(binary, float(radius_px))
+        cands = find_candidates(binary.copy(), float(radius_px), CFG)
+        np.testing.assert_array_equal(cands.scores, scores)
+        np.testing.assert_array_equal(cands.err_norm, errs)
+        assert list(cands.pixels_rc) == pixels
+
+
 # --- focus radius -----------------------------------------------------------------------------
 
 

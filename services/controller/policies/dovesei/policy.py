@@ -174,19 +174,21 @@ def find_candidates(binary_u8: np.ndarray, focus_radius_px: float, config: Doves
         # quirk: pixels outside are zeroed BEFORE the distance transform: the edge is an obstacle.
         cv2.bitwise_and(binary_u8, circle, dst=binary_u8)
 
-    # The distance map is worked out over the box of the safe pixels and a one-pixel frame around it
-    # (the whole grid when there are none), a third of the grid on average. The same values to the
-    # bit: every pixel of that frame is 0 (an obstacle), so no shorter path to an obstacle leaves
-    # the box; the map outside is 0 and its minimum 0 either way, so normalising over the box
-    # scales alike; contours come back in grid pixels, in the same raster order.
-    bx, by, bw, bh = cv2.boundingRect(binary_u8)
-    ox, oy = (max(bx - 1, 0), max(by - 1, 0)) if bw else (0, 0)
-    box = binary_u8[oy:min(by + bh + 1, rows), ox:min(bx + bw + 1, cols)] if bw else binary_u8
-    dist = cv2.distanceTransform(box, cv2.DIST_L2, 3)
+    # The distance map is worked out over the rows of the safe pixels and one more above and below
+    # (all of them when there are none), whole rows: those rows are 0 (obstacles), so no shorter
+    # path to an obstacle leaves them, and OpenCV's float rounding of a value follows its column
+    # (a box of columns moved some values by 1 ulp and a candidate by 8 px). The rest is 0.
+    _, by, _, bh = cv2.boundingRect(binary_u8)
+    r0, r1 = (max(by - 1, 0), min(by + bh + 1, rows)) if bh else (0, rows)
+    if (r0, r1) == (0, rows):
+        dist = cv2.distanceTransform(binary_u8, cv2.DIST_L2, 3)
+    else:
+        dist = np.zeros((rows, cols), np.float32)
+        dist[r0:r1] = cv2.distanceTransform(binary_u8[r0:r1], cv2.DIST_L2, 3)
     cv2.normalize(dist, dist, 0.0, 1.0, cv2.NORM_MINMAX)
     # quirk: cv2.THRESH_BINARY keeps dist > 0.6 strictly (not >=), as the reference does.
     cores = (dist > np.float32(config.dist_core_threshold)).view(np.uint8)
-    contours, _ = cv2.findContours(cores, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE, offset=(ox, oy))
+    contours, _ = cv2.findContours(cores, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
 
     errs: list[tuple[float, float]] = [_DUMMY_ERR_NORM]
     scores: list[float] = [0.0]
@@ -201,7 +203,7 @@ def find_candidates(binary_u8: np.ndarray, focus_radius_px: float, config: Doves
         x0, y0, w, h = cv2.boundingRect(contour)
         filled = np.zeros((h, w), np.uint8)
         cv2.drawContours(filled, [contour], -1, 255, cv2.FILLED, offset=(-x0, -y0))
-        inside = np.where(filled == 255, dist[y0 - oy:y0 - oy + h, x0 - ox:x0 - ox + w], np.float32(0.0))
+        inside = np.where(filled == 255, dist[y0:y0 + h, x0:x0 + w], np.float32(0.0))
         r_box, c_box = np.unravel_index(int(np.argmax(inside)), inside.shape)
         row, col = int(r_box) + y0, int(c_box) + x0
         dist_to_centre_px = math.sqrt((centre_row - row) ** 2 + (centre_col - col) ** 2)
