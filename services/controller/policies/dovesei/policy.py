@@ -36,6 +36,7 @@ returned unchanged, as the reference's vehicle held its last command between ans
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 from dataclasses import dataclass
@@ -156,6 +157,17 @@ def focus_target_px(prev_state: DoveseiState, proj_m: float, radius_px: float, c
     return config.focus_diagonal_px
 
 
+@functools.lru_cache(maxsize=8)
+def _focus_circle(rows: int, cols: int, radius: int) -> np.ndarray:
+    """The filled focus circle (255 inside) on a rows x cols grid, centred on the integer pixel
+    (int(cols / 2), int(rows / 2)); read-only and kept: a settled focus draws the same circle cycle
+    after cycle."""
+    circle = np.zeros((rows, cols), np.uint8)
+    cv2.circle(circle, (int(cols / 2.0), int(rows / 2.0)), radius, 255, -1)
+    circle.flags.writeable = False
+    return circle
+
+
 def find_candidates(binary_u8: np.ndarray, focus_radius_px: float, config: DoveseiConfig) -> Candidates:
     """Cores of the focused binary grid -> sorted candidates (steps 4-6 after the radius update).
 
@@ -169,10 +181,8 @@ def find_candidates(binary_u8: np.ndarray, focus_radius_px: float, config: Doves
     cover_px = math.ceil(math.hypot(max(int(centre_row), rows - 1 - int(centre_row)),
                                     max(int(centre_col), cols - 1 - int(centre_col)))) + 1
     if radius < cover_px:
-        circle = np.zeros_like(binary_u8)
-        cv2.circle(circle, (int(centre_col), int(centre_row)), radius, 255, -1)
         # quirk: pixels outside are zeroed BEFORE the distance transform: the edge is an obstacle.
-        cv2.bitwise_and(binary_u8, circle, dst=binary_u8)
+        cv2.bitwise_and(binary_u8, _focus_circle(rows, cols, radius), dst=binary_u8)
 
     # The distance map is worked out over the rows of the safe pixels and one more above and below
     # (all of them when there are none), whole rows: those rows are 0 (obstacles), so no shorter
