@@ -366,8 +366,8 @@ class Monitor:
         def on_sample(sample: Any) -> None:
             # Arrival stamped here, in Zenoh's thread: it is the transport measurement.
             now = time.time()
+            arrived[topic] = now  # before the queue: a recorded arrival is never newer than this
             queue.append(Sample(topic, now, sample.payload.to_bytes()))
-            arrived[topic] = now
 
         return on_sample
 

@@ -352,10 +352,7 @@ class Watcher:
                 # Behind (a loaded host records slower than the streams come): a queue that never
                 # empties must not hide a hang, so silences are judged on when each stream was
                 # last heard, queued or not, as long as no result (ending the streams) came in.
-                recorded = self.rec.last_recv_wall_s
-                heard = {t: max(self.monitor.arrived.get(t, -math.inf), recorded.get(t, -math.inf))
-                         for t in self.owners if t in self.monitor.arrived or t in recorded}
-                self.failure = self._check_stalls(heard=heard)
+                self.failure = self._check_stalls(heard=self.monitor.arrived)
             if self.failure is not None and self.failure_deadline == math.inf:
                 log.error("%s", self.failure.message)
                 # The others keep running for a while so the report shows how they reacted.
