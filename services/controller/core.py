@@ -21,8 +21,9 @@ the sim (the paper's experiment stays as published), DEFAULT_VEHICLE_GEOFENCE_M 
 Watchdog modes, highest priority first (each change is logged once at INFO with its reason):
 
     state_stale  the vehicle state stopped advancing (real time only, wall clock) -> zero velocity
-    handover     at/below the hand-over altitude with the policy landing (Decision.landing): stop
-                 commanding, short-range sensors take over; the command says so (`handover`)
+    handover     at/below the hand-over altitude with the policy landing (Decision.landing, its
+                 word not run out: Decision.landing_until_s): stop commanding, short-range sensors
+                 take over; the command says so (`handover`)
     no_velocity  (MAVLink) no horizontal velocity source is trusted: GNSS lost with
                  `--gnss-denied off`, stale or poor visual velocity, an EKF that does not fuse
                  it (gnss_denied.NavStatus says why)   -> no descent: lost in flight, level back
@@ -31,7 +32,8 @@ Watchdog modes, highest priority first (each change is logged once at INFO with 
                  (measured)                                                      -> zero velocity
     no_heatmap   nothing adopted yet                                             -> zero velocity
     climb        heatmap older than `heatmap_climb_after_s`  -> climb to the search altitude, hold
-    hold         heatmap older than `heatmap_hold_after_s`   -> zero velocity (stop descending)
+    hold         heatmap older than `heatmap_hold_after_s`   -> zero velocity (stop descending);
+                 or the policy's landing word ran out        -> its horizontal command, no descent
     ok           the policy's newest decision is sent
 
 A stale decision is never re-sent: outside `ok` the command is built from the mode, not from the
@@ -382,6 +384,8 @@ class ControllerCore:
         self._recent_alts: deque[float] = deque(maxlen=2 * self.config.handover_confirm_states - 1)
         self._recent_t_s: float | None = None  # the newest of them
         self._confirming = False  # a terminal decision near the altitude, waiting for the states
+        self._word_expired = False  # the decision's landing word ran out (landing_until_s): no descent
+        self._word_until_s: float | None = None  # that word's end on the data clock
         # The capture altitude of the heatmap on which the policy declared its current terminal
         # state (read only while the decision is terminal): later heatmaps of the same terminal
         # state may read higher on a noisy baro, the declaration was made there.
@@ -773,11 +777,17 @@ class ControllerCore:
         # displacement counts from it, or it would be dead-reckoned twice.
         self._last_capture_t_s = hm.stamp.t_s
         speeds = (*decision.vel_body_frd_m_s, decision.yaw_rate_rad_s)
+        until = decision.landing_until_s
+        fault = None
         if not all(math.isfinite(v) and abs(v) <= MAX_POLICY_SPEED for v in speeds):
             # Sent as it is, the command fails its own field check and the exception ends the
             # loop (the dovesei policy's integrator once wound up to 18 km/s over a static view).
+            fault = f"policy commanded {speeds} (limit {MAX_POLICY_SPEED:g}) on heatmap {hm.seq}"
+        elif until is not None and not validate.is_number(until):
+            fault = f"policy's landing_until_s {until!r} is not a finite time on heatmap {hm.seq}"
+        if fault is not None:
             self.policy_errors += 1
-            self._policy_fault = f"policy commanded {speeds} (limit {MAX_POLICY_SPEED:g}) on heatmap {hm.seq}"
+            self._policy_fault = fault
             self._refuse("policy error", "%s (holding)", self._policy_fault, level=logging.ERROR)
             self._decision = None
             return
@@ -792,6 +802,8 @@ class ControllerCore:
             self._declared_alt_m = hm.alt_agl_m
         self._adopted = _Adopted(hm, latency, (obs.roll_rad, obs.pitch_rad, obs.yaw_rad))
         self._decision = decision
+        # The word's end on the data clock (the policy's clock runs behind it after a capped gap).
+        self._word_until_s = None if until is None else until - self._policy_offset_s
         if decision.look_request is not None:
             self._request_look(decision.look_request, state)
         self.adopted_count += 1
@@ -821,7 +833,7 @@ class ControllerCore:
 
     def _judge(self, state: VehicleState, wall_s: float | None, nav: NavStatus | None = None) -> tuple[Mode, str]:
         cfg = self.config
-        self._confirming = False
+        self._confirming = self._word_expired = False
         if wall_s is not None and self._state_advanced_wall_s is not None:
             frozen_s = wall_s - self._state_advanced_wall_s
             if frozen_s > cfg.state_stale_after_s:
@@ -835,7 +847,7 @@ class ControllerCore:
         else:
             decision = self._decision
             committed = (decision is not None and (decision.landing or decision.state in TERMINAL_STATES)
-                         and self._policy_fault is None)
+                         and self._policy_fault is None and not self._expired(decision, state))
             # One low sample is no altitude: a majority of the recent states must be at or below it
             # (a forged 19 m state handed over for a tick).
             self._in_handover = committed and self._states_within(0.0) >= cfg.handover_confirm_states
@@ -872,6 +884,9 @@ class ControllerCore:
         self._confirming = (decision is not None and decision.state in TERMINAL_STATES
                             and (state.alt_agl_m <= cfg.handover_alt_m
                                  or statistics.median(self._recent_alts) <= cfg.handover_alt_m + band_m))
+        if self._confirming and self._expired(decision, state):
+            self._confirming, self._word_expired = False, True
+            return Mode.HOLD, self._expired_reason(decision)
         if self._confirming:
             # Declared at the altitude (within the baro's noise of it): the hand-over follows once
             # the states confirm it, the vehicle sinking slowly meanwhile (`_velocity`).
@@ -892,7 +907,19 @@ class ControllerCore:
                                 f"climbing to the search altitude {self.search_alt_m:.1f} m and holding")
         if age_s > cfg.heatmap_hold_after_s:
             return Mode.HOLD, f"heatmap older than {cfg.heatmap_hold_after_s:g} s: descent stopped, holding position"
+        if decision is not None and decision.landing and self._expired(decision, state):
+            self._word_expired = True
+            return Mode.HOLD, self._expired_reason(decision)
         return Mode.OK, "heatmaps fresh: following the policy"
+
+    def _expired(self, decision: Decision | None, state: VehicleState) -> bool:
+        """The decision's landing word has run out (its landing_until_s is past at this state)."""
+        return (decision is not None and decision is self._decision and self._word_until_s is not None
+                and state.stamp.t_s > self._word_until_s)
+
+    def _expired_reason(self, decision: Decision) -> str:
+        return (f"the policy's landing word ran out at t={self._word_until_s:.2f} s (its clearance of the "
+                "ground is that old): descent stopped until it renews it")
 
     def _fence(self, vel: tuple[float, float, float], state: VehicleState, reason: str,
                pull_back: bool) -> tuple[tuple[float, float, float], str]:
@@ -934,6 +961,11 @@ class ControllerCore:
             return (fwd, right, cfg.handover_sink_m_s if sinking else 0.0), 0.0
         if mode is Mode.OK and self._decision is not None:
             return self._as_meant(self._decision.vel_body_frd_m_s, state), self._decision.yaw_rate_rad_s
+        if mode is Mode.HOLD and self._word_expired and self._decision is not None:
+            # Over the spot, waiting for the policy's next word: its horizontal command (a zero one
+            # is no hold without GNSS, see above), no descent.
+            fwd, right, down = self._as_meant(self._decision.vel_body_frd_m_s, state)
+            return (fwd, right, min(down, 0.0)), self._decision.yaw_rate_rad_s
         if mode is Mode.NO_VELOCITY and self._retreat_ne is not None:
             fwd, right = to_body(self._retreat_ne[0], self._retreat_ne[1], state.yaw_rad)
             return (fwd, right, 0.0), 0.0

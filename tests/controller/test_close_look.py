@@ -22,7 +22,7 @@ from dovesei.controller.policies.base import Decision, LookResult, Observation, 
 from dovesei.controller.policies.registry import make_policy
 from dovesei.controller.policies.clearance.closelook import CloseLookConfig, CloseLookPolicy, verdict
 from dovesei.episode import EpisodeSpec, run_episode
-from dovesei.shared.messages import ControllerStatus, CropFrame, CropHeatmap, Stamp, VehicleState
+from dovesei.shared.messages import ControllerStatus, CropFrame, CropHeatmap, CropRequest, Stamp, VehicleState
 from dovesei.shared.errors import ConfigError
 from dovesei.shared.mission import VEHICLE_SEPARATION_M
 from dovesei.sim.camera import CameraModel
@@ -437,9 +437,8 @@ def test_the_gate_withholds_the_inner_policys_handover_until_a_fresh_clear_look(
     assert "waiting" in inner.handover_withheld  # the last descent found something: no hand-over
     for i in range(5, 9):
         gate.step(Observation(t_s=float(i), alt_agl_m=20.0, prob_safe=None, look=_answer(i, False)))
-    gate.step(Observation(t_s=9.0, alt_agl_m=20.0, prob_safe=None))
-    assert inner.handover_withheld == ""  # resume_looks clear looks: released
-    gate.step(Observation(t_s=9.0 + CloseLookConfig().fresh_s + 1.5, alt_agl_m=20.0, prob_safe=None))
+    assert inner.handover_withheld == ""  # resume_looks clear looks, the last captured 1 s ago: released
+    gate.step(Observation(t_s=8.0 + CloseLookConfig().fresh_s + 0.5, alt_agl_m=20.0, prob_safe=None))
     assert inner.handover_withheld == "close look: no fresh clear look"
 
 
@@ -466,14 +465,13 @@ class _Handing(_Descending):
 
 
 def _handing_over() -> tuple[_Handing, CloseLookPolicy]:
-    """The gate opened by two clear looks at 40 m (t = 1 and 2 s), the stub declaring HANDOVER at
-    20 m (t = 2.5 s)."""
+    """The gate opened by two clear looks (answered at t = 1 and 2 s, asked a second before), the
+    stub declaring HANDOVER at 20 m with the second one, captured a fresh 1 s before."""
     inner = _Handing()
     gate = CloseLookPolicy(inner)
     gate.step(Observation(t_s=0.0, alt_agl_m=41.0, prob_safe=None))
-    for i in (1, 2):
-        gate.step(Observation(t_s=float(i), alt_agl_m=40.0, prob_safe=None, look=_answer(i, False)))
-    assert gate.step(Observation(t_s=2.5, alt_agl_m=20.0, prob_safe=None)).state == "HANDOVER"
+    gate.step(Observation(t_s=1.0, alt_agl_m=40.0, prob_safe=None, look=_answer(1, False)))
+    assert gate.step(Observation(t_s=2.0, alt_agl_m=20.0, prob_safe=None, look=_answer(2, False))).state == "HANDOVER"
     return inner, gate
 
 
@@ -483,7 +481,7 @@ def test_a_declared_handover_keeps_looking_and_is_taken_back_when_someone_walks_
     again only once resume_looks clear looks say the margin is clear (harsh Dubai start 8: a walker
     came from 6.8 m to 1.8 m of the touchdown in the 4 s a hand-over took to confirm, unlooked at)."""
     cfg, (inner, gate) = CloseLookConfig(), _handing_over()
-    seq, t = 3, 2.5
+    seq, t = 3, 2.0
     asked = 0
     for _ in range(3):  # the hand-over is being confirmed: clear looks keep it, new ones are asked
         t += cfg.look_period_s
@@ -511,3 +509,43 @@ def test_a_declared_handover_without_a_fresh_look_is_taken_back() -> None:
     cfg, (inner, gate) = CloseLookConfig(), _handing_over()
     d = gate.step(Observation(t_s=2.0 + cfg.fresh_s + 0.1, alt_agl_m=20.0, prob_safe=None))
     assert d.state == "DESCEND" and inner.withdrawn == ["close look: no fresh clear look"]
+
+
+def test_near_the_handover_looks_come_every_final_period_and_the_landing_word_ends_with_the_look() -> None:
+    """Walkers: within final_gate_m of the hand-over the gate looks every final_look_period_s (not
+    look_period_s), and each decision's landing word ends fresh_s after the newest clear look was
+    asked (the controller hands over between the policy's steps, never on a look gone stale)."""
+    cfg = CloseLookConfig()
+    assert cfg.final_look_period_s < cfg.look_period_s
+    inner = _Descending()
+    inner.handover_withheld = ""
+    gate = CloseLookPolicy(inner)
+    gate.step(Observation(t_s=0.0, alt_agl_m=41.0, prob_safe=None))  # asks look 1
+    d = gate.step(Observation(t_s=1.0, alt_agl_m=40.0, prob_safe=None, look=_answer(1, False)))  # asks look 2
+    assert d.landing_until_s is None  # above the final band: the word lasts until the next decision
+    gate.step(Observation(t_s=2.0, alt_agl_m=21.0, prob_safe=None, look=_answer(2, False)))  # asks look 3
+    assert inner.handover_withheld == ""
+    asks, t, seq = [], 2.0, 3
+    while t < 6.0:  # steps every 0.25 s, each look answered at the next step
+        t += 0.25
+        look = _answer(seq, False) if gate._asked is not None else None
+        seq += look is not None
+        d = gate.step(Observation(t_s=t, alt_agl_m=21.0, prob_safe=None, look=look))
+        if d.look_request is not None:
+            asks.append(t)
+        assert inner.handover_withheld == "", t  # always a clear look at most fresh_s old
+        assert d.landing and d.landing_until_s == gate._clear.t_s + cfg.fresh_s and d.landing_until_s > t
+    gaps = np.diff(asks)
+    assert len(asks) >= 7 and gaps.max() <= cfg.final_look_period_s + 1e-9, asks
+
+
+def test_a_look_answered_on_another_clock_is_refused() -> None:
+    """The hand-over's freshness reads the crop's capture stamp: an answer stamped on a clock other
+    than the request's is refused (one line naming both), never compared across clocks."""
+    never = np.full((352, 352), 0.03, np.float32)
+    heat = CropHeatmap("uav1", 1, 1, Stamp(5.0, "wall"), never, never, (0.0, 0.0), 8.0, 20.0, "simulated", True,
+                       "p", "n", 0.01)
+    looker = SyncLooker(lambda req: (None, heat))
+    looker.submit(CropRequest("uav1", 1, Stamp(5.0, "sim"), (0.0, 0.0), 8.0, 352))
+    result = looker.poll()
+    assert not result.ok and result.refusal == "answer captured on the 'wall' clock, asked on 'sim'"

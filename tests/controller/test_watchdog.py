@@ -52,6 +52,7 @@ class ToyFlight:
         st = VehicleState("uav1", self.k, Stamp(self.t_s, "sim"), self.alt_m, (0.0, 0.0, 0.0),
                           await_frame_seq=await_seq)
         cmd, status = self.core.tick(st)
+        self.status = status
         vel_down = cmd.vel_body_frd_m_s[2]
         self.log.append((self.t_s, self.alt_m, self.core.mode.value, vel_down))
         self.alt_m -= vel_down * DT_S
@@ -154,3 +155,48 @@ def test_lockstep_never_declares_the_state_stale() -> None:
     f = flight()
     f.run_until(3.0, heatmap_ok=True)
     assert "state_stale" not in {row[2] for row in f.log}
+
+
+class WordPolicy(DescendingPolicy):
+    """Descends, its landing word lasting `lasting_s` past each heatmap's capture (the close look's
+    freshness, in miniature)."""
+
+    def __init__(self, lasting_s: float) -> None:
+        self.lasting_s = lasting_s
+
+    def step(self, obs: Observation) -> Decision:
+        return Decision((0.0, 0.0, DESCENT_M_S), 0.0, "LANDING", None, 50.0, 0.5, landing=True,
+                        landing_until_s=obs.t_s + self.lasting_s)
+
+
+def test_a_landing_word_that_runs_out_stops_the_descent_and_the_handover_until_renewed() -> None:
+    """The policy's landing word has an end (`Decision.landing_until_s`): past it, between two of
+    the policy's decisions, the controller stops the descent and does not hand over, whatever the
+    altitude; a decision that renews it lets both go on. Heatmaps stop at 21 m (the word lasts 0.2 s
+    past the last one), long before the heatmap watchdog's own hold."""
+    core = ControllerCore(ControllerConfig(lockstep=True), policy=WordPolicy(0.2))
+    toy = ToyFlight(core, alt_m=21.6)
+    while toy.alt_m > 21.0:
+        toy.step(heatmap_ok=True)
+    stop_t = toy.t_s
+    assert core.config.heatmap_hold_after_s > 0.6
+    toy.run_until(stop_t + 0.6, heatmap_ok=False)
+    late = [row for row in toy.log if row[0] > stop_t + 0.25]
+    assert late and all(mode == "hold" and down <= 0.0 for _, _, mode, down in late), late
+    assert min(alt for _, alt, _, _ in toy.log) > core.config.handover_alt_m
+    assert "landing word ran out" in toy.status.reason
+    toy.run_until(stop_t + 3.0, heatmap_ok=True)  # renewed: descends and hands over at 20 m
+    assert toy.log[-1][2] == "handover"
+
+
+def test_a_landing_word_that_is_not_a_finite_time_is_a_policy_fault() -> None:
+    class Bad(WordPolicy):
+        def step(self, obs: Observation) -> Decision:
+            return Decision((0.0, 0.0, DESCENT_M_S), 0.0, "LANDING", None, 50.0, 0.5, landing=True,
+                            landing_until_s=float("nan"))
+
+    core = ControllerCore(ControllerConfig(lockstep=True), policy=Bad(0.0))
+    toy = ToyFlight(core, alt_m=30.0)
+    toy.run_until(0.5, heatmap_ok=True)
+    assert core.mode is Mode.POLICY_FAULT and core.policy_errors > 0
+    assert all(down <= 0.0 for _, _, _, down in toy.log)

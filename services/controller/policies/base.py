@@ -127,6 +127,10 @@ class Decision:
     # only then may the controller hand over at the hand-over altitude. A descent the policy has
     # aborted that sinks through that altitude (inertia, a baro step) is not a landing.
     landing: bool = False
+    # ... and until when that word holds (data clock; None: until the next decision). A policy whose
+    # clearance of the ground ages (the close look: walkers) says when it runs out; past it the
+    # controller neither hands over nor lets the descent go on until a newer decision renews it.
+    landing_until_s: float | None = None
     confirmed: Confirmation | None = None  # policies with a checked spot: the look that confirmed it last
     spot: SpotReport | None = None  # policies with a ground map: the chosen spot (the status carries it)
     # The policy's own typed report of this decision, for logs, tests and overlays: a

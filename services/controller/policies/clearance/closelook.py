@@ -16,8 +16,8 @@ set, `dovesei.shared.crop`, docs/CROP.md) and gates its descent on the verdict:
         anything inside the margin --> wait (hold the altitude, keep looking: people walk through)
             resume_looks clear looks in a row --> descend on;  not so within wait_s, or found again
             wait_s after the first finding on that ground --> reject (searches on from there)
-    within final_gate_m of the hand-over --> hold unless a clear look is fresher than fresh_s
-        (the hand-over needs a recent close look, not one from 40 m)
+    within final_gate_m of the hand-over --> a look every final_look_period_s; hold unless a clear
+        look was captured within fresh_s (walkers: the hand-over needs a look from just now)
     HANDOVER declared, the controller confirming the altitude --> looks go on every look_period_s
         anything inside the margin, or no fresh clear look --> the hand-over is taken back (DESCEND,
             holding over the spot as above) until the looks clear it again
@@ -110,6 +110,9 @@ class CloseLookConfig:
     broad_margin_m: float = VEHICLE_SEPARATION_M + 1.0
     never_min_px: int = 6  # this many pixels inside the margin (of either rule) make it a finding
     look_period_s: float = 1.0  # the last descent looks again this often
+    # ... and this often within final_gate_m of the hand-over and while a declared hand-over is
+    # being confirmed: there the looks are what keeps walkers out of the separation (fresh_s).
+    final_look_period_s: float = 0.5
     # Looks miss (a person misread as lawn at some altitudes, flicker): the gate needs this many
     # clear looks in a row, and a descent that found something resumes only after resume_looks.
     clear_looks: int = 2
@@ -131,13 +134,24 @@ class CloseLookConfig:
     # finding) reject the spot too, where each wait restarting had held harsh crowded start 5 of 6
     # between 30 and 45 m for 600 s.
     wait_s: float = 30.0
-    fresh_s: float = 3.0  # the hand-over needs a clear look at most this old
+    # The hand-over needs a clear look asked (cut from the newest frame) at most this long ago. Someone just outside the
+    # square at that capture may have walked fresh_s x walking speed into the margin since: at
+    # 1.5 m/s (the top of pedestrians' usual 1.2-1.5 m/s, and of the sim's walkers) 1 s takes 1.5 m
+    # of its 4 m, leaving 2.5 m from the spot in the worst case, where 3 s (before) left none.
+    # Found in a session experiment (Dubai start 15, the perception reading the world's photo): a
+    # walker came from beyond the square to 2.5 m of the touchdown in the 2.3 s between the last
+    # clear look and the hand-over. With final_look_period_s 0.5 and answers 0.5 s after the ask
+    # (the bench), the newest clear look is 0.5-1.0 s old at any step of the final band.
+    fresh_s: float = 1.0
     spot_slack_m: float = 1.0  # a look covers the spot it was asked for, moved at most this far
 
     def __post_init__(self) -> None:
         for name in ("handover_alt_m", "look_alt_m", "brake_m", "margin_m", "broad_margin_m", "look_period_s", "retry_s",
-                     "answer_timeout_s", "wait_s", "fresh_s", "spot_slack_m"):
+                     "answer_timeout_s", "wait_s", "fresh_s", "spot_slack_m", "final_look_period_s"):
             validate.positive(f"close look {name}", getattr(self, name))
+        # Looks near the hand-over come at least as often as before it, and often enough for one to be fresh.
+        validate.in_range("close look final_look_period_s", self.final_look_period_s, 0.0,
+                          min(self.look_period_s, self.fresh_s))
         validate.non_negative("close look final_gate_m", self.final_gate_m)
         validate.in_range("close look never_p_min", self.never_p_min, 0.0, 1.0)
         validate.in_range("close look never_p_max", self.never_p_max, 0.0, 1.0)
@@ -328,7 +342,7 @@ class CloseLookPolicy:
         self._recent.append((asked.north_m, asked.east_m, not v.clear))
         if v.clear:
             self._streak = self._streak + 1 if self._covers(self._clear, (asked.north_m, asked.east_m)) else 1
-            self._clear = asked
+            self._clear = asked  # its age counts from the ask: the crop is cut from the newest frame then
             if self._never_since_s is not None and self._streak >= cfg.resume_looks:
                 self._never_since_s = None  # clear long enough: the descent resumes
             log.info("close look %d at %.1f m: %s", look.request_seq, asked.alt_m, self._verdict)
@@ -409,12 +423,17 @@ class CloseLookPolicy:
             self._asked = None
         request = None
         period = cfg.look_period_s if cleared or self._streak else cfg.retry_s
+        if (final or handing) and (cleared or self._streak):
+            period = cfg.final_look_period_s  # the hand-over needs a fresh look: look more often there
         if self._asked is None and t - self._last_ask_s >= period:
             fwd, right = to_body(spot[0] - here[0], spot[1] - here[1], obs.yaw_rad)
             request = LookRequest((float(fwd), float(right)), cfg.side_m, cfg.out_px)
             self._asked, self._last_ask_s = _Look(spot[0], spot[1], alt, t), t
         if not hold:
-            return dataclasses.replace(d, look_request=request, look_verdict=self._verdict)
+            # Near the hand-over the landing word lasts as long as the clear look stays fresh: the
+            # controller hands over between this policy's steps, and must not on a look gone stale.
+            until = self._clear.t_s + cfg.fresh_s if (final or handing) and self._clear is not None else None
+            return dataclasses.replace(d, look_request=request, look_verdict=self._verdict, landing_until_s=until)
         vf, vr, vz = d.vel_body_frd_m_s
         # Hold the altitude (a descent is positive down); never climb here, the inner policy's abort does.
         return dataclasses.replace(d, vel_body_frd_m_s=(vf, vr, min(vz, 0.0)), landing=False,
