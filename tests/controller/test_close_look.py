@@ -438,7 +438,7 @@ def test_the_gate_withholds_the_inner_policys_handover_until_a_fresh_clear_look(
     for i in range(5, 9):
         gate.step(Observation(t_s=float(i), alt_agl_m=20.0, prob_safe=None, look=_answer(i, False)))
     assert inner.handover_withheld == ""  # resume_looks clear looks, the last captured 1 s ago: released
-    gate.step(Observation(t_s=8.0 + CloseLookConfig().fresh_s + 0.5, alt_agl_m=20.0, prob_safe=None))
+    gate.step(Observation(t_s=8.0 + CloseLookConfig().fresh_max_s + 0.5, alt_agl_m=20.0, prob_safe=None))
     assert inner.handover_withheld == "close look: no fresh clear look"
 
 
@@ -505,9 +505,9 @@ def test_a_declared_handover_keeps_looking_and_is_taken_back_when_someone_walks_
 
 def test_a_declared_handover_without_a_fresh_look_is_taken_back() -> None:
     """Looks that stop being answered during the confirmation leave no fresh clear look: the
-    hand-over is taken back rather than completed on a look fresh_s old."""
+    hand-over is taken back rather than completed on a look older than fresh_max_s."""
     cfg, (inner, gate) = CloseLookConfig(), _handing_over()
-    d = gate.step(Observation(t_s=2.0 + cfg.fresh_s + 0.1, alt_agl_m=20.0, prob_safe=None))
+    d = gate.step(Observation(t_s=2.0 + cfg.fresh_max_s + 0.1, alt_agl_m=20.0, prob_safe=None))
     assert d.state == "DESCEND" and inner.withdrawn == ["close look: no fresh clear look"]
 
 
@@ -533,8 +533,9 @@ def test_near_the_handover_looks_come_every_final_period_and_the_landing_word_en
         d = gate.step(Observation(t_s=t, alt_agl_m=21.0, prob_safe=None, look=look))
         if d.look_request is not None:
             asks.append(t)
-        assert inner.handover_withheld == "", t  # always a clear look at most fresh_s old
-        assert d.landing and d.landing_until_s == gate._clear.t_s + cfg.fresh_s and d.landing_until_s > t
+        assert inner.handover_withheld == "", t  # always a clear look fresh enough
+        assert d.landing and d.landing_until_s == gate._clear.t_s + gate.fresh_limit_s and d.landing_until_s > t
+    assert gate.fresh_limit_s == cfg.fresh_s  # answers a 0.25 s step after the ask: fresh_s itself
     gaps = np.diff(asks)
     assert len(asks) >= 7 and gaps.max() <= cfg.final_look_period_s + 1e-9, asks
 
@@ -549,3 +550,27 @@ def test_a_look_answered_on_another_clock_is_refused() -> None:
     looker.submit(CropRequest("uav1", 1, Stamp(5.0, "sim"), (0.0, 0.0), 8.0, 352))
     result = looker.poll()
     assert not result.ok and result.refusal == "answer captured on the 'wall' clock, asked on 'sim'"
+
+
+def test_the_freshness_a_handover_needs_follows_the_looks_own_lag_within_its_bounds() -> None:
+    """A look cannot be younger than its answer's lag plus the step until the next decision: the
+    limit is that (x 1.25 on the step), never under fresh_s (walkers) nor over fresh_max_s (beyond
+    it a slow segmenter means holding, as before)."""
+    cfg = CloseLookConfig()
+
+    def limit_after(step_s: float, lag_steps: int) -> float:
+        inner = _Descending()
+        inner.handover_withheld = ""
+        gate = CloseLookPolicy(inner)
+        t = 0.0
+        gate.step(Observation(t_s=t, alt_agl_m=41.0, prob_safe=None))  # asks look 1 at t = 0
+        for _ in range(lag_steps):
+            t += step_s
+            gate.step(Observation(t_s=t, alt_agl_m=40.0, prob_safe=None))
+        gate.step(Observation(t_s=t + step_s, alt_agl_m=40.0, prob_safe=None, look=_answer(1, False)))
+        return gate.fresh_limit_s
+
+    assert limit_after(0.25, 0) == cfg.fresh_s  # answered a step later: 0.25 + 0.31 s, under fresh_s
+    assert limit_after(1.0, 0) == pytest.approx(1.0 + 1.25)  # a segmenter at 1 Hz
+    assert limit_after(1.0, 4) == cfg.fresh_max_s  # answered after 5 s: capped
+    assert limit_after(0.5, 0) == pytest.approx(cfg.fresh_s + 0.125)  # the bench's 2 Hz: 0.5 + 0.625 s

@@ -17,8 +17,10 @@ set, `dovesei.shared.crop`, docs/CROP.md) and gates its descent on the verdict:
             resume_looks clear looks in a row --> descend on;  not so within wait_s, or found again
             wait_s after the first finding on that ground --> reject (searches on from there)
     within final_gate_m of the hand-over --> a look every final_look_period_s; hold unless a clear
-        look was captured within fresh_s (walkers: the hand-over needs a look from just now)
-    HANDOVER declared, the controller confirming the altitude --> looks go on every look_period_s
+        look was asked within `fresh_limit_s` (walkers: the hand-over needs a look from just now),
+        and each decision's landing word ends there (the controller neither hands over nor
+        descends past it)
+    HANDOVER declared, the controller confirming the altitude --> looks go on every final_look_period_s
         anything inside the margin, or no fresh clear look --> the hand-over is taken back (DESCEND,
             holding over the spot as above) until the looks clear it again
 
@@ -134,24 +136,28 @@ class CloseLookConfig:
     # finding) reject the spot too, where each wait restarting had held harsh crowded start 5 of 6
     # between 30 and 45 m for 600 s.
     wait_s: float = 30.0
-    # The hand-over needs a clear look asked (cut from the newest frame) at most this long ago. Someone just outside the
-    # square at that capture may have walked fresh_s x walking speed into the margin since: at
+    # The hand-over needs a clear look asked (cut from the newest frame then) at most this long
+    # ago. Someone just outside the square at that look may have walked into the margin since: at
     # 1.5 m/s (the top of pedestrians' usual 1.2-1.5 m/s, and of the sim's walkers) 1 s takes 1.5 m
-    # of its 4 m, leaving 2.5 m from the spot in the worst case, where 3 s (before) left none.
-    # Found in a session experiment (Dubai start 15, the perception reading the world's photo): a
-    # walker came from beyond the square to 2.5 m of the touchdown in the 2.3 s between the last
-    # clear look and the hand-over. With final_look_period_s 0.5 and answers 0.5 s after the ask
-    # (the bench), the newest clear look is 0.5-1.0 s old at any step of the final band.
+    # of its 4 m, leaving 2.5 m from the spot in the worst case. Found in a session experiment
+    # (Dubai start 15, the perception reading the world's photo): with 3 s allowed, a walker came
+    # from beyond the square to 2.5 m of the touchdown in the 2.3 s between the last clear look and
+    # the hand-over. A look cannot be younger than its answer's lag plus the policy's step until
+    # the next decision renews the word (the bench: 0.5 + 0.5 s), so the limit is that, at least
+    # fresh_s and at most fresh_max_s (a slow segmenter's looks leave walkers less of the margin,
+    # 4 m - 1.5 m/s x the limit; past fresh_max_s the vehicle holds and never hands over blind).
     fresh_s: float = 1.0
+    fresh_max_s: float = 3.0
     spot_slack_m: float = 1.0  # a look covers the spot it was asked for, moved at most this far
 
     def __post_init__(self) -> None:
         for name in ("handover_alt_m", "look_alt_m", "brake_m", "margin_m", "broad_margin_m", "look_period_s", "retry_s",
-                     "answer_timeout_s", "wait_s", "fresh_s", "spot_slack_m", "final_look_period_s"):
+                     "answer_timeout_s", "wait_s", "fresh_s", "spot_slack_m", "final_look_period_s", "fresh_max_s"):
             validate.positive(f"close look {name}", getattr(self, name))
         # Looks near the hand-over come at least as often as before it, and often enough for one to be fresh.
         validate.in_range("close look final_look_period_s", self.final_look_period_s, 0.0,
                           min(self.look_period_s, self.fresh_s))
+        validate.in_range("close look fresh_max_s", self.fresh_max_s, self.fresh_s, 60.0)
         validate.non_negative("close look final_gate_m", self.final_gate_m)
         validate.in_range("close look never_p_min", self.never_p_min, 0.0, 1.0)
         validate.in_range("close look never_p_max", self.never_p_max, 0.0, 1.0)
@@ -286,10 +292,17 @@ class CloseLookPolicy:
         # Every look's spot and median log-odds P(never): the flight's baseline for the broad rule.
         self._medians: deque[tuple[float, float, float]] = deque(maxlen=200)
         self.looks = self.failures = self.findings = 0
+        # The recent answers' lags (ask -> answer) and the recent steps, on the policy's clock.
+        self._lags: deque[float] = deque(maxlen=5)
+        self._steps: deque[float] = deque(maxlen=5)
+        self._last_t_s: float | None = None
 
     # ---- the step ------------------------------------------------------------------------
 
     def step(self, obs: Observation) -> Decision:
+        if self._last_t_s is not None:
+            self._steps.append(min(max(obs.t_s - self._last_t_s, 0.0), self.look_config.fresh_max_s))
+        self._last_t_s = obs.t_s
         if obs.look is not None:
             self._take(obs.look, obs)
         if hasattr(self.inner, "handover_withheld"):
@@ -320,8 +333,18 @@ class CloseLookPolicy:
                 and self._streak >= self.look_config.clear_looks)
 
     def _fresh(self, t_s: float) -> bool:
-        """The newest clear look is at most fresh_s old (call only when it exists)."""
-        return t_s - self._clear.t_s <= self.look_config.fresh_s
+        """The newest clear look is at most `fresh_limit_s` old (call only when it exists)."""
+        return t_s - self._clear.t_s <= self.fresh_limit_s
+
+    @property
+    def fresh_limit_s(self) -> float:
+        """How old the clear look behind a hand-over may be: the answers' lag plus a step and a quarter
+        (the next decision renews the word a little after its heatmap's stamp), medians of the last
+        few (one long gap moves neither), within [fresh_s, fresh_max_s] (CloseLookConfig)."""
+        cfg = self.look_config
+        lag = float(np.median(self._lags)) if self._lags else 0.0
+        step = float(np.median(self._steps)) if self._steps else 0.0
+        return min(cfg.fresh_max_s, max(cfg.fresh_s, lag + 1.25 * step))
 
     def _take(self, look: LookResult, obs: Observation) -> None:
         cfg, asked = self.look_config, self._asked
@@ -335,6 +358,7 @@ class CloseLookPolicy:
                         look.refusal)
             return
         self.looks += 1
+        self._lags.append(min(max(obs.t_s - asked.t_s, 0.0), self.look_config.fresh_max_s))
         _, never = look.heatmap.probabilities()
         v = verdict(never, look.heatmap.side_m, cfg, self.baseline_logit((asked.north_m, asked.east_m)))
         self._medians.append((asked.north_m, asked.east_m, v.median_logit))
@@ -415,7 +439,8 @@ class CloseLookPolicy:
             why = ("close look: waiting for the never set to clear the margin" if self._never_since_s is not None
                    else "close look: holding until a look clears the spot")
         elif final and not fresh:
-            hold, why = True, "close look: holding for a fresh look before the hand-over"
+            hold, why = True, (f"close look: holding for a look from the last {self.fresh_limit_s:.1f} s before "
+                               f"the hand-over")
         # Ask: before the first look, while waiting, and again every look_period_s of the last descent.
         if self._asked is not None and t - self._asked.t_s > cfg.answer_timeout_s:
             self.failures += 1
@@ -432,7 +457,7 @@ class CloseLookPolicy:
         if not hold:
             # Near the hand-over the landing word lasts as long as the clear look stays fresh: the
             # controller hands over between this policy's steps, and must not on a look gone stale.
-            until = self._clear.t_s + cfg.fresh_s if (final or handing) and self._clear is not None else None
+            until = self._clear.t_s + self.fresh_limit_s if (final or handing) and self._clear is not None else None
             return dataclasses.replace(d, look_request=request, look_verdict=self._verdict, landing_until_s=until)
         vf, vr, vz = d.vel_body_frd_m_s
         # Hold the altitude (a descent is positive down); never climb here, the inner policy's abort does.
