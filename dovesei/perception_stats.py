@@ -119,7 +119,8 @@ def world_stats(world: World, params: PerceptionParams, n_starts: int, frames_pe
     """The statistics of one world under one perception profile (see the module docstring)."""
     cam = CameraModel()
     perception = SimPerception(params, seed=seed)
-    names = {cid: c.name for cid, c in world.classes.items()}  # names only: the flag stays here
+    seen = world.perceived()  # what the camera sees; the judge's disk map below reads the world itself
+    names = {cid: c.name for cid, c in seen.classes.items()}  # names only: the flag stays here
     fusion = FusionConfig(mode="dovesei")
     policy_cfg = DoveseiConfig()
     safe_map = disk_safe_map(world)
@@ -130,14 +131,14 @@ def world_stats(world: World, params: PerceptionParams, n_starts: int, frames_pe
     cores = cores_safe = 0
     oracle_px = oracle_safe = 0
     below_floor = 0
-    safe_lut = world.safe_lut.astype(np.float32)
+    safe_lut = seen.safe_lut.astype(np.float32)  # the sub-classes carry their class's flag
     for i, start in enumerate(generate_starts(world, n_starts, seed, ALT_M, cam)):
         heading = rng.uniform(0.0, 2.0 * math.pi)
         prev = None
         for k in range(frames_per_start):
             x_m = start.x_m + k * DRIFT_M_PER_FRAME * math.sin(heading)
             y_m = start.y_m + k * DRIFT_M_PER_FRAME * math.cos(heading)
-            _, labels, _ = render(world, x_m, y_m, ALT_M, 0.0, cam, with_image=False)
+            _, labels, _ = render(seen, x_m, y_m, ALT_M, 0.0, cam, with_image=False)
             view = View((x_m, y_m), ALT_M, cam.hfov_rad, 0.0, world.name)
             prob = perception.safe_probability(labels, names, view, i * 1000 + k, REFERENCE_PROMPTS, fusion)
             truth = _view_disk_safe(world, safe_map, x_m, y_m, cam)

@@ -60,8 +60,9 @@ def main(argv: list[str] | None = None) -> int:
         written.append(args.out / "world.png")
     written.append(render_views(world, x_m, y_m, args.out / "camera.png"))
     if not args.no_perception and world.labels is not None:
-        image, labels, _ = render(world, x_m, y_m, 100.0, 0.0, CameraModel())
-        classes = {i: (c.name, c.safe) for i, c in world.classes.items()}
+        seen = world.perceived()  # the perception reads the world as a camera sees it
+        image, labels, _ = render(seen, x_m, y_m, 100.0, 0.0, CameraModel())
+        classes = {i: (c.name, c.safe) for i, c in seen.classes.items()}
         written.append(render_noise_preview(args.out / "perception.png", labels=labels, classes=classes,
                                             image_rgb=image))
     for path in written:

@@ -184,7 +184,9 @@ class SimCore:
 
     def __init__(self, world: World, start: Start, config: SimConfig = SimConfig()) -> None:
         self.world, self.start, self.config = world, start, config
-        self._classes = tuple(ClassEntry(int(i), c.name, bool(c.safe)) for i, c in sorted(world.classes.items()))
+        # Frames and crops show the world as a camera sees it (`World.perceived`); the judge reads `world`.
+        self._seen = world.perceived()
+        self._classes = tuple(ClassEntry(int(i), c.name, bool(c.safe)) for i, c in sorted(self._seen.classes.items()))
         self.judge: EpisodeJudge | None = None
         self.vehicle: Vehicle | None = None
         self._newest: tuple[CameraFrame, tuple[float, ...]] | None = None  # before reset: nothing to crop
@@ -367,7 +369,7 @@ class SimCore:
         cfg = self.config
         alt_m = max(pose.alt_agl_m, 0.1)
         roll, pitch = (0.0, 0.0) if self._gimbal else (pose.roll_rad, pose.pitch_rad)
-        image, labels, _valid = render(self.world, pose.x_m, pose.y_m, alt_m, pose.yaw_rad, cfg.camera,
+        image, labels, _valid = render(self._seen, pose.x_m, pose.y_m, alt_m, pose.yaw_rad, cfg.camera,
                                        roll_rad=roll, pitch_rad=pitch, with_image=cfg.render_image,
                                        with_labels=cfg.attach_truth,  # labels unused: skip their warp
                                        t_s=pose.t_s)  # people and cars where they are now
@@ -402,7 +404,7 @@ class SimCore:
         rate limit runs on sim time, so a lockstep episode stays deterministic."""
         newest = self._newest
         view = None if newest is None else (newest[0], newest[1], newest[0].stamp.t_s)
-        return crop_view(self.world, self.config, self._classes, self._crop_rate,
+        return crop_view(self._seen, self.config, self._classes, self._crop_rate,
                          self.t_s if self.vehicle is not None else 0.0, req, view)
 
     def _blank_image(self):

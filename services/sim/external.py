@@ -80,7 +80,8 @@ class PoseCamera:
 
     def __init__(self, world: World, sim: SimConfig) -> None:
         self.world, self.sim = world, sim
-        self.classes = tuple(ClassEntry(int(i), c.name, bool(c.safe)) for i, c in sorted(world.classes.items()))
+        self._seen = world.perceived()  # what a camera sees (canopy split by the image); the judge reads `world`
+        self.classes = tuple(ClassEntry(int(i), c.name, bool(c.safe)) for i, c in sorted(self._seen.classes.items()))
         self.seq = -1
         self._t0_s: float | None = None
         # The newest frame with the true pose it was rendered at, for the close looks (`crop`).
@@ -101,7 +102,7 @@ class PoseCamera:
         if self._t0_s is None:
             self._t0_s = pose.t_s
         # People walk on the episode's clock: seconds since the first frame, as the judge counts.
-        image, labels, _valid = render(self.world, pose.x_m, pose.y_m, alt_m, pose.yaw_rad, cam,
+        image, labels, _valid = render(self._seen, pose.x_m, pose.y_m, alt_m, pose.yaw_rad, cam,
                                        roll_rad=roll_rad, pitch_rad=pitch_rad, t_s=pose.t_s - self._t0_s)
         centre = optical_axis_ground_m(pose.x_m, pose.y_m, alt_m, pose.yaw_rad, roll_rad, pitch_rad)
         truth = GroundTruth(labels, self.classes, centre, self.world.name) \
@@ -116,7 +117,7 @@ class PoseCamera:
     def crop(self, req: CropRequest) -> CropFrame:
         """A close look cut from the newest frame's view at its true pose (as `SimCore.crop`); the
         rate limit runs on the wall clock, as a real camera's. Thread-safe against `frame`."""
-        return crop_view(self.world, self.sim, self.classes, self._crop_rate, time.monotonic(), req, self._newest)
+        return crop_view(self._seen, self.sim, self.classes, self._crop_rate, time.monotonic(), req, self._newest)
 
 
 class TruthSource(Protocol):

@@ -28,6 +28,7 @@ import json
 import zlib
 import logging
 import math
+import weakref
 from collections.abc import Mapping
 from dataclasses import dataclass
 from functools import cached_property
@@ -77,6 +78,26 @@ class ClassInfo:
 
     name: str
     safe: bool
+    # A coarse class that lumps open ground with tree canopy ("vegetation (lawns and trees, not
+    # separated)"): a camera sees the crowns, so the simulated perception reads the class split
+    # by the world's image (`World.perceived`); the judge keeps the class as it is.
+    canopy_from_image: bool = False
+
+
+# What a class with canopy_from_image looks like to the perception, in its two parts (names the
+# appearance table reads: `segmenter.appearance`).
+CANOPY_CLASS_NAME = "trees (canopy seen in the image)"
+OPEN_CLASS_NAME = "lawn (open vegetation between the crowns)"
+# Canopy in an orthophoto: crowns and their shadows are darker than the ground around them. A
+# pixel is canopy where its brightness (HSV value, blurred over CANOPY_BLUR_M) is under
+# CANOPY_DARKER x the median brightness within CANOPY_CONTEXT_M; the mask is then grown by
+# CANOPY_GROW_M to take in a crown's sunlit side. Chosen by eye on the Dubai tile (docs/RESULTS.md,
+# 7 Dec: the overlay of the mask on the photo), before any flight over the result: 11 % of its
+# "vegetation" reads as canopy before growing.
+CANOPY_DARKER = 0.7
+CANOPY_CONTEXT_M = 30.0
+CANOPY_BLUR_M = 1.0
+CANOPY_GROW_M = 1.0
 
 
 # eq=False: field-wise equality on numpy arrays is ill-defined, and identity hashing lets the
@@ -132,6 +153,17 @@ class World:
         img.flags.writeable = False
         if self.labels is not None:
             self.labels.flags.writeable = False
+
+    def perceived(self) -> "World":
+        """The world as a camera-based segmenter sees it (built once per world): classes marked
+        `canopy_from_image` split by the image into their canopy and their open ground, as two new
+        classes (CANOPY_CLASS_NAME, OPEN_CLASS_NAME) with the class's safe flag; everything else,
+        the image and the people, as they are. The perception and the frames' truth read this; the
+        judge reads the world itself. Worlds with no such class are their own perceived world."""
+        seen = _PERCEIVED.get(self)
+        if seen is None:
+            seen = _PERCEIVED[self] = _perceived(self)
+        return seen
 
     @property
     def height_px(self) -> int:
@@ -297,6 +329,41 @@ def load_world_folder(folder: Path) -> World:
     return world
 
 
+_PERCEIVED: "weakref.WeakKeyDictionary[World, World]" = weakref.WeakKeyDictionary()
+
+
+def canopy_mask(image_rgb: np.ndarray, gsd_m: float) -> np.ndarray:
+    """Where an orthophoto shows tree canopy (bool, the image's size): the CANOPY_* rule above."""
+    value = cv2.cvtColor(image_rgb, cv2.COLOR_RGB2HSV)[..., 2].astype(np.float32)
+    value = cv2.GaussianBlur(value, (0, 0), max(0.5, CANOPY_BLUR_M / gsd_m))
+    side = min(255, int(round(CANOPY_CONTEXT_M / gsd_m)) | 1)  # OpenCV's median takes odd sides, 255 at most on 8 bits
+    context = cv2.medianBlur(np.clip(value, 0.0, 255.0).astype(np.uint8), side).astype(np.float32)
+    dark = (value < CANOPY_DARKER * context).astype(np.uint8)
+    grow = max(1, int(round(CANOPY_GROW_M / gsd_m)))
+    return cv2.dilate(dark, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * grow + 1, 2 * grow + 1))).astype(bool)
+
+
+def _perceived(world: World) -> World:
+    flagged = sorted(cid for cid, info in world.classes.items() if info.canopy_from_image)
+    if not flagged or world.labels is None:
+        return world
+    free = [cid for cid in range(1, OUT_OF_WORLD_LABEL) if cid not in world.classes]
+    if len(free) < 2 * len(flagged):
+        raise WorldError(f"world {world.name!r}: no free class ids left to split {len(flagged)} canopy classes")
+    canopy = canopy_mask(world.image_rgb, world.gsd_m)
+    looks = world.labels.copy()
+    classes = dict(world.classes)
+    for k, cid in enumerate(flagged):
+        tree_id, open_id = free[2 * k], free[2 * k + 1]
+        mask = world.labels == cid
+        looks[mask & canopy] = tree_id
+        looks[mask & ~canopy] = open_id
+        safe = world.classes[cid].safe
+        classes[tree_id], classes[open_id] = ClassInfo(CANOPY_CLASS_NAME, safe), ClassInfo(OPEN_CLASS_NAME, safe)
+    return World(world.image_rgb, looks, world.gsd_m, classes, name=world.name, home_xy_m=world.home_xy_m,
+                 population=world.population)
+
+
 def _populated(labels: np.ndarray, gsd_m: float, classes: dict[int, ClassInfo], name: str
                ) -> tuple[dict[int, ClassInfo], Population | None]:
     """People and cars placed by `populate` on a labelled world's walkable and drivable classes,
@@ -350,7 +417,10 @@ def _parse_classes(raw: Any, meta_path: Path) -> dict[int, ClassInfo]:
             raise WorldError(f"{where}: 'safe' must be true or false, got {safe!r}")
         if cid in classes:
             raise WorldError(f"{where}: class id {cid} is listed twice")
-        classes[cid] = ClassInfo(name.strip(), safe)
+        canopy = entry.get("canopy_from_image", False)
+        if not isinstance(canopy, bool):
+            raise WorldError(f"{where}: 'canopy_from_image' must be true or false, got {canopy!r}")
+        classes[cid] = ClassInfo(name.strip(), safe, canopy)
     return classes
 
 
