@@ -847,7 +847,7 @@ class ControllerCore:
         else:
             decision = self._decision
             committed = (decision is not None and (decision.landing or decision.state in TERMINAL_STATES)
-                         and self._policy_fault is None and not self._expired(decision, state))
+                         and self._policy_fault is None and not self._word_ran_out(state))
             # One low sample is no altitude: a majority of the recent states must be at or below it
             # (a forged 19 m state handed over for a tick).
             self._in_handover = committed and self._states_within(0.0) >= cfg.handover_confirm_states
@@ -884,9 +884,9 @@ class ControllerCore:
         self._confirming = (decision is not None and decision.state in TERMINAL_STATES
                             and (state.alt_agl_m <= cfg.handover_alt_m
                                  or statistics.median(self._recent_alts) <= cfg.handover_alt_m + band_m))
-        if self._confirming and self._expired(decision, state):
+        if self._confirming and self._word_ran_out(state):
             self._confirming, self._word_expired = False, True
-            return Mode.HOLD, self._expired_reason(decision)
+            return Mode.HOLD, self._word_reason()
         if self._confirming:
             # Declared at the altitude (within the baro's noise of it): the hand-over follows once
             # the states confirm it, the vehicle sinking slowly meanwhile (`_velocity`).
@@ -907,17 +907,16 @@ class ControllerCore:
                                 f"climbing to the search altitude {self.search_alt_m:.1f} m and holding")
         if age_s > cfg.heatmap_hold_after_s:
             return Mode.HOLD, f"heatmap older than {cfg.heatmap_hold_after_s:g} s: descent stopped, holding position"
-        if decision is not None and decision.landing and self._expired(decision, state):
+        if decision is not None and decision.landing and self._word_ran_out(state):
             self._word_expired = True
-            return Mode.HOLD, self._expired_reason(decision)
+            return Mode.HOLD, self._word_reason()
         return Mode.OK, "heatmaps fresh: following the policy"
 
-    def _expired(self, decision: Decision | None, state: VehicleState) -> bool:
-        """The decision's landing word has run out (its landing_until_s is past at this state)."""
-        return (decision is not None and decision is self._decision and self._word_until_s is not None
-                and state.stamp.t_s > self._word_until_s)
+    def _word_ran_out(self, state: VehicleState) -> bool:
+        """The current decision's landing word has run out (its landing_until_s is past at this state)."""
+        return self._decision is not None and self._word_until_s is not None and state.stamp.t_s > self._word_until_s
 
-    def _expired_reason(self, decision: Decision) -> str:
+    def _word_reason(self) -> str:
         return (f"the policy's landing word ran out at t={self._word_until_s:.2f} s (its clearance of the "
                 "ground is that old): descent stopped until it renews it")
 

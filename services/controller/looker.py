@@ -53,7 +53,7 @@ def _answer(ask: Ask, req: CropRequest, seen: Seen | None = None) -> LookResult:
     if heatmap.request_seq != req.request_seq or heatmap.vehicle_id != req.vehicle_id:
         return LookResult(req.request_seq, refusal=f"answer to request {heatmap.request_seq} of "
                                                    f"{heatmap.vehicle_id!r}, asked {req.request_seq}")
-    if heatmap.stamp.clock != req.stamp.clock:  # its capture time is what the hand-over's freshness reads
+    if heatmap.stamp.clock != req.stamp.clock:  # an answer stamped on another clock is not this look's
         return LookResult(req.request_seq, refusal=f"answer captured on the {heatmap.stamp.clock!r} clock, "
                                                    f"asked on {req.stamp.clock!r}")
     if seen is not None:

@@ -186,7 +186,7 @@ class SimCore:
         self.world, self.start, self.config = world, start, config
         # Frames and crops show the world as a camera sees it (`World.perceived`); the judge reads `world`.
         self._seen = world.perceived()
-        self._classes = tuple(ClassEntry(int(i), c.name, bool(c.safe)) for i, c in sorted(self._seen.classes.items()))
+        self._classes = truth_classes(self._seen)
         self.judge: EpisodeJudge | None = None
         self.vehicle: Vehicle | None = None
         self._newest: tuple[CameraFrame, tuple[float, ...]] | None = None  # before reset: nothing to crop
@@ -416,6 +416,11 @@ class SimCore:
 
     def _episode_result(self, outcome: str, detail: str = "") -> EpisodeResult:
         return judge_result(self.config.vehicle_id, self.judge, outcome, detail, clock="sim")
+
+
+def truth_classes(world: World) -> tuple[ClassEntry, ...]:
+    """A world's classes as frames and crops carry them with their truth labels (id order)."""
+    return tuple(ClassEntry(int(i), c.name, bool(c.safe)) for i, c in sorted(world.classes.items()))
 
 
 def crop_view(world: World, cfg: SimConfig, classes: tuple, rate: RateLimit, now_s: float, req: CropRequest,

@@ -49,10 +49,10 @@ from dovesei.shared import keys
 from dovesei.shared.clock import WallClock, wall_time_s
 from dovesei.shared.lifecycle import Inbox
 from dovesei.shared.crop import RateLimit
-from dovesei.shared.messages import (CameraFrame, ClassEntry, ControllerStatus, CropFrame, CropRequest, EpisodeResult,
+from dovesei.shared.messages import (CameraFrame, ControllerStatus, CropFrame, CropRequest, EpisodeResult,
                                      GroundTruth, VehicleState, VisualOdometry)
 from dovesei.sim.camera import CameraError, optical_axis_ground_m, prebuild_pyramid, render
-from dovesei.sim.core import SimConfig, crop_view, judge_result, unstarted_result
+from dovesei.sim.core import SimConfig, crop_view, judge_result, truth_classes, unstarted_result
 from dovesei.sim.dynamics import Pose
 from dovesei.sim.judge import EpisodeJudge
 from dovesei.sim.odometry import SimOdometry
@@ -81,7 +81,7 @@ class PoseCamera:
     def __init__(self, world: World, sim: SimConfig) -> None:
         self.world, self.sim = world, sim
         self._seen = world.perceived()  # what a camera sees (canopy split by the image); the judge reads `world`
-        self.classes = tuple(ClassEntry(int(i), c.name, bool(c.safe)) for i, c in sorted(self._seen.classes.items()))
+        self.classes = truth_classes(self._seen)
         self.seq = -1
         self._t0_s: float | None = None
         # The newest frame with the true pose it was rendered at, for the close looks (`crop`).

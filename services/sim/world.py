@@ -28,7 +28,6 @@ import json
 import zlib
 import logging
 import math
-import weakref
 from collections.abc import Mapping
 from dataclasses import dataclass
 from functools import cached_property
@@ -160,10 +159,11 @@ class World:
         classes (CANOPY_CLASS_NAME, OPEN_CLASS_NAME) with the class's safe flag; everything else,
         the image and the people, as they are. The perception and the frames' truth read this; the
         judge reads the world itself. Worlds with no such class are their own perceived world."""
-        seen = _PERCEIVED.get(self)
-        if seen is None:
-            seen = _PERCEIVED[self] = _perceived(self)
-        return seen
+        return self._perceived_world
+
+    @cached_property
+    def _perceived_world(self) -> "World":
+        return _perceived(self)
 
     @property
     def height_px(self) -> int:
@@ -327,9 +327,6 @@ def load_world_folder(folder: Path) -> World:
         world.name, world.width_px, world.height_px, gsd_m, world.width_m, world.height_m, len(classes),
     )
     return world
-
-
-_PERCEIVED: "weakref.WeakKeyDictionary[World, World]" = weakref.WeakKeyDictionary()
 
 
 def canopy_mask(image_rgb: np.ndarray, gsd_m: float) -> np.ndarray:
