@@ -29,6 +29,7 @@ from dovesei.shared.messages import ControllerStatus, SafetyHeatmap, Stamp, Vehi
 from dovesei.shared.zconfig import loopback_config
 
 DEADLINE_S = 10.0
+BLOCK = zenoh.CongestionControl.BLOCK
 
 
 def heatmap(seq: int, t_s: float, alt_m: float = 90.0) -> SafetyHeatmap:
@@ -51,11 +52,14 @@ class Harness:
     stop: threading.Event
     result: dict
 
+    # Blocking under congestion, as the lockstep sim and segmenter publish: Zenoh's data queue holds
+    # two 64 KB batches, so a dropping put right after a 352 px heatmap is lost whenever the
+    # transmit task waits more than 1 ms for the CPU (it did in CI, and no command ever came).
     def put_state(self, msg: VehicleState | bytes) -> None:
-        self.session.put(keys.state("uav1"), msg if isinstance(msg, bytes) else encode(msg))
+        self.session.put(keys.state("uav1"), msg if isinstance(msg, bytes) else encode(msg), congestion_control=BLOCK)
 
     def put_heatmap(self, msg: SafetyHeatmap | bytes) -> None:
-        self.session.put(keys.heatmap("uav1"), msg if isinstance(msg, bytes) else encode(msg))
+        self.session.put(keys.heatmap("uav1"), msg if isinstance(msg, bytes) else encode(msg), congestion_control=BLOCK)
 
     def next_cmd(self) -> VelocityCommand:
         cmd = self.cmds.recv(DEADLINE_S)
@@ -282,7 +286,7 @@ def test_the_entry_point_holds_the_vehicle_on_sigterm_and_exits_cleanly() -> Non
         with zenoh.open(loopback_config(connect_ports=[port])) as session, \
                 Inbox(session, keys.cmd("uav1"), VelocityCommand, newest_only=False) as cmds:
             assert wait_until(lambda: is_alive(session, "uav1", "controller", 0.5), 30.0), "service never came up"
-            session.put(keys.state("uav1"), encode(state(0, 0.05)))
+            session.put(keys.state("uav1"), encode(state(0, 0.05)), congestion_control=BLOCK)
             first = cmds.recv(DEADLINE_S)
             assert first is not None and first.state_seq == 0
             proc.send_signal(signal.SIGTERM)

@@ -13,6 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import zenoh
 
 from dovesei.camera import service as camera_service
 from dovesei.camera.service import CameraConfig, CameraStats
@@ -28,6 +29,7 @@ from dovesei.shared.messages import (
 from dovesei.shared.recording import FlightRecording
 
 DEADLINE_S = 10.0
+BLOCK = zenoh.CongestionControl.BLOCK  # as the lockstep sim and segmenter publish: nothing lost
 
 
 def heatmap(seq: int, t_s: float, vehicle_id: str = "uav1") -> SafetyHeatmap:
@@ -72,14 +74,15 @@ def test_controller_records_states_adopted_heatmaps_commands_and_statuses(zenoh_
         try:
             assert wait_until(lambda: is_alive(b, "uav1", "controller", 0.5), DEADLINE_S, stop=None)
             sent = [heatmap(0, 0.0), heatmap(1, 0.10)]
-            b.put(keys.heatmap("uav1"), encode(heatmap(7, 0.05, vehicle_id="uav2")))  # refused: never recorded
-            b.put(keys.heatmap("uav1"), encode(sent[0]))
-            b.put(keys.state("uav1"), encode(state(0, 0.05, await_seq=0)))
+            b.put(keys.heatmap("uav1"), encode(heatmap(7, 0.05, vehicle_id="uav2")),
+                  congestion_control=BLOCK)  # refused: never recorded
+            b.put(keys.heatmap("uav1"), encode(sent[0]), congestion_control=BLOCK)
+            b.put(keys.state("uav1"), encode(state(0, 0.05, await_seq=0)), congestion_control=BLOCK)
             assert cmds.recv(DEADLINE_S) is not None
-            b.put(keys.state("uav1"), encode(state(1, 0.10)))
+            b.put(keys.state("uav1"), encode(state(1, 0.10)), congestion_control=BLOCK)
             assert cmds.recv(DEADLINE_S) is not None
-            b.put(keys.heatmap("uav1"), encode(sent[1]))
-            b.put(keys.state("uav1"), encode(state(2, 0.15, await_seq=1)))
+            b.put(keys.heatmap("uav1"), encode(sent[1]), congestion_control=BLOCK)
+            b.put(keys.state("uav1"), encode(state(2, 0.15, await_seq=1)), congestion_control=BLOCK)
             assert cmds.recv(DEADLINE_S) is not None
         finally:
             stats = service.stop()
