@@ -62,7 +62,7 @@ from dovesei.sim.synthetic.styles import CITY_EXTRAS, CITY_STYLES, OPEN_STYLES, 
 log = logging.getLogger(__name__)
 
 # Bump whenever the look or the layout changes: it is part of the cache file name.
-GENERATOR_VERSION = 2
+GENERATOR_VERSION = 3  # 3: an object shows while any pixel of its label does
 DEFAULT_STYLE = "city"  # the original world; its bytes must never change for a given seed
 
 SIZE_RANGE_M = (200.0, 5000.0)
@@ -178,16 +178,30 @@ def _shadow_east_north(cv: Canvas) -> tuple[float, float]:
 
 def baked_objects(cv: Canvas) -> ObjectLayer:
     """The people and cars the drawing pass placed that are still visible in the finished labels
-    (a tree's canopy or the coast's sea may have covered some), in world coordinates."""
+    (a tree's canopy or the coast's sea may have covered some), in world coordinates.
+
+    Visible means any pixel of its footprint still carries its label: the judge counts those
+    pixels, so the simulator must draw the object there too (a person whose centre a crown covers
+    but whose shoulder shows is still a person the close look has to see)."""
     size_m = cv.side_px * cv.gsd_m
     rows = []
     for kind, x, y, ang, length, width, rgb in cv.objects:
-        if not cv.in_world(x, y, x, y) or cv.label_at(x, y) != (PERSON if kind == OBJ_PERSON else CAR):
+        # (One standing on the world's edge counts too: its centre may be just outside.)
+        if not _label_shows(cv, x, y, 0.5 * max(length, width), PERSON if kind == OBJ_PERSON else CAR):
             continue
         # Canvas angle from +x (east) towards +y (south) -> heading from north towards east.
         heading = math.atan2(math.cos(ang), -math.sin(ang))
         rows.append((kind, x, size_m - y, heading, 0.0, 0.0, 0.0, length, width, rgb, True))
     return ObjectLayer.build(rows)
+
+
+def _label_shows(cv: Canvas, x_m: float, y_m: float, r_m: float, label: int) -> bool:
+    """Whether any label pixel within `r_m` (plus a pixel) of the point is `label`."""
+    r_px = r_m / cv.gsd_m + 1.0
+    c, r = x_m / cv.gsd_m, y_m / cv.gsd_m
+    r0, r1 = max(0, int(r - r_px)), min(cv.side_px, int(r + r_px) + 1)
+    c0, c1 = max(0, int(c - r_px)), min(cv.side_px, int(c + r_px) + 1)
+    return bool((cv.lab[r0:r1, c0:c1] == label).any())
 
 
 def _draw(params: SyntheticParams) -> Canvas:
