@@ -377,6 +377,7 @@ class VisualOdometry(Message):
 
     RANGES: ClassVar[dict[str, tuple[float, float]]] = {
         "quality": (0.0, 1.0), "vel_var_m2_s2": (0.0, 1e6), "dt_s": (0.0, 10.0), "prev_frame_seq": SEQ,
+        "texture_share": (0.0, 1.0), "texture_offset": (-10.0, 10.0),
     }
 
     vehicle_id: str
@@ -393,6 +394,12 @@ class VisualOdometry(Message):
     roll_rad: float = 0.0
     pitch_rad: float = 0.0
     yaw_rad: float = 0.0
+    # Where the newer frame's texture is, valid velocity or not: the share of its grid cells that
+    # hold a trackable corner, and their centre on level ground in metres per metre of altitude,
+    # (forward, right) of the heading (a coast at the left edge of a view over the sea: share
+    # 0.2, offset (0, -0.6)). What a vehicle that lost its velocity over water flies towards.
+    texture_share: float = 0.0
+    texture_offset: tuple[float, float] = (0.0, 0.0)
 
 
 @message("dovesei.safety_heatmap", 1)

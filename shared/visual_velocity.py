@@ -48,13 +48,18 @@ disagree), an altitude that is not finite or not plausible, a time step that is 
 too long, or a speed beyond `max_speed_m_s` all give `valid=False`, a zero velocity, a huge
 variance and a `reason`. Every number that leaves here is finite and inside the bounds of the
 `VisualOdometry` message.
+
+Where the texture is. Each prepared frame also says which share of its grid cells held a corner
+and where their centre lies on the ground, level, per metre of altitude (forward, right of the
+heading). A vehicle over calm water has no velocity, but a coast in a corner of its view still
+shows which way the measurable ground is: the controller flies there when its velocity is lost.
 """
 
 from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -66,6 +71,7 @@ from dovesei.shared.validate import in_range, is_number, positive
 
 # What an invalid estimate reports as its variance per axis (m^2/s^2): (100 m/s)^2, "know nothing".
 INVALID_VAR_M2_S2 = 1.0e4
+TEXTURE_OFFSET_MAX = 10.0  # ground metres per metre of altitude: rays within max_tilt_deg reach tan(85 deg)
 # The fitted tilt corrects the velocity only when it stands out of its own noise: chi-square with
 # 2 degrees of freedom at 99 %. Below it the correction would add the fit's noise (h x its sd: at
 # 40 m on a 2.5 rad/s turn in the tests, ~0.9 mrad, 0.35 m/s over 0.1 s) for an error the tags'
@@ -175,6 +181,10 @@ class PreparedFrame:
     corners_px: np.ndarray  # (N, 1, 2) float32, work pixels
     width_px: int
     height_px: int
+    # Grid cells that held a corner (all of them, before `max_features`): their share of the cells,
+    # and their centre on level ground per metre of altitude, (forward, right) of the heading.
+    texture_share: float = 0.0
+    texture_offset: tuple[float, float] = (0.0, 0.0)
 
 
 @dataclass(frozen=True)
@@ -202,6 +212,9 @@ class VelocityEstimate:
     # real error from. Zero for an invalid estimate.
     tilt_rad: tuple[float, float] = (0.0, 0.0)
     tilt_var_rad2: float = 0.0
+    # The newer frame's texture (`PreparedFrame`), valid estimate or not.
+    texture_share: float = 0.0
+    texture_offset: tuple[float, float] = (0.0, 0.0)
 
 
 def rotation_body_to_level(roll_rad: float, pitch_rad: float, yaw_rad: float) -> np.ndarray:
@@ -249,8 +262,9 @@ def _grey_work(image: np.ndarray, work_width_px: int) -> np.ndarray:
     return np.ascontiguousarray(grey)
 
 
-def _corners(grey: np.ndarray, config: VisualVelocityConfig) -> np.ndarray:
-    """The strongest corner of each grid cell whose weaker gradient direction exceeds min_gradient."""
+def _corners(grey: np.ndarray, config: VisualVelocityConfig) -> tuple[np.ndarray, np.ndarray, int]:
+    """The strongest corner of each grid cell whose weaker gradient direction exceeds min_gradient
+    (at most `max_features`, strongest first), every such cell's corner, and the number of cells."""
     block = 5
     # cornerMinEigenVal scales Sobel(3) by 1/(4 block 255) and sums over the block, so a ramp of g
     # grey levels per pixel in the weaker direction reads (2 g / 255)^2 (checked in the tests).
@@ -260,7 +274,7 @@ def _corners(grey: np.ndarray, config: VisualVelocityConfig) -> np.ndarray:
     h, w = eig.shape
     rows, cols = (h - 2 * margin) // cell, (w - 2 * margin) // cell
     if rows < 1 or cols < 1:
-        return np.empty((0, 1, 2), np.float32)
+        return np.empty((0, 1, 2), np.float32), np.empty((0, 2)), 0
     y0, x0 = margin + (h - 2 * margin - rows * cell) // 2, margin + (w - 2 * margin - cols * cell) // 2
     tiles = eig[y0:y0 + rows * cell, x0:x0 + cols * cell].reshape(rows, cell, cols, cell).transpose(0, 2, 1, 3)
     tiles = tiles.reshape(rows, cols, cell * cell)
@@ -268,20 +282,39 @@ def _corners(grey: np.ndarray, config: VisualVelocityConfig) -> np.ndarray:
     strength = np.take_along_axis(tiles, best[..., None], axis=2)[..., 0]
     keep = strength > threshold
     if not keep.any():
-        return np.empty((0, 1, 2), np.float32)
+        return np.empty((0, 1, 2), np.float32), np.empty((0, 2)), rows * cols
     r_idx, c_idx = np.nonzero(keep)
-    order = np.argsort(-strength[r_idx, c_idx])[: config.max_features]
+    order = np.argsort(-strength[r_idx, c_idx])
     r_idx, c_idx = r_idx[order], c_idx[order]
     b = best[r_idx, c_idx]
-    ys = y0 + r_idx * cell + b // cell
-    xs = x0 + c_idx * cell + b % cell
-    return np.stack([xs, ys], axis=1).astype(np.float32).reshape(-1, 1, 2)
+    xy = np.stack([x0 + c_idx * cell + b % cell, y0 + r_idx * cell + b // cell], axis=1)
+    return xy[: config.max_features].astype(np.float32).reshape(-1, 1, 2), xy.astype(np.float64), rows * cols
+
+
+def _texture(cells_px: np.ndarray, n_cells: int, width_px: int, height_px: int, meta: FrameMeta,
+             config: VisualVelocityConfig) -> tuple[float, tuple[float, float]]:
+    """(share of cells with a corner, their centre on level ground per metre of altitude)."""
+    if n_cells < 1 or len(cells_px) == 0 or not all(is_number(v) for v in (meta.hfov_rad, meta.roll_rad,
+                                                                            meta.pitch_rad)):
+        return 0.0, (0.0, 0.0)
+    if not 0.0 < meta.hfov_rad < math.pi:
+        return 0.0, (0.0, 0.0)
+    rays = _rays_body(cells_px, width_px, height_px, focal_px(width_px, meta.hfov_rad))
+    rays = rays @ rotation_body_to_level(meta.roll_rad, meta.pitch_rad, 0.0).T
+    down = rays[:, 2] / np.linalg.norm(rays, axis=1) > math.cos(math.radians(config.max_tilt_deg))
+    if not down.any():
+        return 0.0, (0.0, 0.0)
+    ground = rays[down, :2] / rays[down, 2:3]
+    fwd, right = (float(v) for v in ground.mean(axis=0))
+    return min(1.0, len(cells_px) / n_cells), (fwd, right)
 
 
 def prepare(image: np.ndarray, meta: FrameMeta, config: VisualVelocityConfig = VisualVelocityConfig()) -> PreparedFrame:
     """Grey work image and its corners (ValueError for an image that is not one)."""
     grey = _grey_work(image, config.work_width_px)
-    return PreparedFrame(meta, grey, _corners(grey, config), grey.shape[1], grey.shape[0])
+    corners, cells, n_cells = _corners(grey, config)
+    share, offset = _texture(cells, n_cells, grey.shape[1], grey.shape[0], meta, config)
+    return PreparedFrame(meta, grey, corners, grey.shape[1], grey.shape[0], share, offset)
 
 
 def _invalid(prev: PreparedFrame, new: PreparedFrame, dt_s: float, reason: str, quality: float = 0.0,
@@ -317,6 +350,12 @@ def estimate(prev: PreparedFrame, new: PreparedFrame, config: VisualVelocityConf
     flight (`VisualVelocity`); the variance counts it when it exceeds the stated one
     (2 x attitude_sigma_rad^2). It never changes the velocity.
     """
+    est = _estimate(prev, new, config, tag_change_var_rad2)
+    return replace(est, texture_share=new.texture_share, texture_offset=new.texture_offset)
+
+
+def _estimate(prev: PreparedFrame, new: PreparedFrame, config: VisualVelocityConfig,
+              tag_change_var_rad2: float) -> VelocityEstimate:
     dt_s = new.meta.t_s - prev.meta.t_s if is_number(new.meta.t_s) and is_number(prev.meta.t_s) else float("nan")
     why = _plausibility(prev.meta, new.meta, dt_s, config)
     if why:
@@ -585,7 +624,10 @@ def odometry_message(est: VelocityEstimate, newer: FrameMeta, *, vehicle_id: str
     var = float(min(max(est.vel_var_m2_s2, 0.0), 1e6)) if valid and is_number(est.vel_var_m2_s2) else INVALID_VAR_M2_S2
     quality = float(min(max(est.quality, 0.0), 1.0)) if is_number(est.quality) else 0.0
     dt_s = float(min(max(est.dt_s, 0.0), 10.0)) if is_number(est.dt_s) else 0.0
+    share = float(min(max(est.texture_share, 0.0), 1.0)) if is_number(est.texture_share) else 0.0
+    offset = tuple(float(np.clip(v, -TEXTURE_OFFSET_MAX, TEXTURE_OFFSET_MAX)) if is_number(v) else 0.0
+                   for v in est.texture_offset)
     return VisualOdometry(vehicle_id=vehicle_id, frame_seq=int(est.seq), prev_frame_seq=int(est.prev_seq), stamp=stamp,
                           vel_body_frd_m_s=vel, vel_var_m2_s2=var, quality=quality, valid=valid, dt_s=dt_s,
                           alt_agl_m=alt or 0.0, sent_wall_s=sent_wall_s, roll_rad=roll or 0.0, pitch_rad=pitch or 0.0,
-                          yaw_rad=yaw or 0.0)
+                          yaw_rad=yaw or 0.0, texture_share=share, texture_offset=offset)

@@ -201,8 +201,10 @@ class ControllerConfig:
     odometry_min_quality: float = 0.5  # visual velocity below this quality is not flown on
     odometry_max_age_s: float = 0.5  # nor one older than this at arrival (receiver's clock)
     attitude_max_tilt_deg: float = 15.0  # attitude mode: largest roll/pitch demanded
-    # A velocity lost in flight (over water): fly back over the ground the camera measured at this
-    # speed, no descent, for at most nav_retreat_max_s (0: hold at once); gnss_denied.NavRetreat.
+    # A velocity lost in flight (over water): fly towards measurable ground the camera still sees
+    # aside (a coast in the view), else back over the ground it measured, at this speed, no
+    # descent; the way back for at most nav_retreat_max_s (0: hold at once, neither);
+    # gnss_denied.NavRetreat and OdometryGate.ground_seen.
     nav_retreat_speed_m_s: float = 4.0
     nav_retreat_max_s: float = 30.0
 
@@ -410,6 +412,7 @@ class ControllerCore:
         self._retreat = NavRetreat(self.config.nav_retreat_speed_m_s, self.config.nav_retreat_max_s)
         self._nav_trusted = True  # the newest tick's verdict, for the policy's observation
         self._retreat_ne: tuple[float, float] | None = None  # this tick's way back (north/east m/s), if any
+        self._seen_ne: tuple[float, float] | None = None  # measurable ground the camera sees (per m altitude)
         self._last_capture_t_s: float | None = None  # capture stamp of the heatmap the policy last took
         # Precision landing: the chosen spot relative to the vehicle (north, east, down metres) at
         # data-clock time t_s, fixed at the hand-over and carried by dead reckoning from then on.
@@ -598,10 +601,18 @@ class ControllerCore:
         self._last_state_t_s, self._last_state_seq = now_s, state.seq
         self._track.add(now_s, state.vel_body_frd_m_s, state.yaw_rad, state.roll_rad, state.pitch_rad)
         self._nav_trusted = nav is None or nav.velocity_trusted
-        self._retreat_ne = None
+        self._retreat_ne, self._seen_ne = None, None
         if nav is not None:
             self._retreat_ne = self._retreat.update(
                 now_s, to_ne(state.vel_body_frd_m_s[0], state.vel_body_frd_m_s[1], state.yaw_rad), self._nav_trusted)
+            if not self._nav_trusted and nav.ground_seen_ne is not None and cfg.nav_retreat_max_s > 0:
+                # Ground the camera can measure, seen now: flown towards before the remembered way
+                # back (a measurement, re-taken every frame, not a dead-reckoned guess), with no
+                # time limit: it ends when the velocity returns or the ground leaves the view.
+                n, e = nav.ground_seen_ne
+                norm = math.hypot(n, e)
+                self._seen_ne = (n, e)
+                self._retreat_ne = (n / norm * cfg.nav_retreat_speed_m_s, e / norm * cfg.nav_retreat_speed_m_s)
         if self.geofence is not None:
             self.geofence.add(now_s, state.vel_body_frd_m_s, state.yaw_rad)
         if self._first_alt_m is None:
@@ -870,7 +881,13 @@ class ControllerCore:
             # Descending blind drifts onto ground nobody checked: no descent until a source is
             # trusted; lost in flight, the way back over the ground that was measured first.
             reason = f"no trusted velocity source: {nav.reason}"
-            if self._retreat_ne is not None:
+            if self._seen_ne is not None:
+                n, e = self._seen_ne
+                reason += (f"; flying towards the ground the camera can measure, "
+                           f"{math.hypot(n, e) * state.alt_agl_m:.0f} m away at "
+                           f"{math.degrees(math.atan2(e, n)) % 360:.0f} deg, at "
+                           f"{self.config.nav_retreat_speed_m_s:g} m/s, no descent")
+            elif self._retreat_ne is not None:
                 reason += (f"; flying back over the ground the camera measured at "
                            f"{self.config.nav_retreat_speed_m_s:g} m/s, no descent "
                            f"({self._retreat.lost_for_s(state.stamp.t_s):.0f} of {self.config.nav_retreat_max_s:g} s)")

@@ -22,8 +22,10 @@ The three `--gnss-denied` modes (what happens once GNSS is gone):
     off           nothing is switched: the loss is reported and the controller holds.
 
 Whatever the mode, a velocity that is not trusted means no descent (`core.Mode.NO_VELOCITY`); a
-vehicle that lost it in flight first flies back over the ground the camera measured (`NavRetreat`),
-on the autopilot's inertial estimate, for a bounded time: in `attitude` mode the loop has no velocity to close and levels.
+vehicle that lost it in flight flies towards measurable ground its camera still sees aside
+(`OdometryGate.ground_seen`), else back over the ground the camera measured (`NavRetreat`), for a
+bounded time, on the autopilot's inertial estimate: in `attitude` mode the loop has no velocity to
+close and levels.
 
 Sources: EKF_STATUS_REPORT flag bits (MAVLink ardupilotmega EKF_STATUS_FLAGS) and PX4's
 ESTIMATOR_STATUS (ESTIMATOR_STATUS_FLAGS) share bits 1..512; ArduCopter's position_ok() needs
@@ -39,7 +41,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from dovesei.controller.mavlink.proto import (
     EKF_ATTITUDE,
@@ -93,6 +95,9 @@ class NavStatus:
     velocity_trusted: bool  # some horizontal velocity source is trusted: descent allowed
     source: str  # SOURCE_* above
     reason: str
+    # Untrusted only: where the camera's newest frame sees measurable ground, north/east metres of
+    # level ground per metre of altitude from below the vehicle (`OdometryGate.ground_seen`).
+    ground_seen_ne: tuple[float, float] | None = None
 
 
 @dataclass(frozen=True)
@@ -137,11 +142,19 @@ class OdometryLimits:
     max_age_s: float = 0.5  # a camera at >= 10 Hz: five frames missed is a lost source
     min_quality: float = 0.5
     max_var_m2_s2: float = 1.0  # 1 m/s standard deviation: beyond it the EKF would refuse it anyway
+    # Measurable ground seen aside (`ground_seen`): at least this share of the frame's grid cells
+    # with a corner (a 320 px work image has ~200: six of them, a pier's worth, not one wave) whose
+    # centre lies at least this far off the nadir, per metre of altitude (10 m at 100 m: a view
+    # textured all over, whose velocity failed for another reason, has its centre at the nadir).
+    seen_min_share: float = 0.03
+    seen_min_offset: float = 0.1
 
     def __post_init__(self) -> None:
         validate.positive("odometry max_age_s", self.max_age_s)
         validate.in_range("odometry min_quality", self.min_quality, 0.0, 1.0)
         validate.positive("odometry max_var_m2_s2", self.max_var_m2_s2)
+        validate.in_range("odometry seen_min_share", self.seen_min_share, 0.0, 1.0)
+        validate.in_range("odometry seen_min_offset", self.seen_min_offset, 0.0, 10.0)
 
 
 class OdometryGate:
@@ -200,6 +213,19 @@ class OdometryGate:
         if age_s > lim.max_age_s:
             return False, f"visual velocity {age_s:.1f} s old (limit {lim.max_age_s:g} s)"
         return False, f"{self._fault(odom)} (no good sample for {lim.max_age_s:g} s)"
+
+    def ground_seen(self, now_s: float) -> tuple[float, float] | None:
+        """Where the newest frame, fresh at `now_s`, sees measurable ground aside: north/east metres
+        of level ground per metre of altitude from below the vehicle, or None (none seen, too
+        little of it, straight below, or no fresh frame)."""
+        odom, lim = self._newest, self.limits
+        if odom is None or now_s - self._recv_s > lim.max_age_s or odom.texture_share < lim.seen_min_share:
+            return None
+        fwd, right = odom.texture_offset
+        if math.hypot(fwd, right) < lim.seen_min_offset:
+            return None
+        cy, sy = math.cos(odom.yaw_rad), math.sin(odom.yaw_rad)
+        return fwd * cy - right * sy, fwd * sy + right * cy
 
     def velocity(self, now_s: float) -> tuple[float, float, float] | None:
         """The newest good sample's body FRD velocity while the source is trusted at `now_s`, else None."""
@@ -261,6 +287,14 @@ class NavJudge:
         return False, ""
 
     def status(self, now_s: float, odometry: OdometryGate) -> NavStatus:
+        """The judgement now; untrusted, with where the camera sees measurable ground (modes that
+        fly on the camera)."""
+        status = self._status(now_s, odometry)
+        if status.velocity_trusted or self.mode == "off":
+            return status
+        return replace(status, ground_seen_ne=odometry.ground_seen(now_s))
+
+    def _status(self, now_s: float, odometry: OdometryGate) -> NavStatus:
         gnss_lost, gnss_why = self.gnss_lost()
         pos_lost, pos_why = self.position_lost(now_s)
         health = self._health

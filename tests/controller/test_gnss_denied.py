@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -405,3 +406,72 @@ def test_a_vehicle_that_never_had_gnss_is_judged_by_its_flags_alone() -> None:
         assert not judge.gnss_lost()[0]
     judge.on_gps_fix(1)
     assert judge.gnss_lost()[0]
+
+
+def test_the_gate_says_where_the_newest_frame_sees_measurable_ground_in_north_and_east() -> None:
+    gate = OdometryGate()
+    blind = dict(valid=False)
+    # Heading east (yaw 90 deg): texture to the right of the view is ground to the south.
+    gate.add(dataclasses.replace(odom(1, **blind), yaw_rad=math.pi / 2, texture_share=0.2,
+                                 texture_offset=(0.0, 0.5)), 0.1)
+    assert gate.ground_seen(0.1) == pytest.approx((-0.5, 0.0), abs=1e-12)
+    assert gate.ground_seen(0.1 + gate.limits.max_age_s + 0.01) is None  # a stale frame sees nothing now
+    # Too little of it (a wave's glint), or straight below (a view textured all over): nothing aside.
+    gate.add(dataclasses.replace(odom(2, **blind), texture_share=0.01, texture_offset=(0.5, 0.0)), 0.2)
+    assert gate.ground_seen(0.2) is None
+    gate.add(dataclasses.replace(odom(3, **blind), texture_share=0.9, texture_offset=(0.05, -0.02)), 0.3)
+    assert gate.ground_seen(0.3) is None
+
+
+def test_the_nav_status_carries_the_ground_seen_only_while_the_velocity_is_not_trusted() -> None:
+    judge = NavJudge("external-nav")
+    judge.on_gps_fix(mv.GPS_FIX_TYPE_3D)
+    judge.on_ekf_flags(GOOD_FLAGS)
+    judge.on_gps_fix(0)
+    judge.on_ekf_flags(DEAD_RECKONING_FLAGS)
+    gate = OdometryGate()
+    gate.add(dataclasses.replace(odom(1, valid=False), texture_share=0.2, texture_offset=(0.6, 0.0)), 0.1)
+    status = judge.status(0.1, gate)
+    assert not status.velocity_trusted and status.ground_seen_ne == pytest.approx((0.6, 0.0))
+    gate.add(dataclasses.replace(odom(2), texture_share=0.2, texture_offset=(0.6, 0.0)), 0.2)
+    status = judge.status(0.2, gate)
+    assert status.velocity_trusted and status.ground_seen_ne is None
+    # --gnss-denied off flies nothing on the camera: it holds.
+    off = NavJudge("off")
+    off.on_gps_fix(mv.GPS_FIX_TYPE_3D)
+    off.on_gps_fix(0)
+    gate.add(dataclasses.replace(odom(3, valid=False), texture_share=0.2, texture_offset=(0.6, 0.0)), 0.3)
+    assert off.status(0.3, gate).ground_seen_ne is None
+
+
+def test_a_velocity_lost_over_water_flies_towards_the_coast_the_camera_sees_before_the_way_back() -> None:
+    # Blind over the sea with the coast in the view: the coast is flown to (a measurement, every
+    # frame), not the remembered way back; with nothing seen, the way back as before.
+    config = ControllerConfig(lockstep=False, timing="real", vehicle_url="udpout:127.0.0.1:14550",
+                              gnss_denied="external-nav", state_stale_after_s=100.0, nav_retreat_max_s=10.0)
+    now = [0.0]
+    core = ControllerCore(config, policy=Observed(), mono=lambda: now[0])
+    trusted = NavStatus(True, False, True, "external-nav", "GNSS lost; the EKF fuses the visual velocity")
+    blind = NavStatus(True, False, False, "none", "GNSS lost; visual velocity invalid (quality 0.00)")
+    yaw = math.radians(30.0)
+    west = dataclasses.replace(blind, ground_seen_ne=(0.0, -0.4))  # 40 m west at 100 m
+
+    def tick(k: int, nav: NavStatus):
+        t = now[0] = 0.05 * k
+        if k % 5 == 0:
+            core.on_heatmap(SafetyHeatmap("uav1", k, Stamp(t, "vehicle"), np.full((8, 8), 200, np.uint8), 100.0,
+                                          1.27, "simulated", True, "p", "f", 0.01), t)
+        return core.tick(VehicleState("uav1", k, Stamp(t, "vehicle"), 100.0, (4.0, 0.0, 0.0), yaw_rad=yaw), t, nav)
+
+    for k in range(100):
+        tick(k, trusted)
+    for k in range(100, 400):  # 15 s: past the way back's 10 s, the coast is still flown to
+        cmd, status = tick(k, west)
+        fwd, right, down = cmd.vel_body_frd_m_s
+        north = fwd * math.cos(yaw) - right * math.sin(yaw)
+        east = fwd * math.sin(yaw) + right * math.cos(yaw)
+        assert (north, east, down) == pytest.approx((0.0, -config.nav_retreat_speed_m_s, 0.0), abs=1e-9)
+        assert core.mode is Mode.NO_VELOCITY and "towards the ground the camera can measure, 40 m away at 270 deg" \
+            in status.reason
+    cmd, status = tick(400, blind)  # the coast out of view: the way back's time is spent, a hold
+    assert cmd.vel_body_frd_m_s == (0.0, 0.0, 0.0) and "towards" not in status.reason

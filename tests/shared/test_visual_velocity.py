@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from dovesei.shared.codec import decode, encode
-from dovesei.shared.messages import Stamp, VisualOdometry
+from dovesei.shared.messages import FieldError, Stamp, VisualOdometry
 from dovesei.shared.visual_velocity import (
     INVALID_VAR_M2_S2, FrameMeta, VisualVelocity, VisualVelocityConfig, estimate, odometry_message, prepare,
 )
@@ -317,3 +317,36 @@ def test_messages_always_build_and_survive_the_codec() -> None:
     # A valid estimate paired with a frame whose attitude is not finite is not let through as valid.
     msg = odometry_message(good, bad_meta, vehicle_id="uav1", stamp=Stamp(10.1, "vehicle"))
     assert not msg.valid and msg.vel_var_m2_s2 == INVALID_VAR_M2_S2
+
+
+def test_each_frame_says_where_its_texture_lies_on_level_ground() -> None:
+    textured = view(0.0, 0.0, 100.0, 0.0, 0.0, 0.0, gsd=0.25)
+    grey = cv2.cvtColor(textured, cv2.COLOR_RGB2GRAY) if textured.ndim == 3 else textured
+    h, w = grey.shape[:2]
+    meta = FrameMeta(0, 0.0, 100.0, HFOV)
+    # All over: nearly every cell, centred on the nadir.
+    full = prepare(grey, meta)
+    assert full.texture_share > 0.9 and math.hypot(*full.texture_offset) < 0.05
+    # A coast along the left third of a view over calm water: a third of the cells, to the right of
+    # the nadir by minus two thirds of the half view (tan(36.5 deg) = 0.74 per metre of altitude).
+    coast = np.full_like(grey, 90)
+    coast[:, : w // 3] = grey[:, : w // 3]
+    left = prepare(coast, meta)
+    half = math.tan(HFOV / 2)
+    assert 0.25 < left.texture_share < 0.4
+    assert left.texture_offset[1] == pytest.approx(-2 / 3 * half, abs=0.08) and abs(left.texture_offset[0]) < 0.05
+    # Rolled 10 deg right, the image's left edge looks further left on the ground: levelled, the
+    # texture's centre moves left too (by about tan 10 deg), forward stays put.
+    rolled = prepare(coast, FrameMeta(0, 0.0, 100.0, HFOV, roll_rad=math.radians(10.0)))
+    assert rolled.texture_offset[1] < left.texture_offset[1] - 0.1 and abs(rolled.texture_offset[0]) < 0.05
+    # Nothing: no share, no offset; and the estimate and the message carry the newer frame's.
+    blank = prepare(np.full_like(grey, 90), meta)
+    assert blank.texture_share == 0.0 and blank.texture_offset == (0.0, 0.0)
+    est = estimate(blank, left)
+    assert not est.valid and est.texture_share == left.texture_share and est.texture_offset == left.texture_offset
+    msg = odometry_message(est, left.meta, vehicle_id="uav1", stamp=Stamp(0.1, "vehicle"))
+    back = decode(encode(msg), VisualOdometry)
+    assert back.texture_share == pytest.approx(left.texture_share) and back.texture_offset == pytest.approx(left.texture_offset)
+    with pytest.raises(FieldError, match="texture_share"):
+        VisualOdometry("uav1", 1, 0, Stamp(0.1, "vehicle"), (0.0, 0.0, 0.0), 1.0, 0.0, False, 0.1, 50.0,
+                       texture_share=1.5)
