@@ -574,3 +574,41 @@ def test_the_freshness_a_handover_needs_follows_the_looks_own_lag_within_its_bou
     assert limit_after(1.0, 0) == pytest.approx(1.0 + 1.25)  # a segmenter at 1 Hz
     assert limit_after(1.0, 4) == cfg.fresh_max_s  # answered after 5 s: capped
     assert limit_after(0.5, 0) == pytest.approx(cfg.fresh_s + 0.125)  # the bench's 2 Hz: 0.5 + 0.625 s
+
+
+def _answer_side(seq: int, side_m: float, found_at_m: float | None) -> LookResult:
+    """A look over a square of `side_m` with a person-sized finding `found_at_m` ahead of the spot."""
+    n = 352
+    never = np.full((n, n), 0.03, np.float32)
+    if found_at_m is not None:
+        row = int(round((n - 1) / 2 - found_at_m * n / side_m))
+        never[row - 10:row + 10, 166:186] = 0.8
+    heat = CropHeatmap("uav1", seq, seq, Stamp(float(seq), "sim"), never, never, (0.0, 0.0), side_m, 21.0,
+                       "simulated", True, "p", "n", 0.01)
+    return LookResult(seq, heat)
+
+
+def test_the_looks_that_hand_over_reach_as_far_as_a_walker_goes_before_the_hand_over() -> None:
+    """Within final_gate_m of the hand-over a look's square reaches margin + walk_m_s x the
+    freshness limit: someone 5 m from the spot, outside the 4 m margin but able to walk inside it
+    by the hand-over (coast start 22: a walker came from 4.7 m to 3.26 m), holds the hand-over;
+    above the band the square stays 2 x margin."""
+    cfg = CloseLookConfig()
+    inner = _Descending()
+    inner.handover_withheld = ""
+    gate = CloseLookPolicy(inner)
+    d = gate.step(Observation(t_s=0.0, alt_agl_m=41.0, prob_safe=None))
+    assert d.look_request.side_m == pytest.approx(2 * cfg.margin_m)  # 8 m above the band
+    gate.step(Observation(t_s=1.0, alt_agl_m=40.0, prob_safe=None, look=_answer_side(1, 8.0, None)))
+    d = gate.step(Observation(t_s=2.0, alt_agl_m=21.0, prob_safe=None, look=_answer_side(2, 8.0, None)))
+    reach = min(cfg.final_margin_max_m, cfg.margin_m + cfg.walk_m_s * gate.fresh_limit_s)
+    assert gate.final_margin_m == pytest.approx(reach) and reach > cfg.margin_m + 1.0
+    assert d.look_request is not None and d.look_request.side_m == pytest.approx(2 * reach)
+    assert inner.handover_withheld == ""
+    # Someone 5 m ahead: inside the final margin, a finding; the hand-over waits.
+    d = gate.step(Observation(t_s=2.5, alt_agl_m=21.0, prob_safe=None, look=_answer_side(3, 2 * reach, 5.0)))
+    assert "never set 4." in gate._verdict and f"margin {reach:.1f} m" in gate._verdict, gate._verdict
+    assert inner.handover_withheld == "close look: waiting for the never set to clear the margin"
+    assert not d.landing and d.vel_body_frd_m_s[2] <= 0.0
+    # An 8 m look (as before the band) would not have seen them at all: outside its square.
+    assert cfg.side_m / 2 < 4.7

@@ -16,7 +16,9 @@ set, `dovesei.shared.crop`, docs/CROP.md) and gates its descent on the verdict:
         anything inside the margin --> wait (hold the altitude, keep looking: people walk through)
             resume_looks clear looks in a row --> descend on;  not so within wait_s, or found again
             wait_s after the first finding on that ground --> reject (searches on from there)
-    within final_gate_m of the hand-over --> a look every final_look_period_s; hold unless a clear
+    within final_gate_m of the hand-over --> a look every final_look_period_s over a wider square
+        (margin + walk_m_s x fresh_limit_s: a walker beyond it cannot reach the margin by the
+        hand-over); hold unless a clear
         look was asked within `fresh_limit_s` (walkers: the hand-over needs a look from just now),
         and each decision's landing word ends there (the controller neither hands over nor
         descends past it)
@@ -148,6 +150,16 @@ class CloseLookConfig:
     # 4 m - 1.5 m/s x the limit; past fresh_max_s the vehicle holds and never hands over blind).
     fresh_s: float = 1.0
     fresh_max_s: float = 3.0
+    # ... and the looks that hand over reach that far beyond the margin: within final_gate_m of the
+    # hand-over and while one is confirmed, a look's margin (and its square's half side) is
+    # margin_m + walk_m_s x the freshness limit, at most final_margin_max_m. Anyone beyond it at
+    # the look cannot be inside margin_m by the hand-over. Found on the final code of 7 Dec (coast,
+    # `realistic`, start 22): a walker at 1.07 m/s, 4.7 m from the touchdown 1.5 s before the
+    # hand-over, outside the 8 m square, was 3.26 m from it at the hand-over. A wider square sees
+    # people worse (`closelook-stats`, `harsh`: 12 of 240 looks at people missed at 8 m, 27 at 10
+    # m), so only these looks are wider: standing people were looked at from 40 m down at 8 m.
+    walk_m_s: float = 1.5
+    final_margin_max_m: float = 6.0
     spot_slack_m: float = 1.0  # a look covers the spot it was asked for, moved at most this far
 
     def __post_init__(self) -> None:
@@ -165,6 +177,8 @@ class CloseLookConfig:
         validate.in_range("close look baseline_looks", self.baseline_looks, 1, 1000)
         # Something broad is at least as much of a finding as a person: never over less ground.
         validate.in_range("close look broad_margin_m", self.broad_margin_m, self.margin_m, 1e4)
+        validate.in_range("close look walk_m_s", self.walk_m_s, 0.0, 10.0)
+        validate.in_range("close look final_margin_max_m", self.final_margin_max_m, self.margin_m, 1e4)
         validate.in_range("close look blob_sigma_m", self.blob_sigma_m, 0.01, 5.0)
         validate.positive("close look blob_min_logit", self.blob_min_logit)
         validate.in_range("close look out_px", self.out_px, 32, 1024)
@@ -220,12 +234,14 @@ def blob_response(logit_never: np.ndarray, side_m: float, sigma_m: float) -> np.
 
 
 def verdict(prob_never: np.ndarray, side_m: float, cfg: CloseLookConfig,
-            baseline_logit: float | None = None) -> Verdict:
-    """Where the never map holds a person-sized blob (`blob_min_logit`) within margin_m of the
-    square's centre (the spot asked for), or crosses the broad level within broad_margin_m; the
-    nearest of either counts as found. The broad level is `never_p_min`, or with the flight's
-    `baseline_logit` (`CloseLookPolicy.baseline_logit`) baseline_k_logit above it, at most
-    `never_p_max`."""
+            baseline_logit: float | None = None, margin_m: float | None = None) -> Verdict:
+    """Where the never map holds a person-sized blob (`blob_min_logit`) within the margin
+    (`margin_m`, else the config's) of the square's centre (the spot asked for), or crosses the
+    broad level within broad_margin_m (at least the margin); the nearest of either counts as found.
+    The broad level is `never_p_min`, or with the flight's `baseline_logit`
+    (`CloseLookPolicy.baseline_logit`) baseline_k_logit above it, at most `never_p_max`."""
+    margin = cfg.margin_m if margin_m is None else margin_m
+    broad_margin = max(cfg.broad_margin_m, margin)
     n = prob_never.shape[0]
     m_per_px = side_m / n
     c = (n - 1) / 2.0
@@ -237,8 +253,8 @@ def verdict(prob_never: np.ndarray, side_m: float, cfg: CloseLookConfig,
     broad = prob_never >= broad_p
     lg = logit(prob_never, 1e-4)  # once: the blob rule's map and the flight's baseline
     blob = blob_response(lg, side_m, cfg.blob_sigma_m) >= cfg.blob_min_logit
-    counted = (broad & (dist_px_m <= cfg.broad_margin_m)) | (blob & (dist_px_m <= cfg.margin_m))
-    inside = dist_px_m <= cfg.margin_m
+    counted = (broad & (dist_px_m <= broad_margin)) | (blob & (dist_px_m <= margin))
+    inside = dist_px_m <= margin
     p_max = float(prob_never[inside].max()) if inside.any() else 0.0
     clear = int(np.count_nonzero(counted)) < cfg.never_min_px
     # The nearest finding: of those that count when it is one, of any in the square (a report) when clear.
@@ -249,12 +265,13 @@ def verdict(prob_never: np.ndarray, side_m: float, cfg: CloseLookConfig,
 
 @dataclass(frozen=True)
 class _Look:
-    """A look asked or taken: the spot (policy north/east), the altitude and the time."""
+    """A look asked or taken: the spot (policy north/east), the altitude, the time and its margin."""
 
     north_m: float
     east_m: float
     alt_m: float
     t_s: float
+    margin_m: float
 
 
 class CloseLookPolicy:
@@ -346,6 +363,13 @@ class CloseLookPolicy:
         step = float(np.median(self._steps)) if self._steps else 0.0
         return min(cfg.fresh_max_s, max(cfg.fresh_s, lag + 1.25 * step))
 
+    @property
+    def final_margin_m(self) -> float:
+        """The margin of the looks that hand over: the person margin plus a walker's reach over the
+        freshness limit (CloseLookConfig.walk_m_s), at most final_margin_max_m."""
+        cfg = self.look_config
+        return min(cfg.final_margin_max_m, cfg.margin_m + cfg.walk_m_s * self.fresh_limit_s)
+
     def _take(self, look: LookResult, obs: Observation) -> None:
         cfg, asked = self.look_config, self._asked
         self._asked = None
@@ -360,9 +384,10 @@ class CloseLookPolicy:
         self.looks += 1
         self._lags.append(min(max(obs.t_s - asked.t_s, 0.0), self.look_config.fresh_max_s))
         _, never = look.heatmap.probabilities()
-        v = verdict(never, look.heatmap.side_m, cfg, self.baseline_logit((asked.north_m, asked.east_m)))
+        v = verdict(never, look.heatmap.side_m, cfg, self.baseline_logit((asked.north_m, asked.east_m)),
+                    margin_m=asked.margin_m)
         self._medians.append((asked.north_m, asked.east_m, v.median_logit))
-        self._verdict = v.text(cfg.margin_m)
+        self._verdict = v.text(asked.margin_m)
         self._recent.append((asked.north_m, asked.east_m, not v.clear))
         if v.clear:
             self._streak = self._streak + 1 if self._covers(self._clear, (asked.north_m, asked.east_m)) else 1
@@ -452,8 +477,9 @@ class CloseLookPolicy:
             period = cfg.final_look_period_s  # the hand-over needs a fresh look: look more often there
         if self._asked is None and t - self._last_ask_s >= period:
             fwd, right = to_body(spot[0] - here[0], spot[1] - here[1], obs.yaw_rad)
-            request = LookRequest((float(fwd), float(right)), cfg.side_m, cfg.out_px)
-            self._asked, self._last_ask_s = _Look(spot[0], spot[1], alt, t), t
+            margin = self.final_margin_m if final or handing else cfg.margin_m
+            request = LookRequest((float(fwd), float(right)), 2.0 * margin, cfg.out_px)
+            self._asked, self._last_ask_s = _Look(spot[0], spot[1], alt, t, margin), t
         if not hold:
             # Near the hand-over the landing word lasts as long as the clear look stays fresh: the
             # controller hands over between this policy's steps, and must not on a look gone stale.
