@@ -66,12 +66,13 @@ import numpy as np
 
 from dovesei.shared.errors import ConfigError
 from dovesei.shared.footprint import focal_px
-from dovesei.shared.messages import Stamp, VisualOdometry
+from dovesei.shared.messages import Stamp, VisualOdometry, field_range
 from dovesei.shared.validate import in_range, is_number, positive
 
 # What an invalid estimate reports as its variance per axis (m^2/s^2): (100 m/s)^2, "know nothing".
 INVALID_VAR_M2_S2 = 1.0e4
-TEXTURE_OFFSET_MAX = 10.0  # ground metres per metre of altitude: rays within max_tilt_deg reach tan(85 deg)
+# Ground metres per metre of altitude, as the message bounds it (rays within max_tilt_deg reach tan(85 deg)).
+TEXTURE_OFFSET_MIN, TEXTURE_OFFSET_MAX = field_range(VisualOdometry, "texture_offset")
 # The fitted tilt corrects the velocity only when it stands out of its own noise: chi-square with
 # 2 degrees of freedom at 99 %. Below it the correction would add the fit's noise (h x its sd: at
 # 40 m on a 2.5 rad/s turn in the tests, ~0.9 mrad, 0.35 m/s over 0.1 s) for an error the tags'
@@ -291,6 +292,12 @@ def _corners(grey: np.ndarray, config: VisualVelocityConfig) -> tuple[np.ndarray
     return xy[: config.max_features].astype(np.float32).reshape(-1, 1, 2), xy.astype(np.float64), rows * cols
 
 
+def _looks_down(rays_level: np.ndarray, config: VisualVelocityConfig) -> np.ndarray:
+    """Which level rays look down within max_tilt_deg of vertical: normalised (unit length), a ray
+    looks down by its z; shallower ones meet the ground far away."""
+    return rays_level[:, 2] / np.linalg.norm(rays_level, axis=1) > math.cos(math.radians(config.max_tilt_deg))
+
+
 def _texture(cells_px: np.ndarray, n_cells: int, width_px: int, height_px: int, meta: FrameMeta,
              config: VisualVelocityConfig) -> tuple[float, tuple[float, float]]:
     """(share of cells with a corner, their centre on level ground per metre of altitude)."""
@@ -301,7 +308,7 @@ def _texture(cells_px: np.ndarray, n_cells: int, width_px: int, height_px: int, 
         return 0.0, (0.0, 0.0)
     rays = _rays_body(cells_px, width_px, height_px, focal_px(width_px, meta.hfov_rad))
     rays = rays @ rotation_body_to_level(meta.roll_rad, meta.pitch_rad, 0.0).T
-    down = rays[:, 2] / np.linalg.norm(rays, axis=1) > math.cos(math.radians(config.max_tilt_deg))
+    down = _looks_down(rays, config)
     if not down.any():
         return 0.0, (0.0, 0.0)
     ground = rays[down, :2] / rays[down, 2:3]
@@ -395,10 +402,7 @@ def _estimate(prev: PreparedFrame, new: PreparedFrame, config: VisualVelocityCon
                         quality=0.0, **counts)
     rays_prev = rays_prev[ok]
     rays_new = _rays_body(p1[ok], w, h, f_new) @ r_new.T
-    min_down = math.cos(math.radians(config.max_tilt_deg))
-    # Normalised rays (unit length) look down by their z; shallower ones meet the ground far away.
-    down_ok = (rays_prev[:, 2] / np.linalg.norm(rays_prev, axis=1) > min_down) & \
-              (rays_new[:, 2] / np.linalg.norm(rays_new, axis=1) > min_down)
+    down_ok = _looks_down(rays_prev, config) & _looks_down(rays_new, config)
     rays_prev, rays_new = rays_prev[down_ok], rays_new[down_ok]
     if len(rays_prev) < config.min_inliers:
         return _invalid(prev, new, dt_s, "too few tracked corners look down at the ground", **counts)
@@ -625,7 +629,7 @@ def odometry_message(est: VelocityEstimate, newer: FrameMeta, *, vehicle_id: str
     quality = float(min(max(est.quality, 0.0), 1.0)) if is_number(est.quality) else 0.0
     dt_s = float(min(max(est.dt_s, 0.0), 10.0)) if is_number(est.dt_s) else 0.0
     share = float(min(max(est.texture_share, 0.0), 1.0)) if is_number(est.texture_share) else 0.0
-    offset = tuple(float(np.clip(v, -TEXTURE_OFFSET_MAX, TEXTURE_OFFSET_MAX)) if is_number(v) else 0.0
+    offset = tuple(float(np.clip(v, TEXTURE_OFFSET_MIN, TEXTURE_OFFSET_MAX)) if is_number(v) else 0.0
                    for v in est.texture_offset)
     return VisualOdometry(vehicle_id=vehicle_id, frame_seq=int(est.seq), prev_frame_seq=int(est.prev_seq), stamp=stamp,
                           vel_body_frd_m_s=vel, vel_var_m2_s2=var, quality=quality, valid=valid, dt_s=dt_s,

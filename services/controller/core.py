@@ -412,7 +412,6 @@ class ControllerCore:
         self._retreat = NavRetreat(self.config.nav_retreat_speed_m_s, self.config.nav_retreat_max_s)
         self._nav_trusted = True  # the newest tick's verdict, for the policy's observation
         self._retreat_ne: tuple[float, float] | None = None  # this tick's way back (north/east m/s), if any
-        self._seen_ne: tuple[float, float] | None = None  # measurable ground the camera sees (per m altitude)
         self._last_capture_t_s: float | None = None  # capture stamp of the heatmap the policy last took
         # Precision landing: the chosen spot relative to the vehicle (north, east, down metres) at
         # data-clock time t_s, fixed at the hand-over and carried by dead reckoning from then on.
@@ -601,18 +600,11 @@ class ControllerCore:
         self._last_state_t_s, self._last_state_seq = now_s, state.seq
         self._track.add(now_s, state.vel_body_frd_m_s, state.yaw_rad, state.roll_rad, state.pitch_rad)
         self._nav_trusted = nav is None or nav.velocity_trusted
-        self._retreat_ne, self._seen_ne = None, None
+        self._retreat_ne = None
         if nav is not None:
             self._retreat_ne = self._retreat.update(
-                now_s, to_ne(state.vel_body_frd_m_s[0], state.vel_body_frd_m_s[1], state.yaw_rad), self._nav_trusted)
-            if not self._nav_trusted and nav.ground_seen_ne is not None and cfg.nav_retreat_max_s > 0:
-                # Ground the camera can measure, seen now: flown towards before the remembered way
-                # back (a measurement, re-taken every frame, not a dead-reckoned guess), with no
-                # time limit: it ends when the velocity returns or the ground leaves the view.
-                n, e = nav.ground_seen_ne
-                norm = math.hypot(n, e)
-                self._seen_ne = (n, e)
-                self._retreat_ne = (n / norm * cfg.nav_retreat_speed_m_s, e / norm * cfg.nav_retreat_speed_m_s)
+                now_s, to_ne(state.vel_body_frd_m_s[0], state.vel_body_frd_m_s[1], state.yaw_rad), self._nav_trusted,
+                nav.ground_seen_ne)
         if self.geofence is not None:
             self.geofence.add(now_s, state.vel_body_frd_m_s, state.yaw_rad)
         if self._first_alt_m is None:
@@ -881,8 +873,8 @@ class ControllerCore:
             # Descending blind drifts onto ground nobody checked: no descent until a source is
             # trusted; lost in flight, the way back over the ground that was measured first.
             reason = f"no trusted velocity source: {nav.reason}"
-            if self._seen_ne is not None:
-                n, e = self._seen_ne
+            if self._retreat_ne is not None and self._retreat.seen_ne is not None:
+                n, e = self._retreat.seen_ne
                 reason += (f"; flying towards the ground the camera can measure, "
                            f"{math.hypot(n, e) * state.alt_agl_m:.0f} m away at "
                            f"{math.degrees(math.atan2(e, n)) % 360:.0f} deg, at "

@@ -358,10 +358,26 @@ class NavRetreat:
         self._good: tuple[float, float] | None = None  # where to go back to
         self._lost_t_s: float | None = None
         self._way: tuple[float, float] | None = None  # the newest way back (north/east m/s)
+        self.seen_ne: tuple[float, float] | None = None  # this tick's ground seen, when flown towards
 
-    def update(self, t_s: float, vel_ne_m_s: tuple[float, float], trusted: bool) -> tuple[float, float] | None:
-        """One tick (the autopilot's velocity estimate, north/east, and whether it is trusted): the
-        north/east velocity to fly back on, or None (trusted: follow the policy; else hold)."""
+    def update(self, t_s: float, vel_ne_m_s: tuple[float, float], trusted: bool,
+               seen_ne: tuple[float, float] | None = None) -> tuple[float, float] | None:
+        """One tick (the autopilot's velocity estimate, north/east, whether it is trusted, and where
+        the camera sees measurable ground, `NavStatus.ground_seen_ne`): the north/east velocity to
+        fly on, or None (trusted: follow the policy; else hold).
+
+        Ground seen now is flown towards before the remembered way back (a measurement, re-taken
+        every frame, not a dead-reckoned guess), with no time limit: it ends when the velocity
+        returns or the ground leaves the view; `seen_ne` says when it is (None otherwise)."""
+        way = self._update(t_s, vel_ne_m_s, trusted)
+        self.seen_ne = None
+        if trusted or seen_ne is None or self.max_s <= 0:
+            return way
+        self.seen_ne = seen_ne
+        norm = math.hypot(*seen_ne)
+        return seen_ne[0] / norm * self.speed_m_s, seen_ne[1] / norm * self.speed_m_s
+
+    def _update(self, t_s: float, vel_ne_m_s: tuple[float, float], trusted: bool) -> tuple[float, float] | None:
         if self._t_s is not None and t_s < self._t_s:
             self.reset()  # time went back: another timeline
         if self._t_s is not None:

@@ -226,6 +226,14 @@ class Canvas:
             return int(self.lab[r, c])
         return 0
 
+    def label_near(self, x_m: float, y_m: float, r_m: float, label: int) -> bool:
+        """Whether any label pixel within `r_m` (plus a pixel) of the point, inside the world, is `label`."""
+        r_px = r_m / self.gsd_m + 1.0
+        c, r = x_m / self.gsd_m, y_m / self.gsd_m
+        r0, r1 = max(0, int(r - r_px)), min(self.side_px, int(r + r_px) + 1)
+        c0, c1 = max(0, int(c - r_px)), min(self.side_px, int(c + r_px) + 1)
+        return bool((self.lab[r0:r1, c0:c1] == label).any())
+
 
 _UNIT_CIRCLES = {n: np.stack([np.cos(a), np.sin(a)], axis=1)
                  for n in (6, 10, 12, 40) for a in [np.linspace(0, 2 * math.pi, n, endpoint=False)]}

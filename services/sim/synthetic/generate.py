@@ -187,21 +187,12 @@ def baked_objects(cv: Canvas) -> ObjectLayer:
     rows = []
     for kind, x, y, ang, length, width, rgb in cv.objects:
         # (One standing on the world's edge counts too: its centre may be just outside.)
-        if not _label_shows(cv, x, y, 0.5 * max(length, width), PERSON if kind == OBJ_PERSON else CAR):
+        if not cv.label_near(x, y, 0.5 * max(length, width), PERSON if kind == OBJ_PERSON else CAR):
             continue
         # Canvas angle from +x (east) towards +y (south) -> heading from north towards east.
         heading = math.atan2(math.cos(ang), -math.sin(ang))
         rows.append((kind, x, size_m - y, heading, 0.0, 0.0, 0.0, length, width, rgb, True))
     return ObjectLayer.build(rows)
-
-
-def _label_shows(cv: Canvas, x_m: float, y_m: float, r_m: float, label: int) -> bool:
-    """Whether any label pixel within `r_m` (plus a pixel) of the point is `label`."""
-    r_px = r_m / cv.gsd_m + 1.0
-    c, r = x_m / cv.gsd_m, y_m / cv.gsd_m
-    r0, r1 = max(0, int(r - r_px)), min(cv.side_px, int(r + r_px) + 1)
-    c0, c1 = max(0, int(c - r_px)), min(cv.side_px, int(c + r_px) + 1)
-    return bool((cv.lab[r0:r1, c0:c1] == label).any())
 
 
 def _draw(params: SyntheticParams) -> Canvas:
