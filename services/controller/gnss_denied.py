@@ -373,8 +373,10 @@ class NavRetreat:
         self.seen_ne = None
         if trusted or seen_ne is None or self.max_s <= 0:
             return way
-        self.seen_ne = seen_ne
         norm = math.hypot(*seen_ne)
+        if not 0.0 < norm < math.inf:
+            return way  # no direction in it (a gate configured with no minimum offset saw it at the nadir)
+        self.seen_ne = seen_ne
         return seen_ne[0] / norm * self.speed_m_s, seen_ne[1] / norm * self.speed_m_s
 
     def _update(self, t_s: float, vel_ne_m_s: tuple[float, float], trusted: bool) -> tuple[float, float] | None:

@@ -475,3 +475,13 @@ def test_a_velocity_lost_over_water_flies_towards_the_coast_the_camera_sees_befo
             in status.reason
     cmd, status = tick(400, blind)  # the coast out of view: the way back's time is spent, a hold
     assert cmd.vel_body_frd_m_s == (0.0, 0.0, 0.0) and "towards" not in status.reason
+
+
+def test_ground_seen_straight_below_gives_no_direction_and_the_way_back_stands() -> None:
+    retreat = NavRetreat(4.0, 30.0)
+    for k in range(80):  # 4 s trusted, flying north at 4 m/s
+        retreat.update(0.05 * k, (4.0, 0.0), True)
+    way = retreat.update(4.0, (4.0, 0.0), False, seen_ne=(0.0, 0.0))
+    assert way == pytest.approx((-4.0, 0.0)) and retreat.seen_ne is None
+    assert retreat.update(4.05, (0.0, 0.0), False, seen_ne=(0.0, 0.3)) == pytest.approx((0.0, 4.0))
+    assert retreat.seen_ne == (0.0, 0.3)
