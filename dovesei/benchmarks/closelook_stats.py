@@ -108,14 +108,19 @@ def _vehicle_square(world: World, rng: np.random.Generator) -> tuple[float, floa
 
 
 def looks_of(world: World, profile: str, squares: int, looks: int, seed_base: int,
-             cfg: CloseLookConfig = CloseLookConfig(), vehicles: bool = False) -> list[dict]:
+             cfg: CloseLookConfig = CloseLookConfig(), vehicles: bool = False, margin_m: float | None = None,
+             out_px: int | None = None) -> list[dict]:
     """One record per square: person or clear (or, with `vehicles`, a car near it), distance to the
-    nearest person (car), one verdict per look."""
+    nearest person (car), one verdict per look. The looks' margin is `margin_m` (the config's by
+    default), their square twice that, asked at `out_px` (the config's by default)."""
+    margin = cfg.margin_m if margin_m is None else margin_m
+    side = 2.0 * margin
+    out_px = cfg.out_px if out_px is None else out_px
     rng = np.random.default_rng([seed_base, 53 if vehicles else 47])
     out = []
     for i in range(squares):
         person = not vehicles and i % 2 == 0
-        found = _vehicle_square(world, rng) if vehicles else _square(world, rng, person, cfg.side_m)
+        found = _vehicle_square(world, rng) if vehicles else _square(world, rng, person, side)
         if found is None:
             continue
         cx, cy, nearest = found
@@ -129,11 +134,11 @@ def looks_of(world: World, profile: str, squares: int, looks: int, seed_base: in
                            SimConfig(vehicle_profile="ideal"))
             core.reset()
             try:
-                crop = core.crop(CropRequest("uav1", k + 1, Stamp(0.0, "sim"), (0.0, 0.0), cfg.side_m, cfg.out_px))
+                crop = core.crop(CropRequest("uav1", k + 1, Stamp(0.0, "sim"), (0.0, 0.0), side, out_px))
             except CropRefused:
                 continue
             _, never = seg.process_crop(crop).probabilities()
-            fired.append(not verdict(never, cfg.side_m, cfg).clear)
+            fired.append(not verdict(never, side, cfg, margin_m=margin).clear)
         out.append({"person": person, "vehicle": vehicles, f"nearest_{'vehicle' if vehicles else 'person'}_m":
                     round(nearest, 2), "alt_m": alt, "fired": fired})
     return out
@@ -168,6 +173,11 @@ def main(argv: Sequence[str] | None = None) -> int:
                    help="squares per world and profile with a car within 5 m of the centre (0: none)")
     p.add_argument("--looks", type=int, default=4, help="looks at each square")
     p.add_argument("--seed-base", type=int, default=200, help=f"first perception seed (>= {MIN_SEED_BASE})")
+    p.add_argument("--margin-m", type=float, default=None,
+                   help=f"the looks' margin, their square twice it (default {CloseLookConfig().margin_m:g}: the descent's "
+                        "looks; the final looks of a bench flight: 5.69)")
+    p.add_argument("--out-px", type=int, default=None,
+                   help=f"the crops' size (default {CloseLookConfig().out_px}, as the policy asks)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of the table")
     args = p.parse_args(argv)
     profiles = [s.strip() for s in args.profile.split(",") if s.strip()]
@@ -183,14 +193,23 @@ def main(argv: Sequence[str] | None = None) -> int:
                              ("--vehicle-crops", args.vehicle_crops, 0)):
         if not low <= value <= 10_000:
             raise ConfigError(f"{flag} {value}: expected {low}..10000")
+    cfg = CloseLookConfig()
+    margin = cfg.margin_m if args.margin_m is None else args.margin_m
+    if not (math.isfinite(margin) and cfg.margin_m / 4 <= margin <= 4 * cfg.margin_m):
+        raise ConfigError(f"--margin-m {args.margin_m}: expected {cfg.margin_m / 4:g}..{4 * cfg.margin_m:g} m")
+    out_px = cfg.out_px if args.out_px is None else args.out_px
+    if not 32 <= out_px <= 1024:
+        raise ConfigError(f"--out-px {args.out_px}: expected 32..1024")
     worlds = {spec: load_world(spec) for spec in (args.world or DEFAULT_WORLDS)}
     result = {"worlds": list(worlds), "crops": args.crops, "vehicle_crops": args.vehicle_crops, "looks": args.looks,
-              "seed_base": args.seed_base, "profiles": {}}
+              "seed_base": args.seed_base, "margin_m": margin, "side_m": 2.0 * margin, "out_px": out_px, "profiles": {}}
     for name in profiles:
-        records = [r for w in worlds.values() for r in looks_of(w, name, args.crops, args.looks, args.seed_base)]
+        records = [r for w in worlds.values()
+                   for r in looks_of(w, name, args.crops, args.looks, args.seed_base, margin_m=margin, out_px=out_px)]
         if args.vehicle_crops:
             records += [r for w in worlds.values()
-                        for r in looks_of(w, name, args.vehicle_crops, args.looks, args.seed_base, vehicles=True)]
+                        for r in looks_of(w, name, args.vehicle_crops, args.looks, args.seed_base, vehicles=True,
+                                          margin_m=margin, out_px=out_px)]
         result["profiles"][name] = summarise(records)
     result["loadavg"] = [round(v, 2) for v in os.getloadavg()]
     if args.json:
@@ -198,7 +217,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     print(f"close-look rule on simulated crops: {len(worlds)} worlds, {args.crops} squares each "
           f"(+{args.vehicle_crops} with a car), {args.looks} looks, "
-          f"seeds from {args.seed_base}")
+          f"seeds from {args.seed_base}, {2.0 * margin:g} m squares at {out_px} px")
     for name, s in result["profiles"].items():
         print(f"  {name:10s} people: {s['person_looks_missed']}/{s['person_looks']} looks missed, gate opened on "
               f"{s['person_gate_opened']}/{s['person_squares']} | clear: {s['clear_looks_fired']}/{s['clear_looks']} "
