@@ -758,7 +758,8 @@ class ControllerCore:
         obs = Observation(t_s=self._policy_time_s(hm), alt_agl_m=hm.alt_agl_m, prob_safe=hm.probability(), hfov_rad=hm.hfov_rad,
                           roll_rad=roll, pitch_rad=pitch, yaw_rad=yaw,
                           vel_est_body_frd_m_s=state.vel_body_frd_m_s, odom_delta_ne_m=odom, frame_seq=hm.seq,
-                          look=look, velocity_trusted=self._nav_trusted)
+                          look=look, velocity_trusted=self._nav_trusted,
+                          delay_s=max(0.0, state.stamp.t_s - hm.stamp.t_s))
         start = time.perf_counter()
         try:
             decision = self.policy.step(obs)

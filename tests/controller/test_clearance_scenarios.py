@@ -312,7 +312,7 @@ def test_the_observation_has_no_position_field() -> None:
     fields = {f.name for f in dataclasses.fields(Observation)}
     assert fields == {"t_s", "alt_agl_m", "prob_safe", "hfov_rad", "roll_rad", "pitch_rad", "yaw_rad",
                       "vel_est_body_frd_m_s", "cmd_vel_body_frd_m_s", "odom_delta_ne_m", "frame_seq", "look",
-                      "velocity_trusted"}
+                      "velocity_trusted", "delay_s"}
     assert not any("pos" in f or f.endswith(("_x_m", "_y_m")) for f in fields)
     # A close look brings probabilities and the square's geometry, never the crop (a sim's truth).
     assert {f.name for f in dataclasses.fields(LookResult)} == {"request_seq", "heatmap", "refusal"}

@@ -558,22 +558,51 @@ def test_the_freshness_a_handover_needs_follows_the_looks_own_lag_within_its_bou
     it a slow segmenter means holding, as before)."""
     cfg = CloseLookConfig()
 
-    def limit_after(step_s: float, lag_steps: int) -> float:
+    def limit_after(step_s: float, lag_steps: int, delay_s: float = 0.0) -> float:
         inner = _Descending()
         inner.handover_withheld = ""
         gate = CloseLookPolicy(inner)
         t = 0.0
-        gate.step(Observation(t_s=t, alt_agl_m=41.0, prob_safe=None))  # asks look 1 at t = 0
+        gate.step(Observation(t_s=t, alt_agl_m=41.0, prob_safe=None, delay_s=delay_s))  # asks look 1 at t = 0
         for _ in range(lag_steps):
             t += step_s
-            gate.step(Observation(t_s=t, alt_agl_m=40.0, prob_safe=None))
-        gate.step(Observation(t_s=t + step_s, alt_agl_m=40.0, prob_safe=None, look=_answer(1, False)))
+            gate.step(Observation(t_s=t, alt_agl_m=40.0, prob_safe=None, delay_s=delay_s))
+        gate.step(Observation(t_s=t + step_s, alt_agl_m=40.0, prob_safe=None, look=_answer(1, False),
+                              delay_s=delay_s))
         return gate.fresh_limit_s
 
     assert limit_after(0.25, 0) == cfg.fresh_s  # answered a step later: 0.25 + 0.31 s, under fresh_s
     assert limit_after(1.0, 0) == pytest.approx(1.0 + 1.25)  # a segmenter at 1 Hz
     assert limit_after(1.0, 4) == cfg.fresh_max_s  # answered after 5 s: capped
     assert limit_after(0.5, 0) == pytest.approx(cfg.fresh_s + 0.125)  # the bench's 2 Hz: 0.5 + 0.625 s
+    # ... flown 0.4 s after each heatmap's capture (the bench's real timing): that much longer.
+    assert limit_after(0.5, 0, 0.4) == pytest.approx(0.5 + 0.4 + 0.625)
+    assert limit_after(0.5, 0, 100.0) == cfg.fresh_max_s  # a long one is bounded
+    assert limit_after(0.5, 0, math.inf) == pytest.approx(cfg.fresh_s + 0.125)  # no number: never a longer word
+
+
+def test_the_landing_word_outlasts_the_step_until_its_renewal_is_flown() -> None:
+    """In the final band each decision is flown `delay` after its heatmap's stamp, so its landing
+    word must last until the next decision is flown, or the descent and the hand-over's confirmation
+    stop every step. The bench's timing: steps every 0.5 s, looks answered at the next step,
+    decisions flown 0.4 s after the stamp (a word of 1.125 s ran out 0.275 s of every 0.5 s)."""
+    inner = _Descending()
+    inner.handover_withheld = ""
+    gate = CloseLookPolicy(inner)
+    step, delay = 0.5, 0.4
+    gate.step(Observation(t_s=0.0, alt_agl_m=41.0, prob_safe=None, delay_s=delay))
+    gate.step(Observation(t_s=0.5, alt_agl_m=40.0, prob_safe=None, look=_answer(1, False), delay_s=delay))
+    words, t, seq = [], 0.5, 2
+    while t < 8.0:
+        t += step
+        look = _answer(seq, False) if gate._asked is not None else None
+        seq += look is not None
+        d = gate.step(Observation(t_s=t, alt_agl_m=21.0, prob_safe=None, look=look, delay_s=delay))
+        if d.landing_until_s is not None:
+            words.append((t, d.landing_until_s))
+    assert len(words) >= 10
+    for (t_now, until), (t_next, _) in zip(words, words[1:]):
+        assert until >= t_next + delay, (t_now, until, t_next)  # still valid when the next one is flown
 
 
 def _answer_side(seq: int, side_m: float, found_at_m: float | None) -> LookResult:

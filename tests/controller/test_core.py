@@ -96,6 +96,17 @@ def test_lockstep_adopts_exactly_the_awaited_seq_and_never_an_early_one() -> Non
     assert cmd.frame_seq == 2 and len(policy.observations) == 2
 
 
+def test_the_observation_says_how_long_after_its_capture_the_decision_is_flown() -> None:
+    """`Observation.delay_s`: the state the decision is adopted at, less the heatmap's stamp (the
+    pipeline's latency, 0.4 s in the bench's real timing)."""
+    core, policy = make_core(lockstep=True)
+    core.on_heatmap(heatmap(1, 10.0), 0.0)
+    core.tick(state(0, 10.40, await_seq=1))
+    core.on_heatmap(heatmap(2, 10.5), 0.0)
+    core.tick(state(1, 10.95, await_seq=2))
+    assert [round(o.delay_s, 6) for o in policy.observations] == [0.4, 0.45]
+
+
 def test_lockstep_missing_awaited_heatmap_is_counted_and_the_last_decision_kept() -> None:
     core, policy = make_core(lockstep=True)
     core.on_heatmap(heatmap(0, 0.0), 0.0)

@@ -82,6 +82,10 @@ class Observation:
     # lost too: over calm water, say): the policy's commands are not flown meanwhile, and the
     # ground ahead gave the camera nothing to measure.
     velocity_trusted: bool = True
+    # How long after the heatmap's capture the decision taken on it starts being flown (data clock:
+    # the state the controller adopts it at, less the heatmap's stamp): the pipeline's latency. A
+    # word that must outlast it until the next decision (the close look's landing word) counts it.
+    delay_s: float = 0.0
 
 
 @dataclass(frozen=True)

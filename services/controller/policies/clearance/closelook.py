@@ -144,8 +144,9 @@ class CloseLookConfig:
     # of its 4 m, leaving 2.5 m from the spot in the worst case. Found in a session experiment
     # (Dubai start 15, the perception reading the world's photo): with 3 s allowed, a walker came
     # from beyond the square to 2.5 m of the touchdown in the 2.3 s between the last clear look and
-    # the hand-over. A look cannot be younger than its answer's lag plus the policy's step until
-    # the next decision renews the word (the bench: 0.5 + 0.5 s), so the limit is that, at least
+    # the hand-over. A look cannot be younger than its answer's lag plus the delay until a decision
+    # is flown plus the policy's step until the next decision renews the word (the bench: 0.5 +
+    # 0.4 + 0.5 s; `fresh_limit_s`), so the limit is that, at least
     # fresh_s and at most fresh_max_s (a slow segmenter's looks leave walkers less of the margin,
     # 4 m - 1.5 m/s x the limit; past fresh_max_s the vehicle holds and never hands over blind).
     fresh_s: float = 1.0
@@ -309,9 +310,11 @@ class CloseLookPolicy:
         # Every look's spot and median log-odds P(never): the flight's baseline for the broad rule.
         self._medians: deque[tuple[float, float, float]] = deque(maxlen=200)
         self.looks = self.failures = self.findings = 0
-        # The recent answers' lags (ask -> answer) and the recent steps, on the policy's clock.
+        # The recent answers' lags (ask -> answer) and the recent steps, on the policy's clock, and
+        # the recent decisions' delays (heatmap capture -> flown, the data clock).
         self._lags: deque[float] = deque(maxlen=5)
         self._steps: deque[float] = deque(maxlen=5)
+        self._delays: deque[float] = deque(maxlen=5)
         self._last_t_s: float | None = None
 
     # ---- the step ------------------------------------------------------------------------
@@ -320,6 +323,8 @@ class CloseLookPolicy:
         if self._last_t_s is not None:
             self._steps.append(min(max(obs.t_s - self._last_t_s, 0.0), self.look_config.fresh_max_s))
         self._last_t_s = obs.t_s
+        delay = obs.delay_s if isinstance(obs.delay_s, (int, float)) and math.isfinite(obs.delay_s) else 0.0
+        self._delays.append(min(max(float(delay), 0.0), self.look_config.fresh_max_s))
         if obs.look is not None:
             self._take(obs.look, obs)
         if hasattr(self.inner, "handover_withheld"):
@@ -355,13 +360,21 @@ class CloseLookPolicy:
 
     @property
     def fresh_limit_s(self) -> float:
-        """How old the clear look behind a hand-over may be: the answers' lag plus a step and a quarter
-        (the next decision renews the word a little after its heatmap's stamp), medians of the last
-        few (one long gap moves neither), within [fresh_s, fresh_max_s] (CloseLookConfig)."""
+        """How old the clear look behind a hand-over may be: the answers' lag, plus the delay until a
+        decision is flown, plus a step and a quarter (the next decision renews the word a step
+        later, flown that delay after its heatmap's stamp), medians of the last few (one long gap
+        moves none of them), within [fresh_s, fresh_max_s] (CloseLookConfig).
+
+        Without the delay the word ran out every step before its renewal was flown: in the bench
+        (answers a 0.5 s step after the ask, flown 0.4 s after the heatmap's capture) a limit of
+        1.125 s left the word out 0.275 s of every 0.5 s, the descent and the hand-over's
+        confirmation stopping each time (harsh villas start 31 under the shift confirmed its
+        hand-over for 7 s and touched down 4.3 m from its spot)."""
         cfg = self.look_config
         lag = float(np.median(self._lags)) if self._lags else 0.0
         step = float(np.median(self._steps)) if self._steps else 0.0
-        return min(cfg.fresh_max_s, max(cfg.fresh_s, lag + 1.25 * step))
+        delay = float(np.median(self._delays)) if self._delays else 0.0
+        return min(cfg.fresh_max_s, max(cfg.fresh_s, lag + delay + 1.25 * step))
 
     @property
     def final_margin_m(self) -> float:
