@@ -316,6 +316,7 @@ class CloseLookPolicy:
         self._steps: deque[float] = deque(maxlen=5)
         self._delays: deque[float] = deque(maxlen=5)
         self._last_t_s: float | None = None
+        self._final = False  # in the final band (entered within final_gate_m, left final_gate_m above it)
 
     # ---- the step ------------------------------------------------------------------------
 
@@ -456,6 +457,7 @@ class CloseLookPolicy:
         if d.state not in ("DESCEND", "HANDOVER") or chosen is None or alt > cfg.look_alt_m + cfg.brake_m:
             if d.state not in ("DESCEND", "HANDOVER"):
                 self._never_since_s, self._spot, self._trouble = None, None, None
+            self._final = False
             return dataclasses.replace(d, look_verdict=self._verdict)
         spot = self._spot = (chosen.north_m, chosen.east_m)
         here = (chosen.est_north_m, chosen.est_east_m)
@@ -468,7 +470,13 @@ class CloseLookPolicy:
         if cleared:
             self._committed = self._clear  # the gate is open for this spot: findings now mean waiting
         fresh = cleared and self._fresh(t)
-        final = alt <= cfg.handover_alt_m + cfg.final_gate_m
+        # The final band is entered within final_gate_m of the hand-over and left only final_gate_m
+        # above that: a noisy baro crosses its edge both ways, and each crossing had put the looks
+        # back on look_period_s, leaving the next word older than its renewal (harsh desert start 11
+        # under the shift hovered 22-26 m for 12 s, looking every second, its word running out).
+        band_m = cfg.handover_alt_m + cfg.final_gate_m
+        self._final = alt <= band_m or (self._final and alt <= band_m + cfg.final_gate_m)
+        final = self._final
         hold, why = False, ""
         if handing:
             pass  # allowed at this step's start (`step` takes it back otherwise): the looks go on, no hold
