@@ -175,7 +175,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--seed-base", type=int, default=200, help=f"first perception seed (>= {MIN_SEED_BASE})")
     p.add_argument("--margin-m", type=float, default=None,
                    help=f"the looks' margin, their square twice it (default {CloseLookConfig().margin_m:g}: the descent's "
-                        "looks; the final looks of a bench flight: 6, the cap)")
+                        "looks; the final looks of a bench flight: 5.7, the cap)")
     p.add_argument("--out-px", type=int, default=None,
                    help=f"the crops' size (default {CloseLookConfig().out_px}, as the policy asks)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of the table")

@@ -47,13 +47,13 @@ def test_cars_within_the_vehicle_separation_are_found_and_a_blind_rule_misses_th
 
 def test_the_command_prints_its_figures_and_refuses_the_reported_seeds() -> None:
     run = [sys.executable, "-m", "dovesei.cli", "closelook-stats", "--world", WORLD, "--crops", "2", "--looks", "2",
-           "--vehicle-crops", "1", "--profile", "harsh", "--margin-m", "6", "--json"]
+           "--vehicle-crops", "1", "--profile", "harsh", "--margin-m", "5.7", "--json"]
     r = subprocess.run(run, capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
     doc = json.loads(r.stdout.strip().splitlines()[-1])
     s = doc["profiles"]["harsh"]
     assert doc["seed_base"] == 200 and s["person_looks"] + s["clear_looks"] == 4 and s["vehicle_looks"] == 2
-    assert doc["side_m"] == pytest.approx(12.0) and doc["out_px"] == 352  # the final looks' square, as asked
+    assert doc["side_m"] == pytest.approx(11.4) and doc["out_px"] == 352  # the final looks' square, as asked
     assert 0 <= s["person_looks_missed"] <= s["person_looks"] and len(doc["loadavg"]) == 3
     for flags, needle in ((["--seed-base", "5"], "--seed-base 5"), (["--profile", "fuzzy"], "--profile 'fuzzy'"),
                           (["--looks", "0"], "--looks 0"), (["--vehicle-crops", "-1"], "--vehicle-crops -1"),
@@ -64,7 +64,7 @@ def test_the_command_prints_its_figures_and_refuses_the_reported_seeds() -> None
         assert r.returncode == 2 and len(lines) == 1 and needle in lines[0], r.stderr
 
 
-@pytest.mark.parametrize("margin_m", [None, 6.0])
+@pytest.mark.parametrize("margin_m", [None, 5.7])
 def test_clear_squares_are_safe_ground_away_from_everyone(margin_m: float | None) -> None:
     world = load_world(WORLD)
     for rec in looks_of(world, "realistic", 4, 1, 400, margin_m=margin_m):
