@@ -874,7 +874,7 @@ class ControllerCore:
             # Descending blind drifts onto ground nobody checked: no descent until a source is
             # trusted; lost in flight, the way back over the ground that was measured first.
             reason = f"no trusted velocity source: {nav.reason}"
-            if self._retreat_ne is not None and self._retreat.seen_ne is not None:
+            if self._retreat.seen_ne is not None:  # set by this tick's update, when flown towards
                 n, e = self._retreat.seen_ne
                 reason += (f"; flying towards the ground the camera can measure, "
                            f"{math.hypot(n, e) * state.alt_agl_m:.0f} m away at "

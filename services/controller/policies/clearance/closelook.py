@@ -329,10 +329,10 @@ class CloseLookPolicy:
 
     def step(self, obs: Observation) -> Decision:
         if self._last_t_s is not None:
-            self._steps.append(min(max(obs.t_s - self._last_t_s, 0.0), self.look_config.fresh_max_s))
+            self._steps.append(self._bounded_s(obs.t_s - self._last_t_s))
         self._last_t_s = obs.t_s
-        delay = obs.delay_s if isinstance(obs.delay_s, (int, float)) and math.isfinite(obs.delay_s) else 0.0
-        self._delays.append(min(max(float(delay), 0.0), self.look_config.fresh_max_s))
+        # No number is no delay: never a longer word.
+        self._delays.append(self._bounded_s(float(obs.delay_s) if validate.is_number(obs.delay_s) else 0.0))
         if obs.look is not None:
             self._take(obs.look, obs)
         if hasattr(self.inner, "handover_withheld"):
@@ -365,6 +365,10 @@ class CloseLookPolicy:
     def _fresh(self, t_s: float) -> bool:
         """The newest clear look is at most `fresh_limit_s` old (call only when it exists)."""
         return t_s - self._clear.t_s <= self.fresh_limit_s
+
+    def _bounded_s(self, seconds: float) -> float:
+        """A lag, step or delay as the freshness limit counts it: within [0, fresh_max_s]."""
+        return min(max(seconds, 0.0), self.look_config.fresh_max_s)
 
     @property
     def fresh_limit_s(self) -> float:
@@ -403,7 +407,7 @@ class CloseLookPolicy:
                         look.refusal)
             return
         self.looks += 1
-        self._lags.append(min(max(obs.t_s - asked.t_s, 0.0), self.look_config.fresh_max_s))
+        self._lags.append(self._bounded_s(obs.t_s - asked.t_s))
         _, never = look.heatmap.probabilities()
         v = verdict(never, look.heatmap.side_m, cfg, self.baseline_logit((asked.north_m, asked.east_m)),
                     margin_m=asked.margin_m)
