@@ -66,9 +66,9 @@ class CloseLookConfig:
     # the view, so looks from one height can all miss someone the next height sees: crowded start
     # 16 under `harsh` rejected its spot at 23 m, took one 9 m away at once, and handed over 1.7 m
     # from a person standing there that all 28 of its looks from 20-26 m missed; looks at them
-    # under that flight's perception draw (session script, 4 looks a side from 4 to 11.4 m) answer
-    # 0.02-0.12 at 22 m, under the blob level 0.10 but at 4 m, and 0.12-0.33 at 30 m, 0.15-0.33
-    # at 40 m (8 m and under: found).
+    # under that flight's perception draw (session script, the median of 4 looks per square of 4
+    # to 11.4 m) answer 0.02-0.12 at 22 m, under the blob level 0.10 but in the 4 m square,
+    # 0.09-0.21 at 30 m (found up to 8 m) and 0.15-0.33 at 40 m (found in all).
     commit_below_m: float = 3.0
     climb_m_s: float = 2.0
     final_gate_m: float = 3.0  # within this of the hand-over, the clear look must be fresh
