@@ -50,7 +50,8 @@ from .options import DEFAULT_MODEL, DTYPES
 from .prompts import NEVER_PROMPTS, REFERENCE_PROMPTS, PromptError, PromptSet, crop_prompt_set, never_prompts, never_set_id
 from .sim_backend import INPUT_PX
 from .simulated import (
-    DEFAULT_NOISE, DEFAULT_PROFILE, PROFILE_NAMES, MissingTruthError, SimPerception, profile_params, view_of,
+    DEFAULT_NOISE, DEFAULT_PROFILE, PROFILE_NAMES, MissingTruthError, SimPerception, crop_view_of, profile_params,
+    view_of,
 )
 
 log = logging.getLogger(__name__)
@@ -273,7 +274,7 @@ class SimFrameBackend:
             raise FrameRejected(REJECT_NO_TRUTH, f"{MissingTruthError()} (crop {crop.request_seq} of {crop.vehicle_id})")
         try:
             # Flicker is seeded per look: a crop is keyed apart from the frames' own sequence.
-            logits, in_world = self.model.logits(crop.truth.labels, crop.truth.classes, view_of(crop),
+            logits, in_world = self.model.logits(crop.truth.labels, crop.truth.classes, crop_view_of(crop),
                                                  CROP_FLICKER_SEQ0 + crop.request_seq, prompts)
         except ValueError as exc:
             raise FrameRejected(REJECT_BAD_TRUTH, str(exc)) from None

@@ -22,8 +22,10 @@ Data flow for one frame (labels resized to CLIPSeg's 352x352 input, as CLIPSeg r
       --confusions anchored in WORLD metres--> each appearance is read partly as a partner
         (grey flat roof -> plaza, dark pond -> asphalt, lawn -> sports field) where a seeded
         value-noise field over (east, north, log2 altitude) is high: the same ground is misread
-        the same way frame after frame and drifts as the altitude changes; how often and towards
-        which partner is the WORLD's own (a log-normal draw per world around CONFUSIONS)
+        the same way frame after frame and drifts as the altitude changes (a close look's crop
+        is read at the altitude whose 73 deg view is its square, `crop_view_of`: the same square
+        reads alike from any height); how often and towards which partner is the WORLD's own (a
+        log-normal draw per world around CONFUSIONS)
       --context--> each cell pulled towards its neighbourhood and towards the whole view
       --responses--> logits = f * logit_scale * G @ R (R: appearance x prompt affinities), the
         positives + o: the episode's calibration (f, o), drawn per (seed, world)

@@ -20,13 +20,15 @@ Pictures of it live in `dovesei.pictures.perception`; its statistics against rea
 
 from __future__ import annotations
 
+import dataclasses
+import math
 import time
 
 import cv2
 import numpy as np
 
 from dovesei.shared.errors import DoveseiError
-from dovesei.shared.messages import CameraFrame
+from dovesei.shared.messages import CameraFrame, CropFrame
 
 from .prompts import REFERENCE_PROMPTS
 from .sim_backend import DEFAULT_PROFILE, PROFILES, PerceptionParams, SimPerception, View, profile_params
@@ -54,6 +56,23 @@ def view_of(frame: CameraFrame) -> View:
     world = frame.truth.world if frame.truth is not None else ""
     return View(centre, float(frame.alt_agl_m), float(frame.hfov_rad), float(frame.yaw_rad), world,
                 float(frame.stamp.t_s))
+
+
+# A crop is read as the frame of a nadir camera with the frames' field of view (the sim camera's
+# 73 deg) that sees just its square, not as seen from the vehicle's altitude: the misreadings
+# that follow the scale of the view (the confusion fields over log-altitude) follow the square's
+# size. The same square cut at 22 m or at 40 m is the same 352 px image (both oversampled from a
+# full-resolution frame), so CLIPSeg reads it alike; read at the vehicle's altitude, looks at one
+# square from two heights had missed someone independently, which flattered every descent's
+# repeated looks.
+CROP_VIEW_HFOV_RAD = math.radians(73.0)
+
+
+def crop_view_of(crop: CropFrame) -> View:
+    """The `View` a crop is read with: its square's centre and heading, at the altitude whose
+    footprint under CROP_VIEW_HFOV_RAD is the square."""
+    alt_m = float(crop.side_m) / (2.0 * math.tan(CROP_VIEW_HFOV_RAD / 2.0))
+    return dataclasses.replace(view_of(crop), alt_agl_m=alt_m, hfov_rad=CROP_VIEW_HFOV_RAD)
 
 
 def demo_labels(size_px: int = 352) -> tuple[np.ndarray, dict[int, str]]:

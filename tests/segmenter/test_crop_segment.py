@@ -58,6 +58,21 @@ def test_the_simulated_perception_finds_the_person_in_a_crop(person_crop: CropFr
     assert np.median(safe[far]) > 0.9 and core.processed_crops == 1
 
 
+def test_a_square_reads_alike_from_any_height_and_differently_at_another_size(person_crop: CropFrame) -> None:
+    """The same square cut from 22 m or 40 m is the same 352 px image to CLIPSeg, so the simulated
+    misreadings follow the square's size, not the vehicle's altitude (read at the altitude, looks
+    from two heights had missed someone independently, flattering every descent's looks)."""
+    config = SegmenterConfig(backend="sim", sim_profile="harsh", sim_seed=3)
+    core = SegmenterCore(make_backend(config), config)
+    world = "synthetic:style=crowded,seed=6"  # its confusion draw: a world with every appearance in it
+    crop = replace(person_crop, truth=replace(person_crop.truth, world=world))
+    _, high = core.process_crop(crop).probabilities()
+    _, low = core.process_crop(replace(crop, alt_agl_m=22.0)).probabilities()
+    assert np.array_equal(high, low)
+    _, wider = core.process_crop(replace(crop, side_m=11.4)).probabilities()
+    assert not np.allclose(high, wider, atol=0.01)
+
+
 def test_a_crop_without_truth_is_refused_by_the_simulated_backend(person_crop: CropFrame) -> None:
     config = SegmenterConfig(backend="sim")
     core = SegmenterCore(make_backend(config), config)
