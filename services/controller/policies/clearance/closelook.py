@@ -61,14 +61,14 @@ class CloseLookConfig:
     look_alt_m: float = 40.0  # no descent below this without a clear look at the spot
     brake_m: float = 3.0  # the gate closes this far above look_alt_m: a 2 m/s descent stops in time
     # A spot is committed on clear looks from the look altitude (at most commit_below_m under it),
-    # wherever it was chosen: one chosen lower down (another spot rejected in the last metres) is
-    # climbed back up to at climb_m_s and looked at from there first. A segmenter's misses follow
-    # the view, so looks from one height can all miss someone the next height sees: crowded start
-    # 16 under `harsh` rejected its spot at 23 m, took one 9 m away at once, and handed over 1.7 m
-    # from a person standing there that all 28 of its looks from 20-26 m missed; looks at them
-    # under that flight's perception draw (session script, the median of 4 looks per square of 4
-    # to 11.4 m) answer 0.02-0.12 at 22 m, under the blob level 0.10 but in the 4 m square,
-    # 0.09-0.21 at 30 m (found up to 8 m) and 0.15-0.33 at 40 m (found in all).
+    # wherever it was chosen: one chosen lower down (another spot rejected in the last metres, the
+    # next confirmed one taken at once) is climbed back up to at climb_m_s and looked at from
+    # there first, so it gets the descent's 8 m squares as every spot does. Taken within the final
+    # band, it would otherwise be judged by the band's wider squares alone, which see people worse
+    # (`closelook-stats --profile harsh`, seeds 200+: 22 of 240 looks at people missed at 11.4 m,
+    # 6 at 8 m). Crowded start 16 under `harsh` rejected its spot at 23 m, took one 9 m away at
+    # once, and handed over 1.7 m from a person standing there that all 28 of its 11.4 m looks
+    # missed (under the perception's reading of crops then, at the vehicle's altitude).
     commit_below_m: float = 3.0
     climb_m_s: float = 2.0
     final_gate_m: float = 3.0  # within this of the hand-over, the clear look must be fresh
@@ -128,8 +128,9 @@ class CloseLookConfig:
     # ... and this often within final_gate_m of the hand-over and while a declared hand-over is
     # being confirmed: there the looks are what keeps walkers out of the separation (fresh_s).
     final_look_period_s: float = 0.5
-    # Looks miss (a person misread as lawn at some altitudes, flicker): the gate needs this many
-    # clear looks in a row, and a descent that found something resumes only after resume_looks.
+    # Looks miss (a person misread as the ground under them in some squares, flicker): the gate
+    # needs this many clear looks in a row, and a descent that found something resumes only after
+    # resume_looks.
     clear_looks: int = 2
     resume_looks: int = 4
     # One look is not a verdict on a spot: a noisy segmenter fires on a clear square now and then
