@@ -687,3 +687,22 @@ def test_a_spot_chosen_below_the_look_altitude_is_looked_at_from_there_before_an
         t += 0.5
         d = gate.step(Observation(t_s=t, alt_agl_m=25.0, prob_safe=None, look=look))
         assert d.vel_body_frd_m_s[2] == 1.0
+
+
+def test_a_spot_looked_at_from_the_look_altitude_is_not_climbed_back_to_after_a_sag() -> None:
+    """Looked at from 41 m (something found), the hold sagging to 35 m while it waits: the clear
+    looks from there open the gate as before, with no climb."""
+    cfg = CloseLookConfig()
+    inner = _Descending()
+    gate = CloseLookPolicy(inner)
+    gate.step(Observation(t_s=0.0, alt_agl_m=41.0, prob_safe=None))
+    d = gate.step(Observation(t_s=1.0, alt_agl_m=41.0, prob_safe=None, look=_answer(1, True)))
+    assert d.vel_body_frd_m_s[2] <= 0.0 and "never set" in d.look_verdict
+    seq, t, alt = 2, 1.0, 35.0
+    while d.vel_body_frd_m_s[2] <= 0.0 and t < 20.0:
+        t += 1.0
+        look = _answer(seq, False) if gate._asked is not None else None
+        seq += look is not None
+        d = gate.step(Observation(t_s=t, alt_agl_m=alt, prob_safe=None, look=look))
+        assert d.vel_body_frd_m_s[2] >= 0.0 and "climbing" not in d.reason  # never climbs
+    assert d.vel_body_frd_m_s[2] == 1.0 and not inner.rejected and alt < cfg.look_alt_m - cfg.commit_below_m

@@ -60,15 +60,18 @@ class CloseLookConfig:
     handover_alt_m: float = HANDOVER_ALT_M
     look_alt_m: float = 40.0  # no descent below this without a clear look at the spot
     brake_m: float = 3.0  # the gate closes this far above look_alt_m: a 2 m/s descent stops in time
-    # A spot is committed on clear looks from the look altitude (at most commit_below_m under it),
-    # wherever it was chosen: one chosen lower down (another spot rejected in the last metres, the
-    # next confirmed one taken at once) is climbed back up to at climb_m_s and looked at from
-    # there first, so it gets the descent's 8 m squares as every spot does. Taken within the final
-    # band, it would otherwise be judged by the band's wider squares alone, which see people worse
+    # A spot is first looked at from the look altitude (at most commit_below_m under it), wherever
+    # it was chosen: one chosen lower down (another spot rejected in the last metres, the next
+    # confirmed one taken at once) is climbed back up to at climb_m_s and looked at from there, so
+    # it gets the descent's 8 m squares as every spot does. Taken within the final band, it would
+    # otherwise be judged by the band's wider squares alone, which see people worse
     # (`closelook-stats --profile harsh`, seeds 200+: 22 of 240 looks at people missed at 11.4 m,
     # 6 at 8 m). Crowded start 16 under `harsh` rejected its spot at 23 m, took one 9 m away at
     # once, and handed over 1.7 m from a person standing there that all 28 of its 11.4 m looks
-    # missed (under the perception's reading of crops then, at the vehicle's altitude).
+    # missed (under the perception's reading of crops then, at the vehicle's altitude). Once looked
+    # at from there, the gate goes on as before: a hold that sags below while it waits on a
+    # finding does not climb back (that had cost three `harsh` starts their landings: downtown 22,
+    # villas 14, desert 26 timed out, each landing safely without the climb).
     commit_below_m: float = 3.0
     climb_m_s: float = 2.0
     final_gate_m: float = 3.0  # within this of the hand-over, the clear look must be fresh
@@ -325,7 +328,7 @@ class CloseLookPolicy:
         self._clear: _Look | None = None  # the newest clear look
         self._streak = 0  # clear looks in a row of the spot `_clear` looked at
         self._committed: _Look | None = None  # the spot the gate let the descent past (the last descent's)
-        self._high: _Look | None = None  # the newest clear look from the look altitude ending a streak
+        self._high: _Look | None = None  # the newest look answered from the look altitude
         self._never_since_s: float | None = None  # the last descent: something inside the margin since
         self._trouble: tuple[float, float, float] | None = None  # the last descent's first finding: t, north, east
         self._verdict = ""
@@ -382,7 +385,7 @@ class CloseLookPolicy:
                 and self._streak >= self.look_config.clear_looks)
 
     def _seen_from_above(self, spot: tuple[float, float]) -> bool:
-        """The gate opened for `spot` already, or a clear streak from the look altitude covers it."""
+        """The gate opened for `spot` already, or a look answered from the look altitude covers it."""
         return self._covers(self._committed, spot) or self._covers(self._high, spot)
 
     def _fresh(self, t_s: float) -> bool:
@@ -437,11 +440,11 @@ class CloseLookPolicy:
         self._medians.append((asked.north_m, asked.east_m, v.median_logit))
         self._verdict = v.text(asked.margin_m)
         self._recent.append((asked.north_m, asked.east_m, not v.clear))
+        if asked.alt_m >= cfg.look_alt_m - cfg.commit_below_m:
+            self._high = asked  # looked at from the look altitude, whatever it showed
         if v.clear:
             self._streak = self._streak + 1 if self._covers(self._clear, (asked.north_m, asked.east_m)) else 1
             self._clear = asked  # its age counts from the ask: the crop is cut from the newest frame then
-            if self._streak >= cfg.clear_looks and asked.alt_m >= cfg.look_alt_m - cfg.commit_below_m:
-                self._high = asked
             if self._never_since_s is not None and self._streak >= cfg.resume_looks:
                 self._never_since_s = None  # clear long enough: the descent resumes
             log.info("close look %d at %.1f m: %s", look.request_seq, asked.alt_m, self._verdict)
