@@ -60,20 +60,6 @@ class CloseLookConfig:
     handover_alt_m: float = HANDOVER_ALT_M
     look_alt_m: float = 40.0  # no descent below this without a clear look at the spot
     brake_m: float = 3.0  # the gate closes this far above look_alt_m: a 2 m/s descent stops in time
-    # A spot is first looked at from the look altitude (at most commit_below_m under it), wherever
-    # it was chosen: one chosen lower down (another spot rejected in the last metres, the next
-    # confirmed one taken at once) is climbed back up to at climb_m_s and looked at from there, so
-    # it gets the descent's 8 m squares as every spot does. Taken within the final band, it would
-    # otherwise be judged by the band's wider squares alone, which see people worse
-    # (`closelook-stats --profile harsh`, seeds 200+: 22 of 240 looks at people missed at 11.4 m,
-    # 6 at 8 m). Crowded start 16 under `harsh` rejected its spot at 23 m, took one 9 m away at
-    # once, and handed over 1.7 m from a person standing there that all 28 of its 11.4 m looks
-    # missed (under the perception's reading of crops then, at the vehicle's altitude). Once looked
-    # at from there, the gate goes on as before: a hold that sags below while it waits on a
-    # finding does not climb back (that had cost three `harsh` starts their landings: downtown 22,
-    # villas 14, desert 26 timed out, each landing safely without the climb).
-    commit_below_m: float = 3.0
-    climb_m_s: float = 2.0
     final_gate_m: float = 3.0  # within this of the hand-over, the clear look must be fresh
     # The margin around the spot a look must show clear: the separation from people plus the lateral
     # error of landing where it looked (touchdown error median 0.4 m in issue 23's suite). People set
@@ -131,9 +117,8 @@ class CloseLookConfig:
     # ... and this often within final_gate_m of the hand-over and while a declared hand-over is
     # being confirmed: there the looks are what keeps walkers out of the separation (fresh_s).
     final_look_period_s: float = 0.5
-    # Looks miss (a person misread as the ground under them in some squares, flicker): the gate
-    # needs this many clear looks in a row, and a descent that found something resumes only after
-    # resume_looks.
+    # Looks miss (a person misread as the ground under them in some squares, flicker): the gate needs this many
+    # clear looks in a row, and a descent that found something resumes only after resume_looks.
     clear_looks: int = 2
     resume_looks: int = 4
     # One look is not a verdict on a spot: a noisy segmenter fires on a clear square now and then
@@ -187,8 +172,7 @@ class CloseLookConfig:
 
     def __post_init__(self) -> None:
         for name in ("handover_alt_m", "look_alt_m", "brake_m", "margin_m", "broad_margin_m", "look_period_s", "retry_s",
-                     "answer_timeout_s", "wait_s", "fresh_s", "spot_slack_m", "final_look_period_s", "fresh_max_s",
-                     "climb_m_s"):
+                     "answer_timeout_s", "wait_s", "fresh_s", "spot_slack_m", "final_look_period_s", "fresh_max_s"):
             validate.positive(f"close look {name}", getattr(self, name))
         # Looks near the hand-over come at least as often as before it, and often enough for one to be fresh.
         validate.in_range("close look final_look_period_s", self.final_look_period_s, 0.0,
@@ -214,9 +198,6 @@ class CloseLookConfig:
         if self.look_alt_m <= self.handover_alt_m + self.final_gate_m:
             validate.in_range("close look look_alt_m", self.look_alt_m, self.handover_alt_m + self.final_gate_m + 1.0,
                               1e4)
-        # The commit look stays above the final band.
-        validate.in_range("close look commit_below_m", self.commit_below_m, 0.0,
-                          self.look_alt_m - self.handover_alt_m - self.final_gate_m)
 
     @property
     def side_m(self) -> float:
@@ -328,7 +309,6 @@ class CloseLookPolicy:
         self._clear: _Look | None = None  # the newest clear look
         self._streak = 0  # clear looks in a row of the spot `_clear` looked at
         self._committed: _Look | None = None  # the spot the gate let the descent past (the last descent's)
-        self._high: _Look | None = None  # the newest look answered from the look altitude
         self._never_since_s: float | None = None  # the last descent: something inside the margin since
         self._trouble: tuple[float, float, float] | None = None  # the last descent's first finding: t, north, east
         self._verdict = ""
@@ -373,8 +353,6 @@ class CloseLookPolicy:
             return "close look: waiting for the never set to clear the margin"
         if self._spot is None or not self._cleared(self._spot):
             return "close look: no clear look of the spot"
-        if not self._seen_from_above(self._spot):
-            return "close look: no clear look of the spot from the look altitude"
         if not self._fresh(t_s):
             return "close look: no fresh clear look"
         return ""
@@ -383,10 +361,6 @@ class CloseLookPolicy:
         """clear_looks clear looks in a row cover `spot`, and nothing is pending since."""
         return (self._covers(self._clear, spot) and self._never_since_s is None
                 and self._streak >= self.look_config.clear_looks)
-
-    def _seen_from_above(self, spot: tuple[float, float]) -> bool:
-        """The gate opened for `spot` already, or a look answered from the look altitude covers it."""
-        return self._covers(self._committed, spot) or self._covers(self._high, spot)
 
     def _fresh(self, t_s: float) -> bool:
         """The newest clear look is at most `fresh_limit_s` old (call only when it exists)."""
@@ -440,8 +414,6 @@ class CloseLookPolicy:
         self._medians.append((asked.north_m, asked.east_m, v.median_logit))
         self._verdict = v.text(asked.margin_m)
         self._recent.append((asked.north_m, asked.east_m, not v.clear))
-        if asked.alt_m >= cfg.look_alt_m - cfg.commit_below_m:
-            self._high = asked  # looked at from the look altitude, whatever it showed
         if v.clear:
             self._streak = self._streak + 1 if self._covers(self._clear, (asked.north_m, asked.east_m)) else 1
             self._clear = asked  # its age counts from the ask: the crop is cut from the newest frame then
@@ -506,8 +478,7 @@ class CloseLookPolicy:
             self._reject(t, alt, f"close look: not clear {cfg.resume_looks} looks in a row within {cfg.wait_s:g} s "
                                  f"of a finding ({self._verdict}; {t - self._never_since_s:.0f} s)")
         cleared = self._cleared(spot)
-        above = self._seen_from_above(spot)
-        if cleared and above:
+        if cleared:
             self._committed = self._clear  # the gate is open for this spot: findings now mean waiting
         fresh = cleared and self._fresh(t)
         # The final band is entered within final_gate_m of the hand-over and left only final_gate_m
@@ -517,18 +488,13 @@ class CloseLookPolicy:
         band_m = cfg.handover_alt_m + cfg.final_gate_m
         self._final = alt <= band_m or (self._final and alt <= band_m + cfg.final_gate_m)
         final = self._final
-        hold, why, climb = False, "", False
+        hold, why = False, ""
         if handing:
             pass  # allowed at this step's start (`step` takes it back otherwise): the looks go on, no hold
-        elif not above and alt < cfg.look_alt_m - cfg.commit_below_m and self._never_since_s is None:
-            hold, climb = True, True
-            why = f"close look: a spot chosen below the look altitude: climbing to {cfg.look_alt_m:g} m to look from there"
         elif not cleared:
             hold = True
             why = ("close look: waiting for the never set to clear the margin" if self._never_since_s is not None
                    else "close look: holding until a look clears the spot")
-        elif not above:
-            hold, why = True, "close look: holding until a look from the look altitude clears the spot"
         elif final and not fresh:
             hold, why = True, (f"close look: holding for a look from the last {self.fresh_limit_s:.1f} s before "
                                f"the hand-over")
@@ -552,9 +518,7 @@ class CloseLookPolicy:
             until = self._clear.t_s + self.fresh_limit_s if (final or handing) and self._clear is not None else None
             return dataclasses.replace(d, look_request=request, look_verdict=self._verdict, landing_until_s=until)
         vf, vr, vz = d.vel_body_frd_m_s
-        # Hold the altitude (a descent is positive down), or climb to the look altitude (slowing on
-        # the way in); otherwise never climb here, the inner policy's abort does.
-        vz = -min(cfg.climb_m_s, 0.5 * (cfg.look_alt_m - alt)) if climb else min(vz, 0.0)
-        return dataclasses.replace(d, vel_body_frd_m_s=(vf, vr, vz), landing=False,
+        # Hold the altitude (a descent is positive down); never climb here, the inner policy's abort does.
+        return dataclasses.replace(d, vel_body_frd_m_s=(vf, vr, min(vz, 0.0)), landing=False,
                                    reason=f"{why} ({self._verdict or 'no look yet'})", look_request=request,
                                    look_verdict=self._verdict)
