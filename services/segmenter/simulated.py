@@ -27,6 +27,7 @@ import time
 import cv2
 import numpy as np
 
+from dovesei.shared import footprint
 from dovesei.shared.errors import DoveseiError
 from dovesei.shared.messages import CameraFrame, CropFrame
 
@@ -71,7 +72,7 @@ CROP_VIEW_HFOV_RAD = math.radians(73.0)
 def crop_view_of(crop: CropFrame) -> View:
     """The `View` a crop is read with: its square's centre and heading, at the altitude whose
     footprint under CROP_VIEW_HFOV_RAD is the square."""
-    alt_m = float(crop.side_m) / (2.0 * math.tan(CROP_VIEW_HFOV_RAD / 2.0))
+    alt_m = float(crop.side_m) / footprint.width_m(1.0, CROP_VIEW_HFOV_RAD)
     return dataclasses.replace(view_of(crop), alt_agl_m=alt_m, hfov_rad=CROP_VIEW_HFOV_RAD)
 
 
