@@ -143,7 +143,8 @@ def test_lockstep_answers_every_frame_in_order(zenoh_pair) -> None:
             for seq in range(1, 21):
                 # As the lockstep sim publishes (it blocks under congestion; Zenoh's default drops, and
                 # under a loaded CI machine frames 5-20 of this burst were lost in transit).
-                client.put(keys.camera("uav1"), encode(make_frame(seq)), congestion_control=zenoh.CongestionControl.BLOCK)
+                client.put(keys.camera("uav1"), encode(make_frame(seq)),
+                           congestion_control=zenoh.CongestionControl.BLOCK)
             seqs: list[int] = []
             assert wait_until(lambda: (hm := heatmaps.poll()) is not None and seqs.append(hm.seq) is None
                               and hm.seq == 20, 10.0), seqs

@@ -117,8 +117,9 @@ class CloseLookConfig:
     # ... and this often within final_gate_m of the hand-over and while a declared hand-over is
     # being confirmed: there the looks are what keeps walkers out of the separation (fresh_s).
     final_look_period_s: float = 0.5
-    # Looks miss (a person misread as the ground under them in some squares, flicker): the gate needs this many
-    # clear looks in a row, and a descent that found something resumes only after resume_looks.
+    # Looks miss (a person misread as the ground under them in some squares, flicker): the gate
+    # needs this many clear looks in a row, and a descent that found something resumes only after
+    # resume_looks.
     clear_looks: int = 2
     resume_looks: int = 4
     # One look is not a verdict on a spot: a noisy segmenter fires on a clear square now and then
@@ -164,8 +165,8 @@ class CloseLookConfig:
     # judge's 3 m; at 6 m `harsh` missed more people (`closelook-stats --seed-base 100`, 60 person
     # squares, 4 looks: 25 of 240 looks missed, the gate opening on 7 squares, at 5.7 m; 30 and 8 at
     # 6 m), and crowded start 16 under `harsh` handed over 2.0 m from someone standing there that
-    # its 12 m looks missed twelve times (looks at that spot under its perception draw, session
-    # script: 8 of 8 found at 8 m, 5 of 8 at 11.4 m, 2 of 8 at 12 m).
+    # its 12 m looks missed twelve times. (That miss was traced later to the simulated perception
+    # reading crops at the vehicle's altitude, not to the square's size: docs/RESULTS.md, 7 Dec.)
     walk_m_s: float = 1.5
     final_margin_max_m: float = 5.7
     spot_slack_m: float = 1.0  # a look covers the spot it was asked for, moved at most this far
