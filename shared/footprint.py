@@ -14,6 +14,11 @@ import math
 
 import numpy as np
 
+# The reference camera's horizontal field of view: the paper's 73 deg, which its code renders and
+# this project's sim, camera service and controller take by default. A real camera says its own.
+REFERENCE_HFOV_DEG = 73.0
+REFERENCE_HFOV_RAD = math.radians(REFERENCE_HFOV_DEG)
+
 
 def focal_px(width_px: float, hfov_rad: float) -> float:
     """Focal length in pixels of a camera `width_px` wide with horizontal field of view `hfov_rad`."""

@@ -34,7 +34,7 @@ from dovesei.controller.core import ControllerConfig
 from dovesei.controller.policies.registry import policy_names
 from dovesei.controller.service import RunStats, run
 from dovesei.shared.cliconfig import OneLineParser
-from dovesei.shared import keys
+from dovesei.shared import footprint, keys
 from dovesei.shared.clock import WallClock, wall_time_s
 from dovesei.shared.codec import encode
 from dovesei.shared.lifecycle import Inbox, is_alive, wait_until
@@ -43,7 +43,7 @@ from dovesei.shared.zconfig import free_port, loopback_config
 
 log = logging.getLogger(__name__)
 VEHICLE = "bench"
-HFOV_RAD = np.radians(73.0)
+HFOV_RAD = footprint.REFERENCE_HFOV_RAD
 
 
 

@@ -52,6 +52,7 @@ import numpy as np
 
 from dovesei.controller.gnss_denied import OdometryGate
 from dovesei.shared.cliconfig import OneLineParser
+from dovesei.shared import footprint
 from dovesei.shared.visual_velocity import FrameMeta, VisualVelocityConfig, estimate, prepare, rotation_body_to_level
 from dovesei.shared.messages import VehicleState, VelocityCommand
 from dovesei.sim.camera import CameraError, CameraModel, prebuild_pyramid, render
@@ -85,7 +86,7 @@ def bench_speed(world: World, frames: int, seed: int) -> dict:
     """Per-frame time at 640x480 on one OpenCV thread, over a descent drifting across the world.
 
     The frames are rendered first; only the estimator is timed."""
-    cam = CameraModel(640, 480, 73.0)
+    cam = CameraModel(640, 480, footprint.REFERENCE_HFOV_DEG)
     prebuild_pyramid(world, cam, 100.0)
     rng = np.random.default_rng(seed)
     x0, y0 = rng.uniform(0.3, 0.7) * world.width_m, rng.uniform(0.3, 0.7) * world.height_m

@@ -10,7 +10,6 @@ reader sees what persists (misreadings anchored to the ground) and what flickers
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -21,6 +20,7 @@ from dovesei.segmenter.appearance import appearance_mix
 from dovesei.segmenter.fusion import FusionConfig
 from dovesei.segmenter.prompts import REFERENCE_PROMPTS
 from dovesei.segmenter.simulated import PROFILE_NAMES, SimPerception, View, demo_labels, profile_params
+from dovesei.shared import footprint
 
 # Stand-in colours (RGB) of the appearances, for a frame panel without a camera image.
 _APPEARANCE_RGB = {
@@ -81,7 +81,7 @@ def render_noise_preview(path: str | Path, labels: np.ndarray | None = None,
     elif classes is None:
         raise ValueError("render_noise_preview: labels given without their classes")
     names = _names(classes)
-    view = view or View((0.0, 0.0), 100.0, math.radians(73.0))
+    view = view or View((0.0, 0.0), 100.0, footprint.REFERENCE_HFOV_RAD)
     if image_rgb is None:
         frame, frame_title = stand_in_rgb(labels, names), "labels (stand-in colours)"
     else:

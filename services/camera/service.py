@@ -51,7 +51,7 @@ import cv2
 import numpy as np
 
 from dovesei.camera.source import ROTATIONS, Grabber, crop_resize, output_hfov_rad
-from dovesei.shared import keys, validate
+from dovesei.shared import footprint, keys, validate
 from dovesei.shared.crop import CropLimits, RateLimit, cut_crop, plan_crop
 from dovesei.shared.crop_server import CropServer
 from dovesei.shared.cliconfig import CommandLine, Flag, integer_in, non_blank
@@ -81,7 +81,7 @@ class CameraConfig:
     vehicle_id: str = "uav1"
     width_px: int = 352
     height_px: int = 352
-    hfov_deg: float = 73.0  # the camera's horizontal field of view before cropping
+    hfov_deg: float = footprint.REFERENCE_HFOV_DEG  # the camera's horizontal field of view before cropping
     rotate_deg: int = 0  # clockwise rotation that puts body-forward at the top of the image
     rate_hz: float = 2.0
     jpeg_quality: int | None = None  # None: raw RGB on the wire

@@ -160,7 +160,7 @@ class ControllerConfig:
     # The camera every heatmap must come from (its frame's field of view, size and altitude are
     # checked before any policy sees it). The defaults are the sim's and the reference's camera;
     # the tolerance lets a cropped output pass (a 4:3 source cut square reads 20 % narrower).
-    camera_hfov_deg: float = 73.0
+    camera_hfov_deg: float = footprint.REFERENCE_HFOV_DEG
     camera_hfov_tolerance_frac: float = 0.25
     camera_size_px: tuple[int, int] | None = None  # (height, width) exactly; None: any up to the limit
     max_heatmap_side_px: int = 1024  # no camera we fly sends more; a 4096 px map only costs time

@@ -21,7 +21,6 @@ Pictures of it live in `dovesei.pictures.perception`; its statistics against rea
 from __future__ import annotations
 
 import dataclasses
-import math
 import time
 
 import cv2
@@ -66,7 +65,7 @@ def view_of(frame: CameraFrame) -> View:
 # full-resolution frame), so CLIPSeg reads it alike; read at the vehicle's altitude, looks at one
 # square from two heights had missed someone independently, which flattered every descent's
 # repeated looks.
-CROP_VIEW_HFOV_RAD = math.radians(73.0)
+CROP_VIEW_HFOV_RAD = footprint.REFERENCE_HFOV_RAD
 
 
 def crop_view_of(crop: CropFrame) -> View:
@@ -111,7 +110,7 @@ def bench_rates(n: int = 100, profile: str = DEFAULT_PROFILE) -> dict[str, float
     threads = cv2.getNumThreads()
     cv2.setNumThreads(1)  # per core: the controller and the sim share the machine
     try:
-        view = View((500.0, 500.0), 100.0, np.radians(73.0))
+        view = View((500.0, 500.0), 100.0, footprint.REFERENCE_HFOV_RAD)
         perception.safe_probability(labels, names, view, 0, REFERENCE_PROMPTS)  # warm the caches
         t0, c0 = time.perf_counter(), time.process_time()
         for seq in range(n):

@@ -61,7 +61,7 @@ class CameraModel:
 
     width_px: int = 352
     height_px: int = 352
-    hfov_deg: float = 73.0
+    hfov_deg: float = footprint.REFERENCE_HFOV_DEG
 
     def __post_init__(self) -> None:
         for name in ("width_px", "height_px"):

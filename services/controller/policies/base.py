@@ -15,6 +15,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from dovesei.shared import footprint
 from dovesei.shared.errors import DoveseiError
 
 
@@ -62,7 +63,7 @@ class Observation:
     # Altitude when the heatmap's frame was captured (the reference samples it at request time).
     alt_agl_m: float
     prob_safe: np.ndarray | None  # (H, W) float32 P(safe) in [0, 1]; None = no new heatmap this tick
-    hfov_rad: float = math.radians(73.0)
+    hfov_rad: float = footprint.REFERENCE_HFOV_RAD
     roll_rad: float = 0.0  # attitude at capture (FRD body, radians)
     pitch_rad: float = 0.0
     yaw_rad: float = 0.0
