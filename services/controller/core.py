@@ -203,7 +203,8 @@ class ControllerConfig:
     attitude_max_tilt_deg: float = 15.0  # attitude mode: largest roll/pitch demanded
     # A velocity lost in flight (over water): fly towards measurable ground the camera still sees
     # aside (a coast in the view), else back over the ground it measured, at this speed, no
-    # descent; the way back for at most nav_retreat_max_s (0: hold at once, neither);
+    # descent; on the way the ground was last seen, once it leaves the view, and the way back,
+    # each for at most nav_retreat_max_s (0: hold at once, none of them);
     # gnss_denied.NavRetreat and OdometryGate.ground_seen.
     nav_retreat_speed_m_s: float = 4.0
     nav_retreat_max_s: float = 30.0
@@ -878,6 +879,12 @@ class ControllerCore:
                 n, e = self._retreat.seen_ne
                 reason += (f"; flying towards the ground the camera can measure, "
                            f"{math.hypot(n, e) * state.alt_agl_m:.0f} m away at "
+                           f"{math.degrees(math.atan2(e, n)) % 360:.0f} deg, at "
+                           f"{self.config.nav_retreat_speed_m_s:g} m/s, no descent")
+            elif self._retreat.seen_ago_s is not None:
+                n, e = self._retreat_ne
+                reason += (f"; flying on towards the ground the camera measured "
+                           f"{self._retreat.seen_ago_s:.0f} s ago (of {self.config.nav_retreat_max_s:g} s), at "
                            f"{math.degrees(math.atan2(e, n)) % 360:.0f} deg, at "
                            f"{self.config.nav_retreat_speed_m_s:g} m/s, no descent")
             elif self._retreat_ne is not None:

@@ -23,8 +23,8 @@ The three `--gnss-denied` modes (what happens once GNSS is gone):
 
 Whatever the mode, a velocity that is not trusted means no descent (`core.Mode.NO_VELOCITY`); a
 vehicle that lost it in flight flies towards measurable ground its camera still sees aside
-(`OdometryGate.ground_seen`), else back over the ground the camera measured (`NavRetreat`), for a
-bounded time, on the autopilot's inertial estimate: in `attitude` mode the loop has no velocity to
+(`OdometryGate.ground_seen`), on the way it was last seen for a bounded time once it leaves the
+view, else back over the ground the camera measured (`NavRetreat`), for a bounded time, on the autopilot's inertial estimate: in `attitude` mode the loop has no velocity to
 close and levels.
 
 Sources: EKF_STATUS_REPORT flag bits (MAVLink ardupilotmega EKF_STATUS_FLAGS) and PX4's
@@ -359,6 +359,8 @@ class NavRetreat:
         self._lost_t_s: float | None = None
         self._way: tuple[float, float] | None = None  # the newest way back (north/east m/s)
         self.seen_ne: tuple[float, float] | None = None  # this tick's ground seen, when flown towards
+        self._seen_last: tuple[float, float, float] | None = None  # (t_s, north, east): ground last seen, until a steady stretch ends the loss
+        self.seen_ago_s: float | None = None  # this tick flies on towards ground seen this long ago
 
     def update(self, t_s: float, vel_ne_m_s: tuple[float, float], trusted: bool,
                seen_ne: tuple[float, float] | None = None) -> tuple[float, float] | None:
@@ -367,17 +369,26 @@ class NavRetreat:
         fly on, or None (trusted: follow the policy; else hold).
 
         Ground seen now is flown towards before the remembered way back (a measurement, re-taken
-        every frame, not a dead-reckoned guess), with no time limit: it ends when the velocity
-        returns or the ground leaves the view; `seen_ne` says when it is (None otherwise)."""
+        every frame, not a dead-reckoned guess), with no time limit while it is seen; `seen_ne`
+        says when it is (None otherwise). When it leaves the view the vehicle flies on the way it
+        was last seen for up to `max_s` (`seen_ago_s` says so), before the way back: the blind
+        vehicle's estimate is unaided, so the wind it does not know of carries it off while the
+        edge of the view is still 70 m short of the coast, and a hold there drifts for good
+        (coast start 6, `harsh`: the coast's share of the view sank under the gate's 3 % at 76 s,
+        the hold drifted 470 m on the wind and out of the world)."""
         way = self._update(t_s, vel_ne_m_s, trusted)
-        self.seen_ne = None
-        if trusted or seen_ne is None or self.max_s <= 0:
+        self.seen_ne, self.seen_ago_s = None, None
+        if trusted or self.max_s <= 0:
             return way
-        norm = math.hypot(*seen_ne)
-        if not 0.0 < norm < math.inf:
-            return way  # no direction in it (a gate configured with no minimum offset saw it at the nadir)
-        self.seen_ne = seen_ne
-        return seen_ne[0] / norm * self.speed_m_s, seen_ne[1] / norm * self.speed_m_s
+        norm = math.hypot(*seen_ne) if seen_ne is not None else 0.0
+        if 0.0 < norm < math.inf:
+            self.seen_ne, self._seen_last = seen_ne, (t_s, seen_ne[0] / norm, seen_ne[1] / norm)
+        elif self._seen_last is not None and t_s - self._seen_last[0] <= self.max_s:
+            self.seen_ago_s = t_s - self._seen_last[0]
+        else:
+            return way  # none seen this loss (or a gate configured with no minimum offset saw it at the nadir)
+        _, north, east = self._seen_last
+        return north * self.speed_m_s, east * self.speed_m_s
 
     def _update(self, t_s: float, vel_ne_m_s: tuple[float, float], trusted: bool) -> tuple[float, float] | None:
         if self._t_s is not None and t_s < self._t_s:
@@ -396,7 +407,7 @@ class NavRetreat:
             if t_s - self._run_t_s >= self.solid_s:
                 # A steady stretch: the loss before it is over, and this is the ground to go back to.
                 self._good = (self._run[0][1], self._run[0][2])
-                self._lost_t_s, self._way = None, None
+                self._lost_t_s, self._way, self._seen_last = None, None, None
             return None
         self._run_t_s = None
         if self._lost_t_s is None:

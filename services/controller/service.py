@@ -642,10 +642,12 @@ CLI = CommandLine(ControllerConfig, {
                                check=validate.positive),
     "attitude_max_tilt_deg": Flag("--max-tilt-deg", "attitude mode: largest roll/pitch demanded",
                                   check=lambda w, v: validate.in_range(w, v, 1.0, 35.0)),
-    "nav_retreat_speed_m_s": Flag("--nav-retreat-speed-m-s", "a velocity lost in flight (over calm water): fly back "
-                                  "over the ground the camera measured at this speed, no descent",
+    "nav_retreat_speed_m_s": Flag("--nav-retreat-speed-m-s", "a velocity lost in flight (over calm water): fly "
+                                  "towards ground the camera sees, on the way it was last seen, or back over "
+                                  "the ground it measured, at this speed, no descent",
                                   check=lambda w, v: validate.in_range(w, v, 0.1, 20.0)),
-    "nav_retreat_max_s": Flag("--nav-retreat-max-s", "... for at most this long, then hold (0: hold at once)",
+    "nav_retreat_max_s": Flag("--nav-retreat-max-s", "... the last two for at most this long each, then hold "
+                              "(0: hold at once)",
                               check=lambda w, v: validate.in_range(w, v, 0.0, 600.0)),
     "record_path": Flag("--record", "write an MCAP flight recording (states, adopted heatmaps, commands, status) "
                         "to PATH", check=non_blank, metavar="PATH"),

@@ -473,8 +473,51 @@ def test_a_velocity_lost_over_water_flies_towards_the_coast_the_camera_sees_befo
         assert (north, east, down) == pytest.approx((0.0, -config.nav_retreat_speed_m_s, 0.0), abs=1e-9)
         assert core.mode is Mode.NO_VELOCITY and "towards the ground the camera can measure, 40 m away at 270 deg" \
             in status.reason
-    cmd, status = tick(400, blind)  # the coast out of view: the way back's time is spent, a hold
+    # The coast out of view (the wind the blind estimate does not know of carries the vehicle
+    # off): on west the way it was last seen for 10 s (nav_retreat_max_s), then a hold.
+    for k in range(400, 600):
+        cmd, status = tick(k, blind)
+        fwd, right, down = cmd.vel_body_frd_m_s
+        north = fwd * math.cos(yaw) - right * math.sin(yaw)
+        east = fwd * math.sin(yaw) + right * math.cos(yaw)
+        assert (north, east, down) == pytest.approx((0.0, -config.nav_retreat_speed_m_s, 0.0), abs=1e-9)
+        assert f"flying on towards the ground the camera measured {0.05 * (k - 399):.0f} s ago (of 10 s), " \
+               "at 270 deg" in status.reason
+    cmd, status = tick(601, blind)  # 10.1 s since it was seen: the way back's time is spent too, a hold
     assert cmd.vel_body_frd_m_s == (0.0, 0.0, 0.0) and "towards" not in status.reason
+
+
+def test_ground_seen_then_lost_is_flown_on_for_max_s_and_forgotten_after_a_steady_stretch() -> None:
+    r = NavRetreat(speed_m_s=4.0, max_s=20.0)
+    t = 0.0
+    for _ in range(50):  # 5 s trusted, flying east at 4 m/s: the way back is west
+        r.update(t, (0.0, 4.0), True)
+        t += 0.1
+    assert r.update(t, (0.0, 4.0), False) == pytest.approx((0.0, -4.0))  # lost, nothing seen: the way back
+    t += 0.1
+    assert r.update(t, (0.0, 0.0), False, seen_ne=(0.3, 0.4)) == pytest.approx((2.4, 3.2))  # seen: towards it
+    seen_t = t
+    t += 0.1
+    assert r.update(t, (0.0, 0.0), False) == pytest.approx((2.4, 3.2))  # out of view: on the same way
+    assert r.seen_ne is None and r.seen_ago_s == pytest.approx(0.1)
+    for k in range(2, 200):  # for max_s after it was last seen, past the way back's own 20 s
+        t = seen_t + 0.1 * k
+        assert r.update(t, (0.0, 0.0), False) == pytest.approx((2.4, 3.2))
+    t = seen_t + 20.1
+    assert r.update(t, (0.0, 0.0), False) is None and r.seen_ago_s is None  # spent: a hold
+    assert r.update(t + 0.1, (0.0, 0.0), False, seen_ne=(0.0, -0.5)) == pytest.approx((0.0, -4.0))  # seen again
+    t += 0.2
+    for _ in range(10):  # a flicker of trust (1 s) keeps the memory
+        t += 0.1
+        r.update(t, (0.0, 1.0), True)
+    assert r.update(t + 0.1, (0.0, 0.0), False) == pytest.approx((0.0, -4.0))
+    for _ in range(40):  # a steady stretch (4 s) ends the loss and forgets the ground seen in it
+        t += 0.1
+        r.update(t, (4.0, 0.0), True)
+    assert r.update(t + 0.1, (0.0, 0.0), False) == pytest.approx((-4.0, 0.0)) and r.seen_ago_s is None
+    off = NavRetreat(speed_m_s=4.0, max_s=0.0)  # 0: neither the seen ground nor its memory is flown
+    assert off.update(0.0, (0.0, 0.0), False, seen_ne=(0.3, 0.4)) is None
+    assert off.update(0.1, (0.0, 0.0), False) is None
 
 
 def test_ground_seen_straight_below_gives_no_direction_and_the_way_back_stands() -> None:
