@@ -230,7 +230,7 @@ def _shore_world() -> World:
 def test_a_vehicle_that_flies_out_over_water_flies_back_to_where_the_camera_measures(monkeypatch) -> None:
     # GNSS lost, the autopilot on the camera's velocity, a policy that flies east over the sea.
     # Past the shore the camera measures nothing: the controller stops following the policy and
-    # flies back the way it came until the velocity is trusted again, then follows it again (out,
+    # flies back towards the shore until the velocity is trusted again, then follows it again (out,
     # back: it stays at the shore). With the retreat off it holds out at sea, where a hold drifts.
     real_build = episode.build_cores
     retreat_s: list[float] = []
@@ -256,7 +256,11 @@ def test_a_vehicle_that_flies_out_over_water_flies_back_to_where_the_camera_meas
         runs[max_s] = (float(rec.track[:, 1].max()), float(rec.track[-1, 1]), 1.0 - sum(late) / len(late),
                        statuses[lost:], float(rec.track[:, 3].min()))
     far_m, end_m, trusted_frac, after, lowest_m = runs[20.0]
-    assert any("flying back over the ground the camera measured" in s.reason for s in after)
+    # Back by any of the controller's ways: towards the shore in view, on the way it was last
+    # seen, or back the way it came.
+    ways = ("flying towards the ground the camera can measure", "flying on towards the ground the camera measured",
+            "flying back over the ground the camera measured")
+    assert any(w in s.reason for s in after for w in ways), {s.reason.split("; ")[-1] for s in after}
     assert trusted_frac > 0.2 and end_m < 200.0 + 40.0 and far_m < 200.0 + 50.0, runs[20.0][:3]
     assert lowest_m > 39.0  # never a descent on the way back
     far0_m, end0_m, trusted0_frac, _after, _ = runs[0.0]
