@@ -24,8 +24,8 @@ The three `--gnss-denied` modes (what happens once GNSS is gone):
 Whatever the mode, a velocity that is not trusted means no descent (`core.Mode.NO_VELOCITY`); a
 vehicle that lost it in flight flies towards measurable ground its camera still sees aside
 (`OdometryGate.ground_seen`), on the way it was last seen for a bounded time once it leaves the
-view, else back over the ground the camera measured (`NavRetreat`), for a bounded time, on the autopilot's inertial estimate: in `attitude` mode the loop has no velocity to
-close and levels.
+view, else back over the ground the camera measured (`NavRetreat`), for a bounded time, on the
+autopilot's inertial estimate: in `attitude` mode the loop has no velocity to close and levels.
 
 Sources: EKF_STATUS_REPORT flag bits (MAVLink ardupilotmega EKF_STATUS_FLAGS) and PX4's
 ESTIMATOR_STATUS (ESTIMATOR_STATUS_FLAGS) share bits 1..512; ArduCopter's position_ok() needs
@@ -359,7 +359,8 @@ class NavRetreat:
         self._lost_t_s: float | None = None
         self._way: tuple[float, float] | None = None  # the newest way back (north/east m/s)
         self.seen_ne: tuple[float, float] | None = None  # this tick's ground seen, when flown towards
-        self._seen_last: tuple[float, float, float] | None = None  # (t_s, north, east): ground last seen, until a steady stretch ends the loss
+        # (t_s, unit north, unit east): where ground was last seen, until a steady stretch ends the loss
+        self._seen_last: tuple[float, float, float] | None = None
         self.seen_ago_s: float | None = None  # this tick flies on towards ground seen this long ago
 
     def update(self, t_s: float, vel_ne_m_s: tuple[float, float], trusted: bool,

@@ -24,6 +24,7 @@ from dovesei.controller.gnss_denied import (
 )
 from dovesei.controller.policies.base import Decision, Observation
 from dovesei.shared.errors import ConfigError
+from dovesei.shared.frames import to_ne
 from dovesei.shared.messages import SafetyHeatmap, Stamp, VehicleState, VisualOdometry
 
 import numpy as np
@@ -468,8 +469,7 @@ def test_a_velocity_lost_over_water_flies_towards_the_coast_the_camera_sees_befo
     for k in range(100, 400):  # 15 s: past the way back's 10 s, the coast is still flown to
         cmd, status = tick(k, west)
         fwd, right, down = cmd.vel_body_frd_m_s
-        north = fwd * math.cos(yaw) - right * math.sin(yaw)
-        east = fwd * math.sin(yaw) + right * math.cos(yaw)
+        north, east = to_ne(fwd, right, yaw)
         assert (north, east, down) == pytest.approx((0.0, -config.nav_retreat_speed_m_s, 0.0), abs=1e-9)
         assert core.mode is Mode.NO_VELOCITY and "towards the ground the camera can measure, 40 m away at 270 deg" \
             in status.reason
@@ -478,8 +478,7 @@ def test_a_velocity_lost_over_water_flies_towards_the_coast_the_camera_sees_befo
     for k in range(400, 600):
         cmd, status = tick(k, blind)
         fwd, right, down = cmd.vel_body_frd_m_s
-        north = fwd * math.cos(yaw) - right * math.sin(yaw)
-        east = fwd * math.sin(yaw) + right * math.cos(yaw)
+        north, east = to_ne(fwd, right, yaw)
         assert (north, east, down) == pytest.approx((0.0, -config.nav_retreat_speed_m_s, 0.0), abs=1e-9)
         assert f"flying on towards the ground the camera measured {0.05 * (k - 399):.0f} s ago (of 10 s), " \
                "at 270 deg" in status.reason
