@@ -875,18 +875,21 @@ class ControllerCore:
             # Descending blind drifts onto ground nobody checked: no descent until a source is
             # trusted; lost in flight, the way back over the ground that was measured first.
             reason = f"no trusted velocity source: {nav.reason}"
-            speed = f"at {self.config.nav_retreat_speed_m_s:g} m/s, no descent"
-            if self._retreat_ne is not None:
+            if self._retreat_ne is not None:  # flown on: towards ground seen, the way it was seen, or back
+                speed = f"at {self.config.nav_retreat_speed_m_s:g} m/s, no descent"
                 bearing = f"{math.degrees(math.atan2(self._retreat_ne[1], self._retreat_ne[0])) % 360:.0f} deg"
-            if self._retreat.seen_ne is not None:  # set by this tick's update, when flown towards
-                reason += (f"; flying towards the ground the camera can measure, "
-                           f"{math.hypot(*self._retreat.seen_ne) * state.alt_agl_m:.0f} m away at {bearing}, {speed}")
-            elif self._retreat.seen_ago_s is not None:
-                reason += (f"; flying on towards the ground the camera measured {self._retreat.seen_ago_s:.0f} s "
-                           f"ago (of {self.config.nav_retreat_max_s:g} s), at {bearing}, {speed}")
-            elif self._retreat_ne is not None:
-                reason += (f"; flying back over the ground the camera measured {speed} "
-                           f"({self._retreat.lost_for_s(state.stamp.t_s):.0f} of {self.config.nav_retreat_max_s:g} s)")
+                if self._retreat.seen_ne is not None:  # set by this tick's update, when flown towards
+                    reason += (f"; flying towards the ground the camera can measure, "
+                               f"{math.hypot(*self._retreat.seen_ne) * state.alt_agl_m:.0f} m away at {bearing}, "
+                               f"{speed}")
+                elif self._retreat.seen_ago_s is not None:
+                    reason += (f"; flying on towards the ground the camera measured "
+                               f"{self._retreat.seen_ago_s:.0f} s ago (of {self.config.nav_retreat_max_s:g} s), "
+                               f"at {bearing}, {speed}")
+                else:
+                    reason += (f"; flying back over the ground the camera measured {speed} "
+                               f"({self._retreat.lost_for_s(state.stamp.t_s):.0f} of "
+                               f"{self.config.nav_retreat_max_s:g} s)")
             return Mode.NO_VELOCITY, reason
         if self._policy_fault is not None:
             return Mode.POLICY_FAULT, f"{self._policy_fault}: holding position"
