@@ -21,8 +21,9 @@ import numpy as np
 
 from dovesei.episode import EpisodeSpec, run_episode, separation_fields
 from dovesei.shared.errors import ConfigError
+from dovesei.shared.messages import EpisodeResult
 from dovesei.shared.mission import HANDOVER_ALT_M
-from dovesei.sim.judge import disk_safe_map, nearest_safe_m
+from dovesei.sim.judge import canopy_figures, disk_safe_map, nearest_safe_m
 from dovesei.sim.starts import Start
 from dovesei.sim.world import load_world
 
@@ -119,7 +120,21 @@ def run_job(job: dict) -> dict:
                           if r.confirmed_valid else None),
             "touchdown_error_m": round(r.touchdown_error_m, 3) if r.touchdown_error_valid else None,
             **separation_fields(r),
+            **_canopy_field(job["world"], r),
             "_track": rec.track.astype(np.float32)}
+
+
+def _canopy_field(spec: str, r: EpisodeResult) -> dict:
+    """{"canopy": figures} for a judged landing on a world whose labels lump lawn with tree canopy
+    (`judge.canopy_figures`); nothing on other worlds, whose records stay as they were."""
+    if not r.classes_found:  # no landing judged
+        return {}
+    try:
+        figures = canopy_figures(_world(spec), r.final_x_m, r.final_y_m)
+    except Exception:  # noqa: BLE001 - a figure for the report: the episode's record stands without it
+        log.exception("canopy figures for %s not measured", spec)
+        return {}
+    return {} if figures is None else {"canopy": figures}
 
 
 def record_base(job: dict) -> dict:

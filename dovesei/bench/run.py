@@ -28,6 +28,7 @@ from dovesei.flight_defaults import starts as bench_starts
 from dovesei.pictures.html import write_bench_page
 from dovesei.shared.errors import ConfigError, DoveseiError
 from dovesei.shared.mission import HANDOVER_ALT_M, PERSON_SEPARATION_M, SAFETY_RADIUS_M, VEHICLE_SEPARATION_M
+from dovesei.sim.judge import CANOPY_NEAR_M
 from dovesei.sim.world import load_world, require_judged
 
 log = logging.getLogger(__name__)
@@ -318,6 +319,14 @@ def summary_markdown(doc: dict, *, title: str = "dovesei bench") -> str:
                                        "table above is theirs, their plain twins another bench's. ")
                   + "Each episode's a and b are in results.json.", "",
                   *stats.rows_table(doc["per_shift"], ("policy", "shift")), ""]
+    canopy_lines = stats.canopy_table(doc["summary"])
+    if canopy_lines:
+        lines += ["## Unsafe landings on ground the labels do not separate from tree canopy", "",
+                  "A class marked `canopy_from_image` lumps open ground with trees (e.g. Dubai's \"vegetation\"); "
+                  "the judge keeps it as labelled. Beside each such unsafe landing, the canopy the world's image "
+                  f"shows: in the {SAFETY_RADIUS_M:g} m disk, within {CANOPY_NEAR_M:g} m, and the nearest crown "
+                  "(the first column counts them among the hand-overs judged on such a world).", "",
+                  *canopy_lines, ""]
     if doc.get("per_world"):
         keys = ("world", "policy", "shift") if "shift" in doc["per_world"][0] else ("world", "policy")
         lines += ["## Per world", "", *stats.rows_table(doc["per_world"], keys), ""]

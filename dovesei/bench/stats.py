@@ -12,7 +12,7 @@ from collections.abc import Iterable, Sequence
 import numpy as np
 
 from dovesei.shared.timing import PAPER_TIME_LIMIT_S, timing
-from dovesei.sim.judge import SEARCH_RADIUS_M
+from dovesei.sim.judge import CANOPY_NEAR_M, SEARCH_RADIUS_M
 
 OUTCOMES = ("safe", "unsafe", "timeout", "out_of_world", "error")
 SUMMARY_KEYS = ("episodes", *OUTCOMES)
@@ -55,6 +55,7 @@ def _counts(eps: list[dict]) -> dict:
     s["median_touchdown_error_m"] = round(float(np.median(errors)), 2) if errors else None
     s["max_touchdown_error_m"] = round(float(np.max(errors)), 2) if errors else None
     s.update(separation_counts(eps))
+    s.update(canopy_counts(eps))
     lo, hi = wilson_interval(s["safe"], len(eps))
     s["success_rate"] = round(s["safe"] / len(eps), 4) if eps else None
     s["success_ci95"] = [round(lo, 4), round(hi, 4)]
@@ -73,6 +74,37 @@ def separation_counts(eps: list[dict]) -> dict:
         out[f"median_nearest_{what}_m"] = round(float(np.median(d)), 2) if d else None
         out[f"min_nearest_{what}_m"] = round(float(np.min(d)), 2) if d else None
     return out
+
+
+def canopy_counts(eps: list[dict]) -> dict:
+    """The unsafe landings on a class the labels lump with tree canopy (records with the judge's
+    `canopy` figures, a disk at least partly on such a class) and, of them, how many had canopy the
+    image shows in the disk or within CANOPY_NEAR_M, and the nearest crown's median distance (none
+    within the judge's search radius counting as that radius). Empty for benches whose worlds lump
+    nothing, so their summaries stay as they were."""
+    judged = [e for e in eps if isinstance(e.get("canopy"), dict)]
+    if not judged:
+        return {}
+    lumped = [e["canopy"] for e in judged if e["outcome"] == "unsafe" and e["canopy"]["lumped"] > 0]
+    near = [SEPARATION_SEARCH_M if f["nearest_m"] is None else f["nearest_m"] for f in lumped]
+    return {"canopy_judged": len(judged), "canopy_unsafe": len(lumped),
+            "canopy_unsafe_crown_in_disk": sum(f["in_disk"] > 0 for f in lumped),
+            "canopy_unsafe_crown_near": sum(d < CANOPY_NEAR_M for d in near),
+            "canopy_unsafe_median_crown_m": round(float(np.median(near)), 2) if near else None}
+
+
+def canopy_table(summary: dict[str, dict]) -> list[str]:
+    """Per policy, the `canopy_counts` of its landings (no lines when no record has them)."""
+    pols = [p for p, s in summary.items() if "canopy_judged" in s]
+    if not pols:
+        return []
+    lines = ["| policy | unsafe landings on the lumped class | canopy in the disk "
+             f"| a crown within {CANOPY_NEAR_M:g} m | nearest crown median (m) |", "|---|---|---|---|---|"]
+    for pol in pols:
+        s = summary[pol]
+        lines.append(f"| {pol} | {s['canopy_unsafe']}/{s['canopy_judged']} | {s['canopy_unsafe_crown_in_disk']} | "
+                     f"{s['canopy_unsafe_crown_near']} | {_fmt(s['canopy_unsafe_median_crown_m'])} |")
+    return lines
 
 
 def separation_text(config: dict) -> str:

@@ -53,7 +53,7 @@ from dovesei.shared.errors import DoveseiError
 from dovesei.shared.mission import HANDOVER_ALT_M, PERSON_SEPARATION_M, SAFETY_RADIUS_M, VEHICLE_SEPARATION_M
 from dovesei.shared.validate import is_number
 from dovesei.sim.dynamics import Pose
-from dovesei.sim.world import World
+from dovesei.sim.world import CANOPY_CLASS_NAME, World
 
 OUTSIDE_WORLD_NAME = "outside the world"
 DEFAULT_ZERO_TOLERANCE_NAMES = ("person", "people", "pedestrian", "human")
@@ -62,6 +62,9 @@ TOLERANCE_FRAC = 0.01  # unsafe share of the disk forgiven (label anti-aliasing 
 SEARCH_RADIUS_M = 50.0  # how far `closest_unsafe_m` looks
 GROUND_CONTACT_M = 0.1  # true altitude at which an un-handed-over vehicle has hit the ground
 NO_HANDOVER_REASON = "on the ground without a hand-over (an uncommanded descent)"
+# How near a crown counts as "beside the trees" in the canopy figures (`canopy_figures`): a crown's
+# radius and a little, the distance the earlier canopy tables of docs/RESULTS.md used.
+CANOPY_NEAR_M = 5.0
 
 
 class JudgeError(DoveseiError, ValueError):
@@ -168,6 +171,33 @@ def judge_landing(
         closest_unsafe_m=closest_unsafe_m(world, x_m, y_m, search_radius_m), reason=reason,
         nearest_person_m=person_m, nearest_vehicle_m=vehicle_m, separation_violated=violated,
     )
+
+
+def canopy_figures(world: World, x_m: float, y_m: float, safety_radius_m: float = SAFETY_RADIUS_M,
+                   search_radius_m: float = SEARCH_RADIUS_M) -> dict[str, float | None] | None:
+    """Where a landing stands against the tree crowns the world's image shows, on a world whose
+    labels lump open ground with canopy (a class marked `canopy_from_image`, e.g. Dubai's
+    "vegetation (lawns and trees, not separated)"); None on other worlds.
+
+    `lumped`: the share of the disk on such a class (the judge's labels); `in_disk`: the share the
+    image shows as canopy (`World.perceived`, the rule the simulated camera sees by); `nearest_m`:
+    the distance to the nearest canopy pixel centre (None: none within search_radius_m). A figure
+    beside the verdict, never part of it: the judge keeps the world's labels, so a landing on open
+    lawn under such a class stays unsafe and these figures say how open the lawn was.
+    """
+    if world.labels is None:
+        raise JudgeError(f"world {world.name!r} has no label map")
+    lumped_ids = np.array(sorted(c for c, info in world.classes.items() if info.canopy_from_image), np.uint8)
+    if not lumped_ids.size:
+        return None
+    seen = world.perceived()
+    crown_ids = np.array(sorted(c for c, info in seen.classes.items() if info.name == CANOPY_CLASS_NAME), np.uint8)
+    ids, inside = _disk_labels(world, x_m, y_m, safety_radius_m)
+    seen_ids, _ = _disk_labels(seen, x_m, y_m, safety_radius_m)
+    nearest = _nearest_m(seen, lambda rs, cs: np.isin(seen.labels[rs, cs], crown_ids), x_m, y_m, search_radius_m)
+    return {"lumped": round(float(np.count_nonzero(inside & np.isin(ids, lumped_ids)) / ids.size), 3),
+            "in_disk": round(float(np.count_nonzero(inside & np.isin(seen_ids, crown_ids)) / ids.size), 3),
+            "nearest_m": None if nearest is None else round(float(nearest), 2)}
 
 
 def check_separations(person_separation_m: object, vehicle_separation_m: object) -> None:

@@ -14,7 +14,9 @@ import pytest
 from dovesei.segmenter.sim_backend import View, profile_params, SimPerception
 from dovesei.segmenter.prompts import REFERENCE_PROMPTS
 from dovesei.segmenter.fusion import FusionConfig
+from dovesei.bench.stats import canopy_counts, canopy_table, summarise
 from dovesei.sim.core import SimConfig, SimCore
+from dovesei.sim.judge import canopy_figures, judge_landing
 from dovesei.sim.starts import Start
 from dovesei.sim.world import (CANOPY_CLASS_NAME, OPEN_CLASS_NAME, WorldError, load_world)
 
@@ -107,3 +109,43 @@ def test_the_shipped_dubai_world_sees_its_vegetation_canopy() -> None:
     in_veg = seen.labels[world.labels == veg[0]]
     share = np.mean([names[int(i)] == CANOPY_CLASS_NAME for i in in_veg[::97]])
     assert 0.08 <= share <= 0.3, share
+
+
+def test_canopy_figures_measure_the_crowns_beside_a_landing_and_leave_the_verdict(tmp_path: Path) -> None:
+    """The judge's canopy figures say how open the lumped ground under a landing was (a crown in
+    the disk, the nearest crown) without changing its verdict; worlds that lump nothing get none."""
+    world = load_world(str(_folder(tmp_path)))
+    row, col = CROWNS[5]
+    on_crown = canopy_figures(world, *world.pixel_to_world(row, col))
+    assert on_crown == {"lumped": 1.0, "in_disk": 1.0, "nearest_m": 0.0}
+    # 10 m from the crown's centre, on open lawn: the crown (4 m, grown by 1 m) is about 5 m off.
+    x_m, y_m = world.pixel_to_world(row, col + 20)
+    open_lawn = canopy_figures(world, x_m, y_m)
+    assert open_lawn["lumped"] == 1.0 and open_lawn["in_disk"] == 0.0
+    assert 4.0 <= open_lawn["nearest_m"] <= 6.0, open_lawn
+    assert judge_landing(world, x_m, y_m).outcome == "unsafe"  # the class stays as labelled
+    on_road = canopy_figures(world, *world.pixel_to_world(10, 10))
+    assert on_road["lumped"] == 0.0 and on_road["in_disk"] == 0.0
+    far = canopy_figures(world, x_m, y_m, search_radius_m=3.0)
+    assert far["nearest_m"] is None  # no crown within the search radius
+    (tmp_path / "plain").mkdir()
+    assert canopy_figures(load_world(str(_folder(tmp_path / "plain", canopy=False))), x_m, y_m) is None
+
+
+def test_bench_summaries_count_unsafe_landings_beside_the_crowns() -> None:
+    """Unsafe landings on the lumped class are counted with the canopy beside them; a bench whose
+    records carry no canopy figures keeps its summary as it was."""
+    base = {"policy": "p", "sim_time_s": 1.0, "path_length_m": 1.0, "wall_time_s": 1.0}
+    eps = [{**base, "outcome": "unsafe", "canopy": {"lumped": 1.0, "in_disk": 0.0, "nearest_m": 11.5}},
+           {**base, "outcome": "unsafe", "canopy": {"lumped": 0.6, "in_disk": 0.2, "nearest_m": 0.0}},
+           {**base, "outcome": "unsafe", "canopy": {"lumped": 1.0, "in_disk": 0.0, "nearest_m": None}},
+           {**base, "outcome": "unsafe", "canopy": {"lumped": 0.0, "in_disk": 0.0, "nearest_m": 3.0}},  # a road
+           {**base, "outcome": "safe", "canopy": {"lumped": 0.0, "in_disk": 0.0, "nearest_m": 2.0}},
+           {**base, "outcome": "timeout"}]
+    s = summarise(eps, ["p"])["p"]
+    assert (s["canopy_judged"], s["canopy_unsafe"]) == (5, 3)
+    assert (s["canopy_unsafe_crown_in_disk"], s["canopy_unsafe_crown_near"]) == (1, 1)
+    assert s["canopy_unsafe_median_crown_m"] == 11.5  # 0, 11.5 and none within 50 m (counted as 50)
+    assert canopy_table({"p": s})[2] == "| p | 3/5 | 1 | 1 | 11.5 |"
+    assert canopy_counts([base | {"outcome": "safe"}]) == {}
+    assert canopy_table(summarise([base | {"outcome": "safe"}], ["p"])) == []
