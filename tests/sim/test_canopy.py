@@ -14,6 +14,8 @@ import pytest
 from dovesei.segmenter.sim_backend import View, profile_params, SimPerception
 from dovesei.segmenter.prompts import REFERENCE_PROMPTS
 from dovesei.segmenter.fusion import FusionConfig
+from dovesei.bench import make_grid
+from dovesei.bench.run import summary_markdown
 from dovesei.bench.stats import canopy_counts, canopy_table, summarise
 from dovesei.sim.core import SimConfig, SimCore
 from dovesei.sim.judge import canopy_figures, judge_landing
@@ -149,3 +151,10 @@ def test_bench_summaries_count_unsafe_landings_beside_the_crowns() -> None:
     assert canopy_table({"p": s})[2] == "| p | 3/5 | 1 | 1 | 11.5 |"
     assert canopy_counts([base | {"outcome": "safe"}]) == {}
     assert canopy_table(summarise([base | {"outcome": "safe"}], ["p"])) == []
+    config = make_grid(world_spec="dubai", episodes=1, seed=0, policies=("p",), noise=None, timing="real",
+                       time_limit_s=60.0, start_alt_m=100.0, start_margin_m=50.0).config()
+    page = summary_markdown({"config": config, "summary": {"p": s}})
+    assert "## Unsafe landings on ground the labels do not separate from tree canopy" in page
+    assert "| p | 3/5 | 1 | 1 | 11.5 |" in page
+    assert "tree canopy" not in summary_markdown({"config": config, "summary": summarise([base | {"outcome": "safe"}],
+                                                                                          ["p"])})
