@@ -86,7 +86,7 @@ def canopy_counts(eps: list[dict]) -> dict:
     if not judged:
         return {}
     lumped = [e["canopy"] for e in judged if e["outcome"] == "unsafe" and e["canopy"]["lumped"] > 0]
-    near = [SEPARATION_SEARCH_M if f["nearest_m"] is None else f["nearest_m"] for f in lumped]
+    near = [SEARCH_RADIUS_M if f["nearest_m"] is None else f["nearest_m"] for f in lumped]
     return {"canopy_judged": len(judged), "canopy_unsafe": len(lumped),
             "canopy_unsafe_crown_in_disk": sum(f["in_disk"] > 0 for f in lumped),
             "canopy_unsafe_crown_near": sum(d < CANOPY_NEAR_M for d in near),

@@ -187,16 +187,18 @@ def canopy_figures(world: World, x_m: float, y_m: float, safety_radius_m: float 
     """
     if world.labels is None:
         raise JudgeError(f"world {world.name!r} has no label map")
-    lumped_ids = np.array(sorted(c for c, info in world.classes.items() if info.canopy_from_image), np.uint8)
-    if not lumped_ids.size:
+    if not (is_number(x_m) and is_number(y_m)):
+        raise JudgeError(f"landing point must be finite, got ({x_m!r}, {y_m!r})")
+    lumped_ids = [c for c, info in world.classes.items() if info.canopy_from_image]
+    if not lumped_ids:
         return None
-    seen = world.perceived()
-    crown_ids = np.array(sorted(c for c, info in seen.classes.items() if info.name == CANOPY_CLASS_NAME), np.uint8)
-    ids, inside = _disk_labels(world, x_m, y_m, safety_radius_m)
-    seen_ids, _ = _disk_labels(seen, x_m, y_m, safety_radius_m)
+    seen = world.perceived()  # the same grid as the world's, its lumped classes split by the image
+    crown_ids = [c for c, info in seen.classes.items() if info.name == CANOPY_CLASS_NAME]
+    rr, cc, inside = _disk_pixels(world, x_m, y_m, safety_radius_m)
+    rr, cc, n = rr[inside], cc[inside], rr.size  # pixels beyond the world count in the disk, as no class
     nearest = _nearest_m(seen, lambda rs, cs: np.isin(seen.labels[rs, cs], crown_ids), x_m, y_m, search_radius_m)
-    return {"lumped": round(float(np.count_nonzero(inside & np.isin(ids, lumped_ids)) / ids.size), 3),
-            "in_disk": round(float(np.count_nonzero(inside & np.isin(seen_ids, crown_ids)) / ids.size), 3),
+    return {"lumped": round(float(np.count_nonzero(np.isin(world.labels[rr, cc], lumped_ids))) / n, 3),
+            "in_disk": round(float(np.count_nonzero(np.isin(seen.labels[rr, cc], crown_ids))) / n, 3),
             "nearest_m": None if nearest is None else round(float(nearest), 2)}
 
 
@@ -243,6 +245,14 @@ def _pixel_window(world: World, x_m: float, y_m: float, radius_m: float) -> tupl
 
 def _disk_labels(world: World, x_m: float, y_m: float, radius_m: float) -> tuple[np.ndarray, np.ndarray]:
     """Label ids of the disk's pixels (0 where outside) and which of them lie inside the world."""
+    rr, cc, inside = _disk_pixels(world, x_m, y_m, radius_m)
+    ids = np.zeros(rr.shape, dtype=np.uint8)  # placeholder ids where outside; `inside` tells them apart
+    ids[inside] = world.labels[rr[inside], cc[inside]]
+    return ids, inside
+
+
+def _disk_pixels(world: World, x_m: float, y_m: float, radius_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(rows, cols) of the disk's pixels, some perhaps beyond the image, and which lie inside it."""
     rows, cols = _pixel_window(world, x_m, y_m, radius_m)
     row_c, col_c = world.world_to_pixel(x_m, y_m)
     rr, cc = np.meshgrid(rows, cols, indexing="ij")
@@ -251,10 +261,7 @@ def _disk_labels(world: World, x_m: float, y_m: float, radius_m: float) -> tuple
     centre_row, centre_col = world.pixel_index(x_m, y_m)
     in_disk |= (rr == centre_row) & (cc == centre_col)
     rr, cc = rr[in_disk], cc[in_disk]
-    inside = (rr >= 0) & (rr < world.height_px) & (cc >= 0) & (cc < world.width_px)
-    ids = np.zeros(rr.shape, dtype=np.uint8)  # placeholder ids where outside; `inside` tells them apart
-    ids[inside] = world.labels[rr[inside], cc[inside]]
-    return ids, inside
+    return rr, cc, (rr >= 0) & (rr < world.height_px) & (cc >= 0) & (cc < world.width_px)
 
 
 def _nearest_m(world: World, select, x_m: float, y_m: float, radius_m: float) -> float | None:

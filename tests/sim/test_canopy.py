@@ -18,7 +18,7 @@ from dovesei.bench import make_grid
 from dovesei.bench.run import summary_markdown
 from dovesei.bench.stats import canopy_counts, canopy_table, summarise
 from dovesei.sim.core import SimConfig, SimCore
-from dovesei.sim.judge import canopy_figures, judge_landing
+from dovesei.sim.judge import JudgeError, canopy_figures, judge_landing
 from dovesei.sim.starts import Start
 from dovesei.sim.world import (CANOPY_CLASS_NAME, OPEN_CLASS_NAME, WorldError, load_world)
 
@@ -132,6 +132,8 @@ def test_canopy_figures_measure_the_crowns_beside_a_landing_and_leave_the_verdic
     assert far["nearest_m"] is None  # no crown within the search radius
     (tmp_path / "plain").mkdir()
     assert canopy_figures(load_world(str(_folder(tmp_path / "plain", canopy=False))), x_m, y_m) is None
+    with pytest.raises(JudgeError, match=r"landing point must be finite, got \(nan, "):
+        canopy_figures(world, float("nan"), y_m)
 
 
 def test_bench_summaries_count_unsafe_landings_beside_the_crowns() -> None:
